@@ -1,0 +1,320 @@
+"""Gymnasium environment `ReachAlpha-v0`: the four joints E D C B of the MuJoCo Alpha 5.
+
+The env steps `reach_sim_bridge.arm.Alpha5Arm` directly (the same arm and motor model the
+virtual arm serves on the wire), so a policy trained here meets the same physics in the loop.
+Actions in [-1, 1]^4 are currents as a fraction of each joint's current limit.
+
+Gymnasium 1.x has no plugin entry points any more, so importing this module registers the env;
+`gym.make("policy.env:ReachAlpha-v0")` imports and registers in one go.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any, Protocol
+
+import gymnasium as gym
+import numpy as np
+
+from policy.observation import (
+    N_JOINTS,
+    WORKSPACE_HALF_RANGE,
+    WORKSPACE_HIGH,
+    WORKSPACE_LOW,
+    ObservationConfig,
+    build_observation,
+    observation_bounds,
+)
+
+ENV_ID = "ReachAlpha-v0"
+NO_LOAD_SPEED = 1.18  # rad/s, E/D/C motors at 24 V (alpha5-model.md)
+SENSOR_NOISE_Q = 0.002  # rad
+SENSOR_NOISE_QDOT = 0.02  # rad/s
+
+
+class ArmLike(Protocol):
+    """The part of `Alpha5Arm` the env uses (docs/architecture.md)."""
+
+    q: np.ndarray
+    qdot: np.ndarray
+    torque_scale: np.ndarray
+    position_limits: np.ndarray
+    current_limits_mA: np.ndarray
+
+    def reset(self, q: np.ndarray, qdot: np.ndarray | None = ..., jaw_mm: float = ...) -> Any: ...
+
+    def step(self, currents_mA: np.ndarray, jaw_current_mA: float = ..., n: int = ...) -> Any: ...
+
+
+class RewardMode(str, Enum):
+    PAPER = "paper"  # -1 + exp(-0.5 (|q - q_req| / sigma)^2), -10 per step out of bounds
+    SHAPED = "shaped"  # per-joint paper terms + distance, and calm-arrival penalties
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Reward terms. `PAPER` uses only `sigma` and `out_of_bounds`.
+
+    The paper's -10 is paid for EVERY step spent outside the bounds and the episode goes on:
+    a one-off terminal -10 would make crashing out cheaper than ~-100 for staying inside
+    (paper-benchmark.md, pitfalls).
+    """
+
+    mode: RewardMode = RewardMode.PAPER
+    sigma: float = 0.018  # rad
+    out_of_bounds: float = -10.0
+    distance_weight: float = 1.0  # x mean |e| / half-range: a gradient far from the target
+    near_scale: float = 0.05  # rad: width of the gate that switches on the penalties below
+    velocity_weight: float = 0.0  # x mean gate * |qdot| / no-load speed
+    action_change_weight: float = 0.0  # x mean gate * |a - a_prev|
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Everything that defines an episode; serialisable so it can ship beside the weights.
+
+    control_hz: 20 Hz by default: the paper does not state its rate, but its mean integral
+    error (58.27 over 20 random 20 s episodes) is the size of |e| summed per step at ~20 Hz.
+    """
+
+    control_hz: float = 20.0
+    episode_s: float = 20.0
+    physics_dt: float = 0.002
+    observation: ObservationConfig = field(default_factory=ObservationConfig.paper)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    bounds_margin: float = 0.3  # rad outside the workspace before a step counts as out of bounds
+    sensor_noise: bool = False  # sigma 0.002 rad on q, 0.02 rad/s on qdot
+    torque_scale: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+    #: if set, each episode draws each joint's torque scale uniformly in [low, torque_scale]
+    torque_scale_low: tuple[float, float, float, float] | None = None
+    #: relative perturbation of the model parameters per episode (0.1 = +-10 %), 0 disables
+    param_perturbation: float = 0.0
+    #: starts and goals at most this far apart per joint (rad); None = whole workspace
+    max_step: float | None = None
+
+    @property
+    def steps_per_episode(self) -> int:
+        return int(round(self.episode_s * self.control_hz))
+
+    def to_dict(self) -> dict[str, Any]:
+        data = dataclasses.asdict(self)
+        data["reward"]["mode"] = self.reward.mode.value
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> EnvConfig:
+        data = dict(data)
+        unknown = set(data) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"unknown env config keys: {sorted(unknown)}")
+        if "observation" in data:
+            data["observation"] = ObservationConfig.from_dict(data["observation"])
+        if "reward" in data:
+            reward = dict(data["reward"])
+            reward["mode"] = RewardMode(reward.get("mode", "paper"))
+            data["reward"] = RewardConfig(**reward)
+        for key in ("torque_scale", "torque_scale_low"):
+            if data.get(key) is not None:
+                data[key] = tuple(float(x) for x in data[key])
+        return cls(**data)
+
+
+def compute_reward(
+    q: np.ndarray,
+    qdot: np.ndarray,
+    q_req: np.ndarray,
+    action: np.ndarray,
+    prev_action: np.ndarray,
+    in_bounds: bool,
+    config: RewardConfig,
+) -> float:
+    """One step's reward from the TRUE state (never the noisy readings)."""
+    if not in_bounds:
+        return float(config.out_of_bounds)
+    error = q_req - q
+    if config.mode is RewardMode.PAPER:
+        return float(-1.0 + np.exp(-0.5 * (np.linalg.norm(error) / config.sigma) ** 2))
+    gate = np.exp(-0.5 * (error / config.near_scale) ** 2)
+    reward = -1.0 + np.mean(np.exp(-0.5 * (error / config.sigma) ** 2))
+    reward -= config.distance_weight * np.mean(np.abs(error) / WORKSPACE_HALF_RANGE)
+    reward -= config.velocity_weight * np.mean(gate * np.abs(qdot) / NO_LOAD_SPEED)
+    reward -= config.action_change_weight * np.mean(gate * np.abs(action - prev_action))
+    return float(reward)
+
+
+def default_arm_factory(config: EnvConfig, rng: np.random.Generator) -> ArmLike:
+    """A MuJoCo arm, with its float parameters scaled by random factors if asked."""
+    from reach_sim_bridge.arm import Alpha5Arm, ArmParams
+
+    params = ArmParams()
+    if config.param_perturbation > 0:
+        params = perturb_params(params, config.param_perturbation, rng)
+    arm: ArmLike = Alpha5Arm(params=params, dt=config.physics_dt)
+    return arm
+
+
+#: ArmParams fields that are physical model parameters worth perturbing (those present are used).
+PERTURBABLE = (
+    "armature",
+    "damping",
+    "viscous",
+    "frictionloss",
+    "coulomb",
+    "mass_scale",
+    "link_mass_scale",
+    "buoyancy_scale",
+    "water_density",
+    "torque_constant",
+    "kt",
+)
+
+
+def perturb_params(params: Any, scale: float, rng: np.random.Generator) -> Any:
+    """Copy of a dataclass of model parameters with each physical float scaled by U(1-s, 1+s)."""
+    changes: dict[str, Any] = {}
+    for f in dataclasses.fields(params):
+        if not any(f.name == name or f.name.startswith(name) for name in PERTURBABLE):
+            continue
+        value = getattr(params, f.name)
+        if isinstance(value, float):
+            changes[f.name] = value * rng.uniform(1 - scale, 1 + scale)
+        elif isinstance(value, tuple) and all(isinstance(v, float) for v in value):
+            changes[f.name] = tuple(v * rng.uniform(1 - scale, 1 + scale) for v in value)
+        elif isinstance(value, np.ndarray) and value.dtype.kind == "f":
+            changes[f.name] = value * rng.uniform(1 - scale, 1 + scale, size=value.shape)
+    return dataclasses.replace(params, **changes)
+
+
+class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
+    """Reach random goals from random starts in 20 s; no termination, only truncation."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(
+        self,
+        config: EnvConfig | None = None,
+        arm_factory: Callable[[EnvConfig, np.random.Generator], ArmLike] | None = None,
+        **overrides: Any,
+    ) -> None:
+        config = config or EnvConfig()
+        if overrides:
+            config = dataclasses.replace(config, **overrides)
+        if config.control_hz <= 0 or config.episode_s <= 0:
+            raise ValueError("control_hz and episode_s must be positive")
+        self.config = config
+        self._arm_factory = arm_factory or default_arm_factory
+        self.n_substeps = max(1, int(round(1.0 / (config.control_hz * config.physics_dt))))
+        self.control_dt = self.n_substeps * config.physics_dt
+        low, high = observation_bounds(config.observation)
+        self.observation_space = gym.spaces.Box(low, high, dtype=np.float32)
+        self._obs_low, self._obs_high = low, high
+        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(N_JOINTS,), dtype=np.float32)
+        self.arm: ArmLike = self._arm_factory(config, np.random.default_rng(0))
+        limits = np.asarray(self.arm.position_limits, dtype=np.float64)
+        self.bounds_low = np.maximum(WORKSPACE_LOW - config.bounds_margin, limits[:, 0])
+        self.bounds_high = np.minimum(WORKSPACE_HIGH + config.bounds_margin, limits[:, 1])
+        self.current_limits_mA = np.asarray(self.arm.current_limits_mA, dtype=np.float64).copy()
+        self.target = WORKSPACE_LOW.copy()
+        self.start = WORKSPACE_LOW.copy()
+        self.prev_action = np.zeros(N_JOINTS)
+        self.steps = 0
+        self.last_reading = (self.start.copy(), np.zeros(N_JOINTS))
+
+    # -- gymnasium API -------------------------------------------------------------------
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Random start and goal; `options` may fix them: {"start": q0, "target": q_req}."""
+        super().reset(seed=seed)
+        options = options or {}
+        cfg = self.config
+        if cfg.param_perturbation > 0:
+            self.arm = self._arm_factory(cfg, self.np_random)
+        start = self.np_random.uniform(WORKSPACE_LOW, WORKSPACE_HIGH)
+        target = self.np_random.uniform(WORKSPACE_LOW, WORKSPACE_HIGH)
+        if cfg.max_step is not None:
+            step = self.np_random.uniform(-cfg.max_step, cfg.max_step, size=N_JOINTS)
+            target = np.clip(start + step, WORKSPACE_LOW, WORKSPACE_HIGH)
+        scale = np.asarray(cfg.torque_scale, dtype=np.float64)
+        if cfg.torque_scale_low is not None:
+            scale = self.np_random.uniform(np.asarray(cfg.torque_scale_low), scale)
+        if "start" in options:
+            start = self._joint_vector(options["start"], "start")
+        if "target" in options:
+            target = self._joint_vector(options["target"], "target")
+        if "torque_scale" in options:
+            scale = self._joint_vector(options["torque_scale"], "torque_scale")
+        self.start, self.target = start, target
+        self.arm.torque_scale = scale.copy()
+        self.arm.reset(q=start.copy())
+        self.prev_action = np.zeros(N_JOINTS)
+        self.steps = 0
+        return self._observe(), self._info(in_bounds=True)
+
+    def step(
+        self, action: np.ndarray
+    ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != (N_JOINTS,):
+            raise ValueError(f"action must have shape (4,), got {action.shape}")
+        if not np.all(np.isfinite(action)):
+            raise ValueError(f"action must be finite, got {action}")
+        action = np.clip(action, -1.0, 1.0)
+        self.arm.step(action * self.current_limits_mA, n=self.n_substeps)
+        self.steps += 1
+        q, qdot = np.asarray(self.arm.q), np.asarray(self.arm.qdot)
+        in_bounds = bool(np.all((q > self.bounds_low) & (q < self.bounds_high)))
+        reward = compute_reward(
+            q, qdot, self.target, action, self.prev_action, in_bounds, self.config.reward
+        )
+        self.prev_action = action
+        truncated = self.steps >= self.config.steps_per_episode
+        return self._observe(), reward, False, truncated, self._info(in_bounds)
+
+    # -- helpers -------------------------------------------------------------------------
+    def readings(self) -> tuple[np.ndarray, np.ndarray]:
+        """Joint angles and speeds as a sensor reports them (with noise if configured)."""
+        q = np.array(self.arm.q, dtype=np.float64)
+        qdot = np.array(self.arm.qdot, dtype=np.float64)
+        if self.config.sensor_noise:
+            q = q + self.np_random.normal(0.0, SENSOR_NOISE_Q, N_JOINTS)
+            qdot = qdot + self.np_random.normal(0.0, SENSOR_NOISE_QDOT, N_JOINTS)
+        return q, qdot
+
+    def _observe(self) -> np.ndarray:
+        q, qdot = self.readings()
+        self.last_reading = (q, qdot)
+        obs = build_observation(q, qdot, self.target, self.config.observation)
+        return np.clip(obs, self._obs_low, self._obs_high)
+
+    def _info(self, in_bounds: bool) -> dict[str, Any]:
+        return {
+            "q": np.array(self.arm.q, dtype=np.float64),
+            "qdot": np.array(self.arm.qdot, dtype=np.float64),
+            "target": self.target.copy(),
+            "time": self.steps * self.control_dt,
+            "in_bounds": in_bounds,
+        }
+
+    @staticmethod
+    def _joint_vector(value: Any, name: str) -> np.ndarray:
+        arr = np.asarray(value, dtype=np.float64)
+        if arr.shape != (N_JOINTS,) or not np.all(np.isfinite(arr)):
+            raise ValueError(f"option {name!r} must be 4 finite numbers (E D C B), got {value!r}")
+        return arr
+
+
+def register_envs() -> None:
+    """Register `ReachAlpha-v0` (idempotent)."""
+    if ENV_ID not in gym.registry:
+        gym.register(
+            id=ENV_ID,
+            entry_point="policy.env:ReachAlphaEnv",
+            max_episode_steps=None,
+        )
+
+
+register_envs()

@@ -1,0 +1,55 @@
+"""The driver's exceptions: one base class so callers can catch everything the driver raises.
+
+Each message names the port, joint or limit involved, because these errors end up in front
+of someone holding a cable, not a debugger.
+"""
+
+from __future__ import annotations
+
+
+class DriverError(Exception):
+    """Base of every error raised by `reach_driver`."""
+
+
+class BadUrlError(DriverError, ValueError):
+    """A `--port` string that names no transport we can open."""
+
+
+class TransportError(DriverError):
+    """Opening, reading or writing the link failed (cable out, port gone, socket error)."""
+
+
+class PortNotFoundError(TransportError):
+    """The serial device does not exist."""
+
+
+class PortPermissionError(TransportError):
+    """The serial device exists but this user may not open it."""
+
+
+class LinkDownError(DriverError):
+    """A command was issued while the link is down; it was not sent."""
+
+
+class RequestTimeoutError(DriverError, TimeoutError):
+    """A device did not answer a REQUEST within its timeout and retries."""
+
+
+class NoResponseError(DriverError):
+    """Nothing on the link answers: wrong port, arm unpowered, or wrong address."""
+
+
+class GarbageError(NoResponseError):
+    """Bytes arrive but no valid frame decodes: most likely a wrong baud rate."""
+
+
+class LimitError(DriverError, ValueError):
+    """A command would leave a safety limit; it was refused and not sent."""
+
+
+class WatchdogTrippedError(DriverError):
+    """The watchdog put the arm in a safe mode; continuous commands wait for `rearm()`."""
+
+
+class ArmFaultError(DriverError):
+    """The arm reports hardware status flags (over current, encoder error, ...)."""

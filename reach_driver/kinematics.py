@@ -1,0 +1,74 @@
+"""Forward kinematics of the Alpha 5 from its published joint frames.
+
+The driver draws the arm (recordings) and reports the tool position without importing the
+simulator, so it carries the kinematic chain itself: origins and axes of the vendor URDF frames
+(`../shared/reference/alpha5-model.md`), joint angles exactly as the arm reports them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Distance from the wrist frame (m1) to the tool centre point along its z axis (m):
+#: jaw base 0.09975 + push rod 0.009 + ~0.04 to the fingertips' centre.
+TCP_OFFSET_M = 0.09975 + 0.009 + 0.04
+
+
+@dataclass(frozen=True)
+class JointFrame:
+    """One revolute joint: parent -> child origin (xyz, yaw of its rpy) and rotation axis."""
+
+    name: str
+    parent_link: str
+    child_link: str
+    xyz: tuple[float, float, float]
+    yaw: float
+    axis: tuple[float, float, float]
+
+
+#: The chain base -> wrist in E, D, C, B order (URDF frames; only yaw rotations occur).
+CHAIN: tuple[JointFrame, ...] = (
+    JointFrame("E", "m3_inline", "m2_1_1", (0.0, 0.0, 0.014), 0.0, (0.0, 0.0, 1.0)),
+    JointFrame("D", "m2_1_1", "m2", (-0.02, 0.0, 0.033), 0.0, (0.0, 1.0, 0.0)),
+    JointFrame("C", "m2", "m2_1_3", (-0.04, 0.0, -0.1453), np.pi, (0.0, 1.0, 0.0)),
+    JointFrame("B", "m2_1_3", "m1", (0.02, 0.0, 0.033), 2.09439, (0.0, 0.0, -1.0)),
+)
+
+
+def axis_rotation(axis: tuple[float, float, float] | np.ndarray, angle: float) -> np.ndarray:
+    """Rotation matrix of `angle` radians about a unit `axis` (Rodrigues)."""
+    x, y, z = np.asarray(axis, dtype=float)
+    c, s = np.cos(angle), np.sin(angle)
+    C = 1.0 - c
+    return np.array(
+        [
+            [c + x * x * C, x * y * C - z * s, x * z * C + y * s],
+            [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
+            [z * x * C - y * s, z * y * C + x * s, c + z * z * C],
+        ]
+    )
+
+
+def joint_transform(frame: JointFrame, q: float) -> tuple[np.ndarray, np.ndarray]:
+    """(translation, rotation) mapping child-link coordinates into the parent link's."""
+    rot = axis_rotation((0.0, 0.0, 1.0), frame.yaw) @ axis_rotation(frame.axis, q)
+    return np.asarray(frame.xyz, dtype=float), rot
+
+
+def link_poses(q: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """World (position, rotation) of each child link m2_1_1, m2, m2_1_3, m1 for angles E D C B."""
+    pos, rot = np.zeros(3), np.eye(3)
+    poses = []
+    for frame, angle in zip(CHAIN, np.asarray(q, dtype=float), strict=True):
+        t, r = joint_transform(frame, float(angle))
+        pos, rot = pos + rot @ t, rot @ r
+        poses.append((pos.copy(), rot.copy()))
+    return poses
+
+
+def tool_position(q: np.ndarray) -> np.ndarray:
+    """Tool centre point in the base frame (m)."""
+    pos, rot = link_poses(q)[-1]
+    return pos + rot @ np.array([0.0, 0.0, TCP_OFFSET_M])

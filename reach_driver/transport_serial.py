@@ -1,0 +1,181 @@
+"""Serial links: a device path or any pyserial URL, RS-232 full duplex or RS-485 half duplex."""
+
+from __future__ import annotations
+
+import errno
+import threading
+import time
+from collections.abc import Sequence
+
+import serial
+
+from reach_driver.errors import (
+    BadUrlError,
+    PortNotFoundError,
+    PortPermissionError,
+    TransportError,
+)
+from reach_driver.transport import DEFAULT_BAUD, DEFAULT_READ_TIMEOUT_S, Transport
+
+BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
+DEFAULT_RS485_GAP_S = 0.002
+RS485_MAX_WAIT_S = 0.05
+
+
+def _available_ports() -> str:
+    try:
+        from serial.tools import list_ports
+
+        names = sorted(p.device for p in list_ports.comports())
+    except Exception:  # listing is a courtesy in an error message, never a new failure
+        return ""
+    return ", ".join(names) if names else "none"
+
+
+class SerialTransport(Transport):
+    """8N1 serial; with `rs485=True` frames are written one at a time with idle gaps between.
+
+    On a half-duplex bus the host must not talk over a joint's reply, so each frame waits
+    until the line has been quiet for `rs485_gap_s` (after our own bytes have left the UART,
+    estimated from the baud rate, and after the last byte received). Broadcast requests are
+    refused by the client there, since every joint would answer at once and collide.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        baud: int = DEFAULT_BAUD,
+        rs485: bool = False,
+        rs485_gap_s: float = DEFAULT_RS485_GAP_S,
+        read_timeout_s: float = DEFAULT_READ_TIMEOUT_S,
+    ) -> None:
+        super().__init__(url, read_timeout_s)
+        if baud <= 0:
+            raise BadUrlError(f"baud rate must be positive, got {baud}")
+        self.baud = baud
+        self.rs485 = rs485
+        self.rs485_gap_s = rs485_gap_s
+        self.broadcast_ok = not rs485
+        self._port: serial.SerialBase | None = None
+        self._write_lock = threading.Lock()
+        self._line_busy_until = 0.0  # monotonic time our last byte leaves the UART
+        self._last_rx = 0.0
+
+    @property
+    def wire_bytes_per_s(self) -> float | None:
+        return self.baud / BITS_PER_BYTE
+
+    @property
+    def is_open(self) -> bool:
+        return self._port is not None and self._port.is_open
+
+    def open(self) -> None:
+        if self.is_open:
+            return
+        try:
+            port = serial.serial_for_url(
+                self.url,
+                baudrate=self.baud,
+                bytesize=serial.EIGHTBITS,
+                parity=serial.PARITY_NONE,
+                stopbits=serial.STOPBITS_ONE,
+                timeout=self.read_timeout_s,
+                write_timeout=1.0,
+                do_not_open=True,
+            )
+            port.open()
+        except ValueError as exc:
+            raise BadUrlError(f"cannot use {self.url!r} as a serial port: {exc}") from None
+        except serial.SerialException as exc:
+            raise self._open_error(exc) from None
+        try:
+            port.reset_input_buffer()
+        except (serial.SerialException, OSError):
+            pass  # loop:// and some adapters cannot flush; stale bytes are dropped by CRC anyway
+        self._port = port
+        self.stats.opens += 1
+
+    def _open_error(self, exc: serial.SerialException) -> TransportError:
+        code = getattr(exc, "errno", None)
+        if code == errno.ENOENT:
+            return PortNotFoundError(
+                f"no such serial port {self.url}; ports found: {_available_ports()}"
+            )
+        if code in (errno.EACCES, errno.EPERM):
+            return PortPermissionError(
+                f"permission denied opening {self.url}: add your user to the group owning it "
+                "(usually 'dialout': sudo usermod -aG dialout $USER, then log in again)"
+            )
+        if code == errno.EBUSY:
+            return TransportError(f"{self.url} is busy: another program has it open")
+        return TransportError(f"cannot open serial port {self.url}: {exc}")
+
+    def close(self) -> None:
+        port, self._port = self._port, None
+        if port is not None:
+            try:
+                port.close()
+            except (serial.SerialException, OSError):
+                pass  # closing a port whose device vanished; nothing left to release
+
+    def _require(self) -> serial.SerialBase:
+        port = self._port
+        if port is None or not port.is_open:
+            raise TransportError(f"serial port {self.url} is not open")
+        return port
+
+    def read(self) -> bytes:
+        port = self._require()
+        try:
+            waiting = port.in_waiting
+            data: bytes = port.read(waiting or 1)
+            if data and not waiting:
+                more = port.in_waiting
+                if more:
+                    data += port.read(more)
+        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+            # TypeError/AttributeError: pyserial's fd became None under a concurrent close
+            self.stats.read_errors += 1
+            raise TransportError(f"read from {self.url} failed: {exc}") from None
+        if data:
+            self.stats.bytes_in += len(data)
+            self._last_rx = time.monotonic()
+        return data
+
+    def write(self, data: bytes) -> None:
+        self.write_frames([data])
+
+    def write_frames(self, frames: Sequence[bytes]) -> None:
+        if not frames:
+            return
+        port = self._require()
+        chunks = list(frames) if self.rs485 else [b"".join(frames)]
+        with self._write_lock:
+            for chunk in chunks:
+                if self.rs485:
+                    self._wait_for_quiet_line()
+                try:
+                    port.write(chunk)
+                except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+                    self.stats.write_errors += 1
+                    raise TransportError(f"write to {self.url} failed: {exc}") from None
+                now = time.monotonic()
+                self._line_busy_until = (
+                    max(now, self._line_busy_until) + len(chunk) * BITS_PER_BYTE / self.baud
+                )
+                self.stats.bytes_out += len(chunk)
+                self.stats.writes += 1
+
+    def _wait_for_quiet_line(self) -> None:
+        # Our own bytes must have left; a chattering bus (heartbeats) is waited on only so
+        # long, or streaming joints could starve every command.
+        give_up = time.monotonic() + RS485_MAX_WAIT_S
+        while True:
+            now = time.monotonic()
+            ready_at = self._line_busy_until + self.rs485_gap_s
+            if now < give_up:
+                ready_at = max(ready_at, self._last_rx + self.rs485_gap_s)
+            if now >= ready_at:
+                return
+            time.sleep(ready_at - now)

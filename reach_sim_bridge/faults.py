@@ -1,0 +1,117 @@
+"""Faults the virtual arm can be asked to show: weak actuators, noisy sensors, a bad link.
+
+The physical faults (torque scale, parameter randomisation) are applied to the arm model;
+sensor noise is applied to what the firmware reports; link faults (drop, corrupt, latency)
+are applied to the outgoing byte stream by the server.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+JOINTS = ("E", "D", "C", "B")
+
+# Default standard deviations for --sensor-noise without a value (position rad or mm,
+# velocity rad/s or mm/s): about a tenth of a degree and a tenth of a degree per second,
+# well above an encoder's quantisation so the effect on a controller is visible.
+DEFAULT_POSITION_NOISE = 0.002
+DEFAULT_VELOCITY_NOISE = 0.002
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """Gaussian noise on reported position and velocity, in each device's own units."""
+
+    position_std: float = DEFAULT_POSITION_NOISE
+    velocity_std: float = DEFAULT_VELOCITY_NOISE
+
+    def __post_init__(self) -> None:
+        for name in ("position_std", "velocity_std"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"sensor noise {name} must be a finite number >= 0, got {value}")
+
+
+@dataclass(frozen=True)
+class FaultConfig:
+    """All faults at once; the defaults are a healthy arm on a perfect link."""
+
+    torque_scale: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)  # E D C B
+    sensor_noise: SensorNoise | None = None
+    randomize_seed: int | None = None
+    corrupt_rate: float = 0.0  # probability that each outgoing byte is flipped
+    drop_rate: float = 0.0  # probability that each outgoing frame is dropped
+    latency_ms: float = 0.0  # added to every outgoing frame (wall clock)
+
+    def __post_init__(self) -> None:
+        if len(self.torque_scale) != 4:
+            raise ValueError(f"torque_scale needs 4 values (E D C B), got {self.torque_scale}")
+        for joint, scale in zip(JOINTS, self.torque_scale):
+            if not (math.isfinite(scale) and 0.0 <= scale <= 1.0):
+                raise ValueError(f"torque scale of joint {joint} must be in [0, 1], got {scale}")
+        for name in ("corrupt_rate", "drop_rate"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+                raise ValueError(f"{name} is a probability in [0, 1], got {value}")
+        if not (math.isfinite(self.latency_ms) and self.latency_ms >= 0.0):
+            raise ValueError(f"latency_ms must be a finite number >= 0, got {self.latency_ms}")
+
+    @property
+    def link_faults(self) -> bool:
+        return self.corrupt_rate > 0.0 or self.drop_rate > 0.0 or self.latency_ms > 0.0
+
+
+def parse_torque_scale(text: str) -> tuple[int, float]:
+    """'D=0.25' -> (index of D in E D C B, 0.25); ValueError says what was wrong."""
+    joint, sep, value = text.partition("=")
+    joint = joint.strip().upper()
+    if not sep or joint not in JOINTS:
+        raise ValueError(f"expected JOINT=SCALE with JOINT one of {' '.join(JOINTS)}, got {text!r}")
+    try:
+        scale = float(value)
+    except ValueError:
+        raise ValueError(f"torque scale for {joint} is not a number: {value!r}") from None
+    if not (math.isfinite(scale) and 0.0 <= scale <= 1.0):
+        raise ValueError(f"torque scale for {joint} must be in [0, 1], got {scale}")
+    return JOINTS.index(joint), scale
+
+
+def torque_scales(items: list[str]) -> tuple[float, float, float, float]:
+    """Fold repeated JOINT=S options into an E D C B tuple (later options win)."""
+    scales = [1.0, 1.0, 1.0, 1.0]
+    for item in items:
+        index, scale = parse_torque_scale(item)
+        scales[index] = scale
+    return (scales[0], scales[1], scales[2], scales[3])
+
+
+class LinkFaults:
+    """Drops and corrupts outgoing frames with its own seeded generator (reproducible runs)."""
+
+    def __init__(self, config: FaultConfig, seed: int | None = None) -> None:
+        self._drop = config.drop_rate
+        self._corrupt = config.corrupt_rate
+        self._rng = np.random.default_rng(seed)
+        self.dropped_frames = 0
+        self.corrupted_bytes = 0
+
+    def apply(self, frame: bytes) -> bytes | None:
+        """The frame as it leaves the arm, or None when the link loses it."""
+        if self._drop > 0.0 and self._rng.random() < self._drop:
+            self.dropped_frames += 1
+            return None
+        if self._corrupt <= 0.0 or not frame:
+            return frame
+        hits = np.flatnonzero(self._rng.random(len(frame)) < self._corrupt)
+        if hits.size == 0:
+            return frame
+        damaged = bytearray(frame)
+        # XOR with a non-zero mask so every hit really changes the byte.
+        masks = self._rng.integers(1, 256, size=hits.size)
+        for index, mask in zip(hits.tolist(), masks.tolist()):
+            damaged[index] ^= mask
+        self.corrupted_bytes += int(hits.size)
+        return bytes(damaged)
