@@ -45,9 +45,7 @@ def request(device_id: int, packet_ids: Iterable[int]) -> Packet:
 def heartbeat_set(device_id: int, packet_ids: Iterable[int]) -> Packet:
     """HEARTBEAT_SET: up to 10 ids sent periodically, zero-padded to 10 (none clears it)."""
     ids = checked_ids("heartbeat_set", packet_ids, 0, HEARTBEAT_SLOTS)
-    return Packet(
-        device_id, PacketID.HEARTBEAT_SET, bytes(ids) + bytes(HEARTBEAT_SLOTS - len(ids))
-    )
+    return Packet(device_id, PacketID.HEARTBEAT_SET, bytes(ids) + bytes(HEARTBEAT_SLOTS - len(ids)))
 
 
 def heartbeat_frequency(device_id: int, hz: int) -> Packet:

@@ -6,8 +6,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from .errors import DecodeError, DecodeReason, FrameTooLongError
-from .framing import MAX_ENCODED, decode_body
-from .packet import Packet, packet_from_fields
+from .framing import MAX_ENCODED
+from .packet import Packet, decode_body
 
 
 def _zero_counts() -> dict[DecodeReason, int]:
@@ -42,7 +42,8 @@ class PacketDecoder:
     Decoding resumes at the next delimiter after any garbage. A partial frame longer than the
     largest valid frame is dropped at once (so memory stays bounded when no delimiter ever
     comes) and the rest of it, up to the next delimiter, is discarded as it arrives.
-    `on_error(error, frame_bytes)` is called for each dropped frame, e.g. to log it.
+    `on_error(error, frame_bytes)` is called for each dropped frame, e.g. to log it; it must
+    not raise (packets already decoded from the same chunk would be lost with the exception).
     """
 
     __slots__ = ("stats", "_pending", "_overflowing", "_on_error", "last_error")
@@ -93,7 +94,7 @@ class PacketDecoder:
         for body in pieces:
             if body:
                 try:
-                    append(packet_from_fields(*decode_body(body)))
+                    append(decode_body(body))
                 except DecodeError as err:
                     self._drop(err, body, len(body) + 1)
             else:

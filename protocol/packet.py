@@ -4,8 +4,26 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .errors import InvalidPacketError, PayloadError
-from .framing import MAX_DATA, check_id, decode_body, encode_packet, frame_body
+from .crc import RESIDUE, TABLE, crc8
+from .errors import (
+    CobsError,
+    CrcError,
+    FrameTooLongError,
+    FrameTooShortError,
+    InvalidPacketError,
+    LengthMismatchError,
+    PayloadError,
+    Version2FrameError,
+)
+from .framing import (
+    MAX_DATA,
+    MAX_ENCODED,
+    MIN_ENCODED,
+    VERSION2_BIT,
+    check_id,
+    encode_packet,
+    frame_body,
+)
 from .ids import DeviceID, PacketID
 from .payload import unpack_floats
 
@@ -27,15 +45,19 @@ def _name(table: tuple[int, ...], value: int) -> str:
 
 @dataclass(frozen=True, slots=True)
 class Packet:
-    """One BPL packet. Equal to any packet with the same ids (enum or int) and data."""
+    """One BPL packet, validated on construction (ids 0..255, at most 58 data bytes).
+
+    Known ids are stored as `DeviceID` / `PacketID` members, others as ints; either way a
+    packet equals (and hashes like) any packet with the same numbers and data.
+    """
 
     device_id: int
     packet_id: int
     data: bytes = b""
 
     def __post_init__(self) -> None:
-        check_id("device_id", self.device_id)
-        check_id("packet_id", self.packet_id)
+        device_id = check_id("device_id", self.device_id)
+        packet_id = check_id("packet_id", self.packet_id)
         data = self.data
         if not isinstance(data, bytes):
             if not isinstance(data, bytearray | memoryview):
@@ -49,8 +71,8 @@ class Packet:
             raise InvalidPacketError(
                 f"data is {len(data)} bytes; a frame carries at most {MAX_DATA}"
             )
-        object.__setattr__(self, "device_id", _DEVICE_IDS[self.device_id])
-        object.__setattr__(self, "packet_id", _PACKET_IDS[self.packet_id])
+        object.__setattr__(self, "device_id", _DEVICE_IDS[device_id])
+        object.__setattr__(self, "packet_id", _PACKET_IDS[packet_id])
 
     def __repr__(self) -> str:
         return (
@@ -94,18 +116,69 @@ class Packet:
 
 
 _new = object.__new__
-_set = object.__setattr__
+# Slot descriptors set fields directly, bypassing the frozen __setattr__ (decoder fast path).
+_set_device = Packet.__dict__["device_id"].__set__
+_set_packet = Packet.__dict__["packet_id"].__set__
+_set_data = Packet.__dict__["data"].__set__
 
 
 def packet_from_fields(device_id: int, packet_id: int, data: bytes) -> Packet:
-    """A `Packet` from already-validated fields (decoder fast path, skips __post_init__)."""
+    """A `Packet` from already-validated fields (skips __post_init__)."""
     packet: Packet = _new(Packet)
-    _set(packet, "device_id", _DEVICE_IDS[device_id])
-    _set(packet, "packet_id", _PACKET_IDS[packet_id])
-    _set(packet, "data", data)
+    _set_device(packet, _DEVICE_IDS[device_id])
+    _set_packet(packet, _PACKET_IDS[packet_id])
+    _set_data(packet, data)
+    return packet
+
+
+def decode_body(body: bytes) -> Packet:
+    """The packet in one frame given without its delimiter and holding no 0x00 byte.
+
+    Callers guarantee there is no zero (the stream decoder splits on it, `decode_packet`
+    checks): a zero code byte would never advance the COBS walk below. Hot path: one
+    bytearray per frame, COBS undone in place, one CRC pass over the frame including its CRC
+    byte (an intact frame leaves a fixed residue); the exact CRC is computed only on failure.
+    """
+    n = len(body)
+    if n > MAX_ENCODED:
+        raise FrameTooLongError(
+            f"frame too long: {n} encoded bytes, at most {MAX_ENCODED} "
+            f"({MAX_DATA} data bytes) before the delimiter"
+        )
+    if n < MIN_ENCODED:
+        raise FrameTooShortError(
+            f"frame too short: {n} encoded bytes, a frame has at least {MIN_ENCODED} "
+            "(COBS code, packet id, device id, length, CRC)"
+        )
+    buf = bytearray(body)
+    # Each COBS code byte marks where a zero was. The first is overhead: zeroed, it becomes a
+    # leading zero, which leaves a zero-initialised reflected CRC register unchanged.
+    i = buf[0]
+    buf[0] = 0
+    while i < n:
+        code = buf[i]
+        buf[i] = 0
+        i += code
+    if i != n:
+        raise CobsError(f"COBS: a code byte runs {i - n} byte(s) past the end of the frame")
+    length = buf[n - 2]
+    if length != n - 1:
+        if length & VERSION2_BIT:
+            raise Version2FrameError(length)
+        raise LengthMismatchError(length, n - 1)
+    reg = 0
+    table = TABLE
+    for byte in buf:
+        reg = table[reg ^ byte]
+    if reg != RESIDUE:
+        raise CrcError(expected=crc8(buf[1 : n - 1]), actual=buf[n - 1])
+    packet: Packet = _new(Packet)
+    _set_device(packet, _DEVICE_IDS[buf[n - 3]])
+    _set_packet(packet, _PACKET_IDS[buf[n - 4]])
+    _set_data(packet, bytes(buf[1 : n - 4]))
     return packet
 
 
 def decode_packet(frame: _BytesLike) -> Packet:
     """One frame, with or without its 0x00 terminator. Raises `DecodeError` subclasses."""
-    return packet_from_fields(*decode_body(frame_body(frame)))
+    return decode_body(frame_body(frame))
