@@ -1,1 +1,80 @@
+"""Driver for the Reach Alpha 5 over serial, UDP or a CAN tunnel (see docs/architecture.md).
 
+from reach_driver import open_transport, ArmClient
+with ArmClient(open_transport("/dev/ttyUSB0")) as arm:   # start()s and close()s
+    print(arm.state.q)
+"""
+
+from reach_driver.client import ArmClient, ClientStats
+from reach_driver.control import (
+    Controller,
+    ControlLoop,
+    ControlState,
+    ControlSummary,
+    Pacing,
+    StepRecord,
+    TimingStats,
+)
+from reach_driver.controllers import available_controllers, load_controller
+from reach_driver.errors import (
+    ArmFaultError,
+    BadUrlError,
+    DriverError,
+    GarbageError,
+    LimitError,
+    LinkDownError,
+    NoResponseError,
+    PortNotFoundError,
+    PortPermissionError,
+    RequestTimeoutError,
+    TransportError,
+    WatchdogTrippedError,
+)
+from reach_driver.link import ClientEvent, EventKind, LinkConfig, LinkState
+from reach_driver.listeners import PacketQueue, Subscription
+from reach_driver.safety import LimitKind, SafetyConfig, SafetyGuard
+from reach_driver.state import JAW, JOINTS, ArmState, JointState, Reading
+from reach_driver.transport import Transport, TransportStats, open_transport
+
+__all__ = [
+    "JAW",
+    "JOINTS",
+    "ArmClient",
+    "ArmFaultError",
+    "ArmState",
+    "BadUrlError",
+    "ClientEvent",
+    "ClientStats",
+    "ControlLoop",
+    "ControlState",
+    "ControlSummary",
+    "Controller",
+    "DriverError",
+    "EventKind",
+    "GarbageError",
+    "JointState",
+    "LimitError",
+    "LimitKind",
+    "LinkConfig",
+    "LinkDownError",
+    "LinkState",
+    "NoResponseError",
+    "Pacing",
+    "PacketQueue",
+    "PortNotFoundError",
+    "PortPermissionError",
+    "Reading",
+    "RequestTimeoutError",
+    "SafetyConfig",
+    "SafetyGuard",
+    "StepRecord",
+    "Subscription",
+    "TimingStats",
+    "Transport",
+    "TransportError",
+    "TransportStats",
+    "WatchdogTrippedError",
+    "available_controllers",
+    "load_controller",
+    "open_transport",
+]

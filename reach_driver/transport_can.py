@@ -234,4 +234,3 @@ class CanTransport(Transport):
             raise TransportError(f"CAN send on {self.url} failed: {exc}") from None
         self.stats.bytes_out += len(data)
         self.stats.writes += 1
-

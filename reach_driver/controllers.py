@@ -1,0 +1,49 @@
+"""Controllers found by name through the `reach_stack.controllers` entry points.
+
+Like python-can's interface plugins: the driver never imports `policy` (or anyone else's
+controller package); a package registers `name = "module:factory"` and the factory is called
+with keyword arguments to build an object with `reset()` and `act(state, target)`.
+"""
+
+from __future__ import annotations
+
+from importlib.metadata import EntryPoint, entry_points
+from typing import Any
+
+from reach_driver.control import Controller
+from reach_driver.errors import DriverError
+
+GROUP = "reach_stack.controllers"
+
+
+def _entry_points() -> dict[str, EntryPoint]:
+    return {ep.name: ep for ep in entry_points(group=GROUP)}
+
+
+def available_controllers() -> list[str]:
+    """Registered controller names (whether or not their modules import cleanly)."""
+    return sorted(_entry_points())
+
+
+def load_controller(name: str, **kwargs: Any) -> Controller:
+    """Build the controller registered as `name`; a clear `DriverError` if it cannot be."""
+    eps = _entry_points()
+    ep = eps.get(name)
+    if ep is None:
+        known = ", ".join(sorted(eps)) or "none (is reach-stack installed? pip install -e .)"
+        raise DriverError(f"unknown controller {name!r}; registered: {known}")
+    try:
+        factory = ep.load()
+    except Exception as exc:
+        raise DriverError(
+            f"controller {name!r} is registered as {ep.value} but failed to load: "
+            f"{type(exc).__name__}: {exc}"
+        ) from exc
+    try:
+        controller = factory(**kwargs)
+    except TypeError as exc:
+        raise DriverError(f"controller {name!r} rejected its parameters {kwargs}: {exc}") from exc
+    for method in ("reset", "act"):
+        if not callable(getattr(controller, method, None)):
+            raise DriverError(f"controller {name!r} ({ep.value}) has no {method}() method")
+    return controller  # type: ignore[no-any-return]

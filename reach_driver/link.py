@@ -1,0 +1,75 @@
+"""Link supervision settings, states and the events the client reports (link, watchdog, faults)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import Enum
+
+
+class LinkState(str, Enum):
+    UP = "up"  # packets flowing; commands are sent
+    DOWN = "down"  # lost; the transport is closed and will be reopened after a backoff
+    PROBING = "probing"  # reopened, waiting for the arm to answer before commands resume
+    CLOSED = "closed"  # the client was closed
+
+
+class EventKind(str, Enum):
+    LINK_DOWN = "link down"
+    LINK_UP = "link up"
+    RECONNECT_FAILED = "reconnect failed"
+    WATCHDOG = "watchdog"
+    FAULT = "fault"
+    FAULT_CLEARED = "fault cleared"
+
+
+@dataclass(frozen=True)
+class ClientEvent:
+    """Something a person watching the arm should hear about (the CLI prints these)."""
+
+    kind: EventKind
+    t: float
+    message: str
+    device: int | None = None
+
+
+EventCallback = Callable[[ClientEvent], None]
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """When silence means a lost link, and how reconnecting backs off.
+
+    A keepalive REQUEST goes out after `keepalive_s` without a valid packet, so a healthy
+    arm is never silent for `stale_link_s`; UDP and CAN have no other way to tell.
+    """
+
+    stale_link_s: float = 1.0
+    keepalive_s: float = 0.25
+    probe_timeout_s: float = 0.5
+    backoff_initial_s: float = 0.1
+    backoff_max_s: float = 2.0
+    reconnect: bool = True
+
+    def __post_init__(self) -> None:
+        if not 0 < self.keepalive_s < self.stale_link_s:
+            raise ValueError("need 0 < keepalive_s < stale_link_s")
+        if not 0 < self.backoff_initial_s <= self.backoff_max_s:
+            raise ValueError("need 0 < backoff_initial_s <= backoff_max_s")
+
+
+class Backoff:
+    """Doubling delays between reconnect attempts, capped, reset on success."""
+
+    def __init__(self, initial_s: float, max_s: float) -> None:
+        self.initial_s = initial_s
+        self.max_s = max_s
+        self.attempt = 0
+
+    def next_delay(self) -> float:
+        delay = min(self.max_s, self.initial_s * (2.0**self.attempt))
+        self.attempt += 1
+        return delay
+
+    def reset(self) -> None:
+        self.attempt = 0

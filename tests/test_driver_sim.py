@@ -1,0 +1,396 @@
+"""End to end against the virtual arm (in-process SimServer, sped up): the CLI over a pty and
+over UDP, reconnecting after the simulator restarts, the watchdog, limit refusal, garbage."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol import DeviceID, Mode, PacketID
+from reach_driver import (
+    ArmClient,
+    EventKind,
+    LinkConfig,
+    LinkDownError,
+    LinkState,
+    SafetyConfig,
+    open_transport,
+)
+from reach_driver.cli import Exit, main
+from reach_sim_bridge.faults import FaultConfig
+from reach_sim_bridge.server import SimConfig, SimServer
+
+SPEED = 4.0
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def wait_until(predicate, timeout: float = 10.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return predicate()
+
+
+@pytest.fixture
+def sim(tmp_path):
+    server = SimServer(SimConfig(speed=SPEED, link=str(tmp_path / "arm"), udp=("127.0.0.1", 0)))
+    server.start()
+    yield server
+    server.stop()
+    assert server.error is None
+
+
+def ports(server: SimServer) -> dict[str, str]:
+    host, port = server.udp_address
+    return {"pty": str(server.link), "udp": f"udp://{host}:{port}"}
+
+
+@pytest.mark.parametrize("link", ["pty", "udp"])
+def test_info_lists_devices_versions_limits_and_status(sim, link, capsys) -> None:
+    code = main(["--port", ports(sim)[link], "info", "--json"])
+    out = capsys.readouterr().out
+    assert code == Exit.OK, out
+    devices = json.loads(out)["devices"]
+    assert set(devices) == {"A", "B", "C", "D", "E"}
+    d = devices["D"]
+    assert d["software_version"] == "0.1.0"
+    assert d["serial_number"] == 4104.0
+    assert d["mode"] == "standby"
+    assert d["status_flags"] == []
+    lo, hi = sim.arm.position_limits[1]
+    assert d["limits"]["position"] == pytest.approx([lo, hi], abs=1e-6)
+    assert d["limits"]["current"] == pytest.approx([-600.0, 600.0])
+
+
+def test_info_table_names_each_joint(sim, capsys) -> None:
+    assert main(["--port", ports(sim)["pty"], "info"]) == Exit.OK
+    out = capsys.readouterr().out
+    for name in ("E (0x05)", "D (0x04)", "C (0x03)", "B (0x02)", "A (0x01)", "0.1.0"):
+        assert name in out
+
+
+@pytest.mark.parametrize("link", ["pty", "udp"])
+def test_move_reaches_the_target_in_position_mode(sim, link, capsys) -> None:
+    q0 = sim.snapshot().q
+    target = q0 + np.array([0.3, -0.2, 0.25, -0.4])
+    argv = ["--port", ports(sim)[link], "move", *map(str, target), "--jaw", "8", "--timeout", "30"]
+    code = main(argv)
+    out = capsys.readouterr().out
+    assert code == Exit.OK, out
+    assert "reached" in out
+    snap = sim.snapshot()
+    assert np.max(np.abs(snap.q - target)) < 0.03
+    assert abs(snap.jaw_mm - 8.0) < 0.6
+    assert wait_until(lambda: all(sim.firmware.mode(d) == Mode.POSITION for d in (5, 4, 3, 2, 1)))
+
+
+def test_move_outside_a_limit_is_refused_and_nothing_moves(sim, capsys) -> None:
+    q0 = sim.snapshot().q
+    code = main(["--port", ports(sim)["pty"], "move", "3.0", "3.9", "1.5", "3.0"])
+    err = capsys.readouterr().err
+    assert code == Exit.LIMIT
+    assert "limit" in err and "D (0x04)" in err
+    assert all(sim.firmware.mode(d) == Mode.STANDBY for d in (5, 4, 3, 2))
+    assert "position_out_of_limits" not in sim.stats().ignored  # never reached the arm
+    assert np.max(np.abs(sim.snapshot().q - q0)) < 0.01
+
+
+def test_move_that_cannot_finish_in_time_fails_with_a_message(sim, capsys) -> None:
+    q0 = sim.snapshot().q
+    target = q0 + np.array([-1.5, 0.0, 0.0, 0.0])  # ~3 s of arm time at the rate limit
+    code = main(["--port", ports(sim)["pty"], "move", *map(str, target), "--timeout", "0.2"])
+    assert code == Exit.FAILED
+    assert "timed out" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("link", ["pty", "udp"])
+def test_run_pid_reaches_the_target_and_leaves_the_arm_safe(sim, link, tmp_path, capsys) -> None:
+    q0 = sim.snapshot().q
+    target = q0 + np.array([0.5, -0.4, 0.4, 0.8])
+    t0 = sim.sim_time
+    record = tmp_path / "run.rrd"
+    argv = ["--port", ports(sim)[link], "run", "--controller", "pid", "--target"]
+    argv += [*map(str, target), "--seconds", "4", "--record", str(record)]
+    code = main(argv)
+    out = capsys.readouterr().out
+    assert code == Exit.OK, out
+    assert "zero_velocity" in out and "latency" in out
+    # The loop counted 4 s of arm time (80 heartbeats at 20 Hz), whatever the speed-up.
+    assert sim.sim_time - t0 >= 4.0
+    assert np.max(np.abs(sim.snapshot().q - target)) < 0.02
+    assert wait_until(lambda: all(sim.firmware.mode(d) == Mode.ZERO_VELOCITY for d in (5, 4, 3, 2)))
+    from reach_driver.rrd_summary import summarize_recording
+
+    summary = summarize_recording(record)
+    assert summary["steps"] == 80
+    assert np.max(np.abs(summary["final_error"])) < 0.02
+    assert summary["metadata"]["controller"] == "pid"
+
+
+def test_run_with_an_unknown_controller_names_the_registered_ones(sim, capsys) -> None:
+    argv = ["--port", ports(sim)["pty"], "run", "--controller", "nope"]
+    argv += ["--target", "3", "1.5", "1.5", "3", "--seconds", "1"]
+    assert main(argv) == Exit.FAILED
+    err = capsys.readouterr().err
+    assert "unknown controller 'nope'" in err and "pid" in err
+
+
+def test_run_target_outside_the_limits_is_refused(sim, capsys) -> None:
+    argv = ["--port", ports(sim)["udp"], "run", "--controller", "pid"]
+    argv += ["--target", "3", "1.5", "-0.5", "3", "--seconds", "1"]
+    assert main(argv) == Exit.LIMIT
+    assert "C (0x03)" in capsys.readouterr().err
+    assert sim.firmware.mode(3) == Mode.STANDBY
+
+
+def test_monitor_shows_states_rates_and_link_counters(sim, capsys) -> None:
+    assert main(["--port", ports(sim)["udp"], "monitor", "--seconds", "0.6"]) == Exit.OK
+    out = capsys.readouterr().out
+    assert "E (0x05)" in out and "standby" in out and "frames ok" in out
+
+
+def test_wrong_port_says_so(tmp_path, capsys) -> None:
+    assert main(["--port", str(tmp_path / "ttyUSB7"), "info"]) == Exit.NO_ARM
+    assert "no such serial port" in capsys.readouterr().err
+
+
+def test_nothing_answering_says_so(capsys) -> None:
+    master, slave = os.openpty()
+    try:
+        code = main(["--port", os.ttyname(slave), "--timeout", "0.05", "info"])
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert code == Exit.NO_ARM
+    assert "nothing answered" in capsys.readouterr().err
+
+
+def test_garbage_only_suggests_the_baud_rate(tmp_path, capsys) -> None:
+    cfg = SimConfig(speed=SPEED, link=str(tmp_path / "arm"), faults=FaultConfig(corrupt_rate=1.0))
+    with SimServer(cfg) as server:
+        code = main(["--port", str(server.link), "--timeout", "0.05", "info"])
+    assert code == Exit.NO_ARM
+    assert "wrong baud rate" in capsys.readouterr().err
+
+
+def test_some_garbage_on_the_line_is_counted_and_survived(tmp_path) -> None:
+    cfg = SimConfig(
+        speed=SPEED, link=str(tmp_path / "arm"), faults=FaultConfig(corrupt_rate=0.002), seed=3
+    )
+    with SimServer(cfg) as server, ArmClient(open_transport(str(server.link)), retries=5) as arm:
+        for _ in range(40):
+            arm.read_joints()
+        assert arm.decoder_stats.bad_total > 0
+        assert arm.decoder_stats.good_frames > 300
+        assert not np.isnan(arm.state.q).any()
+
+
+def _client(url: str, events: list) -> ArmClient:
+    arm = ArmClient(
+        open_transport(url),
+        link=LinkConfig(stale_link_s=0.5, keepalive_s=0.1, backoff_max_s=0.4),
+    )
+    arm.on_event(events.append)
+    return arm.start()
+
+
+@pytest.mark.parametrize("link", ["pty", "udp"])
+def test_link_lost_when_the_sim_restarts_is_reported_and_reopened(sim, link) -> None:
+    events: list = []
+    arm = _client(ports(sim)[link], events)
+    try:
+        arm.stream((PacketID.POSITION,), 10, [DeviceID.E])
+        sim.stop()
+        assert wait_until(lambda: arm.link_state is not LinkState.UP)
+        with pytest.raises(LinkDownError, match="nothing was sent"):
+            arm.command_position(DeviceID.E, 3.0)
+        with pytest.raises(LinkDownError):
+            arm.request(DeviceID.E, [PacketID.POSITION])
+        time.sleep(0.3)
+        sim.start()  # the pty comes back under the same link, UDP on the same port
+        assert wait_until(lambda: arm.link_state is LinkState.UP)
+        kinds = [e.kind for e in events]
+        assert EventKind.LINK_DOWN in kinds and EventKind.LINK_UP in kinds
+        assert arm.stats.reconnects == 1
+        assert arm.request(DeviceID.D, [PacketID.MODE])[PacketID.MODE].as_u8() == Mode.STANDBY
+        # Streaming set up before the restart was re-applied to the fresh arm.
+        n = arm.table.counts.get((5, PacketID.POSITION), 0)
+        assert wait_until(lambda: arm.table.counts.get((5, PacketID.POSITION), 0) > n + 3)
+    finally:
+        arm.close()
+
+
+def test_losing_the_link_mid_control_leaves_the_arm_safe_on_reconnect(sim) -> None:
+    events: list = []
+    arm = _client(ports(sim)["udp"], events)
+    try:
+        arm.read_joints()
+        arm.command_current(DeviceID.D, 20.0)
+        sim.stop()
+        sim.start()  # the same firmware state: D still in current mode
+        assert sim.firmware.mode(4) == Mode.CURRENT
+        assert wait_until(lambda: sim.firmware.mode(4) == Mode.ZERO_VELOCITY)
+        assert arm.tripped is not None
+        assert any(e.kind is EventKind.WATCHDOG for e in events)
+    finally:
+        arm.close()
+
+
+def test_watchdog_puts_the_arm_in_zero_velocity_when_the_controller_stops(sim) -> None:
+    with ArmClient(open_transport(ports(sim)["pty"]), safety=SafetyConfig(watchdog_s=0.2)) as arm:
+        arm.stream((PacketID.POSITION,), 50, [DeviceID.C])
+        assert wait_until(lambda: arm.joint(DeviceID.C).position is not None)
+        arm.command_current(DeviceID.C, 30.0)
+        assert sim.firmware.mode(3) in (Mode.CURRENT, Mode.STANDBY)
+        assert wait_until(lambda: sim.firmware.mode(3) == Mode.ZERO_VELOCITY, timeout=3.0)
+        assert "no command" in (arm.tripped or "")
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_run_leaves_the_arm_safe_and_exits_130(sim) -> None:
+    target = sim.snapshot().q + np.array([0.2, 0.2, 0.2, 0.2])
+    cmd = [sys.executable, "-m", "reach_driver.cli", "--port", ports(sim)["udp"], "run"]
+    cmd += ["--controller", "pid", "--target", *map(str, target), "--seconds", "600"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert wait_until(lambda: sim.firmware.mode(5) == Mode.CURRENT, timeout=30.0)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == Exit.INTERRUPTED, err
+    assert b"safe mode" in err
+    assert wait_until(lambda: all(sim.firmware.mode(d) == Mode.ZERO_VELOCITY for d in (5, 4, 3, 2)))
+
+
+def test_limits_written_to_the_arm_are_read_back_and_enforced(sim) -> None:
+    from reach_driver import LimitError, LimitKind
+
+    with ArmClient(open_transport(ports(sim)["pty"])) as arm:
+        assert arm.write_limits(DeviceID.D, LimitKind.CURRENT, 400.0, -400.0) == (-400.0, 400.0)
+        assert arm.guard.limit(DeviceID.D, LimitKind.CURRENT).high == 400.0
+        assert sim.arm.current_limits_mA[1] == 400.0  # the arm itself took it
+        arm.read_joints()
+        with pytest.raises(LimitError, match=r"current 450 mA for joint D .*\[-400, 400\]"):
+            arm.command_current(DeviceID.D, 450.0)
+        sent = arm.command_velocities([0.1, -0.1, 0.0, 0.2])
+        np.testing.assert_allclose(sent, [0.1, -0.1, 0.0, 0.2])
+        assert wait_until(lambda: sim.firmware.mode(2) == Mode.VELOCITY)
+        with pytest.raises(LimitError, match="velocity limit"):
+            arm.command_velocity(DeviceID.E, 0.6)  # the firmware rate limit is 0.5236
+        arm.safe_stop()
+
+
+def test_a_link_error_flag_is_only_a_warning_for_move(sim, capsys) -> None:
+    from protocol import Packet
+
+    with ArmClient(open_transport(ports(sim)["pty"])) as arm:
+        arm.write_frames([Packet(DeviceID.D, PacketID.MODE, b"").encode()])  # bad payload
+        assert wait_until(lambda: "SERIAL_ERROR" in arm.read_status().get(4, []))
+    target = sim.snapshot().q + np.array([0.0, 0.1, 0.0, 0.0])
+    assert main(["--port", ports(sim)["pty"], "move", *map(str, target)]) == Exit.OK
+    out = capsys.readouterr().out
+    assert "warning" in out and "SERIAL_ERROR" in out
+
+
+class FaultyArm:
+    """A minimal arm on UDP that answers REQUESTs from canned values; D reports a motor
+    over-current (the emulator cannot be told to fake motor faults)."""
+
+    def __init__(self) -> None:
+        import socket
+        import threading
+
+        from protocol import HardwareStatus, Packet, PacketDecoder
+        from protocol.payload import pack_floats
+
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.05)
+        self.values: dict[tuple[int, int], bytes] = {}
+        for dev in (5, 4, 3, 2):
+            self.values[(dev, PacketID.MODE)] = bytes([Mode.STANDBY])
+            self.values[(dev, PacketID.POSITION)] = pack_floats(1.5)
+            self.values[(dev, PacketID.VELOCITY)] = pack_floats(0.0)
+            self.values[(dev, PacketID.POSITION_LIMITS)] = pack_floats(3.4, 0.02)
+            self.values[(dev, PacketID.VELOCITY_LIMITS)] = pack_floats(0.5, -0.5)
+            self.values[(dev, PacketID.CURRENT_LIMITS)] = pack_floats(300.0, -300.0)
+            status = HardwareStatus.MOTOR_OVER_CURRENT if dev == 4 else HardwareStatus.NONE
+            self.values[(dev, PacketID.HARDWARE_STATUS)] = status.to_bytes()
+        self.received: list[Packet] = []
+        self._decoder = PacketDecoder()
+        self._packet = Packet
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    @property
+    def url(self) -> str:
+        host, port = self.sock.getsockname()
+        return f"udp://{host}:{port}"
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data, peer = self.sock.recvfrom(65535)
+            except TimeoutError:
+                continue
+            out = b""
+            for p in self._decoder.feed(data):
+                self.received.append(p)
+                if p.packet_id == PacketID.REQUEST:
+                    for pid in p.data:
+                        value = self.values.get((int(p.device_id), pid))
+                        if value is not None:
+                            out += self._packet(p.device_id, pid, value).encode()
+            if out:
+                self.sock.sendto(out, peer)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.sock.close()
+
+
+def test_move_refuses_to_start_when_a_joint_reports_a_motor_fault(capsys) -> None:
+    arm = FaultyArm()
+    try:
+        code = main(["--port", arm.url, "move", "1.5", "1.6", "1.5", "1.5"])
+    finally:
+        arm.close()
+    assert code == Exit.FAILED
+    assert "MOTOR_OVER_CURRENT" in capsys.readouterr().err
+    assert not [p for p in arm.received if p.packet_id == PacketID.POSITION]
+
+
+def test_info_names_the_status_flags_of_a_faulty_joint(capsys) -> None:
+    arm = FaultyArm()
+    try:
+        assert main(["--port", arm.url, "info", "--json"]) == Exit.OK
+    finally:
+        arm.close()
+    devices = json.loads(capsys.readouterr().out)["devices"]
+    assert devices["D"]["status_flags"] == ["MOTOR_OVER_CURRENT"]
+    assert devices["E"]["status_flags"] == []
+    assert "A" not in devices  # the jaw never answered: not listed
+
+
+def test_rs485_mode_talks_to_one_device_at_a_time(sim) -> None:
+    with ArmClient(open_transport(ports(sim)["pty"], rs485=True)) as arm:
+        assert arm.found_devices == (5, 4, 3, 2, 1)
+        writes = arm.transport.stats.writes
+        state = arm.read_joints()
+        assert not np.isnan(state.q).any()
+        assert arm.transport.stats.writes - writes == 4  # a REQUEST each, never a broadcast
