@@ -49,7 +49,7 @@ class FaultConfig:
     def __post_init__(self) -> None:
         if len(self.torque_scale) != 4:
             raise ValueError(f"torque_scale needs 4 values (E D C B), got {self.torque_scale}")
-        for joint, scale in zip(JOINTS, self.torque_scale):
+        for joint, scale in zip(JOINTS, self.torque_scale, strict=True):
             if not (math.isfinite(scale) and 0.0 <= scale <= 1.0):
                 raise ValueError(f"torque scale of joint {joint} must be in [0, 1], got {scale}")
         for name in ("corrupt_rate", "drop_rate"):
@@ -111,7 +111,7 @@ class LinkFaults:
         damaged = bytearray(frame)
         # XOR with a non-zero mask so every hit really changes the byte.
         masks = self._rng.integers(1, 256, size=hits.size)
-        for index, mask in zip(hits.tolist(), masks.tolist()):
+        for index, mask in zip(hits.tolist(), masks.tolist(), strict=True):
             damaged[index] ^= mask
         self.corrupted_bytes += int(hits.size)
         return bytes(damaged)

@@ -14,7 +14,7 @@ Address = tuple[str, int]
 
 
 def parse_udp_address(text: str) -> Address:
-    """'HOST:PORT', ':PORT', 'PORT' or '[v6]:PORT' -> (host, port); loopback unless a host is given."""
+    """'HOST:PORT', ':PORT', 'PORT' or '[V6]:PORT' -> (host, port); loopback unless given."""
     text = text.strip()
     host, port_text = DEFAULT_UDP_HOST, text
     if text.startswith("["):

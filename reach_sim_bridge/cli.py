@@ -1,0 +1,233 @@
+"""`reach-sim`: serve a virtual Reach Alpha 5 on a pty (and/or UDP) until interrupted."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+from types import FrameType
+
+from reach_sim_bridge.faults import (
+    DEFAULT_POSITION_NOISE,
+    DEFAULT_VELOCITY_NOISE,
+    FaultConfig,
+    SensorNoise,
+    torque_scales,
+)
+from reach_sim_bridge.server import SimConfig, SimServer, serve_forever
+from reach_sim_bridge.udp import DEFAULT_UDP_HOST, DEFAULT_UDP_PORT, parse_udp_address
+
+DESCRIPTION = """\
+Serve a simulated Reach Alpha 5 (MuJoCo physics + emulated joint firmware) speaking the
+Reach/BPL serial protocol. A pseudo-terminal is created and its path printed: open it like
+the arm's serial port (any baud rate; 8N1; raw). With --udp the arm also answers on UDP, as
+the Ethernet variants do. Devices 0x01 (jaws, mm) to 0x05 (base) and broadcast 0xFF.
+Stop with Ctrl-C or SIGTERM (the --link symlink is removed)."""
+
+EPILOG = """\
+output (stdout, one per line, then the server runs):
+  pty /dev/pts/N       the serial device to open
+  link PATH            the stable symlink to it (with --link)
+  udp HOST:PORT        the UDP address (with --udp)
+
+examples:
+  reach-sim --link /tmp/alpha5
+  reach-sim --udp --no-pty                      # UDP only, 127.0.0.1:6789
+  reach-sim --speed 5 --torque-scale E=0.25      # paper scenario 3, five times real time
+  reach-sim --baud 115200 --latency-ms 5 --drop-rate 0.01 --sensor-noise
+"""
+
+
+def _positive_float(text: str) -> float:
+    value = _float(text)
+    if value <= 0.0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def _float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
+    return value
+
+
+def _probability(text: str) -> float:
+    value = _float(text)
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"a probability is in [0, 1], got {text}")
+    return value
+
+
+def _non_negative(text: str) -> float:
+    value = _float(text)
+    if value < 0.0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return value
+
+
+def _baud(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"baud is a whole number of bits/s: {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"baud must be > 0, got {text}")
+    return value
+
+
+def _udp(text: str) -> tuple[str, int]:
+    try:
+        return parse_udp_address(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _noise(text: str) -> SensorNoise:
+    parts = text.split(",")
+    if len(parts) > 2:
+        raise argparse.ArgumentTypeError(f"expected POS_STD[,VEL_STD], got {text!r}")
+    try:
+        pos = float(parts[0])
+        vel = float(parts[1]) if len(parts) == 2 else DEFAULT_VELOCITY_NOISE
+        return SensorNoise(pos, vel)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"bad --sensor-noise {text!r}: {exc}") from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="reach-sim", description=DESCRIPTION, epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    link = p.add_argument_group("serving")
+    link.add_argument("--link", metavar="PATH",
+                      help="also make a stable symlink PATH to the pty (replaces an old "
+                           "symlink, never a real file; removed on exit)")
+    link.add_argument("--no-pty", action="store_true",
+                      help="do not create a pty (serve UDP only)")
+    link.add_argument("--udp", nargs="?", type=_udp, metavar="HOST:PORT",
+                      const=(DEFAULT_UDP_HOST, DEFAULT_UDP_PORT),
+                      help="also serve UDP: answer each datagram's sender, one frame per "
+                           "reply datagram; several frames per incoming datagram are fine. "
+                           f"Without a value {DEFAULT_UDP_HOST}:{DEFAULT_UDP_PORT}; a bare "
+                           "PORT or :PORT stays on loopback. Port 0 picks a free port")
+    link.add_argument("--speed", type=_positive_float, default=1.0, metavar="X",
+                      help="run X times faster than the wall clock (default 1: real time). "
+                           "Sim-time rates (heartbeats, 1 Hz status) speed up too")
+    link.add_argument("--baud", type=_baud, metavar="BAUD",
+                      help="throttle the pty both ways to a serial line's byte rate, "
+                           "BAUD/10 bytes/s (8N1), e.g. 115200. Default: unthrottled")
+    arm = p.add_argument_group("arm")
+    arm.add_argument("--start", nargs=4, type=_float, metavar=("E", "D", "C", "B"),
+                     help="initial joint angles in rad, the arm's own angles (default: the "
+                          "middle of each joint's range)")
+    arm.add_argument("--jaw", type=_non_negative, default=5.0, metavar="MM",
+                     help="initial jaw opening in mm (default 5)")
+    arm.add_argument("--dt", type=_positive_float, default=0.002, metavar="S",
+                     help="physics and firmware loop step in sim seconds (default 0.002)")
+    faults = p.add_argument_group("faults")
+    faults.add_argument("--torque-scale", action="append", default=[], metavar="JOINT=S",
+                        help="scale the torque joint JOINT (E D C B) delivers by S in [0, 1]; "
+                             "repeatable. E=0.25 is the paper's 75%% torque loss")
+    faults.add_argument("--sensor-noise", nargs="?", type=_noise, metavar="POS[,VEL]",
+                        const=SensorNoise(),
+                        help="add Gaussian noise to reported positions and velocities: "
+                             "standard deviations in rad and rad/s (mm, mm/s for the jaws); "
+                             f"default {DEFAULT_POSITION_NOISE},{DEFAULT_VELOCITY_NOISE}. "
+                             "The firmware's own loops see the true values")
+    faults.add_argument("--randomize-params", type=int, metavar="SEED",
+                        help="perturb friction, armature, masses and buoyancy by up to "
+                             "+-20%% per joint, drawn from SEED")
+    faults.add_argument("--corrupt-rate", type=_probability, default=0.0, metavar="P",
+                        help="flip each outgoing byte with probability P")
+    faults.add_argument("--drop-rate", type=_probability, default=0.0, metavar="P",
+                        help="drop each outgoing frame with probability P")
+    faults.add_argument("--latency-ms", type=_non_negative, default=0.0, metavar="N",
+                        help="delay every outgoing frame by N wall-clock milliseconds")
+    faults.add_argument("--seed", type=int, metavar="N",
+                        help="seed for the link faults and sensor noise (reproducible runs)")
+    out = p.add_argument_group("output")
+    out.add_argument("--stats-interval", type=_non_negative, default=10.0, metavar="S",
+                     help="log frame/error counters every S wall seconds (0: never; "
+                          "default 10)")
+    out.add_argument("-v", "--verbose", action="count", default=0,
+                     help="more log output (-v: info, -vv: debug); errors are always logged")
+    return p
+
+
+def config_from_args(args: argparse.Namespace) -> SimConfig:
+    """The SimConfig the parsed options ask for (ValueError on inconsistent options)."""
+    faults = FaultConfig(
+        torque_scale=torque_scales(args.torque_scale),
+        sensor_noise=args.sensor_noise,
+        randomize_seed=args.randomize_params,
+        corrupt_rate=args.corrupt_rate,
+        drop_rate=args.drop_rate,
+        latency_ms=args.latency_ms,
+    )
+    start = None if args.start is None else tuple(args.start)
+    return SimConfig(
+        speed=args.speed, pty=not args.no_pty, link=args.link, udp=args.udp, baud=args.baud,
+        start=start,  # type: ignore[arg-type]
+        jaw_mm=args.jaw, dt=args.dt, faults=faults, seed=args.seed,
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+                        stream=sys.stderr)
+    if args.stats_interval > 0.0:
+        logging.getLogger("reach_sim_bridge.server").setLevel(min(level, logging.INFO))
+    try:
+        config = config_from_args(args)
+        server = SimServer(config)
+    except ValueError as exc:
+        parser.error(str(exc))
+
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, on_signal)
+    try:
+        path = server.start()
+    except OSError as exc:
+        print(f"reach-sim: error: {exc}", file=sys.stderr)
+        return 1
+    try:
+        if path is not None:
+            print(f"pty {path}")
+        if config.link is not None:
+            print(f"link {config.link}")
+        if server.udp_address is not None:
+            host, port = server.udp_address
+            print(f"udp {host}:{port}")
+        sys.stdout.flush()
+        serve_forever(server, stop, args.stats_interval)
+    except RuntimeError as exc:
+        print(f"reach-sim: error: {exc}: {server.error!r}", file=sys.stderr)
+        return 1
+    finally:
+        server.stop()
+        s = server.stats()
+        logging.getLogger("reach_sim_bridge.server").info(
+            "stopped at t=%.1f s: frames in %d out %d, bad %s, errors %s",
+            s.sim_time, s.frames_in, s.frames_out, s.bad_frames, s.firmware_errors)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,664 @@
+"""Emulation of the Alpha 5's joint firmware on top of the MuJoCo arm.
+
+Each device (A jaws 0x01 .. E base 0x05) keeps the state the real firmware keeps: mode,
+setpoints, [max, min] limits, identity, hardware status flags and a heartbeat. Its control
+loops run once per physics step in sim time, cascaded like the arm's: position error ->
+velocity demand (clamped to the firmware rate limit and the velocity limits) -> PI velocity
+loop -> current (clamped to the current limits) -> motor. Current mode goes straight to the
+motor. The integral term of the velocity loop is what holds D and C against gravity.
+
+Modes: STANDBY and DISABLE hold the joint where it was ("the device will not move"; the
+real 1754:1 gearbox barely back-drives, the model's soft friction creeps, so holding is
+emulated with the position loop). PASSIVE puts no current through the motor. Control
+packets switch STANDBY and the active modes implicitly; DISABLE and PASSIVE ignore them.
+
+Bad input never stops the firmware: each bad packet is counted, logged (rate-limited) and
+raises the SERIAL_ERROR (or CRC_ERROR) flag, which is reported with HARDWARE_STATUS at 1 Hz
+until `error_hold_s` passes without a new error (or a RESET).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import random
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from enum import Enum
+
+from protocol import DecodeError, DecodeReason, DeviceID, HardwareStatus, Mode, Packet, PacketID
+from protocol.payload import pack_floats, pack_u8s
+from reach_sim_bridge.arm import Alpha5Arm
+from reach_sim_bridge.events import EventLog
+from reach_sim_bridge.faults import SensorNoise
+
+log = logging.getLogger(__name__)
+
+MAX_REQUEST_IDS = 10
+HEARTBEAT_SLOTS = 10
+LINK_ERROR_FLAGS = HardwareStatus.SERIAL_ERROR | HardwareStatus.CRC_ERROR
+
+# Control packets that switch the mode implicitly; DISABLE and PASSIVE ignore them.
+_LOCKED_MODES = frozenset({Mode.DISABLE, Mode.PASSIVE})
+# Modes whose loop servoes to `position_target`.
+_HOLDING_MODES = frozenset({Mode.POSITION, Mode.POSITION_HOLD, Mode.STANDBY, Mode.DISABLE})
+
+
+class ErrorReason(str, Enum):
+    """Why a well-framed packet was rejected (keys of `Firmware.errors`)."""
+
+    BAD_PAYLOAD = "bad_payload"  # wrong payload size for the packet (e.g. an empty MODE)
+    BAD_VALUE = "bad_value"  # NaN or infinite float
+    UNKNOWN_MODE = "unknown_mode"
+    BAD_LIMITS = "bad_limits"  # max < min, or a velocity/current range excluding 0
+    UNKNOWN_PACKET = "unknown_packet"  # a packet id this firmware does not implement
+
+
+class Ignored(str, Enum):
+    """Valid packets the arm deliberately does nothing with (keys of `Firmware.ignored`)."""
+
+    OUT_OF_LIMITS = "position_out_of_limits"
+    LOCKED = "control_while_disabled"  # control packet in DISABLE or PASSIVE
+    READ_ONLY = "read_only"  # e.g. a host sending TEMPERATURE
+    UNSUPPORTED_REQUEST = "unsupported_request"  # REQUEST/HEARTBEAT of an id we cannot report
+    OTHER_DEVICE = "other_device"  # addressed to a device this arm does not have
+
+
+@dataclass(frozen=True)
+class LoopGains:
+    """Cascade gains; currents in mA, positions in the device's unit (rad or mm)."""
+
+    position: float  # 1/s: position error -> velocity demand
+    velocity_p: float  # mA per unit/s
+    velocity_i: float  # mA per unit (integral of the velocity error)
+
+
+@dataclass(frozen=True)
+class DeviceSpec:
+    """What differs between the five devices' firmware."""
+
+    device_id: DeviceID
+    letter: str
+    unit: str  # "rad" or "mm"
+    rate_limit: float  # firmware limit in position/velocity modes (unit/s)
+    gains: LoopGains
+    serial_number: float
+
+
+# Gains tuned against Alpha5Arm (tools/ and tests/test_sim_firmware.py check the result):
+# E/D/C have ~0.13 kg m^2 reflected inertia and 20.2 N m/A; B 0.008 kg m^2 and 7.1 N m/A;
+# the jaw ~725 kg reflected mass and 914 N/A (units mm, so mA per mm).
+ALPHA5_DEVICES: tuple[DeviceSpec, ...] = (
+    DeviceSpec(DeviceID.A, "A", "mm", 3.0, LoopGains(3.0, 20.0, 150.0), 4101.0),
+    DeviceSpec(DeviceID.B, "B", "rad", 0.8727, LoopGains(5.0, 100.0, 2000.0), 4102.0),
+    DeviceSpec(DeviceID.C, "C", "rad", 0.5236, LoopGains(5.0, 1000.0, 20000.0), 4103.0),
+    DeviceSpec(DeviceID.D, "D", "rad", 0.5236, LoopGains(5.0, 1000.0, 20000.0), 4104.0),
+    DeviceSpec(DeviceID.E, "E", "rad", 0.5236, LoopGains(5.0, 1000.0, 20000.0), 4105.0),
+)
+
+
+@dataclass(frozen=True)
+class FirmwareConfig:
+    """Identity and environment the firmware reports, and its error-reporting timing."""
+
+    devices: tuple[DeviceSpec, ...] = ALPHA5_DEVICES
+    software_version: tuple[int, int, int] = (0, 1, 0)  # the emulator's own version
+    model_number: float = 5005.0  # emulator's own number: the vendor's are not published
+    temperature_c: float = 20.0
+    humidity_pct: float = 10.0
+    status_period_s: float = 1.0  # HARDWARE_STATUS while an error flag is set
+    error_hold_s: float = 5.0  # link error flags clear after this long without errors
+    sensor_noise: SensorNoise | None = None
+    seed: int | None = None  # noise generator
+
+
+@dataclass
+class Limits:
+    """Stored as (lo, hi); the wire order is [max, min]."""
+
+    lo: float
+    hi: float
+
+    def contains(self, value: float) -> bool:
+        return self.lo <= value <= self.hi
+
+    def clamp(self, value: float) -> float:
+        return self.hi if value > self.hi else (self.lo if value < self.lo else value)
+
+
+@dataclass
+class Saved:
+    """What SAVE stores and RESET restores."""
+
+    position: tuple[float, float]
+    velocity: tuple[float, float]
+    current: tuple[float, float]
+    heartbeat_hz: int
+
+
+@dataclass
+class Device:
+    """One device's live firmware state."""
+
+    spec: DeviceSpec
+    index: int  # 0..3 in E D C B for the joints, -1 for the jaw
+    continuous: bool
+    position_limits: Limits
+    velocity_limits: Limits
+    current_limits: Limits
+    saved: Saved
+    mode: Mode = Mode.STANDBY
+    position_target: float = 0.0
+    velocity_target: float = 0.0
+    current_target: float = 0.0
+    integral: float = 0.0  # of the velocity error, in units (so i = ki * integral)
+    applied_mA: float = 0.0
+    status: HardwareStatus = HardwareStatus.NONE
+    last_error_time: float = -math.inf
+    status_phase: float = 0.0
+    heartbeat_ids: tuple[int, ...] = ()
+    heartbeat_hz: int = 0
+    heartbeat_phase: float = 0.0
+
+
+class _Rejected(Exception):
+    def __init__(self, reason: ErrorReason, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+Handler = Callable[[list[Device], Packet], list[Packet]]
+
+
+class Firmware:
+    """All five devices of one arm. Not thread-safe: one owner calls handle() and tick()."""
+
+    def __init__(self, arm: Alpha5Arm, config: FirmwareConfig | None = None) -> None:
+        self.arm = arm
+        self.config = config if config is not None else FirmwareConfig()
+        self._rng = random.Random(self.config.seed)
+        self._noise = self.config.sensor_noise
+        self._step = arm.dt
+        self._pending = 0.0
+        self.errors = EventLog(log, logging.WARNING)
+        self.ignored = EventLog(log, logging.INFO)
+        self.packets_handled = 0
+        self._devices: list[Device] = []
+        self._by_id: dict[int, Device] = {}
+        self._joints: list[Device] = [None] * 4  # type: ignore[list-item]
+        self._jaw: Device | None = None
+        continuous = bool(arm.params.wrist_continuous)
+        arm_limits = arm.position_limits
+        arm_currents = arm.current_limits_mA
+        letters = ("E", "D", "C", "B")
+        for spec in sorted(self.config.devices, key=lambda s: int(s.device_id)):
+            if spec.letter == "A":
+                index = -1
+                lo, hi = arm.jaw_limits_mm
+                imax = arm.jaw_current_limit_mA
+            elif spec.letter in letters:
+                index = letters.index(spec.letter)
+                lo, hi = float(arm_limits[index, 0]), float(arm_limits[index, 1])
+                imax = float(arm_currents[index])
+            else:
+                raise ValueError(f"device letter must be one of A B C D E, got {spec.letter!r}")
+            saved = Saved((lo, hi), (-spec.rate_limit, spec.rate_limit), (-imax, imax), 0)
+            dev = Device(
+                spec=spec,
+                index=index,
+                continuous=continuous and spec.letter == "B",
+                position_limits=Limits(lo, hi),
+                velocity_limits=Limits(-spec.rate_limit, spec.rate_limit),
+                current_limits=Limits(-imax, imax),
+                saved=saved,
+            )
+            self._devices.append(dev)
+            self._by_id[int(spec.device_id)] = dev
+            if index >= 0:
+                self._joints[index] = dev
+            else:
+                self._jaw = dev
+        if any(d is None for d in self._joints):
+            raise ValueError("the firmware needs devices for all of E D C B")
+        for dev in self._devices:
+            dev.position_target = self._position(dev)
+        self._handlers: dict[int, Handler] = {
+            PacketID.MODE: self._on_mode,
+            PacketID.POSITION: self._on_position,
+            PacketID.VELOCITY: self._on_velocity,
+            PacketID.CURRENT: self._on_current,
+            PacketID.INDEXED_POSITION: self._on_relative,
+            PacketID.RELATIVE_POSITION: self._on_relative,
+            PacketID.POSITION_LIMITS: self._on_limits,
+            PacketID.VELOCITY_LIMITS: self._on_limits,
+            PacketID.CURRENT_LIMITS: self._on_limits,
+            PacketID.SAVE: self._on_save,
+            PacketID.REQUEST: self._on_request,
+            PacketID.HEARTBEAT_SET: self._on_heartbeat_set,
+            PacketID.HEARTBEAT_FREQUENCY: self._on_heartbeat_frequency,
+            PacketID.RESET: self._on_reset,
+        }
+        self._reporters: dict[int, Callable[[Device], bytes | None]] = {
+            PacketID.MODE: lambda d: bytes((int(d.mode),)),
+            PacketID.POSITION: lambda d: pack_floats(self._noisy_position(d)),
+            PacketID.VELOCITY: lambda d: pack_floats(self._noisy_velocity(d)),
+            PacketID.CURRENT: lambda d: pack_floats(self._current(d)),
+            PacketID.POSITION_LIMITS: lambda d: _limits_payload(d.position_limits),
+            PacketID.VELOCITY_LIMITS: lambda d: _limits_payload(d.velocity_limits),
+            PacketID.CURRENT_LIMITS: lambda d: _limits_payload(d.current_limits),
+            PacketID.SERIAL_NUMBER: lambda d: pack_floats(d.spec.serial_number),
+            PacketID.MODEL_NUMBER: lambda d: pack_floats(self.config.model_number),
+            PacketID.DEVICE_ID: lambda d: bytes((int(d.spec.device_id),)),
+            PacketID.HUMIDITY: lambda d: pack_floats(self.config.humidity_pct),
+            PacketID.TEMPERATURE: lambda d: pack_floats(self.config.temperature_c),
+            PacketID.HARDWARE_STATUS: lambda d: d.status.to_bytes(),
+            PacketID.SOFTWARE_VERSION: lambda d: pack_u8s(*self.config.software_version),
+            PacketID.VOLTAGE: lambda d: pack_floats(self.arm.motor.supply_voltage),
+            PacketID.HEARTBEAT_SET: lambda d: _heartbeat_payload(d.heartbeat_ids),
+            PacketID.HEARTBEAT_FREQUENCY: lambda d: bytes((d.heartbeat_hz,)),
+            PacketID.KM_END_POS: self._end_pose,
+        }
+
+    # -- public -----------------------------------------------------------------------------
+    @property
+    def time(self) -> float:
+        """Sim time (s) of the arm the firmware drives."""
+        return self.arm.time
+
+    @property
+    def devices(self) -> tuple[int, ...]:
+        return tuple(self._by_id)
+
+    def mode(self, device_id: int) -> Mode:
+        return self._by_id[device_id].mode
+
+    def status(self, device_id: int) -> HardwareStatus:
+        return self._by_id[device_id].status
+
+    def handle(self, packet: Packet) -> list[Packet]:
+        """Act on one packet from the host; the replies it causes, in order."""
+        self.packets_handled += 1
+        target = int(packet.device_id)
+        if target == DeviceID.BROADCAST:
+            targets = self._devices
+        else:
+            dev = self._by_id.get(target)
+            if dev is None:
+                self.ignored.record(Ignored.OTHER_DEVICE.value,
+                                    f"packet 0x{int(packet.packet_id):02X} for device "
+                                    f"0x{target:02X}, which this arm does not have")
+                return []
+            targets = [dev]
+        pid = int(packet.packet_id)
+        handler = self._handlers.get(pid)
+        if handler is None:
+            if pid in self._reporters or pid == PacketID.KM_END_VEL:
+                self.ignored.record(Ignored.READ_ONLY.value,
+                                    f"packet 0x{pid:02X} is read-only here (send a REQUEST)")
+            else:
+                self._error(targets, ErrorReason.UNKNOWN_PACKET,
+                            f"packet id 0x{pid:02X} is not implemented; ignored", flag=False)
+            return []
+        try:
+            return handler(targets, packet)
+        except _Rejected as rejected:
+            self._error(targets, rejected.reason, f"{packet!r}: {rejected}")
+            return []
+
+    def note_link_error(self, error: DecodeError) -> None:
+        """A frame the server could not decode: flag it on the base device (0x05), where the
+        host link enters the arm."""
+        base = self._by_id.get(int(DeviceID.E), self._devices[-1])
+        flag = (HardwareStatus.CRC_ERROR if error.reason == DecodeReason.CRC
+                else HardwareStatus.SERIAL_ERROR)
+        self._raise_flag([base], flag)
+
+    def tick(self, dt: float) -> list[Packet]:
+        """Advance control loops and physics by dt of sim time (in whole physics steps; the
+        remainder carries over); the unprompted packets (heartbeats, status) due meanwhile."""
+        if not (math.isfinite(dt) and dt >= 0.0):
+            raise ValueError(f"tick dt must be a finite number >= 0 s, got {dt}")
+        self._pending += dt
+        h = self._step
+        n = int(self._pending / h + 1e-9)
+        self._pending = max(0.0, self._pending - n * h)
+        out: list[Packet] = []
+        for _ in range(n):
+            self._control_step(h)
+            self._housekeeping(h, out)
+        return out
+
+    def steps(self, n: int) -> list[Packet]:
+        """Advance exactly n physics steps (what tick() does for n * dt)."""
+        out: list[Packet] = []
+        for _ in range(n):
+            self._control_step(self._step)
+            self._housekeeping(self._step, out)
+        return out
+
+    def report(self, device_id: int, packet_id: int) -> Packet | None:
+        """The packet device `device_id` sends for a REQUEST of `packet_id` (None if none)."""
+        dev = self._by_id[device_id]
+        reporter = self._reporters.get(packet_id)
+        data = reporter(dev) if reporter is not None else None
+        return None if data is None else Packet(dev.spec.device_id, packet_id, data)
+
+    # -- control ----------------------------------------------------------------------------
+    def _control_step(self, h: float) -> None:
+        arm = self.arm
+        q = arm.q.tolist()
+        qd = arm.qdot.tolist()
+        currents = [self._loop(self._joints[i], q[i], qd[i], h) for i in range(4)]
+        jaw = self._jaw
+        jaw_mA = 0.0 if jaw is None else self._loop(jaw, arm.jaw_mm, arm.jaw_velocity_mm_s, h)
+        arm.step(currents, jaw_mA)
+
+    def _loop(self, d: Device, pos: float, vel: float, h: float) -> float:
+        mode = d.mode
+        if mode == Mode.CURRENT:
+            d.integral = 0.0
+            d.applied_mA = d.current_limits.clamp(d.current_target)
+            return d.applied_mA
+        if mode in _HOLDING_MODES:
+            err = d.position_target - pos
+            if d.continuous:
+                err = (err + math.pi) % (2.0 * math.pi) - math.pi
+            demand = d.spec.gains.position * err
+        elif mode == Mode.VELOCITY:
+            demand = d.velocity_target
+            if not d.continuous and (
+                (pos >= d.position_limits.hi and demand > 0.0)
+                or (pos <= d.position_limits.lo and demand < 0.0)
+            ):
+                demand = 0.0  # soft end stop at the position limits
+        elif mode == Mode.ZERO_VELOCITY:
+            demand = 0.0
+        else:  # PASSIVE, or a mode without a loop
+            d.integral = 0.0
+            d.applied_mA = 0.0
+            return 0.0
+        rate = d.spec.rate_limit
+        demand = min(demand, rate, d.velocity_limits.hi)
+        demand = max(demand, -rate, d.velocity_limits.lo)
+        gains = d.spec.gains
+        error = demand - vel
+        integral = d.integral + error * h
+        # Anti-windup: the integral alone never asks for more than the current limit.
+        limits = d.current_limits
+        ki = gains.velocity_i
+        integral = min(max(integral, limits.lo / ki), limits.hi / ki)
+        d.integral = integral
+        d.applied_mA = limits.clamp(gains.velocity_p * error + ki * integral)
+        return d.applied_mA
+
+    def _housekeeping(self, h: float, out: list[Packet]) -> None:
+        now = self.arm.time
+        cfg = self.config
+        for d in self._devices:
+            if d.heartbeat_hz and d.heartbeat_ids:
+                d.heartbeat_phase += h
+                period = 1.0 / d.heartbeat_hz
+                if d.heartbeat_phase >= period - 1e-9:
+                    d.heartbeat_phase = max(0.0, d.heartbeat_phase - period)
+                    for pid in d.heartbeat_ids:
+                        packet = self.report(int(d.spec.device_id), pid)
+                        if packet is not None:
+                            out.append(packet)
+            if d.status & LINK_ERROR_FLAGS:
+                if now - d.last_error_time >= cfg.error_hold_s:
+                    d.status &= ~LINK_ERROR_FLAGS
+                    log.info("device %s: link error flags cleared after %.1f s without errors",
+                             d.spec.letter, cfg.error_hold_s)
+                    continue
+                d.status_phase += h
+                if d.status_phase >= cfg.status_period_s - 1e-9:
+                    d.status_phase = 0.0
+                    out.append(Packet(d.spec.device_id, PacketID.HARDWARE_STATUS,
+                                      d.status.to_bytes()))
+
+    # -- measurements -----------------------------------------------------------------------
+    def _position(self, d: Device) -> float:
+        return self.arm.jaw_mm if d.index < 0 else float(self.arm.q[d.index])
+
+    def _velocity(self, d: Device) -> float:
+        return self.arm.jaw_velocity_mm_s if d.index < 0 else float(self.arm.qdot[d.index])
+
+    def _current(self, d: Device) -> float:
+        return self.arm.jaw_current_mA if d.index < 0 else float(self.arm.current_mA[d.index])
+
+    def _noisy_position(self, d: Device) -> float:
+        value = self._position(d)
+        if self._noise is not None and self._noise.position_std > 0.0:
+            value += self._rng.gauss(0.0, self._noise.position_std)
+        return value
+
+    def _noisy_velocity(self, d: Device) -> float:
+        value = self._velocity(d)
+        if self._noise is not None and self._noise.velocity_std > 0.0:
+            value += self._rng.gauss(0.0, self._noise.velocity_std)
+        return value
+
+    def _end_pose(self, d: Device) -> bytes | None:
+        if d.spec.device_id != DeviceID.E:
+            return None  # the base device does the kinematics
+        return pack_floats(*self.arm.end_effector_pose())
+
+    # -- errors -----------------------------------------------------------------------------
+    def _error(self, targets: Sequence[Device], reason: ErrorReason, message: str,
+               flag: bool = True) -> None:
+        self.errors.record(reason.value, message)
+        if flag:
+            self._raise_flag(targets, HardwareStatus.SERIAL_ERROR)
+
+    def _raise_flag(self, targets: Sequence[Device], flag: HardwareStatus) -> None:
+        now = self.arm.time
+        for d in targets:
+            if not d.status & LINK_ERROR_FLAGS:
+                d.status_phase = self.config.status_period_s  # report at the next step
+            d.status |= flag
+            d.last_error_time = now
+
+    # -- packet handlers --------------------------------------------------------------------
+    def _set_mode(self, d: Device, mode: Mode) -> None:
+        if mode == d.mode:
+            return
+        if mode in _HOLDING_MODES:
+            d.position_target = self._position(d)
+        d.velocity_target = 0.0
+        d.current_target = 0.0
+        # Bumpless: the velocity loop's integral starts at the current already applied.
+        d.integral = d.applied_mA / d.spec.gains.velocity_i
+        d.mode = mode
+
+    def _on_mode(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        data = packet.data
+        if len(data) != 1:
+            hint = " (an empty MODE: a sender using bytes(Mode.X)?)" if not data else ""
+            raise _Rejected(ErrorReason.BAD_PAYLOAD,
+                            f"MODE payload must be 1 byte, got {len(data)}{hint}")
+        try:
+            mode = Mode(data[0])
+        except ValueError:
+            raise _Rejected(ErrorReason.UNKNOWN_MODE,
+                            f"mode 0x{data[0]:02X} is not one this firmware runs") from None
+        for d in targets:
+            self._set_mode(d, mode)
+        return []
+
+    def _control(self, targets: list[Device], name: str) -> list[Device]:
+        """The targets that accept a control packet (the others are counted as ignored)."""
+        accepted = [d for d in targets if d.mode not in _LOCKED_MODES]
+        if len(accepted) < len(targets):
+            locked = " ".join(d.spec.letter for d in targets if d.mode in _LOCKED_MODES)
+            self.ignored.record(Ignored.LOCKED.value,
+                                f"{name} ignored by {locked}: DISABLE/PASSIVE mode")
+        return accepted
+
+    def _on_position(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        value = _one_float(packet, "POSITION")
+        for d in self._control(targets, "POSITION"):
+            self._command_position(d, value)
+        return []
+
+    def _on_relative(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        delta = _one_float(packet, "relative POSITION")
+        for d in self._control(targets, "relative POSITION"):
+            base = d.position_target if d.mode == Mode.POSITION else self._position(d)
+            value = base + delta
+            if d.continuous:
+                value %= 2.0 * math.pi
+            self._command_position(d, value)
+        return []
+
+    def _command_position(self, d: Device, value: float) -> None:
+        if not d.position_limits.contains(value):
+            self.ignored.record(
+                Ignored.OUT_OF_LIMITS.value,
+                f"device {d.spec.letter}: position {value:.4f} {d.spec.unit} outside "
+                f"[{d.position_limits.lo:.4f}, {d.position_limits.hi:.4f}]; ignored",
+            )
+            return
+        self._set_mode(d, Mode.POSITION)
+        d.position_target = value
+
+    def _on_velocity(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        value = _one_float(packet, "VELOCITY")
+        for d in self._control(targets, "VELOCITY"):
+            self._set_mode(d, Mode.VELOCITY)
+            rate = d.spec.rate_limit
+            d.velocity_target = max(min(d.velocity_limits.clamp(value), rate), -rate)
+        return []
+
+    def _on_current(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        value = _one_float(packet, "CURRENT")
+        for d in self._control(targets, "CURRENT"):
+            self._set_mode(d, Mode.CURRENT)
+            d.current_target = d.current_limits.clamp(value)
+        return []
+
+    def _on_limits(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        pid = PacketID(int(packet.packet_id))
+        if len(packet.data) != 8:
+            raise _Rejected(ErrorReason.BAD_PAYLOAD,
+                            f"{pid.name} payload must be 8 bytes [max, min], "
+                            f"got {len(packet.data)}")
+        hi, lo = packet.floats()
+        if not (math.isfinite(hi) and math.isfinite(lo)):
+            raise _Rejected(ErrorReason.BAD_VALUE, f"{pid.name} [{hi}, {lo}] is not finite")
+        if hi < lo:
+            raise _Rejected(ErrorReason.BAD_LIMITS,
+                            f"{pid.name} max {hi} < min {lo} (wire order is [max, min])")
+        if pid != PacketID.POSITION_LIMITS and not lo <= 0.0 <= hi:
+            raise _Rejected(ErrorReason.BAD_LIMITS,
+                            f"{pid.name} [{hi}, {lo}] must include 0 (max >= 0 >= min)")
+        for d in targets:
+            if pid == PacketID.POSITION_LIMITS:
+                d.position_limits = Limits(lo, hi)
+            elif pid == PacketID.VELOCITY_LIMITS:
+                d.velocity_limits = Limits(lo, hi)
+            else:
+                d.current_limits = Limits(lo, hi)
+                self._apply_drive_limit(d)
+        return []
+
+    def _apply_drive_limit(self, d: Device) -> None:
+        """The motor drive's symmetric limit follows the firmware's widest bound."""
+        limit = max(abs(d.current_limits.lo), abs(d.current_limits.hi))
+        if d.index < 0:
+            self.arm.jaw_current_limit_mA = limit
+        else:
+            limits = self.arm.current_limits_mA.copy()
+            limits[d.index] = limit
+            self.arm.current_limits_mA = limits
+
+    def _on_save(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        for d in targets:
+            d.saved = Saved(
+                (d.position_limits.lo, d.position_limits.hi),
+                (d.velocity_limits.lo, d.velocity_limits.hi),
+                (d.current_limits.lo, d.current_limits.hi),
+                d.heartbeat_hz,
+            )
+        return []
+
+    def _on_reset(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        for d in targets:
+            saved = d.saved
+            d.position_limits = Limits(*saved.position)
+            d.velocity_limits = Limits(*saved.velocity)
+            d.current_limits = Limits(*saved.current)
+            self._apply_drive_limit(d)
+            d.heartbeat_hz = saved.heartbeat_hz
+            d.heartbeat_ids = ()  # not saved across power cycles
+            d.status = HardwareStatus.NONE
+            d.last_error_time = -math.inf
+            self._set_mode(d, Mode.STANDBY)
+            d.position_target = self._position(d)
+        return []
+
+    def _on_request(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        ids = packet.data
+        if not 1 <= len(ids) <= MAX_REQUEST_IDS:
+            raise _Rejected(ErrorReason.BAD_PAYLOAD,
+                            f"REQUEST takes 1 to {MAX_REQUEST_IDS} packet ids, got {len(ids)}")
+        if 0 in ids:
+            # Answer the real ids, but count the defect (pre-sized list with leading zeros).
+            self._error(targets, ErrorReason.BAD_PAYLOAD,
+                        f"REQUEST {list(ids)} holds id 0 (padding is not a packet id)")
+        broadcast = int(packet.device_id) == DeviceID.BROADCAST
+        out: list[Packet] = []
+        for d in targets:
+            for pid in ids:
+                if pid == 0:
+                    continue
+                reply = self.report(int(d.spec.device_id), pid)
+                if reply is not None:
+                    out.append(reply)
+                elif not broadcast or pid not in self._reporters:
+                    self.ignored.record(Ignored.UNSUPPORTED_REQUEST.value,
+                                        f"device {d.spec.letter} has no 0x{pid:02X} to report")
+        return out
+
+    def _on_heartbeat_set(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        if len(packet.data) > HEARTBEAT_SLOTS:
+            raise _Rejected(ErrorReason.BAD_PAYLOAD,
+                            f"HEARTBEAT_SET takes at most {HEARTBEAT_SLOTS} ids, "
+                            f"got {len(packet.data)}")
+        ids = tuple(pid for pid in packet.data if pid)
+        unknown = [pid for pid in ids if pid not in self._reporters]
+        if unknown:
+            self.ignored.record(Ignored.UNSUPPORTED_REQUEST.value,
+                                f"HEARTBEAT_SET ids {[f'0x{p:02X}' for p in unknown]} cannot "
+                                "be reported; they will be skipped")
+        for d in targets:
+            d.heartbeat_ids = ids
+            d.heartbeat_phase = 0.0
+        return []
+
+    def _on_heartbeat_frequency(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        if len(packet.data) != 1:
+            raise _Rejected(ErrorReason.BAD_PAYLOAD,
+                            f"HEARTBEAT_FREQUENCY payload must be 1 byte, got {len(packet.data)}")
+        for d in targets:
+            d.heartbeat_hz = packet.data[0]
+            d.heartbeat_phase = 0.0
+        return []
+
+
+def _one_float(packet: Packet, name: str) -> float:
+    if len(packet.data) != 4:
+        raise _Rejected(ErrorReason.BAD_PAYLOAD,
+                        f"{name} payload must be one float32 (4 bytes), got {len(packet.data)}")
+    value = packet.floats()[0]
+    if not math.isfinite(value):
+        raise _Rejected(ErrorReason.BAD_VALUE, f"{name} value {value} is not finite")
+    return value
+
+
+def _limits_payload(limits: Limits) -> bytes:
+    return pack_floats(limits.hi, limits.lo)
+
+
+def _heartbeat_payload(ids: tuple[int, ...]) -> bytes:
+    return bytes(ids) + bytes(HEARTBEAT_SLOTS - len(ids))
+

@@ -1,0 +1,550 @@
+"""Serving the virtual Alpha 5 on a pty and/or UDP, paced to the wall clock.
+
+One background thread owns the arm, the firmware and the endpoints: it advances physics to
+where the (scaled) wall clock says sim time should be, reads whatever arrived, lets the
+firmware answer, and writes replies out through the link faults, the added latency and the
+serial line's byte rate. One thread means the firmware needs no locking against itself; a
+lock only guards it against the inspection methods called from other threads.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import select
+import threading
+import time
+from collections import deque
+from collections.abc import Iterable
+from dataclasses import dataclass, field, replace
+from types import TracebackType
+
+import numpy as np
+
+from protocol import DecodeError, Packet, PacketDecoder
+from protocol.decoder import DecoderStats
+from reach_sim_bridge.arm import Alpha5Arm
+from reach_sim_bridge.events import EventLog
+from reach_sim_bridge.faults import FaultConfig, LinkFaults
+from reach_sim_bridge.firmware import Firmware, FirmwareConfig
+from reach_sim_bridge.pty import PtyEndpoint
+from reach_sim_bridge.udp import Address, UdpEndpoint, is_loopback
+
+log = logging.getLogger(__name__)
+
+BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
+MAX_STEPS_PER_PASS = 25  # physics steps between two looks at the endpoints
+MAX_LAG_WALL_S = 0.25  # further behind than this, the sim slows down instead of catching up
+MIN_WAIT_S = 0.0005
+LINE_BUFFER_S = 0.25  # with --baud, stop reading the pty this far ahead of the line
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """How to serve the virtual arm. At least one of `pty` and `udp` must be on."""
+
+    speed: float = 1.0  # sim seconds per wall second
+    pty: bool = True
+    link: str | None = None  # stable symlink to the pty, removed on stop
+    udp: Address | None = None  # (host, port); port 0 picks a free one
+    baud: int | None = None  # throttle the pty to this line rate (10 bits per byte)
+    start: tuple[float, float, float, float] | None = None  # E D C B, rad; None = mid pose
+    jaw_mm: float = 5.0
+    dt: float = 0.002  # physics (and firmware loop) step, sim seconds
+    faults: FaultConfig = field(default_factory=FaultConfig)
+    firmware: FirmwareConfig = field(default_factory=FirmwareConfig)
+    seed: int | None = None  # link faults and sensor noise
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.speed) and self.speed > 0.0):
+            raise ValueError(f"speed must be a finite number > 0, got {self.speed}")
+        if not self.pty and self.udp is None:
+            raise ValueError("nothing to serve: enable the pty or give a UDP address")
+        if self.link is not None and not self.pty:
+            raise ValueError("a link to the pty needs the pty")
+        if self.baud is not None and self.baud <= 0:
+            raise ValueError(f"baud must be a positive number of bits per second, got {self.baud}")
+        if self.start is not None:
+            if len(self.start) != 4 or not all(math.isfinite(v) for v in self.start):
+                raise ValueError(f"start needs 4 finite angles E D C B (rad), got {self.start}")
+        if self.udp is not None:
+            host, port = self.udp
+            if not 0 <= port <= 65535:
+                raise ValueError(f"UDP port must be in 0..65535, got {port}")
+            if not host:
+                raise ValueError("UDP host is empty")
+
+
+@dataclass(frozen=True)
+class ServerStats:
+    """Counters since the last power cycle; every byte received is in a good frame or
+    counted as discarded."""
+
+    frames_in: int
+    frames_out: int
+    bytes_in: int
+    bytes_out: int
+    datagrams_in: int
+    datagrams_out: int
+    bad_frames: dict[str, int]  # by decoder reason (crc, cobs, length, ...)
+    bytes_discarded: int
+    firmware_errors: dict[str, int]  # well-framed packets rejected (bad payload, ...)
+    ignored: dict[str, int]  # valid packets the arm ignores (out of limits, ...)
+    dropped_frames: int  # by the drop-rate fault
+    corrupted_bytes: int  # by the corrupt-rate fault
+    lost_bytes: int  # the pty buffer was full (no client reading)
+    sim_time: float
+    lag_s: float  # sim time given up because the host could not keep the pace
+
+    @property
+    def bad_total(self) -> int:
+        return sum(self.bad_frames.values())
+
+
+@dataclass(frozen=True)
+class ArmSnapshot:
+    """The simulated arm's true state at one instant (for tests and tools, not the wire)."""
+
+    time: float
+    q: np.ndarray
+    qdot: np.ndarray
+    current_mA: np.ndarray
+    jaw_mm: float
+
+
+class _Counters:
+    def __init__(self) -> None:
+        self.frames_in = 0
+        self.frames_out = 0
+        self.bytes_in = 0
+        self.bytes_out = 0
+        self.datagrams_in = 0
+        self.datagrams_out = 0
+        self.lost_bytes = 0
+        self.lag_s = 0.0
+
+
+class SimServer:
+    """The virtual arm behind a pty and/or UDP socket, in a background thread.
+
+    `start()` returns the pty path (None when serving UDP only); `udp_address` is the bound
+    address. `stop()` is idempotent; `restart()` is a power cycle with the link going down
+    and up (new pty, same link and UDP port); `power_cycle()` resets arm and firmware while
+    the endpoints stay open.
+    """
+
+    def __init__(self, config: SimConfig | None = None) -> None:
+        self.config = config if config is not None else SimConfig()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._pty: PtyEndpoint | None = None
+        self._udp: UdpEndpoint | None = None
+        self._udp_port: int | None = None  # kept across restarts when the config said 0
+        self.error: BaseException | None = None
+        self._anchor: tuple[float, float] | None = None  # (wall, sim) the pacing counts from
+        self._cycle_request = threading.Event()
+        self._cycle_done = threading.Event()
+        self._reset_state()
+
+    # -- lifecycle ------------------------------------------------------------------------
+    def _reset_state(self) -> None:
+        cfg = self.config
+        self.arm = self._make_arm()
+        firmware_cfg = cfg.firmware
+        if cfg.faults.sensor_noise is not None:
+            firmware_cfg = replace(firmware_cfg, sensor_noise=cfg.faults.sensor_noise,
+                                   seed=cfg.seed)
+        self.firmware = Firmware(self.arm, firmware_cfg)
+        self._link_faults = LinkFaults(cfg.faults, seed=cfg.seed)
+        self._link_errors = EventLog(log, logging.WARNING)
+        self._pty_decoder = PacketDecoder(on_error=self._on_decode_error)
+        self._udp_decoder = PacketDecoder(on_error=self._on_decode_error)
+        self._counters = _Counters()
+        self._pty_in: deque[tuple[float, bytes]] = deque()  # (when it has landed, bytes)
+        self._pty_out: deque[tuple[float, bytes]] = deque()  # (when to write, frame)
+        self._pty_partial = b""
+        self._line_rate = None if cfg.baud is None else cfg.baud / BITS_PER_BYTE
+        self._rx_free = 0.0  # when the serial line is next idle, each way
+        self._tx_free = 0.0
+        self._udp_out: deque[tuple[float, bytes, Address]] = deque()
+        self._udp_peer: Address | None = None
+
+    def _make_arm(self) -> Alpha5Arm:
+        cfg = self.config
+        arm = Alpha5Arm(dt=cfg.dt, seed=cfg.faults.randomize_seed)
+        if cfg.faults.randomize_seed is not None:
+            params = arm.randomize()
+            log.info("randomized arm parameters (seed %d): %s", cfg.faults.randomize_seed,
+                     {k: params.as_dict()[k] for k in
+                      ("armature", "damping", "frictionloss", "link_mass_kg", "link_volume_l")})
+        arm.torque_scale = cfg.faults.torque_scale
+        arm.reset(q=None if cfg.start is None else np.asarray(cfg.start), jaw_mm=cfg.jaw_mm)
+        return arm
+
+    def start(self) -> str | None:
+        """Open the endpoints and start the arm; the pty path clients should open."""
+        if self._thread is not None:
+            raise RuntimeError("the simulator is already running; stop() it first")
+        cfg = self.config
+        self._stop.clear()
+        self.error = None
+        # Whatever was in flight when the link went down is lost with it.
+        self._pty_in.clear()
+        self._pty_out.clear()
+        self._udp_out.clear()
+        self._pty_partial = b""
+        self._pty_decoder.reset()
+        self._rx_free = self._tx_free = 0.0
+        try:
+            if cfg.pty:
+                self._pty = PtyEndpoint(cfg.link)
+            if cfg.udp is not None:
+                host, port = cfg.udp
+                if not is_loopback(host):
+                    log.warning("serving UDP on %s: reachable beyond this machine", host)
+                self._udp = UdpEndpoint(host, self._udp_port if self._udp_port else port)
+                self._udp_port = self._udp.address[1]
+        except BaseException:
+            self._close_endpoints()
+            raise
+        self._thread = threading.Thread(target=self._run, name="reach-sim", daemon=True)
+        self._thread.start()
+        log.info("virtual Alpha 5 serving%s%s at %gx real time",
+                 f" pty {self.pty_path}" if self._pty else "",
+                 f" udp {self._udp.address[0]}:{self._udp.address[1]}" if self._udp else "",
+                 cfg.speed)
+        return self.pty_path
+
+    def stop(self) -> None:
+        """Stop the thread and close the endpoints (removing the link); safe to repeat."""
+        thread = self._thread
+        if thread is not None:
+            self._stop.set()
+            thread.join()
+            self._thread = None
+        self._close_endpoints()
+
+    def restart(self, downtime_s: float = 0.0) -> str | None:
+        """Power-cycle the arm with the link down for `downtime_s` wall seconds: state is
+        reset, the pty is recreated (new path, same link), the UDP port is kept."""
+        self.stop()
+        if downtime_s > 0.0:
+            time.sleep(downtime_s)
+        with self._lock:
+            self._reset_state()
+        return self.start()
+
+    def power_cycle(self, timeout: float = 10.0) -> None:
+        """Reset the arm and firmware to their start state; endpoints stay open."""
+        if not self.running:
+            with self._lock:
+                self._reset_state()
+            return
+        self._cycle_done.clear()
+        self._cycle_request.set()
+        if not self._cycle_done.wait(timeout):
+            raise TimeoutError("the simulator loop did not power-cycle the arm in time")
+
+    def _do_power_cycle(self) -> None:
+        # In the loop thread: queued output and the UDP peer belong to the link, not the arm.
+        self._cycle_request.clear()
+        link_state = ("_pty_in", "_pty_out", "_pty_partial", "_rx_free", "_tx_free",
+                      "_udp_out", "_udp_peer")
+        with self._lock:
+            kept = {name: getattr(self, name) for name in link_state}
+            self._reset_state()
+            for name, value in kept.items():
+                setattr(self, name, value)
+            self._anchor = None  # pacing restarts from the new sim time
+        log.info("arm power-cycled")
+        self._cycle_done.set()
+
+    def _close_endpoints(self) -> None:
+        if self._pty is not None:
+            self._pty.close()
+            self._pty = None
+        if self._udp is not None:
+            self._udp.close()
+            self._udp = None
+
+    def __enter__(self) -> SimServer:
+        if self._thread is None:
+            self.start()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.stop()
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def pty_path(self) -> str | None:
+        return None if self._pty is None else self._pty.path
+
+    @property
+    def link(self) -> str | None:
+        return self.config.link
+
+    @property
+    def udp_address(self) -> Address | None:
+        return None if self._udp is None else self._udp.address
+
+    # -- inspection -----------------------------------------------------------------------
+    @property
+    def sim_time(self) -> float:
+        with self._lock:
+            return self.arm.time
+
+    def snapshot(self) -> ArmSnapshot:
+        with self._lock:
+            arm = self.arm
+            return ArmSnapshot(arm.time, arm.q, arm.qdot, arm.current_mA, arm.jaw_mm)
+
+    def stats(self) -> ServerStats:
+        with self._lock:
+            c = self._counters
+            bad: dict[str, int] = {}
+            discarded = 0
+            for dec in (self._pty_decoder, self._udp_decoder):
+                s: DecoderStats = dec.stats
+                discarded += s.bytes_discarded
+                for reason, n in s.bad_frames.items():
+                    if n:
+                        bad[reason.value] = bad.get(reason.value, 0) + n
+            return ServerStats(
+                frames_in=c.frames_in, frames_out=c.frames_out, bytes_in=c.bytes_in,
+                bytes_out=c.bytes_out, datagrams_in=c.datagrams_in,
+                datagrams_out=c.datagrams_out, bad_frames=bad, bytes_discarded=discarded,
+                firmware_errors=self.firmware.errors.snapshot(),
+                ignored=self.firmware.ignored.snapshot(),
+                dropped_frames=self._link_faults.dropped_frames,
+                corrupted_bytes=self._link_faults.corrupted_bytes,
+                lost_bytes=c.lost_bytes, sim_time=self.arm.time, lag_s=c.lag_s,
+            )
+
+    def wait_sim_time(self, sim_time: float, timeout: float | None = None) -> bool:
+        """Block until the arm's clock reaches `sim_time`; False on timeout or if stopped."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.sim_time < sim_time:
+            if not self.running:
+                return False
+            if deadline is not None and time.monotonic() >= deadline:
+                return False
+            wait = (sim_time - self.sim_time) / self.config.speed
+            time.sleep(min(max(wait, 0.001), 0.05))
+        return True
+
+    # -- the loop -------------------------------------------------------------------------
+    def _run(self) -> None:
+        try:
+            self._loop()
+        except BaseException as exc:  # a bug: keep it for the owner, don't die silently
+            self.error = exc
+            log.exception("the simulator loop stopped on an error")
+
+    def _loop(self) -> None:
+        speed = self.config.speed
+        dt = self.arm.dt
+        self._anchor = None
+        while not self._stop.is_set():
+            if self._cycle_request.is_set():
+                self._do_power_cycle()
+            now = time.monotonic()
+            with self._lock:
+                if self._anchor is None:
+                    self._anchor = (now, self.arm.time)
+                wall0, sim0 = self._anchor
+                behind = sim0 + (now - wall0) * speed - self.arm.time
+                if behind > MAX_LAG_WALL_S * speed:
+                    # The host cannot keep the pace: slow the sim down rather than run it
+                    # in bursts that would starve the endpoints.
+                    skipped = behind - dt
+                    self._counters.lag_s += skipped
+                    self._anchor = (wall0 + skipped / speed, sim0)
+                    behind = dt
+                steps = min(int(behind / dt + 1e-9), MAX_STEPS_PER_PASS)
+                if steps > 0:
+                    self._send_unprompted(self.firmware.steps(steps), now)
+                    behind -= steps * dt
+            self._deliver_input(now)
+            self._flush(now)
+            timeout = 0.0 if behind >= dt else max((dt - behind) / speed, MIN_WAIT_S)
+            readers: list[int] = []
+            writers: list[int] = []
+            pty, udp = self._pty, self._udp
+            if pty is not None:
+                if self._line_rate is None or self._rx_free - now < LINE_BUFFER_S:
+                    readers.append(pty.fileno())
+                else:  # the line is that far behind: leave the rest in the tty buffer
+                    timeout = min(timeout, self._rx_free - now - LINE_BUFFER_S / 2)
+                if self._pty_in:
+                    timeout = min(timeout, self._pty_in[0][0] - now)
+                if self._pty_partial:
+                    writers.append(pty.fileno())
+                elif self._pty_out:
+                    timeout = min(timeout, self._pty_out[0][0] - now)
+            if udp is not None:
+                readers.append(udp.fileno())
+                if self._udp_out:
+                    timeout = min(timeout, self._udp_out[0][0] - now)
+            ready, _, _ = select.select(readers, writers, [], max(timeout, 0.0))
+            now = time.monotonic()
+            if pty is not None and pty.fileno() in ready:
+                data = pty.read(4096)
+                if data:
+                    self._arrive(data, now)
+            if udp is not None and udp.fileno() in ready:
+                for datagram, sender in udp.receive():
+                    self._receive_datagram(datagram, sender, now)
+            self._deliver_input(now)
+            self._flush(now)
+        self._drain()
+
+    def _drain(self) -> None:
+        """On stop: act on what already reached the arm, so a command sent just before the
+        link went down is not lost at random (its replies still go out if they can)."""
+        now = time.monotonic()
+        if self._pty is not None:
+            while data := self._pty.read(4096):
+                self._arrive(data, now)
+            while self._pty_in:
+                self._receive_stream(self._pty_in.popleft()[1], now)
+        if self._udp is not None:
+            while batch := self._udp.receive():
+                for datagram, sender in batch:
+                    self._receive_datagram(datagram, sender, now)
+        self._flush(math.inf)
+
+    def _arrive(self, data: bytes, now: float) -> None:
+        """Bytes the host wrote to the pty; with --baud each frame is acted on only when its
+        last byte would have crossed the serial line."""
+        rate = self._line_rate
+        if rate is None:
+            self._pty_in.append((now, data))
+            return
+        landed = max(self._rx_free, now)
+        pos = 0
+        while pos < len(data):
+            end = data.find(0, pos)
+            end = len(data) if end < 0 else end + 1
+            landed += (end - pos) / rate
+            self._pty_in.append((landed, data[pos:end]))
+            pos = end
+        self._rx_free = landed
+
+    def _deliver_input(self, now: float) -> None:
+        while self._pty_in and self._pty_in[0][0] <= now:
+            self._receive_stream(self._pty_in.popleft()[1], now)
+
+    def _on_decode_error(self, error: DecodeError, frame: bytes) -> None:
+        # Called from feed(), under the lock, in the loop thread.
+        self._link_errors.record(f"bad_frame_{error.reason.value}",
+                                 f"{error} ({len(frame)} bytes: {frame[:16].hex(' ')})")
+        self.firmware.note_link_error(error)
+
+    def _receive_stream(self, data: bytes, now: float) -> None:
+        with self._lock:
+            self._counters.bytes_in += len(data)
+            packets = self._pty_decoder.feed(data)
+            self._counters.frames_in += len(packets)
+            replies = self._handle(packets)
+        due = now + self.config.faults.latency_ms / 1000.0
+        for packet in replies:
+            self._queue_pty(packet, due)
+
+    def _receive_datagram(self, data: bytes, sender: Address, now: float) -> None:
+        size = len(data)
+        if not data.endswith(b"\x00"):
+            data += b"\x00"  # a datagram ends its last frame
+        with self._lock:
+            self._udp_peer = sender
+            c = self._counters
+            c.datagrams_in += 1
+            c.bytes_in += size
+            packets = self._udp_decoder.feed(data)
+            c.frames_in += len(packets)
+            replies = self._handle(packets)
+        due = now + self.config.faults.latency_ms / 1000.0
+        for packet in replies:
+            self._queue_udp(packet, due, sender)
+
+    def _handle(self, packets: Iterable[Packet]) -> list[Packet]:
+        replies: list[Packet] = []
+        for packet in packets:
+            replies.extend(self.firmware.handle(packet))
+        return replies
+
+    def _send_unprompted(self, packets: list[Packet], now: float) -> None:
+        """Heartbeats and status go to the pty and to the last UDP client heard from."""
+        if not packets:
+            return
+        due = now + self.config.faults.latency_ms / 1000.0
+        for packet in packets:
+            if self._pty is not None:
+                self._queue_pty(packet, due)
+            if self._udp is not None and self._udp_peer is not None:
+                self._queue_udp(packet, due, self._udp_peer)
+
+    def _queue_pty(self, packet: Packet, due: float) -> None:
+        frame = self._link_faults.apply(packet.encode())
+        if frame is None:
+            return
+        if self._line_rate is not None:
+            # Written when its last byte would have crossed the line (frames queue up).
+            due = max(self._tx_free, due) + len(frame) / self._line_rate
+            self._tx_free = due
+        self._pty_out.append((due, frame))
+        self._counters.frames_out += 1
+
+    def _queue_udp(self, packet: Packet, due: float, address: Address) -> None:
+        frame = self._link_faults.apply(packet.encode())
+        if frame is not None:
+            self._udp_out.append((due, frame, address))
+            self._counters.frames_out += 1
+
+    def _flush(self, now: float) -> None:
+        pty, udp, c = self._pty, self._udp, self._counters
+        if pty is not None:
+            while True:
+                if not self._pty_partial:
+                    if not self._pty_out or self._pty_out[0][0] > now:
+                        break
+                    self._pty_partial = self._pty_out.popleft()[1]
+                written = pty.write(self._pty_partial)
+                if written == 0:
+                    # Buffer full: nobody is reading. A serial line loses these bytes too.
+                    c.lost_bytes += len(self._pty_partial)
+                    self._pty_partial = b""
+                    c.lost_bytes += sum(len(f) for _, f in self._pty_out)
+                    self._pty_out.clear()
+                    break
+                c.bytes_out += written
+                self._pty_partial = self._pty_partial[written:]
+        if udp is not None:
+            while self._udp_out and self._udp_out[0][0] <= now:
+                _, frame, address = self._udp_out.popleft()
+                if udp.send(frame, address):
+                    c.bytes_out += len(frame)
+                    c.datagrams_out += 1
+                else:
+                    c.lost_bytes += len(frame)
+
+
+def serve_forever(server: SimServer, stop: threading.Event, stats_interval: float = 0.0
+                  ) -> None:
+    """Run until `stop` is set (signal handlers set it), logging stats now and then."""
+    next_report = time.monotonic() + stats_interval
+    while not stop.wait(0.2):
+        if server.error is not None:
+            raise RuntimeError("the simulator loop failed") from server.error
+        if stats_interval > 0.0 and time.monotonic() >= next_report:
+            next_report += stats_interval
+            s = server.stats()
+            log.info("t=%.1f s: frames in %d out %d, bad %s, errors %s, ignored %s, lag %.2f s",
+                     s.sim_time, s.frames_in, s.frames_out, s.bad_frames or "{}",
+                     s.firmware_errors or "{}", s.ignored or "{}", s.lag_s)
+

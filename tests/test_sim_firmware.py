@@ -1,0 +1,361 @@
+"""The emulated joint firmware driving the real MuJoCo arm, without any I/O.
+
+Packets go in through Firmware.handle(), sim time advances through tick() as fast as the CPU
+allows, and every assertion is about what the arm would put on the wire or where the joints
+went.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from protocol import (
+    CrcError,
+    DeviceID,
+    HardwareStatus,
+    Mode,
+    Packet,
+    PacketID,
+    commands,
+)
+from protocol.payload import pack_floats
+from reach_sim_bridge.arm import Alpha5Arm
+from reach_sim_bridge.faults import SensorNoise
+from reach_sim_bridge.firmware import ALPHA5_DEVICES, Firmware, FirmwareConfig
+
+A, B, C, D, E = DeviceID.A, DeviceID.B, DeviceID.C, DeviceID.D, DeviceID.E
+BROADCAST = DeviceID.BROADCAST
+INDEX = {E: 0, D: 1, C: 2, B: 3}  # E D C B order of the arm's arrays
+RATE = {E: 0.5236, D: 0.5236, C: 0.5236, B: 0.8727}
+
+
+@pytest.fixture
+def fw() -> Firmware:
+    return Firmware(Alpha5Arm())
+
+
+def ask(fw: Firmware, device: int, *ids: int) -> list[Packet]:
+    return fw.handle(commands.request(device, list(ids)))
+
+
+def one(fw: Firmware, device: int, pid: int) -> Packet:
+    replies = ask(fw, device, pid)
+    assert len(replies) == 1, replies
+    assert replies[0].key == (device, pid)
+    return replies[0]
+
+
+def value(fw: Firmware, device: int, pid: int) -> float:
+    return one(fw, device, pid).as_float()
+
+
+def run_until(fw: Firmware, done, limit_s: float, step_s: float = 0.05) -> float:  # noqa: ANN001
+    """Tick until done() holds; the sim time it took (fails past limit_s of sim time)."""
+    start = fw.time
+    while not done():
+        assert fw.time - start < limit_s, f"not done after {limit_s} s of sim time"
+        fw.tick(step_s)
+    return fw.time - start
+
+
+# -- identity, limits, requests ------------------------------------------------------------
+def test_identity_of_every_device(fw: Firmware) -> None:
+    for spec in ALPHA5_DEVICES:
+        dev = spec.device_id
+        replies = ask(fw, dev, PacketID.SOFTWARE_VERSION, PacketID.SERIAL_NUMBER,
+                      PacketID.MODEL_NUMBER, PacketID.DEVICE_ID, PacketID.MODE)
+        assert [r.packet_id for r in replies] == [
+            PacketID.SOFTWARE_VERSION, PacketID.SERIAL_NUMBER, PacketID.MODEL_NUMBER,
+            PacketID.DEVICE_ID, PacketID.MODE]
+        assert all(r.device_id == dev for r in replies)
+        assert replies[0].u8s() == list(FirmwareConfig().software_version)
+        assert replies[1].as_float() == spec.serial_number
+        assert replies[2].as_float() == FirmwareConfig().model_number
+        assert replies[3].u8s() == [int(dev)]
+        assert replies[4].u8s() == [Mode.STANDBY]
+
+
+def test_default_limits_in_max_min_order(fw: Firmware) -> None:
+    arm = fw.arm
+    for dev, i in INDEX.items():
+        hi, lo = one(fw, dev, PacketID.POSITION_LIMITS).floats()
+        assert (lo, hi) == pytest.approx(tuple(arm.position_limits[i]), abs=1e-6)
+        assert one(fw, dev, PacketID.VELOCITY_LIMITS).floats() == pytest.approx(
+            [RATE[dev], -RATE[dev]], abs=1e-6)
+    for dev, limit in ((E, 600.0), (D, 600.0), (C, 600.0), (B, 300.0)):
+        assert one(fw, dev, PacketID.CURRENT_LIMITS).floats() == [limit, -limit]
+    assert one(fw, A, PacketID.POSITION_LIMITS).floats() == pytest.approx([13.3, 1.3], abs=1e-5)
+    assert one(fw, A, PacketID.VELOCITY_LIMITS).floats() == [3.0, -3.0]
+
+
+def test_positions_are_the_arms_angles(fw: Firmware) -> None:
+    replies = ask(fw, BROADCAST, PacketID.POSITION)
+    assert [r.device_id for r in replies] == [A, B, C, D, E]
+    q = fw.arm.q
+    for r in replies[1:]:
+        assert r.as_float() == pytest.approx(q[INDEX[r.device_id]], abs=1e-6)
+    assert replies[0].as_float() == pytest.approx(fw.arm.jaw_mm, abs=1e-5)
+
+
+def test_request_answers_each_id_in_order_and_broadcast_by_every_joint(fw: Firmware) -> None:
+    ids = [PacketID.VELOCITY, PacketID.POSITION, PacketID.CURRENT, PacketID.MODE]
+    assert [r.packet_id for r in ask(fw, D, *ids)] == ids
+    replies = ask(fw, BROADCAST, PacketID.POSITION, PacketID.VELOCITY)
+    assert [r.key for r in replies] == [(d, p) for d in (A, B, C, D, E)
+                                        for p in (PacketID.POSITION, PacketID.VELOCITY)]
+
+
+def test_limits_are_settable_and_checked(fw: Firmware) -> None:
+    fw.handle(commands.limits(D, PacketID.POSITION_LIMITS, 2.5, 0.5))
+    assert one(fw, D, PacketID.POSITION_LIMITS).floats() == [2.5, 0.5]
+    fw.handle(commands.limits(C, PacketID.CURRENT_LIMITS, 200.0, -100.0))
+    assert one(fw, C, PacketID.CURRENT_LIMITS).floats() == [200.0, -100.0]
+    assert fw.arm.current_limits_mA[INDEX[C]] == 200.0  # the drive follows
+    # [min, max] (the old order) is refused and changes nothing.
+    fw.handle(Packet(D, PacketID.POSITION_LIMITS, pack_floats(0.5, 2.5)))
+    assert one(fw, D, PacketID.POSITION_LIMITS).floats() == [2.5, 0.5]
+    fw.handle(Packet(E, PacketID.VELOCITY_LIMITS, pack_floats(0.3, 0.1)))  # excludes 0
+    fw.handle(Packet(E, PacketID.VELOCITY_LIMITS, pack_floats(1.0)))  # one float only
+    assert fw.errors.counts == {"bad_limits": 2, "bad_payload": 1}
+    assert one(fw, E, PacketID.VELOCITY_LIMITS).floats() == pytest.approx([0.5236, -0.5236])
+
+
+def test_end_effector_pose_from_the_base_device(fw: Firmware) -> None:
+    pose = one(fw, E, PacketID.KM_END_POS).floats()
+    assert pose == pytest.approx(fw.arm.end_effector_pose(), abs=1e-3)
+    assert ask(fw, D, PacketID.KM_END_POS) == []  # only the base does kinematics
+    assert [r.device_id for r in ask(fw, BROADCAST, PacketID.KM_END_POS)] == [E]
+
+
+# -- control ---------------------------------------------------------------------------------
+def test_position_mode_reaches_targets_within_a_hundredth_of_a_radian(fw: Firmware) -> None:
+    q0 = fw.arm.q
+    targets = {E: q0[0] + 0.6, D: q0[1] + 0.5, C: q0[2] - 0.5, B: q0[3] - 0.8}
+    for dev, target in targets.items():
+        fw.handle(commands.position(dev, target))
+    fw.handle(commands.position(A, 10.0))
+    assert one(fw, D, PacketID.MODE).u8s() == [Mode.POSITION]  # implicit switch
+
+    def reached() -> bool:
+        q = fw.arm.q
+        return all(abs(q[INDEX[d]] - t) < 0.01 for d, t in targets.items())
+
+    took = run_until(fw, reached, limit_s=4.0)
+    # Rate-limited: the largest move (B, 0.8 rad at 0.8727 rad/s) cannot be faster.
+    assert took >= 0.8 / 0.8727
+    fw.tick(1.0)  # and it stays there (D and C against gravity)
+    for dev, target in targets.items():
+        assert value(fw, dev, PacketID.POSITION) == pytest.approx(target, abs=0.01)
+        assert abs(value(fw, dev, PacketID.VELOCITY)) < 0.01
+    assert value(fw, A, PacketID.POSITION) == pytest.approx(10.0, abs=0.05)
+
+
+def test_out_of_limit_position_commands_are_ignored(fw: Firmware) -> None:
+    q0 = fw.arm.q
+    fw.handle(commands.position(D, 3.6))  # above D's 3.4034
+    fw.tick(0.5)
+    assert one(fw, D, PacketID.MODE).u8s() == [Mode.STANDBY]
+    assert value(fw, D, PacketID.POSITION) == pytest.approx(q0[1], abs=0.002)
+    assert fw.ignored.counts["position_out_of_limits"] == 1
+    assert fw.errors.counts == {}
+
+
+def test_velocity_mode_moves_at_the_commanded_rate_and_saturates(fw: Firmware) -> None:
+    fw.handle(commands.velocity(E, 0.3))
+    fw.handle(commands.velocity(C, -2.0))  # saturates at the firmware rate limit
+    fw.handle(commands.velocity(B, 5.0))
+    fw.tick(0.5)
+    q_a, t_a = fw.arm.q, fw.time
+    fw.tick(1.0)
+    rates = (fw.arm.q - q_a) / (fw.time - t_a)
+    assert rates[0] == pytest.approx(0.3, abs=0.005)
+    assert rates[2] == pytest.approx(-0.5236, abs=0.005)
+    assert rates[3] == pytest.approx(0.8727, abs=0.01)
+    assert value(fw, E, PacketID.VELOCITY) == pytest.approx(0.3, abs=0.01)
+    assert one(fw, E, PacketID.MODE).u8s() == [Mode.VELOCITY]
+
+
+def test_velocity_limits_lower_the_rate(fw: Firmware) -> None:
+    fw.handle(commands.limits(E, PacketID.VELOCITY_LIMITS, 0.1, -0.2))
+    fw.handle(commands.velocity(E, 0.5))
+    fw.tick(0.5)
+    assert value(fw, E, PacketID.VELOCITY) == pytest.approx(0.1, abs=0.005)
+
+
+def test_velocity_mode_stops_at_the_position_limit(fw: Firmware) -> None:
+    fw.arm.reset(q=[3.0, 1.7, 3.3, 3.1])
+    fw = Firmware(fw.arm)
+    fw.handle(commands.velocity(C, 0.5236))
+    fw.tick(1.5)
+    assert 3.38 < value(fw, C, PacketID.POSITION) < 3.4034 + 0.01
+    assert abs(value(fw, C, PacketID.VELOCITY)) < 0.02
+
+
+def test_current_saturates_and_current_replies_report_the_drawn_current(fw: Firmware) -> None:
+    fw.handle(commands.current(E, 5000.0))
+    fw.tick(1.0)
+    drawn = value(fw, E, PacketID.CURRENT)
+    assert drawn == pytest.approx(fw.arm.current_mA[0], abs=0.01)
+    # Saturated at 600 mA, then the back-EMF cuts the current near no-load speed.
+    assert 0.0 < drawn < 600.0
+    assert value(fw, E, PacketID.VELOCITY) > 0.9  # not rate-limited in current mode
+    fw.handle(commands.current(B, -100.0))
+    fw.tick(0.2)
+    assert value(fw, B, PacketID.VELOCITY) < -0.1
+
+
+def test_disable_and_passive_ignore_control_and_standby_holds(fw: Firmware) -> None:
+    q0 = fw.arm.q
+    fw.tick(2.0)  # STANDBY: D and C do not sag under gravity
+    assert np.abs(fw.arm.q - q0).max() < 0.002
+    fw.handle(commands.mode(D, Mode.DISABLE))
+    fw.handle(commands.velocity(D, 0.5))
+    fw.tick(0.5)
+    assert one(fw, D, PacketID.MODE).u8s() == [Mode.DISABLE]
+    assert value(fw, D, PacketID.POSITION) == pytest.approx(q0[1], abs=0.002)
+    assert fw.ignored.counts["control_while_disabled"] == 1
+    fw.handle(commands.mode(E, Mode.PASSIVE))
+    fw.handle(commands.current(E, 300.0))
+    fw.tick(0.5)
+    assert value(fw, E, PacketID.CURRENT) == 0.0
+    assert one(fw, E, PacketID.MODE).u8s() == [Mode.PASSIVE]
+
+
+def test_position_hold_and_zero_velocity_keep_the_joint_still(fw: Firmware) -> None:
+    fw.handle(commands.velocity(D, 0.4))
+    fw.tick(0.5)
+    fw.handle(commands.mode(D, Mode.POSITION_HOLD))
+    fw.tick(0.5)
+    held = value(fw, D, PacketID.POSITION)
+    fw.tick(1.0)
+    assert value(fw, D, PacketID.POSITION) == pytest.approx(held, abs=0.002)
+    fw.handle(commands.velocity(C, -0.4))
+    fw.tick(0.5)
+    fw.handle(commands.mode(C, Mode.ZERO_VELOCITY))
+    fw.tick(0.5)
+    assert abs(value(fw, C, PacketID.VELOCITY)) < 0.01
+
+
+def test_relative_position_moves_from_where_the_joint_is(fw: Firmware) -> None:
+    q0 = fw.arm.q
+    fw.handle(Packet(E, PacketID.RELATIVE_POSITION, pack_floats(0.2)))
+    run_until(fw, lambda: abs(fw.arm.q[0] - (q0[0] + 0.2)) < 0.01, limit_s=3.0)
+
+
+def test_torque_scale_slows_a_joint() -> None:
+    speeds = []
+    for scale in (1.0, 0.1):
+        fw = Firmware(Alpha5Arm())
+        fw.arm.torque_scale = [scale, 1.0, 1.0, 1.0]
+        fw.handle(commands.velocity(E, 0.5))
+        fw.tick(1.0)
+        speeds.append(value(fw, E, PacketID.VELOCITY))
+    healthy, weak = speeds
+    assert healthy == pytest.approx(0.5, abs=0.01)
+    assert weak < 0.6 * healthy  # 0.1 x 600 mA x 20.2 N m/A cannot beat friction + damping
+
+
+# -- bad input -------------------------------------------------------------------------------
+def test_empty_mode_packet_is_counted_flagged_and_harmless(fw: Firmware) -> None:
+    fw.handle(commands.velocity(E, 0.2))
+    empty_mode = Packet(E, PacketID.MODE, b"")  # what bytes(Mode.STANDBY) sends
+    assert fw.handle(empty_mode) == []
+    assert fw.errors.counts == {"bad_payload": 1}
+    assert one(fw, E, PacketID.MODE).u8s() == [Mode.VELOCITY]  # unchanged
+    status = HardwareStatus.from_bytes(one(fw, E, PacketID.HARDWARE_STATUS).data)
+    assert HardwareStatus.SERIAL_ERROR in status
+    assert fw.status(D) == HardwareStatus.NONE  # only the addressed device
+
+
+def test_hardware_status_is_reported_at_1hz_while_set_then_clears(fw: Firmware) -> None:
+    fw.note_link_error(CrcError(expected=0x12, actual=0x34))
+    out = fw.tick(3.0)
+    status = [p for p in out if p.packet_id == PacketID.HARDWARE_STATUS]
+    assert [p.device_id for p in status] == [E, E, E]  # at once, then each second
+    assert HardwareStatus.from_bytes(status[0].data) == HardwareStatus.CRC_ERROR
+    out = fw.tick(FirmwareConfig().error_hold_s)
+    assert len([p for p in out if p.packet_id == PacketID.HARDWARE_STATUS]) == 2
+    assert fw.status(E) == HardwareStatus.NONE
+    assert fw.tick(2.0) == []
+
+
+@pytest.mark.parametrize(
+    ("packet", "reason"),
+    [
+        (Packet(E, PacketID.POSITION, b"\x00\x00\xc0"), "bad_payload"),
+        (Packet(E, PacketID.VELOCITY, pack_floats(math.nan)), "bad_value"),
+        (Packet(E, PacketID.CURRENT, b""), "bad_payload"),
+        (Packet(E, PacketID.MODE, b"\x02\x03"), "bad_payload"),
+        (Packet(E, PacketID.MODE, b"\x7e"), "unknown_mode"),
+        (Packet(E, PacketID.REQUEST, b""), "bad_payload"),
+        (Packet(E, PacketID.REQUEST, bytes(range(1, 12))), "bad_payload"),
+        (Packet(E, PacketID.HEARTBEAT_FREQUENCY, b""), "bad_payload"),
+        (Packet(E, 0x3C, b"\x01"), "unknown_packet"),
+    ],
+)
+def test_bad_packets_are_counted_and_the_firmware_keeps_answering(
+    fw: Firmware, packet: Packet, reason: str
+) -> None:
+    assert fw.handle(packet) == []
+    assert fw.errors.counts == {reason: 1}
+    fw.tick(0.1)
+    assert one(fw, E, PacketID.MODE).u8s() == [Mode.STANDBY]
+    assert value(fw, E, PacketID.POSITION) == pytest.approx(fw.arm.q[0], abs=1e-6)
+
+
+def test_request_with_padding_zeros_answers_the_real_ids(fw: Firmware) -> None:
+    replies = fw.handle(Packet(D, PacketID.REQUEST, b"\x00\x00\x03"))
+    assert [r.key for r in replies] == [(D, PacketID.POSITION)]
+    assert fw.errors.counts == {"bad_payload": 1}
+
+
+def test_packets_for_other_devices_and_read_only_ids_are_ignored(fw: Firmware) -> None:
+    assert fw.handle(commands.position(0x06, 1.0)) == []
+    assert fw.handle(Packet(E, PacketID.TEMPERATURE, pack_floats(99.0))) == []
+    assert fw.ignored.counts == {"other_device": 1, "read_only": 1}
+    assert fw.errors.counts == {}
+    assert value(fw, E, PacketID.TEMPERATURE) == FirmwareConfig().temperature_c
+
+
+# -- heartbeat, save, reset ------------------------------------------------------------------
+def test_heartbeat_streams_the_chosen_packets_at_the_chosen_rate(fw: Firmware) -> None:
+    fw.handle(commands.heartbeat_set(BROADCAST, [PacketID.POSITION, PacketID.VELOCITY]))
+    fw.handle(commands.heartbeat_frequency(BROADCAST, 10))
+    out = fw.tick(1.0)
+    for dev in (A, B, C, D, E):
+        assert [p.packet_id for p in out if p.device_id == dev] == [
+            PacketID.POSITION, PacketID.VELOCITY] * 10
+    ids = one(fw, D, PacketID.HEARTBEAT_SET).u8s()
+    assert ids == [PacketID.POSITION, PacketID.VELOCITY] + [0] * 8
+    fw.handle(commands.heartbeat_frequency(D, 0))
+    assert not [p for p in fw.tick(0.5) if p.device_id == D]
+
+
+def test_reset_restores_saved_settings(fw: Firmware) -> None:
+    fw.handle(commands.limits(E, PacketID.CURRENT_LIMITS, 400.0, -400.0))
+    fw.handle(commands.save(E))
+    fw.handle(commands.limits(E, PacketID.CURRENT_LIMITS, 100.0, -100.0))
+    fw.handle(commands.velocity(E, 0.2))
+    fw.handle(Packet(E, PacketID.MODE, b""))  # raises the serial error flag
+    fw.handle(Packet(E, PacketID.RESET, b""))
+    assert one(fw, E, PacketID.CURRENT_LIMITS).floats() == [400.0, -400.0]
+    assert one(fw, E, PacketID.MODE).u8s() == [Mode.STANDBY]
+    assert fw.status(E) == HardwareStatus.NONE
+
+
+def test_sensor_noise_changes_reports_not_the_arm() -> None:
+    arm = Alpha5Arm()
+    fw = Firmware(arm, FirmwareConfig(sensor_noise=SensorNoise(0.01, 0.01), seed=1))
+    readings = np.array([value(fw, D, PacketID.POSITION) for _ in range(400)])
+    assert readings.mean() == pytest.approx(arm.q[1], abs=0.003)
+    assert readings.std() == pytest.approx(0.01, rel=0.2)
+
+
+def test_wire_bytes_of_a_reply_match_the_conformance_vector() -> None:
+    # bpl-vectors.json: "SOFTWARE_VERSION 1.2.3 from device 0x02".
+    fw = Firmware(Alpha5Arm(), FirmwareConfig(software_version=(1, 2, 3)))
+    reply = one(fw, B, PacketID.SOFTWARE_VERSION)
+    assert reply.encode() == bytes.fromhex("08 01 02 03 6C 02 07 B8 00")
