@@ -363,6 +363,15 @@ class Alpha5Arm:
         yaw = math.atan2(rot[1, 0], rot[0, 0])
         return float(pos[0]), float(pos[1]), float(pos[2]), roll, pitch, yaw
 
+    def skeleton(self) -> FloatArray:
+        """World positions (m) of the base, each moving link's origin and the tool centre point:
+        a polyline that draws the arm (recordings)."""
+        mujoco.mj_kinematics(self.model, self.data)
+        points = [np.zeros(3)]
+        points.extend(self.data.xpos[i] for i in self._link_ids)
+        points.append(self.data.site_xpos[self._tcp])
+        return np.array(points, dtype=float)
+
     def _at(self, q: ArrayLike) -> mujoco.MjData:
         scratch = self._scratch
         scratch.qpos[:4] = self._vector(q, "q (rad)")

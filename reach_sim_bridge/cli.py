@@ -9,6 +9,7 @@ import signal
 import sys
 import threading
 from collections.abc import Sequence
+from pathlib import Path
 from types import FrameType
 
 from reach_sim_bridge.faults import (
@@ -158,6 +159,11 @@ def build_parser() -> argparse.ArgumentParser:
     out.add_argument("--stats-interval", type=_non_negative, default=10.0, metavar="S",
                      help="log frame/error counters every S wall seconds (0: never; "
                           "default 10)")
+    out.add_argument("--record", metavar="FILE.rrd", type=Path,
+                     help="write the arm's true state (angles, setpoints, currents, torques, "
+                          "modes, link counters, 3D skeleton) to a Rerun recording")
+    out.add_argument("--record-rate", type=_positive_float, default=50.0, metavar="HZ",
+                     help="samples per second of sim time in the recording (default 50)")
     out.add_argument("-v", "--verbose", action="count", default=0,
                      help="more log output (-v: info, -vv: debug); errors are always logged")
     return p
@@ -207,6 +213,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:
         print(f"reach-sim: error: {exc}", file=sys.stderr)
         return 1
+    recorder = None
+    if args.record is not None:
+        from reach_sim_bridge.recording import SimRecorder
+
+        recorder = SimRecorder(server, args.record, rate_hz=args.record_rate)
+        recorder.start()
     try:
         if path is not None:
             print(f"pty {path}")
@@ -222,6 +234,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     finally:
         server.stop()
+        if recorder is not None:
+            recorder.stop()
+            print(f"recording {args.record} ({recorder.samples} samples)")
         s = server.stats()
         logging.getLogger("reach_sim_bridge.server").info(
             "stopped at t=%.1f s: frames in %d out %d, bad %s, errors %s",

@@ -275,6 +275,11 @@ class Firmware:
     def status(self, device_id: int) -> HardwareStatus:
         return self._by_id[device_id].status
 
+    def setpoints(self, device_id: int) -> tuple[Mode, float, float]:
+        """(mode, position target, current applied in mA) of one device, for recordings."""
+        d = self._by_id[device_id]
+        return d.mode, d.position_target, d.applied_mA
+
     def handle(self, packet: Packet) -> list[Packet]:
         """Act on one packet from the host; the replies it causes, in order."""
         self.packets_handled += 1

@@ -15,9 +15,10 @@ import select
 import threading
 import time
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from types import TracebackType
+from typing import TypeVar
 
 import numpy as np
 
@@ -29,6 +30,8 @@ from reach_sim_bridge.faults import FaultConfig, LinkFaults
 from reach_sim_bridge.firmware import Firmware, FirmwareConfig
 from reach_sim_bridge.pty import PtyEndpoint
 from reach_sim_bridge.udp import Address, UdpEndpoint, is_loopback
+
+T = TypeVar("T")
 
 log = logging.getLogger(__name__)
 
@@ -303,6 +306,11 @@ class SimServer:
         with self._lock:
             arm = self.arm
             return ArmSnapshot(arm.time, arm.q, arm.qdot, arm.current_mA, arm.jaw_mm)
+
+    def observe(self, fn: Callable[[Alpha5Arm, Firmware], T]) -> T:
+        """Run `fn(arm, firmware)` between physics steps, for a consistent look at the state."""
+        with self._lock:
+            return fn(self.arm, self.firmware)
 
     def stats(self) -> ServerStats:
         with self._lock:
