@@ -39,8 +39,10 @@ test: lint typecheck pytest
 bench: $(BSTAMP)
 	@for b in tools/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
+# The shipped DDPG through `reach-driver` on the virtual arm, real time (~25 s); writes demo.rrd.
+# e.g. make demo DEMO_ARGS="--speed 4 --scenario 3"
 demo: install
-	$(PY) tools/demo.py
+	$(PY) tools/demo.py $(DEMO_ARGS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache

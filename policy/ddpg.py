@@ -27,6 +27,7 @@ from torch import nn
 
 from policy.env import EnvConfig, ReachAlphaEnv, RewardConfig, RewardMode
 from policy.observation import N_JOINTS, ObservationConfig
+from reach_sim_bridge.motor import DEFAULT_CURRENT_LIMITS_MA
 
 # ---------------------------------------------------------------------------------------------
 # Hyperparameters
@@ -72,6 +73,10 @@ class DDPGConfig:
     bc_weight: float = 0.0
     bc_weight_final: float = 0.0
     bc_decay_steps: int = 1
+    #: > 0: BC error divided by (|expert action| + bc_relative): precise small commands near
+    #: the target weigh as much as the saturated ones far from it
+    bc_relative: float = 0.0
+    q_weight: float = 1.0  # weight of the (scale-free) Q term when BC is on
     # curriculum: goals at most `curriculum_start` rad away, widening to the whole workspace
     curriculum_start: float | None = None
     curriculum_steps: int = 1
@@ -98,6 +103,7 @@ class DDPGConfig:
             ),
             sensor_noise=True,
             torque_scale_low=(0.25, 1.0, 1.0, 1.0),
+            param_perturbation=0.1,
         )
         base = cls(
             name="ours",
@@ -115,10 +121,13 @@ class DDPGConfig:
             ou_sigma=0.2,
             eps_start=0.3,
             eps_end=0.05,
+            eps_steps=200_000,
             demo_episodes=100,
             demo_fraction=0.25,
             bc_weight=1.0,
-            bc_weight_final=0.05,
+            bc_weight_final=0.1,
+            bc_relative=0.1,
+            eval_every=25_000,
             bc_decay_steps=1_000_000,
         )
         return dataclasses.replace(base, **overrides)
@@ -350,23 +359,27 @@ class Agent:
         critic_loss.backward()
         self.critic_opt.step()
         self.updates += 1
-        info = {"critic_loss": float(critic_loss), "q": float(qs[0].mean())}
+        info = {"critic_loss": float(critic_loss.detach()), "q": float(qs[0].detach().mean())}
 
         if self.updates % cfg.policy_delay == 0:
             pi = self.actor(obs)
             q_pi = self.critics[0](obs, pi)
             if bc_weight > 0:
                 # TD3+BC: the Q term is made scale-free so bc_weight means the same all run
-                lam = 1.0 / q_pi.abs().mean().detach().clamp(min=1e-6)
-                bc = ((pi - torch.from_numpy(batch["expert"])) ** 2).mean()
+                lam = cfg.q_weight / q_pi.abs().mean().detach().clamp(min=1e-6)
+                expert = torch.from_numpy(batch["expert"])
+                diff = pi - expert
+                if cfg.bc_relative > 0:
+                    diff = diff / (expert.abs() + cfg.bc_relative)
+                bc = (diff**2).mean()
                 actor_loss = -lam * q_pi.mean() + bc_weight * bc
-                info["bc_loss"] = float(bc)
+                info["bc_loss"] = float(bc.detach())
             else:
                 actor_loss = -q_pi.mean()
             self.actor_opt.zero_grad(set_to_none=True)
             actor_loss.backward()
             self.actor_opt.step()
-            info["actor_loss"] = float(actor_loss)
+            info["actor_loss"] = float(actor_loss.detach())
             self._soft_update()
         return info
 
@@ -403,19 +416,37 @@ class Agent:
 # Evaluation: deterministic policy on fixed episodes
 # ---------------------------------------------------------------------------------------------
 
-REACHED_TOL = 0.02  # rad, every joint at the end of the episode
+Expert = Callable[[ReachAlphaEnv], np.ndarray]
+
+
+def eval_envs(
+    env_config: EnvConfig,
+    episodes: int,
+    torque_scale: tuple[float, float, float, float] | None = None,
+    arm_factory: Any = None,
+) -> list[ReachAlphaEnv]:
+    """Envs for `evaluate`: nominal model, sensor noise on, the whole workspace."""
+    cfg = dataclasses.replace(
+        env_config, torque_scale_low=None, max_step=None, sensor_noise=True,
+        param_perturbation=0.0, torque_scale=torque_scale or (1.0, 1.0, 1.0, 1.0),
+    )
+    return [ReachAlphaEnv(cfg, arm_factory=arm_factory) for _ in range(episodes)]
 
 
 @dataclass(frozen=True)
 class EvalResult:
+    """Means over episodes of policy.metrics (docs/metrics.md), plus the floor ratio."""
+
     episodes: int
     reached_fraction: float
-    final_error: float  # mean over episodes of max |e| at the end (rad)
-    rmse: float  # mean over episodes, all joints and steps (rad)
-    rmse_floor_ratio: float  # mean of rmse / rmse of driving straight at no-load speed
-    overshoot_pct: float  # mean over episodes of the worst joint's overshoot, % of step
-    settling_s: float  # mean time after which every joint stays within REACHED_TOL
-    steady_error: float  # mean |e| over the last 2 s (rad)
+    final_error: float  # max |e| over joints at the end (rad)
+    rmse: float  # rad
+    rmse_floor_ratio: float  # rmse / rmse of driving straight to target at no-load speed
+    overshoot_pct: float
+    settling_s: float
+    steady_error: float  # MSSE: mean |e| over the last 2 s (rad)
+    mie: float
+    energy_j: float
 
     def score(self) -> float:
         """Higher is better: reaching first, then speed, then overshoot and precision."""
@@ -437,59 +468,63 @@ def evaluate(
     seed: int = 10_000,
     torque_scale: tuple[float, float, float, float] | None = None,
     arm_factory: Any = None,
+    expert: Expert | None = None,
+    envs: list[ReachAlphaEnv] | None = None,
 ) -> EvalResult:
-    """Run `episodes` fixed episodes in lock-step; `policy` maps a batch of observations."""
-    from policy.env import NO_LOAD_SPEED
+    """Run `episodes` fixed episodes (sensor noise on) in lock-step, scored on the true state.
 
-    cfg = dataclasses.replace(
-        env_config, torque_scale_low=None, max_step=None, sensor_noise=True,
-        torque_scale=torque_scale or (1.0, 1.0, 1.0, 1.0),
-    )
-    envs = [ReachAlphaEnv(cfg, arm_factory=arm_factory) for _ in range(episodes)]
+    `policy` maps a batch of observations to a batch of actions; with `expert` given, the
+    expert (which reads the true state) acts instead, for its baseline figures. Pass `envs`
+    (from `eval_envs`) to reuse arms: a long run then scores on the very model it trains on.
+    """
+    from policy import metrics
+    from reach_sim_bridge.motor import no_load_speed
+
+    if envs is None:
+        envs = eval_envs(env_config, episodes, torque_scale, arm_factory)
+    if len(envs) != episodes:
+        raise ValueError(f"{len(envs)} envs for {episodes} episodes")
+    cfg = envs[0].config
     obs = np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(envs)])
-    starts = np.stack([env.start for env in envs])
-    targets = np.stack([env.target for env in envs])
     steps = cfg.steps_per_episode
-    errors = np.zeros((steps, episodes, N_JOINTS))
-    for k in range(steps):
-        actions = policy(obs)
-        results = [env.step(a) for env, a in zip(envs, actions, strict=True)]
-        obs = np.stack([r[0] for r in results])
-        errors[k] = np.stack([r[4]["target"] - r[4]["q"] for r in results])
+    q = np.zeros((steps + 1, episodes, N_JOINTS))
+    qdot = np.zeros_like(q)
+    tau = np.zeros_like(q)
+    q[0] = np.stack([env.arm.q for env in envs])
+    for k in range(1, steps + 1):
+        actions = policy(obs) if expert is None else [expert(env) for env in envs]
+        obs = np.stack([env.step(a)[0] for env, a in zip(envs, actions, strict=True)])
+        q[k] = np.stack([env.arm.q for env in envs])
+        qdot[k] = np.stack([env.arm.qdot for env in envs])
+        tau[k] = np.stack([getattr(env.arm, "tau", np.zeros(N_JOINTS)) for env in envs])
     dt = envs[0].control_dt
-    t = dt * np.arange(1, steps + 1)
-    step0 = targets - starts
-    floor = np.maximum(np.abs(step0)[None] - NO_LOAD_SPEED * t[:, None, None], 0.0)
-    rmse = np.sqrt(np.mean(errors**2, axis=(0, 2)))
-    rmse_floor = np.sqrt(np.mean(floor**2, axis=(0, 2)))
-    direction = np.sign(step0)
-    over = np.max(-errors * direction[None], axis=0).clip(min=0.0)
-    over_pct = np.max(100.0 * over / np.maximum(np.abs(step0), 1e-6), axis=1)
-    outside = np.any(np.abs(errors) >= REACHED_TOL, axis=2)  # (steps, episodes)
-    settle = np.array(
-        [t[np.nonzero(outside[:, i])[0][-1]] if outside[:, i].any() else 0.0
-         for i in range(episodes)]
-    )
-    last = max(1, int(round(2.0 / dt)))
-    final = np.max(np.abs(errors[-1]), axis=1)
+    speed = no_load_speed()
+    results, ratios, finals = [], [], []
+    for i, env in enumerate(envs):
+        trace = metrics.Trace(dt=dt, q=q[:, i], qdot=qdot[:, i], tau=tau[:, i], target=env.target)
+        m = metrics.compute_metrics(trace)
+        results.append(m)
+        floor = metrics.rmse_floor(q[0, i], env.target, speed, dt, steps)
+        ratios.append(m.rmse / max(floor, 1e-9))
+        finals.append(float(np.max(np.abs(trace.errors[-1]))))
+    summary = metrics.summarize(results)
     return EvalResult(
         episodes=episodes,
-        reached_fraction=float(np.mean(final < REACHED_TOL)),
-        final_error=float(np.mean(final)),
-        rmse=float(np.mean(rmse)),
-        rmse_floor_ratio=float(np.mean(rmse / np.maximum(rmse_floor, 1e-9))),
-        overshoot_pct=float(np.mean(over_pct)),
-        settling_s=float(np.mean(settle)),
-        steady_error=float(np.mean(np.abs(errors[-last:]))),
+        reached_fraction=summary["reached"],
+        final_error=float(np.mean(finals)),
+        rmse=summary["rmse"],
+        rmse_floor_ratio=float(np.mean(ratios)),
+        overshoot_pct=summary["overshoot_pct"],
+        settling_s=summary["settling_time_s"],
+        steady_error=summary["msse"],
+        mie=summary["mie"],
+        energy_j=summary["energy_j"],
     )
 
 
 # ---------------------------------------------------------------------------------------------
 # Training loop
 # ---------------------------------------------------------------------------------------------
-
-Expert = Callable[[ReachAlphaEnv], np.ndarray]
-
 
 @dataclass
 class TrainState:
@@ -533,6 +568,10 @@ class Trainer:
         )
         self.noise = OUNoise((config.num_envs, N_JOINTS), config.ou_theta, config.ou_sigma,
                              self.rng)
+        # built once: arms load the MJCF when constructed, so evaluation uses the same model
+        self.eval_nominal = eval_envs(config.env, config.eval_episodes, None, arm_factory)
+        self.eval_weak = eval_envs(config.env, max(4, config.eval_episodes // 2),
+                                   (0.25, 1.0, 1.0, 1.0), arm_factory)
         self.state = TrainState()
         self.best_actor = copy.deepcopy(self.agent.actor.state_dict())
         self._obs: np.ndarray | None = None
@@ -685,10 +724,9 @@ class Trainer:
     def evaluate_and_keep_best(self) -> dict[str, Any]:
         cfg = self.config
         nominal = evaluate(self.agent.act, cfg.env, cfg.eval_episodes, cfg.eval_seed,
-                           arm_factory=self.arm_factory)
-        weak = evaluate(self.agent.act, cfg.env, max(4, cfg.eval_episodes // 2),
-                        cfg.eval_seed + 5_000, torque_scale=(0.25, 1.0, 1.0, 1.0),
-                        arm_factory=self.arm_factory)
+                           envs=self.eval_nominal)
+        weak = evaluate(self.agent.act, cfg.env, len(self.eval_weak), cfg.eval_seed + 5_000,
+                        envs=self.eval_weak)
         score = nominal.score() + 0.5 * weak.reached_fraction - 0.005 * weak.overshoot_pct
         record = {
             "env_steps": self.state.env_steps,
@@ -774,6 +812,7 @@ def save_actor_npz(
         "format": "reach-stack ddpg actor v1",
         "layers": ["linear", "leaky_relu", "linear", "leaky_relu", "linear", "tanh"],
         "leaky_relu_slope": 0.01,
+        "current_limits_mA": list(DEFAULT_CURRENT_LIMITS_MA),
         "observation": config.env.observation.to_dict(),
         "env": config.env.to_dict(),
         "config": config.to_dict(),

@@ -38,15 +38,27 @@ SENSOR_NOISE_QDOT = 0.02  # rad/s
 class ArmLike(Protocol):
     """The part of `Alpha5Arm` the env uses (docs/architecture.md)."""
 
-    q: np.ndarray
-    qdot: np.ndarray
-    torque_scale: np.ndarray
-    position_limits: np.ndarray
-    current_limits_mA: np.ndarray
+    @property
+    def q(self) -> np.ndarray: ...
 
-    def reset(self, q: np.ndarray, qdot: np.ndarray | None = ..., jaw_mm: float = ...) -> Any: ...
+    @property
+    def qdot(self) -> np.ndarray: ...
 
-    def step(self, currents_mA: np.ndarray, jaw_current_mA: float = ..., n: int = ...) -> Any: ...
+    @property
+    def position_limits(self) -> np.ndarray: ...
+
+    @property
+    def current_limits_mA(self) -> np.ndarray: ...
+
+    @property
+    def torque_scale(self) -> np.ndarray: ...
+
+    @torque_scale.setter
+    def torque_scale(self, scale: Any) -> None: ...
+
+    def reset(self, q: Any = ..., qdot: Any = ..., jaw_mm: float = ...) -> None: ...
+
+    def step(self, currents_mA: Any, jaw_current_mA: float = ..., n: int = ...) -> None: ...
 
 
 class RewardMode(str, Enum):
@@ -145,47 +157,12 @@ def compute_reward(
     return float(reward)
 
 
-def default_arm_factory(config: EnvConfig, rng: np.random.Generator) -> ArmLike:
-    """A MuJoCo arm, with its float parameters scaled by random factors if asked."""
-    from reach_sim_bridge.arm import Alpha5Arm, ArmParams
+def default_arm_factory(config: EnvConfig) -> ArmLike:
+    """The MuJoCo arm at its nominal parameters."""
+    from reach_sim_bridge.arm import Alpha5Arm
 
-    params = ArmParams()
-    if config.param_perturbation > 0:
-        params = perturb_params(params, config.param_perturbation, rng)
-    arm: ArmLike = Alpha5Arm(params=params, dt=config.physics_dt)
+    arm: ArmLike = Alpha5Arm(dt=config.physics_dt)
     return arm
-
-
-#: ArmParams fields that are physical model parameters worth perturbing (those present are used).
-PERTURBABLE = (
-    "armature",
-    "damping",
-    "viscous",
-    "frictionloss",
-    "coulomb",
-    "mass_scale",
-    "link_mass_scale",
-    "buoyancy_scale",
-    "water_density",
-    "torque_constant",
-    "kt",
-)
-
-
-def perturb_params(params: Any, scale: float, rng: np.random.Generator) -> Any:
-    """Copy of a dataclass of model parameters with each physical float scaled by U(1-s, 1+s)."""
-    changes: dict[str, Any] = {}
-    for f in dataclasses.fields(params):
-        if not any(f.name == name or f.name.startswith(name) for name in PERTURBABLE):
-            continue
-        value = getattr(params, f.name)
-        if isinstance(value, float):
-            changes[f.name] = value * rng.uniform(1 - scale, 1 + scale)
-        elif isinstance(value, tuple) and all(isinstance(v, float) for v in value):
-            changes[f.name] = tuple(v * rng.uniform(1 - scale, 1 + scale) for v in value)
-        elif isinstance(value, np.ndarray) and value.dtype.kind == "f":
-            changes[f.name] = value * rng.uniform(1 - scale, 1 + scale, size=value.shape)
-    return dataclasses.replace(params, **changes)
 
 
 class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
@@ -196,7 +173,7 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
     def __init__(
         self,
         config: EnvConfig | None = None,
-        arm_factory: Callable[[EnvConfig, np.random.Generator], ArmLike] | None = None,
+        arm_factory: Callable[[EnvConfig], ArmLike] | None = None,
         **overrides: Any,
     ) -> None:
         config = config or EnvConfig()
@@ -212,7 +189,8 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         self.observation_space = gym.spaces.Box(low, high, dtype=np.float32)
         self._obs_low, self._obs_high = low, high
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(N_JOINTS,), dtype=np.float32)
-        self.arm: ArmLike = self._arm_factory(config, np.random.default_rng(0))
+        self.arm: ArmLike = self._arm_factory(config)
+        self._nominal_params = getattr(self.arm, "params", None)
         limits = np.asarray(self.arm.position_limits, dtype=np.float64)
         self.bounds_low = np.maximum(WORKSPACE_LOW - config.bounds_margin, limits[:, 0])
         self.bounds_high = np.minimum(WORKSPACE_HIGH + config.bounds_margin, limits[:, 1])
@@ -232,7 +210,10 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         options = options or {}
         cfg = self.config
         if cfg.param_perturbation > 0:
-            self.arm = self._arm_factory(cfg, self.np_random)
+            if self._nominal_params is None:
+                raise ValueError("param_perturbation needs an arm with params / set_params")
+            perturbed = self._nominal_params.randomized(self.np_random, cfg.param_perturbation)
+            self.arm.set_params(perturbed)  # type: ignore[attr-defined]
         start = self.np_random.uniform(WORKSPACE_LOW, WORKSPACE_HIGH)
         target = self.np_random.uniform(WORKSPACE_LOW, WORKSPACE_HIGH)
         if cfg.max_step is not None:
@@ -305,6 +286,36 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         if arr.shape != (N_JOINTS,) or not np.all(np.isfinite(arr)):
             raise ValueError(f"option {name!r} must be 4 finite numbers (E D C B), got {value!r}")
         return arr
+
+
+
+@dataclass(frozen=True)
+class PDExpert:
+    """Saturated PD on the TRUE state with gravity and friction feed-forward: the
+    demonstrator for DDPGfD / TD3+BC-style training (and a privileged baseline).
+
+    Stateless (a function of q, qdot, q_req like the policy), so the actor can represent it.
+    Gains are per joint in units of the current limit: a = clip(kp e - kd qdot + ff, -1, 1).
+    """
+
+    # tuned on the nominal arm at 20 Hz (docs/training.md): no overshoot, no steady error
+    kp: tuple[float, float, float, float] = (8.0, 8.0, 8.0, 4.0)  # 1/rad
+    kd: tuple[float, float, float, float] = (0.4, 0.4, 0.4, 0.1)  # s/rad
+    gravity_ff: bool = True
+    friction_ff: float = 0.0  # fraction of the current limit pushed along the error
+    friction_band: float = 0.003  # rad: width of the tanh that switches friction_ff on
+
+    def __call__(self, env: ReachAlphaEnv) -> np.ndarray:
+        arm: Any = env.arm
+        q, qdot = np.asarray(arm.q), np.asarray(arm.qdot)
+        error = env.target - q
+        a = np.asarray(self.kp) * error - np.asarray(self.kd) * qdot
+        if self.gravity_ff and hasattr(arm, "gravity_torque"):
+            full_torque = arm.motor.torque_per_amp * env.current_limits_mA / 1000.0
+            a = a - arm.gravity_torque(q) / (full_torque * np.maximum(arm.torque_scale, 0.05))
+        a = a + self.friction_ff * np.tanh(error / self.friction_band)
+        out: np.ndarray = np.clip(a, -1.0, 1.0)
+        return out
 
 
 def register_envs() -> None:

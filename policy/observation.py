@@ -8,6 +8,7 @@ environment (`policy.env`) and the deployed controller (`policy.ddpg_controller`
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -67,34 +68,60 @@ class ObservationConfig:
         return cls(**data)
 
 
+@lru_cache(maxsize=16)
+def _affine(config: ObservationConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(offset, scale) applied to [q, qdot, q_req, e(, e)] before the fine channel's tanh."""
+    zeros, ones = np.zeros(N_JOINTS), np.ones(N_JOINTS)
+    if config.normalise:
+        offsets = [WORKSPACE_CENTRE, zeros, WORKSPACE_CENTRE]
+        scales = [1 / WORKSPACE_HALF_RANGE, ones / config.qdot_scale, 1 / WORKSPACE_HALF_RANGE]
+        err_scale = 1 / WORKSPACE_HALF_RANGE
+    else:
+        offsets, scales, err_scale = [zeros, zeros, zeros], [ones, ones, ones], ones
+    if config.include_error:
+        offsets.append(zeros)
+        scales.append(err_scale)
+        if config.fine_error_scale > 0:
+            offsets.append(zeros)
+            scales.append(ones / config.fine_error_scale)
+    offset, scale = np.concatenate(offsets), np.concatenate(scales)
+    offset.flags.writeable = False  # shared by every call (cached)
+    scale.flags.writeable = False
+    return offset, scale
+
+
 def build_observation(
     q: np.ndarray, qdot: np.ndarray, q_req: np.ndarray, config: ObservationConfig
 ) -> np.ndarray:
-    """Observation (float32) from joint angles, speeds and the requested angles, E D C B."""
-    q = np.clip(np.asarray(q, dtype=np.float64), *Q_BOUNDS)
-    qdot = np.clip(np.asarray(qdot, dtype=np.float64), -QDOT_BOUND, QDOT_BOUND)
-    q_req = np.clip(np.asarray(q_req, dtype=np.float64), *Q_BOUNDS)
+    """Observation (float32) from joint angles, speeds and the requested angles, E D C B.
+
+    Runs every control period, so it is a handful of numpy calls on one small buffer.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    qdot = np.asarray(qdot, dtype=np.float64)
+    q_req = np.asarray(q_req, dtype=np.float64)
     if q.shape != (N_JOINTS,) or qdot.shape != (N_JOINTS,) or q_req.shape != (N_JOINTS,):
         raise ValueError(
             f"q, qdot and q_req must each have shape (4,), got {q.shape}, {qdot.shape}, "
             f"{q_req.shape}"
         )
-    error = q_req - q
-    if config.normalise:
-        parts = [
-            (q - WORKSPACE_CENTRE) / WORKSPACE_HALF_RANGE,
-            qdot / config.qdot_scale,
-            (q_req - WORKSPACE_CENTRE) / WORKSPACE_HALF_RANGE,
-        ]
-        if config.include_error:
-            parts.append(error / WORKSPACE_HALF_RANGE)
-    else:
-        parts = [q, qdot, q_req]
-        if config.include_error:
-            parts.append(error)
-    if config.include_error and config.fine_error_scale > 0:
-        parts.append(np.tanh(error / config.fine_error_scale))
-    return np.concatenate(parts).astype(np.float32)
+    offset, scale = _affine(config)
+    x = np.empty(offset.size)
+    x[0:4] = q
+    x[4:8] = qdot
+    x[8:12] = q_req
+    np.clip(x[0:4], Q_BOUNDS[0], Q_BOUNDS[1], out=x[0:4])
+    np.clip(x[4:8], -QDOT_BOUND, QDOT_BOUND, out=x[4:8])
+    np.clip(x[8:12], Q_BOUNDS[0], Q_BOUNDS[1], out=x[8:12])
+    if config.include_error:
+        np.subtract(x[8:12], x[0:4], out=x[12:16])
+        if offset.size > 16:
+            x[16:20] = x[12:16]
+    x -= offset
+    x *= scale
+    if offset.size > 16:
+        np.tanh(x[16:20], out=x[16:20])
+    return x.astype(np.float32)
 
 
 def observation_bounds(config: ObservationConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -24,7 +24,15 @@ from rich.table import Table
 
 from protocol import DeviceID, Mode, PacketID
 from reach_driver.client import ArmClient
-from reach_driver.control import ControlLoop, ControlSummary, Pacing, StepRecord
+from reach_driver.control import (
+    TORQUE_CONSTANT_NM_PER_A,
+    ControlLoop,
+    ControlSummary,
+    LoopTrace,
+    Pacing,
+    StepRecord,
+    preferred_period,
+)
 from reach_driver.controllers import available_controllers, load_controller
 from reach_driver.errors import (
     ArmFaultError,
@@ -39,6 +47,7 @@ from reach_driver.errors import (
     TransportError,
 )
 from reach_driver.link import ClientEvent, EventKind
+from reach_driver.metrics import METRIC_KEYS, Metrics, Trace, compute_metrics
 from reach_driver.safety import LimitKind, SafetyConfig
 from reach_driver.state import JAW, JOINTS, JointState, joint_name
 from reach_driver.transport import DEFAULT_BAUD, open_transport
@@ -65,11 +74,13 @@ examples:
   reach-driver --port udp://192.168.2.3 monitor
   reach-driver --port /dev/ttyUSB0 move 3.1 1.5 1.5 3.0 --jaw 8
   reach-driver --port /dev/ttyUSB0 run --controller pid --target 3.1 1.5 1.5 3.0 --seconds 10
+  reach-driver --port /dev/ttyUSB0 run --controller ddpg --target 5.78 1.97 1.67 3.96 \
+      --seconds 20 --record run.rrd
   reach-driver inspect run.rrd
 
 exit status: 0 done; 1 failed (timeout, fault, lost link); 2 bad usage; 3 refused by a
 limit (nothing moved); 4 no arm (wrong port, no permission, nothing answering, wrong baud);
-130 interrupted (arm left in a safe mode).
+130 interrupted (arm left in a safe mode). docs/hil.md: using a real arm.
 """
 
 
@@ -142,6 +153,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="seconds without a command or fresh feedback before the arm is put in a safe "
         "mode during velocity/current control (default 0.2)",
     )
+    parser.add_argument(
+        "--max-current",
+        metavar="MA[,MA,MA,MA]",
+        help="tighten the current limits the arm reports: one value for every joint or four "
+        "comma-separated (E,D,C,B), in mA; a controller's output is clipped to them (for "
+        "first runs on a real arm)",
+    )
+    parser.add_argument(
+        "--position-margin",
+        type=float,
+        default=0.0,
+        metavar="RAD",
+        help="keep this far inside the arm's position limits (default 0)",
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="log link events in detail")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
@@ -183,14 +208,24 @@ def build_parser() -> argparse.ArgumentParser:
         help="closed-loop control with a registered controller",
         description="Run a controller (found by name in the reach_stack.controllers entry "
         "points) in current mode towards a target, then leave the arm in a safe mode and "
-        "print the final errors and timing statistics. With --pacing stream (default) the "
-        "arm's heartbeat paces the loop and time is arm time.",
+        "print the final errors, timing statistics and the run's metrics (energy, RMSE, MIE, "
+        "MSSE, overshoot, settling time, reached; docs/metrics.md) computed from the angles "
+        "the arm reported, with torque = measured current x the joint's torque constant "
+        "(E/D/C 20.2, B 7.1 N m/A). With --pacing stream (default) the arm's heartbeat paces "
+        "the loop and time is arm time: against reach-sim --speed X a run takes 1/X of the "
+        "wall time and gives the same metrics.",
+        epilog="exit status: 0 the run completed (whether or not it reached the target: see "
+        "'reached'); 1 it was cut short (lost link, watchdog, fault, controller error); 3 the "
+        "target is outside a limit (nothing moved); 4 no arm; 130 interrupted.",
     )
     run.add_argument("--controller", required=True, help="e.g. pid, mpc, ddpg")
     run.add_argument("--target", nargs=4, type=float, required=True, metavar=("E", "D", "C", "B"))
     run.add_argument("--seconds", type=_positive, required=True, help="loop (arm) seconds")
     run.add_argument(
-        "--period", type=_positive, default=0.05, help="control period in s (default 0.05)"
+        "--period",
+        type=_positive,
+        help="control period in arm seconds (default: the controller's own, e.g. the rate a "
+        "policy was trained at, else 0.05)",
     )
     run.add_argument(
         "--pacing",
@@ -222,8 +257,8 @@ def _connect(args: argparse.Namespace, console: Console) -> ArmClient:
         raise BadUrlError(
             "no port: give --port (device, pyserial URL or udp://HOST) or set $REACH_PORT"
         )
+    safety = _safety(args)  # checked by main() already
     transport = open_transport(args.port, baud=args.baud, rs485=args.rs485)
-    safety = SafetyConfig(watchdog_s=args.watchdog)
     client = ArmClient(
         transport, safety=safety, request_timeout_s=args.timeout, retries=args.retries
     )
@@ -240,6 +275,29 @@ def _connect(args: argparse.Namespace, console: Console) -> ArmClient:
     for warning in client.warnings:
         notes.print(f"[yellow]warning[/]: {warning}")
     return client
+
+
+def _safety(args: argparse.Namespace) -> SafetyConfig:
+    currents: dict[int, float] = {}
+    if args.max_current:
+        try:
+            given = [float(v) for v in args.max_current.split(",")]
+        except ValueError:
+            raise ValueError(f"--max-current takes mA values, got {args.max_current!r}") from None
+        if len(given) not in (1, 4) or not all(math.isfinite(v) and v > 0 for v in given):
+            raise ValueError(
+                "--max-current takes one positive value or four comma-separated (E,D,C,B), "
+                f"got {args.max_current!r}"
+            )
+        values = given * 4 if len(given) == 1 else given
+        currents = {int(d): v for d, v in zip(JOINTS, values, strict=True)}
+    if not (math.isfinite(args.position_margin) and args.position_margin >= 0):
+        raise ValueError(f"--position-margin must be >= 0 rad, got {args.position_margin}")
+    return SafetyConfig(
+        watchdog_s=args.watchdog,
+        current_limits_mA=currents,
+        position_margin=args.position_margin,
+    )
 
 
 def _fmt(value: float | None, digits: int = 4) -> str:
@@ -269,6 +327,8 @@ def _mode(js: JointState) -> str:
 def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
     client = _connect(args, console)
     try:
+        # Where each joint is now, beside its limits: the start of any move or run.
+        client.request_many(client.found_devices, [PacketID.POSITION], partial=True)
         joints = client.read_info()
         if args.json:
             out = {}
@@ -483,14 +543,33 @@ def _recorder_hook(
                 qdot=r.qdot,
                 target=r.target,
                 current_cmd_mA=r.command_mA,
+                current_meas_mA=r.current_mA,
+                torque_Nm=r.torque_Nm,
             )
         )
         rec.log_link(r.t, r.step, r.good_frames, r.bad_frames, r.state_age_s)
 
     def finish(summary: ControlSummary | None, error: str | None) -> None:
+        if summary is not None and summary.trace is not None and summary.steps:
+            # The state that ended the run, so the recording scores like the printed metrics.
+            tr = summary.trace
+            rec.log_step(
+                recording.StepSample(
+                    t=float(tr.t[-1]),
+                    step=summary.steps,
+                    q=tr.q[-1],
+                    qdot=tr.qdot[-1],
+                    target=summary.target,
+                    current_cmd_mA=np.zeros(4),
+                    current_meas_mA=tr.current_mA[-1],
+                    torque_Nm=tr.torque_Nm[-1],
+                )
+            )
         if error:
             rec.log_event(error, level="ERROR")
         if summary is not None:
+            if summary.left_in:
+                rec.log_event(f"arm left in {summary.left_in}")
             rec.log_summary(_summary_dict(summary))
         rec.log_event("stop")
         rec.close()
@@ -498,8 +577,21 @@ def _recorder_hook(
     return on_step, finish
 
 
+def run_metrics(summary: ControlSummary) -> Metrics | None:
+    """The run scored like an evaluation episode (on the angles the arm reported)."""
+    tr = summary.trace
+    if tr is None or tr.samples < 2:
+        return None
+    return compute_metrics(trace_for_metrics(tr, summary.target))
+
+
+def trace_for_metrics(tr: LoopTrace, target: np.ndarray) -> Trace:
+    return Trace(dt=tr.dt, q=tr.q, qdot=tr.qdot, tau=tr.torque_Nm, target=target)
+
+
 def _summary_dict(s: ControlSummary) -> dict[str, object]:
     t = s.timing
+    metrics = run_metrics(s)
     return {
         "ok": s.ok,
         "stopped_by": s.stopped_by,
@@ -518,7 +610,52 @@ def _summary_dict(s: ControlSummary) -> dict[str, object]:
         "latency_p99_s": t.latency_p99_s,
         "missed_deadlines": t.missed_deadlines,
         "skipped_states": t.skipped_states,
+        "partial_states": t.partial_states,
+        "incomplete_ticks": t.incomplete_ticks,
+        "left_in": s.left_in,
+        "metrics": None if metrics is None else metrics.as_dict(),
     }
+
+
+METRIC_LABELS = {
+    "energy_j": ("energy", "J"),
+    "rmse": ("RMSE", "rad"),
+    "mie": ("MIE", "rad s"),
+    "msse": ("MSSE", "rad"),
+    "overshoot_pct": ("overshoot", "%"),
+    "settling_time_s": ("settling time", "s"),
+    "reached": ("reached", ""),
+}
+
+
+def _print_metrics(console: Console, s: ControlSummary) -> None:
+    metrics = run_metrics(s)
+    if metrics is None:
+        console.print("metrics: none (fewer than two states were seen)")
+        return
+    values = metrics.as_dict()
+    table = Table(title="metrics (docs/metrics.md; from the reported angles)")
+    for key in METRIC_KEYS:
+        name, unit = METRIC_LABELS[key]
+        table.add_column(f"{name} [{unit}]" if unit else name, justify="right")
+    cells = []
+    for key in METRIC_KEYS:
+        value = values[key]
+        cells.append(("yes" if value else "[red]no[/]") if isinstance(value, bool)
+                     else f"{float(value):.4g}")
+    table.add_row(*cells)
+    console.print(table)
+    tr = s.trace
+    assert tr is not None
+    measured = int(np.isfinite(tr.current_mA[1:]).all(axis=1).sum())
+    kt = "/".join(f"{k:g}" for k in TORQUE_CONSTANT_NM_PER_A)
+    source = "commanded" if measured == 0 else "measured"
+    note = f"torque = {source} current x {kt} N m/A (E D C B)"
+    if 0 < measured < tr.samples - 1:
+        note += f" (commanded on the {tr.samples - 1 - measured} samples without a reading)"
+    if tr.filled:
+        note += f"; {tr.filled} incomplete states interpolated"
+    console.print(note)
 
 
 def _print_summary(console: Console, s: ControlSummary) -> None:
@@ -534,7 +671,8 @@ def _print_summary(console: Console, s: ControlSummary) -> None:
         f"{t.period_jitter_s * 1e3:.2f} ms (max {t.period_jitter_max_s * 1e3:.2f}), state age "
         f"p50 {t.state_age_p50_s * 1e3:.2f} / p99 {t.state_age_p99_s * 1e3:.2f} ms, latency "
         f"p50 {t.latency_p50_s * 1e3:.2f} / p99 {t.latency_p99_s * 1e3:.2f} ms, missed "
-        f"deadlines {t.missed_deadlines}, skipped states {t.skipped_states}, CPU "
+        f"deadlines {t.missed_deadlines}, skipped states {t.skipped_states}, partial states "
+        f"{t.partial_states}, incomplete ticks {t.incomplete_ticks}, CPU "
         f"{t.cpu_per_step_s * 1e6:.0f} us/step (process {t.process_cpu_per_step_s * 1e6:.0f})"
     )
     console.print(
@@ -543,9 +681,28 @@ def _print_summary(console: Console, s: ControlSummary) -> None:
     )
 
 
+DEFAULT_PERIOD_S = 0.05
+
+
+def control_period(controller: object, requested: float | None) -> tuple[float, str | None]:
+    """The period to run at (the one asked for, else the controller's own, else 20 Hz) and a
+    warning when it differs from the controller's own."""
+    own = preferred_period(controller)
+    period = requested or own or DEFAULT_PERIOD_S
+    if own is not None and not math.isclose(period, own, rel_tol=1e-6):
+        return period, (
+            f"the controller asks for a {own:g} s period ({1 / own:g} Hz); running at "
+            f"{period:g} s as told"
+        )
+    return period, None
+
+
 def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
     params = dict(args.param)
     controller = load_controller(args.controller, **params)
+    period, mismatch = control_period(controller, args.period)
+    if mismatch:
+        Console(stderr=True, highlight=False).print(f"[yellow]warning[/]: {mismatch}")
     hook: Callable[[StepRecord], None] | None = None
     finish: Callable[[ControlSummary | None, str | None], None] | None = None
     client = _connect(args, console)
@@ -555,18 +712,21 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
         target = np.array(args.target, dtype=float)
         for dev, value in zip(JOINTS, target, strict=True):
             client.guard.check(dev, LimitKind.POSITION, float(value))
+        faults = _blocking_faults(client.read_status(JOINTS), console)
+        if faults:
+            raise ArmFaultError(f"arm reports faults, not starting: {faults}")
         if args.record:
             meta: dict[str, object] = {
                 "controller": args.controller,
                 "params": params,
                 "port": args.port,
-                "period_s": args.period,
+                "period_s": period,
                 "pacing": args.pacing,
                 "target": target.tolist(),
                 "seconds": args.seconds,
             }
             hook, finish = _recorder_hook(args.record, meta)
-        loop = ControlLoop(client, controller, args.period, pacing=args.pacing, on_step=hook)
+        loop = ControlLoop(client, controller, period, pacing=args.pacing, on_step=hook)
         try:
             summary = loop.run(target, args.seconds)
         except KeyboardInterrupt:
@@ -574,7 +734,14 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             raise
         error = summary.error
         _print_summary(console, summary)
-        console.print(f"arm left in {client.guard.config.safe_mode.name.lower()}")
+        _print_metrics(console, summary)
+        console.print(f"arm left in {summary.left_in}")
+        if args.record:
+            console.print(
+                f"recorded {args.record}: open it with `rerun {args.record}`, "
+                f"summarise it with `reach-driver inspect {args.record}`",
+                soft_wrap=True,  # keep the commands copyable
+            )
         if summary.error:
             console.print(f"[red]run failed[/]: {summary.error}")
             return Exit.FAILED
@@ -620,6 +787,11 @@ def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if hasattr(args, "max_current"):
+        try:
+            _safety(args)
+        except ValueError as exc:
+            parser.error(str(exc))  # exit 2 with the usage line
     # Piped output is not squeezed to 80 columns: tables stay one line per joint.
     console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
     errors = Console(stderr=True, highlight=False)

@@ -75,6 +75,8 @@ CONTINUOUS: dict[int, LimitKind] = {
 LIMIT_KIND_OF: dict[int, LimitKind] = {kind.packet_id: kind for kind in LimitKind}
 MAX_REQUEST_IDS = 10
 EVENT_HISTORY = 200
+#: Flags that only say the arm saw noise on the line; they clear by themselves.
+LINK_ERROR_FLAGS = HardwareStatus.SERIAL_ERROR | HardwareStatus.CRC_ERROR
 
 
 @dataclass
@@ -254,6 +256,19 @@ class ArmClient:
     def tripped(self) -> str | None:
         """Why the watchdog tripped, or None while it has not (or after `rearm()`)."""
         return self._tripped
+
+    def blocking_faults(self) -> dict[int, list[str]]:
+        """Status flags, by device, that say a joint must not be driven (motor, driver,
+        encoder, pressure...), from the last HARDWARE_STATUS each device sent; link error
+        flags are left out."""
+        with self._lock:
+            faults = dict(self._faults)
+        out: dict[int, list[str]] = {}
+        for dev, flags in faults.items():
+            serious = flags & ~LINK_ERROR_FLAGS
+            if serious:
+                out[dev] = serious.flag_names() or [f"0x{int(serious):08X}"]
+        return out
 
     def on_event(self, callback: EventCallback) -> None:
         self._event_callbacks.append(callback)
@@ -765,10 +780,11 @@ class ArmClient:
         except ProtocolError:
             return
         dev = int(packet.device_id)
-        before = self._faults.get(dev, HardwareStatus.NONE)
-        if flags == before:
-            return
-        self._faults[dev] = flags
+        with self._lock:
+            before = self._faults.get(dev, HardwareStatus.NONE)
+            if flags == before:
+                return
+            self._faults[dev] = flags
         if flags:
             names = ", ".join(flags.flag_names()) or f"0x{int(flags):08X}"
             self._emit(EventKind.FAULT, f"{joint_name(dev)} reports {names}", dev)

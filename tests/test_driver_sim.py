@@ -133,7 +133,7 @@ def test_run_pid_reaches_the_target_and_leaves_the_arm_safe(sim, link, tmp_path,
     from reach_driver.rrd_summary import summarize_recording
 
     summary = summarize_recording(record)
-    assert summary["steps"] == 80
+    assert summary["steps"] == 81  # 80 control steps and the state that ended the run
     assert np.max(np.abs(summary["final_error"])) < 0.02
     assert summary["metadata"]["controller"] == "pid"
 

@@ -1,0 +1,221 @@
+"""DDPG agent, training loop, checkpoints and the deployed numpy controller."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from policy.ddpg import (
+    Actor,
+    DDPGConfig,
+    OUNoise,
+    ReplayBuffer,
+    Trainer,
+    evaluate,
+    save_actor_npz,
+)
+from policy.ddpg_controller import DEFAULT_WEIGHTS, ActorWeights, make_controller
+from policy.env import EnvConfig, PDExpert, ReachAlphaEnv
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def tiny(config: DDPGConfig, **overrides: object) -> DDPGConfig:
+    """A config that trains for a few hundred steps in a couple of seconds."""
+    base = dict(total_steps=400, learning_starts=100, eval_every=10**9, buffer_size=5_000,
+                env=dataclasses.replace(config.env, episode_s=5.0))
+    base.update(overrides)
+    return dataclasses.replace(config, **base)  # type: ignore[arg-type]
+
+
+def test_paper_hyperparameters() -> None:
+    cfg = DDPGConfig.paper()
+    assert cfg.hidden == (400, 300)
+    assert (cfg.actor_lr, cfg.critic_lr, cfg.lr_decay, cfg.lr_decay_every) == (
+        1e-4, 1e-3, 0.96, 100_000)
+    assert (cfg.batch_size, cfg.tau, cfg.gamma) == (64, 0.001, 0.99)
+    assert (cfg.eps_start, cfg.eps_end) == (1.0, 0.1)
+    assert cfg.env.reward.sigma == 0.018 and cfg.env.reward.out_of_bounds == -10.0
+    assert not cfg.twin_critics and cfg.bc_weight == 0 and cfg.demo_episodes == 0
+    actor = Actor(12, 4, cfg.hidden)
+    kinds = [type(m).__name__ for m in actor.net]
+    assert kinds == ["Linear", "LeakyReLU", "Linear", "LeakyReLU", "Linear", "Tanh"]
+
+
+def test_numpy_forward_equals_torch_actor(tmp_path: Path) -> None:
+    torch.manual_seed(3)
+    cfg = DDPGConfig.ours()
+    actor = Actor(cfg.env.observation.size, 4, cfg.hidden)
+    save_actor_npz(tmp_path / "a.npz", actor, cfg)
+    weights = ActorWeights.load(tmp_path / "a.npz")
+    obs = np.random.default_rng(0).uniform(-3, 3, size=(256, cfg.env.observation.size))
+    with torch.no_grad():
+        expected = actor(torch.from_numpy(obs.astype(np.float32))).numpy()
+    np.testing.assert_allclose(weights.forward(obs), expected, atol=2e-6)
+    np.testing.assert_allclose(weights.forward(obs[0]), expected[0], atol=2e-6)
+
+
+def test_controller_outputs_currents_and_rejects_bad_input(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    cfg = DDPGConfig.ours()
+    actor = Actor(cfg.env.observation.size, 4, cfg.hidden)
+    with torch.no_grad():
+        actor.net[4].bias.fill_(10.0)  # saturate: every output +1
+    save_actor_npz(tmp_path / "a.npz", actor, cfg)
+    ctrl = make_controller(tmp_path / "a.npz")
+    ctrl.reset()
+    state = SimpleNamespace(q=np.full(4, 1.5), qdot=np.zeros(4), t=0.0)
+    np.testing.assert_allclose(ctrl.act(state, np.full(4, 1.6)), [600, 600, 600, 300],
+                               rtol=1e-6)
+    with pytest.raises(ValueError, match="target"):
+        ctrl.act(state, np.array([1.0, 2.0]))
+    with pytest.raises(ValueError, match="finite"):
+        ctrl.act(SimpleNamespace(q=np.array([np.nan, 1, 1, 1]), qdot=np.zeros(4), t=0.0),
+                 np.ones(4))
+    with pytest.raises(FileNotFoundError):
+        make_controller(tmp_path / "missing.npz")
+    (tmp_path / "a.json").write_text(json.dumps({"format": "something else"}))
+    with pytest.raises(ValueError, match="format"):
+        make_controller(tmp_path / "a.npz")
+
+
+def test_shipped_weights_load_with_their_metadata() -> None:
+    ctrl = make_controller()
+    meta = json.loads(DEFAULT_WEIGHTS.with_suffix(".json").read_text())
+    for key in ("command", "seed", "config", "training_time_s", "eval"):
+        assert key in meta, key
+    assert DEFAULT_WEIGHTS.stat().st_size < 5_000_000
+    state = SimpleNamespace(q=np.array([1.0, 1.0, 1.0, 1.0]), qdot=np.zeros(4), t=0.0)
+    out = ctrl.act(state, np.array([2.0, 2.0, 2.0, 2.0]))
+    assert out.shape == (4,) and np.all(np.abs(out) <= ctrl.current_limits_mA + 1e-9)
+
+
+@pytest.mark.slow
+def test_shipped_weights_drive_the_arm_to_target() -> None:
+    """Closed loop on the MuJoCo arm at 20 Hz, the controller reading noisy sensors."""
+    ctrl = make_controller()
+    env = ReachAlphaEnv(EnvConfig(sensor_noise=True))
+    for start, target in [
+        ([1.0, 1.0, 2.5, 0.8], [4.5, 2.2, 1.0, 2.4]),
+        ([5.0, 2.5, 1.0, 2.0], [2.0, 0.8, 2.6, 0.7]),
+    ]:
+        env.reset(seed=0, options={"start": start, "target": target})
+        reading = SimpleNamespace(q=None, qdot=None, t=0.0)
+        for k in range(env.config.steps_per_episode):
+            reading.q, reading.qdot = env.last_reading
+            reading.t = k * env.control_dt
+            currents = ctrl.act(reading, env.target)
+            env.step(currents / ctrl.current_limits_mA)
+        assert np.all(np.abs(env.arm.q - np.array(target)) < 0.02), env.arm.q
+
+
+def test_ou_noise_and_schedules(tmp_path: Path) -> None:
+    noise = OUNoise((2, 4), 0.15, 0.2, np.random.default_rng(0))
+    samples = np.array([noise.sample() for _ in range(2000)])
+    assert abs(np.corrcoef(samples[:-1, 0, 0], samples[1:, 0, 0])[0, 1] - 0.85) < 0.05
+    noise.reset(0)
+    assert np.all(noise.state[0] == 0) and np.any(noise.state[1] != 0)
+    cfg = tiny(DDPGConfig.paper(), total_steps=1000)
+    trainer = Trainer(cfg, tmp_path)
+    assert trainer.epsilon() == 1.0
+    trainer.state.env_steps = 500
+    assert trainer.epsilon() == pytest.approx(0.55)
+    trainer.state.env_steps = 5000
+    assert trainer.epsilon() == pytest.approx(0.1)
+    trainer.agent.set_learning_rates(250_000)
+    assert trainer.agent.actor_opt.param_groups[0]["lr"] == pytest.approx(1e-4 * 0.96**2)
+
+
+def test_replay_buffer_wraps_and_round_trips() -> None:
+    buf = ReplayBuffer(5, 3, 2)
+    for k in range(3):
+        n = 2
+        buf.add(np.full((n, 3), k), np.full((n, 2), k), np.full(n, k), np.full((n, 3), k),
+                np.zeros(n), np.zeros((n, 2)))
+    assert len(buf) == 5 and buf.pos == 1
+    assert buf.rew[:, 0].tolist() == [2, 0, 1, 1, 2]  # the oldest transition was replaced
+    other = ReplayBuffer(5, 3, 2)
+    other.load(buf.state())
+    np.testing.assert_array_equal(other.obs, buf.obs)
+    assert other.pos == buf.pos and len(other) == 5
+    with pytest.raises(ValueError, match="capacity"):
+        ReplayBuffer(6, 3, 2).load(buf.state())
+
+
+def _train(config: DDPGConfig, run_dir: Path) -> Trainer:
+    expert = PDExpert() if config.bc_weight > 0 else None
+    trainer = Trainer(config, run_dir, expert=expert, log=lambda _: None)
+    trainer.run()
+    return trainer
+
+
+@pytest.mark.parametrize("preset", ["paper", "ours"])
+def test_training_runs_and_is_deterministic_for_a_seed(tmp_path: Path, preset: str) -> None:
+    overrides: dict[str, object] = {}
+    if preset == "ours":
+        overrides = dict(num_envs=2, demo_episodes=1, batch_size=64, eval_episodes=2)
+    cfg = tiny(DDPGConfig.preset(preset), **overrides)
+    a = _train(cfg, tmp_path / "a")
+    b = _train(cfg, tmp_path / "b")
+    c = _train(dataclasses.replace(cfg, seed=1), tmp_path / "c")
+    assert a.state.env_steps == cfg.total_steps and a.agent.updates > 0
+    for pa, pb in zip(a.agent.actor.parameters(), b.agent.actor.parameters(), strict=True):
+        assert torch.equal(pa, pb)
+    assert not all(torch.equal(pa, pc) for pa, pc in
+                   zip(a.agent.actor.parameters(), c.agent.actor.parameters(), strict=True))
+
+
+def test_checkpoint_resume_and_csv(tmp_path: Path) -> None:
+    cfg = tiny(DDPGConfig.paper(), total_steps=300)
+    trainer = Trainer(cfg, tmp_path, log=lambda _: None)
+    trainer.run(until_steps=200, csv_path=tmp_path / "train.csv")
+    trainer.evaluate_and_keep_best()
+    trainer.save()
+    resumed = Trainer(cfg, tmp_path, log=lambda _: None)
+    resumed.load()
+    assert resumed.state.env_steps == 200 and len(resumed.buffer) == len(trainer.buffer)
+    for pa, pb in zip(trainer.agent.critics.parameters(), resumed.agent.critics.parameters(),
+                      strict=True):
+        assert torch.equal(pa, pb)
+    assert resumed.agent.updates == trainer.agent.updates
+    resumed.run(csv_path=tmp_path / "train.csv")
+    assert resumed.state.env_steps == 300
+    rows = (tmp_path / "train.csv").read_text().splitlines()
+    assert rows[0].startswith("env_steps,episodes") and len(rows) >= 3  # 100-step episodes
+    assert (tmp_path / "best_actor.npz").exists() and (tmp_path / "eval.jsonl").exists()
+    different = dataclasses.replace(cfg, batch_size=32)
+    with pytest.raises(ValueError, match="different configuration"):
+        Trainer(different, tmp_path, log=lambda _: None).load()
+
+
+def test_expert_needed_for_demonstrations(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="expert"):
+        Trainer(tiny(DDPGConfig.ours()), tmp_path)
+
+
+def test_evaluate_scores_the_expert_as_reaching() -> None:
+    result = evaluate(None, EnvConfig(episode_s=10.0), episodes=3, seed=5, expert=PDExpert())
+    assert result.reached_fraction == 1.0
+    assert result.final_error < 0.02 and result.overshoot_pct < 2.0
+    assert 1.0 <= result.rmse_floor_ratio < 1.3
+
+
+def test_train_cli_help_and_bad_override(tmp_path: Path) -> None:
+    py = sys.executable
+    out = subprocess.run([py, str(ROOT / "tools" / "train.py"), "--help"], capture_output=True,
+                         text=True, check=True)
+    assert "--resume" in out.stdout and "checkpoint" in out.stdout
+    bad = subprocess.run([py, str(ROOT / "tools" / "train.py"), "--run", str(tmp_path / "r"),
+                          "--set", "no_such_key=1"], capture_output=True, text=True)
+    assert bad.returncode != 0 and "unknown key" in bad.stderr
+    missing = subprocess.run([py, str(ROOT / "tools" / "train.py"), "--run",
+                              str(tmp_path / "none"), "--resume"], capture_output=True, text=True)
+    assert missing.returncode != 0 and "no checkpoint" in missing.stderr

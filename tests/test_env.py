@@ -1,0 +1,244 @@
+"""ReachAlpha-v0: API conformance, rewards, bounds, options and the shared observation."""
+
+from __future__ import annotations
+
+import dataclasses
+from types import SimpleNamespace
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from policy.env import (
+    ENV_ID,
+    EnvConfig,
+    PDExpert,
+    ReachAlphaEnv,
+    RewardConfig,
+    RewardMode,
+    compute_reward,
+)
+from policy.observation import (
+    WORKSPACE_HIGH,
+    WORKSPACE_LOW,
+    ObservationConfig,
+    build_observation,
+    observation_bounds,
+)
+
+OURS_OBS = ObservationConfig()
+SHAPED = RewardConfig(mode=RewardMode.SHAPED, distance_weight=2.0, velocity_weight=0.5,
+                      action_change_weight=0.1, near_scale=0.05)
+
+
+@pytest.mark.parametrize("obs_config", [ObservationConfig.paper(), OURS_OBS])
+def test_check_env_passes(obs_config: ObservationConfig) -> None:
+    env = ReachAlphaEnv(EnvConfig(observation=obs_config, sensor_noise=True))
+    check_env(env, skip_render_check=True)
+    assert np.all(np.isfinite(env.observation_space.low))
+    assert np.all(np.isfinite(env.observation_space.high))
+
+
+def test_registered_and_makeable() -> None:
+    env = gym.make(ENV_ID)
+    obs, _ = env.reset(seed=1)
+    assert obs.shape == (12,)
+    env2 = gym.make("policy.env:ReachAlpha-v0", config=EnvConfig(observation=OURS_OBS))
+    assert env2.reset(seed=1)[0].shape == (20,)
+
+
+def test_paper_reward_values() -> None:
+    z = np.zeros(4)
+    q_req = np.array([1.0, 1.0, 1.0, 1.0])
+    cfg = RewardConfig()
+    assert compute_reward(q_req, z, q_req, z, z, True, cfg) == pytest.approx(0.0)
+    # |e| = sigma in norm: -1 + exp(-1/2)
+    q = q_req - np.array([0.018, 0.0, 0.0, 0.0])
+    assert compute_reward(q, z, q_req, z, z, True, cfg) == pytest.approx(-1 + np.exp(-0.5))
+    q = q_req - np.array([0.009, 0.0, 0.0, 0.009 * np.sqrt(3)])  # norm 0.018
+    assert compute_reward(q, z, q_req, z, z, True, cfg) == pytest.approx(-1 + np.exp(-0.5))
+    assert compute_reward(q_req - 1.0, z, q_req, z, z, True, cfg) == pytest.approx(-1.0)
+    assert compute_reward(q_req, z, q_req, z, z, False, cfg) == -10.0
+
+
+def test_shaped_reward_values() -> None:
+    z = np.zeros(4)
+    q_req = np.array([3.0, 1.7, 1.7, 1.65])
+    assert compute_reward(q_req, z, q_req, z, z, True, SHAPED) == pytest.approx(0.0)
+    # one joint off by its half-range: no bonus there, distance term 2 * 1/4
+    half = (WORKSPACE_HIGH - WORKSPACE_LOW) / 2
+    q = q_req.copy()
+    q[1] -= half[1]
+    expected = -1 + 3 / 4 - 2.0 * 0.25
+    assert compute_reward(q, z, q_req, z, z, True, SHAPED) == pytest.approx(expected, abs=1e-9)
+    # at the target, moving and twitching costs; far from it, it does not
+    qdot = np.array([1.18, 0.0, 0.0, 0.0])  # the no-load speed
+    act = np.array([1.0, 0.0, 0.0, 0.0])
+    assert compute_reward(q_req, qdot, q_req, act, z, True, SHAPED) == pytest.approx(
+        -0.5 * 0.25 - 0.1 * 0.25
+    )
+    far = q_req.copy()
+    far[0] -= 1.0
+    r_still = compute_reward(far, z, q_req, z, z, True, SHAPED)
+    r_moving = compute_reward(far, qdot, q_req, act, z, True, SHAPED)
+    assert r_moving == pytest.approx(r_still, abs=1e-9)
+    assert compute_reward(q_req, z, q_req, z, z, False, SHAPED) == -10.0
+
+
+def test_out_of_bounds_costs_minus_ten_per_step_and_episode_goes_on() -> None:
+    env = ReachAlphaEnv(EnvConfig())
+    start = np.array([0.4, 1.5, 1.5, 1.5])
+    env.reset(seed=0, options={"start": start, "target": start})
+    rewards, terminated = [], []
+    for _ in range(30):  # E drives below its bound (0.4 - 0.3 rad)
+        _, r, term, trunc, info = env.step(np.array([-1.0, 0.0, 0.0, 0.0]))
+        rewards.append(r)
+        terminated.append(term or trunc)
+    assert not any(terminated)
+    assert env.arm.q[0] < env.bounds_low[0]
+    out = [r for r in rewards if r == -10.0]
+    assert len(out) >= 5  # every step outside pays, not just the first
+    assert rewards[0] > -10.0
+    # coming back inside ends the penalty
+    for _ in range(30):
+        _, r, *_ = env.step(np.array([1.0, 0.0, 0.0, 0.0]))
+    assert r > -10.0
+
+
+def test_truncates_at_episode_length() -> None:
+    env = ReachAlphaEnv(EnvConfig(episode_s=1.0, control_hz=20.0))
+    env.reset(seed=0)
+    flags = [env.step(np.zeros(4))[3] for _ in range(20)]
+    assert flags == [False] * 19 + [True]
+    assert env.control_dt == pytest.approx(0.05)
+
+
+def test_control_rate_is_a_parameter() -> None:
+    env = ReachAlphaEnv(EnvConfig(control_hz=50.0, episode_s=2.0))
+    assert env.n_substeps == 10
+    assert env.config.steps_per_episode == 100
+
+
+def test_random_starts_and_goals_in_workspace_and_seeded() -> None:
+    env = ReachAlphaEnv(EnvConfig())
+    starts, targets = [], []
+    for seed in range(20):
+        env.reset(seed=seed)
+        starts.append(env.start)
+        targets.append(env.target)
+    for arr in (np.array(starts), np.array(targets)):
+        assert np.all(arr >= WORKSPACE_LOW) and np.all(arr <= WORKSPACE_HIGH)
+    assert len({tuple(np.round(t, 6)) for t in targets}) == 20
+    env.reset(seed=3)
+    assert np.array_equal(env.target, targets[3])
+    np.testing.assert_allclose(env.arm.q, starts[3])
+
+
+def test_action_scaled_to_current_limits() -> None:
+    env = ReachAlphaEnv(EnvConfig())
+    env.reset(seed=0, options={"start": [3.0, 1.7, 1.7, 1.6], "target": [3.0, 1.7, 1.7, 1.6]})
+    env.step(np.array([0.5, -0.25, 0.0, 2.0]))  # B clipped to 1
+    np.testing.assert_allclose(env.arm.current_limits_mA, [600, 600, 600, 300])
+    commanded = np.asarray(env.arm._command_mA[:4])  # noqa: SLF001 (what reached the arm)
+    np.testing.assert_allclose(commanded, [300.0, -150.0, 0.0, 300.0])
+
+
+def test_bad_input_is_rejected() -> None:
+    env = ReachAlphaEnv(EnvConfig())
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="shape"):
+        env.step(np.zeros(3))
+    with pytest.raises(ValueError, match="finite"):
+        env.step(np.array([np.nan, 0, 0, 0]))
+    with pytest.raises(ValueError, match="target"):
+        env.reset(options={"target": [1.0, 2.0]})
+    with pytest.raises(ValueError, match="control_hz"):
+        ReachAlphaEnv(EnvConfig(control_hz=0.0))
+
+
+def test_sensor_noise_only_on_readings() -> None:
+    env = ReachAlphaEnv(EnvConfig(sensor_noise=True))
+    env.reset(seed=0)
+    obs, *_ = env.step(np.zeros(4))
+    q_seen = obs[:4]
+    diff = q_seen - env.arm.q
+    assert 0 < np.max(np.abs(diff)) < 0.02
+    quiet = ReachAlphaEnv(EnvConfig())
+    quiet.reset(seed=0)
+    obs, *_ = quiet.step(np.zeros(4))
+    np.testing.assert_allclose(obs[:4], quiet.arm.q, atol=1e-6)
+
+
+def test_torque_scale_and_parameter_perturbation() -> None:
+    env = ReachAlphaEnv(EnvConfig(torque_scale_low=(0.25, 1.0, 1.0, 1.0)))
+    scales = []
+    for seed in range(10):
+        env.reset(seed=seed)
+        scales.append(env.arm.torque_scale.copy())
+    scales_arr = np.array(scales)
+    assert np.all((scales_arr[:, 0] >= 0.25) & (scales_arr[:, 0] <= 1.0))
+    assert np.ptp(scales_arr[:, 0]) > 0.1
+    np.testing.assert_array_equal(scales_arr[:, 1:], 1.0)
+    env.reset(seed=0, options={"torque_scale": [0.25, 1, 1, 1]})
+    np.testing.assert_allclose(env.arm.torque_scale, [0.25, 1, 1, 1])
+
+    pert = ReachAlphaEnv(EnvConfig(param_perturbation=0.2))
+    nominal = np.array(pert.arm.params.damping)  # type: ignore[attr-defined]
+    pert.reset(seed=0)
+    first = np.array(pert.arm.params.damping)  # type: ignore[attr-defined]
+    pert.reset(seed=1)
+    second = np.array(pert.arm.params.damping)  # type: ignore[attr-defined]
+    assert not np.allclose(first, nominal) and not np.allclose(first, second)
+    assert np.all(np.abs(first / nominal - 1) <= 0.2 + 1e-9)
+
+
+def test_observation_features_and_bounds() -> None:
+    q = np.array([1.0, 1.0, 1.0, 1.0])
+    q_req = q + np.array([0.05, -0.05, 0.0, 1.0])
+    obs = build_observation(q, np.zeros(4), q_req, OURS_OBS)
+    assert obs.dtype == np.float32 and obs.shape == (OURS_OBS.size,)
+    np.testing.assert_allclose(obs[16:], np.tanh(np.array([1.0, -1.0, 0.0, 20.0])), atol=1e-6)
+    paper = build_observation(q, np.ones(4), q_req, ObservationConfig.paper())
+    np.testing.assert_allclose(paper, np.concatenate([q, np.ones(4), q_req]), atol=1e-6)
+    for cfg in (OURS_OBS, ObservationConfig.paper()):
+        low, high = observation_bounds(cfg)
+        extreme = build_observation(np.full(4, 99.0), np.full(4, -99.0), np.full(4, -99.0), cfg)
+        assert np.all(extreme >= low) and np.all(extreme <= high)
+    with pytest.raises(ValueError, match="shape"):
+        build_observation(np.zeros(3), np.zeros(4), np.zeros(4), OURS_OBS)
+
+
+def test_controller_sees_the_same_observation_as_the_env(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    import torch
+
+    from policy.ddpg import Actor, DDPGConfig, save_actor_npz
+    from policy.ddpg_controller import make_controller
+
+    config = DDPGConfig.ours()
+    actor = Actor(OURS_OBS.size, 4, (16, 8))
+    torch.manual_seed(0)
+    save_actor_npz(tmp_path / "a.npz", actor, config)
+    ctrl = make_controller(tmp_path / "a.npz")
+    env = ReachAlphaEnv(dataclasses.replace(config.env, sensor_noise=False))
+    obs, _ = env.reset(seed=4)
+    for _ in range(5):
+        obs, *_ = env.step(env.action_space.sample())
+        state = SimpleNamespace(q=env.arm.q, qdot=env.arm.qdot, t=0.0)
+        np.testing.assert_array_equal(ctrl.observation(state, env.target), obs)
+
+
+def test_expert_solves_the_task() -> None:
+    """The environment is solvable at 20 Hz: the demonstrator reaches every goal calmly."""
+    env = ReachAlphaEnv(EnvConfig(sensor_noise=True))
+    expert = PDExpert()
+    for seed in range(3):
+        env.reset(seed=100 + seed)
+        q0 = env.arm.q.copy()
+        progress = []
+        for _ in range(env.config.steps_per_episode):
+            env.step(expert(env))
+            progress.append((env.arm.q - q0) / (env.target - q0))
+        assert np.all(np.abs(env.target - env.arm.q) < 0.02)
+        big = np.abs(env.target - q0) > 0.05
+        assert np.max(np.array(progress)[:, big]) < 1.02  # under 2 % overshoot

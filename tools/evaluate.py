@@ -1,0 +1,235 @@
+#!/usr/bin/env python3
+"""Score a controller on step responses of the simulated Alpha 5 (metrics: docs/metrics.md).
+
+Examples:
+    tools/evaluate.py --controller pid --random 20 --seed 7 --out pid.json
+    tools/evaluate.py --controller mpc --targets episodes.json --noise --out mpc.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from policy.evaluation import (
+    DEFAULT_RATE_HZ,
+    DEFAULT_SECONDS,
+    Episode,
+    EpisodeResult,
+    Evaluation,
+    RunConfig,
+    SensorNoise,
+    evaluate,
+    load_controller,
+    load_episodes,
+    random_episodes,
+)
+from policy.metrics import METRIC_KEYS
+
+UNITS = {
+    "energy_j": "J",
+    "rmse": "rad",
+    "mie": "rad s",
+    "msse": "rad",
+    "overshoot_pct": "%",
+    "settling_time_s": "s",
+    "reached": "fraction",
+    "rmse_floor": "rad",
+}
+
+
+class NotAvailableYet(RuntimeError):
+    """A requested feature needs a module another part of the project has not shipped."""
+
+
+def _parse_kv(items: list[str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--param expects KEY=VALUE, got {item!r}")
+        try:
+            out[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            out[key] = raw
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="evaluate.py",
+        description=(
+            "Run a controller closed-loop on the MuJoCo Alpha 5 for a set of step episodes "
+            "(start -> target, arm angles in rad, joint order E D C B) and write per-episode "
+            "metrics and their means to JSON. The controller sees q and qdot (noisy with "
+            "--noise) once per control period; its currents (mA) are held for the period."
+        ),
+        epilog="Metrics are defined in docs/metrics.md; results in docs/results.md.",
+    )
+    p.add_argument("--controller", required=True,
+                   help="controller entry-point name in reach_stack.controllers "
+                        "(ddpg, mpc, pid)")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="keyword argument for the controller factory, JSON value "
+                        "(repeatable), e.g. --param horizon=15")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--targets", type=Path, metavar="FILE",
+                     help='JSON list of {"start": [E,D,C,B], "target": [E,D,C,B], '
+                          '"torque_scale": [4 numbers, optional]}')
+    src.add_argument("--random", type=int, metavar="N",
+                     help="draw N starts and targets uniformly in the evaluation workspace "
+                          "E [0.4, 5.8], D [0.5, 2.9], C [0.5, 2.9], B [0.5, 2.8]")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed for --random episodes and for the sensor noise (default 0)")
+    p.add_argument("--noise", action="store_true",
+                   help="add sensor noise to what the controller sees "
+                        "(sigma 0.002 rad on q, 0.02 rad/s on qdot)")
+    p.add_argument("--perturb", type=float, default=0.0, metavar="SPREAD",
+                   help="randomly degrade each episode's arm: friction, armature, link masses "
+                        "and buoyancy each scaled by U(1-SPREAD, 1+SPREAD), e.g. 0.2 "
+                        "(default 0: the nominal arm)")
+    p.add_argument("--seconds", type=float, default=DEFAULT_SECONDS,
+                   help=f"episode length in seconds (default {DEFAULT_SECONDS:g})")
+    p.add_argument("--rate", type=float, default=DEFAULT_RATE_HZ, metavar="HZ",
+                   help=f"control rate (default {DEFAULT_RATE_HZ:g} Hz, the env's default)")
+    p.add_argument("--out", type=Path, required=True, metavar="OUT.json",
+                   help="where to write the per-episode results and the summary")
+    p.add_argument("--via-driver", action="store_true",
+                   help="run through the serial protocol (reach_driver -> virtual arm on a pty) "
+                        "instead of stepping the simulator directly; metrics still use the "
+                        "simulator's true angles (policy/via_driver.py)")
+    p.add_argument("--sim-speed", type=float, default=4.0, metavar="X",
+                   help="with --via-driver: simulator speed-up (default 4)")
+    p.add_argument("--baud", type=int, metavar="BAUD",
+                   help="with --via-driver: throttle the pty like a serial line, e.g. 115200")
+    p.add_argument("--record", type=Path, metavar="FILE.rrd",
+                   help="also write a Rerun recording of every episode")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or table")
+    return p
+
+
+def _require(module: str, feature: str) -> None:
+    if importlib.util.find_spec(module) is None:
+        raise NotAvailableYet(f"{feature} is not available yet: module {module} is missing")
+
+
+def _require_all(modules: list[str], feature: str) -> None:
+    for m in modules:
+        try:
+            _require(m, feature)
+        except ModuleNotFoundError as exc:  # parent package missing
+            raise NotAvailableYet(f"{feature} is not available yet: {exc}") from exc
+
+
+def record_evaluation(evaluation: Evaluation, path: Path) -> None:
+    """Episodes one after another on the recording's time line, each announced as an event."""
+    _require_all(["reach_driver.recording"], "--record")
+    from reach_driver.recording import RunRecorder, StepSample
+
+    meta = {"controller": evaluation.controller, "config": evaluation.config.to_dict()}
+    with RunRecorder(path, metadata=meta) as rec:
+        t0, step0 = 0.0, 0
+        for i, r in enumerate(evaluation.results):
+            rec.log_event(f"episode {i}: {r.episode.to_dict()}", t=t0, step=step0)
+            times = r.trace.times
+            for k in range(len(times)):
+                rec.log_step(StepSample(
+                    t=t0 + float(times[k]), step=step0 + k, q=r.trace.q[k],
+                    qdot=r.trace.qdot[k], target=r.trace.target,
+                    current_cmd_mA=r.currents_mA[k], torque_Nm=r.trace.tau[k],
+                ))
+            rec.log_event(f"episode {i} metrics: {json.dumps(r.metrics.as_dict())}",
+                          t=t0 + float(times[-1]), step=step0 + len(times) - 1)
+            t0 += float(times[-1]) + evaluation.config.period
+            step0 += len(times)
+        rec.log_summary(evaluation.summary())
+
+
+def summary_table(evaluation: Evaluation) -> Table:
+    table = Table(title=f"{evaluation.controller}: {len(evaluation.results)} episodes")
+    table.add_column("#", justify="right")
+    for key in METRIC_KEYS:
+        table.add_column(f"{key}\n[{UNITS[key]}]", justify="right")
+    table.add_column("rmse_floor\n[rad]", justify="right")
+    for i, r in enumerate(evaluation.results):
+        m = r.metrics.as_dict()
+        cells = [_fmt(m[k]) for k in METRIC_KEYS] + [_fmt(r.rmse_floor)]
+        table.add_row(str(i), *cells)
+    s = evaluation.summary()
+    table.add_section()
+    table.add_row("mean", *[_fmt(s[k]) for k in METRIC_KEYS], _fmt(s["rmse_floor"]),
+                  style="bold")
+    return table
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, bool):
+        return "yes" if v else "NO"
+    return f"{float(v):.4g}"
+
+
+def run(args: argparse.Namespace, console: Console) -> Evaluation:
+    if args.via_driver:
+        _require_all(["reach_sim_bridge.server", "reach_driver.control"], "--via-driver")
+        from policy.via_driver import DriverConfig, evaluate_via_driver
+    if args.record is not None:
+        _require_all(["reach_driver.recording"], "--record")
+    episodes: list[Episode] = (
+        load_episodes(args.targets) if args.targets is not None
+        else random_episodes(args.random, args.seed)
+    )
+    config = RunConfig(
+        seconds=args.seconds, rate_hz=args.rate,
+        noise=SensorNoise() if args.noise else None, seed=args.seed,
+        param_spread=args.perturb,
+    )
+    controller = load_controller(args.controller, **_parse_kv(args.param))
+    with Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+        TimeElapsedColumn(), TextColumn("{task.fields[last]}"),
+        console=console, disable=args.quiet,
+    ) as progress:
+        task = progress.add_task(args.controller, total=len(episodes), last="")
+
+        def done(i: int, r: EpisodeResult) -> None:
+            mark = "reached" if r.metrics.reached else "NOT reached"
+            progress.update(task, advance=1, last=f"#{i} rmse {r.metrics.rmse:.3f} {mark}")
+
+        if args.via_driver:
+            evaluation = evaluate_via_driver(
+                controller, episodes, config, name=args.controller,
+                driver=DriverConfig(speed=args.sim_speed, baud=args.baud), on_episode=done)
+        else:
+            evaluation = evaluate(controller, episodes, config, name=args.controller,
+                                  on_episode=done)
+    return evaluation
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    console = Console(stderr=True)
+    try:
+        evaluation = run(args, console)
+    except (ValueError, NotAvailableYet) as exc:
+        console.print(f"[red]error:[/red] {exc}")
+        return 2
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(evaluation.to_dict(), indent=1), encoding="utf-8")
+    if args.record is not None:
+        record_evaluation(evaluation, args.record)
+    if not args.quiet:
+        Console().print(summary_table(evaluation))
+        console.print(f"wrote {args.out}" + (f" and {args.record}" if args.record else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

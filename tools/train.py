@@ -1,0 +1,238 @@
+"""Train the DDPG controller on ReachAlpha-v0, with checkpoints that survive the session.
+
+    .venv/bin/python tools/train.py --config ours --run runs/ours-s0 --seed 0
+    .venv/bin/python tools/train.py --run runs/ours-s0 --resume          # continue later
+    .venv/bin/python tools/train.py --config paper --run runs/paper-s0   # the paper's DDPG
+
+Writes to the run directory: config.json, train.csv (one row per finished episode: return and
+losses), eval.jsonl (periodic deterministic evaluation), best_actor.npz/.json (best evaluated
+actor, the format policy/weights/ ships), checkpoint.pt + buffer.npz (everything to resume).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import shutil
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from policy.ddpg import DDPGConfig, Trainer, TrainState, evaluate
+from policy.ddpg_controller import DEFAULT_WEIGHTS, ActorWeights
+from policy.env import EnvConfig, PDExpert
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument("--config", default="ours", choices=["ours", "paper"],
+                   help="hyperparameter preset (policy.ddpg.DDPGConfig.ours / .paper)")
+    p.add_argument("--run", type=Path, help="run directory (checkpoints, logs)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--steps", type=int, default=None, help="total env steps (preset default)")
+    p.add_argument("--until", type=int, default=None,
+                   help="stop (with a checkpoint) after this many env steps in total")
+    p.add_argument("--hours", type=float, default=None,
+                   help="stop (with a checkpoint) after this much wall time in this process")
+    p.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.pt")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=JSON",
+                   help="override a config field, e.g. --set batch_size=128 "
+                        "--set env.reward.velocity_weight=1.0 (repeatable)")
+    p.add_argument("--checkpoint-minutes", type=float, default=10.0)
+    p.add_argument("--no-progress", action="store_true", help="log lines instead of a bar")
+    p.add_argument("--evaluate", metavar="WEIGHTS", default=None,
+                   help="score an actor (.npz path, 'shipped', or 'expert' for the PD "
+                        "demonstrator) on --episodes fixed episodes with sensor noise, nominal "
+                        "and with E at 25%% torque, print the metrics as JSON, then exit")
+    p.add_argument("--episodes", type=int, default=20, help="episodes for --evaluate")
+    p.add_argument("--ship", action="store_true",
+                   help="copy RUN's best actor to policy/weights/ddpg_actor.npz (+ .json with "
+                        "the commands, seed, config, training time and evaluation), then exit")
+    return p.parse_args(argv)
+
+
+def evaluate_weights(which: str, episodes: int, seed: int) -> dict[str, Any]:
+    """Metrics of an actor file (or the expert) on the fixed evaluation episodes."""
+    env_config = DDPGConfig.ours().env
+    policy: Any = None
+    expert = None
+    if which == "expert":
+        expert = PDExpert()
+    else:
+        path = DEFAULT_WEIGHTS if which == "shipped" else Path(which)
+        try:
+            weights = ActorWeights.load(path)
+        except (OSError, ValueError) as exc:
+            raise SystemExit(f"--evaluate: {exc}") from exc
+        env_config = dataclasses.replace(
+            EnvConfig.from_dict(weights.metadata["env"]), observation=weights.observation
+        )
+        policy = weights.forward
+    eval_seed = 10_000 + seed
+    nominal = evaluate(policy, env_config, episodes, eval_seed, expert=expert)
+    weak = evaluate(policy, env_config, episodes, eval_seed + 5_000,
+                    torque_scale=(0.25, 1.0, 1.0, 1.0), expert=expert)
+    return {"weights": which, "episodes": episodes, "eval_seed": eval_seed,
+            "nominal": nominal.to_dict(), "torque_e_25pct": weak.to_dict()}
+
+
+def ship(run_dir: Path, dest: Path = DEFAULT_WEIGHTS) -> Path:
+    """Copy the run's best evaluated actor, with how it was made, to the shipped weights."""
+    src = run_dir / "best_actor.npz"
+    if not src.exists():
+        raise SystemExit(f"--ship: {src} does not exist (no evaluation yet?)")
+    meta = json.loads(src.with_suffix(".json").read_text())
+    commands = (run_dir / "commands.txt").read_text().splitlines() if (
+        run_dir / "commands.txt").exists() else []
+    meta.update({
+        "command": commands[0] if commands else None,
+        "commands": commands,
+        "seed": meta["config"]["seed"],
+        "training_time_s": round(float(meta.get("wall_s", float("nan"))), 1),
+        "training_env_steps": meta.get("env_steps"),
+        "run": run_dir.name,
+        "shipped_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    })
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src, dest)
+    dest.with_suffix(".json").write_text(json.dumps(meta, indent=1))
+    return dest
+
+
+def apply_overrides(config: DDPGConfig, overrides: list[str]) -> DDPGConfig:
+    data = config.to_dict()
+    for item in overrides:
+        if "=" not in item:
+            raise SystemExit(f"--set expects KEY=JSON, got {item!r}")
+        key, raw = item.split("=", 1)
+        try:
+            value = json.loads(raw)
+        except json.JSONDecodeError:
+            value = raw
+        node: dict[str, Any] = data
+        *path, leaf = key.split(".")
+        for part in path:
+            if part not in node or not isinstance(node[part], dict):
+                raise SystemExit(f"--set: unknown key {key!r}")
+            node = node[part]
+        if leaf not in node:
+            raise SystemExit(f"--set: unknown key {key!r}")
+        node[leaf] = value
+    try:
+        return DDPGConfig.from_dict(data)
+    except (TypeError, ValueError) as exc:
+        raise SystemExit(f"--set: {exc}") from exc
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.evaluate is not None:
+        print(json.dumps(evaluate_weights(args.evaluate, args.episodes, args.seed), indent=1))
+        return 0
+    if args.run is None:
+        raise SystemExit("--run is required (except with --evaluate)")
+    run_dir: Path = args.run
+    if args.ship:
+        print(f"shipped {ship(run_dir)}")
+        return 0
+    config_path = run_dir / "config.json"
+    if args.resume:
+        if not (run_dir / "checkpoint.pt").exists():
+            raise SystemExit(f"--resume: no checkpoint in {run_dir}")
+        config = DDPGConfig.from_dict(json.loads(config_path.read_text()))
+        if args.steps is not None:
+            config.total_steps = args.steps
+    else:
+        if (run_dir / "checkpoint.pt").exists():
+            raise SystemExit(f"{run_dir} already holds a run; use --resume or another --run")
+        overrides: dict[str, Any] = {"seed": args.seed}
+        if args.steps is not None:
+            overrides["total_steps"] = args.steps
+        config = apply_overrides(DDPGConfig.preset(args.config, **overrides), args.set)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    config_path.write_text(json.dumps(config.to_dict(), indent=1))
+    with open(run_dir / "commands.txt", "a") as fh:
+        fh.write(" ".join([".venv/bin/python", "tools/train.py", *(argv or sys.argv[1:])]) + "\n")
+
+    log_file = open(run_dir / "train.log", "a", buffering=1)  # noqa: SIM115
+
+    def log(msg: str) -> None:
+        line = f"[{time.strftime('%H:%M:%S')}] {msg}"
+        log_file.write(line + "\n")
+        print(line, flush=True)
+
+    expert = PDExpert() if (config.bc_weight > 0 or config.demo_episodes > 0) else None
+    trainer = Trainer(config, run_dir, expert=expert, log=log)
+    if args.resume:
+        trainer.load()
+        config.total_steps = max(config.total_steps, trainer.state.env_steps)
+        log(f"resumed at {trainer.state.env_steps} env steps")
+    else:
+        log(f"new run {run_dir} config={config.name} seed={config.seed}")
+        config_path.write_text(json.dumps(config.to_dict(), indent=1))
+
+    until = args.until or config.total_steps
+    deadline = time.monotonic() + args.hours * 3600 if args.hours else None
+    stop_at = [until]
+    last_print = [0.0]
+    t0 = time.monotonic()
+    steps0 = trainer.state.env_steps
+
+    def progress(state: TrainState, losses: dict[str, float]) -> None:
+        now = time.monotonic()
+        if deadline is not None and now > deadline:
+            stop_at[0] = state.env_steps
+            raise _Stop
+        if now - last_print[0] < (30.0 if args.no_progress else 1.0):
+            return
+        last_print[0] = now
+        rate = (state.env_steps - steps0) / max(now - t0, 1e-9)
+        eta = (until - state.env_steps) / max(rate, 1e-9)
+        frac = state.env_steps / max(until, 1)
+        bar = "#" * int(30 * frac) + "-" * (30 - int(30 * frac))
+        msg = (f"[{bar}] {state.env_steps}/{until} {rate:.0f} steps/s eta {eta / 60:.0f} min "
+               f"critic {losses.get('critic_loss', np.nan):.3g} q {losses.get('q', np.nan):.3g} "
+               f"eps {trainer.epsilon():.2f} bc {trainer.bc_weight():.2f}")
+        if args.no_progress:
+            log(msg)
+        else:
+            sys.stdout.write("\r" + msg)
+            sys.stdout.flush()
+
+    def on_term(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt  # checkpoint below, like Ctrl-C
+
+    signal.signal(signal.SIGTERM, on_term)
+    try:
+        trainer.run(until_steps=until, checkpoint_every_s=60 * args.checkpoint_minutes,
+                    progress=progress, csv_path=run_dir / "train.csv")
+    except _Stop:
+        log(f"time limit reached at {stop_at[0]} env steps")
+    except KeyboardInterrupt:
+        log("interrupted: saving a checkpoint")
+    if not args.no_progress:
+        print()
+    history = trainer.state.history
+    if not history or history[-1]["env_steps"] != trainer.state.env_steps:
+        trainer.evaluate_and_keep_best()
+    trainer.save()
+    log(f"checkpoint saved at {trainer.state.env_steps} env steps "
+        f"({trainer.state.wall_s / 3600:.2f} h of training); best score "
+        f"{trainer.state.best_score:.3f} -> {run_dir / 'best_actor.npz'}")
+    log_file.close()
+    return 0
+
+
+class _Stop(Exception):
+    """Raised from the progress callback to end a run at its wall-time limit."""
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
