@@ -1,4 +1,4 @@
-"""Closed-loop evaluation of a controller on the simulated arm, scored by `policy.metrics`.
+"""Closed-loop evaluation of a controller on the simulated arm, scored by `reach_driver.metrics`.
 
 The runner steps `Alpha5Arm` directly at the control period: the controller's currents are
 held for the period (zero-order hold) while the physics runs its substeps, the way the
@@ -19,7 +19,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from policy.metrics import (
+from policy.observation import N_JOINTS, WORKSPACE_HIGH, WORKSPACE_LOW
+from reach_driver.metrics import (
     METRIC_KEYS,
     Metrics,
     Trace,
@@ -27,7 +28,6 @@ from policy.metrics import (
     rmse_floor,
     summarize,
 )
-from policy.observation import N_JOINTS, WORKSPACE_HIGH, WORKSPACE_LOW
 
 CONTROLLER_GROUP = "reach_stack.controllers"
 DEFAULT_SECONDS = 20.0

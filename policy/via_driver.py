@@ -43,10 +43,10 @@ from policy.evaluation import (
     SensorNoise,
     no_load_speeds,
 )
-from policy.metrics import Trace, compute_metrics, rmse_floor
 from policy.observation import N_JOINTS
 from reach_driver import ArmClient, ControlLoop, SafetyConfig, TimingStats, open_transport
 from reach_driver.control import ControlSummary
+from reach_driver.metrics import Trace, compute_metrics, rmse_floor
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.faults import FaultConfig
 from reach_sim_bridge.server import SimConfig, SimServer

@@ -5,6 +5,9 @@ the figures in docs/results.md are comparable across controllers. A trace is sam
 uniform period ``dt``: sample 0 is the initial state at t = 0, samples 1..N the states at the
 end of each period. Sums and means run over samples 1..N (each sample stands for the period
 that ends at it); settling may happen at sample 0 (a zero step is settled at once).
+
+The module lives in the driver because `reach-driver run` and `inspect` score runs and the
+driver may not import `policy`; evaluation and training import it from here.
 """
 
 from __future__ import annotations
@@ -44,6 +47,9 @@ class Trace:
     qdot: np.ndarray  # (N+1, 4) rad/s
     tau: np.ndarray  # (N+1, 4) N m, torque applied over the period ending at each sample
     target: np.ndarray  # (4,) rad
+    power: np.ndarray | None = None
+    """(N+1, 4) mean |tau qdot| over the period ending at each sample (W), integrated at the
+    physics rate by the runner; without it |tau qdot| at the samples stands in for it."""
 
     def __post_init__(self) -> None:
         if not self.dt > 0:
@@ -51,7 +57,9 @@ class Trace:
         q = np.asarray(self.q, dtype=float)
         if q.ndim != 2 or q.shape[0] < 2:
             raise ValueError(f"q must be (N+1, joints) with N >= 1, got shape {q.shape}")
-        for name in ("qdot", "tau"):
+        for name in ("qdot", "tau", "power"):
+            if getattr(self, name) is None:
+                continue
             arr = np.asarray(getattr(self, name), dtype=float)
             if arr.shape != q.shape:
                 raise ValueError(f"{name} has shape {arr.shape}, q has {q.shape}")
@@ -88,7 +96,10 @@ class Metrics:
 
 def energy(trace: Trace) -> float:
     """Mechanical energy delivered by the motors, sum |tau qdot| dt (J); braking counts too."""
-    power = np.abs(np.asarray(trace.tau)[1:] * np.asarray(trace.qdot)[1:])
+    if trace.power is not None:
+        power = np.abs(np.asarray(trace.power, dtype=float)[1:])
+    else:
+        power = np.abs(np.asarray(trace.tau)[1:] * np.asarray(trace.qdot)[1:])
     return float(power.sum() * trace.dt)
 
 

@@ -219,3 +219,41 @@ def test_train_cli_help_and_bad_override(tmp_path: Path) -> None:
     missing = subprocess.run([py, str(ROOT / "tools" / "train.py"), "--run",
                               str(tmp_path / "none"), "--resume"], capture_output=True, text=True)
     assert missing.returncode != 0 and "no checkpoint" in missing.stderr
+
+
+def _load_train_tool():  # type: ignore[no-untyped-def]
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("train_tool", ROOT / "tools" / "train.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_ship_copies_best_actor_with_provenance(tmp_path: Path) -> None:
+    tool = _load_train_tool()
+    run = tmp_path / "run"
+    cfg = tiny(DDPGConfig.paper(), total_steps=200)
+    trainer = Trainer(cfg, run, log=lambda _: None)
+    trainer.run()
+    trainer.evaluate_and_keep_best()
+    (run / "commands.txt").write_text("tools/train.py --config paper --run run\n")
+    dest = tool.ship(run, tmp_path / "w" / "actor.npz")
+    meta = json.loads(dest.with_suffix(".json").read_text())
+    assert meta["command"] == "tools/train.py --config paper --run run"
+    assert meta["seed"] == 0 and meta["training_env_steps"] == 200
+    assert meta["eval"]["env_steps"] == 200
+    weights = ActorWeights.load(dest)
+    assert weights.observation == cfg.env.observation
+    with pytest.raises(SystemExit, match="does not exist"):
+        tool.ship(tmp_path / "empty", tmp_path / "w2" / "a.npz")
+
+
+def test_evaluate_cli_scores_the_expert() -> None:
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "tools" / "train.py"), "--evaluate", "expert",
+         "--episodes", "2"], capture_output=True, text=True, check=True)
+    result = json.loads(out.stdout)
+    assert result["nominal"]["reached_fraction"] == 1.0
+    assert result["torque_e_25pct"]["reached_fraction"] == 1.0

@@ -22,8 +22,8 @@ from policy.evaluation import (
     random_episodes,
     run_episode,
 )
-from policy.metrics import METRIC_KEYS
 from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
+from reach_driver.metrics import METRIC_KEYS
 from reach_sim_bridge.arm import Alpha5Arm
 
 ROOT = Path(__file__).resolve().parents[1]

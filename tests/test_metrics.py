@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from policy.metrics import (
+from reach_driver.metrics import (
     METRIC_KEYS,
     Metrics,
     Trace,

@@ -32,7 +32,7 @@ from policy.evaluation import (
     load_episodes,
     random_episodes,
 )
-from policy.metrics import METRIC_KEYS
+from reach_driver.metrics import METRIC_KEYS
 
 UNITS = {
     "energy_j": "J",

@@ -41,7 +41,7 @@ from policy.evaluation import (
     load_controller,
     random_episodes,
 )
-from policy.metrics import METRIC_KEYS
+from reach_driver.metrics import METRIC_KEYS
 
 CENTRE = np.array([math.pi, 0.5 * (0.0175 + 3.4034), math.pi, math.pi])
 """Arm angle (rad, E D C B) of the paper's zero for each joint."""

@@ -52,13 +52,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "demonstrator) on --episodes fixed episodes with sensor noise, nominal "
                         "and with E at 25%% torque, print the metrics as JSON, then exit")
     p.add_argument("--episodes", type=int, default=20, help="episodes for --evaluate")
+    p.add_argument("--perturb", type=float, default=0.0, metavar="SPREAD",
+                   help="with --evaluate: also score on arms whose friction, armature, masses "
+                        "and buoyancy are scaled by U(1 - SPREAD, 1 + SPREAD) per episode")
     p.add_argument("--ship", action="store_true",
                    help="copy RUN's best actor to policy/weights/ddpg_actor.npz (+ .json with "
                         "the commands, seed, config, training time and evaluation), then exit")
     return p.parse_args(argv)
 
 
-def evaluate_weights(which: str, episodes: int, seed: int) -> dict[str, Any]:
+def evaluate_weights(which: str, episodes: int, seed: int, perturb: float = 0.0
+                     ) -> dict[str, Any]:
     """Metrics of an actor file (or the expert) on the fixed evaluation episodes."""
     env_config = DDPGConfig.ours().env
     policy: Any = None
@@ -79,8 +83,15 @@ def evaluate_weights(which: str, episodes: int, seed: int) -> dict[str, Any]:
     nominal = evaluate(policy, env_config, episodes, eval_seed, expert=expert)
     weak = evaluate(policy, env_config, episodes, eval_seed + 5_000,
                     torque_scale=(0.25, 1.0, 1.0, 1.0), expert=expert)
-    return {"weights": which, "episodes": episodes, "eval_seed": eval_seed,
-            "nominal": nominal.to_dict(), "torque_e_25pct": weak.to_dict()}
+    result = {"weights": which, "episodes": episodes, "eval_seed": eval_seed,
+              "nominal": nominal.to_dict(), "torque_e_25pct": weak.to_dict()}
+    if perturb > 0:
+        if not perturb < 1:
+            raise SystemExit(f"--perturb must be in (0, 1), got {perturb}")
+        result[f"perturbed_{perturb:g}"] = evaluate(
+            policy, env_config, episodes, eval_seed + 10_000, expert=expert,
+            param_perturbation=perturb).to_dict()
+    return result
 
 
 def ship(run_dir: Path, dest: Path = DEFAULT_WEIGHTS) -> Path:
@@ -134,7 +145,8 @@ def apply_overrides(config: DDPGConfig, overrides: list[str]) -> DDPGConfig:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.evaluate is not None:
-        print(json.dumps(evaluate_weights(args.evaluate, args.episodes, args.seed), indent=1))
+        result = evaluate_weights(args.evaluate, args.episodes, args.seed, args.perturb)
+        print(json.dumps(result, indent=1))
         return 0
     if args.run is None:
         raise SystemExit("--run is required (except with --evaluate)")
@@ -178,7 +190,9 @@ def main(argv: list[str] | None = None) -> int:
         log(f"new run {run_dir} config={config.name} seed={config.seed}")
         config_path.write_text(json.dumps(config.to_dict(), indent=1))
 
-    until = args.until or config.total_steps
+    until = config.total_steps if args.until is None else args.until
+    if until <= trainer.state.env_steps:
+        raise SystemExit(f"--until {until}: the run is already at {trainer.state.env_steps} steps")
     deadline = time.monotonic() + args.hours * 3600 if args.hours else None
     stop_at = [until]
     last_print = [0.0]
