@@ -13,13 +13,13 @@ import json
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
 from policy.observation import N_JOINTS, WORKSPACE_HIGH, WORKSPACE_LOW
+from reach_driver.controllers import load_controller
 from reach_driver.metrics import (
     METRIC_KEYS,
     Metrics,
@@ -29,7 +29,6 @@ from reach_driver.metrics import (
     summarize,
 )
 
-CONTROLLER_GROUP = "reach_stack.controllers"
 DEFAULT_SECONDS = 20.0
 DEFAULT_RATE_HZ = 20.0
 PHYSICS_DT = 0.002
@@ -363,24 +362,6 @@ def evaluate(
     if callable(solve_stats):
         stats["solve_time_s"] = solve_stats()
     return Evaluation(name, config, results, stats)
-
-
-def controller_names() -> list[str]:
-    return sorted(ep.name for ep in entry_points(group=CONTROLLER_GROUP))
-
-
-def load_controller(name: str, **kwargs: Any) -> Controller:
-    """A controller by its entry-point name in ``reach_stack.controllers``."""
-    found = [ep for ep in entry_points(group=CONTROLLER_GROUP) if ep.name == name]
-    if not found:
-        known = ", ".join(controller_names()) or "none (is reach-stack installed?)"
-        raise ValueError(f"no controller named {name!r}; installed: {known}")
-    try:
-        factory = found[0].load()
-    except ImportError as exc:
-        raise ValueError(f"controller {name!r} cannot be loaded yet: {exc}") from exc
-    controller: Controller = factory(**kwargs)
-    return controller
 
 
 __all__ = [

@@ -23,6 +23,7 @@ from policy.evaluation import (
     run_episode,
 )
 from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
+from reach_driver.errors import DriverError
 from reach_driver.metrics import METRIC_KEYS
 from reach_sim_bridge.arm import Alpha5Arm
 
@@ -169,7 +170,7 @@ def test_load_episodes_reports_where_the_file_is_wrong(tmp_path: Path) -> None:
 
 
 def test_unknown_controller_lists_the_installed_ones() -> None:
-    with pytest.raises(ValueError, match=r"no controller named 'nope'; installed: .*pid"):
+    with pytest.raises(DriverError, match=r"unknown controller 'nope'; registered: .*pid"):
         load_controller("nope")
 
 
@@ -205,7 +206,7 @@ def test_cli_bad_input_exits_2_with_a_message(tmp_path: Path, capsys: Any) -> No
     cli = _cli()
     out = tmp_path / "o.json"
     assert cli.main(["--controller", "nope", "--random", "1", "--out", str(out)]) == 2
-    assert "no controller named 'nope'" in capsys.readouterr().err
+    assert "unknown controller 'nope'" in capsys.readouterr().err
     assert cli.main(["--controller", "pid", "--random", "0", "--out", str(out)]) == 2
     assert not out.exists()
 

@@ -32,6 +32,7 @@ from policy.evaluation import (
     load_episodes,
     random_episodes,
 )
+from reach_driver.errors import DriverError
 from reach_driver.metrics import METRIC_KEYS
 
 UNITS = {
@@ -218,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     console = Console(stderr=True)
     try:
         evaluation = run(args, console)
-    except (ValueError, NotAvailableYet) as exc:
+    except (ValueError, DriverError, NotAvailableYet) as exc:
         console.print(f"[red]error:[/red] {exc}")
         return 2
     args.out.parent.mkdir(parents=True, exist_ok=True)
