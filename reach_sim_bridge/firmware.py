@@ -275,6 +275,11 @@ class Firmware:
     def status(self, device_id: int) -> HardwareStatus:
         return self._by_id[device_id].status
 
+    def inject_fault(self, device_id: int, flag: HardwareStatus) -> None:
+        """Set a hardware status flag as a failing joint would (fault-injection tests); it is
+        reported with HARDWARE_STATUS at 1 Hz like any other fault."""
+        self._raise_flag([self._by_id[device_id]], flag)
+
     def setpoints(self, device_id: int) -> tuple[Mode, float, float]:
         """(mode, position target, current applied in mA) of one device, for recordings."""
         d = self._by_id[device_id]

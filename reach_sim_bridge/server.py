@@ -22,7 +22,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from protocol import DecodeError, Packet, PacketDecoder
+from protocol import DecodeError, HardwareStatus, Packet, PacketDecoder
 from protocol.decoder import DecoderStats
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.events import EventLog
@@ -306,6 +306,11 @@ class SimServer:
         with self._lock:
             arm = self.arm
             return ArmSnapshot(arm.time, arm.q, arm.qdot, arm.current_mA, arm.jaw_mm)
+
+    def inject_fault(self, device_id: int, flag: HardwareStatus) -> None:
+        """Raise a hardware fault flag on one device, as a failing joint would."""
+        with self._lock:
+            self.firmware.inject_fault(device_id, flag)
 
     def observe(self, fn: Callable[[Alpha5Arm, Firmware], T]) -> T:
         """Run `fn(arm, firmware)` between physics steps, for a consistent look at the state."""

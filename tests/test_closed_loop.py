@@ -291,8 +291,7 @@ def test_a_motor_fault_mid_run_stops_the_run(
 
     def motor_fault() -> None:
         if sim.wait_sim_time(t0 + 1.5, timeout=30):
-            with sim._lock:  # the emulated firmware has no public fault switch
-                sim.firmware._by_id[4].status |= HardwareStatus.MOTOR_OVER_CURRENT
+            sim.inject_fault(4, HardwareStatus.MOTOR_OVER_CURRENT)
 
     injector = threading.Thread(target=motor_fault)
     injector.start()
