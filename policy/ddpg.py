@@ -767,8 +767,19 @@ class Trainer:
 
     # -- checkpoints -----------------------------------------------------------------------
     def save(self) -> Path:
-        """Atomic checkpoint of everything needed to continue (episodes restart on resume)."""
+        """Checkpoint of everything needed to continue (episodes restart on resume).
+
+        The buffer goes to a file named by the step, then checkpoint.pt (naming that file)
+        replaces the old one atomically, then older buffers are removed: a kill at any
+        moment leaves a consistent pair.
+        """
         path = self.run_dir / "checkpoint.pt"
+        buffer_name = f"buffer-{self.state.env_steps}.npz"
+        arrays: dict[str, Any] = {**self.buffer.state(),
+                                  **{f"demo_{k}": v for k, v in self.demos.state().items()},
+                                  "env_steps": np.array(self.state.env_steps)}
+        np.savez(self.run_dir / "buffer.tmp.npz", **arrays)
+        os.replace(self.run_dir / "buffer.tmp.npz", self.run_dir / buffer_name)
         tmp = path.with_suffix(".tmp")
         torch.save(
             {
@@ -778,14 +789,14 @@ class Trainer:
                 "state": dataclasses.asdict(self.state),
                 "rng": self.rng.bit_generator.state,
                 "torch_rng": torch.get_rng_state(),
+                "buffer_file": buffer_name,
             },
             tmp,
         )
-        arrays: dict[str, Any] = {**self.buffer.state(),
-                                  **{f"demo_{k}": v for k, v in self.demos.state().items()}}
-        np.savez(self.run_dir / "buffer.tmp.npz", **arrays)
-        os.replace(self.run_dir / "buffer.tmp.npz", self.run_dir / "buffer.npz")
         os.replace(tmp, path)
+        for old in self.run_dir.glob("buffer*.npz"):
+            if old.name != buffer_name:
+                old.unlink()
         return path
 
     def load(self) -> None:
@@ -799,7 +810,12 @@ class Trainer:
         self.state = TrainState(**ckpt["state"])
         self.rng.bit_generator.state = ckpt["rng"]
         torch.set_rng_state(ckpt["torch_rng"])
-        with np.load(self.run_dir / "buffer.npz") as data:
+        with np.load(self.run_dir / ckpt.get("buffer_file", "buffer.npz")) as data:
+            # the two files are replaced one after the other: a kill in between is detected
+            saved_at = int(data["env_steps"]) if "env_steps" in data.files else None
+            if saved_at is not None and saved_at != self.state.env_steps:
+                raise ValueError(f"buffer.npz is from step {saved_at}, checkpoint.pt from "
+                                 f"{self.state.env_steps}: the last save was interrupted")
             self.buffer.load({k: data[k] for k in (*ReplayBuffer.FIELDS, "meta")})
             self.demos.load({k: data[f"demo_{k}"] for k in (*ReplayBuffer.FIELDS, "meta")})
         self._obs = None  # episodes restart after a resume

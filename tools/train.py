@@ -224,6 +224,9 @@ def main(argv: list[str] | None = None) -> int:
         raise KeyboardInterrupt  # checkpoint below, like Ctrl-C
 
     signal.signal(signal.SIGTERM, on_term)
+    # a job started with `&` from a script ignores SIGINT; take it back so Ctrl-C / kill -INT
+    # checkpoints too
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         trainer.run(until_steps=until, checkpoint_every_s=60 * args.checkpoint_minutes,
                     progress=progress, csv_path=run_dir / "train.csv")
