@@ -279,6 +279,18 @@ def no_load_speeds() -> np.ndarray:
     return np.asarray(no_load_speed(), dtype=float)
 
 
+def check_inside_limits(position_limits: np.ndarray, q: np.ndarray, what: str) -> None:
+    """A clear error naming the joints of `q` outside the arm's [min, max] limits."""
+    limits = np.asarray(position_limits, dtype=float)
+    outside = (q < limits[:, 0]) | (q > limits[:, 1])
+    if np.any(outside):
+        joints = ", ".join("EDCB"[j] for j in np.flatnonzero(outside))
+        raise ValueError(
+            f"{what} {q.tolist()} is outside the arm's joint limits on {joints} "
+            f"({limits.tolist()})"
+        )
+
+
 def run_episode(
     controller: Controller,
     episode: Episode,
@@ -290,15 +302,8 @@ def run_episode(
     arm = arm_factory(episode_seed)
     if abs(config.physics_dt - _arm_dt(arm, config.physics_dt)) > 1e-12:
         raise ValueError("the arm's physics step differs from RunConfig.physics_dt")
-    limits = np.asarray(arm.position_limits, dtype=float)
-    for what, q in (("start", episode.start), ("target", episode.target)):
-        outside = (q < limits[:, 0]) | (q > limits[:, 1])
-        if np.any(outside):
-            joints = ", ".join("EDCB"[j] for j in np.flatnonzero(outside))
-            raise ValueError(
-                f"{what} {q.tolist()} is outside the arm's joint limits on {joints} "
-                f"({limits.tolist()})"
-            )
+    check_inside_limits(arm.position_limits, episode.start, "start")
+    check_inside_limits(arm.position_limits, episode.target, "target")
     if config.param_spread > 0:
         arm.randomize(config.param_spread, rng=np.random.default_rng([episode_seed, 1]))
     arm.reset(q=episode.start.copy())

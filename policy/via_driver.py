@@ -41,6 +41,7 @@ from policy.evaluation import (
     JointReading,
     RunConfig,
     SensorNoise,
+    check_inside_limits,
     no_load_speeds,
 )
 from policy.observation import N_JOINTS
@@ -268,14 +269,7 @@ def run_episode_via_driver(
     )
     server = SimServer(sim_config)
     arm = server.arm
-    limits = np.asarray(arm.position_limits, dtype=float)
-    outside = (episode.target < limits[:, 0]) | (episode.target > limits[:, 1])
-    if np.any(outside):
-        joints = ", ".join("EDCB"[j] for j in np.flatnonzero(outside))
-        raise ValueError(
-            f"target {episode.target.tolist()} is outside the arm's joint limits on {joints} "
-            f"({limits.tolist()})"
-        )
+    check_inside_limits(arm.position_limits, episode.target, "target")
     if config.param_spread > 0:
         # Same draw as the direct runner's, before the arm starts.
         arm.randomize(config.param_spread, rng=np.random.default_rng([episode_seed, 1]))
