@@ -244,8 +244,12 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--record", metavar="FILE.rrd", help="record the run for Rerun")
 
     sub.add_parser("controllers", help="list the registered controllers")
-    ins = sub.add_parser("inspect", help="summarise a recorded run (.rrd)")
-    ins.add_argument("file")
+    ins = sub.add_parser(
+        "inspect",
+        help="summarise a recorded run (.rrd): duration, final errors, events, metrics",
+    )
+    ins.add_argument("file", help="a recording written by `run --record`, or `reach-sim --record`")
+    ins.add_argument("--json", action="store_true", help="print the summary as JSON")
     return parser
 
 
@@ -766,7 +770,30 @@ def cmd_inspect(args: argparse.Namespace, console: Console) -> Exit:
     except (RecordingReadError, OSError) as exc:
         console.print(f"[red]error[/]: cannot read {args.file}: {exc}")
         return Exit.FAILED
-    console.print_json(json.dumps(summary, default=float))
+    if args.json:
+        console.print_json(json.dumps(summary, default=float))
+        return Exit.OK
+    clean = "" if summary.get("closed_cleanly", True) else " [yellow](not closed cleanly: the "\
+        "writer stopped early; everything before that is shown)[/]"
+    console.print(f"[bold]{summary['file']}[/]: {summary['steps']} steps, "
+                  f"{float(summary['duration_s']):.2f} s{clean}")
+    joints = Table(title="final state (rad)")
+    for col in ("joint", "target", "position", "error"):
+        joints.add_column(col, justify="right")
+    for row in zip(summary["joints"], summary["final_target"], summary["final_position"],
+                   summary["final_error"], strict=True):
+        joints.add_row(row[0], *(f"{float(v):+.4f}" for v in row[1:]))
+    console.print(joints)
+    metrics = summary.get("metrics")
+    if isinstance(metrics, dict):
+        table = Table(title="metrics (docs/metrics.md)")
+        for key in metrics:
+            table.add_column(key, justify="right")
+        table.add_row(*(("yes" if v else "no") if isinstance(v, bool) else f"{float(v):.4g}"
+                        for v in metrics.values()))
+        console.print(table)
+    for line in summary.get("events", []):
+        console.print(f"  {line}")
     return Exit.OK
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -137,3 +138,19 @@ def test_unreadable_inputs_are_clear_errors(tmp_path: Path) -> None:
     junk.write_bytes(b"not a recording at all")
     with pytest.raises(RecordingReadError):
         read_recording(junk)
+
+
+def test_inspect_cli_prints_the_summary(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from reach_driver.cli import main
+
+    path = tmp_path / "run.rrd"
+    q, _, target = _write(path, 100)
+    assert main(["inspect", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "100 steps" in out and "final state" in out and "settling_time_s" in out
+    assert f"{target[0] - q[-1, 0]:+.4f}" in out
+    assert main(["inspect", "--json", str(path)]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["steps"] == 100 and data["metrics"]["reached"] in (True, False)
+    assert main(["inspect", str(tmp_path / "missing.rrd")]) != 0
+    assert "no such recording" in capsys.readouterr().out
