@@ -766,7 +766,7 @@ def cmd_inspect(args: argparse.Namespace, console: Console) -> Exit:
     from reach_driver.rrd_summary import RecordingReadError, summarize_recording
 
     try:
-        summary = summarize_recording(args.file)
+        summary: dict[str, Any] = summarize_recording(args.file)
     except (RecordingReadError, OSError) as exc:
         console.print(f"[red]error[/]: cannot read {args.file}: {exc}")
         return Exit.FAILED
