@@ -231,6 +231,12 @@ class DriverEpisode:
         }
 
 
+def _four(values: np.ndarray) -> tuple[float, float, float, float]:
+    """E D C B values as the plain float 4-tuple SimConfig takes."""
+    e, d, c, b = (float(v) for v in values)
+    return e, d, c, b
+
+
 def run_episode_via_driver(
     controller: Controller,
     episode: Episode,
@@ -248,20 +254,10 @@ def run_episode_via_driver(
         speed=driver.speed,
         pty=True,
         baud=driver.baud,
-        start=(
-            float(episode.start[0]),
-            float(episode.start[1]),
-            float(episode.start[2]),
-            float(episode.start[3]),
-        ),
+        start=_four(episode.start),
         dt=config.physics_dt,
         faults=FaultConfig(
-            torque_scale=(
-                float(episode.torque_scale[0]),
-                float(episode.torque_scale[1]),
-                float(episode.torque_scale[2]),
-                float(episode.torque_scale[3]),
-            ),
+            torque_scale=_four(episode.torque_scale),
             corrupt_rate=driver.corrupt_rate,
             latency_ms=driver.latency_ms,
         ),
