@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from policy.env import EnvConfig, ReachAlphaEnv, RewardConfig, RewardMode
+from policy.env import EnvConfig, PDExpert, ReachAlphaEnv, RewardConfig, RewardMode
 from policy.observation import N_JOINTS, ObservationConfig
 from reach_sim_bridge.motor import DEFAULT_CURRENT_LIMITS_MA
 
@@ -77,6 +77,11 @@ class DDPGConfig:
     #: the target weigh as much as the saturated ones far from it
     bc_relative: float = 0.0
     q_weight: float = 1.0  # weight of the (scale-free) Q term when BC is on
+    #: the demonstrator's energy weight (`PDExpert.energy_lambda`); None: the plain PD
+    expert_energy_lambda: float | None = None
+    #: start the actor (and its target) from these weights (.npz, the shipped format):
+    #: fine-tuning a shipped policy towards a new demonstrator or reward
+    init_actor: str | None = None
     # curriculum: goals at most `curriculum_start` rad away, widening to the whole workspace
     curriculum_start: float | None = None
     curriculum_steps: int = 1
@@ -84,6 +89,8 @@ class DDPGConfig:
     eval_every: int = 50_000
     eval_episodes: int = 20
     eval_seed: int = 10_000
+    #: subtracted from the evaluation score per joule of mean episode energy (0: ignored)
+    score_energy_weight: float = 0.0
 
     @classmethod
     def paper(cls, **overrides: Any) -> DDPGConfig:
@@ -322,6 +329,22 @@ class Agent:
         self.updates = 0
         self.gen = torch.Generator().manual_seed(config.seed + 1)
 
+    def load_actor_npz(self, path: str | Path) -> None:
+        """Actor and target actor from shipped-format weights (W0 b0 W1 b1 W2 b2)."""
+        with np.load(path) as data:
+            arrays = {k: data[k] for k in data.files}
+        linears = [m for m in self.actor.net if isinstance(m, nn.Linear)]
+        for i, layer in enumerate(linears):
+            w, b = arrays.get(f"W{i}"), arrays.get(f"b{i}")
+            if w is None or b is None or w.shape != tuple(layer.weight.shape) \
+                    or b.shape != tuple(layer.bias.shape):
+                raise ValueError(f"{path}: layer {i} does not fit a {self.config.hidden} actor "
+                                 f"with {linears[0].in_features} inputs")
+            with torch.no_grad():
+                layer.weight.copy_(torch.from_numpy(w))
+                layer.bias.copy_(torch.from_numpy(b))
+        self.actor_target.load_state_dict(self.actor.state_dict())
+
     def set_learning_rates(self, env_steps: int) -> None:
         decay = self.config.lr_decay ** (env_steps // self.config.lr_decay_every)
         for group in self.actor_opt.param_groups:
@@ -421,6 +444,13 @@ class Agent:
 Expert = Callable[[ReachAlphaEnv], np.ndarray]
 
 
+def make_expert(config: DDPGConfig) -> Expert | None:
+    """The demonstrator a run needs (None without demonstrations or BC)."""
+    if config.bc_weight <= 0 and config.demo_episodes <= 0:
+        return None
+    return PDExpert(energy_lambda=config.expert_energy_lambda)
+
+
 def eval_envs(
     env_config: EnvConfig,
     episodes: int,
@@ -453,13 +483,15 @@ class EvalResult:
     mie: float
     energy_j: float
 
-    def score(self) -> float:
-        """Higher is better: reaching first, then speed, then overshoot and precision."""
+    def score(self, energy_weight: float = 0.0) -> float:
+        """Higher is better: reaching first, then speed, then overshoot and precision
+        (and energy, per joule, when `energy_weight` > 0)."""
         return (
             self.reached_fraction
             - 0.2 * max(self.rmse_floor_ratio - 1.0, 0.0)
             - 0.01 * self.overshoot_pct
             - 5.0 * self.steady_error
+            - energy_weight * self.energy_j
         )
 
     def to_dict(self) -> dict[str, float]:
@@ -568,6 +600,8 @@ class Trainer:
         obs_dim = self.envs[0].observation_space.shape[0]  # type: ignore[index]
         self.obs_dim = obs_dim
         self.agent = Agent(config, obs_dim)
+        if config.init_actor is not None:
+            self.agent.load_actor_npz(config.init_actor)
         self.buffer = ReplayBuffer(config.buffer_size, obs_dim, N_JOINTS)
         self.demos = ReplayBuffer(
             max(1, config.demo_episodes * config.env.steps_per_episode), obs_dim, N_JOINTS
@@ -733,7 +767,8 @@ class Trainer:
                            envs=self.eval_nominal)
         weak = evaluate(self.agent.act, cfg.env, len(self.eval_weak), cfg.eval_seed + 5_000,
                         envs=self.eval_weak)
-        score = nominal.score() + 0.5 * weak.reached_fraction - 0.005 * weak.overshoot_pct
+        score = (nominal.score(cfg.score_energy_weight) + 0.5 * weak.reached_fraction
+                 - 0.005 * weak.overshoot_pct)
         record = {
             "env_steps": self.state.env_steps,
             "wall_s": round(self.state.wall_s, 1),
@@ -753,7 +788,8 @@ class Trainer:
             f"eval @ {self.state.env_steps}: reached {nominal.reached_fraction:.2f} "
             f"final {nominal.final_error:.4f} rmse x{nominal.rmse_floor_ratio:.2f} "
             f"OS {nominal.overshoot_pct:.2f}% ST {nominal.settling_s:.2f}s "
-            f"SS {nominal.steady_error:.4f} | E25%: reached {weak.reached_fraction:.2f} "
+            f"SS {nominal.steady_error:.4f} MIE {nominal.mie:.3f} E {nominal.energy_j:.2f}J "
+            f"| E25%: reached {weak.reached_fraction:.2f} "
             f"OS {weak.overshoot_pct:.2f}%" + (" *best*" if record.get("best") else "")
         )
         return record

@@ -20,6 +20,7 @@ from policy.ddpg import (
     ReplayBuffer,
     Trainer,
     evaluate,
+    make_expert,
     save_actor_npz,
 )
 from policy.ddpg_controller import DEFAULT_WEIGHTS, ActorWeights, make_controller
@@ -257,3 +258,33 @@ def test_evaluate_cli_scores_the_expert() -> None:
     result = json.loads(out.stdout)
     assert result["nominal"]["reached_fraction"] == 1.0
     assert result["torque_e_25pct"]["reached_fraction"] == 1.0
+
+
+def test_init_actor_starts_from_shipped_weights(tmp_path: Path) -> None:
+    cfg = tiny(DDPGConfig.ours(), num_envs=2, demo_episodes=0, eval_episodes=2,
+               init_actor=str(DEFAULT_WEIGHTS))
+    trainer = Trainer(cfg, tmp_path, expert=make_expert(cfg), log=lambda _: None)
+    shipped = ActorWeights.load(DEFAULT_WEIGHTS)
+    obs = np.random.default_rng(1).uniform(-1, 1, size=(32, cfg.env.observation.size))
+    np.testing.assert_allclose(trainer.agent.act(obs.astype(np.float32)), shipped.forward(obs),
+                               atol=1e-5)
+    with torch.no_grad():
+        target = trainer.agent.actor_target(torch.from_numpy(obs.astype(np.float32))).numpy()
+    np.testing.assert_allclose(target, shipped.forward(obs), atol=1e-5)
+    wrong = dataclasses.replace(cfg, hidden=(64, 64))
+    with pytest.raises(ValueError, match="does not fit"):
+        Trainer(wrong, tmp_path / "w", expert=make_expert(wrong), log=lambda _: None)
+
+
+def test_make_expert_follows_the_config() -> None:
+    assert make_expert(DDPGConfig.paper()) is None
+    plain = make_expert(DDPGConfig.ours())
+    assert isinstance(plain, PDExpert) and plain.energy_lambda is None
+    saver = make_expert(DDPGConfig.ours(expert_energy_lambda=6.0))
+    assert isinstance(saver, PDExpert) and saver.energy_lambda == 6.0
+
+
+def test_score_counts_energy_only_when_asked() -> None:
+    result = evaluate(None, EnvConfig(episode_s=5.0), episodes=2, seed=5, expert=PDExpert())
+    assert result.energy_j > 0
+    assert result.score(0.02) == pytest.approx(result.score() - 0.02 * result.energy_j)

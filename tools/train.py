@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from policy.ddpg import DDPGConfig, Trainer, TrainState, evaluate
+from policy.ddpg import DDPGConfig, Trainer, TrainState, evaluate, make_expert
 from policy.ddpg_controller import DEFAULT_WEIGHTS, ActorWeights
 from policy.env import EnvConfig, PDExpert
 
@@ -52,6 +52,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "demonstrator) on --episodes fixed episodes with sensor noise, nominal "
                         "and with E at 25%% torque, print the metrics as JSON, then exit")
     p.add_argument("--episodes", type=int, default=20, help="episodes for --evaluate")
+    p.add_argument("--expert-energy", type=float, default=None, metavar="LAMBDA",
+                   help="with --evaluate expert: the energy-aware demonstrator "
+                        "(PDExpert.energy_lambda, N m/s; the shipped weights used 6)")
     p.add_argument("--perturb", type=float, default=0.0, metavar="SPREAD",
                    help="with --evaluate: also score on arms whose friction, armature, masses "
                         "and buoyancy are scaled by U(1 - SPREAD, 1 + SPREAD) per episode")
@@ -61,14 +64,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def evaluate_weights(which: str, episodes: int, seed: int, perturb: float = 0.0
-                     ) -> dict[str, Any]:
+def evaluate_weights(which: str, episodes: int, seed: int, perturb: float = 0.0,
+                     expert_energy: float | None = None) -> dict[str, Any]:
     """Metrics of an actor file (or the expert) on the fixed evaluation episodes."""
     env_config = DDPGConfig.ours().env
     policy: Any = None
     expert = None
     if which == "expert":
-        expert = PDExpert()
+        expert = PDExpert(energy_lambda=expert_energy)
     else:
         path = DEFAULT_WEIGHTS if which == "shipped" else Path(which)
         try:
@@ -145,7 +148,8 @@ def apply_overrides(config: DDPGConfig, overrides: list[str]) -> DDPGConfig:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.evaluate is not None:
-        result = evaluate_weights(args.evaluate, args.episodes, args.seed, args.perturb)
+        result = evaluate_weights(args.evaluate, args.episodes, args.seed, args.perturb,
+                                  args.expert_energy)
         print(json.dumps(result, indent=1))
         return 0
     if args.run is None:
@@ -180,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
         log_file.write(line + "\n")
         print(line, flush=True)
 
-    expert = PDExpert() if (config.bc_weight > 0 or config.demo_episodes > 0) else None
+    expert = make_expert(config)
     trainer = Trainer(config, run_dir, expert=expert, log=log)
     if args.resume:
         trainer.load()
