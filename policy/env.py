@@ -112,6 +112,18 @@ class EnvConfig:
     param_perturbation: float = 0.0
     #: starts and goals at most this far apart per joint (rad); None = whole workspace
     max_step: float | None = None
+    #: draw starts and goals (and put the bounds around) this range instead of the evaluation
+    #: workspace, e.g. B over most of its turn for the paper's scenarios (B up to 5.65 rad)
+    workspace_low: tuple[float, float, float, float] | None = None
+    workspace_high: tuple[float, float, float, float] | None = None
+
+    def workspace(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) of the episodes' starts and goals, rad, E D C B."""
+        low = WORKSPACE_LOW if self.workspace_low is None else np.asarray(self.workspace_low)
+        high = WORKSPACE_HIGH if self.workspace_high is None else np.asarray(self.workspace_high)
+        if low.shape != (N_JOINTS,) or high.shape != (N_JOINTS,) or np.any(low >= high):
+            raise ValueError(f"workspace must be 4 ranges low < high, got {low} .. {high}")
+        return low.astype(np.float64), high.astype(np.float64)
 
     @property
     def steps_per_episode(self) -> int:
@@ -134,7 +146,7 @@ class EnvConfig:
             reward = dict(data["reward"])
             reward["mode"] = RewardMode(reward.get("mode", "paper"))
             data["reward"] = RewardConfig(**reward)
-        for key in ("torque_scale", "torque_scale_low"):
+        for key in ("torque_scale", "torque_scale_low", "workspace_low", "workspace_high"):
             if data.get(key) is not None:
                 data[key] = tuple(float(x) for x in data[key])
         return cls(**data)
@@ -198,11 +210,12 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         self.arm: ArmLike = self._arm_factory(config)
         self._nominal_params = getattr(self.arm, "params", None)
         limits = np.asarray(self.arm.position_limits, dtype=np.float64)
-        self.bounds_low = np.maximum(WORKSPACE_LOW - config.bounds_margin, limits[:, 0])
-        self.bounds_high = np.minimum(WORKSPACE_HIGH + config.bounds_margin, limits[:, 1])
+        self.workspace_low, self.workspace_high = config.workspace()
+        self.bounds_low = np.maximum(self.workspace_low - config.bounds_margin, limits[:, 0])
+        self.bounds_high = np.minimum(self.workspace_high + config.bounds_margin, limits[:, 1])
         self.current_limits_mA = np.asarray(self.arm.current_limits_mA, dtype=np.float64).copy()
-        self.target = WORKSPACE_LOW.copy()
-        self.start = WORKSPACE_LOW.copy()
+        self.target = self.workspace_low.copy()
+        self.start = self.workspace_low.copy()
         self.prev_action = np.zeros(N_JOINTS)
         self.steps = 0
         self.last_reading = (self.start.copy(), np.zeros(N_JOINTS))
@@ -220,11 +233,12 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
                 raise ValueError("param_perturbation needs an arm with params / set_params")
             perturbed = self._nominal_params.randomized(self.np_random, cfg.param_perturbation)
             self.arm.set_params(perturbed)  # type: ignore[attr-defined]
-        start = self.np_random.uniform(WORKSPACE_LOW, WORKSPACE_HIGH)
-        target = self.np_random.uniform(WORKSPACE_LOW, WORKSPACE_HIGH)
+        low, high = self.workspace_low, self.workspace_high
+        start = self.np_random.uniform(low, high)
+        target = self.np_random.uniform(low, high)
         if cfg.max_step is not None:
             step = self.np_random.uniform(-cfg.max_step, cfg.max_step, size=N_JOINTS)
-            target = np.clip(start + step, WORKSPACE_LOW, WORKSPACE_HIGH)
+            target = np.clip(start + step, low, high)
         scale = np.asarray(cfg.torque_scale, dtype=np.float64)
         if cfg.torque_scale_low is not None:
             scale = self.np_random.uniform(np.asarray(cfg.torque_scale_low), scale)

@@ -288,3 +288,22 @@ def test_score_counts_energy_only_when_asked() -> None:
     result = evaluate(None, EnvConfig(episode_s=5.0), episodes=2, seed=5, expert=PDExpert())
     assert result.energy_j > 0
     assert result.score(0.02) == pytest.approx(result.score() - 0.02 * result.energy_j)
+
+
+def test_a_wider_training_workspace_keeps_the_evaluation_episodes(tmp_path: Path) -> None:
+    from policy.ddpg import eval_envs
+    from policy.observation import WORKSPACE_HIGH
+
+    wide_env = EnvConfig(episode_s=1.0, workspace_high=(5.8, 2.9, 2.9, 5.8))
+    narrow = eval_envs(wide_env, 2)
+    assert narrow[0].config.workspace_high is None  # scores stay comparable across runs
+    assert np.allclose(narrow[0].workspace_high, WORKSPACE_HIGH)
+    own = eval_envs(wide_env, 2, training_workspace=True)
+    assert own[0].workspace_high[3] == pytest.approx(5.8)
+    cfg = tiny(DDPGConfig.paper(), env=wide_env, eval_episodes=4, total_steps=200)
+    trainer = Trainer(cfg, tmp_path, log=lambda _: None)
+    assert len(trainer.eval_wide) == 4
+    record = trainer.evaluate_and_keep_best()
+    assert set(record["training_workspace"]) >= {"reached_fraction", "overshoot_pct"}
+    plain = Trainer(tiny(DDPGConfig.paper()), tmp_path / "plain", log=lambda _: None)
+    assert plain.eval_wide == [] and "training_workspace" not in plain.evaluate_and_keep_best()

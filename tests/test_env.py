@@ -242,3 +242,16 @@ def test_expert_solves_the_task() -> None:
         assert np.all(np.abs(env.target - env.arm.q) < 0.02)
         big = np.abs(env.target - q0) > 0.05
         assert np.max(np.array(progress)[:, big]) < 1.02  # under 2 % overshoot
+
+
+def test_training_workspace_can_be_widened() -> None:
+    wide = EnvConfig(workspace_high=(5.8, 2.9, 2.9, 5.8))
+    env = ReachAlphaEnv(wide)
+    targets = np.array([env.reset(seed=s)[1]["target"] for s in range(300)])
+    assert targets[:, 3].max() > 4.0  # B now reaches the paper's scenario angles
+    assert np.all(targets >= WORKSPACE_LOW) and np.all(targets <= np.array(wide.workspace_high))
+    assert env.bounds_high[3] == pytest.approx(6.1)  # the bounds follow the range
+    assert ReachAlphaEnv(EnvConfig()).bounds_high[3] == pytest.approx(3.1)
+    assert EnvConfig.from_dict(wide.to_dict()) == wide
+    with pytest.raises(ValueError, match="low < high"):
+        ReachAlphaEnv(EnvConfig(workspace_high=(5.8, 2.9, 2.9, 0.1)))
