@@ -6,7 +6,7 @@ import importlib.util
 import json
 import sys
 from pathlib import Path
-from types import ModuleType
+from types import ModuleType, SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -284,3 +284,21 @@ def test_paper_replaces_only_its_generated_block(tmp_path: Path) -> None:
     doc.write_text(f"intro\n{paper.BEGIN}\nold table\n{paper.END}\noutro\n")
     paper.write_generated(doc, f"{paper.BEGIN}\nnew table\n{paper.END}")
     assert doc.read_text() == f"intro\n{paper.BEGIN}\nnew table\n{paper.END}\noutro\n"
+
+
+def test_paper_counts_ddpg_wins_over_mpc_across_seeds() -> None:
+    paper = _paper()
+    keys = (*paper.TABLE_KEYS, "reached")
+
+    def ev(*values: float) -> SimpleNamespace:
+        return SimpleNamespace(summary=lambda: dict(zip(keys, values, strict=True)))
+
+    mpc = ev(10.7, 0.23, 0.90, 0.0014, 1.9, 1.86, 1.0)
+    table = {"mpc": mpc, "ddpg": ev(10.4, 0.22, 0.88, 0.0015, 0.3, 1.86, 1.0)}
+    more = {2120: {"mpc": mpc, "ddpg": ev(10.9, 0.22, 0.88, 0.0010, 0.3, 1.80, 1.0)}}
+    assert paper.wins(table["ddpg"].summary(), mpc.summary()) == {
+        "energy_j": True, "rmse": True, "mie": True, "msse": False,
+        "overshoot_pct": True, "settling_time_s": False}  # a tie is not a win
+    text = "\n".join(paper.seed_lines(more, table, 2020, 20))
+    assert "| 2020 | ddpg | 10.40 |" in text and "| 2120 | mpc | 10.70 |" in text
+    assert "on 2 seeds: E 1/2, RMSE 2/2, MIE 2/2, MSSE 1/2, OS 2/2, ST 1/2." in text

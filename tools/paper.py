@@ -19,6 +19,7 @@ writes runs/paper/*.json, docs/figures/*.png and the generated block of docs/res
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -134,9 +135,46 @@ def _fmt_row(name: str, s: dict[str, float]) -> str:
             f"{s['reached']:.2f} | {s['rmse'] / s['rmse_floor']:.3f} |")
 
 
+#: Table I's metrics in its column order, and the direction that is better (all: lower).
+TABLE_KEYS = ("energy_j", "rmse", "mie", "msse", "overshoot_pct", "settling_time_s")
+TABLE_HEADS = ("E [J]", "RMSE [rad]", "MIE [rad s]", "MSSE [rad]", "OS [%]", "ST [s]")
+
+
+def wins(a: dict[str, float], b: dict[str, float]) -> dict[str, bool]:
+    """Per Table I metric: is summary `a` strictly better (lower) than `b`?"""
+    return {k: a[k] < b[k] for k in TABLE_KEYS}
+
+
+def seed_lines(more: dict[int, dict[str, Evaluation]], table: dict[str, Evaluation],
+               seed: int, n: int) -> list[str]:
+    """The comparison repeated on other seeds, and how often DDPG beats MPC per metric."""
+    every = {seed: table, **more}
+    lines = ["", f"### The same comparison on other seeds ({n} random targets each, same "
+             "conditions; episode set, noise and parameter draws all from the seed)", "",
+             "| seed | controller | " + " | ".join(TABLE_HEADS) + " | reached |",
+             "|---|---|" + "---|" * (len(TABLE_HEADS) + 1)]
+    for sd, evs in every.items():
+        for name, ev in evs.items():
+            s = ev.summary()
+            lines.append(f"| {sd} | {name} | {s['energy_j']:.2f} | {s['rmse']:.4f} | "
+                         f"{s['mie']:.4f} | {s['msse']:.5f} | {s['overshoot_pct']:.2f} | "
+                         f"{s['settling_time_s']:.3f} | {s['reached']:.2f} |")
+    pairs = [(sd, evs) for sd, evs in every.items() if "ddpg" in evs and "mpc" in evs]
+    if pairs:
+        counts = {k: 0 for k in TABLE_KEYS}
+        for _, evs in pairs:
+            for k, better in wins(evs["ddpg"].summary(), evs["mpc"].summary()).items():
+                counts[k] += better
+        lines += ["", f"DDPG better than MPC on {len(pairs)} seeds: " + ", ".join(
+            f"{head.split(' ')[0]} {counts[k]}/{len(pairs)}"
+            for k, head in zip(TABLE_KEYS, TABLE_HEADS, strict=True)) + "."]
+    return lines
+
+
 def markdown(scenarios: dict[str, list[EpisodeResult]], table: dict[str, Evaluation],
              config: RunConfig, seed: int, n: int, figures: Path, docs: Path,
-             skipped: dict[str, str]) -> str:
+             skipped: dict[str, str],
+             more: dict[int, dict[str, Evaluation]] | None = None) -> str:
     lines = [BEGIN, ""]
     cond = []
     if config.noise is not None:
@@ -175,6 +213,8 @@ def markdown(scenarios: dict[str, list[EpisodeResult]], table: dict[str, Evaluat
                  "table was written (other jobs share the cores; solve times depend on it).")
     for name, why in skipped.items():
         lines.append(f"{name}: not run ({why}).")
+    if more:
+        lines += seed_lines(more, table, seed, n)
     lines += ["", "### Scenarios (nominal arm, no noise, 20 s at 20 Hz)", "",
               "| scenario | controller | reached | max final abs(e) [rad] | OS [%] | ST [s] "
               "| RMSE [rad] | E [J] |",
@@ -234,6 +274,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--doc", type=Path, default=Path("docs/results.md"),
                    help="Markdown file whose generated block is replaced")
     p.add_argument("--skip-table", action="store_true", help="only the four scenarios")
+    p.add_argument("--more-seeds", nargs="+", type=int, default=[], metavar="SEED",
+                   help="repeat the comparison on these seeds too (same conditions) and "
+                        "count on how many DDPG beats MPC per metric")
     return p
 
 
@@ -277,8 +320,18 @@ def main(argv: list[str] | None = None) -> int:
     if not scenarios:
         console.print("[red]no controller could be run[/red]")
         return 1
+    more: dict[int, dict[str, Evaluation]] = {}
+    for seed in [] if args.skip_table else args.more_seeds:
+        config = dataclasses.replace(table_config, seed=seed)
+        for name in scenarios:
+            console.print(f"[bold]{name}[/bold]: {args.n} random targets, seed {seed}")
+            ev = evaluate(load_controller(name), random_episodes(args.n, seed), config,
+                          name=name)
+            more.setdefault(seed, {})[name] = ev
+            (args.runs / f"table_{name}_seed{seed}.json").write_text(
+                json.dumps(ev.to_dict(), indent=1))
     block = markdown(scenarios, table, table_config, args.seed, args.n, args.figures,
-                     args.doc.parent, skipped)
+                     args.doc.parent, skipped, more)
     write_generated(args.doc, block)
     console.print(f"wrote {args.doc}, {args.figures}/*.png, {args.runs}/*.json")
     return 0
