@@ -302,3 +302,34 @@ def test_paper_counts_ddpg_wins_over_mpc_across_seeds() -> None:
     text = "\n".join(paper.seed_lines(more, table, 2020, 20))
     assert "| 2020 | ddpg | 10.40 |" in text and "| 2120 | mpc | 10.70 |" in text
     assert "on 2 seeds: E 1/2, RMSE 2/2, MIE 2/2, MSSE 1/2, OS 2/2, ST 1/2." in text
+
+
+def test_select_weights_rule_reaches_first_then_counts_wins() -> None:
+    sys.path.insert(0, str(ROOT / "tools"))  # select_weights imports paper.py beside it
+    try:
+        spec = importlib.util.spec_from_file_location("select_cli",
+                                                      ROOT / "tools" / "select_weights.py")
+        assert spec is not None and spec.loader is not None
+        select = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(select)
+    finally:
+        sys.path.remove(str(ROOT / "tools"))
+    keys = select.TABLE_KEYS
+    ref = dict(zip(keys, (10.0, 0.23, 0.90, 0.0014, 2.0, 1.9), strict=True))
+
+    def row(name: str, scen: int, reached: float, *values: float) -> dict[str, Any]:
+        summary = dict(zip(keys, values, strict=True), reached=reached)
+        return {"candidate": name, "scenarios_reached": scen, "summary": summary}
+
+    rows = [
+        row("misses a scenario", 3, 1.0, 9.0, 0.20, 0.80, 0.0010, 0.1, 1.5),
+        row("misses an episode", 4, 0.95, 9.0, 0.20, 0.80, 0.0010, 0.1, 1.5),
+        row("5 of 6", 4, 1.0, 9.0, 0.20, 0.80, 0.0010, 0.1, 2.0),
+        row("6 of 6, barely", 4, 1.0, 9.99, 0.229, 0.89, 0.00139, 1.9, 1.89),
+        row("6 of 6, clearly", 4, 1.0, 9.5, 0.22, 0.85, 0.0012, 0.5, 1.8),
+    ]
+    assert select.choose(rows, ref)["candidate"] == "6 of 6, clearly"
+    assert select.choose(rows[:3], ref)["candidate"] == "5 of 6"
+    assert select.choose(rows[:2], ref) is None
+    with pytest.raises(FileNotFoundError, match="no actor"):
+        select.weights_of(ROOT / "no-such-run")

@@ -1,0 +1,135 @@
+#!/usr/bin/env python3
+"""Pick which trained actor to ship, by a rule fixed before looking at Table I's episodes.
+
+Candidates are run directories (their `best_actor.npz`) or `.npz` files. Each one is run on
+- the paper's four scenarios (tools/paper.py: nominal arm, no noise), which it must all reach;
+- a selection set that is NOT the comparison's: ``random_episodes(--episodes, --seed)`` with
+  sensor noise and +-20 % degraded parameters, the conditions of Table I. The default seed (11)
+  is the set the MPC's horizon and weights were tuned on (tools/tune_mpc.py) and the
+  demonstrator's energy weight was chosen on (tools/tune_expert.py), so every controller's
+  choices come from the same episodes and none from seed 2020's.
+
+Rule: among the candidates that reach every scenario and every selection episode, the one
+better than the reference controller (the MPC) on the most of Table I's six metrics; ties go
+to the lowest mean ratio candidate / reference over the six. Then ship it with
+``tools/train.py --run RUN --ship`` (which writes its provenance beside the weights).
+
+    tools/select_weights.py runs/wide-s5 runs/wide-s6 runs/perturb-s7 --out runs/select.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from paper import SCENARIOS, TABLE_KEYS, wins
+from rich.console import Console
+from rich.table import Table
+
+from policy.evaluation import RunConfig, SensorNoise, evaluate, load_controller, random_episodes
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="select_weights.py",
+        description="Score trained DDPG actors on the paper's scenarios and on a selection set "
+                    "(not Table I's episodes) against a reference controller, and name the one "
+                    "to ship by a fixed rule (see the module docstring).",
+    )
+    p.add_argument("candidates", nargs="+", type=Path,
+                   help="run directories (their best_actor.npz) or actor .npz files")
+    p.add_argument("--reference", default="mpc", help="controller to beat (default mpc)")
+    p.add_argument("--seed", type=int, default=11, help="selection set's seed (default 11)")
+    p.add_argument("--episodes", type=int, default=20, help="selection episodes (default 20)")
+    p.add_argument("--perturb", type=float, default=0.2, metavar="SPREAD",
+                   help="degraded arm parameters (default 0.2, as Table I)")
+    p.add_argument("--out", type=Path, required=True, help="JSON with every candidate's figures")
+    return p
+
+
+def weights_of(candidate: Path) -> Path:
+    path = candidate / "best_actor.npz" if candidate.is_dir() else candidate
+    if not path.exists():
+        raise FileNotFoundError(f"{candidate}: no actor at {path}")
+    return path
+
+
+def choose(rows: list[dict[str, Any]], reference: dict[str, float]) -> dict[str, Any] | None:
+    """The rule: every scenario and episode reached; most metrics better; lowest mean ratio."""
+    ok = [r for r in rows if r["scenarios_reached"] == len(SCENARIOS)
+          and r["summary"]["reached"] >= 1.0]
+    if not ok:
+        return None
+
+    def key(r: dict[str, Any]) -> tuple[int, float]:
+        s = r["summary"]
+        ratio = float(np.mean([s[k] / max(reference[k], 1e-12) for k in TABLE_KEYS]))
+        return (-sum(wins(s, reference).values()), ratio)
+
+    return min(ok, key=key)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    console = Console()
+    try:
+        paths = [weights_of(c) for c in args.candidates]
+        episodes = random_episodes(args.episodes, args.seed)
+        config = RunConfig(noise=SensorNoise(), seed=args.seed, param_spread=args.perturb)
+    except (FileNotFoundError, ValueError) as exc:
+        console.print(f"[red]error:[/red] {exc}")
+        return 2
+    console.print(f"reference {args.reference}: {args.episodes} episodes, seed {args.seed}")
+    reference = evaluate(load_controller(args.reference), episodes, config,
+                         name=args.reference).summary()
+    rows: list[dict[str, Any]] = []
+    for candidate, path in zip(args.candidates, paths, strict=True):
+        console.print(f"{candidate}: scenarios and {args.episodes} episodes")
+        sc = evaluate(load_controller("ddpg", weights=path), [s.episode() for s in SCENARIOS],
+                      RunConfig(), name="ddpg")
+        summary = evaluate(load_controller("ddpg", weights=path), episodes, config,
+                           name="ddpg").summary()
+        rows.append({
+            "candidate": str(candidate),
+            "weights": str(path),
+            "scenarios_reached": sum(r.metrics.reached for r in sc.results),
+            "scenario_final_error": [float(np.abs(r.final_error).max()) for r in sc.results],
+            "summary": summary,
+            "better_than_reference": wins(summary, reference),
+        })
+    best = choose(rows, reference)
+    table = Table(title=f"selection set: seed {args.seed}, {args.episodes} episodes, noise, "
+                        f"perturb {args.perturb}; * = chosen")
+    for col in ("candidate", "scenarios", "worst scenario |e|", "E [J]", "RMSE", "MIE", "MSSE",
+                "OS [%]", "ST [s]", "reached", "better"):
+        table.add_column(col)
+
+    def add(name: str, s: dict[str, float], scen: str, worst: str, better: str) -> None:
+        table.add_row(name, scen, worst, f"{s['energy_j']:.3f}", f"{s['rmse']:.4f}",
+                      f"{s['mie']:.4f}", f"{s['msse']:.5f}", f"{s['overshoot_pct']:.2f}",
+                      f"{s['settling_time_s']:.3f}", f"{s['reached']:.2f}", better)
+
+    add(args.reference, reference, "-", "-", "-")
+    for r in rows:
+        add(r["candidate"] + ("*" if r is best else ""), r["summary"],
+            f"{r['scenarios_reached']}/{len(SCENARIOS)}", f"{max(r['scenario_final_error']):.4f}",
+            f"{sum(r['better_than_reference'].values())}/{len(TABLE_KEYS)}")
+    console.print(table)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({
+        "args": {k: str(v) for k, v in vars(args).items()},
+        "reference": reference, "rows": rows,
+        "chosen": None if best is None else best["candidate"]}, indent=1))
+    if best is None:
+        console.print("no candidate reaches every scenario and episode")
+        return 1
+    console.print(f"chosen: {best['candidate']} (ship it with tools/train.py --run ... --ship)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
