@@ -75,7 +75,7 @@ def choose(rows: list[dict[str, Any]], reference: dict[str, float]) -> dict[str,
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    console = Console()
+    console = Console(width=None if sys.stdout.isatty() else 150)
     try:
         paths = [weights_of(c) for c in args.candidates]
         episodes = random_episodes(args.episodes, args.seed)
