@@ -329,7 +329,39 @@ def test_select_weights_rule_reaches_first_then_counts_wins() -> None:
         row("6 of 6, clearly", 4, 1.0, 9.5, 0.22, 0.85, 0.0012, 0.5, 1.8),
     ]
     assert select.choose(rows, ref)["candidate"] == "6 of 6, clearly"
+    rows[-1]["restless"] = [17]  # chatters on one screened arm: never shipped
+    assert select.choose(rows, ref)["candidate"] == "6 of 6, barely"
     assert select.choose(rows[:3], ref)["candidate"] == "5 of 6"
     assert select.choose(rows[:2], ref) is None
     with pytest.raises(FileNotFoundError, match="no actor"):
         select.weights_of(ROOT / "no-such-run")
+
+
+def test_stability_screen_flags_a_chattering_policy(monkeypatch: pytest.MonkeyPatch) -> None:
+    sys.path.insert(0, str(ROOT / "tools"))
+    try:
+        spec = importlib.util.spec_from_file_location("select_cli2",
+                                                      ROOT / "tools" / "select_weights.py")
+        assert spec is not None and spec.loader is not None
+        select = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(select)
+    finally:
+        sys.path.remove(str(ROOT / "tools"))
+    shipped = select.ActorWeights.load(ROOT / "policy" / "weights" / "ddpg_actor.npz")
+    short_env = dict(shipped.metadata["env"], episode_s=6.0)
+
+    class BangBang:  # full current, sign flipping every period: the failure the screen is for
+        metadata = {"env": short_env}
+        sign = 1.0
+
+        def forward(self, obs: np.ndarray) -> np.ndarray:
+            self.sign = -self.sign
+            return np.full((len(obs), 4), self.sign)
+
+    class Calm:  # the shipped network, whole episodes: at rest by the last 5 s
+        metadata = {"env": shipped.metadata["env"]}
+        forward = staticmethod(shipped.forward)
+
+    for policy, restless in ((BangBang(), [0, 1]), (Calm(), [])):
+        monkeypatch.setattr(select.ActorWeights, "load", staticmethod(lambda _p, w=policy: w))
+        assert select.restless_episodes(Path("x.npz"), 2, seed=3, perturb=0.2) == restless

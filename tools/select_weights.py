@@ -9,10 +9,17 @@ Candidates are run directories (their `best_actor.npz`) or `.npz` files. Each on
   demonstrator's energy weight was chosen on (tools/tune_expert.py), so every controller's
   choices come from the same episodes and none from seed 2020's.
 
-Rule: among the candidates that reach every scenario and every selection episode, the one
-better than the reference controller (the MPC) on the most of Table I's six metrics; ties go
-to the lowest mean ratio candidate / reference over the six. Then ship it with
-``tools/train.py --run RUN --ship`` (which writes its provenance beside the weights).
+- a stability screen: ``--screen`` (200) more episodes (seed ``--screen-seed``, 12), noise and
+  +-20 % degraded parameters, stepped in lock-step on the training environment; an episode is
+  restless when a joint's mean |qdot| over its last 5 s exceeds 0.05 rad/s (at rest it is a
+  few mrad/s). A policy that chatters on some arm (seen: one joint bang-banging at the
+  no-load speed, +-8 mrad around its target, 60 J instead of 4 J) is not shipped.
+
+Rule: among the candidates that reach every scenario and every selection episode and have no
+restless episode, the one better than the reference controller (the MPC) on the most of
+Table I's six metrics; ties go to the lowest mean ratio candidate / reference over the six.
+Then ship it with ``tools/train.py --run RUN --ship`` (which writes its provenance beside the
+weights).
 
     tools/select_weights.py runs/wide-s5 runs/wide-s6 runs/perturb-s7 --out runs/select.json
 """
@@ -30,7 +37,15 @@ from paper import SCENARIOS, TABLE_KEYS, wins
 from rich.console import Console
 from rich.table import Table
 
+from policy.ddpg import eval_envs
+from policy.ddpg_controller import ActorWeights
+from policy.env import EnvConfig
 from policy.evaluation import RunConfig, SensorNoise, evaluate, load_controller, random_episodes
+from policy.observation import N_JOINTS
+
+#: mean |qdot| over an episode's last REST_WINDOW_S above which a joint is not at rest (rad/s)
+RESTLESS_SPEED = 0.05
+REST_WINDOW_S = 5.0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -47,6 +62,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=20, help="selection episodes (default 20)")
     p.add_argument("--perturb", type=float, default=0.2, metavar="SPREAD",
                    help="degraded arm parameters (default 0.2, as Table I)")
+    p.add_argument("--screen", type=int, default=200,
+                   help="episodes of the stability screen (default 200; 0 skips it)")
+    p.add_argument("--screen-seed", type=int, default=12,
+                   help="stability screen's seed (default 12)")
     p.add_argument("--out", type=Path, required=True, help="JSON with every candidate's figures")
     return p
 
@@ -58,10 +77,28 @@ def weights_of(candidate: Path) -> Path:
     return path
 
 
+def restless_episodes(path: Path, episodes: int, seed: int, perturb: float) -> list[int]:
+    """Screen episodes (lock-step, batched forward pass) whose arm is still moving at the end."""
+    weights = ActorWeights.load(path)
+    env_config = EnvConfig.from_dict(weights.metadata["env"])
+    envs = eval_envs(env_config, episodes, param_perturbation=perturb)
+    obs = np.stack([env.reset(seed=seed * 1_000 + i)[0] for i, env in enumerate(envs)])
+    steps = envs[0].config.steps_per_episode
+    window = int(round(REST_WINDOW_S / envs[0].control_dt))
+    speed = np.zeros((episodes, N_JOINTS))
+    for k in range(steps):
+        actions = weights.forward(obs)
+        obs = np.stack([env.step(a)[0] for env, a in zip(envs, actions, strict=True)])
+        if k >= steps - window:
+            speed += np.abs(np.stack([env.arm.qdot for env in envs])) / window
+    return [i for i in range(episodes) if np.any(speed[i] > RESTLESS_SPEED)]
+
+
 def choose(rows: list[dict[str, Any]], reference: dict[str, float]) -> dict[str, Any] | None:
-    """The rule: every scenario and episode reached; most metrics better; lowest mean ratio."""
+    """The rule: every scenario and episode reached, none restless; most metrics better;
+    lowest mean ratio."""
     ok = [r for r in rows if r["scenarios_reached"] == len(SCENARIOS)
-          and r["summary"]["reached"] >= 1.0]
+          and r["summary"]["reached"] >= 1.0 and not r.get("restless")]
     if not ok:
         return None
 
@@ -100,23 +137,27 @@ def main(argv: list[str] | None = None) -> int:
             "scenario_final_error": [float(np.abs(r.final_error).max()) for r in sc.results],
             "summary": summary,
             "better_than_reference": wins(summary, reference),
+            "restless": restless_episodes(path, args.screen, args.screen_seed, args.perturb)
+            if args.screen > 0 else [],
         })
     best = choose(rows, reference)
     table = Table(title=f"selection set: seed {args.seed}, {args.episodes} episodes, noise, "
                         f"perturb {args.perturb}; * = chosen")
-    for col in ("candidate", "scenarios", "worst scenario |e|", "E [J]", "RMSE", "MIE", "MSSE",
-                "OS [%]", "ST [s]", "reached", "better"):
+    for col in ("candidate", "scenarios", "worst scenario |e|", "restless", "E [J]", "RMSE",
+                "MIE", "MSSE", "OS [%]", "ST [s]", "reached", "better"):
         table.add_column(col)
 
-    def add(name: str, s: dict[str, float], scen: str, worst: str, better: str) -> None:
-        table.add_row(name, scen, worst, f"{s['energy_j']:.3f}", f"{s['rmse']:.4f}",
+    def add(name: str, s: dict[str, float], scen: str, worst: str, restless: str,
+            better: str) -> None:
+        table.add_row(name, scen, worst, restless, f"{s['energy_j']:.3f}", f"{s['rmse']:.4f}",
                       f"{s['mie']:.4f}", f"{s['msse']:.5f}", f"{s['overshoot_pct']:.2f}",
                       f"{s['settling_time_s']:.3f}", f"{s['reached']:.2f}", better)
 
-    add(args.reference, reference, "-", "-", "-")
+    add(args.reference, reference, "-", "-", "-", "-")
     for r in rows:
         add(r["candidate"] + ("*" if r is best else ""), r["summary"],
             f"{r['scenarios_reached']}/{len(SCENARIOS)}", f"{max(r['scenario_final_error']):.4f}",
+            f"{len(r['restless'])}/{args.screen}",
             f"{sum(r['better_than_reference'].values())}/{len(TABLE_KEYS)}")
     console.print(table)
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -125,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
         "reference": reference, "rows": rows,
         "chosen": None if best is None else best["candidate"]}, indent=1))
     if best is None:
-        console.print("no candidate reaches every scenario and episode")
+        console.print("no candidate reaches every scenario and episode and comes to rest")
         return 1
     console.print(f"chosen: {best['candidate']} (ship it with tools/train.py --run ... --ship)")
     return 0
