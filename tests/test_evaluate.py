@@ -304,16 +304,22 @@ def test_paper_counts_ddpg_wins_over_mpc_across_seeds() -> None:
     assert "on 2 seeds: E 1/2, RMSE 2/2, MIE 2/2, MSSE 1/2, OS 2/2, ST 1/2." in text
 
 
-def test_select_weights_rule_reaches_first_then_counts_wins() -> None:
-    sys.path.insert(0, str(ROOT / "tools"))  # select_weights imports paper.py beside it
+def _select() -> ModuleType:
+    """tools/select_weights.py, which imports paper.py from beside it."""
+    sys.path.insert(0, str(ROOT / "tools"))
     try:
         spec = importlib.util.spec_from_file_location("select_cli",
                                                       ROOT / "tools" / "select_weights.py")
         assert spec is not None and spec.loader is not None
-        select = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(select)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
     finally:
         sys.path.remove(str(ROOT / "tools"))
+    return module
+
+
+def test_select_weights_rule_reaches_first_then_counts_wins() -> None:
+    select = _select()
     keys = select.TABLE_KEYS
     ref = dict(zip(keys, (10.0, 0.23, 0.90, 0.0014, 2.0, 1.9), strict=True))
 
@@ -338,15 +344,7 @@ def test_select_weights_rule_reaches_first_then_counts_wins() -> None:
 
 
 def test_stability_screen_flags_a_chattering_policy(monkeypatch: pytest.MonkeyPatch) -> None:
-    sys.path.insert(0, str(ROOT / "tools"))
-    try:
-        spec = importlib.util.spec_from_file_location("select_cli2",
-                                                      ROOT / "tools" / "select_weights.py")
-        assert spec is not None and spec.loader is not None
-        select = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(select)
-    finally:
-        sys.path.remove(str(ROOT / "tools"))
+    select = _select()
     shipped = select.ActorWeights.load(ROOT / "policy" / "weights" / "ddpg_actor.npz")
     short_env = dict(shipped.metadata["env"], episode_s=6.0)
 
