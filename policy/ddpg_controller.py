@@ -103,18 +103,51 @@ class ActorWeights:
         return out
 
 
-class DDPGController:
-    """Stateless actor: currents (mA, E D C B) from the joint state and the target."""
+@dataclass(frozen=True)
+class ReferenceIntegral:
+    """Integral action around the stateless policy: it is shown the target shifted by
+    `gain` times the integrated error, once a joint is within `band` of its target, by at most
+    `cap`.
 
-    def __init__(self, weights: ActorWeights, current_limits_mA: Any = None) -> None:
+    Why: the policy stops a few mrad short wherever static friction (0.7 N m, 6 % of the
+    current limit on E, D, C) holds the joint against its small final command, and on an arm
+    whose masses or buoyancy differ from the model; with no memory it cannot correct that
+    (docs/training.md, "Fine-tuning"). Shifting the reference is the classic outer-loop fix
+    that leaves the learned network untouched. The integral restarts whenever the target
+    changes or the joint leaves the band, so the approach itself is the policy's alone.
+    `gain` 0 turns it off (the pure policy, entry point `ddpg-pure`).
+    """
+
+    gain: float = 1.0  # 1/s
+    band: float = 0.02  # rad
+    cap: float = 0.01  # rad
+    default_dt: float = 0.05  # s, when the state carries no time
+
+    def __post_init__(self) -> None:
+        if not (self.gain >= 0 and self.band > 0 and self.cap >= 0 and self.default_dt > 0):
+            raise ValueError(f"reference integral needs gain >= 0 and band, cap, default_dt > 0, "
+                             f"got {self}")
+
+
+class DDPGController:
+    """The actor: currents (mA, E D C B) from the joint state and the target, with an optional
+    integral on the reference it is shown (`ReferenceIntegral`)."""
+
+    def __init__(self, weights: ActorWeights, current_limits_mA: Any = None,
+                 integral: ReferenceIntegral | None = None) -> None:
         self.weights = weights
         limits = weights.current_limits_mA if current_limits_mA is None else current_limits_mA
         self.current_limits_mA = np.asarray(limits, dtype=np.float64)
         if self.current_limits_mA.shape != (N_JOINTS,) or np.any(self.current_limits_mA < 0):
             raise ValueError(f"current_limits_mA needs 4 values >= 0, got {limits!r}")
+        self.integral = integral or ReferenceIntegral(gain=0.0)
+        self.reset()
 
     def reset(self) -> None:
-        """Nothing to clear: the policy has no memory (kept for the controller interface)."""
+        """Forget the reference integral (the network itself has no memory)."""
+        self.offset = np.zeros(N_JOINTS)
+        self._target: np.ndarray | None = None
+        self._t: float | None = None
 
     def observation(self, state: JointState, target: np.ndarray) -> np.ndarray:
         target = np.asarray(target, dtype=np.float64)
@@ -129,14 +162,51 @@ class DDPGController:
             raise ValueError(f"state must be finite, got q={q}, qdot={qdot}")
         return build_observation(q, qdot, target, self.weights.observation)
 
+    def shown_target(self, state: JointState, target: np.ndarray) -> np.ndarray:
+        """The target the network is shown: `target` plus the reference integral."""
+        cfg = self.integral
+        target = np.asarray(target, dtype=np.float64)
+        if cfg.gain == 0:
+            return target
+        t = getattr(state, "t", None)
+        dt = cfg.default_dt
+        if t is not None and self._t is not None and 0 < t - self._t <= 4 * cfg.default_dt:
+            dt = float(t) - self._t
+        self._t = None if t is None else float(t)
+        if self._target is None or target.shape != self._target.shape or np.any(
+                target != self._target):
+            self.offset = np.zeros(N_JOINTS)
+            self._target = target.copy()
+        error = target - np.asarray(state.q, dtype=np.float64)
+        near = np.abs(error) < cfg.band
+        grown = np.clip(self.offset + cfg.gain * error * dt, -cfg.cap, cfg.cap)
+        self.offset = np.where(near & np.isfinite(error), grown, 0.0)
+        out: np.ndarray = target + self.offset
+        return out
+
     def act(self, state: JointState, target: np.ndarray) -> np.ndarray:
-        action = self.weights.forward(self.observation(state, target))
+        obs = self.observation(state, target)  # validates before the integral moves
+        if self.integral.gain > 0:
+            obs = self.observation(state, self.shown_target(state, target))
+        action = self.weights.forward(obs)
         out: np.ndarray = action * self.current_limits_mA
         return out
 
 
 def make_controller(
+    weights: str | Path | None = None, current_limits_mA: Any = None,
+    integral_gain: float = ReferenceIntegral.gain, integral_band: float = ReferenceIntegral.band,
+    integral_cap: float = ReferenceIntegral.cap,
+) -> DDPGController:
+    """The shipped controller: the DDPG actor (shipped weights, or those at `weights`) with its
+    reference integral (`integral_gain` 0 for the pure policy)."""
+    integral = ReferenceIntegral(gain=integral_gain, band=integral_band, cap=integral_cap)
+    return DDPGController(ActorWeights.load(weights or DEFAULT_WEIGHTS), current_limits_mA,
+                          integral)
+
+
+def make_pure_controller(
     weights: str | Path | None = None, current_limits_mA: Any = None
 ) -> DDPGController:
-    """The DDPG controller with the shipped weights (or those at `weights`)."""
-    return DDPGController(ActorWeights.load(weights or DEFAULT_WEIGHTS), current_limits_mA)
+    """The DDPG actor alone, stateless, as trained: no reference integral."""
+    return make_controller(weights, current_limits_mA, integral_gain=0.0)

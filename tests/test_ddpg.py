@@ -307,3 +307,46 @@ def test_a_wider_training_workspace_keeps_the_evaluation_episodes(tmp_path: Path
     assert set(record["training_workspace"]) >= {"reached_fraction", "overshoot_pct"}
     plain = Trainer(tiny(DDPGConfig.paper()), tmp_path / "plain", log=lambda _: None)
     assert plain.eval_wide == [] and "training_workspace" not in plain.evaluate_and_keep_best()
+
+
+def test_reference_integral_shifts_the_shown_target_near_the_goal_only() -> None:
+    from policy.ddpg_controller import ReferenceIntegral, make_pure_controller
+
+    ctrl = make_controller()  # shipped: actor + reference integral (gain 1/s, band 0.02 rad)
+    assert ctrl.integral == ReferenceIntegral()
+    target = np.array([3.0, 1.5, 1.5, 1.5])
+    error = np.array([0.005, -0.005, 0.05, 0.0])  # C is outside the band
+    state = SimpleNamespace(q=target - error, qdot=np.zeros(4), t=0.0)
+    shown = [ctrl.shown_target(SimpleNamespace(q=state.q, qdot=state.qdot, t=0.05 * k), target)
+             for k in range(1, 11)]
+    offsets = np.array(shown) - target
+    np.testing.assert_allclose(offsets[:, 0], 0.005 * 0.05 * np.arange(1, 11))  # gain e dt
+    np.testing.assert_allclose(offsets[:, 1], -offsets[:, 0])
+    assert np.all(offsets[:, 2:] == 0.0)  # outside the band, and at zero error: nothing
+    for k in range(11, 200):  # held long enough, the shift stops at the cap
+        ctrl.shown_target(SimpleNamespace(q=state.q, qdot=state.qdot, t=0.05 * k), target)
+    np.testing.assert_allclose(ctrl.offset[:2], [0.01, -0.01])
+    moved = ctrl.shown_target(state, target + 0.1) - (target + 0.1)  # a new goal: start over
+    assert np.all(np.abs(moved) <= 0.05 * 0.2) and np.all(np.abs(moved[:2]) < 0.01)
+    ctrl.reset()
+    assert np.all(ctrl.offset == 0.0)
+    # the pure policy is the network on the raw target; the shipped one differs once shifted
+    pure = make_pure_controller()
+    np.testing.assert_allclose(pure.act(state, target),
+                               pure.weights.forward(pure.observation(state, target))
+                               * pure.current_limits_mA)
+    with pytest.raises(ValueError, match="gain >= 0"):
+        ReferenceIntegral(gain=-1.0)
+
+
+def test_reference_integral_removes_the_steady_error_friction_leaves() -> None:
+    from policy.ddpg_controller import make_pure_controller
+    from policy.evaluation import RunConfig, SensorNoise, evaluate, random_episodes
+
+    episodes = random_episodes(3, seed=7)
+    config = RunConfig(noise=SensorNoise(), seed=7, param_spread=0.2)
+    pure = evaluate(make_pure_controller(), episodes, config, name="pure").summary()
+    shipped = evaluate(make_controller(), episodes, config, name="ddpg").summary()
+    assert shipped["reached"] == pure["reached"] == 1.0
+    assert shipped["msse"] < 0.6 * pure["msse"]  # the bias near the goal goes
+    assert shipped["rmse"] <= pure["rmse"] * 1.01  # and the approach is the policy's own

@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Pick which trained actor to ship, by a rule fixed before looking at Table I's episodes.
 
-Candidates are run directories (their `best_actor.npz`) or `.npz` files. Each one is run on
+Candidates are run directories (their `best_actor.npz`) or `.npz` files. Each one is run as
+the `ddpg` controller ships (the actor with its reference integral) on
 - the paper's four scenarios (tools/paper.py: nominal arm, no noise), which it must all reach;
 - a selection set that is NOT the comparison's: ``random_episodes(--episodes, --seed)`` with
   sensor noise and +-20 % degraded parameters, the conditions of Table I. The default seed (11)
@@ -10,7 +11,7 @@ Candidates are run directories (their `best_actor.npz`) or `.npz` files. Each on
   choices come from the same episodes and none from seed 2020's.
 
 - a stability screen: ``--screen`` (200) more episodes (seed ``--screen-seed``, 12), noise and
-  +-20 % degraded parameters, stepped in lock-step on the training environment; an episode is
+  +-20 % degraded parameters, on the training environment; an episode is
   restless when a joint's mean |qdot| over its last 5 s exceeds 0.05 rad/s (at rest it is a
   few mrad/s). A policy that chatters on some arm (seen: one joint bang-banging at the
   no-load speed, +-8 mrad around its target, 60 J instead of 4 J) is not shipped.
@@ -29,7 +30,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -38,7 +41,7 @@ from rich.console import Console
 from rich.table import Table
 
 from policy.ddpg import eval_envs
-from policy.ddpg_controller import ActorWeights
+from policy.ddpg_controller import ActorWeights, make_controller
 from policy.env import EnvConfig
 from policy.evaluation import RunConfig, SensorNoise, evaluate, load_controller, random_episodes
 from policy.observation import N_JOINTS
@@ -77,18 +80,26 @@ def weights_of(candidate: Path) -> Path:
     return path
 
 
-def restless_episodes(path: Path, episodes: int, seed: int, perturb: float) -> list[int]:
-    """Screen episodes (lock-step, batched forward pass) whose arm is still moving at the end."""
+def restless_episodes(path: Path, episodes: int, seed: int, perturb: float,
+                      factory: Callable[[Path], Any] = make_controller) -> list[int]:
+    """Screen episodes whose arm is still moving at the end, each run by the controller as
+    shipped (`factory(path)`: the actor with its reference integral) on the training env."""
     weights = ActorWeights.load(path)
-    env_config = EnvConfig.from_dict(weights.metadata["env"])
-    envs = eval_envs(env_config, episodes, param_perturbation=perturb)
-    obs = np.stack([env.reset(seed=seed * 1_000 + i)[0] for i, env in enumerate(envs)])
+    envs = eval_envs(EnvConfig.from_dict(weights.metadata["env"]), episodes,
+                     param_perturbation=perturb)
+    controllers = [factory(path) for _ in envs]
+    for i, (env, ctrl) in enumerate(zip(envs, controllers, strict=True)):
+        env.reset(seed=seed * 1_000 + i)
+        ctrl.reset()
     steps = envs[0].config.steps_per_episode
-    window = int(round(REST_WINDOW_S / envs[0].control_dt))
+    dt = envs[0].control_dt
+    window = int(round(REST_WINDOW_S / dt))
     speed = np.zeros((episodes, N_JOINTS))
     for k in range(steps):
-        actions = weights.forward(obs)
-        obs = np.stack([env.step(a)[0] for env, a in zip(envs, actions, strict=True)])
+        for env, ctrl in zip(envs, controllers, strict=True):
+            q, qdot = env.last_reading  # what the sensors said, noise included
+            state = SimpleNamespace(q=q, qdot=qdot, t=k * dt)
+            env.step(np.asarray(ctrl.act(state, env.target)) / weights.current_limits_mA)
         if k >= steps - window:
             speed += np.abs(np.stack([env.arm.qdot for env in envs])) / window
     return [i for i in range(episodes) if np.any(speed[i] > RESTLESS_SPEED)]
