@@ -150,6 +150,12 @@ class DDPGController:
         self._t: float | None = None
 
     def observation(self, state: JointState, target: np.ndarray) -> np.ndarray:
+        """The network's input for `state` and `target` as given (no reference integral)."""
+        q, qdot, goal = self._checked(state, target)
+        return build_observation(q, qdot, goal, self.weights.observation)
+
+    @staticmethod
+    def _checked(state: JointState, target: np.ndarray) -> tuple[np.ndarray, ...]:
         target = np.asarray(target, dtype=np.float64)
         if target.shape != (N_JOINTS,) or not np.all(np.isfinite(target)):
             raise ValueError(f"target must be 4 finite angles (rad, E D C B), got {target!r}")
@@ -160,35 +166,34 @@ class DDPGController:
                              f"{qdot.shape}")
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qdot))):
             raise ValueError(f"state must be finite, got q={q}, qdot={qdot}")
-        return build_observation(q, qdot, target, self.weights.observation)
+        return q, qdot, target
 
     def shown_target(self, state: JointState, target: np.ndarray) -> np.ndarray:
         """The target the network is shown: `target` plus the reference integral."""
+        q, _, target = self._checked(state, target)
+        return self._shift(q, getattr(state, "t", None), target)
+
+    def _shift(self, q: np.ndarray, t: float | None, target: np.ndarray) -> np.ndarray:
         cfg = self.integral
-        target = np.asarray(target, dtype=np.float64)
         if cfg.gain == 0:
             return target
-        t = getattr(state, "t", None)
         dt = cfg.default_dt
         if t is not None and self._t is not None and 0 < t - self._t <= 4 * cfg.default_dt:
             dt = float(t) - self._t
         self._t = None if t is None else float(t)
-        if self._target is None or target.shape != self._target.shape or np.any(
-                target != self._target):
+        if self._target is None or np.any(target != self._target):
             self.offset = np.zeros(N_JOINTS)
             self._target = target.copy()
-        error = target - np.asarray(state.q, dtype=np.float64)
-        near = np.abs(error) < cfg.band
+        error = target - q
         grown = np.clip(self.offset + cfg.gain * error * dt, -cfg.cap, cfg.cap)
-        self.offset = np.where(near & np.isfinite(error), grown, 0.0)
+        self.offset = np.where(np.abs(error) < cfg.band, grown, 0.0)
         out: np.ndarray = target + self.offset
         return out
 
     def act(self, state: JointState, target: np.ndarray) -> np.ndarray:
-        obs = self.observation(state, target)  # validates before the integral moves
-        if self.integral.gain > 0:
-            obs = self.observation(state, self.shown_target(state, target))
-        action = self.weights.forward(obs)
+        q, qdot, goal = self._checked(state, target)
+        shown = self._shift(q, getattr(state, "t", None), goal)
+        action = self.weights.forward(build_observation(q, qdot, shown, self.weights.observation))
         out: np.ndarray = action * self.current_limits_mA
         return out
 
