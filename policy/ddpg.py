@@ -463,11 +463,10 @@ def eval_envs(
     trains on a wider one, so scores stay comparable across runs; `training_workspace` keeps
     the run's own), the nominal model unless `param_perturbation` > 0 (each episode's arm then
     drawn by `ArmParams.randomized`)."""
-    workspace = env_config.workspace() if training_workspace else (None, None)
     cfg = dataclasses.replace(
         env_config, torque_scale_low=None, max_step=None, sensor_noise=True,
-        workspace_low=None if workspace[0] is None else tuple(workspace[0].tolist()),
-        workspace_high=None if workspace[1] is None else tuple(workspace[1].tolist()),
+        workspace_low=env_config.workspace_low if training_workspace else None,
+        workspace_high=env_config.workspace_high if training_workspace else None,
         param_perturbation=param_perturbation,
         torque_scale=torque_scale or (1.0, 1.0, 1.0, 1.0),
     )
