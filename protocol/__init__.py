@@ -1,9 +1,10 @@
 """Codec for the Reach / Blueprint Lab (BPL) serial packet protocol, version 1. No I/O.
 
-Clean-room implementation from the project's fact sheet (shared/reference/bpl-protocol.md).
+Clean-room implementation from the published protocol facts summarised in docs/protocol.md.
+`protocol.alpha5` holds the arm's facts that the driver and the simulator both need.
 """
 
-from . import commands, payload
+from . import alpha5, commands, payload
 from .crc import crc8
 from .decoder import DecoderStats, PacketDecoder
 from .errors import (
@@ -20,11 +21,10 @@ from .errors import (
     Version2FrameError,
 )
 from .framing import MAX_DATA, MAX_WIRE, encode_packet
-from .ids import JOINT_ORDER, DeviceID, HardwareStatus, Mode, PacketID
+from .ids import DeviceID, HardwareStatus, Mode, PacketID
 from .packet import Packet, decode_packet
 
 __all__ = [
-    "JOINT_ORDER",
     "MAX_DATA",
     "MAX_WIRE",
     "CobsError",
@@ -45,6 +45,7 @@ __all__ = [
     "PayloadError",
     "ProtocolError",
     "Version2FrameError",
+    "alpha5",
     "commands",
     "crc8",
     "decode_packet",

@@ -93,10 +93,6 @@ class DeviceID(IntEnum):
     BASE_ROTATE = 0x05
 
 
-# The four controlled joints in the project's fixed order (docs/architecture.md).
-JOINT_ORDER: tuple[DeviceID, ...] = (DeviceID.E, DeviceID.D, DeviceID.C, DeviceID.B)
-
-
 class Mode(IntEnum):
     """Control modes (the MODE packet's u8). Others exist; unknown values decode as ints."""
 

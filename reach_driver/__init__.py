@@ -7,15 +7,18 @@ with ArmClient(open_transport("/dev/ttyUSB0")) as arm:   # start()s and close()s
 
 from reach_driver.client import ArmClient, ClientStats
 from reach_driver.control import (
-    Controller,
     ControlLoop,
-    ControlState,
     ControlSummary,
     Pacing,
     StepRecord,
     TimingStats,
 )
-from reach_driver.controllers import available_controllers, load_controller
+from reach_driver.controllers import (
+    Controller,
+    ControlState,
+    available_controllers,
+    load_controller,
+)
 from reach_driver.errors import (
     ArmFaultError,
     BadUrlError,

@@ -33,12 +33,12 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import Enum
-from typing import Protocol
 
 import numpy as np
 
 from protocol import Mode, Packet, PacketID, ProtocolError, commands
 from reach_driver.client import ArmClient
+from reach_driver.controllers import Controller, ControlState
 from reach_driver.errors import ArmFaultError, DriverError
 from reach_driver.link import LinkState
 from reach_driver.safety import LimitKind
@@ -71,21 +71,6 @@ def torque_from_current(current_mA: np.ndarray) -> np.ndarray:
 class Pacing(str, Enum):
     STREAM = "stream"
     POLL = "poll"
-
-
-@dataclass(frozen=True)
-class ControlState:
-    """What a controller sees: arm angles and velocities (E D C B) and the loop's time (s)."""
-
-    q: np.ndarray
-    qdot: np.ndarray
-    t: float
-
-
-class Controller(Protocol):
-    def reset(self) -> None: ...
-
-    def act(self, state: ControlState, target: np.ndarray) -> np.ndarray: ...
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,8 @@
-"""Controllers found by name through the `reach_stack.controllers` entry points.
+"""The controller interface, the state it sees, and controllers found by name.
+
+`Controller` and `ControlState` are the one definition of what a controller is, for the
+driver's control loop and for every evaluation backend in `policy`. Controllers are found
+through the `reach_stack.controllers` entry points.
 
 Like python-can's interface plugins: the driver never imports `policy` (or anyone else's
 controller package); a package registers `name = "module:factory"` and the factory is called
@@ -7,13 +11,35 @@ with keyword arguments to build an object with `reset()` and `act(state, target)
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
-from typing import Any
+from typing import Any, Protocol
 
-from reach_driver.control import Controller
+import numpy as np
+
 from reach_driver.errors import DriverError
 
 GROUP = "reach_stack.controllers"
+
+
+@dataclass(frozen=True)
+class ControlState:
+    """What a controller sees: arm angles and velocities (E D C B) and the loop's time (s)."""
+
+    q: np.ndarray
+    qdot: np.ndarray
+    t: float
+
+
+class Controller(Protocol):
+    """Currents (mA, E D C B) from the state and the target angles; `reset()` between runs.
+
+    A controller trained at a fixed rate may also expose `period_s` (or `control_hz`).
+    """
+
+    def reset(self) -> None: ...
+
+    def act(self, state: ControlState, target: np.ndarray) -> np.ndarray: ...
 
 
 def _entry_points() -> dict[str, EntryPoint]:

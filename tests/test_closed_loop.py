@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import wait_until
 
 from policy.evaluation import Episode, RunConfig, run_episode
 from policy.via_driver import (
@@ -48,15 +49,6 @@ def _load_tool(name: str) -> Any:
 PAPER = _load_tool("paper")
 SCENARIO_1 = PAPER.SCENARIOS[0].episode()
 SCENARIO_3 = PAPER.SCENARIOS[2].episode()  # E at 25 % torque
-
-
-def wait_until(predicate: Any, timeout: float = 10.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return bool(predicate())
 
 
 def modes(sim: SimServer) -> list[Mode]:
@@ -180,8 +172,9 @@ def test_driver_side_noise_is_the_direct_runners_realisation() -> None:
 def test_the_served_arm_gets_the_episodes_start_torque_scale_and_parameter_draw() -> None:
     from reach_sim_bridge.arm import Alpha5Arm
 
-    episode = Episode(start=[3.0, 1.6, 1.6, 3.0], target=[3.2, 1.5, 1.7, 3.1],
-                      torque_scale=[0.25, 1.0, 0.5, 1.0])
+    episode = Episode(
+        start=[3.0, 1.6, 1.6, 3.0], target=[3.2, 1.5, 1.7, 3.1], torque_scale=[0.25, 1.0, 0.5, 1.0]
+    )
     seen: dict[str, Any] = {}
 
     class Seen(Exception):
@@ -194,12 +187,20 @@ def test_the_served_arm_gets_the_episodes_start_torque_scale_and_parameter_draw(
         raise Seen
 
     with pytest.raises(Seen):
-        run_episode_via_driver(load_controller("pid"), episode, RunConfig(param_spread=0.2),
-                               DriverConfig(), episode_seed=5, on_server=inspect)
+        run_episode_via_driver(
+            load_controller("pid"),
+            episode,
+            RunConfig(param_spread=0.2),
+            DriverConfig(),
+            episode_seed=5,
+            on_server=inspect,
+        )
     direct = Alpha5Arm(dt=0.002)
     direct.randomize(0.2, rng=np.random.default_rng([5, 1]))
-    assert seen["params"].as_dict() == {**direct.params.as_dict(),
-                                        "torque_scale": seen["params"].torque_scale}
+    assert seen["params"].as_dict() == {
+        **direct.params.as_dict(),
+        "torque_scale": seen["params"].torque_scale,
+    }
     np.testing.assert_allclose(seen["scale"], [0.25, 1.0, 0.5, 1.0])
     np.testing.assert_allclose(seen["q"], episode.start, atol=0.01)  # held in standby
     with pytest.raises(ValueError, match="outside the arm's joint limits on B"):
@@ -241,7 +242,7 @@ def test_ddpg_reaches_scenario_1_through_reach_driver_and_prints_its_metrics(
     for word in ("energy [J]", "RMSE", "settling time", "reached", "measured current"):
         assert word in out
     assert "arm left in zero_velocity" in out and f"rerun {record}" in out
-    assert wait_until(lambda: modes(sim) == [Mode.ZERO_VELOCITY] * 4)
+    assert wait_until(lambda: modes(sim) == [Mode.ZERO_VELOCITY] * 4, timeout=10.0)
     summary = summarize_recording(record)
     recorded = summary["recorded_summary"]
     # every control step (160 at 20 Hz, fewer if a tick was lost) and the state that ended it
@@ -283,9 +284,7 @@ def test_the_arm_restarting_mid_run_stops_the_run_safely_and_says_so(
 
 
 @pytest.mark.slow
-def test_a_motor_fault_mid_run_stops_the_run(
-    sim_at_scenario_start: SimServer, capsys: Any
-) -> None:
+def test_a_motor_fault_mid_run_stops_the_run(sim_at_scenario_start: SimServer, capsys: Any) -> None:
     sim = sim_at_scenario_start
     t0 = sim.sim_time
 
@@ -313,9 +312,21 @@ def test_max_current_tightens_what_the_controller_may_command(
 ) -> None:
     sim = sim_at_scenario_start
     record = tmp_path / "gentle.rrd"
-    argv = ["--port", str(sim.link), "--max-current", "100,100,100,50", "run", "--controller",
-            "pid", "--target", *map(str, SCENARIO_1.target), "--seconds", "1",
-            "--record", str(record)]
+    argv = [
+        "--port",
+        str(sim.link),
+        "--max-current",
+        "100,100,100,50",
+        "run",
+        "--controller",
+        "pid",
+        "--target",
+        *map(str, SCENARIO_1.target),
+        "--seconds",
+        "1",
+        "--record",
+        str(record),
+    ]
     assert main(argv) == Exit.OK, capsys.readouterr().out
     from reach_driver.rrd_summary import read_recording
 
@@ -341,7 +352,9 @@ def test_a_stalled_controller_is_stopped_by_the_watchdog(
 
         def act(self, state: Any, target: np.ndarray) -> np.ndarray:
             if state.t >= 0.25:  # hangs (a deadlock, a slow solver) with current applied
-                seen["stopped"] = wait_until(lambda: modes(sim) == [Mode.ZERO_VELOCITY] * 4, 5)
+                seen["stopped"] = wait_until(
+                    lambda: modes(sim) == [Mode.ZERO_VELOCITY] * 4, timeout=5
+                )
             return np.asarray(pid.act(state, target))
 
     safety = SafetyConfig(watchdog_s=0.2)
@@ -429,11 +442,24 @@ def test_pid_and_mpc_reach_a_target_through_the_driver(name: str, speed: float) 
 def test_evaluate_via_driver_writes_metrics_and_loop_timing(tmp_path: Path) -> None:
     evaluate = _load_tool("evaluate")
     targets = tmp_path / "episodes.json"
-    targets.write_text(json.dumps([{"start": [3.0, 1.6, 1.6, 3.0],
-                                    "target": [3.3, 1.5, 1.8, 3.3]}]))
+    targets.write_text(
+        json.dumps([{"start": [3.0, 1.6, 1.6, 3.0], "target": [3.3, 1.5, 1.8, 3.3]}])
+    )
     out = tmp_path / "eval.json"
-    argv = ["--controller", "pid", "--targets", str(targets), "--seconds", "2", "--via-driver",
-            "--sim-speed", "4", "--out", str(out), "--quiet"]
+    argv = [
+        "--controller",
+        "pid",
+        "--targets",
+        str(targets),
+        "--seconds",
+        "2",
+        "--via-driver",
+        "--sim-speed",
+        "4",
+        "--out",
+        str(out),
+        "--quiet",
+    ]
     assert evaluate.main(argv) == 0
     data = json.loads(out.read_text())
     episode = data["episodes"][0]
@@ -447,9 +473,7 @@ def test_evaluate_via_driver_writes_metrics_and_loop_timing(tmp_path: Path) -> N
 
 
 @pytest.mark.slow
-def test_demo_runs_ddpg_through_the_cli_and_writes_a_recording(
-    tmp_path: Path, capfd: Any
-) -> None:
+def test_demo_runs_ddpg_through_the_cli_and_writes_a_recording(tmp_path: Path, capfd: Any) -> None:
     demo = _load_tool("demo")
     record = tmp_path / "demo.rrd"
     code = demo.main(["--speed", "8", "--seconds", "4", "--record", str(record)])

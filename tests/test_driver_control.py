@@ -3,10 +3,9 @@ clipping, the soft barrier and how a run ends."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
+from conftest import wait_until
 
 from protocol import Mode
 from reach_driver import ArmClient, ControlLoop, ControlState, Pacing, StepRecord, open_transport
@@ -15,13 +14,6 @@ from reach_sim_bridge.server import SimConfig, SimServer
 SPEED = 4.0
 
 
-def wait_until(predicate, timeout: float = 5.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(0.005)
-    return predicate()
 
 
 class Constant:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import wait_until
 
 from protocol import DeviceID, Mode, PacketID
 from reach_driver import (
@@ -31,15 +32,6 @@ from reach_sim_bridge.server import SimConfig, SimServer
 
 SPEED = 4.0
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def wait_until(predicate, timeout: float = 10.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return predicate()
 
 
 @pytest.fixture
@@ -92,7 +84,9 @@ def test_move_reaches_the_target_in_position_mode(sim, link, capsys) -> None:
     snap = sim.snapshot()
     assert np.max(np.abs(snap.q - target)) < 0.03
     assert abs(snap.jaw_mm - 8.0) < 0.6
-    assert wait_until(lambda: all(sim.firmware.mode(d) == Mode.POSITION for d in (5, 4, 3, 2, 1)))
+    assert wait_until(
+        lambda: all(sim.firmware.mode(d) == Mode.POSITION for d in (5, 4, 3, 2, 1)), timeout=10.0
+    )
 
 
 def test_move_outside_a_limit_is_refused_and_nothing_moves(sim, capsys) -> None:
@@ -130,7 +124,9 @@ def test_run_pid_reaches_the_target_and_leaves_the_arm_safe(sim, link, tmp_path,
     # The loop counted 4 s of arm time (80 heartbeats at 20 Hz), whatever the speed-up.
     assert sim.sim_time - t0 >= 4.0
     assert np.max(np.abs(sim.snapshot().q - target)) < 0.02
-    assert wait_until(lambda: all(sim.firmware.mode(d) == Mode.ZERO_VELOCITY for d in (5, 4, 3, 2)))
+    assert wait_until(
+        lambda: all(sim.firmware.mode(d) == Mode.ZERO_VELOCITY for d in (5, 4, 3, 2)), timeout=10.0
+    )
     from reach_driver.rrd_summary import summarize_recording
 
     summary = summarize_recording(record)
@@ -218,21 +214,23 @@ def test_link_lost_when_the_sim_restarts_is_reported_and_reopened(sim, link) -> 
     try:
         arm.stream((PacketID.POSITION,), 10, [DeviceID.E])
         sim.stop()
-        assert wait_until(lambda: arm.link_state is not LinkState.UP)
+        assert wait_until(lambda: arm.link_state is not LinkState.UP, timeout=10.0)
         with pytest.raises(LinkDownError, match="nothing was sent"):
             arm.command_position(DeviceID.E, 3.0)
         with pytest.raises(LinkDownError):
             arm.request(DeviceID.E, [PacketID.POSITION])
         time.sleep(0.3)
         sim.start()  # the pty comes back under the same link, UDP on the same port
-        assert wait_until(lambda: arm.link_state is LinkState.UP)
+        assert wait_until(lambda: arm.link_state is LinkState.UP, timeout=10.0)
         kinds = [e.kind for e in events]
         assert EventKind.LINK_DOWN in kinds and EventKind.LINK_UP in kinds
         assert arm.stats.reconnects == 1
         assert arm.request(DeviceID.D, [PacketID.MODE])[PacketID.MODE].as_u8() == Mode.STANDBY
         # Streaming set up before the restart was re-applied to the fresh arm.
         n = arm.table.counts.get((5, PacketID.POSITION), 0)
-        assert wait_until(lambda: arm.table.counts.get((5, PacketID.POSITION), 0) > n + 3)
+        assert wait_until(
+            lambda: arm.table.counts.get((5, PacketID.POSITION), 0) > n + 3, timeout=10.0
+        )
     finally:
         arm.close()
 
@@ -246,7 +244,7 @@ def test_losing_the_link_mid_control_leaves_the_arm_safe_on_reconnect(sim) -> No
         sim.stop()
         sim.start()  # the same firmware state: D still in current mode
         assert sim.firmware.mode(4) == Mode.CURRENT
-        assert wait_until(lambda: sim.firmware.mode(4) == Mode.ZERO_VELOCITY)
+        assert wait_until(lambda: sim.firmware.mode(4) == Mode.ZERO_VELOCITY, timeout=10.0)
         assert arm.tripped is not None
         assert any(e.kind is EventKind.WATCHDOG for e in events)
     finally:
@@ -256,7 +254,7 @@ def test_losing_the_link_mid_control_leaves_the_arm_safe_on_reconnect(sim) -> No
 def test_watchdog_puts_the_arm_in_zero_velocity_when_the_controller_stops(sim) -> None:
     with ArmClient(open_transport(ports(sim)["pty"]), safety=SafetyConfig(watchdog_s=0.2)) as arm:
         arm.stream((PacketID.POSITION,), 50, [DeviceID.C])
-        assert wait_until(lambda: arm.joint(DeviceID.C).position is not None)
+        assert wait_until(lambda: arm.joint(DeviceID.C).position is not None, timeout=10.0)
         arm.command_current(DeviceID.C, 30.0)
         assert sim.firmware.mode(3) in (Mode.CURRENT, Mode.STANDBY)
         assert wait_until(lambda: sim.firmware.mode(3) == Mode.ZERO_VELOCITY, timeout=3.0)
@@ -278,7 +276,9 @@ def test_ctrl_c_during_run_leaves_the_arm_safe_and_exits_130(sim) -> None:
             proc.kill()
     assert proc.returncode == Exit.INTERRUPTED, err
     assert b"safe mode" in err
-    assert wait_until(lambda: all(sim.firmware.mode(d) == Mode.ZERO_VELOCITY for d in (5, 4, 3, 2)))
+    assert wait_until(
+        lambda: all(sim.firmware.mode(d) == Mode.ZERO_VELOCITY for d in (5, 4, 3, 2)), timeout=10.0
+    )
 
 
 def test_limits_written_to_the_arm_are_read_back_and_enforced(sim) -> None:
@@ -293,7 +293,7 @@ def test_limits_written_to_the_arm_are_read_back_and_enforced(sim) -> None:
             arm.command_current(DeviceID.D, 450.0)
         sent = arm.command_velocities([0.1, -0.1, 0.0, 0.2])
         np.testing.assert_allclose(sent, [0.1, -0.1, 0.0, 0.2])
-        assert wait_until(lambda: sim.firmware.mode(2) == Mode.VELOCITY)
+        assert wait_until(lambda: sim.firmware.mode(2) == Mode.VELOCITY, timeout=10.0)
         with pytest.raises(LimitError, match="velocity limit"):
             arm.command_velocity(DeviceID.E, 0.6)  # the firmware rate limit is 0.5236
         arm.safe_stop()
@@ -304,7 +304,7 @@ def test_a_link_error_flag_is_only_a_warning_for_move(sim, capsys) -> None:
 
     with ArmClient(open_transport(ports(sim)["pty"])) as arm:
         arm.write_frames([Packet(DeviceID.D, PacketID.MODE, b"").encode()])  # bad payload
-        assert wait_until(lambda: "SERIAL_ERROR" in arm.read_status().get(4, []))
+        assert wait_until(lambda: "SERIAL_ERROR" in arm.read_status().get(4, []), timeout=10.0)
     target = sim.snapshot().q + np.array([0.0, 0.1, 0.0, 0.0])
     assert main(["--port", ports(sim)["pty"], "move", *map(str, target)]) == Exit.OK
     out = capsys.readouterr().out

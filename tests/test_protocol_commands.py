@@ -8,13 +8,13 @@ import math
 import pytest
 
 from protocol import (
-    JOINT_ORDER,
     DeviceID,
     HardwareStatus,
     Mode,
     Packet,
     PacketID,
     PayloadError,
+    alpha5,
     commands,
     decode_packet,
     encode_packet,
@@ -144,7 +144,7 @@ def test_every_fact_sheet_id_is_named() -> None:
     for value in FACT_SHEET_PACKET_IDS:
         assert PacketID(value).value == value
     assert PacketID.DEVICE_TYPE is PacketID.INTERNAL_PRESSURE
-    assert [int(d) for d in JOINT_ORDER] == [0x05, 0x04, 0x03, 0x02]
+    assert [int(d) for d in alpha5.JOINTS] == [0x05, 0x04, 0x03, 0x02]
     assert DeviceID.JAWS is DeviceID.A and DeviceID.BASE_ROTATE is DeviceID.E
     assert {int(d) for d in (DeviceID.F, DeviceID.G, DeviceID.ROUTER, DeviceID.COMPUTE)} == {
         0x06,

@@ -1,9 +1,8 @@
-"""Conformance vectors from the shared fact sheet, both directions."""
+"""Conformance vectors (tests/data/bpl-vectors.json, see docs/protocol.md), both directions."""
 
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import Any
 
@@ -11,23 +10,9 @@ import pytest
 
 from protocol import Packet, PacketDecoder, crc8, decode_packet, encode_packet
 
-_NAME = "bpl-vectors.json"
+VECTORS_PATH = Path(__file__).resolve().parent / "data" / "bpl-vectors.json"
 
-
-def _vectors_path() -> Path:
-    candidates = [Path(__file__).resolve().parents[2] / "shared" / "reference" / _NAME]
-    if os.environ.get("REACH_SHARED"):
-        shared = Path(os.environ["REACH_SHARED"])
-        candidates += [shared / _NAME, shared / "reference" / _NAME]
-    for path in candidates:
-        if path.is_file():
-            return path
-    raise FileNotFoundError(
-        f"{_NAME} not found in {[str(p) for p in candidates]}; set REACH_SHARED to the shared dir"
-    )
-
-
-VECTORS: dict[str, Any] = json.loads(_vectors_path().read_text())
+VECTORS: dict[str, Any] = json.loads(VECTORS_PATH.read_text())
 
 
 def _hex(text: str) -> bytes:

@@ -8,6 +8,7 @@ import time
 import can
 import numpy as np
 import pytest
+from conftest import wait_until
 
 from protocol import Mode, PacketDecoder, commands
 from reach_driver import BadUrlError, open_transport
@@ -27,15 +28,6 @@ _channels = itertools.count()
 
 def channel() -> str:
     return f"test-tunnel-{next(_channels)}"
-
-
-def wait_until(predicate, timeout: float = 5.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(0.005)
-    return predicate()
 
 
 def read_for(t, seconds: float = 0.1) -> bytes:

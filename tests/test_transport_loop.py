@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import wait_until
 
 from protocol import DeviceID, Mode, Packet, PacketDecoder, PacketID, commands
 from reach_driver import (
@@ -29,13 +30,6 @@ from reach_driver.transport_serial import SerialTransport
 E, D, C, B = DeviceID.E, DeviceID.D, DeviceID.C, DeviceID.B
 
 
-def wait_until(predicate, timeout: float = 2.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(0.002)
-    return predicate()
 
 
 def read_all(transport, settle: float = 0.05) -> bytes:
@@ -130,7 +124,7 @@ def test_position_command_goes_out_as_its_wire_bytes_and_updates_state(client) -
     assert got is not None
     packet, t = got
     assert packet == Packet(E, PacketID.POSITION, np.float32(3.0).tobytes())
-    assert wait_until(lambda: client.joint(E).position is not None)
+    assert wait_until(lambda: client.joint(E).position is not None, timeout=2.0)
     reading = client.joint(E).position
     assert reading.value == pytest.approx(3.0) and reading.t == pytest.approx(t)
 
@@ -148,7 +142,7 @@ def test_out_of_limit_position_is_refused_and_nothing_is_sent(client) -> None:
 
 def test_current_beyond_the_limit_is_refused_by_name(client) -> None:
     client.write_frames([Packet(B, PacketID.POSITION, np.float32(3.0).tobytes()).encode()])
-    assert wait_until(lambda: client.joint(B).position is not None)
+    assert wait_until(lambda: client.joint(B).position is not None, timeout=2.0)
     with pytest.raises(LimitError, match=r"current 350 mA for joint B \(0x02\).*\[-300, 300\]"):
         client.command_current(B, 350.0)
 
@@ -182,7 +176,7 @@ def test_listeners_get_every_packet_and_a_failing_one_is_counted(client) -> None
     client.subscribe(broken)
     sub = client.subscribe(lambda p, t: seen.append(p))
     client.set_mode([E, D], Mode.POSITION)
-    assert wait_until(lambda: len(seen) == 2)
+    assert wait_until(lambda: len(seen) == 2, timeout=2.0)
     assert [p.device_id for p in seen] == [E, D]
     assert client.listeners.errors == 2
     sub.cancel()
@@ -194,7 +188,7 @@ def test_listeners_get_every_packet_and_a_failing_one_is_counted(client) -> None
 def test_soft_barrier_cuts_current_pushing_out_and_keeps_current_pulling_in(client) -> None:
     # E's upper bound is 6.143 rad; 0.05 rad inside it is half of the 0.1 rad barrier.
     client.write_frames([Packet(E, PacketID.POSITION, np.float32(6.093).tobytes()).encode()])
-    assert wait_until(lambda: client.joint(E).position is not None)
+    assert wait_until(lambda: client.joint(E).position is not None, timeout=2.0)
     with client.listen() as q:
         sent_out = client.command_current(E, 400.0)
         sent_in = client.command_current(E, -400.0)
@@ -213,7 +207,7 @@ def test_current_without_a_known_position_is_refused(client) -> None:
 
 def test_watchdog_trips_when_commands_stop_and_puts_the_joint_in_zero_velocity(client) -> None:
     client.write_frames([Packet(D, PacketID.POSITION, np.float32(1.0).tobytes()).encode()])
-    assert wait_until(lambda: client.joint(D).position is not None)
+    assert wait_until(lambda: client.joint(D).position is not None, timeout=2.0)
     # Keep the feedback fresh but stop commanding.
     client.command_current(D, 50.0)
     end = time.monotonic() + 0.5
@@ -235,7 +229,7 @@ def test_watchdog_trips_when_commands_stop_and_puts_the_joint_in_zero_velocity(c
 
 def test_watchdog_trips_on_stale_feedback_while_commanding(client) -> None:
     client.write_frames([Packet(C, PacketID.POSITION, np.float32(1.0).tobytes()).encode()])
-    assert wait_until(lambda: client.joint(C).position is not None)
+    assert wait_until(lambda: client.joint(C).position is not None, timeout=2.0)
     end = time.monotonic() + 0.6
     while time.monotonic() < end and client.tripped is None:
         client.command_current(C, 20.0)  # commands keep coming, feedback does not
