@@ -12,13 +12,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-JOINTS = ("E", "D", "C", "B")
+from protocol.alpha5 import JOINT_LETTERS as JOINTS
 
-# Default standard deviations for --sensor-noise without a value (position rad or mm,
-# velocity rad/s or mm/s): about a tenth of a degree and a tenth of a degree per second,
-# well above an encoder's quantisation so the effect on a controller is visible.
+# Default standard deviations (position rad or mm, velocity rad/s or mm/s): about a tenth of a
+# degree and one degree per second, well above an encoder's quantisation so the effect on a
+# controller is visible. The same values are the paper's noisy evaluation (Table I) and
+# `reach-sim --sensor-noise` without a value: noise means one thing everywhere.
 DEFAULT_POSITION_NOISE = 0.002
-DEFAULT_VELOCITY_NOISE = 0.002
+DEFAULT_VELOCITY_NOISE = 0.02
 
 
 @dataclass(frozen=True)
@@ -33,6 +34,17 @@ class SensorNoise:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"sensor noise {name} must be a finite number >= 0, got {value}")
+
+    def apply(
+        self, q: np.ndarray, qdot: np.ndarray, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Noisy copies of `q` and `qdot` (position noise drawn first, then velocity)."""
+        q = np.asarray(q, dtype=np.float64)
+        qdot = np.asarray(qdot, dtype=np.float64)
+        return (
+            q + rng.normal(0.0, self.position_std, q.shape),
+            qdot + rng.normal(0.0, self.velocity_std, qdot.shape),
+        )
 
 
 @dataclass(frozen=True)
