@@ -29,8 +29,9 @@ import mujoco
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from protocol.alpha5 import JOINT_LETTERS as JOINTS
 from reach_sim_bridge.motor import MotorModel
-from reach_sim_bridge.params import JOINTS, LINK_BODIES, ArmParams
+from reach_sim_bridge.params import LINK_BODIES, ArmParams
 
 __all__ = ["MODEL_PATH", "Alpha5Arm", "ArmParams", "JOINTS"]
 

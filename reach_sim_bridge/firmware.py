@@ -27,6 +27,8 @@ from dataclasses import dataclass
 from enum import Enum
 
 from protocol import DecodeError, DecodeReason, DeviceID, HardwareStatus, Mode, Packet, PacketID
+from protocol.alpha5 import JOINT_LETTERS
+from protocol.commands import HEARTBEAT_SLOTS, MAX_REQUEST_IDS
 from protocol.payload import pack_floats, pack_u8s
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.events import EventLog
@@ -34,8 +36,6 @@ from reach_sim_bridge.faults import SensorNoise
 
 log = logging.getLogger(__name__)
 
-MAX_REQUEST_IDS = 10
-HEARTBEAT_SLOTS = 10
 LINK_ERROR_FLAGS = HardwareStatus.SERIAL_ERROR | HardwareStatus.CRC_ERROR
 
 # Control packets that switch the mode implicitly; DISABLE and PASSIVE ignore them.
@@ -190,14 +190,13 @@ class Firmware:
         continuous = bool(arm.params.wrist_continuous)
         arm_limits = arm.position_limits
         arm_currents = arm.current_limits_mA
-        letters = ("E", "D", "C", "B")
         for spec in sorted(self.config.devices, key=lambda s: int(s.device_id)):
             if spec.letter == "A":
                 index = -1
                 lo, hi = arm.jaw_limits_mm
                 imax = arm.jaw_current_limit_mA
-            elif spec.letter in letters:
-                index = letters.index(spec.letter)
+            elif spec.letter in JOINT_LETTERS:
+                index = JOINT_LETTERS.index(spec.letter)
                 lo, hi = float(arm_limits[index, 0]), float(arm_limits[index, 1])
                 imax = float(arm_currents[index])
             else:

@@ -22,10 +22,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from protocol import alpha5
+
 FloatArray = NDArray[np.float64]
 
-DEFAULT_SUPPLY_VOLTAGE = 24.0
-SUPPLY_VOLTAGE_RANGE = (18.0, 30.0)  # the arm's rated supply, volts
+DEFAULT_SUPPLY_VOLTAGE = alpha5.NOMINAL_SUPPLY_V
+SUPPLY_VOLTAGE_RANGE = alpha5.SUPPLY_RANGE_V  # the arm's rated supply, volts
 
 
 def _as_tuple(values: Sequence[float] | ArrayLike, name: str) -> tuple[float, ...]:
@@ -78,13 +80,13 @@ class MotorParams:
         return np.array(self.backemf_constant) * np.array(self.gear_ratio)
 
 
-# Datasheet values (alpha5-model.md, "Actuators"); E, D, C share one motor and gearbox.
+# Datasheet values (model/README.md, "Motors"), held once in protocol.alpha5.
 ALPHA5_MOTORS = MotorParams(
-    resistance_ohm=(3.22, 3.22, 3.22, 38.6),
-    torque_constant=(0.0134, 0.0134, 0.0134, 0.0271),
-    backemf_constant=(0.0116, 0.0116, 0.0116, 0.0545),
-    gear_ratio=(1754.4, 1754.4, 1754.4, 340.4),
-    efficiency=(0.86, 0.86, 0.86, 0.77),
+    resistance_ohm=alpha5.MOTOR_RESISTANCE_OHM,
+    torque_constant=alpha5.MOTOR_TORQUE_CONSTANT_NM_PER_A,
+    backemf_constant=alpha5.MOTOR_BACKEMF_V_S_PER_RAD,
+    gear_ratio=alpha5.GEAR_RATIO,
+    efficiency=alpha5.GEAR_EFFICIENCY,
 )
 
 # The jaw's lead screw is not published. Assumed: 20 mm lead, 40 % screw efficiency, so
@@ -101,8 +103,8 @@ JAW_MOTOR = MotorParams(
     efficiency=(0.77 * JAW_SCREW_EFFICIENCY,),
 )
 
-DEFAULT_CURRENT_LIMITS_MA = (600.0, 600.0, 600.0, 300.0)  # E D C B (architecture.md)
-DEFAULT_JAW_CURRENT_LIMIT_MA = 300.0  # assumed: same motor as B
+DEFAULT_CURRENT_LIMITS_MA = alpha5.DEFAULT_CURRENT_LIMITS_MA
+DEFAULT_JAW_CURRENT_LIMIT_MA = alpha5.DEFAULT_JAW_CURRENT_LIMIT_MA  # assumed: same motor as B
 
 
 class MotorModel:

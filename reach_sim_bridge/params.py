@@ -22,7 +22,6 @@ from reach_sim_bridge.motor import (
     MotorParams,
 )
 
-JOINTS = ("E", "D", "C", "B")
 LINK_BODIES = ("m2_1_1", "m2", "m2_1_3", "m1")  # the body each of E D C B moves
 
 Vec4 = tuple[float, float, float, float]

@@ -21,11 +21,11 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from protocol import Mode
+from protocol.alpha5 import JOINT_LETTERS as JOINTS
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.firmware import Firmware
 from reach_sim_bridge.server import SimServer
 
-JOINTS = ("E", "D", "C", "B")
 DEVICE_IDS = (0x05, 0x04, 0x03, 0x02)
 
 
