@@ -74,8 +74,7 @@ class Alpha5Arm:
         self._nominal_mass = m.body_mass[self._link_ids].copy()
         self._nominal_inertia = m.body_inertia[self._link_ids].copy()
         self._tcp = m.site(_TCP_SITE).id
-        self._collision_geoms = np.array(
-            [m.geom(name).id for name in ("m3_inline", *LINK_BODIES)])
+        self._collision_geoms = np.array([m.geom(name).id for name in ("m3_inline", *LINK_BODIES)])
         self._jaw_range_m = m.jnt_range[joint_ids[4]].copy()
 
         # Live views into MuJoCo's buffers, used in the stepping loop.
@@ -153,8 +152,9 @@ class Alpha5Arm:
         mujoco.mj_setConst(m, self._scratch)
         self._params = params
 
-    def randomize(self, spread: float = 0.2, rng: np.random.Generator | int | None = None
-                  ) -> ArmParams:
+    def randomize(
+        self, spread: float = 0.2, rng: np.random.Generator | int | None = None
+    ) -> ArmParams:
         """Perturb friction, armature, masses and buoyancy by up to +-spread around
         ``nominal_params`` (the arm as built, so repeated calls do not compound), keeping the
         run-time torque scale, current limits and supply; draws from the arm's seeded
@@ -186,8 +186,10 @@ class Alpha5Arm:
         tol = 1e-9
         outside = (q_arr[check] < limits[check, 0] - tol) | (q_arr[check] > limits[check, 1] + tol)
         if np.any(outside):
-            bad = [f"{JOINTS[i]}={q_arr[i]:.4f} not in [{limits[i, 0]:.4f}, {limits[i, 1]:.4f}]"
-                   for i in np.flatnonzero(outside)]
+            bad = [
+                f"{JOINTS[i]}={q_arr[i]:.4f} not in [{limits[i, 0]:.4f}, {limits[i, 1]:.4f}]"
+                for i in np.flatnonzero(outside)
+            ]
             raise ValueError("reset position outside the joint ranges: " + ", ".join(bad))
         jaw = float(jaw_mm)
         lo_mm, hi_mm = self._jaw_range_m * 1000.0
@@ -256,16 +258,18 @@ class Alpha5Arm:
         w = self.data.qvel
         self._current_mA[:4] = self.motor.current_mA(self._command_mA[:4], w[:4])
         self._current_mA[4:] = self.jaw_motor.current_mA(self._command_mA[4:], w[4:5])
-        self._tau[:4] = (self.motor.torque_scale * self.motor.torque_per_amp
-                         * self._current_mA[:4] / 1000.0)
+        self._tau[:4] = (
+            self.motor.torque_scale * self.motor.torque_per_amp * self._current_mA[:4] / 1000.0
+        )
         self._tau[4] = self.jaw_motor.torque_per_amp[0] * self._current_mA[4] / 1000.0
 
     @staticmethod
     def _vector(values: ArrayLike, name: str) -> FloatArray:
         array = np.asarray(values, dtype=np.float64)
         if array.shape != (4,):
-            raise ValueError(f"{name} needs 4 values in joint order E D C B, got shape "
-                             f"{array.shape}")
+            raise ValueError(
+                f"{name} needs 4 values in joint order E D C B, got shape {array.shape}"
+            )
         if not np.all(np.isfinite(array)):
             raise ValueError(f"{name} must be finite, got {array.tolist()}")
         return array

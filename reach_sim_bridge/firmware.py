@@ -293,20 +293,28 @@ class Firmware:
         else:
             dev = self._by_id.get(target)
             if dev is None:
-                self.ignored.record(Ignored.OTHER_DEVICE.value,
-                                    f"packet 0x{int(packet.packet_id):02X} for device "
-                                    f"0x{target:02X}, which this arm does not have")
+                self.ignored.record(
+                    Ignored.OTHER_DEVICE.value,
+                    f"packet 0x{int(packet.packet_id):02X} for device "
+                    f"0x{target:02X}, which this arm does not have",
+                )
                 return []
             targets = [dev]
         pid = int(packet.packet_id)
         handler = self._handlers.get(pid)
         if handler is None:
             if pid in self._reporters or pid == PacketID.KM_END_VEL:
-                self.ignored.record(Ignored.READ_ONLY.value,
-                                    f"packet 0x{pid:02X} is read-only here (send a REQUEST)")
+                self.ignored.record(
+                    Ignored.READ_ONLY.value,
+                    f"packet 0x{pid:02X} is read-only here (send a REQUEST)",
+                )
             else:
-                self._error(targets, ErrorReason.UNKNOWN_PACKET,
-                            f"packet id 0x{pid:02X} is not implemented; ignored", flag=False)
+                self._error(
+                    targets,
+                    ErrorReason.UNKNOWN_PACKET,
+                    f"packet id 0x{pid:02X} is not implemented; ignored",
+                    flag=False,
+                )
             return []
         try:
             return handler(targets, packet)
@@ -318,8 +326,11 @@ class Firmware:
         """A frame the server could not decode: flag it on the base device (0x05), where the
         host link enters the arm."""
         base = self._by_id.get(int(DeviceID.E), self._devices[-1])
-        flag = (HardwareStatus.CRC_ERROR if error.reason == DecodeReason.CRC
-                else HardwareStatus.SERIAL_ERROR)
+        flag = (
+            HardwareStatus.CRC_ERROR
+            if error.reason == DecodeReason.CRC
+            else HardwareStatus.SERIAL_ERROR
+        )
         self._raise_flag([base], flag)
 
     def tick(self, dt: float) -> list[Packet]:
@@ -416,14 +427,18 @@ class Firmware:
             if d.status & LINK_ERROR_FLAGS:
                 if now - d.last_error_time >= cfg.error_hold_s:
                     d.status &= ~LINK_ERROR_FLAGS
-                    log.info("device %s: link error flags cleared after %.1f s without errors",
-                             d.spec.letter, cfg.error_hold_s)
+                    log.info(
+                        "device %s: link error flags cleared after %.1f s without errors",
+                        d.spec.letter,
+                        cfg.error_hold_s,
+                    )
                     continue
                 d.status_phase += h
                 if d.status_phase >= cfg.status_period_s - 1e-9:
                     d.status_phase = 0.0
-                    out.append(Packet(d.spec.device_id, PacketID.HARDWARE_STATUS,
-                                      d.status.to_bytes()))
+                    out.append(
+                        Packet(d.spec.device_id, PacketID.HARDWARE_STATUS, d.status.to_bytes())
+                    )
 
     # -- measurements -----------------------------------------------------------------------
     def _position(self, d: Device) -> float:
@@ -453,8 +468,9 @@ class Firmware:
         return pack_floats(*self.arm.end_effector_pose())
 
     # -- errors -----------------------------------------------------------------------------
-    def _error(self, targets: Sequence[Device], reason: ErrorReason, message: str,
-               flag: bool = True) -> None:
+    def _error(
+        self, targets: Sequence[Device], reason: ErrorReason, message: str, flag: bool = True
+    ) -> None:
         self.errors.record(reason.value, message)
         if flag:
             self._raise_flag(targets, HardwareStatus.SERIAL_ERROR)
@@ -483,13 +499,15 @@ class Firmware:
         data = packet.data
         if len(data) != 1:
             hint = " (an empty MODE: a sender using bytes(Mode.X)?)" if not data else ""
-            raise _Rejected(ErrorReason.BAD_PAYLOAD,
-                            f"MODE payload must be 1 byte, got {len(data)}{hint}")
+            raise _Rejected(
+                ErrorReason.BAD_PAYLOAD, f"MODE payload must be 1 byte, got {len(data)}{hint}"
+            )
         try:
             mode = Mode(data[0])
         except ValueError:
-            raise _Rejected(ErrorReason.UNKNOWN_MODE,
-                            f"mode 0x{data[0]:02X} is not one this firmware runs") from None
+            raise _Rejected(
+                ErrorReason.UNKNOWN_MODE, f"mode 0x{data[0]:02X} is not one this firmware runs"
+            ) from None
         for d in targets:
             self._set_mode(d, mode)
         return []
@@ -499,8 +517,9 @@ class Firmware:
         accepted = [d for d in targets if d.mode not in _LOCKED_MODES]
         if len(accepted) < len(targets):
             locked = " ".join(d.spec.letter for d in targets if d.mode in _LOCKED_MODES)
-            self.ignored.record(Ignored.LOCKED.value,
-                                f"{name} ignored by {locked}: DISABLE/PASSIVE mode")
+            self.ignored.record(
+                Ignored.LOCKED.value, f"{name} ignored by {locked}: DISABLE/PASSIVE mode"
+            )
         return accepted
 
     def _on_position(self, targets: list[Device], packet: Packet) -> list[Packet]:
@@ -548,18 +567,21 @@ class Firmware:
     def _on_limits(self, targets: list[Device], packet: Packet) -> list[Packet]:
         pid = PacketID(int(packet.packet_id))
         if len(packet.data) != 8:
-            raise _Rejected(ErrorReason.BAD_PAYLOAD,
-                            f"{pid.name} payload must be 8 bytes [max, min], "
-                            f"got {len(packet.data)}")
+            raise _Rejected(
+                ErrorReason.BAD_PAYLOAD,
+                f"{pid.name} payload must be 8 bytes [max, min], got {len(packet.data)}",
+            )
         hi, lo = packet.floats()
         if not (math.isfinite(hi) and math.isfinite(lo)):
             raise _Rejected(ErrorReason.BAD_VALUE, f"{pid.name} [{hi}, {lo}] is not finite")
         if hi < lo:
-            raise _Rejected(ErrorReason.BAD_LIMITS,
-                            f"{pid.name} max {hi} < min {lo} (wire order is [max, min])")
+            raise _Rejected(
+                ErrorReason.BAD_LIMITS, f"{pid.name} max {hi} < min {lo} (wire order is [max, min])"
+            )
         if pid != PacketID.POSITION_LIMITS and not lo <= 0.0 <= hi:
-            raise _Rejected(ErrorReason.BAD_LIMITS,
-                            f"{pid.name} [{hi}, {lo}] must include 0 (max >= 0 >= min)")
+            raise _Rejected(
+                ErrorReason.BAD_LIMITS, f"{pid.name} [{hi}, {lo}] must include 0 (max >= 0 >= min)"
+            )
         for d in targets:
             if pid == PacketID.POSITION_LIMITS:
                 d.position_limits = Limits(lo, hi)
@@ -608,12 +630,17 @@ class Firmware:
     def _on_request(self, targets: list[Device], packet: Packet) -> list[Packet]:
         ids = packet.data
         if not 1 <= len(ids) <= MAX_REQUEST_IDS:
-            raise _Rejected(ErrorReason.BAD_PAYLOAD,
-                            f"REQUEST takes 1 to {MAX_REQUEST_IDS} packet ids, got {len(ids)}")
+            raise _Rejected(
+                ErrorReason.BAD_PAYLOAD,
+                f"REQUEST takes 1 to {MAX_REQUEST_IDS} packet ids, got {len(ids)}",
+            )
         if 0 in ids:
             # Answer the real ids, but count the defect (pre-sized list with leading zeros).
-            self._error(targets, ErrorReason.BAD_PAYLOAD,
-                        f"REQUEST {list(ids)} holds id 0 (padding is not a packet id)")
+            self._error(
+                targets,
+                ErrorReason.BAD_PAYLOAD,
+                f"REQUEST {list(ids)} holds id 0 (padding is not a packet id)",
+            )
         broadcast = int(packet.device_id) == DeviceID.BROADCAST
         out: list[Packet] = []
         for d in targets:
@@ -624,21 +651,26 @@ class Firmware:
                 if reply is not None:
                     out.append(reply)
                 elif not broadcast or pid not in self._reporters:
-                    self.ignored.record(Ignored.UNSUPPORTED_REQUEST.value,
-                                        f"device {d.spec.letter} has no 0x{pid:02X} to report")
+                    self.ignored.record(
+                        Ignored.UNSUPPORTED_REQUEST.value,
+                        f"device {d.spec.letter} has no 0x{pid:02X} to report",
+                    )
         return out
 
     def _on_heartbeat_set(self, targets: list[Device], packet: Packet) -> list[Packet]:
         if len(packet.data) > HEARTBEAT_SLOTS:
-            raise _Rejected(ErrorReason.BAD_PAYLOAD,
-                            f"HEARTBEAT_SET takes at most {HEARTBEAT_SLOTS} ids, "
-                            f"got {len(packet.data)}")
+            raise _Rejected(
+                ErrorReason.BAD_PAYLOAD,
+                f"HEARTBEAT_SET takes at most {HEARTBEAT_SLOTS} ids, got {len(packet.data)}",
+            )
         ids = tuple(pid for pid in packet.data if pid)
         unknown = [pid for pid in ids if pid not in self._reporters]
         if unknown:
-            self.ignored.record(Ignored.UNSUPPORTED_REQUEST.value,
-                                f"HEARTBEAT_SET ids {[f'0x{p:02X}' for p in unknown]} cannot "
-                                "be reported; they will be skipped")
+            self.ignored.record(
+                Ignored.UNSUPPORTED_REQUEST.value,
+                f"HEARTBEAT_SET ids {[f'0x{p:02X}' for p in unknown]} cannot "
+                "be reported; they will be skipped",
+            )
         for d in targets:
             d.heartbeat_ids = ids
             d.heartbeat_phase = 0.0
@@ -646,8 +678,10 @@ class Firmware:
 
     def _on_heartbeat_frequency(self, targets: list[Device], packet: Packet) -> list[Packet]:
         if len(packet.data) != 1:
-            raise _Rejected(ErrorReason.BAD_PAYLOAD,
-                            f"HEARTBEAT_FREQUENCY payload must be 1 byte, got {len(packet.data)}")
+            raise _Rejected(
+                ErrorReason.BAD_PAYLOAD,
+                f"HEARTBEAT_FREQUENCY payload must be 1 byte, got {len(packet.data)}",
+            )
         for d in targets:
             d.heartbeat_hz = packet.data[0]
             d.heartbeat_phase = 0.0
@@ -656,8 +690,10 @@ class Firmware:
 
 def _one_float(packet: Packet, name: str) -> float:
     if len(packet.data) != 4:
-        raise _Rejected(ErrorReason.BAD_PAYLOAD,
-                        f"{name} payload must be one float32 (4 bytes), got {len(packet.data)}")
+        raise _Rejected(
+            ErrorReason.BAD_PAYLOAD,
+            f"{name} payload must be one float32 (4 bytes), got {len(packet.data)}",
+        )
     value = packet.floats()[0]
     if not math.isfinite(value):
         raise _Rejected(ErrorReason.BAD_VALUE, f"{name} value {value} is not finite")
@@ -670,4 +706,3 @@ def _limits_payload(limits: Limits) -> bytes:
 
 def _heartbeat_payload(ids: tuple[int, ...]) -> bytes:
     return bytes(ids) + bytes(HEARTBEAT_SLOTS - len(ids))
-

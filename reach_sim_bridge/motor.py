@@ -54,8 +54,13 @@ class MotorParams:
 
     def __post_init__(self) -> None:
         sizes = set()
-        for name in ("resistance_ohm", "torque_constant", "backemf_constant", "gear_ratio",
-                     "efficiency"):
+        for name in (
+            "resistance_ohm",
+            "torque_constant",
+            "backemf_constant",
+            "gear_ratio",
+            "efficiency",
+        ):
             values = _as_tuple(getattr(self, name), name)
             if any(v <= 0.0 for v in values):
                 raise ValueError(f"motor {name} must be > 0, got {values}")
@@ -72,8 +77,9 @@ class MotorParams:
 
     def torque_per_amp(self) -> FloatArray:
         """Output torque (N m, or N for the jaw) per amp: Kt x Gr x eta."""
-        return (np.array(self.torque_constant) * np.array(self.gear_ratio)
-                * np.array(self.efficiency))
+        return (
+            np.array(self.torque_constant) * np.array(self.gear_ratio) * np.array(self.efficiency)
+        )
 
     def backemf_per_speed(self) -> FloatArray:
         """Back-EMF volts per unit of output speed: Kv x Gr."""
@@ -130,9 +136,7 @@ class MotorModel:
         self.supply_voltage = supply_voltage
         default_limits = DEFAULT_CURRENT_LIMITS_MA if n == 4 else (1000.0,) * n
         self._limits_mA = np.empty(n)
-        self.current_limits_mA = (
-            default_limits if current_limits_mA is None else current_limits_mA
-        )
+        self.current_limits_mA = default_limits if current_limits_mA is None else current_limits_mA
         self._scale = np.ones(n)
         if torque_scale is not None:
             self.torque_scale = torque_scale

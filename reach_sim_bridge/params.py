@@ -27,7 +27,12 @@ LINK_BODIES = ("m2_1_1", "m2", "m2_1_3", "m1")  # the body each of E D C B moves
 Vec4 = tuple[float, float, float, float]
 
 _VEC4_FIELDS = (
-    "armature", "damping", "frictionloss", "link_mass_kg", "link_volume_l", "torque_scale",
+    "armature",
+    "damping",
+    "frictionloss",
+    "link_mass_kg",
+    "link_volume_l",
+    "torque_scale",
     "current_limits_mA",
 )
 
@@ -84,8 +89,13 @@ class ArmParams:
         if len(gravity) != 3 or not all(math.isfinite(v) for v in gravity):
             raise ValueError(f"gravity needs 3 finite values (m/s^2), got {self.gravity}")
         object.__setattr__(self, "gravity", gravity)
-        for name in ("water_density", "fluid_viscosity", "jaw_current_limit_mA",
-                     "jaw_damping", "jaw_frictionloss"):
+        for name in (
+            "water_density",
+            "fluid_viscosity",
+            "jaw_current_limit_mA",
+            "jaw_damping",
+            "jaw_frictionloss",
+        ):
             value = float(getattr(self, name))
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value}")

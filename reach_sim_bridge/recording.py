@@ -47,17 +47,28 @@ def _sample(arm: Alpha5Arm, firmware: Firmware) -> _Sample:
     modes = tuple(m for m, _, _ in setpoints)
     target = np.array([p if m == Mode.POSITION else math.nan for m, p, _ in setpoints])
     return _Sample(
-        t=arm.time, q=arm.q.copy(), qdot=arm.qdot.copy(), tau=arm.tau.copy(),
-        drawn_mA=arm.current_mA.copy(), applied_mA=np.array([a for _, _, a in setpoints]),
-        setpoint=target, modes=modes, skeleton=arm.skeleton(),
+        t=arm.time,
+        q=arm.q.copy(),
+        qdot=arm.qdot.copy(),
+        tau=arm.tau.copy(),
+        drawn_mA=arm.current_mA.copy(),
+        applied_mA=np.array([a for _, _, a in setpoints]),
+        setpoint=target,
+        modes=modes,
+        skeleton=arm.skeleton(),
     )
 
 
 class SimRecorder:
     """Samples a running SimServer at `rate_hz` of sim time into a .rrd, in its own thread."""
 
-    def __init__(self, server: SimServer, path: str | Path, rate_hz: float = 50.0,
-                 flush_period_s: float = 0.5) -> None:
+    def __init__(
+        self,
+        server: SimServer,
+        path: str | Path,
+        rate_hz: float = 50.0,
+        flush_period_s: float = 0.5,
+    ) -> None:
         if rate_hz <= 0:
             raise ValueError(f"recording rate must be positive, got {rate_hz}")
         self.server = server
@@ -72,28 +83,42 @@ class SimRecorder:
         blueprint = rrb.Blueprint(
             rrb.Horizontal(
                 rrb.Spatial3DView(origin="/", contents=["/arm/**"], name="arm (true state)"),
-                rrb.Vertical(*[rrb.TimeSeriesView(origin=f"/joints/{j}/position",
-                                                  name=f"{j}: position vs setpoint")
-                               for j in JOINTS]),
-                rrb.Vertical(rrb.TimeSeriesView(origin="/torques", name="torques (N m)"),
-                             rrb.TimeSeriesView(origin="/velocities", name="velocities"),
-                             rrb.TimeSeriesView(origin="/link", name="link")),
+                rrb.Vertical(
+                    *[
+                        rrb.TimeSeriesView(
+                            origin=f"/joints/{j}/position", name=f"{j}: position vs setpoint"
+                        )
+                        for j in JOINTS
+                    ]
+                ),
+                rrb.Vertical(
+                    rrb.TimeSeriesView(origin="/torques", name="torques (N m)"),
+                    rrb.TimeSeriesView(origin="/velocities", name="velocities"),
+                    rrb.TimeSeriesView(origin="/link", name="link"),
+                ),
             ),
             collapse_panels=True,
         )
         self._rec.save(str(self.path), default_blueprint=blueprint)
         self._rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         for j in JOINTS:
-            self._rec.log(f"joints/{j}/position", rr.SeriesLines(names=["q", "setpoint"]),
-                          static=True)
-            self._rec.log(f"joints/{j}/current", rr.SeriesLines(names=["applied", "drawn"]),
-                          static=True)
+            self._rec.log(
+                f"joints/{j}/position", rr.SeriesLines(names=["q", "setpoint"]), static=True
+            )
+            self._rec.log(
+                f"joints/{j}/current", rr.SeriesLines(names=["applied", "drawn"]), static=True
+            )
         for entity in ("torques", "velocities"):
             self._rec.log(entity, rr.SeriesLines(names=list(JOINTS)), static=True)
-        self._rec.log("link", rr.SeriesLines(names=["frames in", "bad frames", "frames out"]),
-                      static=True)
-        meta = {"source": "reach-sim", "joint_names": list(JOINTS), "rate_hz": rate_hz,
-                "speed": server.config.speed}
+        self._rec.log(
+            "link", rr.SeriesLines(names=["frames in", "bad frames", "frames out"]), static=True
+        )
+        meta = {
+            "source": "reach-sim",
+            "joint_names": list(JOINTS),
+            "rate_hz": rate_hz,
+            "speed": server.config.speed,
+        }
         self._rec.log("run/metadata", rr.TextDocument(json.dumps(meta)), static=True)
         self._modes: tuple[Mode, ...] | None = None
 
@@ -123,14 +148,16 @@ class SimRecorder:
             rec.log(f"joints/{j}/current", rr.Scalars([s.applied_mA[i], s.drawn_mA[i]]))
         rec.log("torques", rr.Scalars(s.tau))
         rec.log("velocities", rr.Scalars(s.qdot))
-        rec.log("arm/skeleton", rr.LineStrips3D([s.skeleton], radii=0.01,
-                                                colors=[(230, 150, 40, 255)]))
+        rec.log(
+            "arm/skeleton", rr.LineStrips3D([s.skeleton], radii=0.01, colors=[(230, 150, 40, 255)])
+        )
         stats = self.server.stats()
-        rec.log("link", rr.Scalars([float(stats.frames_in), float(stats.bad_total),
-                                    float(stats.frames_out)]))
+        rec.log(
+            "link",
+            rr.Scalars([float(stats.frames_in), float(stats.bad_total), float(stats.frames_out)]),
+        )
         if s.modes != self._modes:
-            names = ", ".join(f"{j}={m.name.lower()}" for j, m in zip(JOINTS, s.modes,
-                                                                      strict=True))
+            names = ", ".join(f"{j}={m.name.lower()}" for j, m in zip(JOINTS, s.modes, strict=True))
             rec.log("events", rr.TextLog(f"modes: {names}", level="INFO"))
             self._modes = s.modes
         self.samples += 1

@@ -1,4 +1,4 @@
-"""The Alpha 5 model and motor model against hand calculations from alpha5-model.md.
+"""The Alpha 5 model and motor model against hand calculations from the datasheet figures in reach_sim_bridge/model/README.md.
 
 The hand calculations below re-derive kinematics, statics and inertia directly from the
 reference tables (frames, masses, COMs, volumes, centres of buoyancy, motor constants) with
@@ -43,18 +43,34 @@ def full_inertia(xx, yy, zz, xy, xz, yz):  # noqa: ANN001, ANN201 - table order
 
 # body: (mass, COM, inertia about COM, volume L, centre of buoyancy), URDF body frames.
 BODIES = {
-    "m2_1_1": (0.161, (-0.00775, -0.00011, 0.01104),
-               full_inertia(1.0947e-4, 1.2236e-4, 4.3987e-5, -8.08e-7, 2.9828e-5, 5.44e-7),
-               0.032, (-0.002, 0.004, 0.017)),
-    "m2": (0.380, (-0.0188, -0.00073, -0.07047),
-           full_inertia(8.316e-4, 8.6848e-4, 9.8249e-5, -1.896e-7, -1.3133e-4, -1.8832e-6),
-           0.218, (-0.01953, -0.001, -0.07279)),
-    "m2_1_3": (0.142, (0.01091, 0.00015, 0.01591),
-               full_inertia(6.3596e-5, 7.5158e-5, 4.0651e-5, 8.02e-7, -2.1363e-5, 3.37e-7),
-               0.032, (0.01091, 0.00015, 0.01591)),
-    "m1": (0.355, (-0.00085, -0.00127, 0.06709),
-           full_inertia(6.1833e-4, 6.229e-4, 6.2574e-5, 4.0977e-6, 6.6415e-6, -4.3286e-6),
-           0.134, (-0.00013, 0.00003, 0.06321)),
+    "m2_1_1": (
+        0.161,
+        (-0.00775, -0.00011, 0.01104),
+        full_inertia(1.0947e-4, 1.2236e-4, 4.3987e-5, -8.08e-7, 2.9828e-5, 5.44e-7),
+        0.032,
+        (-0.002, 0.004, 0.017),
+    ),
+    "m2": (
+        0.380,
+        (-0.0188, -0.00073, -0.07047),
+        full_inertia(8.316e-4, 8.6848e-4, 9.8249e-5, -1.896e-7, -1.3133e-4, -1.8832e-6),
+        0.218,
+        (-0.01953, -0.001, -0.07279),
+    ),
+    "m2_1_3": (
+        0.142,
+        (0.01091, 0.00015, 0.01591),
+        full_inertia(6.3596e-5, 7.5158e-5, 4.0651e-5, 8.02e-7, -2.1363e-5, 3.37e-7),
+        0.032,
+        (0.01091, 0.00015, 0.01591),
+    ),
+    "m1": (
+        0.355,
+        (-0.00085, -0.00127, 0.06709),
+        full_inertia(6.1833e-4, 6.229e-4, 6.2574e-5, 4.0977e-6, 6.6415e-6, -4.3286e-6),
+        0.134,
+        (-0.00013, 0.00003, 0.06321),
+    ),
 }
 
 
@@ -135,10 +151,15 @@ def test_default_params_equal_the_xml() -> None:
     xml = mujoco.MjModel.from_xml_path(str(MODEL_PATH))
     arm = Alpha5Arm()
     m = arm.model
-    for name in ("dof_armature", "dof_damping", "dof_frictionloss", "body_mass",
-                 "body_inertia", "body_gravcomp"):
-        np.testing.assert_allclose(getattr(m, name), getattr(xml, name), rtol=1e-9,
-                                   err_msg=name)
+    for name in (
+        "dof_armature",
+        "dof_damping",
+        "dof_frictionloss",
+        "body_mass",
+        "body_inertia",
+        "body_gravcomp",
+    ):
+        np.testing.assert_allclose(getattr(m, name), getattr(xml, name), rtol=1e-9, err_msg=name)
     assert m.opt.density == xml.opt.density and m.opt.viscosity == xml.opt.viscosity
     np.testing.assert_allclose(m.opt.gravity, xml.opt.gravity)
 
@@ -171,8 +192,9 @@ def test_collisions_and_fluid_drag_configuration() -> None:
 
 
 # -- statics: gravity minus buoyancy --------------------------------------------------------
-@pytest.mark.parametrize("q", [(3.0, 1.3, 2.6, 1.0), (1.0, 0.5, 3.0, 4.0), (5.0, 2.5, 0.4, 2.0),
-                               (2.0, 1.57, 3.14, 0.0)])
+@pytest.mark.parametrize(
+    "q", [(3.0, 1.3, 2.6, 1.0), (1.0, 0.5, 3.0, 4.0), (5.0, 2.5, 0.4, 2.0), (2.0, 1.57, 3.14, 0.0)]
+)
 @pytest.mark.parametrize("rho", [0.0, 1000.0, 1025.0])
 def test_gravity_torque_at_d_matches_hand_calculation(q: tuple[float, ...], rho: float) -> None:
     arm = Alpha5Arm(ArmParams(water_density=rho))
@@ -224,10 +246,12 @@ def test_motor_torque_current_limit_and_backemf_envelope() -> None:
     assert motor.torque_per_amp[3] == pytest.approx(K_B)
     at_rest = np.zeros(4)
     assert motor.torque([100, -200, 0, 50], at_rest) == pytest.approx(
-        [K_EDC * 0.1, -K_EDC * 0.2, 0.0, K_B * 0.05])
+        [K_EDC * 0.1, -K_EDC * 0.2, 0.0, K_B * 0.05]
+    )
     # The current limit clamps (600 mA E D C, 300 mA B by default).
     assert motor.current_mA([5000, -5000, 599, 5000], at_rest) == pytest.approx(
-        [600, -600, 599, 300])
+        [600, -600, 599, 300]
+    )
     # Driving along the motion at 1.1 rad/s leaves (V - Ke w) / R of headroom.
     w = np.array([1.1, -1.1, 0.5, 0.0])
     headroom = 1000 * (V - KE_EDC * 1.1) / R_EDC
@@ -270,15 +294,14 @@ def test_large_current_reaches_backemf_speed_minus_friction() -> None:
     arm.reset(q=[0.1, 0.1, 0.1, 0.1])
     arm.step([1e6, 1e6, 1e6, 1e6], n=200)  # 0.4 s
     for j in range(3):
-        expect = steady_speed(K_EDC, KE_EDC, R_EDC, FRICTION["viscous"][j],
-                              FRICTION["coulomb"][j])
+        expect = steady_speed(K_EDC, KE_EDC, R_EDC, FRICTION["viscous"][j], FRICTION["coulomb"][j])
         assert arm.qdot[j] == pytest.approx(expect, rel=0.01)
         assert 0.95 * no_load_speed()[j] < arm.qdot[j] < no_load_speed()[j]
     assert arm.qdot[3] == pytest.approx(
-        steady_speed(K_B, 0.0545 * 340.4, 38.6, 0.36, 0.075), rel=0.01)
+        steady_speed(K_B, 0.0545 * 340.4, 38.6, 0.36, 0.075), rel=0.01
+    )
     # The current drawn is what the back-EMF leaves, far below the command.
-    assert arm.current_mA[0] == pytest.approx(1000 * (V - KE_EDC * arm.qdot[0]) / R_EDC,
-                                              rel=1e-6)
+    assert arm.current_mA[0] == pytest.approx(1000 * (V - KE_EDC * arm.qdot[0]) / R_EDC, rel=1e-6)
 
 
 def test_current_limited_joint_settles_on_the_backemf_line() -> None:
@@ -291,11 +314,14 @@ def test_current_limited_joint_settles_on_the_backemf_line() -> None:
     assert arm.tau[0] == pytest.approx(K_EDC * arm.current_mA[0] / 1000)
 
 
-@pytest.mark.parametrize("joint,body,moved,current", [
-    (1, "m2", ("m2", "m2_1_3", "m1"), 300.0),
-    (1, "m2", ("m2", "m2_1_3", "m1"), -300.0),
-    (0, "m2_1_1", ("m2_1_1", "m2", "m2_1_3", "m1"), 200.0),
-])
+@pytest.mark.parametrize(
+    "joint,body,moved,current",
+    [
+        (1, "m2", ("m2", "m2_1_3", "m1"), 300.0),
+        (1, "m2", ("m2", "m2_1_3", "m1"), -300.0),
+        (0, "m2_1_1", ("m2_1_1", "m2", "m2_1_3", "m1"), 200.0),
+    ],
+)
 def test_current_step_accelerates_by_torque_over_inertia(
     joint: int, body: str, moved: tuple[str, ...], current: float
 ) -> None:
@@ -318,8 +344,9 @@ def test_current_step_accelerates_by_torque_over_inertia(
 def test_mass_matrix_matches_hand_inertia(arm: Alpha5Arm) -> None:
     q = np.array([1.0, 0.8, 2.2, 3.0])
     mm = arm.mass_matrix(q)
-    assert mm[1, 1] == pytest.approx(0.12 + hand_inertia_about("m2", q, ("m2", "m2_1_3", "m1")),
-                                     rel=0.01)
+    assert mm[1, 1] == pytest.approx(
+        0.12 + hand_inertia_about("m2", q, ("m2", "m2_1_3", "m1")), rel=0.01
+    )
     assert mm[0, 0] > mm[1, 1] > 0.12
 
 
@@ -389,7 +416,8 @@ def test_current_limit_clamps_drawn_current_and_torque() -> None:
         a.reset(q=[3.0, 1.7, 1.7, 3.0])
         a.step([5000, 0, 0, 0], n=2)
     assert slow.qdot[0] / fast.qdot[0] == pytest.approx(
-        (K_EDC * 0.3 - 0.7) / (K_EDC * 0.6 - 0.7), rel=0.05)
+        (K_EDC * 0.3 - 0.7) / (K_EDC * 0.6 - 0.7), rel=0.05
+    )
 
 
 # -- kinematics -----------------------------------------------------------------------------
@@ -401,8 +429,13 @@ def test_end_effector_pose_matches_hand_forward_kinematics(q: tuple[float, ...])
     tcp = (p + r @ np.array([0.0, 0.0, 0.09975 + 0.04])) * 1000.0
     x, y, z, roll, pitch, yaw = arm.end_effector_pose()
     np.testing.assert_allclose([x, y, z], tcp, atol=1e-6)
-    rebuilt = rot("z", yaw) @ rot("y", pitch) @ np.array(
-        [[1, 0, 0], [0, math.cos(roll), -math.sin(roll)], [0, math.sin(roll), math.cos(roll)]])
+    rebuilt = (
+        rot("z", yaw)
+        @ rot("y", pitch)
+        @ np.array(
+            [[1, 0, 0], [0, math.cos(roll), -math.sin(roll)], [0, math.sin(roll), math.cos(roll)]]
+        )
+    )
     np.testing.assert_allclose(rebuilt, r, atol=1e-9)
 
 

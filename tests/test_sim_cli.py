@@ -30,18 +30,54 @@ def test_help_explains_every_option(capsys: pytest.CaptureFixture[str]) -> None:
         main(["--help"])
     assert exit_info.value.code == 0
     text = capsys.readouterr().out
-    for option in ("--link", "--udp", "--no-pty", "--speed", "--baud", "--start",
-                   "--torque-scale", "--sensor-noise", "--randomize-params", "--corrupt-rate",
-                   "--drop-rate", "--latency-ms", "--seed", "--stats-interval"):
+    for option in (
+        "--link",
+        "--udp",
+        "--no-pty",
+        "--speed",
+        "--baud",
+        "--start",
+        "--torque-scale",
+        "--sensor-noise",
+        "--randomize-params",
+        "--corrupt-rate",
+        "--drop-rate",
+        "--latency-ms",
+        "--seed",
+        "--stats-interval",
+    ):
         assert option in text
     assert "127.0.0.1:6789" in text and "SIGTERM" in text
 
 
 def test_options_build_the_config() -> None:
-    config = parse("--udp", "--speed", "5", "--baud", "115200", "--torque-scale", "E=0.25",
-                   "--torque-scale", "b=0.5", "--sensor-noise", "--drop-rate", "0.1",
-                   "--corrupt-rate", "0.01", "--latency-ms", "4", "--randomize-params", "7",
-                   "--start", "1.0", "0.5", "2.0", "4.0", "--link", "/tmp/x")
+    config = parse(
+        "--udp",
+        "--speed",
+        "5",
+        "--baud",
+        "115200",
+        "--torque-scale",
+        "E=0.25",
+        "--torque-scale",
+        "b=0.5",
+        "--sensor-noise",
+        "--drop-rate",
+        "0.1",
+        "--corrupt-rate",
+        "0.01",
+        "--latency-ms",
+        "4",
+        "--randomize-params",
+        "7",
+        "--start",
+        "1.0",
+        "0.5",
+        "2.0",
+        "4.0",
+        "--link",
+        "/tmp/x",
+    )
     assert config.udp == ("127.0.0.1", 6789)
     assert config.speed == 5.0 and config.baud == 115200 and config.link == "/tmp/x"
     assert config.faults.torque_scale == (0.25, 1.0, 1.0, 0.5)
@@ -78,12 +114,16 @@ def test_bad_options_are_refused_with_a_clear_message(
 
 
 def _start(*argv: str) -> tuple[subprocess.Popen[str], dict[str, str]]:
-    proc = subprocess.Popen([*CLI, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+    proc = subprocess.Popen(
+        [*CLI, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     assert proc.stdout is not None
     lines: dict[str, str] = {}
-    wanted = {"pty"} | ({"link"} if "--link" in argv else set()) | (
-        {"udp"} if "--udp" in argv else set())
+    wanted = (
+        {"pty"}
+        | ({"link"} if "--link" in argv else set())
+        | ({"udp"} if "--udp" in argv else set())
+    )
     while not wanted <= lines.keys():
         line = proc.stdout.readline()
         assert line, f"reach-sim exited early: {proc.wait()} {proc.stderr.read()}"  # type: ignore[union-attr]
@@ -123,8 +163,9 @@ def test_serves_pty_link_and_udp_then_stops_cleanly(tmp_path: Path, sig: signal.
 def test_link_onto_a_real_file_fails_without_touching_it(tmp_path: Path) -> None:
     precious = tmp_path / "notes.txt"
     precious.write_text("keep")
-    result = subprocess.run([*CLI, "--link", str(precious)], capture_output=True, text=True,
-                            timeout=WALL_LIMIT_S)
+    result = subprocess.run(
+        [*CLI, "--link", str(precious)], capture_output=True, text=True, timeout=WALL_LIMIT_S
+    )
     assert result.returncode == 1
     assert "not a symlink" in result.stderr
     assert precious.read_text() == "keep"

@@ -45,8 +45,12 @@ def test_drop_and_corrupt_rates_are_statistical_and_seeded() -> None:
 def test_fault_config_and_torque_scale_parsing_refuse_bad_values() -> None:
     assert parse_torque_scale("c=0.5") == (2, 0.5)
     assert torque_scales(["E=0.25", "B=0.1", "E=0.5"]) == (0.5, 1.0, 1.0, 0.1)
-    for text, message in (("X=0.5", "JOINT one of"), ("E0.5", "JOINT=SCALE"),
-                          ("E=abc", "not a number"), ("D=-1", r"\[0, 1\]")):
+    for text, message in (
+        ("X=0.5", "JOINT one of"),
+        ("E0.5", "JOINT=SCALE"),
+        ("E=abc", "not a number"),
+        ("D=-1", r"\[0, 1\]"),
+    ):
         with pytest.raises(ValueError, match=message):
             parse_torque_scale(text)
     with pytest.raises(ValueError, match="probability"):
@@ -65,8 +69,9 @@ def test_randomized_parameters_are_reproducible_and_torque_scale_applied() -> No
     assert first.damping == second.damping and first.armature == second.armature
     assert first.damping != nominal.damping and first.link_mass_kg != nominal.link_mass_kg
     assert first.torque_scale == (0.25, 1.0, 1.0, 1.0)
-    other = SimServer(SimConfig(pty=False, udp=("127.0.0.1", 0),
-                                faults=FaultConfig(randomize_seed=8))).arm.params
+    other = SimServer(
+        SimConfig(pty=False, udp=("127.0.0.1", 0), faults=FaultConfig(randomize_seed=8))
+    ).arm.params
     assert other.damping != first.damping
 
 
@@ -114,5 +119,6 @@ def test_firmware_errors_are_logged(caplog: pytest.LogCaptureFixture) -> None:
     fw = Firmware(Alpha5Arm())
     with caplog.at_level(logging.WARNING, logger="reach_sim_bridge.firmware"):
         fw.handle(Packet(5, PacketID.MODE, b""))
-    assert any("bad_payload" in r.getMessage() and "empty MODE" in r.getMessage()
-               for r in caplog.records)
+    assert any(
+        "bad_payload" in r.getMessage() and "empty MODE" in r.getMessage() for r in caplog.records
+    )

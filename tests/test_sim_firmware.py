@@ -65,11 +65,22 @@ def run_until(fw: Firmware, done, limit_s: float, step_s: float = 0.05) -> float
 def test_identity_of_every_device(fw: Firmware) -> None:
     for spec in ALPHA5_DEVICES:
         dev = spec.device_id
-        replies = ask(fw, dev, PacketID.SOFTWARE_VERSION, PacketID.SERIAL_NUMBER,
-                      PacketID.MODEL_NUMBER, PacketID.DEVICE_ID, PacketID.MODE)
+        replies = ask(
+            fw,
+            dev,
+            PacketID.SOFTWARE_VERSION,
+            PacketID.SERIAL_NUMBER,
+            PacketID.MODEL_NUMBER,
+            PacketID.DEVICE_ID,
+            PacketID.MODE,
+        )
         assert [r.packet_id for r in replies] == [
-            PacketID.SOFTWARE_VERSION, PacketID.SERIAL_NUMBER, PacketID.MODEL_NUMBER,
-            PacketID.DEVICE_ID, PacketID.MODE]
+            PacketID.SOFTWARE_VERSION,
+            PacketID.SERIAL_NUMBER,
+            PacketID.MODEL_NUMBER,
+            PacketID.DEVICE_ID,
+            PacketID.MODE,
+        ]
         assert all(r.device_id == dev for r in replies)
         assert replies[0].u8s() == list(FirmwareConfig().software_version)
         assert replies[1].as_float() == spec.serial_number
@@ -84,7 +95,8 @@ def test_default_limits_in_max_min_order(fw: Firmware) -> None:
         hi, lo = one(fw, dev, PacketID.POSITION_LIMITS).floats()
         assert (lo, hi) == pytest.approx(tuple(arm.position_limits[i]), abs=1e-6)
         assert one(fw, dev, PacketID.VELOCITY_LIMITS).floats() == pytest.approx(
-            [RATE[dev], -RATE[dev]], abs=1e-6)
+            [RATE[dev], -RATE[dev]], abs=1e-6
+        )
     for dev, limit in ((E, 600.0), (D, 600.0), (C, 600.0), (B, 300.0)):
         assert one(fw, dev, PacketID.CURRENT_LIMITS).floats() == [limit, -limit]
     assert one(fw, A, PacketID.POSITION_LIMITS).floats() == pytest.approx([13.3, 1.3], abs=1e-5)
@@ -104,8 +116,9 @@ def test_request_answers_each_id_in_order_and_broadcast_by_every_joint(fw: Firmw
     ids = [PacketID.VELOCITY, PacketID.POSITION, PacketID.CURRENT, PacketID.MODE]
     assert [r.packet_id for r in ask(fw, D, *ids)] == ids
     replies = ask(fw, BROADCAST, PacketID.POSITION, PacketID.VELOCITY)
-    assert [r.key for r in replies] == [(d, p) for d in (A, B, C, D, E)
-                                        for p in (PacketID.POSITION, PacketID.VELOCITY)]
+    assert [r.key for r in replies] == [
+        (d, p) for d in (A, B, C, D, E) for p in (PacketID.POSITION, PacketID.VELOCITY)
+    ]
 
 
 def test_limits_are_settable_and_checked(fw: Firmware) -> None:
@@ -327,7 +340,9 @@ def test_heartbeat_streams_the_chosen_packets_at_the_chosen_rate(fw: Firmware) -
     out = fw.tick(1.0)
     for dev in (A, B, C, D, E):
         assert [p.packet_id for p in out if p.device_id == dev] == [
-            PacketID.POSITION, PacketID.VELOCITY] * 10
+            PacketID.POSITION,
+            PacketID.VELOCITY,
+        ] * 10
     ids = one(fw, D, PacketID.HEARTBEAT_SET).u8s()
     assert ids == [PacketID.POSITION, PacketID.VELOCITY] + [0] * 8
     fw.handle(commands.heartbeat_frequency(D, 0))

@@ -45,8 +45,17 @@ def test_recorder_follows_a_position_move(tmp_path: Path) -> None:
 
 def test_cli_writes_a_recording_that_survives_sigint(tmp_path: Path) -> None:
     path = tmp_path / "cli.rrd"
-    cli = [sys.executable, "-m", "reach_sim_bridge.cli", "--speed", "5", "--record", str(path),
-           "--stats-interval", "0"]
+    cli = [
+        sys.executable,
+        "-m",
+        "reach_sim_bridge.cli",
+        "--speed",
+        "5",
+        "--record",
+        str(path),
+        "--stats-interval",
+        "0",
+    ]
     proc = subprocess.Popen(cli, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None
