@@ -1,4 +1,6 @@
-"""The Alpha 5 model and motor model against hand calculations from the datasheet figures in reach_sim_bridge/model/README.md.
+"""The Alpha 5 model and motor model against hand calculations from the datasheet figures.
+
+The figures and their sources are in reach_sim_bridge/model/README.md.
 
 The hand calculations below re-derive kinematics, statics and inertia directly from the
 reference tables (frames, masses, COMs, volumes, centres of buoyancy, motor constants) with
