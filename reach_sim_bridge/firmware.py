@@ -26,7 +26,16 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import Enum
 
-from protocol import DecodeError, DecodeReason, DeviceID, HardwareStatus, Mode, Packet, PacketID
+from protocol import (
+    DecodeError,
+    DecodeReason,
+    DeviceID,
+    HardwareStatus,
+    Mode,
+    Packet,
+    PacketID,
+    alpha5,
+)
 from protocol.alpha5 import JOINT_LETTERS
 from protocol.commands import HEARTBEAT_SLOTS, MAX_REQUEST_IDS
 from protocol.payload import pack_floats, pack_u8s
@@ -85,15 +94,20 @@ class DeviceSpec:
     serial_number: float
 
 
+def _rate(device: DeviceID) -> float:
+    """The factory velocity limit: the firmware's rate limit in position and velocity modes."""
+    return alpha5.FACTORY_VELOCITY_LIMITS[device][1]
+
+
 # Gains tuned against Alpha5Arm (tools/ and tests/test_sim_firmware.py check the result):
 # E/D/C have ~0.13 kg m^2 reflected inertia and 20.2 N m/A; B 0.008 kg m^2 and 7.1 N m/A;
 # the jaw ~725 kg reflected mass and 914 N/A (units mm, so mA per mm).
 ALPHA5_DEVICES: tuple[DeviceSpec, ...] = (
-    DeviceSpec(DeviceID.A, "A", "mm", 3.0, LoopGains(3.0, 20.0, 150.0), 4101.0),
-    DeviceSpec(DeviceID.B, "B", "rad", 0.8727, LoopGains(5.0, 100.0, 2000.0), 4102.0),
-    DeviceSpec(DeviceID.C, "C", "rad", 0.5236, LoopGains(5.0, 1000.0, 20000.0), 4103.0),
-    DeviceSpec(DeviceID.D, "D", "rad", 0.5236, LoopGains(5.0, 1000.0, 20000.0), 4104.0),
-    DeviceSpec(DeviceID.E, "E", "rad", 0.5236, LoopGains(5.0, 1000.0, 20000.0), 4105.0),
+    DeviceSpec(DeviceID.A, "A", "mm", _rate(DeviceID.A), LoopGains(3.0, 20.0, 150.0), 4101.0),
+    DeviceSpec(DeviceID.B, "B", "rad", _rate(DeviceID.B), LoopGains(5.0, 100.0, 2000.0), 4102.0),
+    DeviceSpec(DeviceID.C, "C", "rad", _rate(DeviceID.C), LoopGains(5.0, 1e3, 2e4), 4103.0),
+    DeviceSpec(DeviceID.D, "D", "rad", _rate(DeviceID.D), LoopGains(5.0, 1e3, 2e4), 4104.0),
+    DeviceSpec(DeviceID.E, "E", "rad", _rate(DeviceID.E), LoopGains(5.0, 1e3, 2e4), 4105.0),
 )
 
 

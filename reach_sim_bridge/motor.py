@@ -101,12 +101,14 @@ ALPHA5_MOTORS = MotorParams(
 # B's (same motor: same R and Kt).
 JAW_SCREW_LEAD_M = 0.020
 JAW_SCREW_EFFICIENCY = 0.40
+JAW_GEAR_RATIO = 348.7  # the jaw gearbox, before the screw
+_B = alpha5.JOINTS.index(alpha5.DeviceID.B)  # the jaw's motor is B's
 JAW_MOTOR = MotorParams(
-    resistance_ohm=(38.6,),
-    torque_constant=(0.0271,),
-    backemf_constant=(0.0545,),
-    gear_ratio=(348.7 * 2.0 * math.pi / JAW_SCREW_LEAD_M,),
-    efficiency=(0.77 * JAW_SCREW_EFFICIENCY,),
+    resistance_ohm=(alpha5.MOTOR_RESISTANCE_OHM[_B],),
+    torque_constant=(alpha5.MOTOR_TORQUE_CONSTANT_NM_PER_A[_B],),
+    backemf_constant=(alpha5.MOTOR_BACKEMF_V_S_PER_RAD[_B],),
+    gear_ratio=(JAW_GEAR_RATIO * 2.0 * math.pi / JAW_SCREW_LEAD_M,),
+    efficiency=(alpha5.GEAR_EFFICIENCY[_B] * JAW_SCREW_EFFICIENCY,),
 )
 
 DEFAULT_CURRENT_LIMITS_MA = alpha5.DEFAULT_CURRENT_LIMITS_MA
