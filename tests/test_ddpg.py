@@ -13,18 +13,19 @@ import numpy as np
 import pytest
 import torch
 
+from policy.batched import evaluate_batched as evaluate
 from policy.ddpg import (
     Actor,
     DDPGConfig,
     OUNoise,
     ReplayBuffer,
     Trainer,
-    evaluate,
     make_expert,
     save_actor_npz,
 )
 from policy.ddpg_controller import DEFAULT_WEIGHTS, ActorWeights, make_controller
-from policy.env import EnvConfig, PDExpert, ReachAlphaEnv
+from policy.env import EnvConfig, ReachAlphaEnv
+from policy.expert import PDExpert
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -291,7 +292,7 @@ def test_score_counts_energy_only_when_asked() -> None:
 
 
 def test_a_wider_training_workspace_keeps_the_evaluation_episodes(tmp_path: Path) -> None:
-    from policy.ddpg import eval_envs
+    from policy.batched import eval_envs
     from policy.observation import WORKSPACE_HIGH
 
     wide_env = EnvConfig(episode_s=1.0, workspace_high=(5.8, 2.9, 2.9, 5.8))
@@ -341,7 +342,8 @@ def test_reference_integral_shifts_the_shown_target_near_the_goal_only() -> None
 
 def test_reference_integral_removes_the_steady_error_friction_leaves() -> None:
     from policy.ddpg_controller import make_pure_controller
-    from policy.evaluation import RunConfig, SensorNoise, evaluate, random_episodes
+    from policy.evaluation import RunConfig, evaluate, random_episodes
+    from reach_sim_bridge.faults import SensorNoise
 
     episodes = random_episodes(3, seed=7)
     config = RunConfig(noise=SensorNoise(), seed=7, param_spread=0.2)

@@ -12,10 +12,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from policy import scenarios
 from policy.evaluation import (
     Episode,
     RunConfig,
-    SensorNoise,
     evaluate,
     load_controller,
     load_episodes,
@@ -26,6 +26,7 @@ from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from reach_driver.errors import DriverError
 from reach_driver.metrics import METRIC_KEYS
 from reach_sim_bridge.arm import Alpha5Arm
+from reach_sim_bridge.faults import SensorNoise
 
 ROOT = Path(__file__).resolve().parents[1]
 START = np.array([3.0, 1.5, 1.5, 1.5])
@@ -266,7 +267,7 @@ def _paper() -> ModuleType:
 
 
 def test_paper_scenarios_map_inside_the_arm_limits() -> None:
-    paper = _paper()
+    paper = scenarios
     limits = Alpha5Arm().position_limits
     for sc in paper.SCENARIOS:
         ep = sc.episode()
@@ -288,7 +289,7 @@ def test_paper_replaces_only_its_generated_block(tmp_path: Path) -> None:
 
 def test_paper_counts_ddpg_wins_over_mpc_across_seeds() -> None:
     paper = _paper()
-    keys = (*paper.TABLE_KEYS, "reached")
+    keys = (*scenarios.TABLE_KEYS, "reached")
 
     def ev(*values: float) -> SimpleNamespace:
         return SimpleNamespace(summary=lambda: dict(zip(keys, values, strict=True)))
@@ -296,7 +297,7 @@ def test_paper_counts_ddpg_wins_over_mpc_across_seeds() -> None:
     mpc = ev(10.7, 0.23, 0.90, 0.0014, 1.9, 1.86, 1.0)
     table = {"mpc": mpc, "ddpg": ev(10.4, 0.22, 0.88, 0.0015, 0.3, 1.86, 1.0)}
     more = {2120: {"mpc": mpc, "ddpg": ev(10.9, 0.22, 0.88, 0.0010, 0.3, 1.80, 1.0)}}
-    assert paper.wins(table["ddpg"].summary(), mpc.summary()) == {
+    assert scenarios.wins(table["ddpg"].summary(), mpc.summary()) == {
         "energy_j": True, "rmse": True, "mie": True, "msse": False,
         "overshoot_pct": True, "settling_time_s": False}  # a tie is not a win
     text = "\n".join(paper.seed_lines(more, table, 2020, 20))
@@ -305,22 +306,15 @@ def test_paper_counts_ddpg_wins_over_mpc_across_seeds() -> None:
 
 
 def _select() -> ModuleType:
-    """tools/select_weights.py, which imports paper.py from beside it."""
-    sys.path.insert(0, str(ROOT / "tools"))
-    try:
-        spec = importlib.util.spec_from_file_location("select_cli",
-                                                      ROOT / "tools" / "select_weights.py")
-        assert spec is not None and spec.loader is not None
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(ROOT / "tools"))
-    return module
+    """The selection rule tools/select_weights.py runs."""
+    import policy.selection
+
+    return policy.selection
 
 
 def test_select_weights_rule_reaches_first_then_counts_wins() -> None:
     select = _select()
-    keys = select.TABLE_KEYS
+    keys = scenarios.TABLE_KEYS
     ref = dict(zip(keys, (10.0, 0.23, 0.90, 0.0014, 2.0, 1.9), strict=True))
 
     def row(name: str, scen: int, reached: float, *values: float) -> dict[str, Any]:

@@ -26,7 +26,6 @@ from policy.evaluation import (
     EpisodeResult,
     Evaluation,
     RunConfig,
-    SensorNoise,
     evaluate,
     load_controller,
     load_episodes,
@@ -34,6 +33,7 @@ from policy.evaluation import (
 )
 from reach_driver.errors import DriverError
 from reach_driver.metrics import METRIC_KEYS
+from reach_sim_bridge.faults import SensorNoise
 
 UNITS = {
     "energy_j": "J",

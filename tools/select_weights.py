@@ -3,7 +3,7 @@
 
 Candidates are run directories (their `best_actor.npz`) or `.npz` files. Each one is run as
 the `ddpg` controller ships (the actor with its reference integral) on
-- the paper's four scenarios (tools/paper.py: nominal arm, no noise), which it must all reach;
+- the paper's four scenarios (policy/scenarios.py: nominal arm, no noise), which it must all reach;
 - a selection set that is NOT the comparison's: ``random_episodes(--episodes, --seed)`` with
   sensor noise and +-20 % degraded parameters, the conditions of Table I. The default seed (11)
   is the set the MPC's horizon and weights were tuned on (tools/tune_mpc.py) and the
@@ -16,9 +16,10 @@ the `ddpg` controller ships (the actor with its reference integral) on
   few mrad/s). A policy that chatters on some arm (seen: one joint bang-banging at the
   no-load speed, +-8 mrad around its target, 60 J instead of 4 J) is not shipped.
 
-Rule: among the candidates that reach every scenario and every selection episode and have no
-restless episode, the one better than the reference controller (the MPC) on the most of
-Table I's six metrics; ties go to the lowest mean ratio candidate / reference over the six.
+Rule (policy/selection.py): among the candidates that reach every scenario and every
+selection episode and have no restless episode, the one better than the reference
+controller (the MPC) on the most of Table I's six metrics; ties go to the
+lowest mean ratio candidate / reference over the six.
 Then ship it with ``tools/train.py --run RUN --ship`` (which writes its provenance beside the
 weights).
 
@@ -30,25 +31,17 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Callable
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
-from paper import SCENARIOS, TABLE_KEYS, wins
 from rich.console import Console
 from rich.table import Table
 
-from policy.ddpg import eval_envs
-from policy.ddpg_controller import ActorWeights, make_controller
-from policy.env import EnvConfig
-from policy.evaluation import RunConfig, SensorNoise, evaluate, load_controller, random_episodes
-from policy.observation import N_JOINTS
-
-#: mean |qdot| over an episode's last REST_WINDOW_S above which a joint is not at rest (rad/s)
-RESTLESS_SPEED = 0.05
-REST_WINDOW_S = 5.0
+from policy.evaluation import RunConfig, evaluate, load_controller, random_episodes
+from policy.scenarios import SCENARIOS, TABLE_KEYS, wins
+from policy.selection import choose, restless_episodes, weights_of
+from reach_sim_bridge.faults import SensorNoise
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -71,54 +64,6 @@ def build_parser() -> argparse.ArgumentParser:
                    help="stability screen's seed (default 12)")
     p.add_argument("--out", type=Path, required=True, help="JSON with every candidate's figures")
     return p
-
-
-def weights_of(candidate: Path) -> Path:
-    path = candidate / "best_actor.npz" if candidate.is_dir() else candidate
-    if not path.exists():
-        raise FileNotFoundError(f"{candidate}: no actor at {path}")
-    return path
-
-
-def restless_episodes(path: Path, episodes: int, seed: int, perturb: float,
-                      factory: Callable[[Path], Any] = make_controller) -> list[int]:
-    """Screen episodes whose arm is still moving at the end, each run by the controller as
-    shipped (`factory(path)`: the actor with its reference integral) on the training env."""
-    weights = ActorWeights.load(path)
-    envs = eval_envs(EnvConfig.from_dict(weights.metadata["env"]), episodes,
-                     param_perturbation=perturb)
-    controllers = [factory(path) for _ in envs]
-    for i, (env, ctrl) in enumerate(zip(envs, controllers, strict=True)):
-        env.reset(seed=seed * 1_000 + i)
-        ctrl.reset()
-    steps = envs[0].config.steps_per_episode
-    dt = envs[0].control_dt
-    window = int(round(REST_WINDOW_S / dt))
-    speed = np.zeros((episodes, N_JOINTS))
-    for k in range(steps):
-        for env, ctrl in zip(envs, controllers, strict=True):
-            q, qdot = env.last_reading  # what the sensors said, noise included
-            state = SimpleNamespace(q=q, qdot=qdot, t=k * dt)
-            env.step(np.asarray(ctrl.act(state, env.target)) / weights.current_limits_mA)
-        if k >= steps - window:
-            speed += np.abs(np.stack([env.arm.qdot for env in envs])) / window
-    return [i for i in range(episodes) if np.any(speed[i] > RESTLESS_SPEED)]
-
-
-def choose(rows: list[dict[str, Any]], reference: dict[str, float]) -> dict[str, Any] | None:
-    """The rule: every scenario and episode reached, none restless; most metrics better;
-    lowest mean ratio."""
-    ok = [r for r in rows if r["scenarios_reached"] == len(SCENARIOS)
-          and r["summary"]["reached"] >= 1.0 and not r.get("restless")]
-    if not ok:
-        return None
-
-    def key(r: dict[str, Any]) -> tuple[int, float]:
-        s = r["summary"]
-        ratio = float(np.mean([s[k] / max(reference[k], 1e-12) for k in TABLE_KEYS]))
-        return (-sum(wins(s, reference).values()), ratio)
-
-    return min(ok, key=key)
 
 
 def main(argv: list[str] | None = None) -> int:

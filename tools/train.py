@@ -23,9 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from policy.ddpg import DDPGConfig, Trainer, TrainState, evaluate, make_expert
+from policy.batched import evaluate_batched
+from policy.ddpg import DDPGConfig, Trainer, TrainState, make_expert
 from policy.ddpg_controller import DEFAULT_WEIGHTS, ActorWeights
-from policy.env import EnvConfig, PDExpert
+from policy.env import EnvConfig
+from policy.expert import PDExpert
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -83,15 +85,15 @@ def evaluate_weights(which: str, episodes: int, seed: int, perturb: float = 0.0,
         )
         policy = weights.forward
     eval_seed = 10_000 + seed
-    nominal = evaluate(policy, env_config, episodes, eval_seed, expert=expert)
-    weak = evaluate(policy, env_config, episodes, eval_seed + 5_000,
+    nominal = evaluate_batched(policy, env_config, episodes, eval_seed, expert=expert)
+    weak = evaluate_batched(policy, env_config, episodes, eval_seed + 5_000,
                     torque_scale=(0.25, 1.0, 1.0, 1.0), expert=expert)
     result = {"weights": which, "episodes": episodes, "eval_seed": eval_seed,
               "nominal": nominal.to_dict(), "torque_e_25pct": weak.to_dict()}
     if perturb > 0:
         if not perturb < 1:
             raise SystemExit(f"--perturb must be in (0, 1), got {perturb}")
-        result[f"perturbed_{perturb:g}"] = evaluate(
+        result[f"perturbed_{perturb:g}"] = evaluate_batched(
             policy, env_config, episodes, eval_seed + 10_000, expert=expert,
             param_perturbation=perturb).to_dict()
     return result

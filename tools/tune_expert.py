@@ -27,15 +27,10 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from policy.env import PDExpert
-from policy.evaluation import (
-    ArmLike,
-    RunConfig,
-    SensorNoise,
-    default_arm_factory,
-    evaluate,
-    random_episodes,
-)
+from policy.arm import ArmLike, nominal_arm
+from policy.evaluation import DirectArm, RunConfig, evaluate, random_episodes
+from policy.expert import PDExpert
+from reach_sim_bridge.faults import SensorNoise
 
 DEFAULT_SEED = 11
 DEFAULT_LAMBDAS = [2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 12.0]
@@ -50,7 +45,7 @@ class ExpertController:
         self.arm: Any = None
 
     def arm_factory(self, seed: int) -> ArmLike:
-        self.arm = default_arm_factory(seed)
+        self.arm = nominal_arm(seed)
         return self.arm  # type: ignore[no-any-return]
 
     def reset(self) -> None:
@@ -114,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
             console.print(f"[red]error:[/red] energy weights must be > 0, got {lam}")
             return 2
         ctrl = ExpertController(PDExpert(energy_lambda=lam))
-        ev = evaluate(ctrl, episodes, run, name="expert", arm_factory=ctrl.arm_factory)
+        ev = evaluate(ctrl, episodes, run, name="expert", backend=DirectArm(ctrl.arm_factory))
         rows.append({"energy_lambda": lam, "summary": ev.summary()})
         s = rows[-1]["summary"]
         console.print(f"lambda {lam}: E {s['energy_j']:.3f} J  RMSE {s['rmse']:.4f}  "

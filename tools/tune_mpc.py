@@ -28,8 +28,9 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from policy.evaluation import RunConfig, SensorNoise, evaluate, random_episodes
+from policy.evaluation import RunConfig, evaluate, random_episodes
 from policy.mpc import MPCConfig, MPCController
+from reach_sim_bridge.faults import SensorNoise
 
 DEFAULT_SEED = 11
 
