@@ -4,7 +4,7 @@ Read top to bottom: the hyperparameters (one dataclass), the networks, the explo
 the replay buffer, one gradient update, the training loop, the evaluation. `DDPGConfig.paper()`
 is the paper's setup; `DDPGConfig.ours()` is what the shipped policy used (docs/training.md).
 
-Speed (tooling-notes.md): one torch thread, a numpy replay buffer, fused Adam, foreach lerp for
+Speed (tools/bench_train.py): one torch thread, a numpy replay buffer, fused Adam, foreach lerp for
 the target networks, N environments stepped per round of updates, larger batches.
 """
 

@@ -29,8 +29,13 @@ from policy.observation import (
 )
 
 OURS_OBS = ObservationConfig()
-SHAPED = RewardConfig(mode=RewardMode.SHAPED, distance_weight=2.0, velocity_weight=0.5,
-                      action_change_weight=0.1, near_scale=0.05)
+SHAPED = RewardConfig(
+    mode=RewardMode.SHAPED,
+    distance_weight=2.0,
+    velocity_weight=0.5,
+    action_change_weight=0.1,
+    near_scale=0.05,
+)
 
 
 @pytest.mark.parametrize("obs_config", [ObservationConfig.paper(), OURS_OBS])

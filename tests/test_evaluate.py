@@ -96,8 +96,9 @@ def test_sensor_noise_has_the_stated_spread_and_is_seeded() -> None:
 
 def test_torque_scale_is_applied_per_episode() -> None:
     push = [400.0, 0.0, 0.0, 0.0]
-    weak = run_episode(Recorder(push), Episode(START, START, torque_scale=[0.25, 1, 1, 1]),
-                       RunConfig(seconds=0.2))
+    weak = run_episode(
+        Recorder(push), Episode(START, START, torque_scale=[0.25, 1, 1, 1]), RunConfig(seconds=0.2)
+    )
     full = run_episode(Recorder(push), Episode(START, START), RunConfig(seconds=0.2))
     moved_weak = weak.trace.q[-1, 0] - START[0]
     moved_full = full.trace.q[-1, 0] - START[0]
@@ -150,8 +151,11 @@ def test_random_episodes_fill_the_workspace_reproducibly() -> None:
 
 def test_load_episodes_reports_where_the_file_is_wrong(tmp_path: Path) -> None:
     good = tmp_path / "good.json"
-    good.write_text(json.dumps([{"start": [1, 1, 1, 1], "target": [2, 2, 2, 2],
-                                 "torque_scale": [0.25, 1, 1, 1]}]))
+    good.write_text(
+        json.dumps(
+            [{"start": [1, 1, 1, 1], "target": [2, 2, 2, 2], "torque_scale": [0.25, 1, 1, 1]}]
+        )
+    )
     (ep,) = load_episodes(good)
     np.testing.assert_array_equal(ep.torque_scale, [0.25, 1, 1, 1])
     cases = {
@@ -191,11 +195,23 @@ def test_evaluation_json_has_exactly_the_metric_keys() -> None:
 
 def test_cli_runs_pid_and_writes_json(tmp_path: Path) -> None:
     targets = tmp_path / "t.json"
-    targets.write_text(json.dumps([{"start": [3.0, 1.5, 1.5, 1.5],
-                                    "target": [3.2, 1.6, 1.4, 1.6]}]))
+    targets.write_text(
+        json.dumps([{"start": [3.0, 1.5, 1.5, 1.5], "target": [3.2, 1.6, 1.4, 1.6]}])
+    )
     out = tmp_path / "out.json"
-    code = _cli().main(["--controller", "pid", "--targets", str(targets), "--seconds", "4",
-                        "--out", str(out), "--quiet"])
+    code = _cli().main(
+        [
+            "--controller",
+            "pid",
+            "--targets",
+            str(targets),
+            "--seconds",
+            "4",
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
     assert code == 0
     data = json.loads(out.read_text())
     assert data["controller"] == "pid" and data["config"]["seconds"] == 4
@@ -225,11 +241,25 @@ def test_cli_hooks_say_not_available_when_modules_are_missing(
 
     monkeypatch.setattr(cli.importlib.util, "find_spec", missing)
     out = tmp_path / "o.json"
-    assert cli.main(["--controller", "pid", "--random", "1", "--via-driver",
-                     "--out", str(out)]) == 2
+    assert (
+        cli.main(["--controller", "pid", "--random", "1", "--via-driver", "--out", str(out)]) == 2
+    )
     assert "--via-driver is not available yet" in capsys.readouterr().err
-    assert cli.main(["--controller", "pid", "--random", "1", "--record", str(tmp_path / "r.rrd"),
-                     "--out", str(out)]) == 2
+    assert (
+        cli.main(
+            [
+                "--controller",
+                "pid",
+                "--random",
+                "1",
+                "--record",
+                str(tmp_path / "r.rrd"),
+                "--out",
+                str(out),
+            ]
+        )
+        == 2
+    )
     assert "--record is not available yet" in capsys.readouterr().err
 
 
@@ -237,8 +267,16 @@ def test_cli_help_explains_the_options(capsys: Any) -> None:
     with pytest.raises(SystemExit):
         _cli().main(["--help"])
     text = capsys.readouterr().out
-    for word in ("--controller", "--targets", "--random", "--noise", "--rate", "--via-driver",
-                 "--record", "E [0.4, 5.8]"):
+    for word in (
+        "--controller",
+        "--targets",
+        "--random",
+        "--noise",
+        "--rate",
+        "--via-driver",
+        "--record",
+        "E [0.4, 5.8]",
+    ):
         assert word in text
 
 
@@ -246,8 +284,23 @@ def test_cli_record_writes_a_readable_recording(tmp_path: Path) -> None:
     from reach_driver.rrd_summary import read_recording
 
     rrd = tmp_path / "eval.rrd"
-    code = _cli().main(["--controller", "pid", "--random", "2", "--seed", "1", "--seconds", "1",
-                        "--out", str(tmp_path / "o.json"), "--record", str(rrd), "--quiet"])
+    code = _cli().main(
+        [
+            "--controller",
+            "pid",
+            "--random",
+            "2",
+            "--seed",
+            "1",
+            "--seconds",
+            "1",
+            "--out",
+            str(tmp_path / "o.json"),
+            "--record",
+            str(rrd),
+            "--quiet",
+        ]
+    )
     assert code == 0
     run = read_recording(rrd)
     assert run.q.shape == (2 * 21, 4)  # two episodes of 20 periods plus their initial states
@@ -275,8 +328,10 @@ def test_paper_scenarios_map_inside_the_arm_limits() -> None:
             assert np.all(q >= limits[:, 0]) and np.all(q <= limits[:, 1])
         np.testing.assert_allclose(paper.arm_to_paper(ep.target), sc.paper_target)
     assert paper.SCENARIOS[2].episode().torque_scale.tolist() == [0.25, 1, 1, 1]
-    np.testing.assert_allclose(paper.paper_to_arm([2.64, 0.26, -1.47, 0.82]),
-                               [2.64 + np.pi, 0.26 + 1.71045, -1.47 + np.pi, 0.82 + np.pi])
+    np.testing.assert_allclose(
+        paper.paper_to_arm([2.64, 0.26, -1.47, 0.82]),
+        [2.64 + np.pi, 0.26 + 1.71045, -1.47 + np.pi, 0.82 + np.pi],
+    )
 
 
 def test_paper_replaces_only_its_generated_block(tmp_path: Path) -> None:
@@ -298,8 +353,13 @@ def test_paper_counts_ddpg_wins_over_mpc_across_seeds() -> None:
     table = {"mpc": mpc, "ddpg": ev(10.4, 0.22, 0.88, 0.0015, 0.3, 1.86, 1.0)}
     more = {2120: {"mpc": mpc, "ddpg": ev(10.9, 0.22, 0.88, 0.0010, 0.3, 1.80, 1.0)}}
     assert scenarios.wins(table["ddpg"].summary(), mpc.summary()) == {
-        "energy_j": True, "rmse": True, "mie": True, "msse": False,
-        "overshoot_pct": True, "settling_time_s": False}  # a tie is not a win
+        "energy_j": True,
+        "rmse": True,
+        "mie": True,
+        "msse": False,
+        "overshoot_pct": True,
+        "settling_time_s": False,
+    }  # a tie is not a win
     text = "\n".join(paper.seed_lines(more, table, 2020, 20))
     assert "| 2020 | ddpg | 10.40 |" in text and "| 2120 | mpc | 10.70 |" in text
     assert "on 2 seeds: E 1/2, RMSE 2/2, MIE 2/2, MSSE 1/2, OS 2/2, ST 1/2." in text
@@ -339,6 +399,7 @@ def test_select_weights_rule_reaches_first_then_counts_wins() -> None:
 
 def test_stability_screen_flags_a_chattering_policy() -> None:
     select = _select()
+
     class BangBang:  # full current, sign flipping every period: the failure the screen is for
         sign = 1.0
 
@@ -350,6 +411,7 @@ def test_stability_screen_flags_a_chattering_policy() -> None:
             return np.full(4, 600.0 * self.sign)
 
     shipped = ROOT / "policy" / "weights" / "ddpg_actor.npz"
-    assert select.restless_episodes(shipped, 2, seed=3, perturb=0.2,
-                                    factory=lambda _p: BangBang()) == [0, 1]
+    assert select.restless_episodes(
+        shipped, 2, seed=3, perturb=0.2, factory=lambda _p: BangBang()
+    ) == [0, 1]
     assert select.restless_episodes(shipped, 2, seed=3, perturb=0.2) == []  # shipped: at rest

@@ -79,11 +79,14 @@ def test_offset_free_estimate_learns_an_unmodelled_torque() -> None:
     ctrl = MPCController(MPCConfig(horizon=10))
     target = np.array([3.5, 2.0, 1.0, 1.5])
     result = run_episode(
-        ctrl, Episode([3.0, 2.5, 0.6, 1.0], target), RunConfig(seconds=8.0),
+        ctrl,
+        Episode([3.0, 2.5, 0.6, 1.0], target),
+        RunConfig(seconds=8.0),
         backend=DirectArm(lambda seed: Alpha5Arm(params=ArmParams().in_air())),
     )
-    missing = (Alpha5Arm(params=ArmParams().in_air()).gravity_torque(target)
-               - Alpha5Arm().gravity_torque(target))
+    missing = Alpha5Arm(params=ArmParams().in_air()).gravity_torque(
+        target
+    ) - Alpha5Arm().gravity_torque(target)
     assert abs(missing[1]) > 0.1  # the test means something: a real mismatch on D
     np.testing.assert_allclose(ctrl.disturbance, missing, atol=0.05)
     assert np.abs(result.final_error).max() < 1e-3

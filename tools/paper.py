@@ -73,54 +73,79 @@ def plot_scenario(result: EpisodeResult, controller: str, sc: Scenario, path: Pa
     axes[0].legend(fontsize=8, loc="best")
     for ax in axes:
         ax.grid(alpha=0.3)
-    fig.suptitle(f"{controller}: scenario {sc.number} ({sc.title}), "
-                 f"x_ref = {tuple(sc.paper_target)}")
+    fig.suptitle(
+        f"{controller}: scenario {sc.number} ({sc.title}), x_ref = {tuple(sc.paper_target)}"
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
     plt.close(fig)
 
 
 def _fmt_row(name: str, s: dict[str, float]) -> str:
-    return (f"| {name} | {s['energy_j']:.2f} | {s['rmse']:.3f} | {s['mie']:.3f} | "
-            f"{s['msse']:.4f} | {s['overshoot_pct']:.2f} | {s['settling_time_s']:.2f} | "
-            f"{s['reached']:.2f} | {s['rmse'] / s['rmse_floor']:.3f} |")
+    return (
+        f"| {name} | {s['energy_j']:.2f} | {s['rmse']:.3f} | {s['mie']:.3f} | "
+        f"{s['msse']:.4f} | {s['overshoot_pct']:.2f} | {s['settling_time_s']:.2f} | "
+        f"{s['reached']:.2f} | {s['rmse'] / s['rmse_floor']:.3f} |"
+    )
 
 
-def seed_lines(more: dict[int, dict[str, Evaluation]], table: dict[str, Evaluation],
-               seed: int, n: int) -> list[str]:
+def seed_lines(
+    more: dict[int, dict[str, Evaluation]], table: dict[str, Evaluation], seed: int, n: int
+) -> list[str]:
     """The comparison repeated on other seeds, and how often DDPG beats MPC per metric."""
     every = {seed: table, **more}
-    lines = ["", f"### The same comparison on other seeds ({n} random targets each, same "
-             "conditions; episode set, noise and parameter draws all from the seed)", "",
-             "| seed | controller | " + " | ".join(TABLE_HEADS) + " | reached |",
-             "|---|---|" + "---|" * (len(TABLE_HEADS) + 1)]
+    lines = [
+        "",
+        f"### The same comparison on other seeds ({n} random targets each, same "
+        "conditions; episode set, noise and parameter draws all from the seed)",
+        "",
+        "| seed | controller | " + " | ".join(TABLE_HEADS) + " | reached |",
+        "|---|---|" + "---|" * (len(TABLE_HEADS) + 1),
+    ]
     for sd, evs in every.items():
         for name, ev in evs.items():
             s = ev.summary()
-            lines.append(f"| {sd} | {name} | {s['energy_j']:.2f} | {s['rmse']:.4f} | "
-                         f"{s['mie']:.4f} | {s['msse']:.5f} | {s['overshoot_pct']:.2f} | "
-                         f"{s['settling_time_s']:.3f} | {s['reached']:.2f} |")
+            lines.append(
+                f"| {sd} | {name} | {s['energy_j']:.2f} | {s['rmse']:.4f} | "
+                f"{s['mie']:.4f} | {s['msse']:.5f} | {s['overshoot_pct']:.2f} | "
+                f"{s['settling_time_s']:.3f} | {s['reached']:.2f} |"
+            )
     pairs = [(sd, evs) for sd, evs in every.items() if "ddpg" in evs and "mpc" in evs]
     if pairs:
         counts = {k: 0 for k in TABLE_KEYS}
         for _, evs in pairs:
             for k, better in wins(evs["ddpg"].summary(), evs["mpc"].summary()).items():
                 counts[k] += better
-        lines += ["", f"DDPG better than MPC on {len(pairs)} seeds: " + ", ".join(
-            f"{head.split(' ')[0]} {counts[k]}/{len(pairs)}"
-            for k, head in zip(TABLE_KEYS, TABLE_HEADS, strict=True)) + "."]
+        lines += [
+            "",
+            f"DDPG better than MPC on {len(pairs)} seeds: "
+            + ", ".join(
+                f"{head.split(' ')[0]} {counts[k]}/{len(pairs)}"
+                for k, head in zip(TABLE_KEYS, TABLE_HEADS, strict=True)
+            )
+            + ".",
+        ]
     return lines
 
 
-def markdown(scenarios: dict[str, list[EpisodeResult]], table: dict[str, Evaluation],
-             config: RunConfig, seed: int, n: int, figures: Path, docs: Path,
-             skipped: dict[str, str],
-             more: dict[int, dict[str, Evaluation]] | None = None) -> str:
+def markdown(
+    scenarios: dict[str, list[EpisodeResult]],
+    table: dict[str, Evaluation],
+    config: RunConfig,
+    seed: int,
+    n: int,
+    figures: Path,
+    docs: Path,
+    skipped: dict[str, str],
+    more: dict[int, dict[str, Evaluation]] | None = None,
+) -> str:
     lines = [BEGIN, ""]
     cond = []
     if config.noise is not None:
-        cond.append(f"sensor noise sigma {config.noise.position_std} rad / "
-                    f"{config.noise.velocity_std} rad/s")
+        cond.append(
+            f"sensor noise sigma {config.noise.position_std} rad / "
+            f"{config.noise.velocity_std} rad/s"
+        )
     if config.param_spread > 0:
         cond.append(f"arm parameters degraded by U(1 +- {config.param_spread:g})")
     lines += [
@@ -144,22 +169,30 @@ def markdown(scenarios: dict[str, list[EpisodeResult]], table: dict[str, Evaluat
     for name, ev in table.items():
         st = ev.controller_stats.get("solve_time_s")
         if st:
-            lines.append(f"{name} solve time over the table's {st['n']} solves: "
-                         f"p50 {st['p50'] * 1e3:.1f} ms, p99 {st['p99'] * 1e3:.1f} ms, "
-                         f"max {st['max'] * 1e3:.1f} ms; {st['over_period']} over the "
-                         f"{1e3 / config.rate_hz:.0f} ms control period, "
-                         f"{st['unconverged']} stopped unconverged (iterate used).")
+            lines.append(
+                f"{name} solve time over the table's {st['n']} solves: "
+                f"p50 {st['p50'] * 1e3:.1f} ms, p99 {st['p99'] * 1e3:.1f} ms, "
+                f"max {st['max'] * 1e3:.1f} ms; {st['over_period']} over the "
+                f"{1e3 / config.rate_hz:.0f} ms control period, "
+                f"{st['unconverged']} stopped unconverged (iterate used)."
+            )
     load1 = os.getloadavg()[0]
-    lines.append(f"Machine: {os.cpu_count()} cores, 1-minute load average {load1:.1f} when the "
-                 "table was written (other jobs share the cores; solve times depend on it).")
+    lines.append(
+        f"Machine: {os.cpu_count()} cores, 1-minute load average {load1:.1f} when the "
+        "table was written (other jobs share the cores; solve times depend on it)."
+    )
     for name, why in skipped.items():
         lines.append(f"{name}: not run ({why}).")
     if more:
         lines += seed_lines(more, table, seed, n)
-    lines += ["", "### Scenarios (nominal arm, no noise, 20 s at 20 Hz)", "",
-              "| scenario | controller | reached | max final abs(e) [rad] | OS [%] | ST [s] "
-              "| RMSE [rad] | E [J] |",
-              "|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "### Scenarios (nominal arm, no noise, 20 s at 20 Hz)",
+        "",
+        "| scenario | controller | reached | max final abs(e) [rad] | OS [%] | ST [s] "
+        "| RMSE [rad] | E [J] |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for sc in SCENARIOS:
         for name, results in scenarios.items():
             r = results[sc.number - 1]
@@ -167,7 +200,8 @@ def markdown(scenarios: dict[str, list[EpisodeResult]], table: dict[str, Evaluat
             lines.append(
                 f"| {sc.number}. {sc.title} | {name} | {'yes' if m.reached else 'no'} | "
                 f"{np.abs(r.final_error).max():.4f} | {m.overshoot_pct:.2f} | "
-                f"{m.settling_time_s:.2f} | {m.rmse:.3f} | {m.energy_j:.2f} |")
+                f"{m.settling_time_s:.2f} | {m.rmse:.3f} | {m.energy_j:.2f} |"
+            )
     lines += [""]
     for sc in SCENARIOS:
         for name in scenarios:
@@ -198,26 +232,48 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="paper.py",
         description="Run the paper's four scenarios and its random-target comparison "
-                    "(Table I) for each controller; write JSON, PNG figures and the "
-                    "generated tables of docs/results.md. Controllers that cannot be "
-                    "loaded (e.g. DDPG without weights) are skipped and listed.",
+        "(Table I) for each controller; write JSON, PNG figures and the "
+        "generated tables of docs/results.md. Controllers that cannot be "
+        "loaded (e.g. DDPG without weights) are skipped and listed.",
     )
-    p.add_argument("--controllers", nargs="+", default=["pid", "mpc", "ddpg"],
-                   help="entry-point names (default: pid mpc ddpg)")
+    p.add_argument(
+        "--controllers",
+        nargs="+",
+        default=["pid", "mpc", "ddpg"],
+        help="entry-point names (default: pid mpc ddpg)",
+    )
     p.add_argument("--seed", type=int, default=2020, help="seed of the comparison (2020)")
     p.add_argument("--n", type=int, default=20, help="random targets in the comparison (20)")
-    p.add_argument("--noise", action="store_true",
-                   help="sensor noise in the comparison (scenarios are always noise-free)")
-    p.add_argument("--perturb", type=float, default=0.0, metavar="SPREAD",
-                   help="degraded arm parameters in the comparison, e.g. 0.2")
+    p.add_argument(
+        "--noise",
+        action="store_true",
+        help="sensor noise in the comparison (scenarios are always noise-free)",
+    )
+    p.add_argument(
+        "--perturb",
+        type=float,
+        default=0.0,
+        metavar="SPREAD",
+        help="degraded arm parameters in the comparison, e.g. 0.2",
+    )
     p.add_argument("--runs", type=Path, default=Path("runs/paper"), help="JSON output folder")
     p.add_argument("--figures", type=Path, default=Path("docs/figures"), help="PNG folder")
-    p.add_argument("--doc", type=Path, default=Path("docs/results.md"),
-                   help="Markdown file whose generated block is replaced")
+    p.add_argument(
+        "--doc",
+        type=Path,
+        default=Path("docs/results.md"),
+        help="Markdown file whose generated block is replaced",
+    )
     p.add_argument("--skip-table", action="store_true", help="only the four scenarios")
-    p.add_argument("--more-seeds", nargs="+", type=int, default=[], metavar="SEED",
-                   help="repeat the comparison on these seeds too (same conditions) and "
-                        "count on how many DDPG beats MPC per metric")
+    p.add_argument(
+        "--more-seeds",
+        nargs="+",
+        type=int,
+        default=[],
+        metavar="SEED",
+        help="repeat the comparison on these seeds too (same conditions) and "
+        "count on how many DDPG beats MPC per metric",
+    )
     return p
 
 
@@ -225,8 +281,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     console = Console()
     try:
-        table_config = RunConfig(noise=SensorNoise() if args.noise else None, seed=args.seed,
-                                 param_spread=args.perturb)
+        table_config = RunConfig(
+            noise=SensorNoise() if args.noise else None, seed=args.seed, param_spread=args.perturb
+        )
         episodes = random_episodes(args.n, args.seed)
     except ValueError as exc:
         console.print(f"[red]error:[/red] {exc}")
@@ -254,10 +311,10 @@ def main(argv: list[str] | None = None) -> int:
             # a fresh controller, so solve-time statistics cover the table only
             table[name] = evaluate(load_controller(name), episodes, table_config, name=name)
             (args.runs / f"table_{name}.json").write_text(
-                json.dumps(table[name].to_dict(), indent=1))
+                json.dumps(table[name].to_dict(), indent=1)
+            )
             s = table[name].summary()
-            console.print("  " + ", ".join(f"{k} {s[k]:.4g}" for k in (*METRIC_KEYS,
-                                                                          "rmse_floor")))
+            console.print("  " + ", ".join(f"{k} {s[k]:.4g}" for k in (*METRIC_KEYS, "rmse_floor")))
     if not scenarios:
         console.print("[red]no controller could be run[/red]")
         return 1
@@ -266,13 +323,22 @@ def main(argv: list[str] | None = None) -> int:
         config = dataclasses.replace(table_config, seed=seed)
         for name in scenarios:
             console.print(f"[bold]{name}[/bold]: {args.n} random targets, seed {seed}")
-            ev = evaluate(load_controller(name), random_episodes(args.n, seed), config,
-                          name=name)
+            ev = evaluate(load_controller(name), random_episodes(args.n, seed), config, name=name)
             more.setdefault(seed, {})[name] = ev
             (args.runs / f"table_{name}_seed{seed}.json").write_text(
-                json.dumps(ev.to_dict(), indent=1))
-    block = markdown(scenarios, table, table_config, args.seed, args.n, args.figures,
-                     args.doc.parent, skipped, more)
+                json.dumps(ev.to_dict(), indent=1)
+            )
+    block = markdown(
+        scenarios,
+        table,
+        table_config,
+        args.seed,
+        args.n,
+        args.figures,
+        args.doc.parent,
+        skipped,
+        more,
+    )
     write_generated(args.doc, block)
     console.print(f"wrote {args.doc}, {args.figures}/*.png, {args.runs}/*.json")
     return 0
@@ -280,4 +346,3 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
-

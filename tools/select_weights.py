@@ -48,20 +48,34 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="select_weights.py",
         description="Score trained DDPG actors on the paper's scenarios and on a selection set "
-                    "(not Table I's episodes) against a reference controller, and name the one "
-                    "to ship by a fixed rule (see the module docstring).",
+        "(not Table I's episodes) against a reference controller, and name the one "
+        "to ship by a fixed rule (see the module docstring).",
     )
-    p.add_argument("candidates", nargs="+", type=Path,
-                   help="run directories (their best_actor.npz) or actor .npz files")
+    p.add_argument(
+        "candidates",
+        nargs="+",
+        type=Path,
+        help="run directories (their best_actor.npz) or actor .npz files",
+    )
     p.add_argument("--reference", default="mpc", help="controller to beat (default mpc)")
     p.add_argument("--seed", type=int, default=11, help="selection set's seed (default 11)")
     p.add_argument("--episodes", type=int, default=20, help="selection episodes (default 20)")
-    p.add_argument("--perturb", type=float, default=0.2, metavar="SPREAD",
-                   help="degraded arm parameters (default 0.2, as Table I)")
-    p.add_argument("--screen", type=int, default=200,
-                   help="episodes of the stability screen (default 200; 0 skips it)")
-    p.add_argument("--screen-seed", type=int, default=12,
-                   help="stability screen's seed (default 12)")
+    p.add_argument(
+        "--perturb",
+        type=float,
+        default=0.2,
+        metavar="SPREAD",
+        help="degraded arm parameters (default 0.2, as Table I)",
+    )
+    p.add_argument(
+        "--screen",
+        type=int,
+        default=200,
+        help="episodes of the stability screen (default 200; 0 skips it)",
+    )
+    p.add_argument(
+        "--screen-seed", type=int, default=12, help="stability screen's seed (default 12)"
+    )
     p.add_argument("--out", type=Path, required=True, help="JSON with every candidate's figures")
     return p
 
@@ -77,50 +91,96 @@ def main(argv: list[str] | None = None) -> int:
         console.print(f"[red]error:[/red] {exc}")
         return 2
     console.print(f"reference {args.reference}: {args.episodes} episodes, seed {args.seed}")
-    reference = evaluate(load_controller(args.reference), episodes, config,
-                         name=args.reference).summary()
+    reference = evaluate(
+        load_controller(args.reference), episodes, config, name=args.reference
+    ).summary()
     rows: list[dict[str, Any]] = []
     for candidate, path in zip(args.candidates, paths, strict=True):
         console.print(f"{candidate}: scenarios and {args.episodes} episodes")
-        sc = evaluate(load_controller("ddpg", weights=path), [s.episode() for s in SCENARIOS],
-                      RunConfig(), name="ddpg")
-        summary = evaluate(load_controller("ddpg", weights=path), episodes, config,
-                           name="ddpg").summary()
-        rows.append({
-            "candidate": str(candidate),
-            "weights": str(path),
-            "scenarios_reached": sum(r.metrics.reached for r in sc.results),
-            "scenario_final_error": [float(np.abs(r.final_error).max()) for r in sc.results],
-            "summary": summary,
-            "better_than_reference": wins(summary, reference),
-            "restless": restless_episodes(path, args.screen, args.screen_seed, args.perturb)
-            if args.screen > 0 else [],
-        })
+        sc = evaluate(
+            load_controller("ddpg", weights=path),
+            [s.episode() for s in SCENARIOS],
+            RunConfig(),
+            name="ddpg",
+        )
+        summary = evaluate(
+            load_controller("ddpg", weights=path), episodes, config, name="ddpg"
+        ).summary()
+        rows.append(
+            {
+                "candidate": str(candidate),
+                "weights": str(path),
+                "scenarios_reached": sum(r.metrics.reached for r in sc.results),
+                "scenario_final_error": [float(np.abs(r.final_error).max()) for r in sc.results],
+                "summary": summary,
+                "better_than_reference": wins(summary, reference),
+                "restless": restless_episodes(path, args.screen, args.screen_seed, args.perturb)
+                if args.screen > 0
+                else [],
+            }
+        )
     best = choose(rows, reference)
-    table = Table(title=f"selection set: seed {args.seed}, {args.episodes} episodes, noise, "
-                        f"perturb {args.perturb}; * = chosen")
-    for col in ("candidate", "scenarios", "worst scenario |e|", "restless", "E [J]", "RMSE",
-                "MIE", "MSSE", "OS [%]", "ST [s]", "reached", "better"):
+    table = Table(
+        title=f"selection set: seed {args.seed}, {args.episodes} episodes, noise, "
+        f"perturb {args.perturb}; * = chosen"
+    )
+    for col in (
+        "candidate",
+        "scenarios",
+        "worst scenario |e|",
+        "restless",
+        "E [J]",
+        "RMSE",
+        "MIE",
+        "MSSE",
+        "OS [%]",
+        "ST [s]",
+        "reached",
+        "better",
+    ):
         table.add_column(col)
 
-    def add(name: str, s: dict[str, float], scen: str, worst: str, restless: str,
-            better: str) -> None:
-        table.add_row(name, scen, worst, restless, f"{s['energy_j']:.3f}", f"{s['rmse']:.4f}",
-                      f"{s['mie']:.4f}", f"{s['msse']:.5f}", f"{s['overshoot_pct']:.2f}",
-                      f"{s['settling_time_s']:.3f}", f"{s['reached']:.2f}", better)
+    def add(
+        name: str, s: dict[str, float], scen: str, worst: str, restless: str, better: str
+    ) -> None:
+        table.add_row(
+            name,
+            scen,
+            worst,
+            restless,
+            f"{s['energy_j']:.3f}",
+            f"{s['rmse']:.4f}",
+            f"{s['mie']:.4f}",
+            f"{s['msse']:.5f}",
+            f"{s['overshoot_pct']:.2f}",
+            f"{s['settling_time_s']:.3f}",
+            f"{s['reached']:.2f}",
+            better,
+        )
 
     add(args.reference, reference, "-", "-", "-", "-")
     for r in rows:
-        add(r["candidate"] + ("*" if r is best else ""), r["summary"],
-            f"{r['scenarios_reached']}/{len(SCENARIOS)}", f"{max(r['scenario_final_error']):.4f}",
+        add(
+            r["candidate"] + ("*" if r is best else ""),
+            r["summary"],
+            f"{r['scenarios_reached']}/{len(SCENARIOS)}",
+            f"{max(r['scenario_final_error']):.4f}",
             f"{len(r['restless'])}/{args.screen}",
-            f"{sum(r['better_than_reference'].values())}/{len(TABLE_KEYS)}")
+            f"{sum(r['better_than_reference'].values())}/{len(TABLE_KEYS)}",
+        )
     console.print(table)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({
-        "args": {k: str(v) for k, v in vars(args).items()},
-        "reference": reference, "rows": rows,
-        "chosen": None if best is None else best["candidate"]}, indent=1))
+    args.out.write_text(
+        json.dumps(
+            {
+                "args": {k: str(v) for k, v in vars(args).items()},
+                "reference": reference,
+                "rows": rows,
+                "chosen": None if best is None else best["candidate"],
+            },
+            indent=1,
+        )
+    )
     if best is None:
         console.print("no candidate reaches every scenario and episode and comes to rest")
         return 1
