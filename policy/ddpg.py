@@ -4,7 +4,7 @@ Read top to bottom: the hyperparameters (one dataclass), the networks, the explo
 the replay buffer, one gradient update, the training loop, the evaluation. `DDPGConfig.paper()`
 is the paper's setup; `DDPGConfig.ours()` is what the shipped policy used (docs/training.md).
 
-Speed (tooling-notes.md): one torch thread, a numpy replay buffer, fused Adam, foreach lerp for
+Speed (tools/bench_train.py): one torch thread, a numpy replay buffer, fused Adam, foreach lerp for
 the target networks, N environments stepped per round of updates, larger batches.
 """
 
@@ -25,9 +25,27 @@ import numpy as np
 import torch
 from torch import nn
 
-from policy.env import EnvConfig, PDExpert, ReachAlphaEnv, RewardConfig, RewardMode
-from policy.observation import N_JOINTS, ObservationConfig
-from reach_sim_bridge.motor import DEFAULT_CURRENT_LIMITS_MA
+from policy.batched import Expert, eval_envs, evaluate_batched
+from policy.env import EnvConfig, ReachAlphaEnv, RewardConfig, RewardMode
+from policy.expert import PDExpert
+from policy.observation import ObservationConfig
+from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, N_JOINTS
+
+#: seeds: env i's first episode `seed * ENV_SEED_STRIDE + i + STEP_SEED_FACTOR * env_steps`;
+#: demonstration episode k `seed * ENV_SEED_STRIDE + DEMO_SEED_OFFSET + k`
+ENV_SEED_STRIDE = 1_000
+STEP_SEED_FACTOR = 7
+DEMO_SEED_OFFSET = 500_000
+#: checkpoint evaluation sets, seeded from `eval_seed` plus these
+WEAK_EVAL_SEED_OFFSET = 5_000
+WIDE_EVAL_SEED_OFFSET = 7_000
+WEAK_EVAL_TORQUE_SCALE = (0.25, 1.0, 1.0, 1.0)  # E at 25 %: the paper's scenario 3
+MIN_SIDE_EVAL_EPISODES = 4
+#: the weak and wide sets add reached fraction x this, minus overshoot (%) x the other
+SIDE_REACHED_WEIGHT = 0.5
+SIDE_OVERSHOOT_WEIGHT = 0.005
+#: rad: the curriculum's widest step (E's workspace span, 5.8 - 0.4)
+CURRICULUM_MAX_STEP = 5.4
 
 # ---------------------------------------------------------------------------------------------
 # Hyperparameters
@@ -336,10 +354,16 @@ class Agent:
         linears = [m for m in self.actor.net if isinstance(m, nn.Linear)]
         for i, layer in enumerate(linears):
             w, b = arrays.get(f"W{i}"), arrays.get(f"b{i}")
-            if w is None or b is None or w.shape != tuple(layer.weight.shape) \
-                    or b.shape != tuple(layer.bias.shape):
-                raise ValueError(f"{path}: layer {i} does not fit a {self.config.hidden} actor "
-                                 f"with {linears[0].in_features} inputs")
+            if (
+                w is None
+                or b is None
+                or w.shape != tuple(layer.weight.shape)
+                or b.shape != tuple(layer.bias.shape)
+            ):
+                raise ValueError(
+                    f"{path}: layer {i} does not fit a {self.config.hidden} actor "
+                    f"with {linears[0].in_features} inputs"
+                )
             with torch.no_grad():
                 layer.weight.copy_(torch.from_numpy(w))
                 layer.bias.copy_(torch.from_numpy(b))
@@ -438,10 +462,8 @@ class Agent:
 
 
 # ---------------------------------------------------------------------------------------------
-# Evaluation: deterministic policy on fixed episodes
+# Evaluation during training: policy.batched (the demonstrator a run needs here)
 # ---------------------------------------------------------------------------------------------
-
-Expert = Callable[[ReachAlphaEnv], np.ndarray]
 
 
 def make_expert(config: DDPGConfig) -> Expert | None:
@@ -451,123 +473,10 @@ def make_expert(config: DDPGConfig) -> Expert | None:
     return PDExpert(energy_lambda=config.expert_energy_lambda)
 
 
-def eval_envs(
-    env_config: EnvConfig,
-    episodes: int,
-    torque_scale: tuple[float, float, float, float] | None = None,
-    arm_factory: Any = None,
-    param_perturbation: float = 0.0,
-    training_workspace: bool = False,
-) -> list[ReachAlphaEnv]:
-    """Envs for `evaluate`: sensor noise on, the whole evaluation workspace (even when the run
-    trains on a wider one, so scores stay comparable across runs; `training_workspace` keeps
-    the run's own), the nominal model unless `param_perturbation` > 0 (each episode's arm then
-    drawn by `ArmParams.randomized`)."""
-    cfg = dataclasses.replace(
-        env_config, torque_scale_low=None, max_step=None, sensor_noise=True,
-        workspace_low=env_config.workspace_low if training_workspace else None,
-        workspace_high=env_config.workspace_high if training_workspace else None,
-        param_perturbation=param_perturbation,
-        torque_scale=torque_scale or (1.0, 1.0, 1.0, 1.0),
-    )
-    return [ReachAlphaEnv(cfg, arm_factory=arm_factory) for _ in range(episodes)]
-
-
-@dataclass(frozen=True)
-class EvalResult:
-    """Means over episodes of reach_driver.metrics (docs/metrics.md), plus the floor ratio."""
-
-    episodes: int
-    reached_fraction: float
-    final_error: float  # max |e| over joints at the end (rad)
-    rmse: float  # rad
-    rmse_floor_ratio: float  # rmse / rmse of driving straight to target at no-load speed
-    overshoot_pct: float
-    settling_s: float
-    steady_error: float  # MSSE: mean |e| over the last 2 s (rad)
-    mie: float
-    energy_j: float
-
-    def score(self, energy_weight: float = 0.0) -> float:
-        """Higher is better: reaching first, then speed, then overshoot and precision
-        (and energy, per joule, when `energy_weight` > 0)."""
-        return (
-            self.reached_fraction
-            - 0.2 * max(self.rmse_floor_ratio - 1.0, 0.0)
-            - 0.01 * self.overshoot_pct
-            - 5.0 * self.steady_error
-            - energy_weight * self.energy_j
-        )
-
-    def to_dict(self) -> dict[str, float]:
-        return dataclasses.asdict(self)
-
-
-def evaluate(
-    policy: Callable[[np.ndarray], np.ndarray],
-    env_config: EnvConfig,
-    episodes: int = 20,
-    seed: int = 10_000,
-    torque_scale: tuple[float, float, float, float] | None = None,
-    arm_factory: Any = None,
-    expert: Expert | None = None,
-    envs: list[ReachAlphaEnv] | None = None,
-    param_perturbation: float = 0.0,
-) -> EvalResult:
-    """Run `episodes` fixed episodes (sensor noise on) in lock-step, scored on the true state.
-
-    `policy` maps a batch of observations to a batch of actions; with `expert` given, the
-    expert (which reads the true state) acts instead, for its baseline figures. Pass `envs`
-    (from `eval_envs`) to reuse arms: a long run then scores on the very model it trains on.
-    """
-    from reach_driver import metrics
-    from reach_sim_bridge.motor import no_load_speed
-
-    if envs is None:
-        envs = eval_envs(env_config, episodes, torque_scale, arm_factory, param_perturbation)
-    if len(envs) != episodes:
-        raise ValueError(f"{len(envs)} envs for {episodes} episodes")
-    cfg = envs[0].config
-    obs = np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(envs)])
-    steps = cfg.steps_per_episode
-    q = np.zeros((steps + 1, episodes, N_JOINTS))
-    qdot = np.zeros_like(q)
-    tau = np.zeros_like(q)
-    q[0] = np.stack([env.arm.q for env in envs])
-    for k in range(1, steps + 1):
-        actions = policy(obs) if expert is None else [expert(env) for env in envs]
-        obs = np.stack([env.step(a)[0] for env, a in zip(envs, actions, strict=True)])
-        q[k] = np.stack([env.arm.q for env in envs])
-        qdot[k] = np.stack([env.arm.qdot for env in envs])
-        tau[k] = np.stack([getattr(env.arm, "tau", np.zeros(N_JOINTS)) for env in envs])
-    dt = envs[0].control_dt
-    speed = no_load_speed()
-    results, ratios, finals = [], [], []
-    for i, env in enumerate(envs):
-        trace = metrics.Trace(dt=dt, q=q[:, i], qdot=qdot[:, i], tau=tau[:, i], target=env.target)
-        m = metrics.compute_metrics(trace)
-        results.append(m)
-        floor = metrics.rmse_floor(q[0, i], env.target, speed, dt, steps)
-        ratios.append(m.rmse / max(floor, 1e-9))
-        finals.append(float(np.max(np.abs(trace.errors[-1]))))
-    summary = metrics.summarize(results)
-    return EvalResult(
-        episodes=episodes,
-        reached_fraction=summary["reached"],
-        final_error=float(np.mean(finals)),
-        rmse=summary["rmse"],
-        rmse_floor_ratio=float(np.mean(ratios)),
-        overshoot_pct=summary["overshoot_pct"],
-        settling_s=summary["settling_time_s"],
-        steady_error=summary["msse"],
-        mie=summary["mie"],
-        energy_j=summary["energy_j"],
-    )
-
-
 # ---------------------------------------------------------------------------------------------
 # Training loop
 # ---------------------------------------------------------------------------------------------
+
 
 @dataclass
 class TrainState:
@@ -611,17 +520,31 @@ class Trainer:
         self.demos = ReplayBuffer(
             max(1, config.demo_episodes * config.env.steps_per_episode), obs_dim, N_JOINTS
         )
-        self.noise = OUNoise((config.num_envs, N_JOINTS), config.ou_theta, config.ou_sigma,
-                             self.rng)
+        self.noise = OUNoise(
+            (config.num_envs, N_JOINTS), config.ou_theta, config.ou_sigma, self.rng
+        )
         # built once: arms load the MJCF when constructed, so evaluation uses the same model
         self.eval_nominal = eval_envs(config.env, config.eval_episodes, None, arm_factory)
-        self.eval_weak = eval_envs(config.env, max(4, config.eval_episodes // 2),
-                                   (0.25, 1.0, 1.0, 1.0), arm_factory)
+        self.eval_weak = eval_envs(
+            config.env,
+            max(MIN_SIDE_EVAL_EPISODES, config.eval_episodes // 2),
+            WEAK_EVAL_TORQUE_SCALE,
+            arm_factory,
+        )
         # a run on a wider workspace is also scored on episodes from it (e.g. B up to the
         # paper's scenario angles), so the best actor is not chosen on the narrow range alone
         wide = config.env.workspace_low is not None or config.env.workspace_high is not None
-        self.eval_wide = (eval_envs(config.env, max(4, config.eval_episodes // 2), None,
-                                    arm_factory, training_workspace=True) if wide else [])
+        self.eval_wide = (
+            eval_envs(
+                config.env,
+                max(MIN_SIDE_EVAL_EPISODES, config.eval_episodes // 2),
+                None,
+                arm_factory,
+                training_workspace=True,
+            )
+            if wide
+            else []
+        )
         self.state = TrainState()
         self.best_actor = copy.deepcopy(self.agent.actor.state_dict())
         self._obs: np.ndarray | None = None
@@ -646,7 +569,8 @@ class Trainer:
         if frac >= 1.0:
             return cfg.env
         return dataclasses.replace(
-            cfg.env, max_step=cfg.curriculum_start + frac * (5.4 - cfg.curriculum_start)
+            cfg.env,
+            max_step=cfg.curriculum_start + frac * (CURRICULUM_MAX_STEP - cfg.curriculum_start),
         )
 
     def _reset_env(self, i: int) -> np.ndarray:
@@ -654,7 +578,7 @@ class Trainer:
         env.config = self._episode_config()
         seed = None
         if self.state.episodes < self.config.num_envs:  # first episode of each env: seed it
-            seed = self.config.seed * 1_000 + i + 7 * self.state.env_steps
+            seed = self.config.seed * ENV_SEED_STRIDE + i + STEP_SEED_FACTOR * self.state.env_steps
         obs, _ = env.reset(seed=seed)
         self.noise.reset(i)
         self.state.episodes += 1
@@ -672,13 +596,19 @@ class Trainer:
             return
         env = ReachAlphaEnv(cfg.env, arm_factory=self.arm_factory)
         for ep in range(cfg.demo_episodes):
-            obs, _ = env.reset(seed=cfg.seed * 1_000 + 500_000 + ep)
+            obs, _ = env.reset(seed=cfg.seed * ENV_SEED_STRIDE + DEMO_SEED_OFFSET + ep)
             done = False
             while not done:
                 a = self.expert(env).astype(np.float32)
                 next_obs, r, term, trunc, _ = env.step(a)
-                self.demos.add(obs[None], a[None], np.array([r]), next_obs[None],
-                               np.array([float(term)]), a[None])
+                self.demos.add(
+                    obs[None],
+                    a[None],
+                    np.array([r]),
+                    next_obs[None],
+                    np.array([float(term)]),
+                    a[None],
+                )
                 obs, done = next_obs, term or trunc
         self.log(f"collected {len(self.demos)} demonstration transitions")
 
@@ -699,8 +629,10 @@ class Trainer:
         ep_returns = np.zeros(cfg.num_envs)
         csv = open(csv_path, "a", buffering=1) if csv_path else None  # noqa: SIM115
         if csv is not None and csv.tell() == 0:
-            csv.write("env_steps,episodes,wall_s,episode_return,critic_loss,actor_loss,"
-                      "bc_loss,q,epsilon,bc_weight\n")
+            csv.write(
+                "env_steps,episodes,wall_s,episode_return,critic_loss,actor_loss,"
+                "bc_loss,q,epsilon,bc_weight\n"
+            )
         t_last_ckpt = time.monotonic()
         t_start = time.monotonic() - self.state.wall_s
         next_eval = (self.state.env_steps // cfg.eval_every + 1) * cfg.eval_every
@@ -762,23 +694,36 @@ class Trainer:
     def _csv_row(self, ep_return: float, losses: dict[str, float]) -> str:
         s = self.state
         fields = [
-            s.env_steps, s.episodes, f"{s.wall_s:.1f}", f"{ep_return:.3f}",
+            s.env_steps,
+            s.episodes,
+            f"{s.wall_s:.1f}",
+            f"{ep_return:.3f}",
             f"{losses.get('critic_loss', float('nan')):.5g}",
             f"{losses.get('actor_loss', float('nan')):.5g}",
             f"{losses.get('bc_loss', float('nan')):.5g}",
             f"{losses.get('q', float('nan')):.5g}",
-            f"{self.epsilon():.4f}", f"{self.bc_weight():.4f}",
+            f"{self.epsilon():.4f}",
+            f"{self.bc_weight():.4f}",
         ]
         return ",".join(str(f) for f in fields) + "\n"
 
     def evaluate_and_keep_best(self) -> dict[str, Any]:
         cfg = self.config
-        nominal = evaluate(self.agent.act, cfg.env, cfg.eval_episodes, cfg.eval_seed,
-                           envs=self.eval_nominal)
-        weak = evaluate(self.agent.act, cfg.env, len(self.eval_weak), cfg.eval_seed + 5_000,
-                        envs=self.eval_weak)
-        score = (nominal.score(cfg.score_energy_weight) + 0.5 * weak.reached_fraction
-                 - 0.005 * weak.overshoot_pct)
+        nominal = evaluate_batched(
+            self.agent.act, cfg.env, cfg.eval_episodes, cfg.eval_seed, envs=self.eval_nominal
+        )
+        weak = evaluate_batched(
+            self.agent.act,
+            cfg.env,
+            len(self.eval_weak),
+            cfg.eval_seed + WEAK_EVAL_SEED_OFFSET,
+            envs=self.eval_weak,
+        )
+        score = (
+            nominal.score(cfg.score_energy_weight)
+            + SIDE_REACHED_WEIGHT * weak.reached_fraction
+            - SIDE_OVERSHOOT_WEIGHT * weak.overshoot_pct
+        )
         record: dict[str, Any] = {
             "env_steps": self.state.env_steps,
             "wall_s": round(self.state.wall_s, 1),
@@ -788,13 +733,23 @@ class Trainer:
         }
         wide_note = ""
         if self.eval_wide:
-            wide = evaluate(self.agent.act, cfg.env, len(self.eval_wide), cfg.eval_seed + 7_000,
-                            envs=self.eval_wide)
-            score += 0.5 * wide.reached_fraction - 0.005 * wide.overshoot_pct
+            wide = evaluate_batched(
+                self.agent.act,
+                cfg.env,
+                len(self.eval_wide),
+                cfg.eval_seed + WIDE_EVAL_SEED_OFFSET,
+                envs=self.eval_wide,
+            )
+            score += (
+                SIDE_REACHED_WEIGHT * wide.reached_fraction
+                - SIDE_OVERSHOOT_WEIGHT * wide.overshoot_pct
+            )
             record["score"] = score
             record["training_workspace"] = wide.to_dict()
-            wide_note = (f" | wide: reached {wide.reached_fraction:.2f} "
-                         f"final {wide.final_error:.4f} OS {wide.overshoot_pct:.2f}%")
+            wide_note = (
+                f" | wide: reached {wide.reached_fraction:.2f} "
+                f"final {wide.final_error:.4f} OS {wide.overshoot_pct:.2f}%"
+            )
         self.state.history.append(record)
         if score > self.state.best_score:
             self.state.best_score = score
@@ -816,9 +771,12 @@ class Trainer:
     def export_best(self, path: Path, record: dict[str, Any]) -> None:
         actor = Actor(self.obs_dim, N_JOINTS, self.config.hidden)
         actor.load_state_dict(self.best_actor)
-        save_actor_npz(path, actor, self.config, extra={"eval": record,
-                                                        "env_steps": self.state.env_steps,
-                                                        "wall_s": self.state.wall_s})
+        save_actor_npz(
+            path,
+            actor,
+            self.config,
+            extra={"eval": record, "env_steps": self.state.env_steps, "wall_s": self.state.wall_s},
+        )
 
     # -- checkpoints -----------------------------------------------------------------------
     def save(self) -> Path:
@@ -830,9 +788,11 @@ class Trainer:
         """
         path = self.run_dir / "checkpoint.pt"
         buffer_name = f"buffer-{self.state.env_steps}.npz"
-        arrays: dict[str, Any] = {**self.buffer.state(),
-                                  **{f"demo_{k}": v for k, v in self.demos.state().items()},
-                                  "env_steps": np.array(self.state.env_steps)}
+        arrays: dict[str, Any] = {
+            **self.buffer.state(),
+            **{f"demo_{k}": v for k, v in self.demos.state().items()},
+            "env_steps": np.array(self.state.env_steps),
+        }
         np.savez(self.run_dir / "buffer.tmp.npz", **arrays)
         os.replace(self.run_dir / "buffer.tmp.npz", self.run_dir / buffer_name)
         tmp = path.with_suffix(".tmp")
@@ -858,8 +818,10 @@ class Trainer:
         ckpt = torch.load(self.run_dir / "checkpoint.pt", weights_only=False)
         saved = DDPGConfig.from_dict(ckpt["config"])
         if saved.to_dict() != {**self.config.to_dict(), "total_steps": saved.total_steps}:
-            raise ValueError("checkpoint was made with a different configuration; "
-                             "resume with the same --config and options")
+            raise ValueError(
+                "checkpoint was made with a different configuration; "
+                "resume with the same --config and options"
+            )
         self.agent.load_state_dict(ckpt["agent"])
         self.best_actor = ckpt["best_actor"]
         self.state = TrainState(**ckpt["state"])
@@ -869,14 +831,20 @@ class Trainer:
             # the two files are replaced one after the other: a kill in between is detected
             saved_at = int(data["env_steps"]) if "env_steps" in data.files else None
             if saved_at is not None and saved_at != self.state.env_steps:
-                raise ValueError(f"buffer.npz is from step {saved_at}, checkpoint.pt from "
-                                 f"{self.state.env_steps}: the last save was interrupted")
+                raise ValueError(
+                    f"buffer.npz is from step {saved_at}, checkpoint.pt from "
+                    f"{self.state.env_steps}: the last save was interrupted"
+                )
             self.buffer.load({k: data[k] for k in (*ReplayBuffer.FIELDS, "meta")})
             self.demos.load({k: data[f"demo_{k}"] for k in (*ReplayBuffer.FIELDS, "meta")})
         self._obs = None  # episodes restart after a resume
         # later episodes are drawn from each env's own generator: reseed them from the step
         for i, env in enumerate(self.envs):
-            env.reset(seed=self.config.seed * 1_000 + i + 7 * self.state.env_steps)
+            env.reset(
+                seed=self.config.seed * ENV_SEED_STRIDE
+                + i
+                + STEP_SEED_FACTOR * self.state.env_steps
+            )
 
 
 def save_actor_npz(
@@ -909,4 +877,3 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, Enum):
         return obj.value
     raise TypeError(f"not JSON serialisable: {type(obj)}")
-

@@ -15,23 +15,16 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
-from policy.observation import N_JOINTS, ObservationConfig, build_observation
+from policy.observation import ObservationConfig, build_observation
+from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, N_JOINTS
+from reach_driver.controllers import ControlState
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "ddpg_actor.npz"
-DEFAULT_CURRENT_LIMITS_MA = (600.0, 600.0, 600.0, 300.0)
-
-
-class JointState(Protocol):
-    @property
-    def q(self) -> np.ndarray: ...
-
-    @property
-    def qdot(self) -> np.ndarray: ...
 
 
 @dataclass(frozen=True)
@@ -62,8 +55,9 @@ class ActorWeights:
             raise ValueError(f"{meta_path}: unknown weights format {meta.get('format')!r}")
         with np.load(path) as data:
             n = sum(1 for key in data.files if key.startswith("W"))
-            if n == 0 or any(f"W{i}" not in data.files or f"b{i}" not in data.files
-                             for i in range(n)):
+            if n == 0 or any(
+                f"W{i}" not in data.files or f"b{i}" not in data.files for i in range(n)
+            ):
                 raise ValueError(f"{path}: expected arrays W0 b0 .. W{n - 1} b{n - 1}")
             weights = tuple(np.asarray(data[f"W{i}"], np.float64) for i in range(n))
             biases = tuple(np.asarray(data[f"b{i}"], np.float64) for i in range(n))
@@ -77,13 +71,15 @@ class ActorWeights:
             if b.shape != (w.shape[0],) or (i and w.shape[1] != weights[i - 1].shape[0]):
                 raise ValueError(f"{path}: layer {i} shapes do not chain")
         limits = np.asarray(meta.get("current_limits_mA", DEFAULT_CURRENT_LIMITS_MA), float)
-        return cls(weights, biases, float(meta.get("leaky_relu_slope", 0.01)), observation,
-                   limits, meta)
+        return cls(
+            weights, biases, float(meta.get("leaky_relu_slope", 0.01)), observation, limits, meta
+        )
 
     def __post_init__(self) -> None:
         # float32, transposed and contiguous: what torch computed, at matmul speed
-        object.__setattr__(self, "_wt", tuple(
-            np.ascontiguousarray(w.T, dtype=np.float32) for w in self.weights))
+        object.__setattr__(
+            self, "_wt", tuple(np.ascontiguousarray(w.T, dtype=np.float32) for w in self.weights)
+        )
         object.__setattr__(self, "_b32", tuple(b.astype(np.float32) for b in self.biases))
         if not 0.0 <= self.leaky_slope < 1.0:
             raise ValueError(f"leaky_relu_slope must be in [0, 1), got {self.leaky_slope}")
@@ -125,16 +121,21 @@ class ReferenceIntegral:
 
     def __post_init__(self) -> None:
         if not (self.gain >= 0 and self.band > 0 and self.cap >= 0 and self.default_dt > 0):
-            raise ValueError(f"reference integral needs gain >= 0 and band, cap, default_dt > 0, "
-                             f"got {self}")
+            raise ValueError(
+                f"reference integral needs gain >= 0 and band, cap, default_dt > 0, got {self}"
+            )
 
 
 class DDPGController:
     """The actor: currents (mA, E D C B) from the joint state and the target, with an optional
     integral on the reference it is shown (`ReferenceIntegral`)."""
 
-    def __init__(self, weights: ActorWeights, current_limits_mA: Any = None,
-                 integral: ReferenceIntegral | None = None) -> None:
+    def __init__(
+        self,
+        weights: ActorWeights,
+        current_limits_mA: Any = None,
+        integral: ReferenceIntegral | None = None,
+    ) -> None:
         self.weights = weights
         limits = weights.current_limits_mA if current_limits_mA is None else current_limits_mA
         self.current_limits_mA = np.asarray(limits, dtype=np.float64)
@@ -149,26 +150,27 @@ class DDPGController:
         self._target: np.ndarray | None = None
         self._t: float | None = None
 
-    def observation(self, state: JointState, target: np.ndarray) -> np.ndarray:
+    def observation(self, state: ControlState, target: np.ndarray) -> np.ndarray:
         """The network's input for `state` and `target` as given (no reference integral)."""
         q, qdot, goal = self._checked(state, target)
         return build_observation(q, qdot, goal, self.weights.observation)
 
     @staticmethod
-    def _checked(state: JointState, target: np.ndarray) -> tuple[np.ndarray, ...]:
+    def _checked(state: ControlState, target: np.ndarray) -> tuple[np.ndarray, ...]:
         target = np.asarray(target, dtype=np.float64)
         if target.shape != (N_JOINTS,) or not np.all(np.isfinite(target)):
             raise ValueError(f"target must be 4 finite angles (rad, E D C B), got {target!r}")
         q = np.asarray(state.q, dtype=np.float64)
         qdot = np.asarray(state.qdot, dtype=np.float64)
         if q.shape != (N_JOINTS,) or qdot.shape != (N_JOINTS,):
-            raise ValueError(f"state.q and state.qdot must have shape (4,), got {q.shape}, "
-                             f"{qdot.shape}")
+            raise ValueError(
+                f"state.q and state.qdot must have shape (4,), got {q.shape}, {qdot.shape}"
+            )
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qdot))):
             raise ValueError(f"state must be finite, got q={q}, qdot={qdot}")
         return q, qdot, target
 
-    def shown_target(self, state: JointState, target: np.ndarray) -> np.ndarray:
+    def shown_target(self, state: ControlState, target: np.ndarray) -> np.ndarray:
         """The target the network is shown: `target` plus the reference integral."""
         q, _, target = self._checked(state, target)
         return self._shift(q, getattr(state, "t", None), target)
@@ -190,7 +192,7 @@ class DDPGController:
         out: np.ndarray = target + self.offset
         return out
 
-    def act(self, state: JointState, target: np.ndarray) -> np.ndarray:
+    def act(self, state: ControlState, target: np.ndarray) -> np.ndarray:
         q, qdot, goal = self._checked(state, target)
         shown = self._shift(q, getattr(state, "t", None), goal)
         action = self.weights.forward(build_observation(q, qdot, shown, self.weights.observation))
@@ -199,15 +201,18 @@ class DDPGController:
 
 
 def make_controller(
-    weights: str | Path | None = None, current_limits_mA: Any = None,
-    integral_gain: float = ReferenceIntegral.gain, integral_band: float = ReferenceIntegral.band,
+    weights: str | Path | None = None,
+    current_limits_mA: Any = None,
+    integral_gain: float = ReferenceIntegral.gain,
+    integral_band: float = ReferenceIntegral.band,
     integral_cap: float = ReferenceIntegral.cap,
 ) -> DDPGController:
     """The shipped controller: the DDPG actor (shipped weights, or those at `weights`) with its
     reference integral (`integral_gain` 0 for the pure policy)."""
     integral = ReferenceIntegral(gain=integral_gain, band=integral_band, cap=integral_cap)
-    return DDPGController(ActorWeights.load(weights or DEFAULT_WEIGHTS), current_limits_mA,
-                          integral)
+    return DDPGController(
+        ActorWeights.load(weights or DEFAULT_WEIGHTS), current_limits_mA, integral
+    )
 
 
 def make_pure_controller(

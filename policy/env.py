@@ -14,13 +14,13 @@ import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any, Protocol
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
+from policy.arm import ArmLike
 from policy.observation import (
-    N_JOINTS,
     WORKSPACE_HALF_RANGE,
     WORKSPACE_HIGH,
     WORKSPACE_LOW,
@@ -28,43 +28,15 @@ from policy.observation import (
     build_observation,
     observation_bounds,
 )
+from protocol.alpha5 import N_JOINTS
+from reach_sim_bridge.faults import SensorNoise
 from reach_sim_bridge.motor import no_load_speed
-from reach_sim_bridge.params import ArmParams
 
 ENV_ID = "ReachAlpha-v0"
-NO_LOAD_SPEED = 1.18  # rad/s, E/D/C motors at 24 V (alpha5-model.md)
-SENSOR_NOISE_Q = 0.002  # rad
-SENSOR_NOISE_QDOT = 0.02  # rad/s
-# what the demonstrator knows of the arm: the nominal model, not an episode's perturbed one
+#: rad/s per joint at 24 V (reach_sim_bridge/model/README.md): scales the shaped reward's speed
 NO_LOAD_SPEEDS = np.asarray(no_load_speed(), dtype=np.float64)
-NOMINAL_DAMPING = np.asarray(ArmParams().damping, dtype=np.float64)  # N m s/rad
-NOMINAL_FRICTIONLOSS = np.asarray(ArmParams().frictionloss, dtype=np.float64)  # N m
-
-
-class ArmLike(Protocol):
-    """The part of `Alpha5Arm` the env uses (docs/architecture.md)."""
-
-    @property
-    def q(self) -> np.ndarray: ...
-
-    @property
-    def qdot(self) -> np.ndarray: ...
-
-    @property
-    def position_limits(self) -> np.ndarray: ...
-
-    @property
-    def current_limits_mA(self) -> np.ndarray: ...
-
-    @property
-    def torque_scale(self) -> np.ndarray: ...
-
-    @torque_scale.setter
-    def torque_scale(self, scale: Any) -> None: ...
-
-    def reset(self, q: Any = ..., qdot: Any = ..., jaw_mm: float = ...) -> None: ...
-
-    def step(self, currents_mA: Any, jaw_current_mA: float = ..., n: int = ...) -> None: ...
+#: what `EnvConfig.sensor_noise` switches on (the sim's one noise, Table I's sigmas)
+SENSOR_NOISE = SensorNoise()
 
 
 class RewardMode(str, Enum):
@@ -78,7 +50,7 @@ class RewardConfig:
 
     The paper's -10 is paid for EVERY step spent outside the bounds and the episode goes on:
     a one-off terminal -10 would make crashing out cheaper than ~-100 for staying inside
-    (paper-benchmark.md, pitfalls).
+    (Carlucho et al., OCEANS 2020, read with care).
     """
 
     mode: RewardMode = RewardMode.PAPER
@@ -170,7 +142,7 @@ def compute_reward(
     gate = np.exp(-0.5 * (error / config.near_scale) ** 2)
     reward = -1.0 + np.mean(np.exp(-0.5 * (error / config.sigma) ** 2))
     reward -= config.distance_weight * np.mean(np.abs(error) / WORKSPACE_HALF_RANGE)
-    reward -= config.velocity_weight * np.mean(gate * np.abs(qdot) / NO_LOAD_SPEED)
+    reward -= config.velocity_weight * np.mean(gate * np.abs(qdot) / NO_LOAD_SPEEDS)
     reward -= config.action_change_weight * np.mean(gate * np.abs(action - prev_action))
     return float(reward)
 
@@ -200,6 +172,9 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         if config.control_hz <= 0 or config.episode_s <= 0:
             raise ValueError("control_hz and episode_s must be positive")
         self.config = config
+        #: put each step's mean |tau qdot| over the period in info["power"] (W, per joint);
+        #: evaluation switches it on, training leaves the faster whole-period step
+        self.measure_power = False
         self._arm_factory = arm_factory or default_arm_factory
         self.n_substeps = max(1, int(round(1.0 / (config.control_hz * config.physics_dt))))
         self.control_dt = self.n_substeps * config.physics_dt
@@ -255,16 +230,24 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         self.steps = 0
         return self._observe(), self._info(in_bounds=True)
 
-    def step(
-        self, action: np.ndarray
-    ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         action = np.asarray(action, dtype=np.float64)
         if action.shape != (N_JOINTS,):
             raise ValueError(f"action must have shape (4,), got {action.shape}")
         if not np.all(np.isfinite(action)):
             raise ValueError(f"action must be finite, got {action}")
         action = np.clip(action, -1.0, 1.0)
-        self.arm.step(action * self.current_limits_mA, n=self.n_substeps)
+        currents = action * self.current_limits_mA
+        power = None
+        if self.measure_power:
+            # one physics step at a time, |tau qdot| at the physics rate (as the direct backend)
+            work = np.zeros(N_JOINTS)
+            for _ in range(self.n_substeps):
+                self.arm.step(currents, n=1)
+                work += np.abs(self.arm.tau * self.arm.qdot)
+            power = work / self.n_substeps
+        else:
+            self.arm.step(currents, n=self.n_substeps)
         self.steps += 1
         q, qdot = np.asarray(self.arm.q), np.asarray(self.arm.qdot)
         in_bounds = bool(np.all((q > self.bounds_low) & (q < self.bounds_high)))
@@ -273,7 +256,10 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         )
         self.prev_action = action
         truncated = self.steps >= self.config.steps_per_episode
-        return self._observe(), reward, False, truncated, self._info(in_bounds)
+        info = self._info(in_bounds)
+        if power is not None:
+            info["power"] = power
+        return self._observe(), reward, False, truncated, info
 
     # -- helpers -------------------------------------------------------------------------
     def readings(self) -> tuple[np.ndarray, np.ndarray]:
@@ -281,8 +267,7 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         q = np.array(self.arm.q, dtype=np.float64)
         qdot = np.array(self.arm.qdot, dtype=np.float64)
         if self.config.sensor_noise:
-            q = q + self.np_random.normal(0.0, SENSOR_NOISE_Q, N_JOINTS)
-            qdot = qdot + self.np_random.normal(0.0, SENSOR_NOISE_QDOT, N_JOINTS)
+            q, qdot = SENSOR_NOISE.apply(q, qdot, self.np_random)
         return q, qdot
 
     def _observe(self) -> np.ndarray:
@@ -306,76 +291,6 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         if arr.shape != (N_JOINTS,) or not np.all(np.isfinite(arr)):
             raise ValueError(f"option {name!r} must be 4 finite numbers (E D C B), got {value!r}")
         return arr
-
-
-
-@dataclass(frozen=True)
-class PDExpert:
-    """Saturated PD on the TRUE state with gravity and friction feed-forward: the
-    demonstrator for DDPGfD / TD3+BC-style training (and a privileged baseline).
-
-    Stateless (a function of q, qdot, q_req like the policy), so the actor can represent it.
-    Gains are per joint in units of the current limit: a = clip(kd (v_ref - qdot) + ff, -1, 1)
-    with v_ref = (kp / kd) e, i.e. a = kp e - kd qdot.
-
-    `energy_lambda` (None: off) caps each joint's speed by the energy-optimal arrival profile
-    v = sqrt(lambda |e| / b) (b: the joint's nominal viscous friction). That profile minimises
-    friction work b v^2 plus lambda times the integrated error (constant deceleration is the
-    Euler-Lagrange solution), so joints with little way to go or much friction move slower,
-    while a joint whose remaining time is the longest (the one that sets the settling time)
-    keeps full speed. The cruise speed is held by a friction feed-forward that fades out
-    within `cruise_gate` of the target, where the plain PD takes over (docs/training.md).
-    """
-
-    # tuned on the nominal arm at 20 Hz (docs/training.md): no overshoot, no steady error
-    kp: tuple[float, float, float, float] = (8.0, 8.0, 8.0, 4.0)  # 1/rad
-    kd: tuple[float, float, float, float] = (0.4, 0.4, 0.4, 0.1)  # s/rad
-    gravity_ff: bool = True
-    friction_ff: float = 0.0  # fraction of the current limit pushed along the error
-    friction_band: float = 0.003  # rad: width of the tanh that switches friction_ff on
-    energy_lambda: float | None = None  # N m / s: weight of integrated error against work
-    #: (start, width) rad: the cruise feed-forward is off within `start` of the target and
-    #: fully on beyond start + width
-    cruise_gate: tuple[float, float] = (0.02, 0.05)
-    #: a joint within this fraction of the no-load speed counts as the slowest (full speed)
-    full_speed_fraction: float = 0.97
-
-    def __call__(self, env: ReachAlphaEnv) -> np.ndarray:
-        arm: Any = env.arm
-        q, qdot = np.asarray(arm.q), np.asarray(arm.qdot)
-        error = env.target - q
-        kp, kd = np.asarray(self.kp), np.asarray(self.kd)
-        full_torque = arm.motor.torque_per_amp * env.current_limits_mA / 1000.0
-        torque_unit = full_torque * np.maximum(arm.torque_scale, 0.05)
-        v_ref = kp / kd * error
-        feed_forward = np.zeros(N_JOINTS)
-        if self.energy_lambda is not None:
-            v_cruise = self.cruise_speed(np.abs(error))
-            capped = v_cruise < np.abs(v_ref)
-            v_ref = np.where(capped, np.sign(error) * v_cruise, v_ref)
-            lo, width = self.cruise_gate
-            gate = np.clip((np.abs(error) - lo) / width, 0.0, 1.0) * capped
-            speed = np.minimum(v_cruise, NO_LOAD_SPEEDS)  # finite where the gate is on
-            friction = NOMINAL_DAMPING * speed + NOMINAL_FRICTIONLOSS
-            feed_forward = gate * np.sign(error) * friction / torque_unit
-        a = kd * (v_ref - qdot) + feed_forward
-        if self.gravity_ff and hasattr(arm, "gravity_torque"):
-            a = a - arm.gravity_torque(q) / torque_unit
-        a = a + self.friction_ff * np.tanh(error / self.friction_band)
-        out: np.ndarray = np.clip(a, -1.0, 1.0)
-        return out
-
-    def cruise_speed(self, abs_error: np.ndarray) -> np.ndarray:
-        """Speed cap per joint (rad/s); inf where the joint should run flat out."""
-        assert self.energy_lambda is not None
-        profile = np.sqrt(self.energy_lambda * abs_error / NOMINAL_DAMPING)
-        # never slower than arriving together with the slowest joint
-        remaining = float(np.max(abs_error / NO_LOAD_SPEEDS)) + 1e-9
-        profile = np.maximum(profile, abs_error / remaining)
-        out: np.ndarray = np.where(
-            profile >= self.full_speed_fraction * NO_LOAD_SPEEDS, np.inf, profile
-        )
-        return out
 
 
 def register_envs() -> None:

@@ -32,10 +32,10 @@ import casadi as ca
 import mujoco
 import numpy as np
 
+from reach_driver.controllers import ControlState
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.params import ArmParams
 
-N_JOINTS = 4
 SOLVERS = ("ipopt", "sqp-qrqp", "sqp-osqp", "sqp-qpoases")
 Vec4 = tuple[float, float, float, float]
 
@@ -236,11 +236,19 @@ class MPCController:
         opts: dict[str, Any]
         if c.solver == "ipopt":
             plugin = "ipopt"
-            opts = {"print_time": False, "error_on_fail": False,
-                    "ipopt": {"print_level": 0, "sb": "yes", "max_iter": 100,
-                              "warm_start_init_point": "yes", "tol": 1e-6,
-                              "mu_strategy": "adaptive",
-                              "max_wall_time": c.time_fraction * c.period}}
+            opts = {
+                "print_time": False,
+                "error_on_fail": False,
+                "ipopt": {
+                    "print_level": 0,
+                    "sb": "yes",
+                    "max_iter": 100,
+                    "warm_start_init_point": "yes",
+                    "tol": 1e-6,
+                    "mu_strategy": "adaptive",
+                    "max_wall_time": c.time_fraction * c.period,
+                },
+            }
         else:
             plugin = "sqpmethod"
             qp = c.solver.removeprefix("sqp-")
@@ -250,9 +258,17 @@ class MPCController:
             elif qp == "qpoases":
                 qp_opts.update(printLevel="none", sparse=True)
             elif qp == "osqp":
-                qp_opts.update(warm_start_primal=True, warm_start_dual=True,
-                               osqp={"verbose": False, "eps_abs": 1e-5, "eps_rel": 1e-5,
-                                     "max_iter": 4000, "polish": True})
+                qp_opts.update(
+                    warm_start_primal=True,
+                    warm_start_dual=True,
+                    osqp={
+                        "verbose": False,
+                        "eps_abs": 1e-5,
+                        "eps_rel": 1e-5,
+                        "max_iter": 4000,
+                        "polish": True,
+                    },
+                )
             opts = {
                 "qpsol": qp,
                 "qpsol_options": qp_opts,
@@ -306,7 +322,7 @@ class MPCController:
         innovation = implied - model_tau - self._dist
         self._dist = self._dist + self.config.disturbance_gain * innovation
 
-    def act(self, state: Any, target: np.ndarray) -> np.ndarray:
+    def act(self, state: ControlState, target: np.ndarray) -> np.ndarray:
         q = np.asarray(state.q, dtype=float)
         v = np.asarray(state.qdot, dtype=float)
         qref = np.asarray(target, dtype=float)
@@ -315,11 +331,22 @@ class MPCController:
         inertia = m.inertia(q)
         zoh = zoh_coefficients(inertia, m.damping, c.period)
         g0, gjac = m.gravity(q)
-        p = np.concatenate([q, v, qref, self._u_prev, zoh.reshape(-1, order="F"),
-                            g0, gjac.reshape(-1, order="F"), self._dist])
+        p = np.concatenate(
+            [
+                q,
+                v,
+                qref,
+                self._u_prev,
+                zoh.reshape(-1, order="F"),
+                g0,
+                gjac.reshape(-1, order="F"),
+                self._dist,
+            ]
+        )
         w0 = self._warm_start(q, v)
-        args: dict[str, Any] = dict(x0=w0, p=p, lbx=self._lbx, ubx=self._ubx, lbg=self._lbg,
-                                    ubg=self._ubg)
+        args: dict[str, Any] = dict(
+            x0=w0, p=p, lbx=self._lbx, ubx=self._ubx, lbg=self._lbg, ubg=self._ubg
+        )
         if self._lam_g is not None:
             args.update(lam_g0=self._lam_g, lam_x0=self._lam_x)
         t0 = time.perf_counter()
@@ -352,8 +379,8 @@ class MPCController:
                 w[lay.v(k)] = v
             return w
         w = np.empty(lay.size)  # shift by one stage, repeat the last
-        w[: -lay.stage] = self._w0[lay.stage:]
-        w[-lay.stage:] = self._w0[-lay.stage:]
+        w[: -lay.stage] = self._w0[lay.stage :]
+        w[-lay.stage :] = self._w0[-lay.stage :]
         return w
 
     def solve_time_stats(self) -> dict[str, float]:
@@ -361,18 +388,30 @@ class MPCController:
         solves took longer than the control period, and how many ended unconverged."""
         t = np.asarray(self.solve_times)
         if t.size == 0:
-            return {"p50": math.nan, "p99": math.nan, "max": math.nan, "n": 0,
-                    "over_period": 0, "unconverged": 0}
-        return {"p50": float(np.percentile(t, 50)), "p99": float(np.percentile(t, 99)),
-                "max": float(t.max()), "n": int(t.size),
-                "over_period": int(np.sum(t > self.config.period)),
-                "unconverged": self.failures}
+            return {
+                "p50": math.nan,
+                "p99": math.nan,
+                "max": math.nan,
+                "n": 0,
+                "over_period": 0,
+                "unconverged": 0,
+            }
+        return {
+            "p50": float(np.percentile(t, 50)),
+            "p99": float(np.percentile(t, 99)),
+            "max": float(t.max()),
+            "n": int(t.size),
+            "over_period": int(np.sum(t > self.config.period)),
+            "unconverged": self.failures,
+        }
 
 
 def make_controller(**kwargs: Any) -> MPCController:
     """Entry point `mpc`: keyword arguments are `MPCConfig` fields."""
     unknown = set(kwargs) - set(MPCConfig.__dataclass_fields__)
     if unknown:
-        raise ValueError(f"unknown MPC options {sorted(unknown)}; known: "
-                         f"{sorted(MPCConfig.__dataclass_fields__)}")
+        raise ValueError(
+            f"unknown MPC options {sorted(unknown)}; known: "
+            f"{sorted(MPCConfig.__dataclass_fields__)}"
+        )
     return MPCController(replace(MPCConfig(), **kwargs))

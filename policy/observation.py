@@ -13,8 +13,7 @@ from typing import Any
 
 import numpy as np
 
-JOINTS = ("E", "D", "C", "B")
-N_JOINTS = 4
+from protocol.alpha5 import N_JOINTS
 
 #: Range that random starts and goals are drawn from (rad, E D C B): the evaluation workspace.
 WORKSPACE_LOW = np.array([0.4, 0.5, 0.5, 0.5])

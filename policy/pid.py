@@ -13,12 +13,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
-N_JOINTS = 4
-DEFAULT_CURRENT_LIMITS_MA = (600.0, 600.0, 600.0, 300.0)  # E D C B (docs/architecture.md)
+from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, N_JOINTS
+from reach_driver.controllers import ControlState
 
 # Tuned on the virtual arm at 20 Hz in current mode (tests/test_driver_pid.py): E, D, C share
 # a motor and gearbox (20.2 N m/A, ~0.12 kg m^2 reflected inertia), B is much lighter.
@@ -29,12 +29,6 @@ DEFAULT_KD = (150.0, 150.0, 150.0, 15.0)  # mA/(rad/s)
 # approach it would otherwise wind up and overshoot; near the target it finds the current
 # that gravity and friction need.
 DEFAULT_INTEGRAL_ZONE = (0.08, 0.08, 0.08, 0.08)
-
-
-class JointStateLike(Protocol):
-    q: np.ndarray
-    qdot: np.ndarray
-    t: float
 
 
 def _four(name: str, value: float | Sequence[float] | np.ndarray) -> np.ndarray:
@@ -87,7 +81,7 @@ class PIDController:
         self.integral = np.zeros(N_JOINTS)
         self._last_t = None
 
-    def act(self, state: JointStateLike, target: np.ndarray) -> np.ndarray:
+    def act(self, state: ControlState, target: np.ndarray) -> np.ndarray:
         q = np.asarray(state.q, dtype=float)
         qdot = np.asarray(state.qdot, dtype=float)
         error = np.asarray(target, dtype=float) - q

@@ -1,16 +1,16 @@
 """Evaluation episodes through the protocol path: controller -> `reach_driver.ControlLoop` ->
 BPL frames on a pty -> the virtual arm (`SimServer`) -> heartbeats -> the controller.
 
-`run_episode_via_driver` takes the same `Episode` and `RunConfig` as
-`policy.evaluation.run_episode` and returns the same `EpisodeResult`, so the two paths are
-scored by the same code and can be compared: the protocol path must not degrade control.
+`ViaDriver` is a backend of `policy.evaluation.run_episode` / `evaluate`: it takes the same
+`Episode` and `RunConfig` as the direct backend and returns the same `EpisodeResult`, scored by
+the same code, so the two paths can be compared: the protocol path must not degrade control.
 
 What is the same as the direct runner:
 
 - Start pose, target, torque scale and parameter perturbation (drawn from the same seed) are
   set on the served arm before it starts.
-- Sensor noise is added to what the controller reads, from the same generator and in the same
-  order as the direct runner, so both paths see the same noise realisation.
+- Sensor noise is added to what the controller reads by the same wrapper and generator as the
+  direct backend (`policy.rollout.NoisyReadings`), so both see the same noise realisation.
 - The metrics use the simulator's TRUE state, not the readings: a `TruthProbe` records the
   arm after every physics step in the simulator's own thread, and the trace is sampled at the
   heartbeat ticks the loop ran on (found by matching the reported angles, which are the exact
@@ -28,32 +28,38 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from policy.evaluation import (
-    Controller,
+from policy.evaluation import evaluate
+from policy.rollout import (
+    DEFAULT_RUN,
     Episode,
     EpisodeResult,
     Evaluation,
-    JointReading,
     RunConfig,
-    SensorNoise,
     check_inside_limits,
-    no_load_speeds,
+    reading,
+    score,
 )
-from policy.observation import N_JOINTS
-from reach_driver import ArmClient, ControlLoop, SafetyConfig, TimingStats, open_transport
-from reach_driver.control import ControlSummary
-from reach_driver.metrics import Trace, compute_metrics, rmse_floor
+from protocol.alpha5 import N_JOINTS
+from reach_driver import (
+    ArmClient,
+    ControlLoop,
+    ControlSummary,
+    SafetyConfig,
+    TimingStats,
+    open_transport,
+)
+from reach_driver.controllers import Controller
+from reach_driver.metrics import Trace
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.faults import FaultConfig
 from reach_sim_bridge.server import SimConfig, SimServer
 
 DEFAULT_SPEED = 4.0
-DEFAULT_RUN = RunConfig()
 
 
 @dataclass(frozen=True)
@@ -178,25 +184,6 @@ def tick_origin(
     return float(np.median(origins))
 
 
-class _NoisyReadings:
-    """Adds the direct runner's sensor noise, same generator and order, to the readings."""
-
-    def __init__(self, inner: Controller, noise: SensorNoise, rng: np.random.Generator) -> None:
-        self.inner = inner
-        self.noise = noise
-        self.rng = rng
-
-    def reset(self) -> None:
-        self.inner.reset()
-
-    def act(self, state: Any, target: np.ndarray) -> np.ndarray:
-        q = np.asarray(state.q, dtype=float) + self.rng.normal(0.0, self.noise.q_sigma, N_JOINTS)
-        qdot = np.asarray(state.qdot, dtype=float) + self.rng.normal(
-            0.0, self.noise.qdot_sigma, N_JOINTS
-        )
-        return np.asarray(self.inner.act(JointReading(q, qdot, float(state.t)), target))
-
-
 @dataclass(frozen=True)
 class DriverEpisode:
     """One episode through the driver: the scored result and how the loop kept time."""
@@ -268,19 +255,15 @@ def run_episode_via_driver(
     check_inside_limits(arm.position_limits, episode.target, "target")
     if config.param_spread > 0:
         # Same draw as the direct runner's, before the arm starts.
-        arm.randomize(config.param_spread, rng=np.random.default_rng([episode_seed, 1]))
+        arm.randomize(config.param_spread, rng=config.perturbation_rng(episode_seed))
         arm.reset(q=episode.start.copy())
     probe = TruthProbe(arm)
-    acting: Controller = controller
-    if config.noise is not None:
-        acting = _NoisyReadings(controller, config.noise, np.random.default_rng(episode_seed))
+    acting = reading(controller, config, episode_seed)
     path = server.start()
     try:
         if path is None:
             raise RuntimeError("the simulator did not open a pty")
-        client = ArmClient(
-            open_transport(path), safety=SafetyConfig(watchdog_s=driver.watchdog_s)
-        )
+        client = ArmClient(open_transport(path), safety=SafetyConfig(watchdog_s=driver.watchdog_s))
         client.start()
         try:
             if on_server is not None:
@@ -340,14 +323,34 @@ def _true_result(
         target=episode.target.copy(),
         power=power,
     )
-    floor = rmse_floor(episode.start, episode.target, no_load_speeds(), config.period, n)
-    return EpisodeResult(episode, trace, commands_mA, compute_metrics(trace), floor)
+    return score(episode, trace, commands_mA)
 
 
-@dataclass
-class _Collected:
-    results: list[EpisodeResult] = field(default_factory=list)
-    timing: list[dict[str, Any]] = field(default_factory=list)
+class ViaDriver:
+    """Backend: each episode through the driver (see the module doc). Keeps every episode's
+    `DriverEpisode`, so use one per evaluation; `stats()` reports the loop's timing."""
+
+    def __init__(
+        self,
+        driver: DriverConfig | None = None,
+        on_server: Callable[[SimServer], None] | None = None,
+    ) -> None:
+        self.driver = driver or DriverConfig()
+        self.on_server = on_server
+        self.episodes: list[DriverEpisode] = []
+
+    def run(
+        self, controller: Controller, episode: Episode, config: RunConfig, episode_seed: int
+    ) -> EpisodeResult:
+        ep = run_episode_via_driver(
+            controller, episode, config, self.driver, episode_seed, self.on_server
+        )
+        self.episodes.append(ep)
+        return ep.result
+
+    def stats(self) -> dict[str, Any]:
+        timing = [ep.timing_dict() for ep in self.episodes]
+        return {"via_driver": {"driver": self.driver.to_dict(), "episodes": timing}}
 
 
 def evaluate_via_driver(
@@ -358,20 +361,9 @@ def evaluate_via_driver(
     driver: DriverConfig = DriverConfig(),
     on_episode: Callable[[int, EpisodeResult], None] | None = None,
 ) -> Evaluation:
-    """`policy.evaluation.evaluate` through the driver; per-episode loop timing goes into
-    `controller_stats["via_driver"]`."""
-    out = _Collected()
-    for i, episode in enumerate(episodes):
-        ep = run_episode_via_driver(controller, episode, config, driver, config.seed + i)
-        out.results.append(ep.result)
-        out.timing.append(ep.timing_dict())
-        if on_episode is not None:
-            on_episode(i, ep.result)
-    stats: dict[str, Any] = {"via_driver": {"driver": driver.to_dict(), "episodes": out.timing}}
-    solve_stats = getattr(controller, "solve_time_stats", None)
-    if callable(solve_stats):
-        stats["solve_time_s"] = solve_stats()
-    return Evaluation(name, config, out.results, stats)
+    """`policy.evaluation.evaluate` with a fresh `ViaDriver` backend; per-episode loop timing
+    goes into `controller_stats["via_driver"]`."""
+    return evaluate(controller, episodes, config, name, ViaDriver(driver), on_episode)
 
 
 __all__ = [
@@ -380,6 +372,7 @@ __all__ = [
     "DriverConfig",
     "DriverEpisode",
     "TruthProbe",
+    "ViaDriver",
     "evaluate_via_driver",
     "run_episode_via_driver",
     "tick_origin",

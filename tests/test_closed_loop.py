@@ -18,6 +18,7 @@ import pytest
 from conftest import wait_until
 
 from policy.evaluation import Episode, RunConfig, run_episode
+from policy.scenarios import SCENARIOS
 from policy.via_driver import (
     AGREEMENT,
     DriverConfig,
@@ -46,9 +47,8 @@ def _load_tool(name: str) -> Any:
     return module
 
 
-PAPER = _load_tool("paper")
-SCENARIO_1 = PAPER.SCENARIOS[0].episode()
-SCENARIO_3 = PAPER.SCENARIOS[2].episode()  # E at 25 % torque
+SCENARIO_1 = SCENARIOS[0].episode()
+SCENARIO_3 = SCENARIOS[2].episode()  # E at 25 % torque
 
 
 def modes(sim: SimServer) -> list[Mode]:
@@ -143,26 +143,27 @@ def test_tick_origin_is_found_from_exact_float32_matches() -> None:
 
 
 def test_driver_side_noise_is_the_direct_runners_realisation() -> None:
-    from policy.evaluation import JointReading, SensorNoise
-    from policy.via_driver import _NoisyReadings
+    from policy.rollout import NoisyReadings
+    from reach_driver.controllers import ControlState
+    from reach_sim_bridge.faults import SensorNoise
 
     class Seen:
         def __init__(self) -> None:
-            self.readings: list[JointReading] = []
+            self.readings: list[ControlState] = []
 
         def reset(self) -> None: ...
 
-        def act(self, state: JointReading, target: np.ndarray) -> np.ndarray:
+        def act(self, state: ControlState, target: np.ndarray) -> np.ndarray:
             self.readings.append(state)
             return np.zeros(4)
 
-    noise = SensorNoise(q_sigma=0.01, qdot_sigma=0.1)
+    noise = SensorNoise(0.01, 0.1)
     seen = Seen()
-    noisy = _NoisyReadings(seen, noise, np.random.default_rng(7))
+    noisy = NoisyReadings(seen, noise, np.random.default_rng(7))
     q, qdot = np.array([3.0, 1.5, 1.5, 3.0]), np.array([0.1, -0.2, 0.3, 0.0])
     for k in range(3):
-        noisy.act(JointReading(q, qdot, 0.05 * k), q)
-    rng = np.random.default_rng(7)  # policy.evaluation.run_episode draws q then qdot per step
+        noisy.act(ControlState(q, qdot, 0.05 * k), q)
+    rng = np.random.default_rng(7)  # SensorNoise.apply draws q then qdot per step
     for k, r in enumerate(seen.readings):
         np.testing.assert_allclose(r.q, q + rng.normal(0.0, 0.01, 4))
         np.testing.assert_allclose(r.qdot, qdot + rng.normal(0.0, 0.1, 4))

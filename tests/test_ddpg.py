@@ -13,26 +13,32 @@ import numpy as np
 import pytest
 import torch
 
+from policy.batched import evaluate_batched as evaluate
 from policy.ddpg import (
     Actor,
     DDPGConfig,
     OUNoise,
     ReplayBuffer,
     Trainer,
-    evaluate,
     make_expert,
     save_actor_npz,
 )
 from policy.ddpg_controller import DEFAULT_WEIGHTS, ActorWeights, make_controller
-from policy.env import EnvConfig, PDExpert, ReachAlphaEnv
+from policy.env import EnvConfig, ReachAlphaEnv
+from policy.expert import PDExpert
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def tiny(config: DDPGConfig, **overrides: object) -> DDPGConfig:
     """A config that trains for a few hundred steps in a couple of seconds."""
-    base = dict(total_steps=400, learning_starts=100, eval_every=10**9, buffer_size=5_000,
-                env=dataclasses.replace(config.env, episode_s=5.0))
+    base = dict(
+        total_steps=400,
+        learning_starts=100,
+        eval_every=10**9,
+        buffer_size=5_000,
+        env=dataclasses.replace(config.env, episode_s=5.0),
+    )
     base.update(overrides)
     return dataclasses.replace(config, **base)  # type: ignore[arg-type]
 
@@ -41,7 +47,11 @@ def test_paper_hyperparameters() -> None:
     cfg = DDPGConfig.paper()
     assert cfg.hidden == (400, 300)
     assert (cfg.actor_lr, cfg.critic_lr, cfg.lr_decay, cfg.lr_decay_every) == (
-        1e-4, 1e-3, 0.96, 100_000)
+        1e-4,
+        1e-3,
+        0.96,
+        100_000,
+    )
     assert (cfg.batch_size, cfg.tau, cfg.gamma) == (64, 0.001, 0.99)
     assert (cfg.eps_start, cfg.eps_end) == (1.0, 0.1)
     assert cfg.env.reward.sigma == 0.018 and cfg.env.reward.out_of_bounds == -10.0
@@ -74,13 +84,13 @@ def test_controller_outputs_currents_and_rejects_bad_input(tmp_path: Path) -> No
     ctrl = make_controller(tmp_path / "a.npz")
     ctrl.reset()
     state = SimpleNamespace(q=np.full(4, 1.5), qdot=np.zeros(4), t=0.0)
-    np.testing.assert_allclose(ctrl.act(state, np.full(4, 1.6)), [600, 600, 600, 300],
-                               rtol=1e-6)
+    np.testing.assert_allclose(ctrl.act(state, np.full(4, 1.6)), [600, 600, 600, 300], rtol=1e-6)
     with pytest.raises(ValueError, match="target"):
         ctrl.act(state, np.array([1.0, 2.0]))
     with pytest.raises(ValueError, match="finite"):
-        ctrl.act(SimpleNamespace(q=np.array([np.nan, 1, 1, 1]), qdot=np.zeros(4), t=0.0),
-                 np.ones(4))
+        ctrl.act(
+            SimpleNamespace(q=np.array([np.nan, 1, 1, 1]), qdot=np.zeros(4), t=0.0), np.ones(4)
+        )
     with pytest.raises(FileNotFoundError):
         make_controller(tmp_path / "missing.npz")
     (tmp_path / "a.json").write_text(json.dumps({"format": "something else"}))
@@ -139,8 +149,14 @@ def test_replay_buffer_wraps_and_round_trips() -> None:
     buf = ReplayBuffer(5, 3, 2)
     for k in range(3):
         n = 2
-        buf.add(np.full((n, 3), k), np.full((n, 2), k), np.full(n, k), np.full((n, 3), k),
-                np.zeros(n), np.zeros((n, 2)))
+        buf.add(
+            np.full((n, 3), k),
+            np.full((n, 2), k),
+            np.full(n, k),
+            np.full((n, 3), k),
+            np.zeros(n),
+            np.zeros((n, 2)),
+        )
     assert len(buf) == 5 and buf.pos == 1
     assert buf.rew[:, 0].tolist() == [2, 0, 1, 1, 2]  # the oldest transition was replaced
     other = ReplayBuffer(5, 3, 2)
@@ -170,8 +186,10 @@ def test_training_runs_and_is_deterministic_for_a_seed(tmp_path: Path, preset: s
     assert a.state.env_steps == cfg.total_steps and a.agent.updates > 0
     for pa, pb in zip(a.agent.actor.parameters(), b.agent.actor.parameters(), strict=True):
         assert torch.equal(pa, pb)
-    assert not all(torch.equal(pa, pc) for pa, pc in
-                   zip(a.agent.actor.parameters(), c.agent.actor.parameters(), strict=True))
+    assert not all(
+        torch.equal(pa, pc)
+        for pa, pc in zip(a.agent.actor.parameters(), c.agent.actor.parameters(), strict=True)
+    )
 
 
 def test_checkpoint_resume_and_csv(tmp_path: Path) -> None:
@@ -183,8 +201,9 @@ def test_checkpoint_resume_and_csv(tmp_path: Path) -> None:
     resumed = Trainer(cfg, tmp_path, log=lambda _: None)
     resumed.load()
     assert resumed.state.env_steps == 200 and len(resumed.buffer) == len(trainer.buffer)
-    for pa, pb in zip(trainer.agent.critics.parameters(), resumed.agent.critics.parameters(),
-                      strict=True):
+    for pa, pb in zip(
+        trainer.agent.critics.parameters(), resumed.agent.critics.parameters(), strict=True
+    ):
         assert torch.equal(pa, pb)
     assert resumed.agent.updates == trainer.agent.updates
     resumed.run(csv_path=tmp_path / "train.csv")
@@ -211,14 +230,28 @@ def test_evaluate_scores_the_expert_as_reaching() -> None:
 
 def test_train_cli_help_and_bad_override(tmp_path: Path) -> None:
     py = sys.executable
-    out = subprocess.run([py, str(ROOT / "tools" / "train.py"), "--help"], capture_output=True,
-                         text=True, check=True)
+    out = subprocess.run(
+        [py, str(ROOT / "tools" / "train.py"), "--help"], capture_output=True, text=True, check=True
+    )
     assert "--resume" in out.stdout and "checkpoint" in out.stdout
-    bad = subprocess.run([py, str(ROOT / "tools" / "train.py"), "--run", str(tmp_path / "r"),
-                          "--set", "no_such_key=1"], capture_output=True, text=True)
+    bad = subprocess.run(
+        [
+            py,
+            str(ROOT / "tools" / "train.py"),
+            "--run",
+            str(tmp_path / "r"),
+            "--set",
+            "no_such_key=1",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert bad.returncode != 0 and "unknown key" in bad.stderr
-    missing = subprocess.run([py, str(ROOT / "tools" / "train.py"), "--run",
-                              str(tmp_path / "none"), "--resume"], capture_output=True, text=True)
+    missing = subprocess.run(
+        [py, str(ROOT / "tools" / "train.py"), "--run", str(tmp_path / "none"), "--resume"],
+        capture_output=True,
+        text=True,
+    )
     assert missing.returncode != 0 and "no checkpoint" in missing.stderr
 
 
@@ -253,21 +286,37 @@ def test_ship_copies_best_actor_with_provenance(tmp_path: Path) -> None:
 
 def test_evaluate_cli_scores_the_expert() -> None:
     out = subprocess.run(
-        [sys.executable, str(ROOT / "tools" / "train.py"), "--evaluate", "expert",
-         "--episodes", "2"], capture_output=True, text=True, check=True)
+        [
+            sys.executable,
+            str(ROOT / "tools" / "train.py"),
+            "--evaluate",
+            "expert",
+            "--episodes",
+            "2",
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     result = json.loads(out.stdout)
     assert result["nominal"]["reached_fraction"] == 1.0
     assert result["torque_e_25pct"]["reached_fraction"] == 1.0
 
 
 def test_init_actor_starts_from_shipped_weights(tmp_path: Path) -> None:
-    cfg = tiny(DDPGConfig.ours(), num_envs=2, demo_episodes=0, eval_episodes=2,
-               init_actor=str(DEFAULT_WEIGHTS))
+    cfg = tiny(
+        DDPGConfig.ours(),
+        num_envs=2,
+        demo_episodes=0,
+        eval_episodes=2,
+        init_actor=str(DEFAULT_WEIGHTS),
+    )
     trainer = Trainer(cfg, tmp_path, expert=make_expert(cfg), log=lambda _: None)
     shipped = ActorWeights.load(DEFAULT_WEIGHTS)
     obs = np.random.default_rng(1).uniform(-1, 1, size=(32, cfg.env.observation.size))
-    np.testing.assert_allclose(trainer.agent.act(obs.astype(np.float32)), shipped.forward(obs),
-                               atol=1e-5)
+    np.testing.assert_allclose(
+        trainer.agent.act(obs.astype(np.float32)), shipped.forward(obs), atol=1e-5
+    )
     with torch.no_grad():
         target = trainer.agent.actor_target(torch.from_numpy(obs.astype(np.float32))).numpy()
     np.testing.assert_allclose(target, shipped.forward(obs), atol=1e-5)
@@ -291,7 +340,7 @@ def test_score_counts_energy_only_when_asked() -> None:
 
 
 def test_a_wider_training_workspace_keeps_the_evaluation_episodes(tmp_path: Path) -> None:
-    from policy.ddpg import eval_envs
+    from policy.batched import eval_envs
     from policy.observation import WORKSPACE_HIGH
 
     wide_env = EnvConfig(episode_s=1.0, workspace_high=(5.8, 2.9, 2.9, 5.8))
@@ -317,8 +366,10 @@ def test_reference_integral_shifts_the_shown_target_near_the_goal_only() -> None
     target = np.array([3.0, 1.5, 1.5, 1.5])
     error = np.array([0.005, -0.005, 0.05, 0.0])  # C is outside the band
     state = SimpleNamespace(q=target - error, qdot=np.zeros(4), t=0.0)
-    shown = [ctrl.shown_target(SimpleNamespace(q=state.q, qdot=state.qdot, t=0.05 * k), target)
-             for k in range(1, 11)]
+    shown = [
+        ctrl.shown_target(SimpleNamespace(q=state.q, qdot=state.qdot, t=0.05 * k), target)
+        for k in range(1, 11)
+    ]
     offsets = np.array(shown) - target
     np.testing.assert_allclose(offsets[:, 0], 0.005 * 0.05 * np.arange(1, 11))  # gain e dt
     np.testing.assert_allclose(offsets[:, 1], -offsets[:, 0])
@@ -332,16 +383,18 @@ def test_reference_integral_shifts_the_shown_target_near_the_goal_only() -> None
     assert np.all(ctrl.offset == 0.0)
     # the pure policy is the network on the raw target; the shipped one differs once shifted
     pure = make_pure_controller()
-    np.testing.assert_allclose(pure.act(state, target),
-                               pure.weights.forward(pure.observation(state, target))
-                               * pure.current_limits_mA)
+    np.testing.assert_allclose(
+        pure.act(state, target),
+        pure.weights.forward(pure.observation(state, target)) * pure.current_limits_mA,
+    )
     with pytest.raises(ValueError, match="gain >= 0"):
         ReferenceIntegral(gain=-1.0)
 
 
 def test_reference_integral_removes_the_steady_error_friction_leaves() -> None:
     from policy.ddpg_controller import make_pure_controller
-    from policy.evaluation import RunConfig, SensorNoise, evaluate, random_episodes
+    from policy.evaluation import RunConfig, evaluate, random_episodes
+    from reach_sim_bridge.faults import SensorNoise
 
     episodes = random_episodes(3, seed=7)
     config = RunConfig(noise=SensorNoise(), seed=7, param_spread=0.2)

@@ -12,13 +12,14 @@ from gymnasium.utils.env_checker import check_env
 
 from policy.env import (
     ENV_ID,
+    NO_LOAD_SPEEDS,
     EnvConfig,
-    PDExpert,
     ReachAlphaEnv,
     RewardConfig,
     RewardMode,
     compute_reward,
 )
+from policy.expert import PDExpert
 from policy.observation import (
     WORKSPACE_HIGH,
     WORKSPACE_LOW,
@@ -28,8 +29,13 @@ from policy.observation import (
 )
 
 OURS_OBS = ObservationConfig()
-SHAPED = RewardConfig(mode=RewardMode.SHAPED, distance_weight=2.0, velocity_weight=0.5,
-                      action_change_weight=0.1, near_scale=0.05)
+SHAPED = RewardConfig(
+    mode=RewardMode.SHAPED,
+    distance_weight=2.0,
+    velocity_weight=0.5,
+    action_change_weight=0.1,
+    near_scale=0.05,
+)
 
 
 @pytest.mark.parametrize("obs_config", [ObservationConfig.paper(), OURS_OBS])
@@ -73,7 +79,7 @@ def test_shaped_reward_values() -> None:
     expected = -1 + 3 / 4 - 2.0 * 0.25
     assert compute_reward(q, z, q_req, z, z, True, SHAPED) == pytest.approx(expected, abs=1e-9)
     # at the target, moving and twitching costs; far from it, it does not
-    qdot = np.array([1.18, 0.0, 0.0, 0.0])  # the no-load speed
+    qdot = np.array([NO_LOAD_SPEEDS[0], 0.0, 0.0, 0.0])  # the no-load speed
     act = np.array([1.0, 0.0, 0.0, 0.0])
     assert compute_reward(q_req, qdot, q_req, act, z, True, SHAPED) == pytest.approx(
         -0.5 * 0.25 - 0.1 * 0.25

@@ -12,10 +12,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from policy import scenarios
 from policy.evaluation import (
     Episode,
     RunConfig,
-    SensorNoise,
     evaluate,
     load_controller,
     load_episodes,
@@ -26,6 +26,7 @@ from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from reach_driver.errors import DriverError
 from reach_driver.metrics import METRIC_KEYS
 from reach_sim_bridge.arm import Alpha5Arm
+from reach_sim_bridge.faults import SensorNoise
 
 ROOT = Path(__file__).resolve().parents[1]
 START = np.array([3.0, 1.5, 1.5, 1.5])
@@ -95,8 +96,9 @@ def test_sensor_noise_has_the_stated_spread_and_is_seeded() -> None:
 
 def test_torque_scale_is_applied_per_episode() -> None:
     push = [400.0, 0.0, 0.0, 0.0]
-    weak = run_episode(Recorder(push), Episode(START, START, torque_scale=[0.25, 1, 1, 1]),
-                       RunConfig(seconds=0.2))
+    weak = run_episode(
+        Recorder(push), Episode(START, START, torque_scale=[0.25, 1, 1, 1]), RunConfig(seconds=0.2)
+    )
     full = run_episode(Recorder(push), Episode(START, START), RunConfig(seconds=0.2))
     moved_weak = weak.trace.q[-1, 0] - START[0]
     moved_full = full.trace.q[-1, 0] - START[0]
@@ -149,8 +151,11 @@ def test_random_episodes_fill_the_workspace_reproducibly() -> None:
 
 def test_load_episodes_reports_where_the_file_is_wrong(tmp_path: Path) -> None:
     good = tmp_path / "good.json"
-    good.write_text(json.dumps([{"start": [1, 1, 1, 1], "target": [2, 2, 2, 2],
-                                 "torque_scale": [0.25, 1, 1, 1]}]))
+    good.write_text(
+        json.dumps(
+            [{"start": [1, 1, 1, 1], "target": [2, 2, 2, 2], "torque_scale": [0.25, 1, 1, 1]}]
+        )
+    )
     (ep,) = load_episodes(good)
     np.testing.assert_array_equal(ep.torque_scale, [0.25, 1, 1, 1])
     cases = {
@@ -190,11 +195,23 @@ def test_evaluation_json_has_exactly_the_metric_keys() -> None:
 
 def test_cli_runs_pid_and_writes_json(tmp_path: Path) -> None:
     targets = tmp_path / "t.json"
-    targets.write_text(json.dumps([{"start": [3.0, 1.5, 1.5, 1.5],
-                                    "target": [3.2, 1.6, 1.4, 1.6]}]))
+    targets.write_text(
+        json.dumps([{"start": [3.0, 1.5, 1.5, 1.5], "target": [3.2, 1.6, 1.4, 1.6]}])
+    )
     out = tmp_path / "out.json"
-    code = _cli().main(["--controller", "pid", "--targets", str(targets), "--seconds", "4",
-                        "--out", str(out), "--quiet"])
+    code = _cli().main(
+        [
+            "--controller",
+            "pid",
+            "--targets",
+            str(targets),
+            "--seconds",
+            "4",
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
     assert code == 0
     data = json.loads(out.read_text())
     assert data["controller"] == "pid" and data["config"]["seconds"] == 4
@@ -224,11 +241,25 @@ def test_cli_hooks_say_not_available_when_modules_are_missing(
 
     monkeypatch.setattr(cli.importlib.util, "find_spec", missing)
     out = tmp_path / "o.json"
-    assert cli.main(["--controller", "pid", "--random", "1", "--via-driver",
-                     "--out", str(out)]) == 2
+    assert (
+        cli.main(["--controller", "pid", "--random", "1", "--via-driver", "--out", str(out)]) == 2
+    )
     assert "--via-driver is not available yet" in capsys.readouterr().err
-    assert cli.main(["--controller", "pid", "--random", "1", "--record", str(tmp_path / "r.rrd"),
-                     "--out", str(out)]) == 2
+    assert (
+        cli.main(
+            [
+                "--controller",
+                "pid",
+                "--random",
+                "1",
+                "--record",
+                str(tmp_path / "r.rrd"),
+                "--out",
+                str(out),
+            ]
+        )
+        == 2
+    )
     assert "--record is not available yet" in capsys.readouterr().err
 
 
@@ -236,8 +267,16 @@ def test_cli_help_explains_the_options(capsys: Any) -> None:
     with pytest.raises(SystemExit):
         _cli().main(["--help"])
     text = capsys.readouterr().out
-    for word in ("--controller", "--targets", "--random", "--noise", "--rate", "--via-driver",
-                 "--record", "E [0.4, 5.8]"):
+    for word in (
+        "--controller",
+        "--targets",
+        "--random",
+        "--noise",
+        "--rate",
+        "--via-driver",
+        "--record",
+        "E [0.4, 5.8]",
+    ):
         assert word in text
 
 
@@ -245,8 +284,23 @@ def test_cli_record_writes_a_readable_recording(tmp_path: Path) -> None:
     from reach_driver.rrd_summary import read_recording
 
     rrd = tmp_path / "eval.rrd"
-    code = _cli().main(["--controller", "pid", "--random", "2", "--seed", "1", "--seconds", "1",
-                        "--out", str(tmp_path / "o.json"), "--record", str(rrd), "--quiet"])
+    code = _cli().main(
+        [
+            "--controller",
+            "pid",
+            "--random",
+            "2",
+            "--seed",
+            "1",
+            "--seconds",
+            "1",
+            "--out",
+            str(tmp_path / "o.json"),
+            "--record",
+            str(rrd),
+            "--quiet",
+        ]
+    )
     assert code == 0
     run = read_recording(rrd)
     assert run.q.shape == (2 * 21, 4)  # two episodes of 20 periods plus their initial states
@@ -266,7 +320,7 @@ def _paper() -> ModuleType:
 
 
 def test_paper_scenarios_map_inside_the_arm_limits() -> None:
-    paper = _paper()
+    paper = scenarios
     limits = Alpha5Arm().position_limits
     for sc in paper.SCENARIOS:
         ep = sc.episode()
@@ -274,8 +328,10 @@ def test_paper_scenarios_map_inside_the_arm_limits() -> None:
             assert np.all(q >= limits[:, 0]) and np.all(q <= limits[:, 1])
         np.testing.assert_allclose(paper.arm_to_paper(ep.target), sc.paper_target)
     assert paper.SCENARIOS[2].episode().torque_scale.tolist() == [0.25, 1, 1, 1]
-    np.testing.assert_allclose(paper.paper_to_arm([2.64, 0.26, -1.47, 0.82]),
-                               [2.64 + np.pi, 0.26 + 1.71045, -1.47 + np.pi, 0.82 + np.pi])
+    np.testing.assert_allclose(
+        paper.paper_to_arm([2.64, 0.26, -1.47, 0.82]),
+        [2.64 + np.pi, 0.26 + 1.71045, -1.47 + np.pi, 0.82 + np.pi],
+    )
 
 
 def test_paper_replaces_only_its_generated_block(tmp_path: Path) -> None:
@@ -288,7 +344,7 @@ def test_paper_replaces_only_its_generated_block(tmp_path: Path) -> None:
 
 def test_paper_counts_ddpg_wins_over_mpc_across_seeds() -> None:
     paper = _paper()
-    keys = (*paper.TABLE_KEYS, "reached")
+    keys = (*scenarios.TABLE_KEYS, "reached")
 
     def ev(*values: float) -> SimpleNamespace:
         return SimpleNamespace(summary=lambda: dict(zip(keys, values, strict=True)))
@@ -296,31 +352,29 @@ def test_paper_counts_ddpg_wins_over_mpc_across_seeds() -> None:
     mpc = ev(10.7, 0.23, 0.90, 0.0014, 1.9, 1.86, 1.0)
     table = {"mpc": mpc, "ddpg": ev(10.4, 0.22, 0.88, 0.0015, 0.3, 1.86, 1.0)}
     more = {2120: {"mpc": mpc, "ddpg": ev(10.9, 0.22, 0.88, 0.0010, 0.3, 1.80, 1.0)}}
-    assert paper.wins(table["ddpg"].summary(), mpc.summary()) == {
-        "energy_j": True, "rmse": True, "mie": True, "msse": False,
-        "overshoot_pct": True, "settling_time_s": False}  # a tie is not a win
+    assert scenarios.wins(table["ddpg"].summary(), mpc.summary()) == {
+        "energy_j": True,
+        "rmse": True,
+        "mie": True,
+        "msse": False,
+        "overshoot_pct": True,
+        "settling_time_s": False,
+    }  # a tie is not a win
     text = "\n".join(paper.seed_lines(more, table, 2020, 20))
     assert "| 2020 | ddpg | 10.40 |" in text and "| 2120 | mpc | 10.70 |" in text
     assert "on 2 seeds: E 1/2, RMSE 2/2, MIE 2/2, MSSE 1/2, OS 2/2, ST 1/2." in text
 
 
 def _select() -> ModuleType:
-    """tools/select_weights.py, which imports paper.py from beside it."""
-    sys.path.insert(0, str(ROOT / "tools"))
-    try:
-        spec = importlib.util.spec_from_file_location("select_cli",
-                                                      ROOT / "tools" / "select_weights.py")
-        assert spec is not None and spec.loader is not None
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(ROOT / "tools"))
-    return module
+    """The selection rule tools/select_weights.py runs."""
+    import policy.selection
+
+    return policy.selection
 
 
 def test_select_weights_rule_reaches_first_then_counts_wins() -> None:
     select = _select()
-    keys = select.TABLE_KEYS
+    keys = scenarios.TABLE_KEYS
     ref = dict(zip(keys, (10.0, 0.23, 0.90, 0.0014, 2.0, 1.9), strict=True))
 
     def row(name: str, scen: int, reached: float, *values: float) -> dict[str, Any]:
@@ -345,6 +399,7 @@ def test_select_weights_rule_reaches_first_then_counts_wins() -> None:
 
 def test_stability_screen_flags_a_chattering_policy() -> None:
     select = _select()
+
     class BangBang:  # full current, sign flipping every period: the failure the screen is for
         sign = 1.0
 
@@ -356,6 +411,7 @@ def test_stability_screen_flags_a_chattering_policy() -> None:
             return np.full(4, 600.0 * self.sign)
 
     shipped = ROOT / "policy" / "weights" / "ddpg_actor.npz"
-    assert select.restless_episodes(shipped, 2, seed=3, perturb=0.2,
-                                    factory=lambda _p: BangBang()) == [0, 1]
+    assert select.restless_episodes(
+        shipped, 2, seed=3, perturb=0.2, factory=lambda _p: BangBang()
+    ) == [0, 1]
     assert select.restless_episodes(shipped, 2, seed=3, perturb=0.2) == []  # shipped: at rest

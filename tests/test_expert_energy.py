@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from policy.env import NO_LOAD_SPEEDS, EnvConfig, PDExpert, ReachAlphaEnv
+from policy.env import NO_LOAD_SPEEDS, EnvConfig, ReachAlphaEnv
+from policy.expert import PDExpert
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import tune_expert  # noqa: E402
@@ -71,13 +72,27 @@ def test_energy_aware_expert_saves_energy_and_arrives_as_soon() -> None:
 
 
 def test_tuning_rule_takes_the_least_energy_within_tolerance() -> None:
-    def row(lam: float | None, energy: float, mie: float, rmse: float = 0.2, st: float = 2.0
-            ) -> dict[str, object]:
-        return {"energy_lambda": lam, "summary": {"energy_j": energy, "mie": mie, "rmse": rmse,
-                                                  "settling_time_s": st, "reached": 1.0}}
+    def row(
+        lam: float | None, energy: float, mie: float, rmse: float = 0.2, st: float = 2.0
+    ) -> dict[str, object]:
+        return {
+            "energy_lambda": lam,
+            "summary": {
+                "energy_j": energy,
+                "mie": mie,
+                "rmse": rmse,
+                "settling_time_s": st,
+                "reached": 1.0,
+            },
+        }
 
-    rows = [row(None, 10.0, 1.0), row(2.0, 8.0, 1.10), row(4.0, 9.0, 1.01),
-            row(6.0, 9.5, 1.005), row(8.0, 8.5, 1.0, st=2.1)]
+    rows = [
+        row(None, 10.0, 1.0),
+        row(2.0, 8.0, 1.10),
+        row(4.0, 9.0, 1.01),
+        row(6.0, 9.5, 1.005),
+        row(8.0, 8.5, 1.0, st=2.1),
+    ]
     best = tune_expert.choose(rows, mie_tol=0.015, rmse_tol=0.005)
     assert best is not None and best["energy_lambda"] == 4.0
     assert tune_expert.choose(rows[:2], mie_tol=0.015, rmse_tol=0.005) is None

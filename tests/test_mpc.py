@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from policy.evaluation import Episode, JointReading, RunConfig, evaluate, run_episode
+from policy.evaluation import DirectArm, Episode, RunConfig, evaluate, run_episode
 from policy.mpc import MPCConfig, MPCController, make_controller, zoh_coefficients
+from reach_driver.controllers import ControlState
 from reach_sim_bridge.arm import Alpha5Arm, ArmParams
 from reach_sim_bridge.motor import MotorModel
 
@@ -43,7 +44,7 @@ def test_options_are_checked() -> None:
 def test_plan_respects_current_limits_and_back_emf_envelope(mpc: MPCController) -> None:
     mpc.reset()
     start = np.array([1.0, 1.0, 1.0, 1.0])
-    mpc.act(JointReading(start, np.zeros(4), 0.0), np.array([5.0, 2.8, 2.8, 2.7]))
+    mpc.act(ControlState(start, np.zeros(4), 0.0), np.array([5.0, 2.8, 2.8, 2.7]))
     plan = mpc.prediction
     assert plan is not None and plan.success
     motor = MotorModel()
@@ -78,11 +79,14 @@ def test_offset_free_estimate_learns_an_unmodelled_torque() -> None:
     ctrl = MPCController(MPCConfig(horizon=10))
     target = np.array([3.5, 2.0, 1.0, 1.5])
     result = run_episode(
-        ctrl, Episode([3.0, 2.5, 0.6, 1.0], target), RunConfig(seconds=8.0),
-        arm_factory=lambda seed: Alpha5Arm(params=ArmParams().in_air()),
+        ctrl,
+        Episode([3.0, 2.5, 0.6, 1.0], target),
+        RunConfig(seconds=8.0),
+        backend=DirectArm(lambda seed: Alpha5Arm(params=ArmParams().in_air())),
     )
-    missing = (Alpha5Arm(params=ArmParams().in_air()).gravity_torque(target)
-               - Alpha5Arm().gravity_torque(target))
+    missing = Alpha5Arm(params=ArmParams().in_air()).gravity_torque(
+        target
+    ) - Alpha5Arm().gravity_torque(target)
     assert abs(missing[1]) > 0.1  # the test means something: a real mismatch on D
     np.testing.assert_allclose(ctrl.disturbance, missing, atol=0.05)
     assert np.abs(result.final_error).max() < 1e-3
@@ -97,7 +101,7 @@ def test_does_not_press_into_a_joint_limit(mpc: MPCController) -> None:
     arm.reset(q=np.array([3.0, 3.0, 1.5, 1.5]))
     target = np.array([3.0, 3.7, 1.5, 1.5])
     for k in range(60):
-        u = mpc.act(JointReading(arm.q, arm.qdot, 0.05 * k), target)
+        u = mpc.act(ControlState(arm.q, arm.qdot, 0.05 * k), target)
         arm.step(u, n=25)
     upper = arm.position_limits[1, 1]
     assert arm.q[1] == pytest.approx(upper, abs=0.01)
@@ -109,7 +113,7 @@ def test_does_not_press_into_a_joint_limit(mpc: MPCController) -> None:
 def test_solve_time_statistics_are_recorded(mpc: MPCController) -> None:
     n_before = len(mpc.solve_times)
     mpc.reset()
-    mpc.act(JointReading(np.ones(4), np.zeros(4), 0.0), np.full(4, 1.2))
+    mpc.act(ControlState(np.ones(4), np.zeros(4), 0.0), np.full(4, 1.2))
     stats = mpc.solve_time_stats()
     assert stats["n"] == n_before + 1
     assert 0 < stats["p50"] <= stats["p99"] <= stats["max"]

@@ -77,8 +77,14 @@ def _label(params: ArmParams) -> str:
     return "drag" if params.fluid_drag and params.in_water else "no drag"
 
 
-def bench_arm_step(params: ArmParams, seconds: float, repeats: int, substeps: int = 25,
-                   seed: int = 0, integrator: str = "Euler") -> BenchResult:
+def bench_arm_step(
+    params: ArmParams,
+    seconds: float,
+    repeats: int,
+    substeps: int = 25,
+    seed: int = 0,
+    integrator: str = "Euler",
+) -> BenchResult:
     """arm.step(currents, n=substeps), one 20 s episode of random currents per chunk.
 
     integrator "implicitfast" measures the rejected integrator (MuJoCo also differentiates
@@ -99,13 +105,16 @@ def bench_arm_step(params: ArmParams, seconds: float, repeats: int, substeps: in
     if integrator != "Euler":
         name = f"rejected: {name[:-1]}, {integrator})"
     return BenchResult(
-        name, rate, "physics steps/s",
+        name,
+        rate,
+        "physics steps/s",
         {"control_steps/s": f"{rate / substeps:,.0f}", "real_time_x": f"{rate * arm.dt:,.0f}"},
     )
 
 
-def bench_clamp_once_per_period(params: ArmParams, seconds: float, repeats: int,
-                                substeps: int = 25, seed: int = 0) -> BenchResult:
+def bench_clamp_once_per_period(
+    params: ArmParams, seconds: float, repeats: int, substeps: int = 25, seed: int = 0
+) -> BenchResult:
     """Baseline: the same commands and motor law, but the back-EMF regime chosen once per
     control period and the period run in C by one mj_step(m, d, nstep) call. The ratio to
     bench_arm_step is the cost of re-evaluating the clamp every physics step."""
@@ -133,7 +142,9 @@ def bench_clamp_once_per_period(params: ArmParams, seconds: float, repeats: int,
 
     rate = best_rate(episode, seconds, repeats)
     return BenchResult(
-        f"baseline: clamp once per period ({_label(params)})", rate, "physics steps/s",
+        f"baseline: clamp once per period ({_label(params)})",
+        rate,
+        "physics steps/s",
         {"control_steps/s": f"{rate / substeps:,.0f}", "real_time_x": f"{rate * arm.dt:,.0f}"},
     )
 
@@ -162,7 +173,9 @@ def bench_explicit_clamp(params: ArmParams, seconds: float, repeats: int) -> Ben
 
     rate = best_rate(run, seconds, repeats)
     return BenchResult(
-        f"rejected: explicit numpy clamp ({_label(params)})", rate, "physics steps/s",
+        f"rejected: explicit numpy clamp ({_label(params)})",
+        rate,
+        "physics steps/s",
         {"speed_ripple_rad/s(E,D,C,B)": ",".join(f"{x:.3f}" for x in ripple)},
     )
 
@@ -193,8 +206,9 @@ def physics_section(args: argparse.Namespace) -> list[BenchResult]:
     implicit.extra["vs_adopted"] = f"{implicit.rate / results[0].rate:.2f}x"
     results.append(implicit)
     # Zero gravity, in air, armature -20 % (a randomised arm): the worst case for chatter.
-    light = ArmParams(gravity=(0.0, 0.0, 0.0), water_density=0.0,
-                      armature=(0.096, 0.096, 0.096, 0.0056))
+    light = ArmParams(
+        gravity=(0.0, 0.0, 0.0), water_density=0.0, armature=(0.096, 0.096, 0.096, 0.0056)
+    )
     explicit = bench_explicit_clamp(light, s, reps)
     explicit.extra["adopted_ripple"] = ",".join(f"{x:.3f}" for x in adopted_ripple(light))
     results.append(explicit)
@@ -226,8 +240,9 @@ while True:
 
 
 def _spawn(argv: list[str]) -> tuple[subprocess.Popen[str], dict[str, str]]:
-    proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, text=True)
+    proc = subprocess.Popen(
+        argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+    )
     assert proc.stdout is not None
     lines: dict[str, str] = {}
     while not {"pty", "udp"} <= lines.keys():
@@ -250,8 +265,7 @@ def _stop(proc: subprocess.Popen[str]) -> None:
         proc.wait()
 
 
-def _round_trips(exchange: Callable[[], None], seconds: float, limit: int = 20000
-                 ) -> np.ndarray:
+def _round_trips(exchange: Callable[[], None], seconds: float, limit: int = 20000) -> np.ndarray:
     """Seconds per exchange, back to back, for `seconds` of wall time (after a warm-up)."""
     for _ in range(20):
         exchange()
@@ -264,8 +278,9 @@ def _round_trips(exchange: Callable[[], None], seconds: float, limit: int = 2000
     return np.array(samples)
 
 
-def _serial_exchange(path: str, request: bytes, replies: int) -> tuple[Callable[[], None],
-                                                                        Callable[[], None]]:
+def _serial_exchange(
+    path: str, request: bytes, replies: int
+) -> tuple[Callable[[], None], Callable[[], None]]:
     port = serial.Serial(path, 115200, timeout=1.0)
     decoder = PacketDecoder()
 
@@ -281,8 +296,9 @@ def _serial_exchange(path: str, request: bytes, replies: int) -> tuple[Callable[
     return exchange, port.close
 
 
-def _udp_exchange(address: str, request: bytes, replies: int) -> tuple[Callable[[], None],
-                                                                       Callable[[], None]]:
+def _udp_exchange(
+    address: str, request: bytes, replies: int
+) -> tuple[Callable[[], None], Callable[[], None]]:
     host, _, port = address.rpartition(":")
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.settimeout(1.0)
@@ -322,8 +338,10 @@ def pty_section(args: argparse.Namespace) -> list[BenchResult]:
         close()
     finally:
         _stop(echo)
-    results = [_latency_row("baseline: raw pty echo (7 bytes)", base_pty, None),
-               _latency_row("baseline: UDP echo (7 bytes)", base_udp, None)]
+    results = [
+        _latency_row("baseline: raw pty echo (7 bytes)", base_pty, None),
+        _latency_row("baseline: UDP echo (7 bytes)", base_udp, None),
+    ]
     cases = [
         ([], "pty", one, 1, base_pty, "reach-sim pty: REQUEST POSITION of E"),
         ([], "pty", joints, 10, None, "reach-sim pty: broadcast POSITION+VELOCITY"),
@@ -331,8 +349,7 @@ def pty_section(args: argparse.Namespace) -> list[BenchResult]:
         (["--baud", "115200"], "pty", one, 1, base_pty, "reach-sim pty at 115200 baud"),
     ]
     for extra_args, kind, request, replies, baseline, name in cases:
-        argv = [sys.executable, "-m", "reach_sim_bridge.cli", "--stats-interval", "0",
-                *extra_args]
+        argv = [sys.executable, "-m", "reach_sim_bridge.cli", "--stats-interval", "0", *extra_args]
         if "--udp" not in argv:
             argv += ["--udp", "127.0.0.1:0"]  # _spawn waits for both addresses
         sim, at = _spawn(argv)
@@ -364,14 +381,27 @@ def main(argv: list[str] | None = None) -> int:
         "of 2 ms), with and without fluid drag, against a once-per-period clamp in the same "
         "process. Rates are per CPU second (one core), best of --repeats windows.",
     )
-    parser.add_argument("--only", choices=sorted(SECTIONS), action="append",
-                        help="run only this section (repeatable); default: all")
-    parser.add_argument("--seconds", type=float, default=6.0,
-                        help="CPU time per measurement (default 6)")
-    parser.add_argument("--repeats", type=int, default=3,
-                        help="windows per measurement, best one reported (default 3)")
-    parser.add_argument("--substeps", type=int, default=25,
-                        help="physics steps per arm.step call (default 25 = 20 Hz at 2 ms)")
+    parser.add_argument(
+        "--only",
+        choices=sorted(SECTIONS),
+        action="append",
+        help="run only this section (repeatable); default: all",
+    )
+    parser.add_argument(
+        "--seconds", type=float, default=6.0, help="CPU time per measurement (default 6)"
+    )
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=3,
+        help="windows per measurement, best one reported (default 3)",
+    )
+    parser.add_argument(
+        "--substeps",
+        type=int,
+        default=25,
+        help="physics steps per arm.step call (default 25 = 20 Hz at 2 ms)",
+    )
     args = parser.parse_args(argv)
     if not args.seconds > 0 or args.substeps < 1 or args.repeats < 1:
         parser.error("--seconds must be > 0, --substeps and --repeats >= 1")

@@ -32,8 +32,9 @@ from policy.ddpg import DDPGConfig, Trainer
 from policy.env import EnvConfig, ReachAlphaEnv
 
 
-def bench_ours(config: DDPGConfig, warmup: int, steps: int, run_dir: str
-               ) -> Callable[[], dict[str, float]]:
+def bench_ours(
+    config: DDPGConfig, warmup: int, steps: int, run_dir: str
+) -> Callable[[], dict[str, float]]:
     trainer = Trainer(config, run_dir, log=lambda _: None)
     trainer.run(until_steps=warmup)
 
@@ -52,19 +53,33 @@ def bench_ours(config: DDPGConfig, warmup: int, steps: int, run_dir: str
     return one_round
 
 
-def bench_sb3(env_config: EnvConfig, warmup: int, steps: int, seed: int
-              ) -> Callable[[], dict[str, float]]:
+def bench_sb3(
+    env_config: EnvConfig, warmup: int, steps: int, seed: int
+) -> Callable[[], dict[str, float]]:
     from stable_baselines3 import DDPG
     from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 
     env = ReachAlphaEnv(env_config)
     noise = OrnsteinUhlenbeckActionNoise(np.zeros(4), 0.2 * np.ones(4))
     model = DDPG(
-        "MlpPolicy", env, learning_rate=1e-3, buffer_size=200_000, learning_starts=warmup,
-        batch_size=64, tau=0.001, gamma=0.99, train_freq=1, gradient_steps=1,
-        action_noise=noise, seed=seed, device="cpu", verbose=0,
-        policy_kwargs={"net_arch": {"pi": [400, 300], "qf": [400, 300]},
-                       "activation_fn": torch.nn.LeakyReLU},
+        "MlpPolicy",
+        env,
+        learning_rate=1e-3,
+        buffer_size=200_000,
+        learning_starts=warmup,
+        batch_size=64,
+        tau=0.001,
+        gamma=0.99,
+        train_freq=1,
+        gradient_steps=1,
+        action_noise=noise,
+        seed=seed,
+        device="cpu",
+        verbose=0,
+        policy_kwargs={
+            "net_arch": {"pi": [400, 300], "qf": [400, 300]},
+            "activation_fn": torch.nn.LeakyReLU,
+        },
     )
     model.learn(total_timesteps=warmup + 1)
 
@@ -94,13 +109,18 @@ def bench_inference(n: int) -> None:
     w = ctrl.weights
     actor = Actor(w.weights[0].shape[1], 4, (w.weights[0].shape[0], w.weights[1].shape[0]))
     with torch.no_grad():
-        for layer, (wi, bi) in zip([m for m in actor.net if isinstance(m, torch.nn.Linear)],
-                                   zip(w.weights, w.biases, strict=True), strict=True):
+        for layer, (wi, bi) in zip(
+            [m for m in actor.net if isinstance(m, torch.nn.Linear)],
+            zip(w.weights, w.biases, strict=True),
+            strict=True,
+        ):
             layer.weight.copy_(torch.from_numpy(wi))
             layer.bias.copy_(torch.from_numpy(bi))
     rng = np.random.default_rng(0)
-    states = [SimpleNamespace(q=rng.uniform(0.5, 2.8, 4), qdot=rng.normal(0, 0.5, 4), t=0.0)
-              for _ in range(n)]
+    states = [
+        SimpleNamespace(q=rng.uniform(0.5, 2.8, 4), qdot=rng.normal(0, 0.5, 4), t=0.0)
+        for _ in range(n)
+    ]
     target = np.array([3.0, 1.7, 1.7, 1.6])
 
     def numpy_act(s: SimpleNamespace) -> np.ndarray:
@@ -126,15 +146,21 @@ def bench_inference(n: int) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--steps", type=int, default=3000, help="env steps per contender per round")
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--warmup", type=int, default=1000, help="env steps before timing")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--inference", type=int, default=0, metavar="N",
-                   help="only time N single actions of the shipped controller (numpy) "
-                        "against the torch actor with the same weights, then exit")
+    p.add_argument(
+        "--inference",
+        type=int,
+        default=0,
+        metavar="N",
+        help="only time N single actions of the shipped controller (numpy) "
+        "against the torch actor with the same weights, then exit",
+    )
     args = p.parse_args(argv)
     if args.inference:
         torch.set_num_threads(1)
@@ -144,13 +170,24 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--steps and --warmup must be >= 100, --rounds >= 1")
     torch.set_num_threads(1)
 
-    paper = DDPGConfig.paper(seed=args.seed, learning_starts=args.warmup, eval_every=10**9,
-                             total_steps=10**9, buffer_size=200_000)
+    paper = DDPGConfig.paper(
+        seed=args.seed,
+        learning_starts=args.warmup,
+        eval_every=10**9,
+        total_steps=10**9,
+        buffer_size=200_000,
+    )
     ours_cfg = DDPGConfig.ours()
     ours = dataclasses.replace(
-        paper, name="ours-throughput", num_envs=ours_cfg.num_envs,
-        batch_size=ours_cfg.batch_size, updates_per_round=ours_cfg.updates_per_round,
-        twin_critics=True, policy_delay=2, target_noise=0.1, tau=0.005,
+        paper,
+        name="ours-throughput",
+        num_envs=ours_cfg.num_envs,
+        batch_size=ours_cfg.batch_size,
+        updates_per_round=ours_cfg.updates_per_round,
+        twin_critics=True,
+        policy_delay=2,
+        target_noise=0.1,
+        tau=0.005,
     )
     tmp = tempfile.TemporaryDirectory()
     contenders: dict[str, Callable[[], dict[str, float]]] = {
@@ -167,16 +204,22 @@ def main(argv: list[str] | None = None) -> int:
     def median(name: str, key: str) -> float:
         return statistics.median(x[key] for x in results[name])
 
-    print(f"\n{'contender':<10} {'env steps/s':>12} {'updates/s':>10} {'samples/s':>10}"
-          f" {'x SB3 steps':>12} {'x SB3 samples':>14}")
+    print(
+        f"\n{'contender':<10} {'env steps/s':>12} {'updates/s':>10} {'samples/s':>10}"
+        f" {'x SB3 steps':>12} {'x SB3 samples':>14}"
+    )
     base_steps, base_samples = median("sb3", "env_steps_s"), median("sb3", "samples_s")
     for name in contenders:
         s, u, n = (median(name, k) for k in ("env_steps_s", "updates_s", "samples_s"))
-        print(f"{name:<10} {s:>12.0f} {u:>10.0f} {n:>10.0f} {s / base_steps:>12.2f}"
-              f" {n / base_samples:>14.2f}")
+        print(
+            f"{name:<10} {s:>12.0f} {u:>10.0f} {n:>10.0f} {s / base_steps:>12.2f}"
+            f" {n / base_samples:>14.2f}"
+        )
     tmp.cleanup()
-    print(f"\n(medians of {args.rounds} rounds of {args.steps} env steps; torch "
-          f"{torch.__version__}, 1 thread)")
+    print(
+        f"\n(medians of {args.rounds} rounds of {args.steps} env steps; torch "
+        f"{torch.__version__}, 1 thread)"
+    )
     return 0
 
 

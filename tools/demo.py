@@ -75,15 +75,32 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     p.add_argument("--controller", default="ddpg", help="registered controller (default ddpg)")
-    p.add_argument("--scenario", type=int, default=1, choices=(1, 2, 3, 4),
-                   help="the paper's scenario (default 1; 3 runs E at 25%% torque)")
-    p.add_argument("--seconds", type=float, default=20.0,
-                   help="arm seconds to run (default 20, the paper's episode)")
-    p.add_argument("--speed", type=float, default=1.0,
-                   help="simulator speed-up (default 1: real time; the run's metrics do not "
-                        "depend on it, its wall time is seconds/speed)")
-    p.add_argument("--record", type=Path, default=Path("demo.rrd"),
-                   help="where to write the recording (default demo.rrd)")
+    p.add_argument(
+        "--scenario",
+        type=int,
+        default=1,
+        choices=(1, 2, 3, 4),
+        help="the paper's scenario (default 1; 3 runs E at 25%% torque)",
+    )
+    p.add_argument(
+        "--seconds",
+        type=float,
+        default=20.0,
+        help="arm seconds to run (default 20, the paper's episode)",
+    )
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        help="simulator speed-up (default 1: real time; the run's metrics do not "
+        "depend on it, its wall time is seconds/speed)",
+    )
+    p.add_argument(
+        "--record",
+        type=Path,
+        default=Path("demo.rrd"),
+        help="where to write the recording (default demo.rrd)",
+    )
     return p
 
 
@@ -104,9 +121,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     se, sd, sc, sb = (float(v) for v in episode.torque_scale)
     faults = FaultConfig(torque_scale=(se, sd, sc, sb))
     config = SimConfig(speed=args.speed, start=start, faults=faults)
-    print(f"scenario {scenario.number} ({scenario.title}): paper angles "
-          f"{list(scenario.paper_target)} -> arm angles E D C B {' '.join(target)} rad, "
-          f"from {' '.join(f'{v:.4f}' for v in start)}")
+    print(
+        f"scenario {scenario.number} ({scenario.title}): paper angles "
+        f"{list(scenario.paper_target)} -> arm angles E D C B {' '.join(target)} rad, "
+        f"from {' '.join(f'{v:.4f}' for v in start)}"
+    )
     driver = driver_command()
     with SimServer(config) as sim:
         port = sim.pty_path
@@ -117,9 +136,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         if info.returncode != 0:
             print(f"demo: `reach-driver info` failed (exit {info.returncode})", file=sys.stderr)
             return info.returncode
-        run = [*base, "run", "--controller", args.controller, "--target", *target,
-               "--seconds", f"{args.seconds:g}", "--record", str(args.record)]
-        print("$ reach-driver " + " ".join(run[len(driver):]) + "\n", flush=True)
+        run = [
+            *base,
+            "run",
+            "--controller",
+            args.controller,
+            "--target",
+            *target,
+            "--seconds",
+            f"{args.seconds:g}",
+            "--record",
+            str(args.record),
+        ]
+        print("$ reach-driver " + " ".join(run[len(driver) :]) + "\n", flush=True)
         try:
             code = subprocess.run(run, check=False).returncode
         except KeyboardInterrupt:
@@ -129,12 +158,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         if sim.error is not None:
             print(f"demo: the simulator failed: {sim.error!r}", file=sys.stderr)
             return 1
-    print("\nsimulator's true final error (rad, E D C B): "
-          + " ".join(f"{e:+.4f}" for e in true_error)
-          + f"  (max {np.max(np.abs(true_error)):.4f})")
+    print(
+        "\nsimulator's true final error (rad, E D C B): "
+        + " ".join(f"{e:+.4f}" for e in true_error)
+        + f"  (max {np.max(np.abs(true_error)):.4f})"
+    )
     if code == 0:
-        print(f"\nrecording: {args.record}\n  view it:      {_shown('rerun')} {args.record}\n"
-              f"  summarise it: {_shown('reach-driver')} inspect {args.record}")
+        print(
+            f"\nrecording: {args.record}\n  view it:      {_shown('rerun')} {args.record}\n"
+            f"  summarise it: {_shown('reach-driver')} inspect {args.record}"
+        )
     return code
 
 

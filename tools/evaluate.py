@@ -26,7 +26,6 @@ from policy.evaluation import (
     EpisodeResult,
     Evaluation,
     RunConfig,
-    SensorNoise,
     evaluate,
     load_controller,
     load_episodes,
@@ -34,6 +33,7 @@ from policy.evaluation import (
 )
 from reach_driver.errors import DriverError
 from reach_driver.metrics import METRIC_KEYS
+from reach_sim_bridge.faults import SensorNoise
 
 UNITS = {
     "energy_j": "J",
@@ -75,44 +75,101 @@ def build_parser() -> argparse.ArgumentParser:
         ),
         epilog="Metrics are defined in docs/metrics.md; results in docs/results.md.",
     )
-    p.add_argument("--controller", required=True,
-                   help="controller entry-point name in reach_stack.controllers "
-                        "(ddpg, mpc, pid)")
-    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
-                   help="keyword argument for the controller factory, JSON value "
-                        "(repeatable), e.g. --param horizon=15")
+    p.add_argument(
+        "--controller",
+        required=True,
+        help="controller entry-point name in reach_stack.controllers (ddpg, mpc, pid)",
+    )
+    p.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="keyword argument for the controller factory, JSON value "
+        "(repeatable), e.g. --param horizon=15",
+    )
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--targets", type=Path, metavar="FILE",
-                     help='JSON list of {"start": [E,D,C,B], "target": [E,D,C,B], '
-                          '"torque_scale": [4 numbers, optional]}')
-    src.add_argument("--random", type=int, metavar="N",
-                     help="draw N starts and targets uniformly in the evaluation workspace "
-                          "E [0.4, 5.8], D [0.5, 2.9], C [0.5, 2.9], B [0.5, 2.8]")
-    p.add_argument("--seed", type=int, default=0,
-                   help="seed for --random episodes and for the sensor noise (default 0)")
-    p.add_argument("--noise", action="store_true",
-                   help="add sensor noise to what the controller sees "
-                        "(sigma 0.002 rad on q, 0.02 rad/s on qdot)")
-    p.add_argument("--perturb", type=float, default=0.0, metavar="SPREAD",
-                   help="randomly degrade each episode's arm: friction, armature, link masses "
-                        "and buoyancy each scaled by U(1-SPREAD, 1+SPREAD), e.g. 0.2 "
-                        "(default 0: the nominal arm)")
-    p.add_argument("--seconds", type=float, default=DEFAULT_SECONDS,
-                   help=f"episode length in seconds (default {DEFAULT_SECONDS:g})")
-    p.add_argument("--rate", type=float, default=DEFAULT_RATE_HZ, metavar="HZ",
-                   help=f"control rate (default {DEFAULT_RATE_HZ:g} Hz, the env's default)")
-    p.add_argument("--out", type=Path, required=True, metavar="OUT.json",
-                   help="where to write the per-episode results and the summary")
-    p.add_argument("--via-driver", action="store_true",
-                   help="run through the serial protocol (reach_driver -> virtual arm on a pty) "
-                        "instead of stepping the simulator directly; metrics still use the "
-                        "simulator's true angles (policy/via_driver.py)")
-    p.add_argument("--sim-speed", type=float, default=4.0, metavar="X",
-                   help="with --via-driver: simulator speed-up (default 4)")
-    p.add_argument("--baud", type=int, metavar="BAUD",
-                   help="with --via-driver: throttle the pty like a serial line, e.g. 115200")
-    p.add_argument("--record", type=Path, metavar="FILE.rrd",
-                   help="also write a Rerun recording of every episode")
+    src.add_argument(
+        "--targets",
+        type=Path,
+        metavar="FILE",
+        help='JSON list of {"start": [E,D,C,B], "target": [E,D,C,B], '
+        '"torque_scale": [4 numbers, optional]}',
+    )
+    src.add_argument(
+        "--random",
+        type=int,
+        metavar="N",
+        help="draw N starts and targets uniformly in the evaluation workspace "
+        "E [0.4, 5.8], D [0.5, 2.9], C [0.5, 2.9], B [0.5, 2.8]",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed for --random episodes and for the sensor noise (default 0)",
+    )
+    p.add_argument(
+        "--noise",
+        action="store_true",
+        help="add sensor noise to what the controller sees "
+        "(sigma 0.002 rad on q, 0.02 rad/s on qdot)",
+    )
+    p.add_argument(
+        "--perturb",
+        type=float,
+        default=0.0,
+        metavar="SPREAD",
+        help="randomly degrade each episode's arm: friction, armature, link masses "
+        "and buoyancy each scaled by U(1-SPREAD, 1+SPREAD), e.g. 0.2 "
+        "(default 0: the nominal arm)",
+    )
+    p.add_argument(
+        "--seconds",
+        type=float,
+        default=DEFAULT_SECONDS,
+        help=f"episode length in seconds (default {DEFAULT_SECONDS:g})",
+    )
+    p.add_argument(
+        "--rate",
+        type=float,
+        default=DEFAULT_RATE_HZ,
+        metavar="HZ",
+        help=f"control rate (default {DEFAULT_RATE_HZ:g} Hz, the env's default)",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        metavar="OUT.json",
+        help="where to write the per-episode results and the summary",
+    )
+    p.add_argument(
+        "--via-driver",
+        action="store_true",
+        help="run through the serial protocol (reach_driver -> virtual arm on a pty) "
+        "instead of stepping the simulator directly; metrics still use the "
+        "simulator's true angles (policy/via_driver.py)",
+    )
+    p.add_argument(
+        "--sim-speed",
+        type=float,
+        default=4.0,
+        metavar="X",
+        help="with --via-driver: simulator speed-up (default 4)",
+    )
+    p.add_argument(
+        "--baud",
+        type=int,
+        metavar="BAUD",
+        help="with --via-driver: throttle the pty like a serial line, e.g. 115200",
+    )
+    p.add_argument(
+        "--record",
+        type=Path,
+        metavar="FILE.rrd",
+        help="also write a Rerun recording of every episode",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar or table")
     return p
 
@@ -142,13 +199,22 @@ def record_evaluation(evaluation: Evaluation, path: Path) -> None:
             rec.log_event(f"episode {i}: {r.episode.to_dict()}", t=t0, step=step0)
             times = r.trace.times
             for k in range(len(times)):
-                rec.log_step(StepSample(
-                    t=t0 + float(times[k]), step=step0 + k, q=r.trace.q[k],
-                    qdot=r.trace.qdot[k], target=r.trace.target,
-                    current_cmd_mA=r.currents_mA[k], torque_Nm=r.trace.tau[k],
-                ))
-            rec.log_event(f"episode {i} metrics: {json.dumps(r.metrics.as_dict())}",
-                          t=t0 + float(times[-1]), step=step0 + len(times) - 1)
+                rec.log_step(
+                    StepSample(
+                        t=t0 + float(times[k]),
+                        step=step0 + k,
+                        q=r.trace.q[k],
+                        qdot=r.trace.qdot[k],
+                        target=r.trace.target,
+                        current_cmd_mA=r.currents_mA[k],
+                        torque_Nm=r.trace.tau[k],
+                    )
+                )
+            rec.log_event(
+                f"episode {i} metrics: {json.dumps(r.metrics.as_dict())}",
+                t=t0 + float(times[-1]),
+                step=step0 + len(times) - 1,
+            )
             t0 += float(times[-1]) + evaluation.config.period
             step0 += len(times)
         rec.log_summary(evaluation.summary())
@@ -166,8 +232,7 @@ def summary_table(evaluation: Evaluation) -> Table:
         table.add_row(str(i), *cells)
     s = evaluation.summary()
     table.add_section()
-    table.add_row("mean", *[_fmt(s[k]) for k in METRIC_KEYS], _fmt(s["rmse_floor"]),
-                  style="bold")
+    table.add_row("mean", *[_fmt(s[k]) for k in METRIC_KEYS], _fmt(s["rmse_floor"]), style="bold")
     return table
 
 
@@ -184,19 +249,26 @@ def run(args: argparse.Namespace, console: Console) -> Evaluation:
     if args.record is not None:
         _require_all(["reach_driver.recording"], "--record")
     episodes: list[Episode] = (
-        load_episodes(args.targets) if args.targets is not None
+        load_episodes(args.targets)
+        if args.targets is not None
         else random_episodes(args.random, args.seed)
     )
     config = RunConfig(
-        seconds=args.seconds, rate_hz=args.rate,
-        noise=SensorNoise() if args.noise else None, seed=args.seed,
+        seconds=args.seconds,
+        rate_hz=args.rate,
+        noise=SensorNoise() if args.noise else None,
+        seed=args.seed,
         param_spread=args.perturb,
     )
     controller = load_controller(args.controller, **_parse_kv(args.param))
     with Progress(
-        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-        TimeElapsedColumn(), TextColumn("{task.fields[last]}"),
-        console=console, disable=args.quiet,
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TextColumn("{task.fields[last]}"),
+        console=console,
+        disable=args.quiet,
     ) as progress:
         task = progress.add_task(args.controller, total=len(episodes), last="")
 
@@ -206,11 +278,17 @@ def run(args: argparse.Namespace, console: Console) -> Evaluation:
 
         if args.via_driver:
             evaluation = evaluate_via_driver(
-                controller, episodes, config, name=args.controller,
-                driver=DriverConfig(speed=args.sim_speed, baud=args.baud), on_episode=done)
+                controller,
+                episodes,
+                config,
+                name=args.controller,
+                driver=DriverConfig(speed=args.sim_speed, baud=args.baud),
+                on_episode=done,
+            )
         else:
-            evaluation = evaluate(controller, episodes, config, name=args.controller,
-                                  on_episode=done)
+            evaluation = evaluate(
+                controller, episodes, config, name=args.controller, on_episode=done
+            )
     return evaluation
 
 

@@ -3,7 +3,7 @@
 
 Candidates are run directories (their `best_actor.npz`) or `.npz` files. Each one is run as
 the `ddpg` controller ships (the actor with its reference integral) on
-- the paper's four scenarios (tools/paper.py: nominal arm, no noise), which it must all reach;
+- the paper's four scenarios (policy/scenarios.py: nominal arm, no noise), which it must all reach;
 - a selection set that is NOT the comparison's: ``random_episodes(--episodes, --seed)`` with
   sensor noise and +-20 % degraded parameters, the conditions of Table I. The default seed (11)
   is the set the MPC's horizon and weights were tuned on (tools/tune_mpc.py) and the
@@ -16,9 +16,10 @@ the `ddpg` controller ships (the actor with its reference integral) on
   few mrad/s). A policy that chatters on some arm (seen: one joint bang-banging at the
   no-load speed, +-8 mrad around its target, 60 J instead of 4 J) is not shipped.
 
-Rule: among the candidates that reach every scenario and every selection episode and have no
-restless episode, the one better than the reference controller (the MPC) on the most of
-Table I's six metrics; ties go to the lowest mean ratio candidate / reference over the six.
+Rule (policy/selection.py): among the candidates that reach every scenario and every
+selection episode and have no restless episode, the one better than the reference
+controller (the MPC) on the most of Table I's six metrics; ties go to the
+lowest mean ratio candidate / reference over the six.
 Then ship it with ``tools/train.py --run RUN --ship`` (which writes its provenance beside the
 weights).
 
@@ -30,95 +31,53 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Callable
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
-from paper import SCENARIOS, TABLE_KEYS, wins
 from rich.console import Console
 from rich.table import Table
 
-from policy.ddpg import eval_envs
-from policy.ddpg_controller import ActorWeights, make_controller
-from policy.env import EnvConfig
-from policy.evaluation import RunConfig, SensorNoise, evaluate, load_controller, random_episodes
-from policy.observation import N_JOINTS
-
-#: mean |qdot| over an episode's last REST_WINDOW_S above which a joint is not at rest (rad/s)
-RESTLESS_SPEED = 0.05
-REST_WINDOW_S = 5.0
+from policy.evaluation import RunConfig, evaluate, load_controller, random_episodes
+from policy.scenarios import SCENARIOS, TABLE_KEYS, wins
+from policy.selection import choose, restless_episodes, weights_of
+from reach_sim_bridge.faults import SensorNoise
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="select_weights.py",
         description="Score trained DDPG actors on the paper's scenarios and on a selection set "
-                    "(not Table I's episodes) against a reference controller, and name the one "
-                    "to ship by a fixed rule (see the module docstring).",
+        "(not Table I's episodes) against a reference controller, and name the one "
+        "to ship by a fixed rule (see the module docstring).",
     )
-    p.add_argument("candidates", nargs="+", type=Path,
-                   help="run directories (their best_actor.npz) or actor .npz files")
+    p.add_argument(
+        "candidates",
+        nargs="+",
+        type=Path,
+        help="run directories (their best_actor.npz) or actor .npz files",
+    )
     p.add_argument("--reference", default="mpc", help="controller to beat (default mpc)")
     p.add_argument("--seed", type=int, default=11, help="selection set's seed (default 11)")
     p.add_argument("--episodes", type=int, default=20, help="selection episodes (default 20)")
-    p.add_argument("--perturb", type=float, default=0.2, metavar="SPREAD",
-                   help="degraded arm parameters (default 0.2, as Table I)")
-    p.add_argument("--screen", type=int, default=200,
-                   help="episodes of the stability screen (default 200; 0 skips it)")
-    p.add_argument("--screen-seed", type=int, default=12,
-                   help="stability screen's seed (default 12)")
+    p.add_argument(
+        "--perturb",
+        type=float,
+        default=0.2,
+        metavar="SPREAD",
+        help="degraded arm parameters (default 0.2, as Table I)",
+    )
+    p.add_argument(
+        "--screen",
+        type=int,
+        default=200,
+        help="episodes of the stability screen (default 200; 0 skips it)",
+    )
+    p.add_argument(
+        "--screen-seed", type=int, default=12, help="stability screen's seed (default 12)"
+    )
     p.add_argument("--out", type=Path, required=True, help="JSON with every candidate's figures")
     return p
-
-
-def weights_of(candidate: Path) -> Path:
-    path = candidate / "best_actor.npz" if candidate.is_dir() else candidate
-    if not path.exists():
-        raise FileNotFoundError(f"{candidate}: no actor at {path}")
-    return path
-
-
-def restless_episodes(path: Path, episodes: int, seed: int, perturb: float,
-                      factory: Callable[[Path], Any] = make_controller) -> list[int]:
-    """Screen episodes whose arm is still moving at the end, each run by the controller as
-    shipped (`factory(path)`: the actor with its reference integral) on the training env."""
-    weights = ActorWeights.load(path)
-    envs = eval_envs(EnvConfig.from_dict(weights.metadata["env"]), episodes,
-                     param_perturbation=perturb)
-    controllers = [factory(path) for _ in envs]
-    for i, (env, ctrl) in enumerate(zip(envs, controllers, strict=True)):
-        env.reset(seed=seed * 1_000 + i)
-        ctrl.reset()
-    steps = envs[0].config.steps_per_episode
-    dt = envs[0].control_dt
-    window = int(round(REST_WINDOW_S / dt))
-    speed = np.zeros((episodes, N_JOINTS))
-    for k in range(steps):
-        for env, ctrl in zip(envs, controllers, strict=True):
-            q, qdot = env.last_reading  # what the sensors said, noise included
-            state = SimpleNamespace(q=q, qdot=qdot, t=k * dt)
-            env.step(np.asarray(ctrl.act(state, env.target)) / weights.current_limits_mA)
-        if k >= steps - window:
-            speed += np.abs(np.stack([env.arm.qdot for env in envs])) / window
-    return [i for i in range(episodes) if np.any(speed[i] > RESTLESS_SPEED)]
-
-
-def choose(rows: list[dict[str, Any]], reference: dict[str, float]) -> dict[str, Any] | None:
-    """The rule: every scenario and episode reached, none restless; most metrics better;
-    lowest mean ratio."""
-    ok = [r for r in rows if r["scenarios_reached"] == len(SCENARIOS)
-          and r["summary"]["reached"] >= 1.0 and not r.get("restless")]
-    if not ok:
-        return None
-
-    def key(r: dict[str, Any]) -> tuple[int, float]:
-        s = r["summary"]
-        ratio = float(np.mean([s[k] / max(reference[k], 1e-12) for k in TABLE_KEYS]))
-        return (-sum(wins(s, reference).values()), ratio)
-
-    return min(ok, key=key)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -132,50 +91,96 @@ def main(argv: list[str] | None = None) -> int:
         console.print(f"[red]error:[/red] {exc}")
         return 2
     console.print(f"reference {args.reference}: {args.episodes} episodes, seed {args.seed}")
-    reference = evaluate(load_controller(args.reference), episodes, config,
-                         name=args.reference).summary()
+    reference = evaluate(
+        load_controller(args.reference), episodes, config, name=args.reference
+    ).summary()
     rows: list[dict[str, Any]] = []
     for candidate, path in zip(args.candidates, paths, strict=True):
         console.print(f"{candidate}: scenarios and {args.episodes} episodes")
-        sc = evaluate(load_controller("ddpg", weights=path), [s.episode() for s in SCENARIOS],
-                      RunConfig(), name="ddpg")
-        summary = evaluate(load_controller("ddpg", weights=path), episodes, config,
-                           name="ddpg").summary()
-        rows.append({
-            "candidate": str(candidate),
-            "weights": str(path),
-            "scenarios_reached": sum(r.metrics.reached for r in sc.results),
-            "scenario_final_error": [float(np.abs(r.final_error).max()) for r in sc.results],
-            "summary": summary,
-            "better_than_reference": wins(summary, reference),
-            "restless": restless_episodes(path, args.screen, args.screen_seed, args.perturb)
-            if args.screen > 0 else [],
-        })
+        sc = evaluate(
+            load_controller("ddpg", weights=path),
+            [s.episode() for s in SCENARIOS],
+            RunConfig(),
+            name="ddpg",
+        )
+        summary = evaluate(
+            load_controller("ddpg", weights=path), episodes, config, name="ddpg"
+        ).summary()
+        rows.append(
+            {
+                "candidate": str(candidate),
+                "weights": str(path),
+                "scenarios_reached": sum(r.metrics.reached for r in sc.results),
+                "scenario_final_error": [float(np.abs(r.final_error).max()) for r in sc.results],
+                "summary": summary,
+                "better_than_reference": wins(summary, reference),
+                "restless": restless_episodes(path, args.screen, args.screen_seed, args.perturb)
+                if args.screen > 0
+                else [],
+            }
+        )
     best = choose(rows, reference)
-    table = Table(title=f"selection set: seed {args.seed}, {args.episodes} episodes, noise, "
-                        f"perturb {args.perturb}; * = chosen")
-    for col in ("candidate", "scenarios", "worst scenario |e|", "restless", "E [J]", "RMSE",
-                "MIE", "MSSE", "OS [%]", "ST [s]", "reached", "better"):
+    table = Table(
+        title=f"selection set: seed {args.seed}, {args.episodes} episodes, noise, "
+        f"perturb {args.perturb}; * = chosen"
+    )
+    for col in (
+        "candidate",
+        "scenarios",
+        "worst scenario |e|",
+        "restless",
+        "E [J]",
+        "RMSE",
+        "MIE",
+        "MSSE",
+        "OS [%]",
+        "ST [s]",
+        "reached",
+        "better",
+    ):
         table.add_column(col)
 
-    def add(name: str, s: dict[str, float], scen: str, worst: str, restless: str,
-            better: str) -> None:
-        table.add_row(name, scen, worst, restless, f"{s['energy_j']:.3f}", f"{s['rmse']:.4f}",
-                      f"{s['mie']:.4f}", f"{s['msse']:.5f}", f"{s['overshoot_pct']:.2f}",
-                      f"{s['settling_time_s']:.3f}", f"{s['reached']:.2f}", better)
+    def add(
+        name: str, s: dict[str, float], scen: str, worst: str, restless: str, better: str
+    ) -> None:
+        table.add_row(
+            name,
+            scen,
+            worst,
+            restless,
+            f"{s['energy_j']:.3f}",
+            f"{s['rmse']:.4f}",
+            f"{s['mie']:.4f}",
+            f"{s['msse']:.5f}",
+            f"{s['overshoot_pct']:.2f}",
+            f"{s['settling_time_s']:.3f}",
+            f"{s['reached']:.2f}",
+            better,
+        )
 
     add(args.reference, reference, "-", "-", "-", "-")
     for r in rows:
-        add(r["candidate"] + ("*" if r is best else ""), r["summary"],
-            f"{r['scenarios_reached']}/{len(SCENARIOS)}", f"{max(r['scenario_final_error']):.4f}",
+        add(
+            r["candidate"] + ("*" if r is best else ""),
+            r["summary"],
+            f"{r['scenarios_reached']}/{len(SCENARIOS)}",
+            f"{max(r['scenario_final_error']):.4f}",
             f"{len(r['restless'])}/{args.screen}",
-            f"{sum(r['better_than_reference'].values())}/{len(TABLE_KEYS)}")
+            f"{sum(r['better_than_reference'].values())}/{len(TABLE_KEYS)}",
+        )
     console.print(table)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({
-        "args": {k: str(v) for k, v in vars(args).items()},
-        "reference": reference, "rows": rows,
-        "chosen": None if best is None else best["candidate"]}, indent=1))
+    args.out.write_text(
+        json.dumps(
+            {
+                "args": {k: str(v) for k, v in vars(args).items()},
+                "reference": reference,
+                "rows": rows,
+                "chosen": None if best is None else best["candidate"],
+            },
+            indent=1,
+        )
+    )
     if best is None:
         console.print("no candidate reaches every scenario and episode and comes to rest")
         return 1

@@ -23,49 +23,86 @@ from typing import Any
 
 import numpy as np
 
-from policy.ddpg import DDPGConfig, Trainer, TrainState, evaluate, make_expert
+from policy.batched import evaluate_batched
+from policy.ddpg import DDPGConfig, Trainer, TrainState, make_expert
 from policy.ddpg_controller import DEFAULT_WEIGHTS, ActorWeights
-from policy.env import EnvConfig, PDExpert
+from policy.env import EnvConfig
+from policy.expert import PDExpert
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    p.add_argument("--config", default="ours", choices=["ours", "paper"],
-                   help="hyperparameter preset (policy.ddpg.DDPGConfig.ours / .paper)")
+    p.add_argument(
+        "--config",
+        default="ours",
+        choices=["ours", "paper"],
+        help="hyperparameter preset (policy.ddpg.DDPGConfig.ours / .paper)",
+    )
     p.add_argument("--run", type=Path, help="run directory (checkpoints, logs)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--steps", type=int, default=None, help="total env steps (preset default)")
-    p.add_argument("--until", type=int, default=None,
-                   help="stop (with a checkpoint) after this many env steps in total")
-    p.add_argument("--hours", type=float, default=None,
-                   help="stop (with a checkpoint) after this much wall time in this process")
+    p.add_argument(
+        "--until",
+        type=int,
+        default=None,
+        help="stop (with a checkpoint) after this many env steps in total",
+    )
+    p.add_argument(
+        "--hours",
+        type=float,
+        default=None,
+        help="stop (with a checkpoint) after this much wall time in this process",
+    )
     p.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.pt")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=JSON",
-                   help="override a config field, e.g. --set batch_size=128 "
-                        "--set env.reward.velocity_weight=1.0 (repeatable)")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=JSON",
+        help="override a config field, e.g. --set batch_size=128 "
+        "--set env.reward.velocity_weight=1.0 (repeatable)",
+    )
     p.add_argument("--checkpoint-minutes", type=float, default=10.0)
     p.add_argument("--no-progress", action="store_true", help="log lines instead of a bar")
-    p.add_argument("--evaluate", metavar="WEIGHTS", default=None,
-                   help="score an actor (.npz path, 'shipped', or 'expert' for the PD "
-                        "demonstrator) on --episodes fixed episodes with sensor noise, nominal "
-                        "and with E at 25%% torque, print the metrics as JSON, then exit")
+    p.add_argument(
+        "--evaluate",
+        metavar="WEIGHTS",
+        default=None,
+        help="score an actor (.npz path, 'shipped', or 'expert' for the PD "
+        "demonstrator) on --episodes fixed episodes with sensor noise, nominal "
+        "and with E at 25%% torque, print the metrics as JSON, then exit",
+    )
     p.add_argument("--episodes", type=int, default=20, help="episodes for --evaluate")
-    p.add_argument("--expert-energy", type=float, default=None, metavar="LAMBDA",
-                   help="with --evaluate expert: the energy-aware demonstrator "
-                        "(PDExpert.energy_lambda, N m/s; the shipped weights used 6)")
-    p.add_argument("--perturb", type=float, default=0.0, metavar="SPREAD",
-                   help="with --evaluate: also score on arms whose friction, armature, masses "
-                        "and buoyancy are scaled by U(1 - SPREAD, 1 + SPREAD) per episode")
-    p.add_argument("--ship", action="store_true",
-                   help="copy RUN's best actor to policy/weights/ddpg_actor.npz (+ .json with "
-                        "the commands, seed, config, training time and evaluation), then exit")
+    p.add_argument(
+        "--expert-energy",
+        type=float,
+        default=None,
+        metavar="LAMBDA",
+        help="with --evaluate expert: the energy-aware demonstrator "
+        "(PDExpert.energy_lambda, N m/s; the shipped weights used 6)",
+    )
+    p.add_argument(
+        "--perturb",
+        type=float,
+        default=0.0,
+        metavar="SPREAD",
+        help="with --evaluate: also score on arms whose friction, armature, masses "
+        "and buoyancy are scaled by U(1 - SPREAD, 1 + SPREAD) per episode",
+    )
+    p.add_argument(
+        "--ship",
+        action="store_true",
+        help="copy RUN's best actor to policy/weights/ddpg_actor.npz (+ .json with "
+        "the commands, seed, config, training time and evaluation), then exit",
+    )
     return p.parse_args(argv)
 
 
-def evaluate_weights(which: str, episodes: int, seed: int, perturb: float = 0.0,
-                     expert_energy: float | None = None) -> dict[str, Any]:
+def evaluate_weights(
+    which: str, episodes: int, seed: int, perturb: float = 0.0, expert_energy: float | None = None
+) -> dict[str, Any]:
     """Metrics of an actor file (or the expert) on the fixed evaluation episodes."""
     env_config = DDPGConfig.ours().env
     policy: Any = None
@@ -83,17 +120,33 @@ def evaluate_weights(which: str, episodes: int, seed: int, perturb: float = 0.0,
         )
         policy = weights.forward
     eval_seed = 10_000 + seed
-    nominal = evaluate(policy, env_config, episodes, eval_seed, expert=expert)
-    weak = evaluate(policy, env_config, episodes, eval_seed + 5_000,
-                    torque_scale=(0.25, 1.0, 1.0, 1.0), expert=expert)
-    result = {"weights": which, "episodes": episodes, "eval_seed": eval_seed,
-              "nominal": nominal.to_dict(), "torque_e_25pct": weak.to_dict()}
+    nominal = evaluate_batched(policy, env_config, episodes, eval_seed, expert=expert)
+    weak = evaluate_batched(
+        policy,
+        env_config,
+        episodes,
+        eval_seed + 5_000,
+        torque_scale=(0.25, 1.0, 1.0, 1.0),
+        expert=expert,
+    )
+    result = {
+        "weights": which,
+        "episodes": episodes,
+        "eval_seed": eval_seed,
+        "nominal": nominal.to_dict(),
+        "torque_e_25pct": weak.to_dict(),
+    }
     if perturb > 0:
         if not perturb < 1:
             raise SystemExit(f"--perturb must be in (0, 1), got {perturb}")
-        result[f"perturbed_{perturb:g}"] = evaluate(
-            policy, env_config, episodes, eval_seed + 10_000, expert=expert,
-            param_perturbation=perturb).to_dict()
+        result[f"perturbed_{perturb:g}"] = evaluate_batched(
+            policy,
+            env_config,
+            episodes,
+            eval_seed + 10_000,
+            expert=expert,
+            param_perturbation=perturb,
+        ).to_dict()
     return result
 
 
@@ -103,17 +156,22 @@ def ship(run_dir: Path, dest: Path = DEFAULT_WEIGHTS) -> Path:
     if not src.exists():
         raise SystemExit(f"--ship: {src} does not exist (no evaluation yet?)")
     meta = json.loads(src.with_suffix(".json").read_text())
-    commands = (run_dir / "commands.txt").read_text().splitlines() if (
-        run_dir / "commands.txt").exists() else []
-    meta.update({
-        "command": commands[0] if commands else None,
-        "commands": commands,
-        "seed": meta["config"]["seed"],
-        "training_time_s": round(float(meta.get("wall_s", float("nan"))), 1),
-        "training_env_steps": meta.get("env_steps"),
-        "run": run_dir.name,
-        "shipped_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-    })
+    commands = (
+        (run_dir / "commands.txt").read_text().splitlines()
+        if (run_dir / "commands.txt").exists()
+        else []
+    )
+    meta.update(
+        {
+            "command": commands[0] if commands else None,
+            "commands": commands,
+            "seed": meta["config"]["seed"],
+            "training_time_s": round(float(meta.get("wall_s", float("nan"))), 1),
+            "training_env_steps": meta.get("env_steps"),
+            "run": run_dir.name,
+            "shipped_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
+    )
     dest.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(src, dest)
     dest.with_suffix(".json").write_text(json.dumps(meta, indent=1))
@@ -148,8 +206,9 @@ def apply_overrides(config: DDPGConfig, overrides: list[str]) -> DDPGConfig:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.evaluate is not None:
-        result = evaluate_weights(args.evaluate, args.episodes, args.seed, args.perturb,
-                                  args.expert_energy)
+        result = evaluate_weights(
+            args.evaluate, args.episodes, args.seed, args.perturb, args.expert_energy
+        )
         print(json.dumps(result, indent=1))
         return 0
     if args.run is None:
@@ -215,9 +274,11 @@ def main(argv: list[str] | None = None) -> int:
         eta = (until - state.env_steps) / max(rate, 1e-9)
         frac = state.env_steps / max(until, 1)
         bar = "#" * int(30 * frac) + "-" * (30 - int(30 * frac))
-        msg = (f"[{bar}] {state.env_steps}/{until} {rate:.0f} steps/s eta {eta / 60:.0f} min "
-               f"critic {losses.get('critic_loss', np.nan):.3g} q {losses.get('q', np.nan):.3g} "
-               f"eps {trainer.epsilon():.2f} bc {trainer.bc_weight():.2f}")
+        msg = (
+            f"[{bar}] {state.env_steps}/{until} {rate:.0f} steps/s eta {eta / 60:.0f} min "
+            f"critic {losses.get('critic_loss', np.nan):.3g} q {losses.get('q', np.nan):.3g} "
+            f"eps {trainer.epsilon():.2f} bc {trainer.bc_weight():.2f}"
+        )
         if args.no_progress:
             log(msg)
         else:
@@ -232,8 +293,12 @@ def main(argv: list[str] | None = None) -> int:
     # checkpoints too
     signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
-        trainer.run(until_steps=until, checkpoint_every_s=60 * args.checkpoint_minutes,
-                    progress=progress, csv_path=run_dir / "train.csv")
+        trainer.run(
+            until_steps=until,
+            checkpoint_every_s=60 * args.checkpoint_minutes,
+            progress=progress,
+            csv_path=run_dir / "train.csv",
+        )
     except _Stop:
         log(f"time limit reached at {stop_at[0]} env steps")
     except KeyboardInterrupt:
@@ -244,9 +309,11 @@ def main(argv: list[str] | None = None) -> int:
     if not history or history[-1]["env_steps"] != trainer.state.env_steps:
         trainer.evaluate_and_keep_best()
     trainer.save()
-    log(f"checkpoint saved at {trainer.state.env_steps} env steps "
+    log(
+        f"checkpoint saved at {trainer.state.env_steps} env steps "
         f"({trainer.state.wall_s / 3600:.2f} h of training); best score "
-        f"{trainer.state.best_score:.3f} -> {run_dir / 'best_actor.npz'}")
+        f"{trainer.state.best_score:.3f} -> {run_dir / 'best_actor.npz'}"
+    )
     log_file.close()
     return 0
 

@@ -27,15 +27,10 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from policy.env import PDExpert
-from policy.evaluation import (
-    ArmLike,
-    RunConfig,
-    SensorNoise,
-    default_arm_factory,
-    evaluate,
-    random_episodes,
-)
+from policy.arm import ArmLike, nominal_arm
+from policy.evaluation import DirectArm, RunConfig, evaluate, random_episodes
+from policy.expert import PDExpert
+from reach_sim_bridge.faults import SensorNoise
 
 DEFAULT_SEED = 11
 DEFAULT_LAMBDAS = [2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 12.0]
@@ -50,7 +45,7 @@ class ExpertController:
         self.arm: Any = None
 
     def arm_factory(self, seed: int) -> ArmLike:
-        self.arm = default_arm_factory(seed)
+        self.arm = nominal_arm(seed)
         return self.arm  # type: ignore[no-any-return]
 
     def reset(self) -> None:
@@ -67,20 +62,42 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="tune_expert.py",
         description="Sweep the energy weight of the PD demonstrator and pick the least-energy "
-                    "setting whose integrated error, RMSE and settling time stay next to the "
-                    "plain PD's.",
+        "setting whose integrated error, RMSE and settling time stay next to the "
+        "plain PD's.",
     )
     p.add_argument("--episodes", type=int, default=20, help="random episodes (default 20)")
-    p.add_argument("--seed", type=int, default=DEFAULT_SEED,
-                   help=f"seed of the episodes, noise and parameter draws (default {DEFAULT_SEED})")
-    p.add_argument("--lambdas", type=float, nargs="+", default=DEFAULT_LAMBDAS,
-                   help="energy weights to try, N m/s (default 2 3 4 5 6 8 12)")
-    p.add_argument("--mie-tol", type=float, default=0.015,
-                   help="allowed relative MIE increase over the plain PD (default 0.015)")
-    p.add_argument("--rmse-tol", type=float, default=0.005,
-                   help="allowed relative RMSE increase over the plain PD (default 0.005)")
-    p.add_argument("--perturb", type=float, default=0.2, metavar="SPREAD",
-                   help="randomly degraded arm parameters (default 0.2, as Table I)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=DEFAULT_SEED,
+        help=f"seed of the episodes, noise and parameter draws (default {DEFAULT_SEED})",
+    )
+    p.add_argument(
+        "--lambdas",
+        type=float,
+        nargs="+",
+        default=DEFAULT_LAMBDAS,
+        help="energy weights to try, N m/s (default 2 3 4 5 6 8 12)",
+    )
+    p.add_argument(
+        "--mie-tol",
+        type=float,
+        default=0.015,
+        help="allowed relative MIE increase over the plain PD (default 0.015)",
+    )
+    p.add_argument(
+        "--rmse-tol",
+        type=float,
+        default=0.005,
+        help="allowed relative RMSE increase over the plain PD (default 0.005)",
+    )
+    p.add_argument(
+        "--perturb",
+        type=float,
+        default=0.2,
+        metavar="SPREAD",
+        help="randomly degraded arm parameters (default 0.2, as Table I)",
+    )
     p.add_argument("--out", type=Path, required=True, help="JSON with every setting's results")
     return p
 
@@ -89,7 +106,8 @@ def choose(rows: list[dict[str, Any]], mie_tol: float, rmse_tol: float) -> dict[
     """The least-energy row within the tolerances of the plain PD's row (lambda None)."""
     base = next(r for r in rows if r["energy_lambda"] is None)["summary"]
     ok = [
-        r for r in rows
+        r
+        for r in rows
         if r["energy_lambda"] is not None
         and r["summary"]["reached"] >= 1.0
         and r["summary"]["mie"] <= base["mie"] * (1 + mie_tol)
@@ -114,28 +132,45 @@ def main(argv: list[str] | None = None) -> int:
             console.print(f"[red]error:[/red] energy weights must be > 0, got {lam}")
             return 2
         ctrl = ExpertController(PDExpert(energy_lambda=lam))
-        ev = evaluate(ctrl, episodes, run, name="expert", arm_factory=ctrl.arm_factory)
+        ev = evaluate(ctrl, episodes, run, name="expert", backend=DirectArm(ctrl.arm_factory))
         rows.append({"energy_lambda": lam, "summary": ev.summary()})
         s = rows[-1]["summary"]
-        console.print(f"lambda {lam}: E {s['energy_j']:.3f} J  RMSE {s['rmse']:.4f}  "
-                      f"MIE {s['mie']:.4f}  ST {s['settling_time_s']:.3f} s")
+        console.print(
+            f"lambda {lam}: E {s['energy_j']:.3f} J  RMSE {s['rmse']:.4f}  "
+            f"MIE {s['mie']:.4f}  ST {s['settling_time_s']:.3f} s"
+        )
     best = choose(rows, args.mie_tol, args.rmse_tol)
-    table = Table(title=f"PD demonstrator, {args.episodes} episodes (seed {args.seed}), noise, "
-                        f"perturb {args.perturb}")
+    table = Table(
+        title=f"PD demonstrator, {args.episodes} episodes (seed {args.seed}), noise, "
+        f"perturb {args.perturb}"
+    )
     for col in ("lambda", "E [J]", "RMSE", "MIE", "MSSE", "OS [%]", "ST [s]", "reached"):
         table.add_column(col)
     for r in rows:
         s = r["summary"]
         mark = "*" if best is r else ""
-        table.add_row(f"{r['energy_lambda']}{mark}", f"{s['energy_j']:.3f}", f"{s['rmse']:.4f}",
-                      f"{s['mie']:.4f}", f"{s['msse']:.4f}", f"{s['overshoot_pct']:.2f}",
-                      f"{s['settling_time_s']:.3f}", f"{s['reached']:.2f}")
+        table.add_row(
+            f"{r['energy_lambda']}{mark}",
+            f"{s['energy_j']:.3f}",
+            f"{s['rmse']:.4f}",
+            f"{s['mie']:.4f}",
+            f"{s['msse']:.4f}",
+            f"{s['overshoot_pct']:.2f}",
+            f"{s['settling_time_s']:.3f}",
+            f"{s['reached']:.2f}",
+        )
     console.print(table)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
-                                    "rows": rows,
-                                    "chosen": None if best is None else best["energy_lambda"]},
-                                   indent=1))
+    args.out.write_text(
+        json.dumps(
+            {
+                "args": {k: str(v) for k, v in vars(args).items()},
+                "rows": rows,
+                "chosen": None if best is None else best["energy_lambda"],
+            },
+            indent=1,
+        )
+    )
     if best is None:
         console.print("no setting met the rule; keep the plain PD")
         return 1
