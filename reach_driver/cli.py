@@ -23,15 +23,15 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from protocol import DeviceID, Mode, PacketID
+from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS, TORQUE_PER_AMP_NM
 from reach_driver.client import ArmClient
 from reach_driver.control import (
-    TORQUE_CONSTANT_NM_PER_A,
     ControlLoop,
     ControlSummary,
     LoopTrace,
     Pacing,
     StepRecord,
-    preferred_period,
+    control_period,
 )
 from reach_driver.controllers import available_controllers, load_controller
 from reach_driver.errors import (
@@ -49,10 +49,9 @@ from reach_driver.errors import (
 from reach_driver.link import ClientEvent, EventKind
 from reach_driver.metrics import METRIC_KEYS, Metrics, Trace, compute_metrics
 from reach_driver.safety import LimitKind, SafetyConfig
-from reach_driver.state import JAW, JOINTS, JointState, joint_name
+from reach_driver.state import JointState, joint_name
 from reach_driver.transport import DEFAULT_BAUD, open_transport
 
-JOINT_LETTERS = "EDCB"
 LINK_FLAGS = frozenset({"SERIAL_ERROR", "CRC_ERROR"})
 
 DESCRIPTION = """\
@@ -211,7 +210,8 @@ def build_parser() -> argparse.ArgumentParser:
         "print the final errors, timing statistics and the run's metrics (energy, RMSE, MIE, "
         "MSSE, overshoot, settling time, reached; docs/metrics.md) computed from the angles "
         "the arm reported, with torque = measured current x the joint's torque constant "
-        "(E/D/C 20.2, B 7.1 N m/A). With --pacing stream (default) the arm's heartbeat paces "
+        f"(E/D/C {TORQUE_PER_AMP_NM[0]:.3g}, B {TORQUE_PER_AMP_NM[3]:.3g} N m/A). "
+        "With --pacing stream (default) the arm's heartbeat paces "
         "the loop and time is arm time: against reach-sim --speed X a run takes 1/X of the "
         "wall time and gives the same metrics.",
         epilog="exit status: 0 the run completed (whether or not it reached the target: see "
@@ -652,7 +652,7 @@ def _print_metrics(console: Console, s: ControlSummary) -> None:
     tr = s.trace
     assert tr is not None
     measured = int(np.isfinite(tr.current_mA[1:]).all(axis=1).sum())
-    kt = "/".join(f"{k:g}" for k in TORQUE_CONSTANT_NM_PER_A)
+    kt = "/".join(f"{k:.3g}" for k in TORQUE_PER_AMP_NM)
     source = "commanded" if measured == 0 else "measured"
     note = f"torque = {source} current x {kt} N m/A (E D C B)"
     if 0 < measured < tr.samples - 1:
@@ -683,22 +683,6 @@ def _print_summary(console: Console, s: ControlSummary) -> None:
         f"saturated steps {s.saturated_steps}, barrier cuts {s.barrier_steps}, stopped by "
         f"{s.stopped_by}"
     )
-
-
-DEFAULT_PERIOD_S = 0.05
-
-
-def control_period(controller: object, requested: float | None) -> tuple[float, str | None]:
-    """The period to run at (the one asked for, else the controller's own, else 20 Hz) and a
-    warning when it differs from the controller's own."""
-    own = preferred_period(controller)
-    period = requested or own or DEFAULT_PERIOD_S
-    if own is not None and not math.isclose(period, own, rel_tol=1e-6):
-        return period, (
-            f"the controller asks for a {own:g} s period ({1 / own:g} Hz); running at "
-            f"{period:g} s as told"
-        )
-    return period, None
 
 
 def cmd_run(args: argparse.Namespace, console: Console) -> Exit:

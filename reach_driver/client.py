@@ -33,6 +33,7 @@ from protocol import (
     ProtocolError,
     commands,
 )
+from protocol.alpha5 import ALL_DEVICES, JAW, JOINTS, Range
 from reach_driver.errors import (
     DriverError,
     GarbageError,
@@ -53,16 +54,7 @@ from reach_driver.link import (
 )
 from reach_driver.listeners import ListenerSet, PacketListener, PacketQueue, Subscription
 from reach_driver.safety import LimitKind, SafetyConfig, SafetyGuard
-from reach_driver.state import (
-    ALL_DEVICES,
-    JAW,
-    JOINTS,
-    ArmState,
-    JointState,
-    Range,
-    StateTable,
-    joint_name,
-)
+from reach_driver.state import ArmState, JointState, StateTable, joint_name
 from reach_driver.transport import Transport
 
 log = logging.getLogger(__name__)
