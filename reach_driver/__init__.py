@@ -28,12 +28,13 @@ from reach_driver.errors import (
     TransportError,
     WatchdogTrippedError,
 )
+from reach_driver.interfaces import open_transport
 from reach_driver.link import ClientEvent, EventKind, LinkConfig, LinkState
 from reach_driver.listeners import PacketQueue, Subscription
 from reach_driver.records import ControlSummary, LoopTrace, StepRecord, TimingStats
 from reach_driver.safety import LimitKind, SafetyConfig, SafetyGuard
 from reach_driver.state import ArmState, JointState, Reading
-from reach_driver.transport import Transport, TransportStats, open_transport
+from reach_driver.transport import Transport, TransportStats
 
 __all__ = [
     "JAW",

@@ -46,11 +46,12 @@ from reach_driver.errors import (
     PortPermissionError,
     TransportError,
 )
+from reach_driver.interfaces import open_transport
 from reach_driver.link import ClientEvent, EventKind
 from reach_driver.metrics import METRIC_KEYS, Metrics, Trace, compute_metrics
 from reach_driver.safety import LimitKind, SafetyConfig
 from reach_driver.state import JointState, joint_name
-from reach_driver.transport import DEFAULT_BAUD, open_transport
+from reach_driver.transport import DEFAULT_BAUD
 
 LINK_FLAGS = frozenset({"SERIAL_ERROR", "CRC_ERROR"})
 
