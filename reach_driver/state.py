@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
@@ -26,6 +26,17 @@ def joint_name(device: int) -> str:
         return f"{DeviceID(device).name} (0x{device:02X})"
     except ValueError:
         return f"0x{device:02X}"
+
+
+def packet_names(ids: Iterable[int]) -> str:
+    """'POSITION/VELOCITY' (hex for ids the protocol does not name) for messages."""
+    names = []
+    for p in ids:
+        try:
+            names.append(PacketID(p).name)
+        except ValueError:
+            names.append(f"0x{p:02X}")
+    return "/".join(names)
 
 
 @dataclass(frozen=True)
