@@ -4,7 +4,7 @@ Two pacings, one code path for the virtual arm and a real one:
 
 - `Pacing.STREAM` (default): the arm paces the loop. Each joint streams CURRENT, POSITION and
   VELOCITY as its heartbeat at the control rate; the loop steps once per heartbeat tick (see
-  `_StateAssembler` for lost packets) and counts time in ticks, i.e. in ARM time. Against
+  `reach_driver.assembler` for lost packets) and counts time in ticks, i.e. in ARM time. Against
   `reach-sim --speed X` a run takes 1/X of the wall time and sees the same sequence of states.
 - `Pacing.POLL`: the host paces the loop on its own clock and REQUESTs the state each period
   (for arms whose heartbeat cannot be set). Time is wall time.

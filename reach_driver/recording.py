@@ -170,9 +170,7 @@ class RunRecorder:
             rec.log("run/target", rr.Scalars(target))
             self._last_target = target.copy()
         cmd = np.asarray(s.current_cmd_mA, dtype=float)
-        meas = (
-            np.full(4, np.nan) if s.current_meas_mA is None else np.asarray(s.current_meas_mA)
-        )
+        meas = np.full(4, np.nan) if s.current_meas_mA is None else np.asarray(s.current_meas_mA)
         for i, j in enumerate(JOINT_LETTERS):
             rec.log(f"joints/{j}/position", rr.Scalars([q[i], target[i]]))
             rec.log(f"joints/{j}/current", rr.Scalars([cmd[i], meas[i]]))
@@ -198,8 +196,9 @@ class RunRecorder:
 
     def log_summary(self, summary: Mapping[str, object]) -> None:
         """The run's metrics and outcome, static so a viewer shows them at any time."""
-        self._rec.log("run/summary", rr.TextDocument(json.dumps(dict(summary), default=float)),
-                      static=True)
+        self._rec.log(
+            "run/summary", rr.TextDocument(json.dumps(dict(summary), default=float)), static=True
+        )
         self.flush()
 
     # -- lifetime ---------------------------------------------------------------------------

@@ -146,8 +146,9 @@ def read_recording(path: str | Path) -> RecordedRun:
             if "TextLog:level" in batch.schema.names
             else ["INFO"] * len(texts)
         )
-        events.extend((float(tt), str(lv), str(tx)) for tt, lv, tx in zip(ts, levels, texts,
-                                                                          strict=True))
+        events.extend(
+            (float(tt), str(lv), str(tx)) for tt, lv, tx in zip(ts, levels, texts, strict=True)
+        )
     events.sort(key=lambda e: e[0])
 
     meta_text = _static_text(by_entity.get("/run/metadata", []))

@@ -164,8 +164,9 @@ def print_metrics(console: Console, s: ControlSummary) -> None:
     cells = []
     for key in METRIC_KEYS:
         value = values[key]
-        cells.append(("yes" if value else "[red]no[/]") if isinstance(value, bool)
-                     else f"{float(value):.4g}")
+        cells.append(
+            ("yes" if value else "[red]no[/]") if isinstance(value, bool) else f"{float(value):.4g}"
+        )
     table.add_row(*cells)
     console.print(table)
     tr = s.trace
@@ -206,15 +207,26 @@ def print_summary(console: Console, s: ControlSummary) -> None:
 
 def print_recording(console: Console, summary: dict[str, Any]) -> None:
     """A recording's summary (`reach-driver inspect`)."""
-    clean = "" if summary.get("closed_cleanly", True) else " [yellow](not closed cleanly: the "\
+    clean = (
+        ""
+        if summary.get("closed_cleanly", True)
+        else " [yellow](not closed cleanly: the "
         "writer stopped early; everything before that is shown)[/]"
-    console.print(f"[bold]{summary['file']}[/]: {summary['steps']} steps, "
-                  f"{float(summary['duration_s']):.2f} s{clean}")
+    )
+    console.print(
+        f"[bold]{summary['file']}[/]: {summary['steps']} steps, "
+        f"{float(summary['duration_s']):.2f} s{clean}"
+    )
     joints = Table(title="final state (rad)")
     for col in ("joint", "target", "position", "error"):
         joints.add_column(col, justify="right")
-    for row in zip(summary["joints"], summary["final_target"], summary["final_position"],
-                   summary["final_error"], strict=True):
+    for row in zip(
+        summary["joints"],
+        summary["final_target"],
+        summary["final_position"],
+        summary["final_error"],
+        strict=True,
+    ):
         joints.add_row(row[0], *(f"{float(v):+.4f}" for v in row[1:]))
     console.print(joints)
     metrics = summary.get("metrics")
@@ -222,8 +234,12 @@ def print_recording(console: Console, summary: dict[str, Any]) -> None:
         table = Table(title="metrics (docs/metrics.md)")
         for key in metrics:
             table.add_column(key, justify="right")
-        table.add_row(*(("yes" if v else "no") if isinstance(v, bool) else f"{float(v):.4g}"
-                        for v in metrics.values()))
+        table.add_row(
+            *(
+                ("yes" if v else "no") if isinstance(v, bool) else f"{float(v):.4g}"
+                for v in metrics.values()
+            )
+        )
         console.print(table)
     for line in summary.get("events", []):
         console.print(f"  {line}")
