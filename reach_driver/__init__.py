@@ -5,14 +5,9 @@ with ArmClient(open_transport("/dev/ttyUSB0")) as arm:   # start()s and close()s
     print(arm.state.q)
 """
 
+from protocol.alpha5 import JAW, JOINTS
 from reach_driver.client import ArmClient, ClientStats
-from reach_driver.control import (
-    ControlLoop,
-    ControlSummary,
-    Pacing,
-    StepRecord,
-    TimingStats,
-)
+from reach_driver.control import ControlLoop, Pacing
 from reach_driver.controllers import (
     Controller,
     ControlState,
@@ -33,11 +28,13 @@ from reach_driver.errors import (
     TransportError,
     WatchdogTrippedError,
 )
+from reach_driver.interfaces import open_transport
 from reach_driver.link import ClientEvent, EventKind, LinkConfig, LinkState
 from reach_driver.listeners import PacketQueue, Subscription
+from reach_driver.records import ControlSummary, LoopTrace, StepRecord, TimingStats
 from reach_driver.safety import LimitKind, SafetyConfig, SafetyGuard
-from reach_driver.state import JAW, JOINTS, ArmState, JointState, Reading
-from reach_driver.transport import Transport, TransportStats, open_transport
+from reach_driver.state import ArmState, JointState, Reading
+from reach_driver.transport import Transport, TransportStats
 
 __all__ = [
     "JAW",
@@ -61,6 +58,7 @@ __all__ = [
     "LinkConfig",
     "LinkDownError",
     "LinkState",
+    "LoopTrace",
     "NoResponseError",
     "Pacing",
     "PacketQueue",

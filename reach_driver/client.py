@@ -8,118 +8,57 @@ One thread owns the transport: it reads and decodes, updates the state table, an
 waiting requests by (device, packet id), feeds subscribers, runs the watchdog and the
 keepalive, and reopens the link with backoff when it is lost. Commands are written from the
 caller's thread; while the link is down they fail at once with `LinkDownError`.
+
+`ArmClient` is the facade over the pieces, each in its own module: request matching
+(`requests`), link supervision and reconnecting (`supervisor`), which joints are armed and
+the watchdog (`watchdog`), the checks before a command goes out (`gate`), status flags
+(`faults`) and heartbeat streaming (`streaming`).
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from protocol import (
-    DecoderStats,
-    DeviceID,
-    HardwareStatus,
-    Mode,
-    Packet,
-    PacketDecoder,
-    PacketID,
-    ProtocolError,
-    commands,
-)
+from protocol import DecoderStats, Mode, Packet, PacketDecoder, PacketID, commands
+from protocol.alpha5 import ALL_DEVICES, JAW, JOINTS, Range
 from reach_driver.errors import (
     DriverError,
     GarbageError,
-    LimitError,
     LinkDownError,
     NoResponseError,
-    RequestTimeoutError,
     TransportError,
-    WatchdogTrippedError,
 )
+from reach_driver.faults import FaultFlags
+from reach_driver.gate import CommandGate
 from reach_driver.link import (
-    Backoff,
     ClientEvent,
+    ClientStats,
     EventCallback,
     EventKind,
     LinkConfig,
     LinkState,
 )
 from reach_driver.listeners import ListenerSet, PacketListener, PacketQueue, Subscription
+from reach_driver.requests import Replies, Requester, Waiters
 from reach_driver.safety import LimitKind, SafetyConfig, SafetyGuard
-from reach_driver.state import (
-    ALL_DEVICES,
-    JAW,
-    JOINTS,
-    ArmState,
-    JointState,
-    Range,
-    StateTable,
-    joint_name,
-)
+from reach_driver.state import ArmState, JointState, StateTable, joint_name
+from reach_driver.streaming import Stream
+from reach_driver.supervisor import LinkSupervisor
 from reach_driver.transport import Transport
+from reach_driver.watchdog import Watchdog
 
 log = logging.getLogger(__name__)
 
-CONTROL_PACKETS = frozenset({PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT})
-CONTINUOUS: dict[int, LimitKind] = {
-    PacketID.VELOCITY: LimitKind.VELOCITY,
-    PacketID.CURRENT: LimitKind.CURRENT,
-}
-LIMIT_KIND_OF: dict[int, LimitKind] = {kind.packet_id: kind for kind in LimitKind}
-MAX_REQUEST_IDS = 10
+__all__ = ["ArmClient", "ClientStats"]
+
 EVENT_HISTORY = 200
-#: Flags that only say the arm saw noise on the line; they clear by themselves.
-LINK_ERROR_FLAGS = HardwareStatus.SERIAL_ERROR | HardwareStatus.CRC_ERROR
-
-
-@dataclass
-class ClientStats:
-    """Counters for the monitor and for tests (link errors are in transport/decoder stats)."""
-
-    packets: int = 0
-    requests_sent: int = 0
-    request_retries: int = 0
-    request_timeouts: int = 0
-    link_drops: int = 0
-    reconnects: int = 0
-    watchdog_trips: int = 0
-    keepalives: int = 0
-
-
-class _Waiter:
-    """One outstanding request: the (device, packet id) pairs still wanted."""
-
-    def __init__(self, wanted: Iterable[tuple[int, int]]) -> None:
-        self.wanted = set(wanted)
-        self.got: dict[tuple[int, int], Packet] = {}
-        self.event = threading.Event()
-        self.error: DriverError | None = None
-
-    def offer(self, packet: Packet) -> None:
-        key = (int(packet.device_id), int(packet.packet_id))
-        if key in self.wanted:
-            self.wanted.discard(key)
-            self.got[key] = packet
-            if not self.wanted:
-                self.event.set()
-
-    def fail(self, error: DriverError) -> None:
-        self.error = error
-        self.event.set()
-
-
-@dataclass(frozen=True)
-class _Stream:
-    ids: tuple[int, ...]
-    hz: int
-    devices: tuple[int, ...]
+LIMIT_KIND_OF: dict[int, LimitKind] = {kind.packet_id: kind for kind in LimitKind}
 
 
 class ArmClient:
@@ -151,26 +90,33 @@ class ArmClient:
         self.found_devices: tuple[int, ...] = ()
         self.warnings: list[str] = []
         self._event_callbacks: list[EventCallback] = []
-        self._lock = threading.RLock()
+        self._lock = threading.RLock()  # link loss: link state, watchdog and safe_pending together
         self._write_lock = threading.Lock()
-        self._waiters: dict[tuple[int, int], list[_Waiter]] = {}
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self._link = LinkState.CLOSED
-        self._link_reason = ""
-        self._link_since = 0.0
-        self._backoff = Backoff(self.link_config.backoff_initial_s, self.link_config.backoff_max_s)
-        self._probe_deadline = 0.0
-        self._last_packet_t = -math.inf
-        self._last_keepalive_t = -math.inf
-        self._contact = False
-        # watchdog: devices under continuous (velocity/current) command -> time armed
-        self._armed: dict[int, float] = {}
-        self._last_command_t = -math.inf
-        self._tripped: str | None = None
-        self._safe_pending = False
-        self._stream: _Stream | None = None
-        self._faults: dict[int, HardwareStatus] = {}
+        self._safe_pending = False  # the safe mode goes out as soon as the link is back
+        self._stream: Stream | None = None
+        self.watchdog = Watchdog()
+        self.faults = FaultFlags()
+        self._waiters = Waiters()
+        self._requests = Requester(
+            self._write, self._waiters, self.stats, transport.url, self._broadcast_ok
+        )
+        self._gate = CommandGate(
+            self.guard, self.watchdog, self.table, transport.url, self._broadcast_ok
+        )
+        self.supervisor = LinkSupervisor(
+            transport,
+            self.link_config,
+            clock=clock,
+            stop=self._stop,
+            stats=self.stats,
+            emit=self._emit,
+            send_internal=lambda frames: self._write(frames, internal=True),
+            probe_frame=self._probe_frame,
+            on_lost=self._link_lost,
+            reset_decoder=self.decoder.reset,
+        )
 
     # ----------------------------------------------------------------- lifecycle
 
@@ -184,9 +130,7 @@ class ArmClient:
             return self
         if not self.transport.is_open:
             self.transport.open()
-        now = self.clock()
-        self._set_link(LinkState.UP, "opened", now)
-        self._last_packet_t = now
+        self.supervisor.opened(self.clock())
         self._stop.clear()
         self._thread = threading.Thread(
             target=self._run, name=f"reach-driver reader {self.transport.url}", daemon=True
@@ -205,10 +149,11 @@ class ArmClient:
     def close(self, *, safe: bool = True) -> None:
         """Leave the arm safe (stop streaming, safe mode on joints under continuous command),
         stop the reader and close the link. Safe to call twice."""
-        if safe and self._link is LinkState.UP:
+        if safe and self.supervisor.state is LinkState.UP:
             try:
-                if self._armed:
-                    self._send_safe_mode(tuple(self._armed))
+                armed = self.watchdog.armed
+                if armed:
+                    self._send_safe_mode(armed)
                 if self._stream is not None:
                     self.stop_stream()
             except DriverError as exc:
@@ -218,12 +163,9 @@ class ArmClient:
         if thread is not None and thread is not threading.current_thread():
             thread.join(timeout=2.0)
         self.transport.close()
-        self._set_link(LinkState.CLOSED, "closed", self.clock())
-        with self._lock:
-            for waiters in self._waiters.values():
-                for w in waiters:
-                    w.fail(LinkDownError(f"client for {self.transport.url} closed"))
-            self._waiters.clear()
+        self.supervisor.set(LinkState.CLOSED, "closed", self.clock())
+        url = self.transport.url
+        self._waiters.fail_all(lambda: LinkDownError(f"client for {url} closed"), forget=True)
 
     def __enter__(self) -> ArmClient:
         return self.start()
@@ -242,11 +184,11 @@ class ArmClient:
 
     @property
     def link_state(self) -> LinkState:
-        return self._link
+        return self.supervisor.state
 
     @property
     def link_reason(self) -> str:
-        return self._link_reason
+        return self.supervisor.reason
 
     @property
     def decoder_stats(self) -> DecoderStats:
@@ -255,20 +197,13 @@ class ArmClient:
     @property
     def tripped(self) -> str | None:
         """Why the watchdog tripped, or None while it has not (or after `rearm()`)."""
-        return self._tripped
+        return self.watchdog.tripped
 
     def blocking_faults(self) -> dict[int, list[str]]:
         """Status flags, by device, that say a joint must not be driven (motor, driver,
         encoder, pressure...), from the last HARDWARE_STATUS each device sent; link error
         flags are left out."""
-        with self._lock:
-            faults = dict(self._faults)
-        out: dict[int, list[str]] = {}
-        for dev, flags in faults.items():
-            serious = flags & ~LINK_ERROR_FLAGS
-            if serious:
-                out[dev] = serious.flag_names() or [f"0x{int(serious):08X}"]
-        return out
+        return self.faults.blocking()
 
     def on_event(self, callback: EventCallback) -> None:
         self._event_callbacks.append(callback)
@@ -321,88 +256,19 @@ class ArmClient:
         timeout_s: float | None = None,
         retries: int | None = None,
         partial: bool = False,
-    ) -> dict[int, dict[int, Packet]]:
-        """The same packet ids from several devices, all requests written at once.
+    ) -> Replies:
+        """The same packet ids from several devices, all requests written at once (one
+        device at a time on a half-duplex bus).
 
         With `partial=True` devices that never answer are left out instead of raising.
         """
-        devs = [int(d) for d in devices]
-        pids = [int(i) for i in ids]
-        if not devs or not pids:
-            raise ValueError("request needs at least one device and one packet id")
-        if DeviceID.BROADCAST in devs:
-            raise ValueError(
-                "broadcast REQUEST: every joint answers at once (collisions on RS-485) and the "
-                "replies cannot be told apart from a timeout; request each device instead"
-            )
-        if len(devs) > 1 and not self.transport.broadcast_ok:
-            # Half duplex: one device at a time, or the replies collide with our requests.
-            merged: dict[int, dict[int, Packet]] = {}
-            for d in devs:
-                merged.update(
-                    self.request_many(
-                        [d], pids, timeout_s=timeout_s, retries=retries, partial=partial
-                    )
-                )
-            return merged
-        timeout = self.request_timeout_s if timeout_s is None else timeout_s
-        attempts = 1 + (self.retries if retries is None else retries)
-        wanted = {(d, p) for d in devs for p in pids}
-        got: dict[tuple[int, int], Packet] = {}
-        for attempt in range(attempts):
-            waiter = _Waiter(wanted)
-            self._add_waiter(waiter)
-            try:
-                frames = []
-                for d in devs:
-                    missing = [p for p in pids if (d, p) in wanted]
-                    for start in range(0, len(missing), MAX_REQUEST_IDS):
-                        chunk = missing[start : start + MAX_REQUEST_IDS]
-                        frames.append(commands.request(d, chunk).encode())
-                self._write(frames)
-                self.stats.requests_sent += len(frames)
-                if attempt:
-                    self.stats.request_retries += len(frames)
-                waiter.event.wait(timeout)
-            finally:
-                self._remove_waiter(waiter)
-            got.update(waiter.got)
-            wanted = waiter.wanted
-            if waiter.error is not None:
-                raise waiter.error
-            if not wanted:
-                break
-        if wanted and not partial:
-            self.stats.request_timeouts += 1
-            never = ", ".join(
-                f"{joint_name(d)}: {_pid_names(p for dd, p in sorted(wanted) if dd == d)}"
-                for d in sorted({d for d, _ in wanted})
-            )
-            raise RequestTimeoutError(
-                f"no reply on {self.transport.url} after {attempts} attempt(s) of "
-                f"{timeout:.3g} s from {never}"
-            )
-        out: dict[int, dict[int, Packet]] = {}
-        for (d, p), packet in got.items():
-            out.setdefault(d, {})[p] = packet
-        if not partial:
-            for d in devs:
-                out.setdefault(d, {})
-        return out
-
-    def _add_waiter(self, waiter: _Waiter) -> None:
-        with self._lock:
-            for key in waiter.wanted:
-                self._waiters.setdefault(key, []).append(waiter)
-
-    def _remove_waiter(self, waiter: _Waiter) -> None:
-        with self._lock:
-            for key in list(self._waiters):
-                items = self._waiters[key]
-                if waiter in items:
-                    items.remove(waiter)
-                if not items:
-                    del self._waiters[key]
+        return self._requests.request_many(
+            devices,
+            ids,
+            timeout_s=self.request_timeout_s if timeout_s is None else timeout_s,
+            retries=self.retries if retries is None else retries,
+            partial=partial,
+        )
 
     # ----------------------------------------------------------------- discovery and info
 
@@ -512,37 +378,25 @@ class ArmClient:
         """
         if not 1 <= hz <= 255:
             raise ValueError(f"heartbeat frequency must be 1..255 Hz, got {hz}")
-        self._stream = _Stream(tuple(int(i) for i in ids), int(hz), tuple(int(d) for d in devices))
-        self._write(self._stream_frames(self._stream))
+        self._stream = Stream(tuple(int(i) for i in ids), int(hz), tuple(int(d) for d in devices))
+        self._write(self._stream.start_frames())
 
     def stop_stream(self) -> None:
         stream, self._stream = self._stream, None
-        if stream is None:
-            return
-        frames = [commands.heartbeat_frequency(d, 0).encode() for d in stream.devices]
-        frames += [commands.heartbeat_set(d, []).encode() for d in stream.devices]
-        self._write(frames)
-
-    @staticmethod
-    def _stream_frames(stream: _Stream) -> list[bytes]:
-        frames = [commands.heartbeat_set(d, stream.ids).encode() for d in stream.devices]
-        frames += [commands.heartbeat_frequency(d, stream.hz).encode() for d in stream.devices]
-        return frames
+        if stream is not None:
+            self._write(stream.stop_frames())
 
     # ----------------------------------------------------------------- commands
 
     def send(self, *packets: Packet) -> None:
         """Write packets as they are, after the same safety checks as the command helpers."""
         for p in packets:
-            self._check_packet(p)
-        self._write([p.encode() for p in packets])
-        self._note_commands(packets)
+            self._gate.check_packet(p)
+        self._write_commands(packets)
 
     def set_mode(self, devices: int | Sequence[int], mode: Mode) -> None:
         devs = [devices] if isinstance(devices, int) else list(devices)
-        self._write([commands.mode(int(d), mode).encode() for d in devs])
-        if mode not in (Mode.VELOCITY, Mode.CURRENT):
-            self._disarm(devs)
+        self._write_commands([commands.mode(int(d), mode) for d in devs])
 
     def command_position(self, device: int, value: float) -> None:
         """Absolute position (rad; mm for the jaw); refused outside the position limit."""
@@ -553,9 +407,7 @@ class ArmClient:
         self._positions(JOINTS, _four(q))
 
     def _positions(self, devices: Sequence[int], values: Sequence[float]) -> None:
-        for d, v in zip(devices, values, strict=True):
-            self._check_device(int(d))
-            self.guard.check(int(d), LimitKind.POSITION, v)
+        self._gate.check_positions(devices, values)
         self.send(*(commands.position(int(d), v) for d, v in zip(devices, values, strict=True)))
 
     def command_jaw(self, mm: float) -> None:
@@ -583,97 +435,15 @@ class ArmClient:
     def _continuous(
         self, pid: PacketID, devices: Sequence[int], values: Sequence[float] | np.ndarray
     ) -> np.ndarray:
-        if self._tripped is not None:
-            raise WatchdogTrippedError(
-                f"watchdog tripped ({self._tripped}); the arm was put in "
-                f"{self.guard.config.safe_mode.name}; call rearm() to command again"
-            )
-        kind = CONTINUOUS[pid]
-        devs = [int(d) for d in devices]
-        vals = [float(v) for v in values]
-        if len(devs) != len(vals):
-            raise ValueError(f"{len(devs)} devices but {len(vals)} values")
-        sent = np.empty(len(vals))
-        for i, (d, v) in enumerate(zip(devs, vals, strict=True)):
-            self._check_device(d)
-            self.guard.check(d, kind, v)
-            pos = self.table.get(d).position
-            sent[i] = self.guard.soften(d, None if pos is None else pos.value, v)
+        devs, sent = self._gate.continuous(pid, devices, values)
         builder = commands.current if pid is PacketID.CURRENT else commands.velocity
-        self._write([builder(d, float(v)).encode() for d, v in zip(devs, sent, strict=True)])
-        now = self.clock()
-        with self._lock:
-            self._last_command_t = now
-            for d in devs:
-                self._armed.setdefault(d, now)
+        self._write_commands([builder(d, float(v)) for d, v in zip(devs, sent, strict=True)])
         return sent
 
-    def _check_device(self, device: int) -> None:
-        if device == DeviceID.BROADCAST:
-            raise LimitError(
-                "refused: broadcast position/velocity/current commands bypass per-joint "
-                "limits; address each joint; nothing was sent"
-            )
-
-    def _check_packet(self, packet: Packet) -> None:
-        pid, dev = packet.packet_id, int(packet.device_id)
-        if pid in CONTROL_PACKETS:
-            self._check_device(dev)
-            value = packet.as_float()
-            if pid == PacketID.POSITION:
-                self.guard.check(dev, LimitKind.POSITION, value)
-            else:
-                if self._tripped is not None:
-                    raise WatchdogTrippedError(f"watchdog tripped ({self._tripped}); rearm() first")
-                self.guard.check(dev, CONTINUOUS[pid], value)
-                pos = self.table.get(dev).position
-                if self.guard.soften(dev, None if pos is None else pos.value, value) != value:
-                    raise LimitError(
-                        f"refused: {_pid_names([pid]).lower()} {value:.4g} for joint "
-                        f"{joint_name(dev)} "
-                        "pushes past its position limit (inside the soft barrier); use "
-                        "command_currents/command_velocities to have it scaled; nothing was sent"
-                    )
-        elif (
-            not self.transport.broadcast_ok
-            and dev == DeviceID.BROADCAST
-            and pid
-            in (
-                PacketID.REQUEST,
-                PacketID.HEARTBEAT_SET,
-                PacketID.HEARTBEAT_FREQUENCY,
-            )
-        ):
-            raise ValueError(
-                f"broadcast {_pid_names([pid])} on half-duplex {self.transport.url}: every "
-                "joint would answer at once and collide; address each device"
-            )
-
-    def _note_commands(self, packets: Iterable[Packet]) -> None:
-        now = self.clock()
-        with self._lock:
-            for p in packets:
-                dev = int(p.device_id)
-                if p.packet_id in CONTINUOUS:
-                    self._last_command_t = now
-                    self._armed.setdefault(dev, now)
-                elif p.packet_id == PacketID.POSITION:
-                    self._armed.pop(dev, None)
-                elif (
-                    p.packet_id == PacketID.MODE
-                    and p.data
-                    and p.data[0]
-                    not in (
-                        Mode.VELOCITY,
-                        Mode.CURRENT,
-                    )
-                ):
-                    self._armed.pop(dev, None)
-
-    def _disarm(self, devices: Iterable[int]) -> None:
-        with self._lock:
-            for d in devices:
-                self._armed.pop(int(d), None)
+    def _write_commands(self, packets: Sequence[Packet]) -> None:
+        """Write checked commands; the watchdog learns which joints they arm or disarm."""
+        self._write([p.encode() for p in packets])
+        self.watchdog.note_sent(packets, self.clock())
 
     def safe_stop(self, devices: Sequence[int] | None = None) -> None:
         """Put joints (default: the four joints and the jaw) in the configured safe mode."""
@@ -681,42 +451,34 @@ class ArmClient:
 
     def rearm(self) -> None:
         """Allow velocity/current commands again after a watchdog trip."""
-        with self._lock:
-            self._tripped = None
+        self.watchdog.rearm()
 
     def _send_safe_mode(self, devices: Sequence[int]) -> None:
+        self._write(self._safe_mode_frames(devices))
+        self.watchdog.disarm(devices)
+
+    def _safe_mode_frames(self, devices: Sequence[int]) -> list[bytes]:
         mode = self.guard.config.safe_mode
-        self._write([commands.mode(int(d), mode).encode() for d in devices])
-        self._disarm(devices)
+        return [commands.mode(int(d), mode).encode() for d in devices]
 
     # ----------------------------------------------------------------- writing
 
     def _write(self, frames: Sequence[bytes], *, internal: bool = False) -> float:
-        """Write frames in one go; returns the time the write completed."""
-        if not internal and self._link is not LinkState.UP:
-            raise LinkDownError(self._down_message())
+        """Write frames in one go; returns the time the write completed. Only the reader
+        thread's own writes (`internal`) go out while the link is not UP."""
+        if not internal and self.supervisor.state is not LinkState.UP:
+            raise LinkDownError(self.supervisor.down_message())
         with self._write_lock:
             try:
                 self.transport.write_frames(frames)
             except TransportError as exc:
                 self._link_lost(str(exc))
-                raise LinkDownError(self._down_message()) from None
+                raise LinkDownError(self.supervisor.down_message()) from None
         return self.clock()
 
     def write_frames(self, frames: Sequence[bytes]) -> float:
         """Raw, unchecked frames (for tools and tests); returns the write completion time."""
         return self._write(frames)
-
-    def _down_message(self) -> str:
-        if self._link is LinkState.CLOSED:
-            why = f" ({self._link_reason})" if "crashed" in self._link_reason else ""
-            return f"client for {self.transport.url} is not running{why}; start() it first"
-        age = self.clock() - self._link_since
-        return (
-            f"link to {self.transport.url} is {self._link.value} since {age:.2f} s "
-            f"({self._link_reason}); reconnecting, attempt {self._backoff.attempt}; "
-            "nothing was sent"
-        )
 
     # ----------------------------------------------------------------- the reader thread
 
@@ -726,16 +488,16 @@ class ArmClient:
         except Exception as exc:  # a bug: make commands fail fast instead of hanging
             log.exception("reader thread of %s crashed", self.transport.url)
             with self._lock:
-                self._set_link(LinkState.CLOSED, f"reader thread crashed: {exc!r}", self.clock())
-                waiters = [w for ws in self._waiters.values() for w in ws]
-            for w in waiters:
-                w.fail(LinkDownError(self._down_message()))
+                self.supervisor.set(
+                    LinkState.CLOSED, f"reader thread crashed: {exc!r}", self.clock()
+                )
+            self._waiters.fail_all(lambda: LinkDownError(self.supervisor.down_message()))
             self._emit(EventKind.LINK_DOWN, f"reader thread crashed: {exc!r}")
 
     def _read_loop(self) -> None:
         while not self._stop.is_set():
-            if self._link is LinkState.DOWN:
-                self._reconnect_attempt()
+            if self.supervisor.state is LinkState.DOWN:
+                self.supervisor.reconnect_attempt()
                 continue
             try:
                 chunk = self.transport.read()
@@ -746,116 +508,47 @@ class ArmClient:
             if chunk:
                 for packet in self.decoder.feed(chunk):
                     self._dispatch(packet, now)
-            self._duties(self.clock())
+            self.supervisor.duties(self.clock(), self._watchdog)
 
     def _dispatch(self, packet: Packet, t: float) -> None:
         self.stats.packets += 1
-        self._last_packet_t = t
-        if self._link is LinkState.PROBING:
+        if self.supervisor.heard(t):
             self._link_restored(t)
-        self._contact = True
         pid = packet.packet_id
         if self.table.update(packet, t):
-            if pid in (
-                PacketID.POSITION_LIMITS,
-                PacketID.VELOCITY_LIMITS,
-                PacketID.CURRENT_LIMITS,
-            ):
+            if pid in LIMIT_KIND_OF:
                 kind = LIMIT_KIND_OF[int(pid)]
                 reading = getattr(self.table.get(int(packet.device_id)), f"{kind.value}_limits")
                 if reading is not None:
                     self.guard.set_arm_limit(int(packet.device_id), kind, reading.value)
             elif pid == PacketID.HARDWARE_STATUS:
-                self._note_status(packet)
-        key = (int(packet.device_id), int(pid))
-        with self._lock:
-            waiters = list(self._waiters.get(key, ()))
-        for w in waiters:
-            w.offer(packet)
+                event = self.faults.note(packet)
+                if event is not None:
+                    self._emit(*event)
+        self._waiters.offer(packet)
         self.listeners.dispatch(packet, t)
 
-    def _note_status(self, packet: Packet) -> None:
-        try:
-            flags = HardwareStatus.from_bytes(packet.data)
-        except ProtocolError:
-            return
-        dev = int(packet.device_id)
-        with self._lock:
-            before = self._faults.get(dev, HardwareStatus.NONE)
-            if flags == before:
-                return
-            self._faults[dev] = flags
-        if flags:
-            names = ", ".join(flags.flag_names()) or f"0x{int(flags):08X}"
-            self._emit(EventKind.FAULT, f"{joint_name(dev)} reports {names}", dev)
-        else:
-            self._emit(EventKind.FAULT_CLEARED, f"{joint_name(dev)} status clear", dev)
-
-    def _duties(self, now: float) -> None:
-        cfg = self.link_config
-        if self._link is LinkState.PROBING:
-            if now > self._probe_deadline:
-                self.transport.close()
-                self._set_link(
-                    LinkState.DOWN, f"no answer within {cfg.probe_timeout_s} s after reopening", now
-                )
-            return
-        if self._link is not LinkState.UP:
-            return
-        self._watchdog(now)
-        silent = now - self._last_packet_t
-        if self._contact and silent > cfg.stale_link_s:
-            self._link_lost(f"no valid packet for {silent:.2f} s")
-            return
-        if (
-            self._contact
-            and silent > cfg.keepalive_s
-            and now - self._last_keepalive_t > cfg.keepalive_s
-        ):
-            self._last_keepalive_t = now
-            self.stats.keepalives += 1
-            try:
-                self._write([self._probe_frame()], internal=True)
-            except LinkDownError:
-                pass
+    def _broadcast_ok(self) -> bool:
+        return self.transport.broadcast_ok
 
     def _probe_frame(self) -> bytes:
         device = (self.found_devices or self.devices)[0]
         return commands.request(device, [PacketID.MODE]).encode()
 
-    # ----------------------------------------------------------------- watchdog
-
     def _watchdog(self, now: float) -> None:
-        limit = self.guard.config.watchdog_s
-        if limit is None or not self._armed:
-            return
-        with self._lock:
-            armed = dict(self._armed)
-            last_command = self._last_command_t
-        reason = None
-        if now - last_command > limit:
-            reason = f"no command for {now - last_command:.3f} s (limit {limit} s)"
-        else:
-            for dev, since in armed.items():
-                pos = self.table.get(dev).position
-                last = max(since, pos.t if pos is not None else -math.inf)
-                if now - last > limit:
-                    reason = (
-                        f"feedback from {joint_name(dev)} stale for {now - last:.3f} s "
-                        f"(limit {limit} s)"
-                    )
-                    break
-        if reason is not None:
-            self._trip(reason, tuple(armed))
+        def feedback_t(dev: int) -> float | None:
+            pos = self.table.get(dev).position
+            return None if pos is None else pos.t
 
-    def _trip(self, reason: str, devices: Sequence[int]) -> None:
-        with self._lock:
-            self._tripped = reason
-            self._armed.clear()
+        expired = self.watchdog.expired(now, self.guard.config.watchdog_s, feedback_t)
+        if expired is None:
+            return
+        reason, devices = expired
+        self.watchdog.trip(reason)
         self.stats.watchdog_trips += 1
         mode = self.guard.config.safe_mode
         try:
-            self._write([commands.mode(d, mode).encode() for d in devices], internal=True)
+            self._write(self._safe_mode_frames(devices), internal=True)
             sent = f"put {', '.join(joint_name(d) for d in devices)} in {mode.name}"
         except LinkDownError:
             self._safe_pending = True
@@ -864,28 +557,18 @@ class ArmClient:
 
     # ----------------------------------------------------------------- link loss
 
-    def _set_link(self, state: LinkState, reason: str, now: float) -> None:
-        self._link = state
-        self._link_reason = reason
-        self._link_since = now
-
     def _link_lost(self, reason: str) -> None:
         """Mark the link down (any thread); the reader thread reopens it."""
         with self._lock:
-            if self._stop.is_set() or self._link in (LinkState.DOWN, LinkState.CLOSED):
+            was_up = self.supervisor.mark_down(reason)
+            if was_up is None:
                 return
-            was_up = self._link is LinkState.UP
-            self._set_link(LinkState.DOWN, reason, self.clock())
-            armed = tuple(self._armed)
+            # Feedback is gone while joints obey the last velocity/current: the same as
+            # stale feedback. The safe mode goes out first thing after reconnecting.
+            armed = self.watchdog.trip_on_link_loss()
             if armed:
-                # Feedback is gone while joints obey the last velocity/current: the same
-                # as stale feedback. The safe mode goes out first thing after reconnecting.
-                self._tripped = f"link lost while commanding {len(armed)} joint(s)"
-                self._armed.clear()
                 self._safe_pending = True
-            waiters = [w for ws in self._waiters.values() for w in ws]
-        for w in waiters:
-            w.fail(LinkDownError(self._down_message()))
+        self._waiters.fail_all(lambda: LinkDownError(self.supervisor.down_message()))
         if was_up:
             self.stats.link_drops += 1
             self._emit(EventKind.LINK_DOWN, f"{self.transport.url}: {reason}")
@@ -893,47 +576,20 @@ class ArmClient:
                 self.stats.watchdog_trips += 1
                 self._emit(
                     EventKind.WATCHDOG,
-                    f"{self._tripped}; {self.guard.config.safe_mode.name} goes out on reconnect",
+                    f"{self.watchdog.tripped}; {self.guard.config.safe_mode.name} goes out on "
+                    "reconnect",
                 )
         if not self.link_config.reconnect:
             self._stop.set()
 
-    def _reconnect_attempt(self) -> None:
-        self.transport.close()
-        delay = self._backoff.next_delay()
-        if self._stop.wait(delay):
-            return
-        try:
-            self.transport.open()
-        except TransportError as exc:
-            self._link_reason = str(exc)
-            if self._backoff.attempt in (1, 3, 10) or self._backoff.attempt % 30 == 0:
-                self._emit(
-                    EventKind.RECONNECT_FAILED,
-                    f"attempt {self._backoff.attempt}: {exc}; retrying",
-                )
-            return
-        self.decoder.reset()
-        now = self.clock()
-        self._probe_deadline = now + self.link_config.probe_timeout_s
-        self._set_link(LinkState.PROBING, "reopened, waiting for an answer", now)
-        try:
-            self._write([self._probe_frame()], internal=True)
-        except LinkDownError:
-            pass
-
     def _link_restored(self, t: float) -> None:
-        attempts = self._backoff.attempt
-        self._backoff.reset()
-        self._set_link(LinkState.UP, "answering again", t)
-        self.stats.reconnects += 1
+        attempts = self.supervisor.restored(t)
         frames: list[bytes] = []
         if self._safe_pending:
-            mode = self.guard.config.safe_mode
-            frames += [commands.mode(d, mode).encode() for d in (*JOINTS, JAW)]
+            frames += self._safe_mode_frames((*JOINTS, JAW))
             self._safe_pending = False
         if self._stream is not None:
-            frames += self._stream_frames(self._stream)
+            frames += self._stream.start_frames()
         if frames:
             try:
                 self._write(frames, internal=True)
@@ -950,13 +606,3 @@ def _four(values: Sequence[float] | np.ndarray) -> list[float]:
     if len(out) != len(JOINTS):
         raise ValueError(f"expected 4 values in joint order E D C B, got {len(out)}")
     return out
-
-
-def _pid_names(ids: Iterable[int]) -> str:
-    names = []
-    for p in ids:
-        try:
-            names.append(PacketID(p).name)
-        except ValueError:
-            names.append(f"0x{p:02X}")
-    return "/".join(names)

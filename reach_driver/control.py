@@ -4,7 +4,7 @@ Two pacings, one code path for the virtual arm and a real one:
 
 - `Pacing.STREAM` (default): the arm paces the loop. Each joint streams CURRENT, POSITION and
   VELOCITY as its heartbeat at the control rate; the loop steps once per heartbeat tick (see
-  `_StateAssembler` for lost packets) and counts time in ticks, i.e. in ARM time. Against
+  `reach_driver.assembler` for lost packets) and counts time in ticks, i.e. in ARM time. Against
   `reach-sim --speed X` a run takes 1/X of the wall time and sees the same sequence of states.
 - `Pacing.POLL`: the host paces the loop on its own clock and REQUESTs the state each period
   (for arms whose heartbeat cannot be set). Time is wall time.
@@ -29,33 +29,45 @@ import logging
 import math
 import threading
 import time
-from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
 
-from protocol import Mode, Packet, PacketID, ProtocolError, commands
+from protocol import Mode, PacketID, commands
+from protocol.alpha5 import JOINTS, N_JOINTS
+from reach_driver.assembler import StateAssembler
 from reach_driver.client import ArmClient
 from reach_driver.controllers import Controller, ControlState
 from reach_driver.errors import ArmFaultError, DriverError
 from reach_driver.link import LinkState
+from reach_driver.records import ControlSummary, LoopTrace, StepHook, StepRecord, TimingStats
 from reach_driver.safety import LimitKind
-from reach_driver.state import JOINTS, joint_name
+from reach_driver.state import joint_name
+from reach_driver.trace import FinalState, TraceRows
 
 log = logging.getLogger(__name__)
 
-N = len(JOINTS)
+__all__ = [
+    "ControlLoop",
+    "ControlSummary",
+    "LoopTrace",
+    "Pacing",
+    "StepHook",
+    "StepRecord",
+    "TimingStats",
+    "control_period",
+    "preferred_period",
+]
+
+N = N_JOINTS
+#: The assembler's former name here; tests/test_closed_loop.py still imports it from control.
+_StateAssembler = StateAssembler
 TELEMETRY = (PacketID.POSITION, PacketID.VELOCITY)
 # CURRENT first: a joint's heartbeat sends its ids in order, so the measured current is in
 # before the VELOCITY that completes the state.
 TELEMETRY_WITH_CURRENT = (PacketID.CURRENT, PacketID.POSITION, PacketID.VELOCITY)
 
-#: Joint output torque per motor amp, E D C B (N m/A): Kt x gear ratio x efficiency
-#: (reference/alpha5-model.md). The driver cannot import the simulator's motor model, and on a
-#: real arm this is the only torque estimate there is.
-TORQUE_CONSTANT_NM_PER_A = np.array([20.2, 20.2, 20.2, 7.1])
 RECONNECT_WAIT_S = 3.0
 STATUS_PERIOD_S = 1.0
 """Each joint's HARDWARE_STATUS is asked for this often (loop time) during a run, one joint at
@@ -63,275 +75,9 @@ a time so a half-duplex line never sees two answers at once; a motor, driver or 
 fault ends the run."""
 
 
-def torque_from_current(current_mA: np.ndarray) -> np.ndarray:
-    """Joint torque (N m) from motor current (mA), E D C B."""
-    return np.asarray(current_mA, dtype=float) * 1e-3 * TORQUE_CONSTANT_NM_PER_A
-
-
 class Pacing(str, Enum):
     STREAM = "stream"
     POLL = "poll"
-
-
-@dataclass(frozen=True)
-class StepRecord:
-    """One control step, as the per-step hook receives it."""
-
-    step: int
-    t: float  # loop time: arm time when streaming, wall time when polling (s)
-    wall_t: float  # host seconds since the loop started
-    q: np.ndarray
-    qdot: np.ndarray
-    target: np.ndarray
-    raw_command_mA: np.ndarray  # what the controller asked for
-    command_mA: np.ndarray  # what was sent (after clipping and the soft barrier)
-    state_age_s: float  # age of the oldest reading in the state when the controller ran
-    latency_s: float  # from the state being complete to the command being written
-    saturated: bool
-    barrier: bool
-    good_frames: int
-    bad_frames: int
-    current_mA: np.ndarray | None = None  # measured with the state (None when not streamed)
-    torque_Nm: np.ndarray | None = None  # over the period ending at this state (see LoopTrace)
-
-
-StepHook = Callable[[StepRecord], None]
-
-
-@dataclass(frozen=True)
-class TimingStats:
-    """How well the loop kept time (wall seconds unless named otherwise)."""
-
-    steps: int
-    nominal_period_s: float  # in loop time
-    rate_hz: float  # steps per wall second
-    arm_speed: float  # loop seconds per wall second (the simulator's speed-up)
-    period_mean_s: float
-    period_jitter_s: float  # standard deviation of step intervals
-    period_jitter_max_s: float  # largest deviation of a step interval from the mean
-    state_age_p50_s: float
-    state_age_p99_s: float
-    state_age_max_s: float
-    latency_p50_s: float
-    latency_p99_s: float
-    latency_max_s: float
-    missed_deadlines: int
-    skipped_states: int
-    cpu_per_step_s: float  # the loop thread
-    process_cpu_per_step_s: float  # the whole process (reader thread included)
-    partial_states: int = 0  # ticks handed out with a lost packet filled in
-    incomplete_ticks: int = 0  # ticks never handed out (lost packets, or the loop was late)
-
-
-@dataclass(frozen=True)
-class LoopTrace:
-    """The run sampled once per period: row 0 is the first state the controller saw, row k the
-    state k periods (heartbeats) later, the last row the state that ended the run.
-
-    Row k of `command_mA`, `current_mA` and `torque_Nm` belongs to the period ENDING at sample
-    k (row 0 is zero), the convention of `reach_driver.metrics.Trace`. Torque comes from the
-    measured current where the arm streamed it, else from the command. Ticks whose state never
-    completed (lost packets) are filled: angles and speeds linearly, commands held; `filled`
-    counts them.
-    """
-
-    dt: float
-    t: np.ndarray  # (N+1,) loop time (s)
-    q: np.ndarray  # (N+1, 4) rad, as the arm reported them
-    qdot: np.ndarray  # (N+1, 4) rad/s
-    command_mA: np.ndarray  # (N+1, 4) sent (after clipping and the barrier)
-    current_mA: np.ndarray  # (N+1, 4) measured; NaN where the arm did not report it
-    torque_Nm: np.ndarray  # (N+1, 4)
-    filled: int
-
-    @property
-    def samples(self) -> int:
-        return int(self.q.shape[0])
-
-
-@dataclass(frozen=True)
-class ControlSummary:
-    target: np.ndarray
-    final_q: np.ndarray
-    final_error: np.ndarray  # target - q at the state that ended the run (rad)
-    steps: int
-    loop_seconds: float
-    wall_seconds: float
-    saturated_steps: int
-    barrier_steps: int
-    timing: TimingStats
-    stopped_by: str  # "duration", "stop requested", or the error that ended the run
-    error: str | None = None
-    trace: LoopTrace | None = None  # None when fewer than two states were seen
-    left_in: str = ""  # how the run left the arm (safe mode sent, or why it could not be)
-    events: tuple[str, ...] = ()  # link, watchdog and fault events during the run
-
-    @property
-    def ok(self) -> bool:
-        return self.error is None
-
-
-GRACE_FRACTION = 0.25
-"""An incomplete tick is handed to the loop this fraction of a period after it began ..."""
-GRACE_SPAN_FACTOR = 1.5
-"""... or, if later, this many times as long as a whole tick usually takes to arrive (a slow
-line, or joints whose heartbeats are not in phase)."""
-
-
-@dataclass(frozen=True)
-class _Taken:
-    ticks: int  # heartbeat ticks since the stream started
-    values: np.ndarray  # position, velocity interleaved per joint
-    times: np.ndarray  # arrival times of the values
-    serial: int
-    currents: np.ndarray  # latest measured currents (NaN until reported)
-    partial: bool  # some slot was missing and filled from the previous tick
-
-
-class _StateAssembler:
-    """Turns the joints' POSITION and VELOCITY heartbeats into one state per heartbeat tick.
-
-    Runs as a reader-thread listener. The joints send their heartbeat packets in a fixed
-    order, which is learnt from the first complete tick. A tick begins when a packet arrives
-    that comes no later in that order than the last one of the current tick (or when a slot,
-    joint x packet, repeats), so ticks are counted even when packets are lost, and a lost
-    packet costs only its own tick: neither the count of arm time nor the tick boundary
-    drifts (per-slot counts would undercount arm time under steady loss, and completing on
-    "every slot refreshed" would leave part of every later state a tick stale after one loss).
-
-    A tick is published once all eight slots are in, or incomplete as soon as the last packet
-    in the order has come (the missing ones were lost); when it is the last one that is lost,
-    `take` hands the tick out GRACE_FRACTION of a period after it began (the period in wall
-    time is the median spacing of recent ticks), or GRACE_SPAN_FACTOR times the usual time a
-    whole tick takes to arrive if that is longer. In an incomplete tick a missing position is
-    extrapolated from the previous one and its velocity, a missing velocity is held. A tick in
-    which every packet is lost is not counted. The latest CURRENT of each joint rides along.
-    """
-
-    def __init__(self, period_s: float) -> None:
-        self.period_s = period_s
-        self.currents = np.full(N, np.nan)
-        self.values = np.full(2 * N, np.nan)
-        self.times = np.full(2 * N, np.nan)
-        self.have = np.zeros(2 * N, dtype=bool)
-        self.prev_values = np.full(2 * N, np.nan)
-        self.prev_times = np.full(2 * N, np.nan)
-        self.tick = -1
-        self.tick_start = math.nan
-        self.published_tick = -1
-        self.order: dict[int, int] = {}  # slot -> place in a tick, once learnt
-        self.sequence: list[int] = []  # slots of the current tick in arrival order
-        self.last_place = -1
-        self._starts: deque[float] = deque(maxlen=17)
-        self._spans: deque[float] = deque(maxlen=17)  # first to last packet of whole ticks
-        self._index = {int(d): i for i, d in enumerate(JOINTS)}
-        self._cond = threading.Condition()
-        self._latest: _Taken | None = None
-        self.completed = 0  # states published
-        self.skipped = 0  # published but superseded before the loop took them
-        self.partial = 0  # published incomplete, after the grace
-        self.incomplete = 0  # ticks never published
-
-    def __call__(self, packet: Packet, t: float) -> None:
-        pid = packet.packet_id
-        if pid != PacketID.POSITION and pid != PacketID.VELOCITY and pid != PacketID.CURRENT:
-            return
-        i = self._index.get(int(packet.device_id))
-        if i is None:
-            return
-        try:
-            value = packet.as_float()
-        except ProtocolError:
-            return
-        with self._cond:
-            if pid == PacketID.CURRENT:
-                self.currents[i] = value
-                return
-            slot = 2 * i + (0 if pid == PacketID.POSITION else 1)
-            place = self.order.get(slot, -1)
-            if self.tick < 0 or self.have[slot] or (0 <= place <= self.last_place):
-                self._new_tick(t)
-            self.values[slot] = value
-            self.times[slot] = t
-            self.have[slot] = True
-            self.sequence.append(slot)
-            self.last_place = max(self.last_place, place)
-            if self.published_tick == self.tick:
-                return
-            if self.have.all():
-                if len(self.sequence) == 2 * N:
-                    self.order = {s: k for k, s in enumerate(self.sequence)}
-                    self._spans.append(t - self.tick_start)
-                self._publish()
-            elif place == 2 * N - 1:
-                self._publish()  # the tick's last packet: the missing ones were lost
-
-    def _new_tick(self, t: float) -> None:
-        if self.tick >= 0 and self.published_tick != self.tick:
-            self.incomplete += 1
-        self.prev_values[self.have] = self.values[self.have]
-        self.prev_times[self.have] = self.times[self.have]
-        self.have[:] = False
-        self.sequence = []
-        self.last_place = -1
-        self.tick += 1
-        self.tick_start = t
-        self._starts.append(t)
-
-    def _publish(self) -> bool:
-        """Hand out the current tick (called with the lock held); False if it cannot be
-        filled (a slot has never been seen)."""
-        values, times = self.values.copy(), self.times.copy()
-        missing = ~self.have
-        partial = bool(missing.any())
-        if partial:
-            pos, vel = self.prev_values[0::2], self.prev_values[1::2]
-            fill = np.empty(2 * N)
-            fill[0::2] = pos + vel * self.period_s
-            fill[1::2] = vel
-            values[missing] = fill[missing]
-            times[missing] = self.prev_times[missing]
-            if not np.all(np.isfinite(values)):
-                return False
-            self.partial += 1
-        if self._latest is not None:
-            self.skipped += 1
-        self.completed += 1
-        self.published_tick = self.tick
-        self._latest = _Taken(
-            self.tick, values, times, self.completed, self.currents.copy(), partial
-        )
-        self._cond.notify()
-        return True
-
-    def _grace_end(self) -> float | None:
-        """When the open tick may be handed out incomplete (None: not yet knowable)."""
-        if self.tick < 0 or self.published_tick == self.tick or len(self._starts) < 3:
-            return None
-        spacing = float(np.median(np.diff(np.asarray(self._starts))))
-        if not spacing > 0:
-            return None
-        span = float(np.median(np.asarray(self._spans))) if self._spans else 0.0
-        return self.tick_start + max(GRACE_FRACTION * spacing, GRACE_SPAN_FACTOR * span)
-
-    def take(self, timeout: float) -> _Taken | None:
-        """The newest state not yet taken; None if nothing came within `timeout` s."""
-        deadline = time.monotonic() + timeout
-        with self._cond:
-            while self._latest is None:
-                now = time.monotonic()
-                grace = self._grace_end()
-                if grace is not None and now >= grace and self._publish():
-                    break
-                if now >= deadline:
-                    break
-                until = deadline if grace is None or grace <= now else min(deadline, grace)
-                self._cond.wait(max(until - now, 1e-4))
-            latest, self._latest = self._latest, None
-            return latest
-
-    def newer_than(self, serial: int) -> bool:
-        return self.completed > serial
 
 
 def preferred_period(controller: object) -> float | None:
@@ -346,6 +92,22 @@ def preferred_period(controller: object) -> float | None:
     if isinstance(hz, (int, float)) and math.isfinite(hz) and hz > 0:
         return 1.0 / float(hz)
     return None
+
+
+DEFAULT_PERIOD_S = 0.05
+
+
+def control_period(controller: object, requested: float | None) -> tuple[float, str | None]:
+    """The period to run at (the one asked for, else the controller's own, else 20 Hz) and a
+    warning when it differs from the controller's own."""
+    own = preferred_period(controller)
+    period = requested or own or DEFAULT_PERIOD_S
+    if own is not None and not math.isclose(period, own, rel_tol=1e-6):
+        return period, (
+            f"the controller asks for a {own:g} s period ({1 / own:g} Hz); running at "
+            f"{period:g} s as told"
+        )
+    return period, None
 
 
 class ControlLoop:
@@ -420,7 +182,7 @@ def _past(deadline: float) -> Callable[[], bool]:
     return lambda: time.monotonic() > deadline
 
 
-def _superseded(assembler: _StateAssembler, serial: int) -> Callable[[], bool]:
+def _superseded(assembler: StateAssembler, serial: int) -> Callable[[], bool]:
     return lambda: assembler.newer_than(serial)
 
 
@@ -440,13 +202,8 @@ class _Run:
         self.q = np.full(N, np.nan)
         self.qdot = np.full(N, np.nan)
         self.step_walls: list[float] = []
-        # one row per state taken (the trace): loop time, q, qdot, measured current, command
-        self.rows_t: list[float] = []
-        self.rows_q: list[np.ndarray] = []
-        self.rows_qdot: list[np.ndarray] = []
-        self.rows_current: list[np.ndarray] = []
-        self.rows_command: list[np.ndarray] = []
-        self.final: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self.rows = TraceRows()  # one per state taken
+        self.final: FinalState | None = None
         self.next_status_t = 0.0
         self.status_joint = 0
         self.left_in = ""
@@ -459,7 +216,7 @@ class _Run:
         self.barrier = 0
         self.error: str | None = None
         self.stopped_by = "duration"
-        self.assembler: _StateAssembler | None = None
+        self.assembler: StateAssembler | None = None
         self.t0_wall = time.monotonic()
         self.wall_end = self.t0_wall
         self.cpu0 = time.thread_time()
@@ -478,7 +235,7 @@ class _Run:
 
     def _run_stream(self) -> None:
         loop, client = self.loop, self.client
-        self.assembler = asm = _StateAssembler(loop.period_s)
+        self.assembler = asm = StateAssembler(loop.period_s)
         subscription = client.subscribe(asm)
         try:
             ids = TELEMETRY_WITH_CURRENT if loop.measure_current else TELEMETRY
@@ -595,12 +352,14 @@ class _Run:
         if late():
             self.missed += 1
         measured = None if currents is None else currents.copy()
-        torque = self._torque(measured)
-        self.rows_t.append(t)
-        self.rows_q.append(q.copy())
-        self.rows_qdot.append(qdot.copy())
-        self.rows_current.append(np.full(N, np.nan) if measured is None else measured)
-        self.rows_command.append(np.asarray(sent, dtype=float).copy())
+        torque = self.rows.period_torque(measured)
+        self.rows.add(
+            t,
+            q.copy(),
+            qdot.copy(),
+            np.full(N, np.nan) if measured is None else measured,
+            np.asarray(sent, dtype=float).copy(),
+        )
         if loop.on_step is not None:
             stats = client.decoder_stats
             loop.on_step(
@@ -624,14 +383,6 @@ class _Run:
                 )
             )
         self.step += 1
-
-    def _torque(self, measured: np.ndarray | None) -> np.ndarray:
-        """Torque over the period ending now: the measured current where there is one, else
-        the command held over that period."""
-        held = self.rows_command[-1] if self.rows_command else np.zeros(N)
-        if measured is None:
-            return torque_from_current(held)
-        return torque_from_current(np.where(np.isfinite(measured), measured, held))
 
     def _finish_timing(self) -> None:
         self.wall_end = time.monotonic()
@@ -675,48 +426,7 @@ class _Run:
 
     # -- results ----------------------------------------------------------------------------
     def trace(self) -> LoopTrace | None:
-        """The rows on the uniform tick grid (see LoopTrace); None with under two states."""
-        ts = list(self.rows_t)
-        qs, qds, cur = list(self.rows_q), list(self.rows_qdot), list(self.rows_current)
-        cmds = list(self.rows_command)
-        if self.final is not None:
-            t, q, qdot, currents = self.final
-            ts.append(t)
-            qs.append(q)
-            qds.append(qdot)
-            cur.append(currents)
-        if len(ts) < 2:
-            return None
-        dt = self.loop.period_s
-        k = np.rint(np.asarray(ts) / dt).astype(int)
-        n = int(k[-1])
-        grid = np.arange(n + 1)
-        q_arr, qd_arr = np.asarray(qs), np.asarray(qds)
-        q_out = np.column_stack([np.interp(grid, k, q_arr[:, j]) for j in range(N)])
-        qd_out = np.column_stack([np.interp(grid, k, qd_arr[:, j]) for j in range(N)])
-        # command row i = what was held over the period ending at sample i
-        cmd_rows = np.zeros((n + 1, N))
-        cur_rows = np.full((n + 1, N), np.nan)
-        held = np.zeros(N)
-        by_tick = {int(kk): i for i, kk in enumerate(k)}
-        for i in range(n + 1):
-            if i > 0 and (i - 1) in by_tick and by_tick[i - 1] < len(cmds):
-                held = cmds[by_tick[i - 1]]
-            cmd_rows[i] = held if i > 0 else 0.0
-            if i in by_tick:
-                cur_rows[i] = cur[by_tick[i]]
-        measured = np.where(np.isfinite(cur_rows), cur_rows, cmd_rows)
-        measured[0] = np.where(np.isfinite(cur_rows[0]), cur_rows[0], 0.0)
-        return LoopTrace(
-            dt=dt,
-            t=grid * dt,
-            q=q_out,
-            qdot=qd_out,
-            command_mA=cmd_rows,
-            current_mA=cur_rows,
-            torque_Nm=torque_from_current(measured),
-            filled=int(n + 1 - len(set(k.tolist()))),
-        )
+        return self.rows.resample(self.loop.period_s, self.final)
 
     def summary(self) -> ControlSummary:
         steps = self.step

@@ -2,7 +2,7 @@
 
 The driver draws the arm (recordings) and reports the tool position without importing the
 simulator, so it carries the kinematic chain itself: origins and axes of the vendor URDF frames
-(`../shared/reference/alpha5-model.md`), joint angles exactly as the arm reports them.
+(reach_sim_bridge/model/README.md), joint angles exactly as the arm reports them.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Link supervision settings, states and the events the client reports (link, watchdog, faults)."""
+"""Link supervision settings, states, the events the client reports (link, watchdog, faults)
+and its counters."""
 
 from __future__ import annotations
 
@@ -73,3 +74,17 @@ class Backoff:
 
     def reset(self) -> None:
         self.attempt = 0
+
+
+@dataclass
+class ClientStats:
+    """Counters for the monitor and for tests (link errors are in transport/decoder stats)."""
+
+    packets: int = 0
+    requests_sent: int = 0
+    request_retries: int = 0
+    request_timeouts: int = 0
+    link_drops: int = 0
+    reconnects: int = 0
+    watchdog_trips: int = 0
+    keepalives: int = 0

@@ -217,6 +217,4 @@ def summarize(metrics: list[Metrics]) -> dict[str, float]:
     """Mean of every metric over episodes; ``reached`` becomes the reached fraction."""
     if not metrics:
         raise ValueError("no episodes to summarize")
-    return {
-        key: float(np.mean([float(getattr(m, key)) for m in metrics])) for key in METRIC_KEYS
-    }
+    return {key: float(np.mean([float(getattr(m, key)) for m in metrics])) for key in METRIC_KEYS}

@@ -32,9 +32,9 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from protocol.alpha5 import JOINT_LETTERS
 from reach_driver.kinematics import CHAIN, TCP_OFFSET_M, joint_transform
 
-JOINT_NAMES: tuple[str, ...] = ("E", "D", "C", "B")
 TIMELINE_TIME = "arm_time"
 TIMELINE_STEP = "step"
 
@@ -76,7 +76,7 @@ def default_blueprint() -> rrb.Blueprint:
     """Opens on the 3D arm, position-vs-target per joint, torques and errors."""
     position_views = [
         rrb.TimeSeriesView(origin=f"/joints/{j}/position", name=f"{j}: position vs target")
-        for j in JOINT_NAMES
+        for j in JOINT_LETTERS
     ]
     return rrb.Blueprint(
         rrb.Horizontal(
@@ -134,18 +134,18 @@ class RunRecorder:
             for path, frame in zip(links, CHAIN, strict=True):
                 segment = _LINK_SEGMENTS[frame.child_link]
                 rec.log(path, rr.LineStrips3D([segment], radii=radius, colors=[color]), static=True)
-        for j in JOINT_NAMES:
+        for j in JOINT_LETTERS:
             rec.log(f"joints/{j}/position", rr.SeriesLines(names=["q", "target"]), static=True)
             rec.log(
                 f"joints/{j}/current", rr.SeriesLines(names=["commanded", "measured"]), static=True
             )
-        names = [f"{j}" for j in JOINT_NAMES]
+        names = [f"{j}" for j in JOINT_LETTERS]
         for entity in ("errors", "velocities", "torques"):
             rec.log(entity, rr.SeriesLines(names=names), static=True)
         rec.log(
             "link", rr.SeriesLines(names=["good frames", "bad frames", "state age ms"]), static=True
         )
-        meta = {"joint_names": list(JOINT_NAMES), **dict(metadata)}
+        meta = {"joint_names": list(JOINT_LETTERS), **dict(metadata)}
         rec.log("run/metadata", rr.TextDocument(json.dumps(meta, default=str)), static=True)
 
     def _set_time(self, t: float, step: int) -> None:
@@ -170,10 +170,8 @@ class RunRecorder:
             rec.log("run/target", rr.Scalars(target))
             self._last_target = target.copy()
         cmd = np.asarray(s.current_cmd_mA, dtype=float)
-        meas = (
-            np.full(4, np.nan) if s.current_meas_mA is None else np.asarray(s.current_meas_mA)
-        )
-        for i, j in enumerate(JOINT_NAMES):
+        meas = np.full(4, np.nan) if s.current_meas_mA is None else np.asarray(s.current_meas_mA)
+        for i, j in enumerate(JOINT_LETTERS):
             rec.log(f"joints/{j}/position", rr.Scalars([q[i], target[i]]))
             rec.log(f"joints/{j}/current", rr.Scalars([cmd[i], meas[i]]))
         rec.log("errors", rr.Scalars(target - q))
@@ -198,8 +196,9 @@ class RunRecorder:
 
     def log_summary(self, summary: Mapping[str, object]) -> None:
         """The run's metrics and outcome, static so a viewer shows them at any time."""
-        self._rec.log("run/summary", rr.TextDocument(json.dumps(dict(summary), default=float)),
-                      static=True)
+        self._rec.log(
+            "run/summary", rr.TextDocument(json.dumps(dict(summary), default=float)), static=True
+        )
         self.flush()
 
     # -- lifetime ---------------------------------------------------------------------------

@@ -16,8 +16,9 @@ import numpy as np
 import pyarrow as pa
 from rerun.chunk import RrdReader
 
+from protocol.alpha5 import JOINT_LETTERS
 from reach_driver.metrics import Trace, compute_metrics
-from reach_driver.recording import JOINT_NAMES, TIMELINE_STEP, TIMELINE_TIME
+from reach_driver.recording import TIMELINE_STEP, TIMELINE_TIME
 
 
 class RecordingReadError(ValueError):
@@ -103,7 +104,7 @@ def read_recording(path: str | Path) -> RecordedRun:
         by_entity[str(chunk.entity_path)].append(chunk)
 
     series = {name: _temporal_series(c) for name, c in by_entity.items()}
-    positions = [series.get(f"/joints/{j}/position") for j in JOINT_NAMES]
+    positions = [series.get(f"/joints/{j}/position") for j in JOINT_LETTERS]
     if any(p is None or len(p[1]) == 0 for p in positions):
         raise RecordingReadError(
             f"{path} holds no joint positions: not a run recorded by reach-stack "
@@ -128,8 +129,8 @@ def read_recording(path: str | Path) -> RecordedRun:
                 out[row] = v[i]
         return out
 
-    pos = [aligned(f"/joints/{j}/position", 2) for j in JOINT_NAMES]
-    cur = [aligned(f"/joints/{j}/current", 2) for j in JOINT_NAMES]
+    pos = [aligned(f"/joints/{j}/position", 2) for j in JOINT_LETTERS]
+    cur = [aligned(f"/joints/{j}/current", 2) for j in JOINT_LETTERS]
     t_all, s_all, _ = positions[0]  # type: ignore[misc]
     t_index = {int(k): float(tt) for tt, k in zip(t_all, s_all, strict=True)}
 
@@ -145,8 +146,9 @@ def read_recording(path: str | Path) -> RecordedRun:
             if "TextLog:level" in batch.schema.names
             else ["INFO"] * len(texts)
         )
-        events.extend((float(tt), str(lv), str(tx)) for tt, lv, tx in zip(ts, levels, texts,
-                                                                          strict=True))
+        events.extend(
+            (float(tt), str(lv), str(tx)) for tt, lv, tx in zip(ts, levels, texts, strict=True)
+        )
     events.sort(key=lambda e: e[0])
 
     meta_text = _static_text(by_entity.get("/run/metadata", []))
@@ -183,7 +185,7 @@ def summarize_recording(path: str | Path) -> dict[str, object]:
         "file": str(path),
         "steps": int(len(run.step)),
         "duration_s": run.duration_s,
-        "joints": list(JOINT_NAMES),
+        "joints": list(JOINT_LETTERS),
         "final_target": run.target[-1].tolist(),
         "final_position": run.q[-1].tolist(),
         "final_error": final_error.tolist(),

@@ -14,11 +14,16 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum
 
-from protocol import DeviceID, Mode, PacketID
+from protocol import Mode, PacketID
+from protocol.alpha5 import (
+    FACTORY_CURRENT_LIMITS,
+    FACTORY_POSITION_LIMITS,
+    FACTORY_VELOCITY_LIMITS,
+    JAW,
+    Range,
+)
 from reach_driver.errors import LimitError
-from reach_driver.state import Range, joint_name
-
-TWO_PI = 2.0 * math.pi
+from reach_driver.state import joint_name
 
 
 class LimitKind(str, Enum):
@@ -35,7 +40,7 @@ class LimitKind(str, Enum):
         }[self]
 
     def unit(self, device: int) -> str:
-        jaw = device == DeviceID.A
+        jaw = device == JAW
         return {
             LimitKind.POSITION: "mm" if jaw else "rad",
             LimitKind.VELOCITY: "mm/s" if jaw else "rad/s",
@@ -43,29 +48,14 @@ class LimitKind(str, Enum):
         }[self]
 
 
-#: Used only when the arm does not report a limit (docs/architecture.md, alpha5-model.md).
-DEFAULT_LIMITS: dict[LimitKind, dict[int, Range]] = {
-    LimitKind.POSITION: {
-        DeviceID.E: (0.0175, 6.143),
-        DeviceID.D: (0.0175, 3.4034),
-        DeviceID.C: (0.0175, 3.4034),
-        DeviceID.B: (0.0, TWO_PI),
-        DeviceID.A: (0.0, 15.0),
-    },
-    LimitKind.VELOCITY: {
-        DeviceID.E: (-0.5236, 0.5236),
-        DeviceID.D: (-0.5236, 0.5236),
-        DeviceID.C: (-0.5236, 0.5236),
-        DeviceID.B: (-0.8727, 0.8727),
-        DeviceID.A: (-3.0, 3.0),
-    },
-    LimitKind.CURRENT: {
-        DeviceID.E: (-600.0, 600.0),
-        DeviceID.D: (-600.0, 600.0),
-        DeviceID.C: (-600.0, 600.0),
-        DeviceID.B: (-300.0, 300.0),
-        DeviceID.A: (-300.0, 300.0),
-    },
+#: Used only when the arm does not report a limit (reach_sim_bridge/model/README.md).
+DEFAULT_LIMITS: dict[LimitKind, Mapping[int, Range]] = {
+    kind: {int(d): r for d, r in table.items()}
+    for kind, table in (
+        (LimitKind.POSITION, FACTORY_POSITION_LIMITS),
+        (LimitKind.VELOCITY, FACTORY_VELOCITY_LIMITS),
+        (LimitKind.CURRENT, FACTORY_CURRENT_LIMITS),
+    )
 }
 
 

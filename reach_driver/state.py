@@ -8,40 +8,16 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-from collections.abc import Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
 import numpy as np
 
 from protocol import DeviceID, HardwareStatus, Mode, Packet, PacketID, ProtocolError
+from protocol.alpha5 import JAW, JOINTS, Range
 
 T = TypeVar("T")
-
-#: The four controlled joints, in the project's fixed order (docs/architecture.md).
-JOINTS: tuple[DeviceID, ...] = (DeviceID.E, DeviceID.D, DeviceID.C, DeviceID.B)
-JAW = DeviceID.A
-ALL_DEVICES: tuple[DeviceID, ...] = (*JOINTS, JAW)
-
-#: Packets whose value the state table keeps (replies and heartbeats alike).
-TRACKED: frozenset[int] = frozenset(
-    {
-        PacketID.MODE,
-        PacketID.VELOCITY,
-        PacketID.POSITION,
-        PacketID.CURRENT,
-        PacketID.POSITION_LIMITS,
-        PacketID.VELOCITY_LIMITS,
-        PacketID.CURRENT_LIMITS,
-        PacketID.HARDWARE_STATUS,
-        PacketID.SOFTWARE_VERSION,
-        PacketID.SERIAL_NUMBER,
-        PacketID.MODEL_NUMBER,
-        PacketID.TEMPERATURE,
-        PacketID.VOLTAGE,
-        PacketID.HEARTBEAT_FREQUENCY,
-    }
-)
 
 
 def joint_name(device: int) -> str:
@@ -50,6 +26,17 @@ def joint_name(device: int) -> str:
         return f"{DeviceID(device).name} (0x{device:02X})"
     except ValueError:
         return f"0x{device:02X}"
+
+
+def packet_names(ids: Iterable[int]) -> str:
+    """'POSITION/VELOCITY' (hex for ids the protocol does not name) for messages."""
+    names = []
+    for p in ids:
+        try:
+            names.append(PacketID(p).name)
+        except ValueError:
+            names.append(f"0x{p:02X}")
+    return "/".join(names)
 
 
 @dataclass(frozen=True)
@@ -63,28 +50,70 @@ class Reading(Generic[T]):
         return now - self.t
 
 
-Range = tuple[float, float]  # (minimum, maximum)
+# Payload parsers of the tracked packets.
+
+
+def _float(packet: Packet) -> float:
+    return packet.as_float()
+
+
+def _mode(packet: Packet) -> Mode | int:
+    raw = packet.as_u8()
+    return Mode(raw) if raw in Mode._value2member_map_ else raw
+
+
+def _u8(packet: Packet) -> int:
+    return packet.as_u8()
+
+
+def _limits(packet: Packet) -> Range:
+    values = packet.floats()
+    if len(values) != 2:
+        raise ProtocolError(f"limits payload holds {len(values)} floats, expected 2")
+    # [max, min] in protocol 1.12, [min, max] in 1.9: sorting reads both correctly.
+    lo, hi = sorted(values)
+    return (lo, hi)
+
+
+def _status(packet: Packet) -> HardwareStatus:
+    return HardwareStatus.from_bytes(packet.data)
+
+
+def _version(packet: Packet) -> str:
+    if len(packet.data) != 3:
+        raise ProtocolError(f"SOFTWARE_VERSION holds {len(packet.data)} bytes, expected 3")
+    return ".".join(str(b) for b in packet.data)
+
+
+def _tracked(packet_id: PacketID, parse: Callable[[Packet], object]) -> Any:
+    """A `JointState` field the state table fills from `packet_id`, parsed by `parse` (which
+    raises `ProtocolError` on a malformed payload)."""
+    return field(default=None, metadata={"packet_id": packet_id, "parse": parse})
 
 
 @dataclass(frozen=True)
 class JointState:
-    """Everything known about one device; None until the arm has reported it."""
+    """Everything known about one device; None until the arm has reported it.
+
+    Each field is also the state table's row for its packet: tracking a new value is one
+    line here.
+    """
 
     device: int
-    position: Reading[float] | None = None
-    velocity: Reading[float] | None = None
-    current: Reading[float] | None = None
-    mode: Reading[Mode | int] | None = None
-    position_limits: Reading[Range] | None = None
-    velocity_limits: Reading[Range] | None = None
-    current_limits: Reading[Range] | None = None
-    status: Reading[HardwareStatus] | None = None
-    software_version: Reading[str] | None = None
-    serial_number: Reading[float] | None = None
-    model_number: Reading[float] | None = None
-    temperature: Reading[float] | None = None
-    voltage: Reading[float] | None = None
-    heartbeat_hz: Reading[int] | None = None
+    position: Reading[float] | None = _tracked(PacketID.POSITION, _float)
+    velocity: Reading[float] | None = _tracked(PacketID.VELOCITY, _float)
+    current: Reading[float] | None = _tracked(PacketID.CURRENT, _float)
+    mode: Reading[Mode | int] | None = _tracked(PacketID.MODE, _mode)
+    position_limits: Reading[Range] | None = _tracked(PacketID.POSITION_LIMITS, _limits)
+    velocity_limits: Reading[Range] | None = _tracked(PacketID.VELOCITY_LIMITS, _limits)
+    current_limits: Reading[Range] | None = _tracked(PacketID.CURRENT_LIMITS, _limits)
+    status: Reading[HardwareStatus] | None = _tracked(PacketID.HARDWARE_STATUS, _status)
+    software_version: Reading[str] | None = _tracked(PacketID.SOFTWARE_VERSION, _version)
+    serial_number: Reading[float] | None = _tracked(PacketID.SERIAL_NUMBER, _float)
+    model_number: Reading[float] | None = _tracked(PacketID.MODEL_NUMBER, _float)
+    temperature: Reading[float] | None = _tracked(PacketID.TEMPERATURE, _float)
+    voltage: Reading[float] | None = _tracked(PacketID.VOLTAGE, _float)
+    heartbeat_hz: Reading[int] | None = _tracked(PacketID.HEARTBEAT_FREQUENCY, _u8)
 
     @property
     def name(self) -> str:
@@ -95,56 +124,26 @@ class JointState:
         return self.status.value.flag_names() if self.status is not None else []
 
 
-_FIELD_OF: dict[int, str] = {
-    PacketID.MODE: "mode",
-    PacketID.VELOCITY: "velocity",
-    PacketID.POSITION: "position",
-    PacketID.CURRENT: "current",
-    PacketID.POSITION_LIMITS: "position_limits",
-    PacketID.VELOCITY_LIMITS: "velocity_limits",
-    PacketID.CURRENT_LIMITS: "current_limits",
-    PacketID.HARDWARE_STATUS: "status",
-    PacketID.SOFTWARE_VERSION: "software_version",
-    PacketID.SERIAL_NUMBER: "serial_number",
-    PacketID.MODEL_NUMBER: "model_number",
-    PacketID.TEMPERATURE: "temperature",
-    PacketID.VOLTAGE: "voltage",
-    PacketID.HEARTBEAT_FREQUENCY: "heartbeat_hz",
+@dataclass(frozen=True)
+class _Tracked:
+    field: str  # the JointState field holding the value
+    parse: Callable[[Packet], object]
+
+
+#: Packet id -> where its value goes, read off JointState's fields.
+_TRACKED: dict[int, _Tracked] = {
+    int(f.metadata["packet_id"]): _Tracked(f.name, f.metadata["parse"])
+    for f in dataclasses.fields(JointState)
+    if "packet_id" in f.metadata
 }
 
 
 def packet_value(packet: Packet) -> object:
     """The typed value a tracked packet carries; `ProtocolError` if its payload is malformed."""
-    pid = packet.packet_id
-    if pid in (
-        PacketID.POSITION,
-        PacketID.VELOCITY,
-        PacketID.CURRENT,
-        PacketID.SERIAL_NUMBER,
-        PacketID.MODEL_NUMBER,
-        PacketID.TEMPERATURE,
-        PacketID.VOLTAGE,
-    ):
-        return packet.as_float()
-    if pid == PacketID.MODE:
-        raw = packet.as_u8()
-        return Mode(raw) if raw in Mode._value2member_map_ else raw
-    if pid == PacketID.HEARTBEAT_FREQUENCY:
-        return packet.as_u8()
-    if pid in (PacketID.POSITION_LIMITS, PacketID.VELOCITY_LIMITS, PacketID.CURRENT_LIMITS):
-        values = packet.floats()
-        if len(values) != 2:
-            raise ProtocolError(f"limits payload holds {len(values)} floats, expected 2")
-        # [max, min] in protocol 1.12, [min, max] in 1.9: sorting reads both correctly.
-        lo, hi = sorted(values)
-        return (lo, hi)
-    if pid == PacketID.HARDWARE_STATUS:
-        return HardwareStatus.from_bytes(packet.data)
-    if pid == PacketID.SOFTWARE_VERSION:
-        if len(packet.data) != 3:
-            raise ProtocolError(f"SOFTWARE_VERSION holds {len(packet.data)} bytes, expected 3")
-        return ".".join(str(b) for b in packet.data)
-    raise ProtocolError(f"packet id 0x{int(pid):02X} is not tracked")
+    tracked = _TRACKED.get(packet.packet_id)
+    if tracked is None:
+        raise ProtocolError(f"packet id 0x{int(packet.packet_id):02X} is not tracked")
+    return tracked.parse(packet)
 
 
 @dataclass(frozen=True)
@@ -199,18 +198,18 @@ class StateTable:
 
     def update(self, packet: Packet, t: float) -> bool:
         """Record a packet's value; False (and counted) if its payload is malformed."""
-        name = _FIELD_OF.get(packet.packet_id)
-        if name is None:
+        tracked = _TRACKED.get(packet.packet_id)
+        if tracked is None:
             return False
         try:
-            value = packet_value(packet)
+            value = tracked.parse(packet)
         except ProtocolError:
             self.bad_payloads += 1
             return False
         dev = int(packet.device_id)
         with self._lock:
             old = self._joints.get(dev) or JointState(dev)
-            self._joints[dev] = _replace(old, name, Reading(value, t))
+            self._joints[dev] = _replace(old, tracked.field, Reading(value, t))
             key = (dev, int(packet.packet_id))
             self.counts[key] = self.counts.get(key, 0) + 1
         return True
@@ -230,13 +229,13 @@ class StateTable:
 
     def forget(self, device: int, packet_id: int) -> None:
         """Drop one value (e.g. limits before re-reading them, so stale ones cannot answer)."""
-        name = _FIELD_OF.get(packet_id)
-        if name is None:
+        tracked = _TRACKED.get(packet_id)
+        if tracked is None:
             return
         with self._lock:
             old = self._joints.get(device)
             if old is not None:
-                self._joints[device] = _replace(old, name, None)
+                self._joints[device] = _replace(old, tracked.field, None)
 
 
 def _replace(state: JointState, name: str, reading: Reading[Any] | None) -> JointState:

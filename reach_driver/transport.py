@@ -1,23 +1,23 @@
-"""One byte-stream interface for every link to the arm, chosen by a URL string.
+"""The one byte-stream interface every link to the arm implements (python-can's `BusABC`).
 
-Like pyserial's `serial_for_url` and python-can's interface names: the rest of the driver
-never knows whether bytes travel over a tty, UDP datagrams or a CAN tunnel.
+The rest of the driver never knows whether bytes travel over a tty, UDP datagrams or a CAN
+tunnel; `reach_driver.interfaces.open_transport` picks the class from a URL.
 
-    open_transport("/dev/ttyUSB0")                # serial, 115200 8N1
-    open_transport("/dev/ttyUSB0", rs485=True)   # half duplex: writes spaced, no broadcast
-    open_transport("loop://")                     # any pyserial URL
-    open_transport("udp://192.168.2.3")           # port 6789 by default
-    open_transport("can://virtual/ch0")           # python-can interface/channel, see can-tunnel.md
+`read()`, `write()` and `write_frames()` are templates: they keep the statistics and turn
+the link library's exceptions into `TransportError` once, here, and call each transport's
+small `_read_internal()` / `_write_internal()` (like `BusABC.recv` and `_recv_internal`).
 """
 
 from __future__ import annotations
 
 import abc
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 from urllib.parse import urlsplit
 
-from reach_driver.errors import BadUrlError
+from reach_driver.errors import BadUrlError, TransportError
 
 DEFAULT_BAUD = 115200
 DEFAULT_UDP_PORT = 6789
@@ -45,41 +45,108 @@ class Transport(abc.ABC):
     can read and still run periodic duties. `write()` takes whole encoded frames. Errors from
     the link are raised as `TransportError`; `open()` may be called again after `close()` to
     reconnect.
+
+    A subclass implements `is_open`, `_open_internal`, `close`, `_read_internal` and
+    `_write_internal`, and names in `link_errors` the exceptions its library raises.
     """
 
     #: False on half-duplex buses where a broadcast REQUEST makes every joint answer at once.
     broadcast_ok: bool = True
+    #: Whether `from_url` takes the serial options (`baud`, `rs485`); elsewhere they are
+    #: refused rather than ignored, so a mistyped command line fails loudly.
+    takes_serial_options: ClassVar[bool] = False
+    #: Each read returns whole frames (datagrams): the template ends it with a 0x00 so a
+    #: truncated tail can never merge with the next read's first frame.
+    reads_whole_frames: ClassVar[bool] = False
+    #: The link library's exceptions, reported as `TransportError` by the templates.
+    link_errors: ClassVar[tuple[type[BaseException], ...]] = (OSError,)
+    #: How the templates' messages name a failed read and write ("read from URL failed: ...").
+    read_failed: ClassVar[str] = "read from"
+    write_failed: ClassVar[str] = "write to"
 
     def __init__(self, url: str, read_timeout_s: float = DEFAULT_READ_TIMEOUT_S) -> None:
         self.url = url
         self.read_timeout_s = read_timeout_s
         self.stats = TransportStats()
+        self._write_lock = threading.Lock()
+
+    @classmethod
+    def from_url(cls, url: str, read_timeout_s: float = DEFAULT_READ_TIMEOUT_S) -> Transport:
+        """Build (not open) the transport a URL names; plugins may keep this default."""
+        return cls(url, read_timeout_s)
 
     @property
     def wire_bytes_per_s(self) -> float | None:
         """Bytes per second each direction can carry, or None when the link is not the limit."""
         return None
 
+    # -- the templates -----------------------------------------------------------------------
+
+    def open(self) -> None:
+        if self.is_open:
+            return
+        self._open_internal()
+        self.stats.opens += 1
+
+    def read(self) -> bytes:
+        """What arrived within `read_timeout_s` (b"" if nothing)."""
+        try:
+            data = self._read_internal()
+        except self.link_errors as exc:
+            self.stats.read_errors += 1
+            raise TransportError(f"{self.read_failed} {self.url} failed: {exc}") from None
+        if data is None:
+            return b""
+        self.stats.bytes_in += len(data)
+        if self.reads_whole_frames and not data.endswith(b"\x00"):
+            data += b"\x00"  # an extra 0x00 is only an empty piece to the decoder
+        return data
+
+    def write(self, data: bytes) -> None:
+        """Write bytes as one piece."""
+        self._write_pieces([data])
+
+    def write_frames(self, frames: Sequence[bytes]) -> None:
+        """Write several frames at once (one syscall or datagram where the link allows)."""
+        if frames:
+            self._write_pieces(self._pieces(frames))
+
+    def _write_pieces(self, pieces: Sequence[bytes]) -> None:
+        with self._write_lock:
+            for piece in pieces:
+                try:
+                    self._write_internal(piece)
+                except self.link_errors as exc:
+                    self.stats.write_errors += 1
+                    raise TransportError(f"{self.write_failed} {self.url} failed: {exc}") from None
+                self.stats.bytes_out += len(piece)
+                self.stats.writes += 1
+
+    # -- what each transport implements --------------------------------------------------------
+
     @property
     @abc.abstractmethod
     def is_open(self) -> bool: ...
 
     @abc.abstractmethod
-    def open(self) -> None: ...
+    def _open_internal(self) -> None:
+        """Open the link (only called while closed); raise `TransportError` if it cannot be."""
 
     @abc.abstractmethod
     def close(self) -> None: ...
 
     @abc.abstractmethod
-    def read(self) -> bytes: ...
+    def _read_internal(self) -> bytes | None:
+        """Bytes received within `read_timeout_s`, or None when nothing came; raise
+        `TransportError` when not open, or one of `link_errors`."""
 
     @abc.abstractmethod
-    def write(self, data: bytes) -> None: ...
+    def _write_internal(self, piece: bytes) -> None:
+        """Send one piece; raise `TransportError` when not open, or one of `link_errors`."""
 
-    def write_frames(self, frames: Sequence[bytes]) -> None:
-        """Write several frames at once (one syscall or datagram where the link allows)."""
-        if frames:
-            self.write(b"".join(frames))
+    def _pieces(self, frames: Sequence[bytes]) -> Sequence[bytes]:
+        """How `write_frames` cuts frames into writes: all at once unless the link says."""
+        return [b"".join(frames)]
 
     def __enter__(self) -> Transport:
         if not self.is_open:
@@ -91,46 +158,6 @@ class Transport(abc.ABC):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.url!r})"
-
-
-def open_transport(
-    url: str,
-    *,
-    baud: int = DEFAULT_BAUD,
-    rs485: bool = False,
-    read_timeout_s: float = DEFAULT_READ_TIMEOUT_S,
-    open_now: bool = True,
-) -> Transport:
-    """Build (and by default open) the transport a `--port` string names.
-
-    Serial options (`baud`, `rs485`) are rejected for UDP and CAN rather than ignored, so a
-    mistyped command line fails loudly.
-    """
-    if not url or not url.strip():
-        raise BadUrlError("empty port: give a device path, a pyserial URL or udp://HOST:PORT")
-    url = url.strip()
-    scheme = urlsplit(url).scheme.lower() if "://" in url else ""
-    transport: Transport
-    if scheme in ("udp", "can"):
-        if rs485:
-            raise BadUrlError(f"--rs485 applies to serial ports, not {scheme}:// ({url})")
-        if baud != DEFAULT_BAUD:
-            raise BadUrlError(f"--baud applies to serial ports, not {scheme}:// ({url})")
-        if scheme == "udp":
-            from reach_driver.transport_udp import UdpTransport
-
-            transport = UdpTransport.from_url(url, read_timeout_s=read_timeout_s)
-        else:
-            from reach_driver.transport_can import CanTransport
-
-            transport = CanTransport.from_url(url, read_timeout_s=read_timeout_s)
-    else:
-        from reach_driver.transport_serial import SerialTransport
-
-        transport = SerialTransport(url, baud=baud, rs485=rs485, read_timeout_s=read_timeout_s)
-    if open_now:
-        transport.open()
-    return transport
 
 
 def split_host_port(url: str, default_port: int) -> tuple[str, int]:

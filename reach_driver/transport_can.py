@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 from urllib.parse import parse_qsl, urlsplit
 
 import can
@@ -136,6 +136,10 @@ def parse_can_url(url: str) -> tuple[str, str, CanTunnelConfig, dict[str, Any]]:
 class CanTransport(Transport):
     """One end of the CAN tunnel; the host end by default, the gateway end with `swapped()`."""
 
+    link_errors: ClassVar[tuple[type[BaseException], ...]] = (can.CanError,)
+    read_failed: ClassVar[str] = "CAN receive on"
+    write_failed: ClassVar[str] = "CAN send on"
+
     def __init__(
         self,
         interface: str,
@@ -166,9 +170,7 @@ class CanTransport(Transport):
     def is_open(self) -> bool:
         return self._bus is not None
 
-    def open(self) -> None:
-        if self._bus is not None:
-            return
+    def _open_internal(self) -> None:
         kwargs = dict(self.bus_kwargs)
         if self.config.fd:
             kwargs["fd"] = True
@@ -183,7 +185,6 @@ class CanTransport(Transport):
         self._bus = bus
         self._framer = TunnelFramer(self.config.fd)
         self._deframer = TunnelDeframer()
-        self.stats.opens += 1
 
     def close(self) -> None:
         bus, self._bus = self._bus, None
@@ -195,42 +196,31 @@ class CanTransport(Transport):
             raise TransportError(f"{self.url} is not open")
         return self._bus
 
-    def read(self) -> bytes:
+    def _read_internal(self) -> bytes:
         bus = self._require()
         out = bytearray()
         timeout: float = self.read_timeout_s
-        try:
-            for _ in range(MAX_DRAIN):
-                msg = bus.recv(timeout=timeout)
-                if msg is None:
-                    break
-                timeout = 0.0  # after the first frame take only what is already queued
-                if msg.arbitration_id != self.config.rx_id or msg.is_error_frame:
-                    continue
-                before = self._deframer.lost
-                out += self._deframer.accept(bytes(msg.data))
-                self.stats.lost_can_frames += self._deframer.lost - before
-        except can.CanError as exc:
-            self.stats.read_errors += 1
-            raise TransportError(f"CAN receive on {self.url} failed: {exc}") from None
-        self.stats.bytes_in += len(out)
+        for _ in range(MAX_DRAIN):
+            msg = bus.recv(timeout=timeout)
+            if msg is None:
+                break
+            timeout = 0.0  # after the first frame take only what is already queued
+            if msg.arbitration_id != self.config.rx_id or msg.is_error_frame:
+                continue
+            before = self._deframer.lost
+            out += self._deframer.accept(bytes(msg.data))
+            self.stats.lost_can_frames += self._deframer.lost - before
         return bytes(out)
 
-    def write(self, data: bytes) -> None:
+    def _write_internal(self, piece: bytes) -> None:
         bus = self._require()
-        try:
-            for payload in self._framer.payloads(data):
-                bus.send(
-                    can.Message(
-                        arbitration_id=self.config.tx_id,
-                        data=payload,
-                        is_extended_id=self.config.extended,
-                        is_fd=self.config.fd,
-                    ),
-                    timeout=1.0,
-                )
-        except can.CanError as exc:
-            self.stats.write_errors += 1
-            raise TransportError(f"CAN send on {self.url} failed: {exc}") from None
-        self.stats.bytes_out += len(data)
-        self.stats.writes += 1
+        for payload in self._framer.payloads(piece):
+            bus.send(
+                can.Message(
+                    arbitration_id=self.config.tx_id,
+                    data=payload,
+                    is_extended_id=self.config.extended,
+                    is_fd=self.config.fd,
+                ),
+                timeout=1.0,
+            )

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import errno
-import threading
 import time
 from collections.abc import Sequence
+from typing import ClassVar
 
 import serial
 
@@ -41,6 +41,15 @@ class SerialTransport(Transport):
     refused by the client there, since every joint would answer at once and collide.
     """
 
+    takes_serial_options: ClassVar[bool] = True
+    # TypeError/AttributeError: pyserial's fd becomes None under a concurrent close.
+    link_errors: ClassVar[tuple[type[BaseException], ...]] = (
+        serial.SerialException,
+        OSError,
+        TypeError,
+        AttributeError,
+    )
+
     def __init__(
         self,
         url: str,
@@ -58,9 +67,19 @@ class SerialTransport(Transport):
         self.rs485_gap_s = rs485_gap_s
         self.broadcast_ok = not rs485
         self._port: serial.SerialBase | None = None
-        self._write_lock = threading.Lock()
         self._line_busy_until = 0.0  # monotonic time our last byte leaves the UART
         self._last_rx = 0.0
+
+    @classmethod
+    def from_url(
+        cls,
+        url: str,
+        read_timeout_s: float = DEFAULT_READ_TIMEOUT_S,
+        *,
+        baud: int = DEFAULT_BAUD,
+        rs485: bool = False,
+    ) -> SerialTransport:
+        return cls(url, baud=baud, rs485=rs485, read_timeout_s=read_timeout_s)
 
     @property
     def wire_bytes_per_s(self) -> float | None:
@@ -70,9 +89,7 @@ class SerialTransport(Transport):
     def is_open(self) -> bool:
         return self._port is not None and self._port.is_open
 
-    def open(self) -> None:
-        if self.is_open:
-            return
+    def _open_internal(self) -> None:
         try:
             port = serial.serial_for_url(
                 self.url,
@@ -94,7 +111,6 @@ class SerialTransport(Transport):
         except (serial.SerialException, OSError):
             pass  # loop:// and some adapters cannot flush; stale bytes are dropped by CRC anyway
         self._port = port
-        self.stats.opens += 1
 
     def _open_error(self, exc: serial.SerialException) -> TransportError:
         code = getattr(exc, "errno", None)
@@ -125,47 +141,30 @@ class SerialTransport(Transport):
             raise TransportError(f"serial port {self.url} is not open")
         return port
 
-    def read(self) -> bytes:
+    def _read_internal(self) -> bytes:
         port = self._require()
-        try:
-            waiting = port.in_waiting
-            data: bytes = port.read(waiting or 1)
-            if data and not waiting:
-                more = port.in_waiting
-                if more:
-                    data += port.read(more)
-        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
-            # TypeError/AttributeError: pyserial's fd became None under a concurrent close
-            self.stats.read_errors += 1
-            raise TransportError(f"read from {self.url} failed: {exc}") from None
+        waiting = port.in_waiting
+        data: bytes = port.read(waiting or 1)
+        if data and not waiting:
+            more = port.in_waiting
+            if more:
+                data += port.read(more)
         if data:
-            self.stats.bytes_in += len(data)
             self._last_rx = time.monotonic()
         return data
 
-    def write(self, data: bytes) -> None:
-        self.write_frames([data])
+    def _pieces(self, frames: Sequence[bytes]) -> Sequence[bytes]:
+        return list(frames) if self.rs485 else [b"".join(frames)]
 
-    def write_frames(self, frames: Sequence[bytes]) -> None:
-        if not frames:
-            return
+    def _write_internal(self, piece: bytes) -> None:
         port = self._require()
-        chunks = list(frames) if self.rs485 else [b"".join(frames)]
-        with self._write_lock:
-            for chunk in chunks:
-                if self.rs485:
-                    self._wait_for_quiet_line()
-                try:
-                    port.write(chunk)
-                except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
-                    self.stats.write_errors += 1
-                    raise TransportError(f"write to {self.url} failed: {exc}") from None
-                now = time.monotonic()
-                self._line_busy_until = (
-                    max(now, self._line_busy_until) + len(chunk) * BITS_PER_BYTE / self.baud
-                )
-                self.stats.bytes_out += len(chunk)
-                self.stats.writes += 1
+        if self.rs485:
+            self._wait_for_quiet_line()
+        port.write(piece)
+        now = time.monotonic()
+        self._line_busy_until = (
+            max(now, self._line_busy_until) + len(piece) * BITS_PER_BYTE / self.baud
+        )
 
     def _wait_for_quiet_line(self) -> None:
         # Our own bytes must have left; a chattering bus (heartbeats) is waited on only so

@@ -9,6 +9,7 @@ from __future__ import annotations
 import socket
 import time
 from collections.abc import Sequence
+from typing import ClassVar
 
 from reach_driver.errors import TransportError
 from reach_driver.transport import (
@@ -24,6 +25,11 @@ RECV_BUFFER = 65535  # whole datagrams: a short buffer truncates multi-frame dat
 
 class UdpTransport(Transport):
     """Frames travel several to a datagram both ways; each datagram is a whole number of frames."""
+
+    reads_whole_frames: ClassVar[bool] = True
+    link_errors: ClassVar[tuple[type[BaseException], ...]] = (OSError,)
+    read_failed: ClassVar[str] = "receive on"
+    write_failed: ClassVar[str] = "send to"
 
     def __init__(
         self,
@@ -57,9 +63,7 @@ class UdpTransport(Transport):
         addr = self._sock.getsockname()
         return addr[0], addr[1]
 
-    def open(self) -> None:
-        if self._sock is not None:
-            return
+    def _open_internal(self) -> None:
         try:
             infos = socket.getaddrinfo(self.host, self.port, type=socket.SOCK_DGRAM)
         except socket.gaierror as exc:
@@ -75,14 +79,13 @@ class UdpTransport(Transport):
             raise TransportError(f"cannot bind a UDP socket for {self.url}: {exc}") from None
         self._sock = sock
         self._peer = (str(addr[0]), int(addr[1]))
-        self.stats.opens += 1
 
     def close(self) -> None:
         sock, self._sock = self._sock, None
         if sock is not None:
             sock.close()
 
-    def read(self) -> bytes:
+    def _read_internal(self) -> bytes | None:
         sock, peer = self._sock, self._peer
         if sock is None or peer is None:
             raise TransportError(f"{self.url} is not open")
@@ -91,42 +94,30 @@ class UdpTransport(Transport):
             try:
                 data, source = sock.recvfrom(RECV_BUFFER)
             except (TimeoutError, BlockingIOError):
-                return b""
+                return None
             except ConnectionRefusedError:
-                return b""  # an ICMP port-unreachable from an earlier send; the peer may come back
-            except OSError as exc:
-                self.stats.read_errors += 1
-                raise TransportError(f"receive on {self.url} failed: {exc}") from None
+                return None  # an ICMP port-unreachable from an earlier send; the peer may come back
             if (str(source[0]), int(source[1])) == peer:
-                self.stats.bytes_in += len(data)
-                # A datagram holds whole frames: terminate it so a truncated tail can never
-                # merge with the next datagram's first frame (an extra 0x00 is an empty piece).
-                return data if data.endswith(b"\x00") else data + b"\x00"
+                return data
             self.stats.foreign_datagrams += 1
             if time.monotonic() >= deadline:
-                return b""
+                return None
 
-    def write(self, data: bytes) -> None:
-        self._send(data)
-
-    def write_frames(self, frames: Sequence[bytes]) -> None:
+    def _pieces(self, frames: Sequence[bytes]) -> Sequence[bytes]:
+        """Datagrams of whole frames, each at most MAX_DATAGRAM bytes unless one frame is longer."""
+        datagrams: list[bytes] = []
         batch = bytearray()
         for frame in frames:
             if batch and len(batch) + len(frame) > MAX_DATAGRAM:
-                self._send(bytes(batch))
+                datagrams.append(bytes(batch))
                 batch.clear()
             batch += frame
         if batch:
-            self._send(bytes(batch))
+            datagrams.append(bytes(batch))
+        return datagrams
 
-    def _send(self, data: bytes) -> None:
+    def _write_internal(self, piece: bytes) -> None:
         sock, peer = self._sock, self._peer
         if sock is None or peer is None:
             raise TransportError(f"{self.url} is not open")
-        try:
-            sock.sendto(data, peer)
-        except OSError as exc:
-            self.stats.write_errors += 1
-            raise TransportError(f"send to {self.url} failed: {exc}") from None
-        self.stats.bytes_out += len(data)
-        self.stats.writes += 1
+        sock.sendto(piece, peer)

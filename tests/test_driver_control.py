@@ -14,8 +14,6 @@ from reach_sim_bridge.server import SimConfig, SimServer
 SPEED = 4.0
 
 
-
-
 class Constant:
     """A controller that always asks for the same currents."""
 

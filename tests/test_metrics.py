@@ -138,9 +138,13 @@ def test_compute_metrics_on_a_ramp_response() -> None:
     assert m.settling_time_s == pytest.approx(2.0)
     # joint 0: e = 1 - 0.5 t for 2 s -> integral 1.0 minus the right-rectangle bias
     assert m.mie == pytest.approx(
-        (sum(max(0, 1 - 0.025 * k) for k in range(1, n + 1))
-         + sum(max(0, 0.5 - 0.025 * k) for k in range(1, n + 1))
-         + sum(max(0, 0.25 - 0.025 * k) for k in range(1, n + 1))) * dt / 4
+        (
+            sum(max(0, 1 - 0.025 * k) for k in range(1, n + 1))
+            + sum(max(0, 0.5 - 0.025 * k) for k in range(1, n + 1))
+            + sum(max(0, 0.25 - 0.025 * k) for k in range(1, n + 1))
+        )
+        * dt
+        / 4
     )
     assert set(m.as_dict()) == set(METRIC_KEYS)
 
@@ -173,8 +177,15 @@ def test_summarize_means_and_reached_fraction() -> None:
     b = Metrics(3.0, 0.4, 1.0, 0.03, 15.0, 4.0, False)
     s = summarize([a, b])
     assert s == pytest.approx(
-        {"energy_j": 2.0, "rmse": 0.3, "mie": 2.0, "msse": 0.02, "overshoot_pct": 10.0,
-         "settling_time_s": 3.0, "reached": 0.5}
+        {
+            "energy_j": 2.0,
+            "rmse": 0.3,
+            "mie": 2.0,
+            "msse": 0.02,
+            "overshoot_pct": 10.0,
+            "settling_time_s": 3.0,
+            "reached": 0.5,
+        }
     )
     with pytest.raises(ValueError, match="no episodes"):
         summarize([])

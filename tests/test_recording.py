@@ -38,8 +38,13 @@ def _write(path: Path, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         for k in range(n):
             rec.log_step(
                 StepSample(
-                    t=k * DT, step=k, q=q[k], qdot=qdot[k], target=target,
-                    current_cmd_mA=np.full(4, 100.0 + k), current_meas_mA=np.full(4, 90.0),
+                    t=k * DT,
+                    step=k,
+                    q=q[k],
+                    qdot=qdot[k],
+                    target=target,
+                    current_cmd_mA=np.full(4, 100.0 + k),
+                    current_meas_mA=np.full(4, 90.0),
                     torque_Nm=np.full(4, 0.5),
                 )
             )
@@ -63,8 +68,9 @@ def test_round_trip_series_and_metrics(tmp_path: Path) -> None:
     assert run.closed_cleanly
 
     summary = summarize_recording(path)
-    expected = compute_metrics(Trace(dt=DT, q=q, qdot=qdot, tau=np.full_like(q, 0.5),
-                                     target=target)).as_dict()
+    expected = compute_metrics(
+        Trace(dt=DT, q=q, qdot=qdot, tau=np.full_like(q, 0.5), target=target)
+    ).as_dict()
     metrics = summary["metrics"]
     assert isinstance(metrics, dict)
     for key, value in expected.items():
@@ -118,15 +124,18 @@ def test_recording_survives_sigkill(tmp_path: Path) -> None:
     assert "metrics" in summarize_recording(path)
 
 
-@pytest.mark.skipif(shutil.which("rerun") is None and not (Path(sys.executable).parent / "rerun")
-                    .exists(), reason="rerun CLI not installed")
+@pytest.mark.skipif(
+    shutil.which("rerun") is None and not (Path(sys.executable).parent / "rerun").exists(),
+    reason="rerun CLI not installed",
+)
 def test_rerun_verify_accepts_recording(tmp_path: Path) -> None:
     path = tmp_path / "verify.rrd"
     _write(path, 20)
     rerun_cli = Path(sys.executable).parent / "rerun"
     cli = str(rerun_cli) if rerun_cli.exists() else "rerun"
-    result = subprocess.run([cli, "rrd", "verify", str(path)], capture_output=True, text=True,
-                            timeout=120)
+    result = subprocess.run(
+        [cli, "rrd", "verify", str(path)], capture_output=True, text=True, timeout=120
+    )
     assert result.returncode == 0, result.stderr
     assert "verified without error" in result.stdout + result.stderr
 

@@ -30,8 +30,6 @@ from reach_driver.transport_serial import SerialTransport
 E, D, C, B = DeviceID.E, DeviceID.D, DeviceID.C, DeviceID.B
 
 
-
-
 def read_all(transport, settle: float = 0.05) -> bytes:
     out = b""
     end = time.monotonic() + settle

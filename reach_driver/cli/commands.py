@@ -1,0 +1,228 @@
+"""The subcommands: each takes the parsed options and a console and returns an exit status."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.live import Live
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+from protocol import Mode, PacketID
+from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS
+from reach_driver.cli.connect import connect
+from reach_driver.cli.exits import Exit
+from reach_driver.cli.recorder import recorder_hook
+from reach_driver.cli.render import (
+    blocking_faults,
+    info_json,
+    info_table,
+    monitor_table,
+    print_metrics,
+    print_recording,
+    print_summary,
+)
+from reach_driver.control import ControlLoop, control_period
+from reach_driver.controllers import available_controllers, load_controller
+from reach_driver.errors import ArmFaultError, DriverError
+from reach_driver.records import ControlSummary, StepRecord
+from reach_driver.safety import LimitKind
+
+
+def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
+    client = connect(args, console)
+    try:
+        # Where each joint is now, beside its limits: the start of any move or run.
+        client.request_many(client.found_devices, [PacketID.POSITION], partial=True)
+        joints = client.read_info()
+        if args.json:
+            console.print_json(json.dumps(info_json(args.port, joints)))
+            return Exit.OK
+        console.print(info_table(args.port, joints))
+        return Exit.OK
+    finally:
+        client.close()
+
+
+def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
+    client = connect(args, console)
+    try:
+        devices = client.found_devices
+        ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT, PacketID.MODE)
+        client.stream(ids, args.rate, devices)
+        end = time.monotonic() + args.seconds if args.seconds else math.inf
+        last_counts = client.table.count_snapshot()
+        last_t = time.monotonic()
+        rates: dict[tuple[int, int], float] = {}
+        with Live(
+            monitor_table(client, rates, args.port),
+            console=console,
+            refresh_per_second=4,
+            transient=False,
+            auto_refresh=False,
+        ) as live:
+            while time.monotonic() < end:
+                time.sleep(min(0.5, max(0.0, end - time.monotonic())))
+                now = time.monotonic()
+                counts = client.table.count_snapshot()
+                rates = {k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()}
+                last_counts, last_t = counts, now
+                live.update(monitor_table(client, rates, args.port), refresh=True)
+        return Exit.OK
+    finally:
+        client.close()
+
+
+def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
+    target = np.array(args.angles, dtype=float)
+    client = connect(args, console)
+    try:
+        # Check everything first: a refused target must leave every joint where it is.
+        for dev, value in zip(JOINTS, target, strict=True):
+            client.guard.check(dev, LimitKind.POSITION, float(value))
+        if args.jaw is not None:
+            client.guard.check(JAW, LimitKind.POSITION, args.jaw)
+        faults = blocking_faults(client.read_status(), console)
+        if faults:
+            raise ArmFaultError(f"arm reports faults, not moving: {faults}")
+        devices = [*JOINTS, JAW] if args.jaw is not None else list(JOINTS)
+        client.stream((PacketID.POSITION,), 20, devices)
+        q0 = client.read_joints((PacketID.POSITION,)).q
+        client.set_mode(devices, Mode.POSITION)
+        client.command_positions(target)
+        if args.jaw is not None:
+            client.command_jaw(args.jaw)
+        start_err = float(np.max(np.abs(target - q0))) or 1.0
+        deadline = time.monotonic() + args.move_timeout
+        with Progress(
+            TextColumn("[bold]move[/]"),
+            BarColumn(),
+            TextColumn("{task.fields[detail]}"),
+            TimeElapsedColumn(),
+            console=console,
+            transient=False,
+        ) as progress:
+            task = progress.add_task("move", total=1.0, detail="")
+            while True:
+                state = client.state
+                err = target - state.q
+                jaw_err = abs(args.jaw - state.jaw_mm) if args.jaw is not None else 0.0
+                worst = float(np.max(np.abs(err)))
+                detail = " ".join(f"{j} {e:+.3f}" for j, e in zip(JOINT_LETTERS, err, strict=True))
+                if args.jaw is not None:
+                    detail += f" jaw {args.jaw - state.jaw_mm:+.2f} mm"
+                progress.update(
+                    task, completed=min(1.0, max(0.0, 1.0 - worst / start_err)), detail=detail
+                )
+                if worst <= args.tolerance and jaw_err <= args.jaw_tolerance:
+                    progress.update(task, completed=1.0)
+                    break
+                faults = blocking_faults(state.faults, None)
+                if faults:
+                    client.safe_stop(devices)
+                    raise ArmFaultError(f"fault during the move, joints stopped: {faults}")
+                if time.monotonic() > deadline:
+                    raise DriverError(
+                        f"move timed out after {args.move_timeout:g} s; errors (rad) {detail}"
+                    )
+                time.sleep(0.05)
+        console.print(f"[green]reached[/] within {args.tolerance} rad: {detail}")
+        return Exit.OK
+    finally:
+        try:
+            client.stop_stream()
+        except DriverError:
+            pass
+        client.close()
+
+
+def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
+    params = dict(args.param)
+    controller = load_controller(args.controller, **params)
+    period, mismatch = control_period(controller, args.period)
+    if mismatch:
+        Console(stderr=True, highlight=False).print(f"[yellow]warning[/]: {mismatch}")
+    hook: Callable[[StepRecord], None] | None = None
+    finish: Callable[[ControlSummary | None, str | None], None] | None = None
+    client = connect(args, console)
+    summary: ControlSummary | None = None
+    error: str | None = None
+    try:
+        target = np.array(args.target, dtype=float)
+        for dev, value in zip(JOINTS, target, strict=True):
+            client.guard.check(dev, LimitKind.POSITION, float(value))
+        faults = blocking_faults(client.read_status(JOINTS), console)
+        if faults:
+            raise ArmFaultError(f"arm reports faults, not starting: {faults}")
+        if args.record:
+            meta: dict[str, object] = {
+                "controller": args.controller,
+                "params": params,
+                "port": args.port,
+                "period_s": period,
+                "pacing": args.pacing,
+                "target": target.tolist(),
+                "seconds": args.seconds,
+            }
+            hook, finish = recorder_hook(args.record, meta)
+        loop = ControlLoop(client, controller, period, pacing=args.pacing, on_step=hook)
+        try:
+            summary = loop.run(target, args.seconds)
+        except KeyboardInterrupt:
+            error = "interrupted"
+            raise
+        error = summary.error
+        print_summary(console, summary)
+        print_metrics(console, summary)
+        console.print(f"arm left in {summary.left_in}")
+        if args.record:
+            console.print(
+                f"recorded {args.record}: open it with `rerun {args.record}`, "
+                f"summarise it with `reach-driver inspect {args.record}`",
+                soft_wrap=True,  # keep the commands copyable
+            )
+        if summary.error:
+            console.print(f"[red]run failed[/]: {summary.error}")
+            return Exit.FAILED
+        return Exit.OK
+    finally:
+        if finish is not None:
+            finish(summary, error)
+        client.close()
+
+
+def cmd_controllers(args: argparse.Namespace, console: Console) -> Exit:
+    for name in available_controllers():
+        console.print(name)
+    return Exit.OK
+
+
+def cmd_inspect(args: argparse.Namespace, console: Console) -> Exit:
+    from reach_driver.rrd_summary import RecordingReadError, summarize_recording
+
+    try:
+        summary: dict[str, Any] = summarize_recording(args.file)
+    except (RecordingReadError, OSError) as exc:
+        console.print(f"[red]error[/]: cannot read {args.file}: {exc}")
+        return Exit.FAILED
+    if args.json:
+        console.print_json(json.dumps(summary, default=float))
+        return Exit.OK
+    print_recording(console, summary)
+    return Exit.OK
+
+
+COMMANDS: dict[str, Callable[[argparse.Namespace, Console], Exit]] = {
+    "info": cmd_info,
+    "monitor": cmd_monitor,
+    "move": cmd_move,
+    "run": cmd_run,
+    "controllers": cmd_controllers,
+    "inspect": cmd_inspect,
+}

@@ -1,0 +1,63 @@
+"""From parsed options to a started `ArmClient` (events and warnings to stderr)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from rich.console import Console
+
+from protocol.alpha5 import JOINTS
+from reach_driver.client import ArmClient
+from reach_driver.errors import BadUrlError
+from reach_driver.interfaces import open_transport
+from reach_driver.link import ClientEvent, EventKind
+from reach_driver.safety import SafetyConfig
+
+
+def connect(args: argparse.Namespace, console: Console) -> ArmClient:
+    if not args.port:
+        raise BadUrlError(
+            "no port: give --port (device, pyserial URL or udp://HOST) or set $REACH_PORT"
+        )
+    safety = safety_config(args)  # checked by main() already
+    transport = open_transport(args.port, baud=args.baud, rs485=args.rs485)
+    client = ArmClient(
+        transport, safety=safety, request_timeout_s=args.timeout, retries=args.retries
+    )
+
+    # Events and warnings go to stderr so `info --json` stays parseable.
+    notes = Console(stderr=True, highlight=False)
+
+    def report(event: ClientEvent) -> None:
+        style = "green" if event.kind in (EventKind.LINK_UP, EventKind.FAULT_CLEARED) else "red"
+        notes.print(f"[{style}]{event.kind.value}[/]: {event.message}")
+
+    client.on_event(report)
+    client.start()
+    for warning in client.warnings:
+        notes.print(f"[yellow]warning[/]: {warning}")
+    return client
+
+
+def safety_config(args: argparse.Namespace) -> SafetyConfig:
+    currents: dict[int, float] = {}
+    if args.max_current:
+        try:
+            given = [float(v) for v in args.max_current.split(",")]
+        except ValueError:
+            raise ValueError(f"--max-current takes mA values, got {args.max_current!r}") from None
+        if len(given) not in (1, 4) or not all(math.isfinite(v) and v > 0 for v in given):
+            raise ValueError(
+                "--max-current takes one positive value or four comma-separated (E,D,C,B), "
+                f"got {args.max_current!r}"
+            )
+        values = given * 4 if len(given) == 1 else given
+        currents = {int(d): v for d, v in zip(JOINTS, values, strict=True)}
+    if not (math.isfinite(args.position_margin) and args.position_margin >= 0):
+        raise ValueError(f"--position-margin must be >= 0 rad, got {args.position_margin}")
+    return SafetyConfig(
+        watchdog_s=args.watchdog,
+        current_limits_mA=currents,
+        position_margin=args.position_margin,
+    )

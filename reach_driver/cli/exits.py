@@ -1,0 +1,14 @@
+"""The CLI's exit statuses (documented in `reach-driver --help`)."""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+
+class Exit(IntEnum):
+    OK = 0
+    FAILED = 1
+    USAGE = 2
+    LIMIT = 3
+    NO_ARM = 4
+    INTERRUPTED = 130

@@ -1,0 +1,48 @@
+"""A run's summary as the metrics see it and as it is serialised (recordings, JSON)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from reach_driver.metrics import Metrics, Trace, compute_metrics
+from reach_driver.records import ControlSummary, LoopTrace
+
+
+def run_metrics(summary: ControlSummary) -> Metrics | None:
+    """The run scored like an evaluation episode (on the angles the arm reported)."""
+    tr = summary.trace
+    if tr is None or tr.samples < 2:
+        return None
+    return compute_metrics(trace_for_metrics(tr, summary.target))
+
+
+def trace_for_metrics(tr: LoopTrace, target: np.ndarray) -> Trace:
+    return Trace(dt=tr.dt, q=tr.q, qdot=tr.qdot, tau=tr.torque_Nm, target=target)
+
+
+def summary_dict(s: ControlSummary) -> dict[str, object]:
+    t = s.timing
+    metrics = run_metrics(s)
+    return {
+        "ok": s.ok,
+        "stopped_by": s.stopped_by,
+        "steps": s.steps,
+        "loop_seconds": s.loop_seconds,
+        "wall_seconds": s.wall_seconds,
+        "final_q": s.final_q.tolist(),
+        "final_error": s.final_error.tolist(),
+        "saturated_steps": s.saturated_steps,
+        "barrier_steps": s.barrier_steps,
+        "rate_hz": t.rate_hz,
+        "arm_speed": t.arm_speed,
+        "period_jitter_s": t.period_jitter_s,
+        "state_age_p99_s": t.state_age_p99_s,
+        "latency_p50_s": t.latency_p50_s,
+        "latency_p99_s": t.latency_p99_s,
+        "missed_deadlines": t.missed_deadlines,
+        "skipped_states": t.skipped_states,
+        "partial_states": t.partial_states,
+        "incomplete_ticks": t.incomplete_ticks,
+        "left_in": s.left_in,
+        "metrics": None if metrics is None else metrics.as_dict(),
+    }
