@@ -122,15 +122,6 @@ _set_packet = Packet.__dict__["packet_id"].__set__
 _set_data = Packet.__dict__["data"].__set__
 
 
-def packet_from_fields(device_id: int, packet_id: int, data: bytes) -> Packet:
-    """A `Packet` from already-validated fields (skips __post_init__)."""
-    packet: Packet = _new(Packet)
-    _set_device(packet, _DEVICE_IDS[device_id])
-    _set_packet(packet, _PACKET_IDS[packet_id])
-    _set_data(packet, data)
-    return packet
-
-
 def decode_body(body: bytes) -> Packet:
     """The packet in one frame given without its delimiter and holding no 0x00 byte.
 

@@ -61,8 +61,6 @@ __all__ = [
 ]
 
 N = N_JOINTS
-#: The assembler's former name here; tests/test_closed_loop.py still imports it from control.
-_StateAssembler = StateAssembler
 TELEMETRY = (PacketID.POSITION, PacketID.VELOCITY)
 # CURRENT first: a joint's heartbeat sends its ids in order, so the measured current is in
 # before the VELOCITY that completes the state.

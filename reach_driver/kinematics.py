@@ -11,9 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Distance from the wrist frame (m1) to the tool centre point along its z axis (m):
-#: jaw base 0.09975 + push rod 0.009 + ~0.04 to the fingertips' centre.
-TCP_OFFSET_M = 0.09975 + 0.009 + 0.04
+#: Distance from the wrist frame (m1) to the tool centre point along its z axis (m): jaw base
+#: 0.09975 + ~0.04 to the fingertips' centre, the point the MJCF's `tcp` site (and so the
+#: emulator's KM_END_POS) reports; tests/test_kinematics.py keeps the two chains equal.
+TCP_OFFSET_M = 0.09975 + 0.04
 
 
 @dataclass(frozen=True)

@@ -28,8 +28,9 @@ from policy.via_driver import (
 from protocol import HardwareStatus, Mode, Packet, PacketID
 from protocol.payload import pack_floats
 from reach_driver import ArmClient, ControlLoop, SafetyConfig, open_transport
-from reach_driver.cli import Exit, control_period, main
-from reach_driver.control import _StateAssembler
+from reach_driver.assembler import StateAssembler
+from reach_driver.cli import Exit, main
+from reach_driver.control import control_period
 from reach_driver.controllers import load_controller
 from reach_driver.rrd_summary import summarize_recording
 from reach_sim_bridge.server import SimConfig, SimServer
@@ -88,7 +89,7 @@ def test_lost_packets_cost_only_their_own_tick() -> None:
     """Ticks stay whole (every value from the same tick) and counted when packets are lost;
     a missing position is extrapolated from the previous tick, a missing velocity held."""
     period = 0.05
-    asm = _StateAssembler(period)
+    asm = StateAssembler(period)
     order = [(d, p) for d in (2, 3, 4, 5) for p in (PacketID.POSITION, PacketID.VELOCITY)]
     lost = {3: (3, PacketID.POSITION), 5: (2, PacketID.POSITION), 7: (5, PacketID.VELOCITY)}
     t_end = time.monotonic()

@@ -23,8 +23,16 @@ def bench(steps: int, rate_hz: float) -> dict[str, float]:
     q = rng.uniform(0.5, 2.5, size=(steps, 4))
     target = np.array([2.0, 1.5, 1.0, 0.5])
     samples = [
-        StepSample(k / rate_hz, k, q[k], np.zeros(4), target, np.full(4, 100.0),
-                   np.full(4, 90.0), np.full(4, 0.5))
+        StepSample(
+            k / rate_hz,
+            k,
+            q[k],
+            np.zeros(4),
+            target,
+            np.full(4, 100.0),
+            np.full(4, 90.0),
+            np.full(4, 0.5),
+        )
         for k in range(steps)
     ]
     with tempfile.TemporaryDirectory() as tmp:

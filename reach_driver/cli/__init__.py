@@ -19,7 +19,6 @@ from reach_driver.cli.commands import COMMANDS
 from reach_driver.cli.connect import safety_config
 from reach_driver.cli.exits import Exit
 from reach_driver.cli.parser import build_parser
-from reach_driver.control import control_period  # tests/test_closed_loop.py imports it here
 from reach_driver.errors import (
     BadUrlError,
     DriverError,
@@ -32,7 +31,7 @@ from reach_driver.errors import (
     TransportError,
 )
 
-__all__ = ["Exit", "build_parser", "control_period", "main"]
+__all__ = ["Exit", "build_parser", "main"]
 
 
 def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
