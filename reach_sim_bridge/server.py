@@ -156,8 +156,9 @@ class SimServer:
         self.arm = self._make_arm()
         firmware_cfg = cfg.firmware
         if cfg.faults.sensor_noise is not None:
-            firmware_cfg = replace(firmware_cfg, sensor_noise=cfg.faults.sensor_noise,
-                                   seed=cfg.seed)
+            firmware_cfg = replace(
+                firmware_cfg, sensor_noise=cfg.faults.sensor_noise, seed=cfg.seed
+            )
         self.firmware = Firmware(self.arm, firmware_cfg)
         self._link_faults = LinkFaults(cfg.faults, seed=cfg.seed)
         self._link_errors = EventLog(log, logging.WARNING)
@@ -178,9 +179,20 @@ class SimServer:
         arm = Alpha5Arm(dt=cfg.dt, seed=cfg.faults.randomize_seed)
         if cfg.faults.randomize_seed is not None:
             params = arm.randomize()
-            log.info("randomized arm parameters (seed %d): %s", cfg.faults.randomize_seed,
-                     {k: params.as_dict()[k] for k in
-                      ("armature", "damping", "frictionloss", "link_mass_kg", "link_volume_l")})
+            log.info(
+                "randomized arm parameters (seed %d): %s",
+                cfg.faults.randomize_seed,
+                {
+                    k: params.as_dict()[k]
+                    for k in (
+                        "armature",
+                        "damping",
+                        "frictionloss",
+                        "link_mass_kg",
+                        "link_volume_l",
+                    )
+                },
+            )
         arm.torque_scale = cfg.faults.torque_scale
         arm.reset(q=None if cfg.start is None else np.asarray(cfg.start), jaw_mm=cfg.jaw_mm)
         return arm
@@ -213,10 +225,12 @@ class SimServer:
             raise
         self._thread = threading.Thread(target=self._run, name="reach-sim", daemon=True)
         self._thread.start()
-        log.info("virtual Alpha 5 serving%s%s at %gx real time",
-                 f" pty {self.pty_path}" if self._pty else "",
-                 f" udp {self._udp.address[0]}:{self._udp.address[1]}" if self._udp else "",
-                 cfg.speed)
+        log.info(
+            "virtual Alpha 5 serving%s%s at %gx real time",
+            f" pty {self.pty_path}" if self._pty else "",
+            f" udp {self._udp.address[0]}:{self._udp.address[1]}" if self._udp else "",
+            cfg.speed,
+        )
         return self.pty_path
 
     def stop(self) -> None:
@@ -252,8 +266,15 @@ class SimServer:
     def _do_power_cycle(self) -> None:
         # In the loop thread: queued output and the UDP peer belong to the link, not the arm.
         self._cycle_request.clear()
-        link_state = ("_pty_in", "_pty_out", "_pty_partial", "_rx_free", "_tx_free",
-                      "_udp_out", "_udp_peer")
+        link_state = (
+            "_pty_in",
+            "_pty_out",
+            "_pty_partial",
+            "_rx_free",
+            "_tx_free",
+            "_udp_out",
+            "_udp_peer",
+        )
         with self._lock:
             kept = {name: getattr(self, name) for name in link_state}
             self._reset_state()
@@ -276,8 +297,12 @@ class SimServer:
             self.start()
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
         self.stop()
 
     @property
@@ -329,14 +354,21 @@ class SimServer:
                     if n:
                         bad[reason.value] = bad.get(reason.value, 0) + n
             return ServerStats(
-                frames_in=c.frames_in, frames_out=c.frames_out, bytes_in=c.bytes_in,
-                bytes_out=c.bytes_out, datagrams_in=c.datagrams_in,
-                datagrams_out=c.datagrams_out, bad_frames=bad, bytes_discarded=discarded,
+                frames_in=c.frames_in,
+                frames_out=c.frames_out,
+                bytes_in=c.bytes_in,
+                bytes_out=c.bytes_out,
+                datagrams_in=c.datagrams_in,
+                datagrams_out=c.datagrams_out,
+                bad_frames=bad,
+                bytes_discarded=discarded,
                 firmware_errors=self.firmware.errors.snapshot(),
                 ignored=self.firmware.ignored.snapshot(),
                 dropped_frames=self._link_faults.dropped_frames,
                 corrupted_bytes=self._link_faults.corrupted_bytes,
-                lost_bytes=c.lost_bytes, sim_time=self.arm.time, lag_s=c.lag_s,
+                lost_bytes=c.lost_bytes,
+                sim_time=self.arm.time,
+                lag_s=c.lag_s,
             )
 
     def wait_sim_time(self, sim_time: float, timeout: float | None = None) -> bool:
@@ -455,8 +487,10 @@ class SimServer:
 
     def _on_decode_error(self, error: DecodeError, frame: bytes) -> None:
         # Called from feed(), under the lock, in the loop thread.
-        self._link_errors.record(f"bad_frame_{error.reason.value}",
-                                 f"{error} ({len(frame)} bytes: {frame[:16].hex(' ')})")
+        self._link_errors.record(
+            f"bad_frame_{error.reason.value}",
+            f"{error} ({len(frame)} bytes: {frame[:16].hex(' ')})",
+        )
         self.firmware.note_link_error(error)
 
     def _receive_stream(self, data: bytes, now: float) -> None:
@@ -547,8 +581,7 @@ class SimServer:
                     c.lost_bytes += len(frame)
 
 
-def serve_forever(server: SimServer, stop: threading.Event, stats_interval: float = 0.0
-                  ) -> None:
+def serve_forever(server: SimServer, stop: threading.Event, stats_interval: float = 0.0) -> None:
     """Run until `stop` is set (signal handlers set it), logging stats now and then."""
     next_report = time.monotonic() + stats_interval
     while not stop.wait(0.2):
@@ -557,7 +590,13 @@ def serve_forever(server: SimServer, stop: threading.Event, stats_interval: floa
         if stats_interval > 0.0 and time.monotonic() >= next_report:
             next_report += stats_interval
             s = server.stats()
-            log.info("t=%.1f s: frames in %d out %d, bad %s, errors %s, ignored %s, lag %.2f s",
-                     s.sim_time, s.frames_in, s.frames_out, s.bad_frames or "{}",
-                     s.firmware_errors or "{}", s.ignored or "{}", s.lag_s)
-
+            log.info(
+                "t=%.1f s: frames in %d out %d, bad %s, errors %s, ignored %s, lag %.2f s",
+                s.sim_time,
+                s.frames_in,
+                s.frames_out,
+                s.bad_frames or "{}",
+                s.firmware_errors or "{}",
+                s.ignored or "{}",
+                s.lag_s,
+            )
