@@ -125,7 +125,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="HOST:PORT",
         const=(DEFAULT_UDP_HOST, DEFAULT_UDP_PORT),
         help="also serve UDP: answer each datagram's sender, one frame per "
-        "reply datagram; several frames per incoming datagram are fine. "
+        "reply datagram; several frames per incoming datagram are fine. Heartbeats and "
+        "status go to the last sender of a valid frame; datagrams without one are "
+        "counted, dropped and not answered. "
         f"Without a value {DEFAULT_UDP_HOST}:{DEFAULT_UDP_PORT}; a bare "
         "PORT or :PORT stays on loopback. Port 0 picks a free port",
     )

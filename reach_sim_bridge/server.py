@@ -508,12 +508,13 @@ class SimServer:
         if not data.endswith(b"\x00"):
             data += b"\x00"  # a datagram ends its last frame
         with self._lock:
-            self._udp_peer = sender
             c = self._counters
             c.datagrams_in += 1
             c.bytes_in += size
             packets = self._udp_decoder.feed(data)
             c.frames_in += len(packets)
+            if packets:  # only a sender of a valid frame gets the stream (see udp.py)
+                self._udp_peer = sender
             replies = self._handle(packets)
         due = now + self.config.faults.latency_ms / 1000.0
         for packet in replies:
@@ -526,7 +527,8 @@ class SimServer:
         return replies
 
     def _send_unprompted(self, packets: list[Packet], now: float) -> None:
-        """Heartbeats and status go to the pty and to the last UDP client heard from."""
+        """Heartbeats and status go to the pty and to the UDP peer (the last sender of a
+        valid frame)."""
         if not packets:
             return
         due = now + self.config.faults.latency_ms / 1000.0
