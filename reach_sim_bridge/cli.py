@@ -144,7 +144,9 @@ def build_parser() -> argparse.ArgumentParser:
         type=_baud,
         metavar="BAUD",
         help="throttle the pty both ways to a serial line's byte rate, "
-        "BAUD/10 bytes/s (8N1), e.g. 115200. Default: unthrottled",
+        "BAUD/10 bytes/s (8N1), e.g. 115200. At most 0.2 s of output waits for the line; "
+        "replies go ahead of heartbeats, and the oldest heartbeats are dropped (counted) "
+        "when it is full. Default: unthrottled",
     )
     arm = p.add_argument_group("arm")
     arm.add_argument(

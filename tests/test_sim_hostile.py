@@ -9,6 +9,7 @@ time under a flood) has a wide margin because the machine is shared.
 
 from __future__ import annotations
 
+import os
 import select
 import socket
 import subprocess
@@ -19,7 +20,7 @@ from collections.abc import Iterator
 import pytest
 
 from protocol import DeviceID, Packet, PacketDecoder, PacketID, commands
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.server import SimConfig, SimServer, out_queue_limit
 
 A, B, C, D, E = DeviceID.A, DeviceID.B, DeviceID.C, DeviceID.D, DeviceID.E
 BROADCAST = DeviceID.BROADCAST
@@ -54,8 +55,9 @@ chunk = sys.stdin.buffer.read()
 sent, end = 0, time.monotonic() + seconds
 if kind == "pty":
     fd = os.open(target, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    left = b""  # the rest of a short write: written first, so frames stay whole
     for _ in range(count):
-        if time.monotonic() >= end:
+        if time.monotonic() >= end and not left:
             break
         try:  # read the replies too, so the arm's writes succeed (the costly case)
             while os.read(fd, 65536):
@@ -63,7 +65,9 @@ if kind == "pty":
         except BlockingIOError:
             pass
         try:
-            sent += os.write(fd, chunk)
+            data = left or chunk
+            n = os.write(fd, data)
+            sent, left = sent + n, data[n:]
         except BlockingIOError:
             select.select([fd], [fd], [], 0.01)
     os.close(fd)
@@ -198,3 +202,177 @@ def test_udp_stream_follows_the_last_sender_of_a_valid_frame(udp_server: SimServ
     finally:
         first.close()
         second.close()
+
+
+# -- hole 2: the reply queue at --baud -------------------------------------------------------
+class PtyReader:
+    """Reads the pty continuously (a client keeping up with the line), keeping the packets.
+    A plain descriptor: a flooder may share the pty (and read some of the replies)."""
+
+    def __init__(self, srv: SimServer) -> None:
+        assert srv.pty_path is not None
+        self.srv = srv
+        self.fd = os.open(srv.pty_path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        self.decoder = PacketDecoder()
+        self.packets: list[Packet] = []
+
+    def poll(self, timeout: float = 0.01) -> None:
+        select.select([self.fd], [], [], timeout)
+        try:
+            data = os.read(self.fd, 65536)
+        except BlockingIOError:
+            return
+        self.packets += self.decoder.feed(data)
+
+    def send(self, *packets: Packet) -> None:
+        data = b"".join(p.encode() for p in packets)
+        deadline = time.monotonic() + WALL_LIMIT_S
+        while data:
+            assert time.monotonic() < deadline, "the pty never took our bytes"
+            try:
+                data = data[os.write(self.fd, data) :]
+            except BlockingIOError:
+                self.poll()
+
+    def read_for(self, wall_s: float) -> None:
+        end = time.monotonic() + wall_s
+        while time.monotonic() < end:
+            self.poll()
+
+    def until(self, key: tuple[int, int], start: int) -> tuple[int, float]:
+        """Read until a packet with `key` arrives after index `start`: its index and the sim
+        time it arrived at."""
+        deadline = time.monotonic() + WALL_LIMIT_S
+        while True:
+            for i in range(start, len(self.packets)):
+                if self.packets[i].key == key:
+                    return i, self.srv.sim_time
+            start = len(self.packets)
+            assert time.monotonic() < deadline, f"no {key} within {WALL_LIMIT_S} s"
+            self.poll()
+
+    def quiet(self, wall_s: float = 0.3) -> None:
+        """Read until nothing arrived for `wall_s` (bounded by WALL_LIMIT_S)."""
+        deadline = time.monotonic() + WALL_LIMIT_S
+        last = len(self.packets)
+        idle_since = time.monotonic()
+        while time.monotonic() - idle_since < wall_s:
+            assert time.monotonic() < deadline, "the line never went quiet"
+            self.poll()
+            if len(self.packets) != last:
+                last, idle_since = len(self.packets), time.monotonic()
+
+    def close(self) -> None:
+        os.close(self.fd)
+
+
+def test_heartbeat_overload_at_baud_is_dropped_oldest_first_and_replies_go_first() -> None:
+    baud = 115200
+    limit = out_queue_limit(baud)
+    with SimServer(SimConfig(speed=1.0, baud=baud)) as srv:
+        reader = PtyReader(srv)
+        try:
+            # 5 devices x 3 ids x 255 Hz: over three times what 115200 baud carries.
+            reader.send(
+                commands.heartbeat_set(BROADCAST, HEARTBEAT_IDS),
+                commands.heartbeat_frequency(BROADCAST, 255),
+            )
+            reader.read_for(1.5)
+            assert beats(reader.packets) > 100
+            # A request is answered ahead of the stale stream: within the queue's wire time
+            # (plus the request's own crossing), not after everything queued so far.
+            mark = len(reader.packets)
+            asked = srv.sim_time
+            reader.send(commands.request(B, [PacketID.SERIAL_NUMBER]))
+            _, answered = reader.until((B, PacketID.SERIAL_NUMBER), mark)
+            assert answered - asked < 0.5
+            # Switched off, the stream stops after at most a queue's worth of stale frames.
+            mark = len(reader.packets)
+            reader.send(commands.heartbeat_frequency(BROADCAST, 0))
+            reader.quiet()
+            stale = len(reader.packets) - mark
+            assert stale * 8 <= limit + 2 * 64, f"{stale} frames after the heartbeat stopped"
+            stats = srv.stats()
+            print(f"answered in {answered - asked:.3f} s, {stale} stale frames, {stats}")
+            assert stats.stream_dropped > 0
+            assert stats.queued_peak_bytes <= limit
+            assert reader.decoder.stats.bad_total == 0  # drops are whole frames
+        finally:
+            reader.close()
+        assert srv.error is None
+
+
+def test_request_flood_at_baud_keeps_the_queue_bounded_and_answers_after_it() -> None:
+    baud = 115200
+    limit = out_queue_limit(baud)
+    # 7 bytes asking for 5 replies of 10: the answers need seven times the line's rate.
+    ask_positions = commands.request(BROADCAST, [PacketID.POSITION]).encode()
+    with SimServer(SimConfig(speed=1.0, baud=baud)) as srv:
+        assert srv.pty_path is not None
+        reader = PtyReader(srv)
+        try:
+            flood = start_flood("pty", srv.pty_path, ask_positions * 64)
+            while flood.poll() is None:
+                reader.poll()
+            sent = finish_flood(flood)
+            assert sent > 0
+            deadline = time.monotonic() + WALL_LIMIT_S
+            while srv.stats().bytes_in < sent:  # the tty's backlog (about 17 kB)
+                assert time.monotonic() < deadline
+                reader.poll()
+            reader.quiet()  # the last of it answered (or dropped): no endless backlog
+            mark = len(reader.packets)
+            asked = srv.sim_time
+            reader.send(commands.request(C, [PacketID.POSITION_LIMITS]))  # not in the flood
+            _, answered = reader.until((C, PacketID.POSITION_LIMITS), mark)
+            assert answered - asked < 0.5
+            stats = srv.stats()
+            print(f"probe answered after {answered - asked:.3f} s; sent {sent}; {stats}")
+            assert stats.queued_peak_bytes <= limit
+            assert stats.replies_dropped > 0
+        finally:
+            reader.close()
+        assert srv.error is None
+
+
+# -- hole 3: a flood and the physics ---------------------------------------------------------
+@pytest.mark.parametrize("kind", ["pty", "udp"])
+def test_a_request_flood_does_not_starve_the_physics(kind: str) -> None:
+    with SimServer(SimConfig(speed=1.0, pty=kind == "pty", udp=("127.0.0.1", 0))) as srv:
+        if kind == "pty":
+            assert srv.pty_path is not None
+            target, chunk = srv.pty_path, ASK_ALL * 240
+            # Keep the slave open so the arm's replies fill the pty buffer and are lost
+            # rather than erroring; the flooder writes through its own descriptor.
+            holder = os.open(target, os.O_RDWR | os.O_NOCTTY)
+        else:
+            host, port = srv.udp_address or ("", 0)
+            target, chunk = f"{host}:{port}", ASK_ALL * (65000 // len(ASK_ALL))
+            holder = -1
+        try:
+            flood = start_flood(kind, target, chunk)
+            deadline = time.monotonic() + WALL_LIMIT_S
+            while srv.stats().bytes_in == 0:
+                assert time.monotonic() < deadline and flood.poll() is None
+                time.sleep(0.005)
+            wall0, sim0 = time.monotonic(), srv.sim_time
+            finish_flood(flood)
+            wall1, sim1 = time.monotonic(), srv.sim_time
+            ratio = (sim1 - sim0) / (wall1 - wall0)
+            print(f"{kind}: sim/wall {ratio:.2f} over {wall1 - wall0:.2f} s, {srv.stats()}")
+            assert ratio > 0.8, f"sim time advanced {ratio:.2f} x wall time under the flood"
+            assert wall1 - wall0 > 0.5 * FLOOD_S
+            # The arm still answers once the flood is over.
+            probe = udp_socket() if kind == "udp" else None
+            if probe is not None:
+                srv.wait_sim_time(srv.sim_time + 0.5, timeout=WALL_LIMIT_S)
+                udp_packets(probe)
+                assert srv.udp_address is not None
+                probe.sendto(commands.request(D, [PacketID.DEVICE_ID]).encode(), srv.udp_address)
+                got = udp_collect(probe, srv, 1.0)
+                probe.close()
+                assert Packet(D, PacketID.DEVICE_ID, b"\x04") in got
+        finally:
+            if holder >= 0:
+                os.close(holder)
+        assert srv.error is None
