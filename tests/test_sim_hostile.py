@@ -376,3 +376,21 @@ def test_a_request_flood_does_not_starve_the_physics(kind: str) -> None:
             if holder >= 0:
                 os.close(holder)
         assert srv.error is None
+
+
+def test_stop_returns_while_a_flood_goes_on() -> None:
+    srv = SimServer(SimConfig(speed=1.0, pty=False, udp=("127.0.0.1", 0)))
+    srv.start()
+    host, port = srv.udp_address or ("", 0)
+    flood = start_flood("udp", f"{host}:{port}", ASK_ALL)
+    try:
+        deadline = time.monotonic() + WALL_LIMIT_S
+        while srv.stats().datagrams_in == 0:
+            assert time.monotonic() < deadline and flood.poll() is None
+            time.sleep(0.005)
+        srv.stop()  # acts on a bounded last burst, not on the flood until it ends
+        assert flood.poll() is None, "stop() waited for the flood to end"
+    finally:
+        srv.stop()
+        finish_flood(flood)
+    assert srv.error is None
