@@ -2,7 +2,8 @@
 
 Source policy. Replies go to the sender of the datagram holding the request. The stream
 (heartbeats, status reports) goes to one peer: the sender of the latest datagram holding at
-least one valid frame (good COBS and CRC; the packet need not be one the arm acts on); a
+least one valid frame the arm read (good COBS and CRC; the packet need not be one it acts
+on; a datagram dropped for want of input credit, see server.py, does not count); a
 valid frame from another address makes that address the peer. A datagram with no valid
 frame (garbage, bad CRC, empty) changes nothing: it is counted (datagrams and bytes in, bad
 frames or discarded bytes, and the link-error flag on the base, as on the serial line),
