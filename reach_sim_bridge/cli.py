@@ -105,67 +105,155 @@ def _noise(text: str) -> SensorNoise:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="reach-sim", description=DESCRIPTION, epilog=EPILOG,
+        prog="reach-sim",
+        description=DESCRIPTION,
+        epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     link = p.add_argument_group("serving")
-    link.add_argument("--link", metavar="PATH",
-                      help="also make a stable symlink PATH to the pty (replaces an old "
-                           "symlink, never a real file; removed on exit)")
-    link.add_argument("--no-pty", action="store_true",
-                      help="do not create a pty (serve UDP only)")
-    link.add_argument("--udp", nargs="?", type=_udp, metavar="HOST:PORT",
-                      const=(DEFAULT_UDP_HOST, DEFAULT_UDP_PORT),
-                      help="also serve UDP: answer each datagram's sender, one frame per "
-                           "reply datagram; several frames per incoming datagram are fine. "
-                           f"Without a value {DEFAULT_UDP_HOST}:{DEFAULT_UDP_PORT}; a bare "
-                           "PORT or :PORT stays on loopback. Port 0 picks a free port")
-    link.add_argument("--speed", type=_positive_float, default=1.0, metavar="X",
-                      help="run X times faster than the wall clock (default 1: real time). "
-                           "Sim-time rates (heartbeats, 1 Hz status) speed up too")
-    link.add_argument("--baud", type=_baud, metavar="BAUD",
-                      help="throttle the pty both ways to a serial line's byte rate, "
-                           "BAUD/10 bytes/s (8N1), e.g. 115200. Default: unthrottled")
+    link.add_argument(
+        "--link",
+        metavar="PATH",
+        help="also make a stable symlink PATH to the pty (replaces an old "
+        "symlink, never a real file; removed on exit)",
+    )
+    link.add_argument("--no-pty", action="store_true", help="do not create a pty (serve UDP only)")
+    link.add_argument(
+        "--udp",
+        nargs="?",
+        type=_udp,
+        metavar="HOST:PORT",
+        const=(DEFAULT_UDP_HOST, DEFAULT_UDP_PORT),
+        help="also serve UDP: answer each datagram's sender, one frame per "
+        "reply datagram; several frames per incoming datagram are fine. Heartbeats and "
+        "status go to the last sender of a valid frame; datagrams without one are "
+        "counted, dropped and not answered. "
+        f"Without a value {DEFAULT_UDP_HOST}:{DEFAULT_UDP_PORT}; a bare "
+        "PORT or :PORT stays on loopback. Port 0 picks a free port",
+    )
+    link.add_argument(
+        "--speed",
+        type=_positive_float,
+        default=1.0,
+        metavar="X",
+        help="run X times faster than the wall clock (default 1: real time). "
+        "Sim-time rates (heartbeats, 1 Hz status) speed up too",
+    )
+    link.add_argument(
+        "--baud",
+        type=_baud,
+        metavar="BAUD",
+        help="throttle the pty both ways to a serial line's byte rate, "
+        "BAUD/10 bytes/s (8N1), e.g. 115200. At most 0.2 s of output waits for the line; "
+        "replies go ahead of heartbeats, and the oldest heartbeats are dropped (counted) "
+        "when it is full. Default: unthrottled",
+    )
     arm = p.add_argument_group("arm")
-    arm.add_argument("--start", nargs=4, type=_float, metavar=("E", "D", "C", "B"),
-                     help="initial joint angles in rad, the arm's own angles (default: the "
-                          "middle of each joint's range)")
-    arm.add_argument("--jaw", type=_non_negative, default=5.0, metavar="MM",
-                     help="initial jaw opening in mm (default 5)")
-    arm.add_argument("--dt", type=_positive_float, default=0.002, metavar="S",
-                     help="physics and firmware loop step in sim seconds (default 0.002)")
+    arm.add_argument(
+        "--start",
+        nargs=4,
+        type=_float,
+        metavar=("E", "D", "C", "B"),
+        help="initial joint angles in rad, the arm's own angles (default: the "
+        "middle of each joint's range)",
+    )
+    arm.add_argument(
+        "--jaw",
+        type=_non_negative,
+        default=5.0,
+        metavar="MM",
+        help="initial jaw opening in mm (default 5)",
+    )
+    arm.add_argument(
+        "--dt",
+        type=_positive_float,
+        default=0.002,
+        metavar="S",
+        help="physics and firmware loop step in sim seconds (default 0.002)",
+    )
     faults = p.add_argument_group("faults")
-    faults.add_argument("--torque-scale", action="append", default=[], metavar="JOINT=S",
-                        help="scale the torque joint JOINT (E D C B) delivers by S in [0, 1]; "
-                             "repeatable. E=0.25 is the paper's 75%% torque loss")
-    faults.add_argument("--sensor-noise", nargs="?", type=_noise, metavar="POS[,VEL]",
-                        const=SensorNoise(),
-                        help="add Gaussian noise to reported positions and velocities: "
-                             "standard deviations in rad and rad/s (mm, mm/s for the jaws); "
-                             f"default {DEFAULT_POSITION_NOISE},{DEFAULT_VELOCITY_NOISE}. "
-                             "The firmware's own loops see the true values")
-    faults.add_argument("--randomize-params", type=int, metavar="SEED",
-                        help="perturb friction, armature, masses and buoyancy by up to "
-                             "+-20%% per joint, drawn from SEED")
-    faults.add_argument("--corrupt-rate", type=_probability, default=0.0, metavar="P",
-                        help="flip each outgoing byte with probability P")
-    faults.add_argument("--drop-rate", type=_probability, default=0.0, metavar="P",
-                        help="drop each outgoing frame with probability P")
-    faults.add_argument("--latency-ms", type=_non_negative, default=0.0, metavar="N",
-                        help="delay every outgoing frame by N wall-clock milliseconds")
-    faults.add_argument("--seed", type=int, metavar="N",
-                        help="seed for the link faults and sensor noise (reproducible runs)")
+    faults.add_argument(
+        "--torque-scale",
+        action="append",
+        default=[],
+        metavar="JOINT=S",
+        help="scale the torque joint JOINT (E D C B) delivers by S in [0, 1]; "
+        "repeatable. E=0.25 is the paper's 75%% torque loss",
+    )
+    faults.add_argument(
+        "--sensor-noise",
+        nargs="?",
+        type=_noise,
+        metavar="POS[,VEL]",
+        const=SensorNoise(),
+        help="add Gaussian noise to reported positions and velocities: "
+        "standard deviations in rad and rad/s (mm, mm/s for the jaws); "
+        f"default {DEFAULT_POSITION_NOISE},{DEFAULT_VELOCITY_NOISE}. "
+        "The firmware's own loops see the true values",
+    )
+    faults.add_argument(
+        "--randomize-params",
+        type=int,
+        metavar="SEED",
+        help="perturb friction, armature, masses and buoyancy by up to "
+        "+-20%% per joint, drawn from SEED",
+    )
+    faults.add_argument(
+        "--corrupt-rate",
+        type=_probability,
+        default=0.0,
+        metavar="P",
+        help="flip each outgoing byte with probability P",
+    )
+    faults.add_argument(
+        "--drop-rate",
+        type=_probability,
+        default=0.0,
+        metavar="P",
+        help="drop each outgoing frame with probability P",
+    )
+    faults.add_argument(
+        "--latency-ms",
+        type=_non_negative,
+        default=0.0,
+        metavar="N",
+        help="delay every outgoing frame by N wall-clock milliseconds",
+    )
+    faults.add_argument(
+        "--seed",
+        type=int,
+        metavar="N",
+        help="seed for the link faults and sensor noise (reproducible runs)",
+    )
     out = p.add_argument_group("output")
-    out.add_argument("--stats-interval", type=_non_negative, default=10.0, metavar="S",
-                     help="log frame/error counters every S wall seconds (0: never; "
-                          "default 10)")
-    out.add_argument("--record", metavar="FILE.rrd", type=Path,
-                     help="write the arm's true state (angles, setpoints, currents, torques, "
-                          "modes, link counters, 3D skeleton) to a Rerun recording")
-    out.add_argument("--record-rate", type=_positive_float, default=50.0, metavar="HZ",
-                     help="samples per second of sim time in the recording (default 50)")
-    out.add_argument("-v", "--verbose", action="count", default=0,
-                     help="more log output (-v: info, -vv: debug); errors are always logged")
+    out.add_argument(
+        "--stats-interval",
+        type=_non_negative,
+        default=10.0,
+        metavar="S",
+        help="log frame/error counters every S wall seconds (0: never; default 10)",
+    )
+    out.add_argument(
+        "--record",
+        metavar="FILE.rrd",
+        type=Path,
+        help="write the arm's true state (angles, setpoints, currents, torques, "
+        "modes, link counters, 3D skeleton) to a Rerun recording",
+    )
+    out.add_argument(
+        "--record-rate",
+        type=_positive_float,
+        default=50.0,
+        metavar="HZ",
+        help="samples per second of sim time in the recording (default 50)",
+    )
+    out.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        default=0,
+        help="more log output (-v: info, -vv: debug); errors are always logged",
+    )
     return p
 
 
@@ -181,9 +269,16 @@ def config_from_args(args: argparse.Namespace) -> SimConfig:
     )
     start = None if args.start is None else tuple(args.start)
     return SimConfig(
-        speed=args.speed, pty=not args.no_pty, link=args.link, udp=args.udp, baud=args.baud,
+        speed=args.speed,
+        pty=not args.no_pty,
+        link=args.link,
+        udp=args.udp,
+        baud=args.baud,
         start=start,  # type: ignore[arg-type]
-        jaw_mm=args.jaw, dt=args.dt, faults=faults, seed=args.seed,
+        jaw_mm=args.jaw,
+        dt=args.dt,
+        faults=faults,
+        seed=args.seed,
     )
 
 
@@ -191,8 +286,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-                        stream=sys.stderr)
+    logging.basicConfig(
+        level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr
+    )
     if args.stats_interval > 0.0:
         logging.getLogger("reach_sim_bridge.server").setLevel(min(level, logging.INFO))
     try:
@@ -240,7 +336,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         s = server.stats()
         logging.getLogger("reach_sim_bridge.server").info(
             "stopped at t=%.1f s: frames in %d out %d, bad %s, errors %s",
-            s.sim_time, s.frames_in, s.frames_out, s.bad_frames, s.firmware_errors)
+            s.sim_time,
+            s.frames_in,
+            s.frames_out,
+            s.bad_frames,
+            s.firmware_errors,
+        )
     return 0
 
 

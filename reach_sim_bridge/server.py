@@ -5,6 +5,23 @@ where the (scaled) wall clock says sim time should be, reads whatever arrived, l
 firmware answer, and writes replies out through the link faults, the added latency and the
 serial line's byte rate. One thread means the firmware needs no locking against itself; a
 lock only guards it against the inspection methods called from other threads.
+
+Nothing a client sends can take that thread from the physics or make memory grow:
+
+- Input budget. Each frame decoded (good or bad) and each reply made costs one unit; every
+  sim second earns each endpoint INPUT_UNITS_PER_S units (at most INPUT_BURST banked), so
+  the arm's clock keeps real time under any input. Without credit the pty is not read (a
+  flood waits in the tty buffer, as its writer's own backlog), and UDP datagrams are read
+  but dropped, as is the rest of a datagram once the credit runs out (counted in
+  input_dropped_bytes; stale requests would only delay fresh ones). 8000 units/s is about
+  seven times what a 115200 baud line carries: a client that fits a real line never notices.
+- Output queue with --baud. Frames wait for the emulated line in two queues, replies ahead
+  of the stream (heartbeats, status), together at most `out_queue_limit(baud)` bytes
+  (OUT_QUEUE_S of wire time). When full, the oldest stream frames make room, then, for a
+  reply, the oldest replies (a stream frame finding only replies is dropped). Drops are
+  whole frames, counted in `stats()`. So a reply goes out within about OUT_QUEUE_S, unless
+  newer replies push it out under a request flood, and the stream is never staler than
+  that. Without --baud the pty's own buffer is the line (when full: lost_bytes).
 """
 
 from __future__ import annotations
@@ -15,7 +32,7 @@ import select
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from types import TracebackType
 from typing import TypeVar
@@ -40,6 +57,17 @@ MAX_STEPS_PER_PASS = 25  # physics steps between two looks at the endpoints
 MAX_LAG_WALL_S = 0.25  # further behind than this, the sim slows down instead of catching up
 MIN_WAIT_S = 0.0005
 LINE_BUFFER_S = 0.25  # with --baud, stop reading the pty this far ahead of the line
+OUT_QUEUE_S = 0.2  # with --baud, frames queued for the line: at most this much wire time
+MIN_OUT_QUEUE_BYTES = 512  # ... but room for a broadcast request's answer on a slow line
+INPUT_UNITS_PER_S = 8000  # input work per sim second and endpoint: frames + replies
+INPUT_BURST = 400  # units banked at most (a burst a client may send at once)
+UDP_DATAGRAMS_PER_PASS = 16  # read (or dropped, without credit) per look at the socket
+DRAIN_READS = 16  # on stop, reads of each endpoint still acted on
+
+
+def out_queue_limit(baud: int) -> int:
+    """Bytes the pty's outgoing queue holds at most at `baud`: OUT_QUEUE_S of wire time."""
+    return max(int(OUT_QUEUE_S * baud / BITS_PER_BYTE), MIN_OUT_QUEUE_BYTES)
 
 
 @dataclass(frozen=True)
@@ -80,11 +108,11 @@ class SimConfig:
 
 @dataclass(frozen=True)
 class ServerStats:
-    """Counters since the last power cycle; every byte received is in a good frame or
-    counted as discarded."""
+    """Counters since the last power cycle; every byte received is in a good frame, counted
+    as discarded, or (UDP without input credit) in input_dropped_bytes."""
 
     frames_in: int
-    frames_out: int
+    frames_out: int  # put on the wire (frames dropped from the --baud queue are not)
     bytes_in: int
     bytes_out: int
     datagrams_in: int
@@ -96,6 +124,11 @@ class ServerStats:
     dropped_frames: int  # by the drop-rate fault
     corrupted_bytes: int  # by the corrupt-rate fault
     lost_bytes: int  # the pty buffer was full (no client reading)
+    stream_dropped: int  # heartbeat/status frames dropped from the full --baud queue
+    replies_dropped: int  # the oldest replies, pushed out of the full --baud queue
+    queued_bytes: int  # waiting for the pty now
+    queued_peak_bytes: int  # the most waiting with --baud (at most out_queue_limit(baud))
+    input_dropped_bytes: int  # UDP bytes dropped unread: no input credit left
     sim_time: float
     lag_s: float  # sim time given up because the host could not keep the pace
 
@@ -124,6 +157,10 @@ class _Counters:
         self.datagrams_in = 0
         self.datagrams_out = 0
         self.lost_bytes = 0
+        self.stream_dropped = 0
+        self.replies_dropped = 0
+        self.queued_peak_bytes = 0
+        self.input_dropped_bytes = 0
         self.lag_s = 0.0
 
 
@@ -156,8 +193,9 @@ class SimServer:
         self.arm = self._make_arm()
         firmware_cfg = cfg.firmware
         if cfg.faults.sensor_noise is not None:
-            firmware_cfg = replace(firmware_cfg, sensor_noise=cfg.faults.sensor_noise,
-                                   seed=cfg.seed)
+            firmware_cfg = replace(
+                firmware_cfg, sensor_noise=cfg.faults.sensor_noise, seed=cfg.seed
+            )
         self.firmware = Firmware(self.arm, firmware_cfg)
         self._link_faults = LinkFaults(cfg.faults, seed=cfg.seed)
         self._link_errors = EventLog(log, logging.WARNING)
@@ -165,22 +203,40 @@ class SimServer:
         self._udp_decoder = PacketDecoder(on_error=self._on_decode_error)
         self._counters = _Counters()
         self._pty_in: deque[tuple[float, bytes]] = deque()  # (when it has landed, bytes)
-        self._pty_out: deque[tuple[float, bytes]] = deque()  # (when to write, frame)
+        self._pty_pending: deque[Packet] = deque()  # decoded, waiting for input credit
+        # (when ready to go, frame), replies ahead of the stream; _pty_queued bytes in both
+        self._pty_replies: deque[tuple[float, bytes]] = deque()
+        self._pty_stream: deque[tuple[float, bytes]] = deque()
+        self._pty_queued = 0
+        self._pty_wire: tuple[float, bytes] | None = None  # (when its last byte lands, frame)
         self._pty_partial = b""
         self._line_rate = None if cfg.baud is None else cfg.baud / BITS_PER_BYTE
+        self._out_limit = None if cfg.baud is None else out_queue_limit(cfg.baud)
         self._rx_free = 0.0  # when the serial line is next idle, each way
         self._tx_free = 0.0
         self._udp_out: deque[tuple[float, bytes, Address]] = deque()
         self._udp_peer: Address | None = None
+        self._pty_credit = self._udp_credit = float(INPUT_BURST)  # input units, each end
 
     def _make_arm(self) -> Alpha5Arm:
         cfg = self.config
         arm = Alpha5Arm(dt=cfg.dt, seed=cfg.faults.randomize_seed)
         if cfg.faults.randomize_seed is not None:
             params = arm.randomize()
-            log.info("randomized arm parameters (seed %d): %s", cfg.faults.randomize_seed,
-                     {k: params.as_dict()[k] for k in
-                      ("armature", "damping", "frictionloss", "link_mass_kg", "link_volume_l")})
+            log.info(
+                "randomized arm parameters (seed %d): %s",
+                cfg.faults.randomize_seed,
+                {
+                    k: params.as_dict()[k]
+                    for k in (
+                        "armature",
+                        "damping",
+                        "frictionloss",
+                        "link_mass_kg",
+                        "link_volume_l",
+                    )
+                },
+            )
         arm.torque_scale = cfg.faults.torque_scale
         arm.reset(q=None if cfg.start is None else np.asarray(cfg.start), jaw_mm=cfg.jaw_mm)
         return arm
@@ -194,9 +250,9 @@ class SimServer:
         self.error = None
         # Whatever was in flight when the link went down is lost with it.
         self._pty_in.clear()
-        self._pty_out.clear()
+        self._pty_pending.clear()
+        self._clear_pty_out()
         self._udp_out.clear()
-        self._pty_partial = b""
         self._pty_decoder.reset()
         self._rx_free = self._tx_free = 0.0
         try:
@@ -213,10 +269,12 @@ class SimServer:
             raise
         self._thread = threading.Thread(target=self._run, name="reach-sim", daemon=True)
         self._thread.start()
-        log.info("virtual Alpha 5 serving%s%s at %gx real time",
-                 f" pty {self.pty_path}" if self._pty else "",
-                 f" udp {self._udp.address[0]}:{self._udp.address[1]}" if self._udp else "",
-                 cfg.speed)
+        log.info(
+            "virtual Alpha 5 serving%s%s at %gx real time",
+            f" pty {self.pty_path}" if self._pty else "",
+            f" udp {self._udp.address[0]}:{self._udp.address[1]}" if self._udp else "",
+            cfg.speed,
+        )
         return self.pty_path
 
     def stop(self) -> None:
@@ -252,13 +310,27 @@ class SimServer:
     def _do_power_cycle(self) -> None:
         # In the loop thread: queued output and the UDP peer belong to the link, not the arm.
         self._cycle_request.clear()
-        link_state = ("_pty_in", "_pty_out", "_pty_partial", "_rx_free", "_tx_free",
-                      "_udp_out", "_udp_peer")
+        link_state = (
+            "_pty_in",
+            "_pty_pending",
+            "_pty_replies",
+            "_pty_stream",
+            "_pty_queued",
+            "_pty_wire",
+            "_pty_partial",
+            "_rx_free",
+            "_tx_free",
+            "_udp_out",
+            "_udp_peer",
+            "_pty_credit",
+            "_udp_credit",
+        )
         with self._lock:
             kept = {name: getattr(self, name) for name in link_state}
             self._reset_state()
             for name, value in kept.items():
                 setattr(self, name, value)
+            self._counters.queued_peak_bytes = self._pty_queued
             self._anchor = None  # pacing restarts from the new sim time
         log.info("arm power-cycled")
         self._cycle_done.set()
@@ -276,8 +348,12 @@ class SimServer:
             self.start()
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
         self.stop()
 
     @property
@@ -329,14 +405,26 @@ class SimServer:
                     if n:
                         bad[reason.value] = bad.get(reason.value, 0) + n
             return ServerStats(
-                frames_in=c.frames_in, frames_out=c.frames_out, bytes_in=c.bytes_in,
-                bytes_out=c.bytes_out, datagrams_in=c.datagrams_in,
-                datagrams_out=c.datagrams_out, bad_frames=bad, bytes_discarded=discarded,
+                frames_in=c.frames_in,
+                frames_out=c.frames_out,
+                bytes_in=c.bytes_in,
+                bytes_out=c.bytes_out,
+                datagrams_in=c.datagrams_in,
+                datagrams_out=c.datagrams_out,
+                bad_frames=bad,
+                bytes_discarded=discarded,
                 firmware_errors=self.firmware.errors.snapshot(),
                 ignored=self.firmware.ignored.snapshot(),
                 dropped_frames=self._link_faults.dropped_frames,
                 corrupted_bytes=self._link_faults.corrupted_bytes,
-                lost_bytes=c.lost_bytes, sim_time=self.arm.time, lag_s=c.lag_s,
+                lost_bytes=c.lost_bytes,
+                stream_dropped=c.stream_dropped,
+                replies_dropped=c.replies_dropped,
+                queued_bytes=self._pty_queued,
+                queued_peak_bytes=c.queued_peak_bytes,
+                input_dropped_bytes=c.input_dropped_bytes,
+                sim_time=self.arm.time,
+                lag_s=c.lag_s,
             )
 
     def wait_sim_time(self, sim_time: float, timeout: float | None = None) -> bool:
@@ -381,27 +469,35 @@ class SimServer:
                     behind = dt
                 steps = min(int(behind / dt + 1e-9), MAX_STEPS_PER_PASS)
                 if steps > 0:
+                    self._earn(steps * dt)
                     self._send_unprompted(self.firmware.steps(steps), now)
                     behind -= steps * dt
-            self._deliver_input(now)
+            self._take_input(now)
             self._flush(now)
             timeout = 0.0 if behind >= dt else max((dt - behind) / speed, MIN_WAIT_S)
             readers: list[int] = []
             writers: list[int] = []
             pty, udp = self._pty, self._udp
             if pty is not None:
-                if self._line_rate is None or self._rx_free - now < LINE_BUFFER_S:
+                # Read only what the input credit lets us act on; without credit, the next
+                # physics step (the timeout) earns some.
+                if self._pty_credit <= 0.0 or self._pty_pending or self._pty_landed(now):
+                    pass
+                elif self._line_rate is None or self._rx_free - now < LINE_BUFFER_S:
                     readers.append(pty.fileno())
                 else:  # the line is that far behind: leave the rest in the tty buffer
                     timeout = min(timeout, self._rx_free - now - LINE_BUFFER_S / 2)
-                if self._pty_in:
+                if self._pty_in and self._pty_credit > 0.0:
                     timeout = min(timeout, self._pty_in[0][0] - now)
                 if self._pty_partial:
                     writers.append(pty.fileno())
-                elif self._pty_out:
-                    timeout = min(timeout, self._pty_out[0][0] - now)
+                else:
+                    due = self._pty_next_due()
+                    if due is not None:
+                        timeout = min(timeout, due - now)
             if udp is not None:
-                readers.append(udp.fileno())
+                if self._udp_credit > 0.0:
+                    readers.append(udp.fileno())
                 if self._udp_out:
                     timeout = min(timeout, self._udp_out[0][0] - now)
             ready, _, _ = select.select(readers, writers, [], max(timeout, 0.0))
@@ -410,27 +506,39 @@ class SimServer:
                 data = pty.read(4096)
                 if data:
                     self._arrive(data, now)
-            if udp is not None and udp.fileno() in ready:
-                for datagram, sender in udp.receive():
-                    self._receive_datagram(datagram, sender, now)
-            self._deliver_input(now)
+            if udp is not None and (udp.fileno() in ready or self._udp_credit <= 0.0):
+                self._read_udp(udp, now, UDP_DATAGRAMS_PER_PASS)
+            self._take_input(now)
             self._flush(now)
         self._drain()
 
     def _drain(self) -> None:
         """On stop: act on what already reached the arm, so a command sent just before the
-        link went down is not lost at random (its replies still go out if they can)."""
+        link went down is not lost at random (its replies still go out if they can). One
+        more burst of credit and at most DRAIN_READS reads of each endpoint: a flood still
+        going on cannot hold stop() up."""
         now = time.monotonic()
+        self._pty_credit = max(self._pty_credit, 0.0) + INPUT_BURST
+        self._udp_credit = max(self._udp_credit, 0.0) + INPUT_BURST
+        self._take_input(math.inf)
         if self._pty is not None:
-            while data := self._pty.read(4096):
+            for _ in range(DRAIN_READS):
+                if self._pty_credit <= 0.0 or not (data := self._pty.read(4096)):
+                    break
                 self._arrive(data, now)
-            while self._pty_in:
-                self._receive_stream(self._pty_in.popleft()[1], now)
+                self._take_input(math.inf)
         if self._udp is not None:
-            while batch := self._udp.receive():
-                for datagram, sender in batch:
-                    self._receive_datagram(datagram, sender, now)
+            self._read_udp(self._udp, math.inf, DRAIN_READS)
         self._flush(math.inf)
+
+    # -- input ----------------------------------------------------------------------------
+    def _earn(self, sim_s: float) -> None:
+        earned = sim_s * INPUT_UNITS_PER_S
+        self._pty_credit = min(self._pty_credit + earned, INPUT_BURST)
+        self._udp_credit = min(self._udp_credit + earned, INPUT_BURST)
+
+    def _pty_landed(self, now: float) -> bool:
+        return bool(self._pty_in) and self._pty_in[0][0] <= now
 
     def _arrive(self, data: bytes, now: float) -> None:
         """Bytes the host wrote to the pty; with --baud each frame is acted on only when its
@@ -449,97 +557,194 @@ class SimServer:
             pos = end
         self._rx_free = landed
 
-    def _deliver_input(self, now: float) -> None:
-        while self._pty_in and self._pty_in[0][0] <= now:
-            self._receive_stream(self._pty_in.popleft()[1], now)
+    def _read_udp(self, udp: UdpEndpoint, now: float, limit: int) -> None:
+        """Up to `limit` datagrams: acted on while there is credit, then dropped (so what
+        waits in the socket stays fresh)."""
+        for _ in range(limit):
+            batch = udp.receive(1)
+            if not batch:
+                return
+            self._receive_datagram(*batch[0], now)
+
+    def _take_input(self, now: float) -> None:
+        """Act on the pty's frames, and decode what has landed, while there is credit; what
+        is left waits for the credit the next physics steps earn."""
+        while self._pty_credit > 0.0:
+            if self._pty_pending:
+                self._act(self._pty_pending.popleft(), None, now)
+            elif self._pty_landed(now):
+                self._decode_stream(self._pty_in.popleft()[1])
+            else:
+                return
 
     def _on_decode_error(self, error: DecodeError, frame: bytes) -> None:
         # Called from feed(), under the lock, in the loop thread.
-        self._link_errors.record(f"bad_frame_{error.reason.value}",
-                                 f"{error} ({len(frame)} bytes: {frame[:16].hex(' ')})")
+        self._link_errors.record(
+            f"bad_frame_{error.reason.value}",
+            f"{error} ({len(frame)} bytes: {frame[:16].hex(' ')})",
+        )
         self.firmware.note_link_error(error)
 
-    def _receive_stream(self, data: bytes, now: float) -> None:
+    def _decode(self, decoder: PacketDecoder, data: bytes) -> tuple[list[Packet], int]:
+        """Under the lock: the packets in `data` and the frames (good or bad) it held."""
+        stats = decoder.stats
+        seen = stats.good_frames + stats.bad_total
+        packets = decoder.feed(data)
+        return packets, stats.good_frames + stats.bad_total - seen
+
+    def _decode_stream(self, data: bytes) -> None:
         with self._lock:
             self._counters.bytes_in += len(data)
-            packets = self._pty_decoder.feed(data)
+            packets, frames = self._decode(self._pty_decoder, data)
             self._counters.frames_in += len(packets)
-            replies = self._handle(packets)
-        due = now + self.config.faults.latency_ms / 1000.0
-        for packet in replies:
-            self._queue_pty(packet, due)
+        self._pty_credit -= frames
+        self._pty_pending.extend(packets)
 
     def _receive_datagram(self, data: bytes, sender: Address, now: float) -> None:
+        """Act on a datagram's frames in order while there is credit; drop the rest."""
         size = len(data)
-        if not data.endswith(b"\x00"):
-            data += b"\x00"  # a datagram ends its last frame
+        c = self._counters
         with self._lock:
-            self._udp_peer = sender
-            c = self._counters
             c.datagrams_in += 1
             c.bytes_in += size
-            packets = self._udp_decoder.feed(data)
-            c.frames_in += len(packets)
-            replies = self._handle(packets)
+        if not data.endswith(b"\x00"):
+            data += b"\x00"  # a datagram ends its last frame
+        pos = 0
+        while pos < size:
+            if self._udp_credit <= 0.0:
+                c.input_dropped_bytes += size - pos
+                return
+            end = data.index(0, pos) + 1
+            with self._lock:
+                packets, _ = self._decode(self._udp_decoder, data[pos:end])
+                c.frames_in += len(packets)
+                if packets:  # only a sender of a valid frame gets the stream (see udp.py)
+                    self._udp_peer = sender
+            self._udp_credit -= 1  # a frame, a bad one, or a stray delimiter
+            for packet in packets:
+                self._act(packet, sender, now)
+            pos = end
+
+    def _act(self, packet: Packet, sender: Address | None, now: float) -> None:
+        """Let the firmware act on one packet and queue its replies to where it came from."""
+        with self._lock:
+            replies = self.firmware.handle(packet)
+        if not replies:
+            return
         due = now + self.config.faults.latency_ms / 1000.0
-        for packet in replies:
-            self._queue_udp(packet, due, sender)
+        if sender is None:
+            self._pty_credit -= len(replies)
+            for reply in replies:
+                self._queue_pty(reply, due, stream=False)
+        else:
+            self._udp_credit -= len(replies)
+            for reply in replies:
+                self._queue_udp(reply, due, sender)
 
-    def _handle(self, packets: Iterable[Packet]) -> list[Packet]:
-        replies: list[Packet] = []
-        for packet in packets:
-            replies.extend(self.firmware.handle(packet))
-        return replies
-
+    # -- output ---------------------------------------------------------------------------
     def _send_unprompted(self, packets: list[Packet], now: float) -> None:
-        """Heartbeats and status go to the pty and to the last UDP client heard from."""
+        """Heartbeats and status go to the pty and to the UDP peer (the last sender of a
+        valid frame)."""
         if not packets:
             return
         due = now + self.config.faults.latency_ms / 1000.0
         for packet in packets:
             if self._pty is not None:
-                self._queue_pty(packet, due)
+                self._queue_pty(packet, due, stream=True)
             if self._udp is not None and self._udp_peer is not None:
                 self._queue_udp(packet, due, self._udp_peer)
 
-    def _queue_pty(self, packet: Packet, due: float) -> None:
+    def _queue_pty(self, packet: Packet, ready: float, stream: bool) -> None:
+        """Queue a frame for the pty; with --baud within out_queue_limit: the oldest stream
+        frames make room, then (for a reply) the oldest replies; a stream frame that finds
+        the queue full of replies is dropped."""
         frame = self._link_faults.apply(packet.encode())
         if frame is None:
             return
-        if self._line_rate is not None:
-            # Written when its last byte would have crossed the line (frames queue up).
-            due = max(self._tx_free, due) + len(frame) / self._line_rate
-            self._tx_free = due
-        self._pty_out.append((due, frame))
-        self._counters.frames_out += 1
+        size = len(frame)
+        limit = self._out_limit
+        if limit is not None:
+            c = self._counters
+            while self._pty_queued + size > limit and self._pty_stream:
+                self._pty_queued -= len(self._pty_stream.popleft()[1])
+                c.stream_dropped += 1
+            if self._pty_queued + size > limit and stream:
+                c.stream_dropped += 1  # replies fill the queue: they go first
+                return
+            while self._pty_queued + size > limit and self._pty_replies:
+                self._pty_queued -= len(self._pty_replies.popleft()[1])
+                c.replies_dropped += 1  # the oldest: its requester has likely given up
+            c.queued_peak_bytes = max(c.queued_peak_bytes, self._pty_queued + size)
+        self._pty_queued += size
+        (self._pty_stream if stream else self._pty_replies).append((ready, frame))
+
+    def _pty_next(self, now: float) -> tuple[float, bytes] | None:
+        """Take the frame the line sends next if one is ready by `now`: (when its last byte
+        has crossed the line, frame). The line starts a frame when it is free, the waiting
+        reply if one was ready by then, else the oldest stream frame."""
+        replies, stream = self._pty_replies, self._pty_stream
+        first = min(q[0][0] for q in (replies, stream) if q) if replies or stream else None
+        if first is None or first > now:
+            return None
+        rate = self._line_rate
+        start = first if rate is None else max(self._tx_free, first)
+        queue = replies if replies and replies[0][0] <= start else stream
+        _, frame = queue.popleft()
+        self._pty_queued -= len(frame)
+        if rate is None:
+            return start, frame
+        self._tx_free = start + len(frame) / rate
+        return self._tx_free, frame
+
+    def _pty_next_due(self) -> float | None:
+        """When the pty output next needs the loop (None: nothing to send)."""
+        if self._pty_wire is not None:
+            return self._pty_wire[0]
+        heads = [q[0][0] for q in (self._pty_replies, self._pty_stream) if q]
+        return min(heads) if heads else None
+
+    def _clear_pty_out(self) -> None:
+        self._pty_replies.clear()
+        self._pty_stream.clear()
+        self._pty_queued = 0
+        self._pty_wire = None
+        self._pty_partial = b""
 
     def _queue_udp(self, packet: Packet, due: float, address: Address) -> None:
         frame = self._link_faults.apply(packet.encode())
         if frame is not None:
             self._udp_out.append((due, frame, address))
-            self._counters.frames_out += 1
 
     def _flush(self, now: float) -> None:
         pty, udp, c = self._pty, self._udp, self._counters
         if pty is not None:
             while True:
-                if not self._pty_partial:
-                    if not self._pty_out or self._pty_out[0][0] > now:
+                if self._pty_partial:
+                    written = pty.write(self._pty_partial)
+                    if written == 0:
+                        # Buffer full: nobody is reading. A serial line loses these bytes too.
+                        wire = self._pty_wire
+                        c.lost_bytes += len(self._pty_partial) + self._pty_queued
+                        c.lost_bytes += 0 if wire is None else len(wire[1])
+                        self._clear_pty_out()
                         break
-                    self._pty_partial = self._pty_out.popleft()[1]
-                written = pty.write(self._pty_partial)
-                if written == 0:
-                    # Buffer full: nobody is reading. A serial line loses these bytes too.
-                    c.lost_bytes += len(self._pty_partial)
-                    self._pty_partial = b""
-                    c.lost_bytes += sum(len(f) for _, f in self._pty_out)
-                    self._pty_out.clear()
+                    c.bytes_out += written
+                    self._pty_partial = self._pty_partial[written:]
+                    continue
+                if self._pty_wire is None:
+                    self._pty_wire = self._pty_next(now)
+                    if self._pty_wire is None:
+                        break
+                due, frame = self._pty_wire
+                if due > now:
                     break
-                c.bytes_out += written
-                self._pty_partial = self._pty_partial[written:]
+                self._pty_wire = None
+                self._pty_partial = frame
+                c.frames_out += 1
         if udp is not None:
             while self._udp_out and self._udp_out[0][0] <= now:
                 _, frame, address = self._udp_out.popleft()
+                c.frames_out += 1
                 if udp.send(frame, address):
                     c.bytes_out += len(frame)
                     c.datagrams_out += 1
@@ -547,8 +752,7 @@ class SimServer:
                     c.lost_bytes += len(frame)
 
 
-def serve_forever(server: SimServer, stop: threading.Event, stats_interval: float = 0.0
-                  ) -> None:
+def serve_forever(server: SimServer, stop: threading.Event, stats_interval: float = 0.0) -> None:
     """Run until `stop` is set (signal handlers set it), logging stats now and then."""
     next_report = time.monotonic() + stats_interval
     while not stop.wait(0.2):
@@ -557,7 +761,13 @@ def serve_forever(server: SimServer, stop: threading.Event, stats_interval: floa
         if stats_interval > 0.0 and time.monotonic() >= next_report:
             next_report += stats_interval
             s = server.stats()
-            log.info("t=%.1f s: frames in %d out %d, bad %s, errors %s, ignored %s, lag %.2f s",
-                     s.sim_time, s.frames_in, s.frames_out, s.bad_frames or "{}",
-                     s.firmware_errors or "{}", s.ignored or "{}", s.lag_s)
-
+            log.info(
+                "t=%.1f s: frames in %d out %d, bad %s, errors %s, ignored %s, lag %.2f s",
+                s.sim_time,
+                s.frames_in,
+                s.frames_out,
+                s.bad_frames or "{}",
+                s.firmware_errors or "{}",
+                s.ignored or "{}",
+                s.lag_s,
+            )

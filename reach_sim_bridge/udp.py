@@ -1,4 +1,15 @@
-"""The arm's Ethernet face: a UDP socket answering each datagram's sender."""
+"""The arm's Ethernet face: a UDP socket answering each datagram's sender.
+
+Source policy. Replies go to the sender of the datagram holding the request. The stream
+(heartbeats, status reports) goes to one peer: the sender of the latest datagram holding at
+least one valid frame the arm read (good COBS and CRC; the packet need not be one it acts
+on; a datagram dropped for want of input credit, see server.py, does not count); a
+valid frame from another address makes that address the peer. A datagram with no valid
+frame (garbage, bad CRC, empty) changes nothing: it is counted (datagrams and bytes in, bad
+frames or discarded bytes, and the link-error flag on the base, as on the serial line),
+dropped, and never answered. So a stray datagram cannot take the stream from a driver,
+while a driver restarted on a new port takes it back with its first frame.
+"""
 
 from __future__ import annotations
 
