@@ -31,6 +31,7 @@ install: $(STAMP)
 
 lint: install
 	$(VENV)/bin/ruff check protocol reach_driver reach_sim_bridge policy tests tools
+	$(VENV)/bin/ruff format --check protocol reach_driver reach_sim_bridge policy tests tools
 
 typecheck: install
 	$(VENV)/bin/mypy

@@ -40,8 +40,9 @@ class EventLog:
         self._last[reason] = now
         more = self._suppressed.pop(reason, 0)
         suffix = f" (+{more} more like it since the last report)" if more else ""
-        self._logger.log(self._level, "%s: %s [%d so far]%s", reason, message,
-                         self.counts[reason], suffix)
+        self._logger.log(
+            self._level, "%s: %s [%d so far]%s", reason, message, self.counts[reason], suffix
+        )
 
     def snapshot(self) -> dict[str, int]:
         return dict(self.counts)

@@ -48,8 +48,7 @@ class Client:
         self.backlog: list[Packet] = []
         if kind == "pty":
             assert server.pty_path is not None
-            self.port: serial.Serial | None = serial.Serial(server.pty_path, 115200,
-                                                            timeout=0.02)
+            self.port: serial.Serial | None = serial.Serial(server.pty_path, 115200, timeout=0.02)
             self.sock: socket.socket | None = None
         else:
             self.port = None
@@ -148,10 +147,17 @@ def client(request: pytest.FixtureRequest, server: SimServer) -> Iterator[Client
 
 # -- both transports -------------------------------------------------------------------------
 def test_reads_version_serial_limits_and_positions(client: Client) -> None:
-    replies = client.ask(commands.request(E, [PacketID.SOFTWARE_VERSION,
-                                              PacketID.SERIAL_NUMBER,
-                                              PacketID.POSITION_LIMITS,
-                                              PacketID.CURRENT_LIMITS]))
+    replies = client.ask(
+        commands.request(
+            E,
+            [
+                PacketID.SOFTWARE_VERSION,
+                PacketID.SERIAL_NUMBER,
+                PacketID.POSITION_LIMITS,
+                PacketID.CURRENT_LIMITS,
+            ],
+        )
+    )
     assert replies[0].u8s() == [0, 1, 0]
     assert replies[1].as_float() == 4105.0
     assert replies[2].floats() == pytest.approx([6.143, 0.0175])
@@ -170,8 +176,7 @@ def test_velocity_mode_moves_a_joint_at_the_commanded_rate(client: Client) -> No
     assert client.value(C, PacketID.VELOCITY) == pytest.approx(-0.2, abs=0.01)
     assert client.ask(commands.request(E, [PacketID.MODE]))[0].u8s() == [Mode.VELOCITY]
     # Heartbeats are 0.1 s of sim time apart, however the wall clock behaves.
-    client.send(commands.heartbeat_set(E, [PacketID.POSITION]),
-                commands.heartbeat_frequency(E, 10))
+    client.send(commands.heartbeat_set(E, [PacketID.POSITION]), commands.heartbeat_frequency(E, 10))
     beats = client.collect(lambda ps: sum(p.key == (E, PacketID.POSITION) for p in ps) >= 11)
     q = [p.as_float() for p in beats if p.key == (E, PacketID.POSITION)]
     assert (q[10] - q[0]) / 1.0 == pytest.approx(0.3, abs=0.003)
@@ -207,8 +212,9 @@ def test_survives_garbage_and_the_empty_mode_packet(client: Client) -> None:
     assert sum(stats.bad_frames.values()) >= 2
     assert stats.firmware_errors == {"bad_payload": 2}
     # The flags are also reported unprompted, once per sim second.
-    reports = client.collect(lambda ps: sum(p.packet_id == PacketID.HARDWARE_STATUS
-                                            for p in ps) >= 2)
+    reports = client.collect(
+        lambda ps: sum(p.packet_id == PacketID.HARDWARE_STATUS for p in ps) >= 2
+    )
     assert {p.device_id for p in reports if p.packet_id == PacketID.HARDWARE_STATUS} == {E}
     # ... and the arm still moves.
     client.send(commands.velocity(E, 0.2))
@@ -217,8 +223,10 @@ def test_survives_garbage_and_the_empty_mode_packet(client: Client) -> None:
 
 
 def test_heartbeat_streams_packets(client: Client) -> None:
-    client.send(commands.heartbeat_set(D, [PacketID.POSITION, PacketID.CURRENT]),
-                commands.heartbeat_frequency(D, 20))
+    client.send(
+        commands.heartbeat_set(D, [PacketID.POSITION, PacketID.CURRENT]),
+        commands.heartbeat_frequency(D, 20),
+    )
     beats = client.collect(lambda ps: sum(p.key == (D, PacketID.CURRENT) for p in ps) >= 5)
     keys = [p.key for p in beats if p.device_id == D]
     assert keys[:4] == [(D, PacketID.POSITION), (D, PacketID.CURRENT)] * 2
@@ -253,8 +261,11 @@ def test_pty_is_raw_for_clients_that_do_not_configure_it(server: SimServer) -> N
         lflag = termios.tcgetattr(fd)[3]
         assert not lflag & (termios.ECHO | termios.ICANON | termios.ISIG)
         limits = bytes([0x0D, 0x0A, 0x03, 0x3F, 0x11, 0x13, 0x7F, 0xBF])
-        os.write(fd, Packet(C, PacketID.POSITION_LIMITS, limits).encode()
-                 + commands.request(C, [PacketID.POSITION_LIMITS]).encode())
+        os.write(
+            fd,
+            Packet(C, PacketID.POSITION_LIMITS, limits).encode()
+            + commands.request(C, [PacketID.POSITION_LIMITS]).encode(),
+        )
         expected = Packet(C, PacketID.POSITION_LIMITS, limits).encode()
         received = b""
         deadline = time.monotonic() + WALL_LIMIT_S
@@ -339,10 +350,13 @@ def test_restart_keeps_the_link_and_udp_port_and_resets_the_arm(tmp_path: Path) 
 def test_udp_answers_several_frames_per_datagram_one_frame_per_reply(server: SimServer) -> None:
     client = Client(server, "udp")
     try:
-        replies = client.ask(commands.request(D, [PacketID.POSITION, PacketID.VELOCITY]),
-                             commands.request(BROADCAST, [PacketID.MODE]))
+        replies = client.ask(
+            commands.request(D, [PacketID.POSITION, PacketID.VELOCITY]),
+            commands.request(BROADCAST, [PacketID.MODE]),
+        )
         assert [p.key for p in replies] == [(D, PacketID.POSITION), (D, PacketID.VELOCITY)] + [
-            (d, PacketID.MODE) for d in (A, B, C, D, E)]
+            (d, PacketID.MODE) for d in (A, B, C, D, E)
+        ]
         assert client.frames_per_datagram[:7] == [1] * 7
         # A frame without its terminator: the datagram's end ends the frame.
         client.send_raw(commands.request(C, [PacketID.DEVICE_ID]).encode()[:-1])
@@ -402,8 +416,9 @@ def test_latency_and_baud_throttle_keep_frames_intact_and_in_order() -> None:
     config = SimConfig(speed=SPEED, baud=9600, faults=FaultConfig(latency_ms=30.0))
     with SimServer(config) as srv:
         client = Client(srv, "pty")
-        replies = client.ask(commands.request(BROADCAST, [PacketID.POSITION, PacketID.VELOCITY,
-                                                          PacketID.CURRENT]))
+        replies = client.ask(
+            commands.request(BROADCAST, [PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT])
+        )
         assert len(replies) == 15
         assert client.decoder.stats.bad_total == 0
         client.close()
@@ -418,4 +433,3 @@ def test_start_pose_and_bad_config_are_checked() -> None:
         SimConfig(pty=False)
     with pytest.raises(ValueError, match="speed"):
         SimConfig(speed=0.0)
-
