@@ -1,0 +1,327 @@
+"""Attack the stack as an adversarial tester would, and print what held.
+
+    .venv/bin/python tools/attack.py                 # every attack, about a minute
+    .venv/bin/python tools/attack.py --only codec-fuzz udp-stranger --scale 0.2
+    .venv/bin/python tools/attack.py --json out/attacks.json
+
+Each attack is bounded in count and time and stops by itself; all traffic stays on loopback
+(a virtual arm in this process, on a pty and 127.0.0.1). The table it prints (attack, count,
+result, held) is the one in docs/reliability.md. Exit status 1 when any attack got through.
+The same properties are asserted by the test suite (tests/test_sim_hostile.py,
+tests/test_protocol_properties.py, tests/test_driver_sim.py ...); this script is for rerunning
+the attacks at a larger scale and reading the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import random
+import resource
+import socket
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from protocol import DeviceID, Mode, PacketDecoder, PacketID, commands, encode_packet
+from reach_driver import ArmClient, DriverError, SafetyConfig, open_transport
+from reach_sim_bridge.server import SimConfig, SimServer
+
+E, D, C, B = DeviceID.E, DeviceID.D, DeviceID.C, DeviceID.B
+
+
+@dataclass
+class Outcome:
+    attack: str
+    count: str
+    result: str
+    held: bool
+
+
+def _rss_mb() -> float:
+    """Resident memory of this process now (MB), from /proc where there is one."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _wait(predicate: Callable[[], object], timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(0.005)
+    return bool(predicate())
+
+
+def _server(tmp: str, **kwargs: object) -> SimServer:
+    server = SimServer(
+        SimConfig(link=os.path.join(tmp, "arm"), udp=("127.0.0.1", 0), **kwargs)  # type: ignore[arg-type]
+    )
+    server.start()
+    return server
+
+
+# -- the attacks ----------------------------------------------------------------------------
+
+
+def codec_fuzz(scale: float, tmp: str) -> Outcome:
+    """Mutated valid frames and random bytes into the stream decoder: no crash, and every byte
+    accounted for (a good frame, discarded, or pending)."""
+    rng = random.Random(2026)
+    runs = max(1000, int(200_000 * scale))
+    valid = [
+        commands.position(E, 1.5).encode(),
+        commands.request(D, [PacketID.POSITION, PacketID.VELOCITY]).encode(),
+        commands.current(B, -120.0).encode(),
+        encode_packet(C, PacketID.HARDWARE_STATUS, bytes(4)),
+    ]
+    decoder = PacketDecoder()
+    crashes = good_bytes = 0
+    for _ in range(runs):
+        frame = bytearray(rng.choice(valid))
+        kind = rng.random()
+        if kind < 0.4:
+            frame[rng.randrange(len(frame))] = rng.randrange(256)
+        elif kind < 0.6:
+            del frame[rng.randrange(len(frame)) :]
+        elif kind < 0.8:
+            frame = bytearray(rng.randbytes(rng.randrange(1, 300)))
+        try:
+            # A good frame re-encodes to the bytes it came in (COBS and CRC are canonical).
+            good_bytes += sum(len(p.encode()) for p in decoder.feed(bytes(frame)))
+        except Exception:  # noqa: BLE001 - any escape is the finding
+            crashes += 1
+    s = decoder.stats
+    accounted = s.bytes_received == good_bytes + s.bytes_discarded + decoder.pending_bytes
+    held = crashes == 0 and accounted
+    return Outcome(
+        "codec-fuzz",
+        f"{runs:,} frames",
+        f"{s.good_frames:,} good, {s.bad_total:,} bad, {crashes} crashes, bytes accounted: "
+        f"{accounted}",
+        held,
+    )
+
+
+def junk_flood(scale: float, tmp: str) -> Outcome:
+    """Undelimited junk at the virtual arm's pty: memory stays flat, the arm still answers."""
+    megabytes = max(1, int(50 * scale))
+    server = _server(tmp)
+    try:
+        fd = os.open(str(server.link), os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        chunk = bytes(random.Random(1).randrange(1, 256) for _ in range(65536))  # no 0x00
+        before = _rss_mb()
+        sent, end = 0, time.monotonic() + 30.0
+        while sent < megabytes * 2**20 and time.monotonic() < end:
+            try:
+                sent += os.write(fd, chunk)
+            except BlockingIOError:
+                time.sleep(0.001)
+            try:
+                while os.read(fd, 65536):
+                    pass
+            except BlockingIOError:
+                pass
+        os.close(fd)
+        grown = _rss_mb() - before
+        with ArmClient(open_transport(str(server.link))) as arm:
+            answered = bool(arm.request(E, [PacketID.POSITION]))
+    finally:
+        server.stop()
+    held = answered and grown < 50.0
+    return Outcome(
+        "junk-flood",
+        f"{sent / 2**20:.0f} MB",
+        f"memory +{grown:.1f} MB, answered afterwards: {answered}",
+        held,
+    )
+
+
+def udp_stranger(scale: float, tmp: str) -> Outcome:
+    """Garbage datagrams from another local port must not take the UDP heartbeat."""
+    count = max(10, int(2000 * scale))
+    server = _server(tmp)
+    host, port = server.udp_address
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        peer.settimeout(0.5)
+        stranger.setblocking(False)
+        peer.sendto(commands.heartbeat_set(E, [PacketID.POSITION]).encode(), (host, port))
+        peer.sendto(commands.heartbeat_frequency(E, 50).encode(), (host, port))
+        for _ in range(count):
+            stranger.sendto(b"\x13\x37\x42", (host, port))
+        got = _count_frames(peer, 1.0)
+        stolen = 0
+        try:
+            while True:
+                stolen += len(stranger.recv(65536))
+        except BlockingIOError:
+            pass
+        peer.sendto(commands.heartbeat_frequency(E, 0).encode(), (host, port))
+    finally:
+        peer.close()
+        stranger.close()
+        server.stop()
+    held = got >= 20 and stolen == 0
+    return Outcome(
+        "udp-stranger",
+        f"{count:,} datagrams",
+        f"peer got {got} heartbeat frames in 1 s, stranger got {stolen} bytes",
+        held,
+    )
+
+
+def _count_frames(sock: socket.socket, seconds: float) -> int:
+    decoder, frames, end = PacketDecoder(), 0, time.monotonic() + seconds
+    while time.monotonic() < end:
+        try:
+            frames += len(decoder.feed(sock.recv(65536)))
+        except TimeoutError:
+            break
+    return frames
+
+
+def request_flood(scale: float, tmp: str) -> Outcome:
+    """Broadcast requests as fast as loopback UDP carries them: the physics keeps real time."""
+    seconds = max(1.0, 4.0 * scale)
+    server = _server(tmp)
+    host, port = server.udp_address
+    ask = commands.request(DeviceID.BROADCAST, [PacketID.POSITION, PacketID.VELOCITY]).encode()
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setblocking(False)
+    sent = 0
+    try:
+        t0, sim0 = time.monotonic(), server.sim_time
+        while time.monotonic() - t0 < seconds:
+            try:
+                sock.sendto(ask * 50, (host, port))
+                sent += 50
+            except BlockingIOError:
+                time.sleep(0.0005)
+            try:
+                while sock.recv(65536):
+                    pass
+            except BlockingIOError:
+                pass
+        ratio = (server.sim_time - sim0) / (time.monotonic() - t0)
+    finally:
+        sock.close()
+        server.stop()
+    return Outcome(
+        "request-flood",
+        f"{sent:,} requests in {seconds:.0f} s",
+        f"sim time / wall time {ratio:.2f}",
+        ratio >= 0.8,
+    )
+
+
+def bad_commands(scale: float, tmp: str) -> Outcome:
+    """NaN, Inf and out-of-limit commands are refused before the wire."""
+    server = _server(tmp)
+    refused = total = 0
+    try:
+        with ArmClient(open_transport(str(server.link))) as arm:
+            frames_before = server.stats().frames_in
+            for value in (math.nan, math.inf, -math.inf, 1e30, 5000.0):
+                for send in (
+                    lambda v: arm.command_current(E, v),
+                    lambda v: arm.command_position(D, v),
+                    lambda v: arm.command_velocity(C, v),
+                ):
+                    total += 1
+                    try:
+                        send(value)
+                    except (DriverError, ValueError):
+                        refused += 1
+            time.sleep(0.2)
+            reached = server.stats().frames_in - frames_before
+    finally:
+        server.stop()
+    # A current above the limit may be clamped rather than refused; what matters is that no
+    # non-finite value and no out-of-envelope position reached the arm.
+    q = server.snapshot().q
+    inside = bool(0.0 <= q[1] <= 3.5)
+    return Outcome(
+        "bad-commands",
+        f"{total} commands",
+        f"{refused} refused, {reached} frames reached the arm, D stayed inside: {inside}",
+        refused >= 12 and inside,
+    )
+
+
+def watchdog(scale: float, tmp: str) -> Outcome:
+    """A controller that stops sending: the watchdog puts the arm in zero velocity."""
+    server = _server(tmp)
+    try:
+        with ArmClient(
+            open_transport(str(server.link)), safety=SafetyConfig(watchdog_s=0.2)
+        ) as arm:
+            arm.stream((PacketID.POSITION,), 50, [C])
+            _wait(lambda: arm.joint(C).position is not None, 10.0)
+            arm.command_current(C, 30.0)
+            t0 = time.monotonic()
+            stopped = _wait(lambda: server.firmware.mode(int(C)) == Mode.ZERO_VELOCITY, 3.0)
+            trip_s = time.monotonic() - t0
+    finally:
+        server.stop()
+    return Outcome(
+        "watchdog",
+        "1 silent controller",
+        f"zero velocity after {trip_s:.2f} s (watchdog 0.20 s)",
+        stopped and trip_s < 1.0,
+    )
+
+
+ATTACKS: dict[str, Callable[[float, str], Outcome]] = {
+    "codec-fuzz": codec_fuzz,
+    "junk-flood": junk_flood,
+    "udp-stranger": udp_stranger,
+    "request-flood": request_flood,
+    "bad-commands": bad_commands,
+    "watchdog": watchdog,
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description="Attack the driver and the virtual arm (loopback only, bounded) and print "
+        "what held.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="attacks: " + ", ".join(ATTACKS),
+    )
+    parser.add_argument("--only", nargs="+", choices=sorted(ATTACKS), metavar="ATTACK")
+    parser.add_argument(
+        "--scale", type=float, default=1.0, help="multiply every count (default 1.0)"
+    )
+    parser.add_argument("--json", type=Path, help="also write the outcomes as JSON")
+    args = parser.parse_args(argv)
+    if not (math.isfinite(args.scale) and 0.0 < args.scale <= 10.0):
+        parser.error(f"--scale must be in (0, 10], got {args.scale}")
+    outcomes = []
+    with tempfile.TemporaryDirectory(prefix="attack-") as tmp:
+        for name in args.only or ATTACKS:
+            print(f"... {name}", file=sys.stderr, flush=True)
+            outcomes.append(ATTACKS[name](args.scale, tmp))
+    print("| attack | count | result | held |")
+    print("|---|---|---|---|")
+    for o in outcomes:
+        print(f"| {o.attack} | {o.count} | {o.result} | {'yes' if o.held else 'NO'} |")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps([asdict(o) for o in outcomes], indent=1))
+    return 0 if all(o.held for o in outcomes) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
