@@ -24,10 +24,11 @@ from typing import Any
 import numpy as np
 
 from policy.batched import evaluate_batched
-from policy.ddpg import DDPGConfig, Trainer, TrainState, make_expert
-from policy.ddpg_controller import DEFAULT_WEIGHTS, ActorWeights
+from policy.ddpg_config import DDPGConfig
 from policy.env import EnvConfig
 from policy.expert import PDExpert
+from policy.trainer import Trainer, TrainState, make_expert
+from policy.weights import DEFAULT_WEIGHTS, ActorWeights
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -38,7 +39,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--config",
         default="ours",
         choices=["ours", "paper"],
-        help="hyperparameter preset (policy.ddpg.DDPGConfig.ours / .paper)",
+        help="hyperparameter preset (policy.ddpg_config.DDPGConfig.ours / .paper)",
     )
     p.add_argument("--run", type=Path, help="run directory (checkpoints, logs)")
     p.add_argument("--seed", type=int, default=0)
