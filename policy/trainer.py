@@ -89,7 +89,7 @@ class Trainer:
             ReachAlphaEnv(config.env, arm_factory=arm_factory) for _ in range(config.num_envs)
         ]
         #: ... and behind gymnasium's TimeLimit, as gym.make builds them: episodes are
-        #: stepped and reset here, and end (truncated) at `env.episode_s`
+        #: stepped and reset here, and end (truncated) after `config.env.episode_s`
         self.timed = [time_limited(env) for env in self.envs]
         obs_dim = self.envs[0].observation_space.shape[0]  # type: ignore[index]
         self.obs_dim = obs_dim

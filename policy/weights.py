@@ -4,8 +4,10 @@ A pair of files: `NAME.npz` holds the dense layers as float64 arrays W0 b0 W1 b1
 in, torch's layout), `NAME.json` beside it what the controller needs to rebuild the inputs and
 outputs (observation config, current limits, activation) plus the run's config and provenance.
 
-The controller side (`ActorWeights`) is numpy only: the control loop never imports torch. The
-training side (`actor_arrays`, `save_actor_npz`, `load_actor_npz`) takes a `policy.networks.Actor`.
+The shipped pair is `policy/weights/ddpg_actor.npz` (the data folder beside this module; it
+has no `__init__.py`, so `policy.weights` is this module). The controller side (`ActorWeights`)
+is numpy only: the control loop never imports torch. The training side (`actor_arrays`,
+`save_actor_npz`, `load_actor_npz`) takes a `policy.networks.Actor`.
 """
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from policy.batched import evaluate_batched
-from policy.ddpg_config import DDPGConfig
+from policy.ddpg_config import WEAK_EVAL_SEED_OFFSET, WEAK_EVAL_TORQUE_SCALE, DDPGConfig
 from policy.env import EnvConfig
 from policy.expert import PDExpert
 from policy.trainer import Trainer, TrainState, make_expert
@@ -120,14 +120,14 @@ def evaluate_weights(
             EnvConfig.from_dict(weights.metadata["env"]), observation=weights.observation
         )
         policy = weights.forward
-    eval_seed = 10_000 + seed
+    eval_seed = DDPGConfig().eval_seed + seed
     nominal = evaluate_batched(policy, env_config, episodes, eval_seed, expert=expert)
     weak = evaluate_batched(
         policy,
         env_config,
         episodes,
-        eval_seed + 5_000,
-        torque_scale=(0.25, 1.0, 1.0, 1.0),
+        eval_seed + WEAK_EVAL_SEED_OFFSET,
+        torque_scale=WEAK_EVAL_TORQUE_SCALE,
         expert=expert,
     )
     result = {
