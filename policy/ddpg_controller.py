@@ -4,6 +4,7 @@ A whole `act()` (observation + three float32 matrix products) measured p50 29 us
 50 us against 52 / 80 us for the torch actor (tools/bench_train.py --inference; 0.5 ms
 budget). The inputs are built by `policy.observation.build_observation` with the
 configuration saved beside the weights, so the driver feeds the network what training did.
+The weights and their format: `policy.weights`.
 
     from policy.ddpg_controller import make_controller
     ctrl = make_controller()                 # shipped weights, policy/weights/ddpg_actor.npz
@@ -12,91 +13,16 @@ configuration saved beside the weights, so the driver feeds the network what tra
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from policy.observation import ObservationConfig, build_observation
-from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, N_JOINTS
+from policy.observation import build_observation
+from policy.weights import DEFAULT_WEIGHTS, ActorWeights
+from protocol.alpha5 import N_JOINTS
 from reach_driver.controllers import ControlState
-
-WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-DEFAULT_WEIGHTS = WEIGHTS_DIR / "ddpg_actor.npz"
-
-
-@dataclass(frozen=True)
-class ActorWeights:
-    """Dense layers (W: out x in, b) with LeakyReLU between them and tanh at the end."""
-
-    weights: tuple[np.ndarray, ...]
-    biases: tuple[np.ndarray, ...]
-    leaky_slope: float
-    observation: ObservationConfig
-    current_limits_mA: np.ndarray
-    metadata: dict[str, Any]
-
-    @classmethod
-    def load(cls, path: str | Path) -> ActorWeights:
-        """Read `path` (.npz) and the .json beside it; errors say which file is wrong."""
-        path = Path(path)
-        meta_path = path.with_suffix(".json")
-        if not path.is_file():
-            raise FileNotFoundError(f"no actor weights at {path}")
-        if not meta_path.is_file():
-            raise FileNotFoundError(f"no metadata {meta_path} beside the weights {path}")
-        try:
-            meta = json.loads(meta_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{meta_path} is not valid JSON: {exc}") from exc
-        if meta.get("format") != "reach-stack ddpg actor v1":
-            raise ValueError(f"{meta_path}: unknown weights format {meta.get('format')!r}")
-        with np.load(path) as data:
-            n = sum(1 for key in data.files if key.startswith("W"))
-            if n == 0 or any(
-                f"W{i}" not in data.files or f"b{i}" not in data.files for i in range(n)
-            ):
-                raise ValueError(f"{path}: expected arrays W0 b0 .. W{n - 1} b{n - 1}")
-            weights = tuple(np.asarray(data[f"W{i}"], np.float64) for i in range(n))
-            biases = tuple(np.asarray(data[f"b{i}"], np.float64) for i in range(n))
-        observation = ObservationConfig.from_dict(meta["observation"])
-        if weights[0].shape[1] != observation.size or weights[-1].shape[0] != N_JOINTS:
-            raise ValueError(
-                f"{path}: network maps {weights[0].shape[1]} -> {weights[-1].shape[0]}, "
-                f"the observation config needs {observation.size} -> {N_JOINTS}"
-            )
-        for i, (w, b) in enumerate(zip(weights, biases, strict=True)):
-            if b.shape != (w.shape[0],) or (i and w.shape[1] != weights[i - 1].shape[0]):
-                raise ValueError(f"{path}: layer {i} shapes do not chain")
-        limits = np.asarray(meta.get("current_limits_mA", DEFAULT_CURRENT_LIMITS_MA), float)
-        return cls(
-            weights, biases, float(meta.get("leaky_relu_slope", 0.01)), observation, limits, meta
-        )
-
-    def __post_init__(self) -> None:
-        # float32, transposed and contiguous: what torch computed, at matmul speed
-        object.__setattr__(
-            self, "_wt", tuple(np.ascontiguousarray(w.T, dtype=np.float32) for w in self.weights)
-        )
-        object.__setattr__(self, "_b32", tuple(b.astype(np.float32) for b in self.biases))
-        if not 0.0 <= self.leaky_slope < 1.0:
-            raise ValueError(f"leaky_relu_slope must be in [0, 1), got {self.leaky_slope}")
-
-    def forward(self, obs: np.ndarray) -> np.ndarray:
-        """Actions in [-1, 1] for one observation (n,) or a batch (B, n)."""
-        x = np.asarray(obs, dtype=np.float32)
-        wt: tuple[np.ndarray, ...] = self._wt  # type: ignore[attr-defined]
-        b32: tuple[np.ndarray, ...] = self._b32  # type: ignore[attr-defined]
-        last = len(wt) - 1
-        for i in range(last + 1):
-            x = x @ wt[i]
-            x += b32[i]
-            if i < last:
-                x = np.maximum(x, self.leaky_slope * x)  # LeakyReLU for slope < 1
-        out: np.ndarray = np.tanh(x)
-        return out
 
 
 @dataclass(frozen=True)

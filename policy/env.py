@@ -2,10 +2,12 @@
 
 The env steps `reach_sim_bridge.arm.Alpha5Arm` directly (the same arm and motor model the
 virtual arm serves on the wire), so a policy trained here meets the same physics in the loop.
-Actions in [-1, 1]^4 are currents as a fraction of each joint's current limit.
+`ReachAlphaEnv`'s docstring describes the spaces, rewards and episodes.
 
 Gymnasium 1.x has no plugin entry points any more, so importing this module registers the env;
-`gym.make("policy.env:ReachAlpha-v0")` imports and registers in one go.
+`gym.make("policy.env:ReachAlpha-v0")` imports and registers in one go. As for Gymnasium's own
+envs, the time limit is the `TimeLimit` wrapper that `gym.make` adds (`max_episode_steps`), not
+the env: `time_limited(env)` wraps an env built directly the same way.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from gymnasium.wrappers import TimeLimit
 
 from policy.arm import ArmLike
 from policy.observation import (
@@ -124,6 +127,45 @@ class EnvConfig:
         return cls(**data)
 
 
+#: the terms of `reward_terms`, in the order they are summed
+REWARD_TERMS = ("precision", "distance", "velocity", "action_change", "out_of_bounds")
+
+
+def reward_terms(
+    q: np.ndarray,
+    qdot: np.ndarray,
+    q_req: np.ndarray,
+    action: np.ndarray,
+    prev_action: np.ndarray,
+    in_bounds: bool,
+    config: RewardConfig,
+) -> dict[str, float]:
+    """One step's reward, term by term (signed; inactive terms 0), from the TRUE state (never
+    the noisy readings). Their sum in `REWARD_TERMS` order is the reward, exactly."""
+    terms = dict.fromkeys(REWARD_TERMS, 0.0)
+    if not in_bounds:
+        terms["out_of_bounds"] = float(config.out_of_bounds)
+        return terms
+    error = q_req - q
+    if config.mode is RewardMode.PAPER:
+        terms["precision"] = float(
+            -1.0 + np.exp(-0.5 * (np.linalg.norm(error) / config.sigma) ** 2)
+        )
+        return terms
+    gate = np.exp(-0.5 * (error / config.near_scale) ** 2)
+    terms["precision"] = float(-1.0 + np.mean(np.exp(-0.5 * (error / config.sigma) ** 2)))
+    terms["distance"] = -float(
+        config.distance_weight * np.mean(np.abs(error) / WORKSPACE_HALF_RANGE)
+    )
+    terms["velocity"] = -float(
+        config.velocity_weight * np.mean(gate * np.abs(qdot) / NO_LOAD_SPEEDS)
+    )
+    terms["action_change"] = -float(
+        config.action_change_weight * np.mean(gate * np.abs(action - prev_action))
+    )
+    return terms
+
+
 def compute_reward(
     q: np.ndarray,
     qdot: np.ndarray,
@@ -133,18 +175,9 @@ def compute_reward(
     in_bounds: bool,
     config: RewardConfig,
 ) -> float:
-    """One step's reward from the TRUE state (never the noisy readings)."""
-    if not in_bounds:
-        return float(config.out_of_bounds)
-    error = q_req - q
-    if config.mode is RewardMode.PAPER:
-        return float(-1.0 + np.exp(-0.5 * (np.linalg.norm(error) / config.sigma) ** 2))
-    gate = np.exp(-0.5 * (error / config.near_scale) ** 2)
-    reward = -1.0 + np.mean(np.exp(-0.5 * (error / config.sigma) ** 2))
-    reward -= config.distance_weight * np.mean(np.abs(error) / WORKSPACE_HALF_RANGE)
-    reward -= config.velocity_weight * np.mean(gate * np.abs(qdot) / NO_LOAD_SPEEDS)
-    reward -= config.action_change_weight * np.mean(gate * np.abs(action - prev_action))
-    return float(reward)
+    """One step's reward: the sum of `reward_terms`."""
+    terms = reward_terms(q, qdot, q_req, action, prev_action, in_bounds, config)
+    return float(sum(terms.values()))
 
 
 def default_arm_factory(config: EnvConfig) -> ArmLike:
@@ -156,7 +189,80 @@ def default_arm_factory(config: EnvConfig) -> ArmLike:
 
 
 class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
-    """Reach random goals from random starts in 20 s; no termination, only truncation."""
+    """Reach a random goal from a random start with the four joints E D C B.
+
+    ## Action space
+
+    `Box(-1, 1, (4,), float32)`: each joint's current as a fraction of its current limit,
+    clipped to [-1, 1] and held for the control period (`n_substeps` physics steps of 2 ms).
+
+    | Num | Action            | Min | Max | Unit                     |
+    |-----|-------------------|-----|-----|--------------------------|
+    | 0   | current, joint E  | -1  | 1   | x 600 mA                 |
+    | 1   | current, joint D  | -1  | 1   | x 600 mA                 |
+    | 2   | current, joint C  | -1  | 1   | x 600 mA                 |
+    | 3   | current, joint B  | -1  | 1   | x 300 mA                 |
+
+    ## Observation space
+
+    `Box(low, high, (n,), float32)` with finite bounds (`observation_bounds`), built by
+    `policy.observation.build_observation`, the function the deployed controller calls. Each
+    group is 4 entries, E D C B. Readings are clipped to [-0.5, 2 pi + 0.5] rad and +-5 rad/s
+    first; with `sensor_noise`, q and qdot are as a sensor reports them (sigma 0.002 rad,
+    0.02 rad/s), q_req exact.
+
+    | Index | Observation          | `ObservationConfig.paper()` (12) | default (20)              |
+    |-------|----------------------|----------------------------------|---------------------------|
+    | 0-3   | joint angles q       | rad                              | (q - centre) / half-range |
+    | 4-7   | joint speeds qdot    | rad/s                            | qdot / 1.2 rad/s          |
+    | 8-11  | goal q_req           | rad                              | (q_req - centre) / h.-r.  |
+    | 12-15 | error e = q_req - q  | -                                | e / half-range            |
+    | 16-19 | fine error           | -                                | tanh(e / 0.05 rad)        |
+
+    centre and half-range are the evaluation workspace's (`policy.observation`).
+
+    ## Rewards
+
+    From the TRUE state (never the noisy readings), `RewardConfig`. `info["reward_terms"]`
+    holds each term, signed (inactive ones 0); they sum to the reward.
+
+    | Term            | `paper` mode                         | `shaped` mode                       |
+    |-----------------|--------------------------------------|-------------------------------------|
+    | `precision`     | -1 + exp(-0.5 (norm(e) / sigma)^2)   | -1 + mean_j exp(-0.5 (e_j/sigma)^2) |
+    | `distance`      | 0                                    | -w_d mean_j abs(e_j) / half-range_j |
+    | `velocity`      | 0                                    | -w_v mean_j g_j abs(qdot_j) / v0_j  |
+    | `action_change` | 0                                    | -w_a mean_j g_j abs(a_j - a_prev_j) |
+    | `out_of_bounds` | -10, alone, on a step ending with a joint outside the bounds (both)       |
+
+    sigma 0.018 rad; gate g_j = exp(-0.5 (e_j / near_scale)^2) (calm arrival is asked for
+    near the goal only); v0_j the joint's no-load speed; bounds: the workspace widened by
+    `bounds_margin` (0.3 rad), within the joint limits.
+
+    ## Starting state
+
+    At rest at a start q0 drawn uniformly in the workspace (E [0.4, 5.8], D [0.5, 2.9],
+    C [0.5, 2.9], B [0.5, 2.8] rad, or `workspace_low` / `workspace_high`), the goal drawn in
+    the same range (or within `max_step` of q0). Per episode, if configured: each joint's
+    torque scale uniform in [`torque_scale_low`, `torque_scale`], the arm's parameters scaled
+    by U(1 +- `param_perturbation`). `reset(options=...)` may fix "start", "target",
+    "torque_scale".
+
+    ## Episode end
+
+    | Ends by     | When                                                                     |
+    |-------------|--------------------------------------------------------------------------|
+    | termination | never: leaving the bounds costs -10 per step and the episode goes on     |
+    | truncation  | `EnvConfig.steps_per_episode` steps (400: 20 s at 20 Hz), by `TimeLimit` |
+
+    The env itself never truncates: `gym.make("ReachAlpha-v0")` wraps it in `TimeLimit` with
+    the default 400 steps (pass `max_episode_steps=config.steps_per_episode` with a config of
+    another length), `time_limited(env)` wraps an env built directly.
+
+    ## Info
+
+    `q`, `qdot` (true, rad, rad/s), `target` (rad), `time` (s since reset), `in_bounds`;
+    from `step` also `reward_terms`, and `power` (W per joint) when `measure_power` is set.
+    """
 
     metadata = {"render_modes": []}
 
@@ -251,15 +357,16 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         self.steps += 1
         q, qdot = np.asarray(self.arm.q), np.asarray(self.arm.qdot)
         in_bounds = bool(np.all((q > self.bounds_low) & (q < self.bounds_high)))
-        reward = compute_reward(
+        terms = reward_terms(
             q, qdot, self.target, action, self.prev_action, in_bounds, self.config.reward
         )
         self.prev_action = action
-        truncated = self.steps >= self.config.steps_per_episode
         info = self._info(in_bounds)
+        info["reward_terms"] = terms
         if power is not None:
             info["power"] = power
-        return self._observe(), reward, False, truncated, info
+        # never terminated, never truncated: the time limit is TimeLimit's (`time_limited`)
+        return self._observe(), float(sum(terms.values())), False, False, info
 
     # -- helpers -------------------------------------------------------------------------
     def readings(self) -> tuple[np.ndarray, np.ndarray]:
@@ -293,13 +400,18 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         return arr
 
 
+def time_limited(env: ReachAlphaEnv) -> TimeLimit[np.ndarray, np.ndarray]:
+    """`env` behind gymnasium's TimeLimit at its own episode length, as `gym.make` wraps it."""
+    return TimeLimit(env, max_episode_steps=max(1, env.config.steps_per_episode))
+
+
 def register_envs() -> None:
-    """Register `ReachAlpha-v0` (idempotent)."""
+    """Register `ReachAlpha-v0` (idempotent), time-limited at the default episode length."""
     if ENV_ID not in gym.registry:
         gym.register(
             id=ENV_ID,
             entry_point="policy.env:ReachAlphaEnv",
-            max_episode_steps=None,
+            max_episode_steps=EnvConfig().steps_per_episode,
         )
 
 

@@ -14,18 +14,21 @@ import pytest
 import torch
 
 from policy.batched import evaluate_batched as evaluate
-from policy.ddpg import (
-    Actor,
-    DDPGConfig,
-    OUNoise,
-    ReplayBuffer,
-    Trainer,
-    make_expert,
-    save_actor_npz,
-)
-from policy.ddpg_controller import DEFAULT_WEIGHTS, ActorWeights, make_controller
+from policy.ddpg_config import DDPGConfig
+from policy.ddpg_controller import make_controller
 from policy.env import EnvConfig, ReachAlphaEnv
 from policy.expert import PDExpert
+from policy.exploration import OUNoise
+from policy.networks import Actor
+from policy.replay import ReplayBuffer
+from policy.trainer import Trainer, make_expert
+from policy.weights import (
+    DEFAULT_WEIGHTS,
+    ActorWeights,
+    actor_arrays,
+    load_actor_npz,
+    save_actor_npz,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -72,6 +75,40 @@ def test_numpy_forward_equals_torch_actor(tmp_path: Path) -> None:
         expected = actor(torch.from_numpy(obs.astype(np.float32))).numpy()
     np.testing.assert_allclose(weights.forward(obs), expected, atol=2e-6)
     np.testing.assert_allclose(weights.forward(obs[0]), expected[0], atol=2e-6)
+
+
+def test_saved_weights_round_trip_bit_for_bit(tmp_path: Path) -> None:
+    """policy.weights is the one owner of the format: what training saves, the controller
+    and the trainer's `init_actor` load exactly."""
+    torch.manual_seed(5)
+    cfg = DDPGConfig.ours()
+    actor = Actor(cfg.env.observation.size, 4, cfg.hidden)
+    save_actor_npz(tmp_path / "a.npz", actor, cfg, extra={"note": np.float32(1.5)})
+    loaded = ActorWeights.load(tmp_path / "a.npz")
+    arrays = actor_arrays(actor)
+    assert len(loaded.weights) == len(loaded.biases) == 3
+    for i, (w, b) in enumerate(zip(loaded.weights, loaded.biases, strict=True)):
+        np.testing.assert_array_equal(w, arrays[f"W{i}"])
+        np.testing.assert_array_equal(b, arrays[f"b{i}"])
+    assert loaded.observation == cfg.env.observation and loaded.metadata["note"] == 1.5
+    assert DDPGConfig.from_dict(loaded.metadata["config"]) == cfg
+    obs = np.random.default_rng(2).uniform(-2, 2, size=(64, cfg.env.observation.size))
+    direct = ActorWeights(
+        tuple(arrays[f"W{i}"] for i in range(3)),
+        tuple(arrays[f"b{i}"] for i in range(3)),
+        loaded.leaky_slope,
+        loaded.observation,
+        loaded.current_limits_mA,
+        {},
+    )
+    np.testing.assert_array_equal(loaded.forward(obs), direct.forward(obs))
+    again = Actor(cfg.env.observation.size, 4, cfg.hidden)
+    load_actor_npz(again, tmp_path / "a.npz")
+    x = torch.from_numpy(obs.astype(np.float32))
+    with torch.no_grad():
+        assert torch.equal(again(x), actor(x))
+    for pa, pb in zip(actor.parameters(), again.parameters(), strict=True):
+        assert torch.equal(pa, pb)
 
 
 def test_controller_outputs_currents_and_rejects_bad_input(tmp_path: Path) -> None:

@@ -13,11 +13,14 @@ from gymnasium.utils.env_checker import check_env
 from policy.env import (
     ENV_ID,
     NO_LOAD_SPEEDS,
+    REWARD_TERMS,
     EnvConfig,
     ReachAlphaEnv,
     RewardConfig,
     RewardMode,
     compute_reward,
+    reward_terms,
+    time_limited,
 )
 from policy.expert import PDExpert
 from policy.observation import (
@@ -113,11 +116,60 @@ def test_out_of_bounds_costs_minus_ten_per_step_and_episode_goes_on() -> None:
 
 
 def test_truncates_at_episode_length() -> None:
-    env = ReachAlphaEnv(EnvConfig(episode_s=1.0, control_hz=20.0))
+    """Truncation is TimeLimit's, as for Gymnasium's own envs; the env itself never ends."""
+    config = EnvConfig(episode_s=1.0, control_hz=20.0)
+    raw = ReachAlphaEnv(config)
+    env = time_limited(raw)
     env.reset(seed=0)
     flags = [env.step(np.zeros(4))[3] for _ in range(20)]
     assert flags == [False] * 19 + [True]
-    assert env.control_dt == pytest.approx(0.05)
+    assert raw.control_dt == pytest.approx(0.05)
+    env.reset(seed=0)  # a reset restarts the count
+    assert [env.step(np.zeros(4))[3] for _ in range(20)] == [False] * 19 + [True]
+    assert not any(raw.step(np.zeros(4))[3] for _ in range(30))  # past 20 steps: goes on
+    made = gym.make(ENV_ID, config=config, max_episode_steps=config.steps_per_episode)
+    made.reset(seed=0)
+    assert [made.step(np.zeros(4))[3] for _ in range(20)] == [False] * 19 + [True]
+
+
+def test_gym_make_wraps_in_time_limit_at_the_default_episode() -> None:
+    env = gym.make(ENV_ID)
+    assert env.spec is not None and env.spec.max_episode_steps == 400
+    assert EnvConfig().steps_per_episode == 400
+    wrapper: object = env
+    while not isinstance(wrapper, gym.wrappers.TimeLimit):
+        assert isinstance(wrapper, gym.Wrapper), "gym.make added no TimeLimit"
+        wrapper = wrapper.env
+
+
+@pytest.mark.parametrize("reward", [RewardConfig(), SHAPED], ids=["paper", "shaped"])
+def test_reward_terms_in_info_sum_to_the_reward(reward: RewardConfig) -> None:
+    env = ReachAlphaEnv(EnvConfig(reward=reward))
+    start = np.array([0.45, 1.5, 1.5, 1.5])
+    env.reset(seed=0, options={"start": start, "target": start + 0.03})
+    seen_out = seen_in = False
+    for k in range(40):  # E drives out of bounds and comes back
+        action = np.array([-1.0 if k < 15 else 1.0, 0.3, -0.2, 0.1])
+        _, r, _, _, info = env.step(action)
+        terms = info["reward_terms"]
+        assert tuple(terms) == REWARD_TERMS
+        assert sum(terms.values()) == r  # exactly: the reward is this sum
+        if info["in_bounds"]:
+            seen_in = True
+            assert terms["out_of_bounds"] == 0.0
+        else:
+            seen_out = True
+            assert terms == {**dict.fromkeys(REWARD_TERMS, 0.0), "out_of_bounds": -10.0}
+        if reward.mode is RewardMode.PAPER:
+            assert terms["distance"] == terms["velocity"] == terms["action_change"] == 0.0
+    assert seen_in and seen_out
+    z = np.zeros(4)
+    q_req = np.array([3.0, 1.7, 1.7, 1.65])
+    shaped = reward_terms(q_req - 0.1, np.ones(4), q_req, np.ones(4), z, True, SHAPED)
+    assert all(shaped[k] < 0 for k in ("precision", "distance", "velocity", "action_change"))
+    assert sum(shaped.values()) == compute_reward(
+        q_req - 0.1, np.ones(4), q_req, np.ones(4), z, True, SHAPED
+    )
 
 
 def test_control_rate_is_a_parameter() -> None:
@@ -218,8 +270,10 @@ def test_observation_features_and_bounds() -> None:
 def test_controller_sees_the_same_observation_as_the_env(tmp_path) -> None:  # type: ignore[no-untyped-def]
     import torch
 
-    from policy.ddpg import Actor, DDPGConfig, save_actor_npz
+    from policy.ddpg_config import DDPGConfig
     from policy.ddpg_controller import make_controller
+    from policy.networks import Actor
+    from policy.weights import save_actor_npz
 
     config = DDPGConfig.ours()
     actor = Actor(OURS_OBS.size, 4, (16, 8))

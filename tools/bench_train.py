@@ -28,8 +28,9 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from policy.ddpg import DDPGConfig, Trainer
-from policy.env import EnvConfig, ReachAlphaEnv
+from policy.ddpg_config import DDPGConfig
+from policy.env import EnvConfig, ReachAlphaEnv, time_limited
+from policy.trainer import Trainer
 
 
 def bench_ours(
@@ -59,7 +60,7 @@ def bench_sb3(
     from stable_baselines3 import DDPG
     from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 
-    env = ReachAlphaEnv(env_config)
+    env = time_limited(ReachAlphaEnv(env_config))  # as gym.make builds it: SB3 needs the limit
     noise = OrnsteinUhlenbeckActionNoise(np.zeros(4), 0.2 * np.ones(4))
     model = DDPG(
         "MlpPolicy",
@@ -102,20 +103,14 @@ def bench_inference(n: int) -> None:
     """Latency of one control-loop action: numpy controller vs the torch actor, same weights."""
     from types import SimpleNamespace
 
-    from policy.ddpg import Actor
     from policy.ddpg_controller import make_controller
+    from policy.networks import Actor
+    from policy.weights import DEFAULT_WEIGHTS, load_actor_npz
 
     ctrl = make_controller()
     w = ctrl.weights
     actor = Actor(w.weights[0].shape[1], 4, (w.weights[0].shape[0], w.weights[1].shape[0]))
-    with torch.no_grad():
-        for layer, (wi, bi) in zip(
-            [m for m in actor.net if isinstance(m, torch.nn.Linear)],
-            zip(w.weights, w.biases, strict=True),
-            strict=True,
-        ):
-            layer.weight.copy_(torch.from_numpy(wi))
-            layer.bias.copy_(torch.from_numpy(bi))
+    load_actor_npz(actor, DEFAULT_WEIGHTS)
     rng = np.random.default_rng(0)
     states = [
         SimpleNamespace(q=rng.uniform(0.5, 2.8, 4), qdot=rng.normal(0, 0.5, 4), t=0.0)

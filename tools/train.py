@@ -24,10 +24,11 @@ from typing import Any
 import numpy as np
 
 from policy.batched import evaluate_batched
-from policy.ddpg import DDPGConfig, Trainer, TrainState, make_expert
-from policy.ddpg_controller import DEFAULT_WEIGHTS, ActorWeights
+from policy.ddpg_config import WEAK_EVAL_SEED_OFFSET, WEAK_EVAL_TORQUE_SCALE, DDPGConfig
 from policy.env import EnvConfig
 from policy.expert import PDExpert
+from policy.trainer import Trainer, TrainState, make_expert
+from policy.weights import DEFAULT_WEIGHTS, ActorWeights
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -38,7 +39,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--config",
         default="ours",
         choices=["ours", "paper"],
-        help="hyperparameter preset (policy.ddpg.DDPGConfig.ours / .paper)",
+        help="hyperparameter preset (policy.ddpg_config.DDPGConfig.ours / .paper)",
     )
     p.add_argument("--run", type=Path, help="run directory (checkpoints, logs)")
     p.add_argument("--seed", type=int, default=0)
@@ -119,14 +120,14 @@ def evaluate_weights(
             EnvConfig.from_dict(weights.metadata["env"]), observation=weights.observation
         )
         policy = weights.forward
-    eval_seed = 10_000 + seed
+    eval_seed = DDPGConfig().eval_seed + seed
     nominal = evaluate_batched(policy, env_config, episodes, eval_seed, expert=expert)
     weak = evaluate_batched(
         policy,
         env_config,
         episodes,
-        eval_seed + 5_000,
-        torque_scale=(0.25, 1.0, 1.0, 1.0),
+        eval_seed + WEAK_EVAL_SEED_OFFSET,
+        torque_scale=WEAK_EVAL_TORQUE_SCALE,
         expert=expert,
     )
     result = {
