@@ -15,9 +15,10 @@ from typing import Any
 import numpy as np
 
 from policy.batched import eval_envs
-from policy.ddpg_controller import ActorWeights, make_controller
+from policy.ddpg_controller import make_controller
 from policy.env import EnvConfig
 from policy.scenarios import SCENARIOS, TABLE_KEYS, wins
+from policy.weights import ActorWeights
 from protocol.alpha5 import N_JOINTS
 from reach_driver.controllers import ControlState
 
