@@ -9,7 +9,6 @@ Examples:
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -45,10 +44,6 @@ UNITS = {
     "reached": "fraction",
     "rmse_floor": "rad",
 }
-
-
-class NotAvailableYet(RuntimeError):
-    """A requested feature needs a module another part of the project has not shipped."""
 
 
 def _parse_kv(items: list[str]) -> dict[str, Any]:
@@ -174,22 +169,8 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _require(module: str, feature: str) -> None:
-    if importlib.util.find_spec(module) is None:
-        raise NotAvailableYet(f"{feature} is not available yet: module {module} is missing")
-
-
-def _require_all(modules: list[str], feature: str) -> None:
-    for m in modules:
-        try:
-            _require(m, feature)
-        except ModuleNotFoundError as exc:  # parent package missing
-            raise NotAvailableYet(f"{feature} is not available yet: {exc}") from exc
-
-
 def record_evaluation(evaluation: Evaluation, path: Path) -> None:
     """Episodes one after another on the recording's time line, each announced as an event."""
-    _require_all(["reach_driver.recording"], "--record")
     from reach_driver.recording import RunRecorder, StepSample
 
     meta = {"controller": evaluation.controller, "config": evaluation.config.to_dict()}
@@ -244,10 +225,7 @@ def _fmt(v: Any) -> str:
 
 def run(args: argparse.Namespace, console: Console) -> Evaluation:
     if args.via_driver:
-        _require_all(["reach_sim_bridge.server", "reach_driver.control"], "--via-driver")
         from policy.via_driver import DriverConfig, evaluate_via_driver
-    if args.record is not None:
-        _require_all(["reach_driver.recording"], "--record")
     episodes: list[Episode] = (
         load_episodes(args.targets)
         if args.targets is not None
@@ -297,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
     console = Console(stderr=True)
     try:
         evaluation = run(args, console)
-    except (ValueError, DriverError, NotAvailableYet) as exc:
+    except (ValueError, DriverError) as exc:
         console.print(f"[red]error:[/red] {exc}")
         return 2
     args.out.parent.mkdir(parents=True, exist_ok=True)
