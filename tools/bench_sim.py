@@ -34,6 +34,7 @@ import numpy as np
 import serial
 
 from protocol import DeviceID, PacketDecoder, PacketID, commands
+from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA
 from reach_sim_bridge.arm import Alpha5Arm, ArmParams
 
 CONTROL_HZ = 20.0
@@ -69,7 +70,7 @@ def best_rate(run_once: Callable[[], int], seconds: float, repeats: int) -> floa
 
 
 def _random_currents(rng: np.random.Generator, count: int) -> np.ndarray:
-    limits = np.array([600.0, 600.0, 600.0, 300.0])
+    limits = np.array(DEFAULT_CURRENT_LIMITS_MA)
     return rng.uniform(-1.0, 1.0, size=(count, 4)) * limits
 
 
