@@ -228,41 +228,6 @@ def test_cli_bad_input_exits_2_with_a_message(tmp_path: Path, capsys: Any) -> No
     assert not out.exists()
 
 
-def test_cli_hooks_say_not_available_when_modules_are_missing(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: Any
-) -> None:
-    cli = _cli()
-    real = importlib.util.find_spec
-
-    def missing(name: str, *args: Any) -> Any:
-        if name in ("reach_sim_bridge.server", "reach_driver.recording"):
-            return None
-        return real(name, *args)
-
-    monkeypatch.setattr(cli.importlib.util, "find_spec", missing)
-    out = tmp_path / "o.json"
-    assert (
-        cli.main(["--controller", "pid", "--random", "1", "--via-driver", "--out", str(out)]) == 2
-    )
-    assert "--via-driver is not available yet" in capsys.readouterr().err
-    assert (
-        cli.main(
-            [
-                "--controller",
-                "pid",
-                "--random",
-                "1",
-                "--record",
-                str(tmp_path / "r.rrd"),
-                "--out",
-                str(out),
-            ]
-        )
-        == 2
-    )
-    assert "--record is not available yet" in capsys.readouterr().err
-
-
 def test_cli_help_explains_the_options(capsys: Any) -> None:
     with pytest.raises(SystemExit):
         _cli().main(["--help"])
