@@ -20,11 +20,11 @@ TORCH_FLAGS   := $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
 
 $(STAMP): pyproject.toml | $(PY)
 	$(PIP) install -q $(TORCH_FLAGS) torch==$(TORCH_VERSION)
-	$(PIP) install -q -e '.[dev]'
+	$(PIP) install -q -e '.[dev,scale]'
 	touch $(STAMP)
 
 $(BSTAMP): $(STAMP)
-	$(PIP) install -q -e '.[dev,bench]'
+	$(PIP) install -q -e '.[dev,scale,bench]'
 	touch $(BSTAMP)
 
 install: $(STAMP)
