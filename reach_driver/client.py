@@ -9,6 +9,10 @@ waiting requests by (device, packet id), feeds subscribers, runs the watchdog an
 keepalive, and reopens the link with backoff when it is lost. Commands are written from the
 caller's thread; while the link is down they fail at once with `LinkDownError`.
 
+`start()` records each device's identity (serial and model numbers, firmware version). After
+a reconnect that identity is confirmed before anything else is sent or accepted; a different
+arm gets only its safe stop and the link becomes FAILED (`ArmIdentityError`).
+
 `ArmClient` is the facade over the pieces, each in its own module: request matching
 (`requests`), link supervision and reconnecting (`supervisor`), which joints are armed and
 the watchdog (`watchdog`), the checks before a command goes out (`gate`), status flags
@@ -28,6 +32,7 @@ import numpy as np
 from protocol import DecoderStats, Mode, Packet, PacketDecoder, PacketID, commands
 from protocol.alpha5 import ALL_DEVICES, JAW, JOINTS, Range
 from reach_driver.errors import (
+    ArmIdentityError,
     DriverError,
     GarbageError,
     LinkDownError,
@@ -36,6 +41,7 @@ from reach_driver.errors import (
 )
 from reach_driver.faults import FaultFlags
 from reach_driver.gate import CommandGate
+from reach_driver.identity import IDENTITY_PACKETS, DeviceIdentity, IdentityCheck
 from reach_driver.link import (
     ClientEvent,
     ClientStats,
@@ -88,13 +94,15 @@ class ArmClient:
         self.stats = ClientStats()
         self.events: deque[ClientEvent] = deque(maxlen=EVENT_HISTORY)
         self.found_devices: tuple[int, ...] = ()
+        #: What each device reported at connect; a reconnect must find the same.
+        self.identity: dict[int, DeviceIdentity] = {}
+        self._check: IdentityCheck | None = None  # reader thread only
         self.warnings: list[str] = []
         self._event_callbacks: list[EventCallback] = []
-        self._lock = threading.RLock()  # link loss: link state, watchdog and safe_pending together
+        self._lock = threading.RLock()  # link state and the watchdog change together
         self._write_lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self._safe_pending = False  # the safe mode goes out as soon as the link is back
         self._stream: Stream | None = None
         self.watchdog = Watchdog()
         self.faults = FaultFlags()
@@ -115,13 +123,14 @@ class ArmClient:
             send_internal=lambda frames: self._write(frames, internal=True),
             probe_frame=self._probe_frame,
             on_lost=self._link_lost,
-            reset_decoder=self.decoder.reset,
+            reset_decoder=self._reopened,
         )
 
     # ----------------------------------------------------------------- lifecycle
 
     def start(self, *, discover: bool = True, read_limits: bool = True) -> ArmClient:
-        """Open the link, start the reader, find the devices and read their limits.
+        """Open the link, start the reader, find the devices, read their identity (checked
+        again after every reconnect) and their limits.
 
         Raises `NoResponseError` (or `GarbageError` when bytes arrive but never decode, the
         sign of a wrong baud rate) if no device answers; the link is closed again then.
@@ -139,6 +148,7 @@ class ArmClient:
         try:
             if discover:
                 self.discover()
+                self.read_identity()
             if read_limits and self.found_devices:
                 self.read_limits()
         except BaseException:
@@ -295,6 +305,16 @@ class ArmClient:
                 "and is this its port or address?"
             )
         return self.found_devices
+
+    def read_identity(self, devices: Sequence[int] | None = None) -> dict[int, DeviceIdentity]:
+        """Serial and model numbers and firmware version of each device that answers; kept
+        in `identity` to confirm the same arm answers after a reconnect."""
+        devs = list(devices or self.found_devices or self.devices)
+        got = self.request_many(devs, IDENTITY_PACKETS, partial=True)
+        for d in devs:
+            if got.get(d):
+                self.identity[d] = DeviceIdentity.from_replies(got[d])
+        return dict(self.identity)
 
     def read_limits(
         self, devices: Sequence[int] | None = None
@@ -467,6 +487,8 @@ class ArmClient:
         """Write frames in one go; returns the time the write completed. Only the reader
         thread's own writes (`internal`) go out while the link is not UP."""
         if not internal and self.supervisor.state is not LinkState.UP:
+            if self.supervisor.state is LinkState.FAILED:
+                raise ArmIdentityError(self.supervisor.down_message())
             raise LinkDownError(self.supervisor.down_message())
         with self._write_lock:
             try:
@@ -503,6 +525,8 @@ class ArmClient:
                 chunk = self.transport.read()
             except TransportError as exc:
                 self._link_lost(str(exc))
+                if self.supervisor.state is LinkState.FAILED:
+                    self._stop.wait(0.1)  # failed for good: nothing to reopen
                 continue
             now = self.clock()
             if chunk:
@@ -512,8 +536,10 @@ class ArmClient:
 
     def _dispatch(self, packet: Packet, t: float) -> None:
         self.stats.packets += 1
-        if self.supervisor.heard(t):
-            self._link_restored(t)
+        if self.supervisor.state is LinkState.FAILED:
+            return  # another arm: nothing it says is this arm's state
+        if self.supervisor.heard(t) and not self._confirm_identity(packet, t):
+            return
         pid = packet.packet_id
         if self.table.update(packet, t):
             if pid in LIMIT_KIND_OF:
@@ -551,7 +577,7 @@ class ArmClient:
             self._write(self._safe_mode_frames(devices), internal=True)
             sent = f"put {', '.join(joint_name(d) for d in devices)} in {mode.name}"
         except LinkDownError:
-            self._safe_pending = True
+            self.watchdog.mark_safe_pending()
             sent = f"could not send {mode.name} (link down): will on reconnect"
         self._emit(EventKind.WATCHDOG, f"{reason}; {sent}")
 
@@ -565,9 +591,7 @@ class ArmClient:
                 return
             # Feedback is gone while joints obey the last velocity/current: the same as
             # stale feedback. The safe mode goes out first thing after reconnecting.
-            armed = self.watchdog.trip_on_link_loss()
-            if armed:
-                self._safe_pending = True
+            armed = self.watchdog.trip_on_link_loss()  # owes the safe mode if armed
         self._waiters.fail_all(lambda: LinkDownError(self.supervisor.down_message()))
         if was_up:
             self.stats.link_drops += 1
@@ -582,18 +606,72 @@ class ArmClient:
         if not self.link_config.reconnect:
             self._stop.set()
 
+    def _reopened(self) -> None:
+        """The supervisor reopened the link (reader thread): a fresh start for the check."""
+        self.decoder.reset()
+        self._check = None
+
+    def _confirm_identity(self, packet: Packet, t: float) -> bool:
+        """While PROBING: True once the link is UP again and `packet` may be used. With an
+        identity on record, the reopened link stays PROBING until every device confirmed it
+        (its replies are not state); a difference fails the link at once."""
+        if not self.identity:
+            self._link_restored(t)
+            return True
+        check = self._check
+        if check is None:
+            self._check = check = IdentityCheck(self.identity)
+            self.supervisor.extend_probe(t)
+            try:
+                self._write(check.frames(), internal=True)
+            except LinkDownError:
+                pass
+            return False
+        check.offer(packet)
+        if check.differences:
+            self._identity_failed(check.differences, t)
+        elif check.complete:
+            self._check = None
+            self._link_restored(t)
+        return False
+
+    def _identity_failed(self, differences: Sequence[str], t: float) -> None:
+        """A different arm answers: stop it, send it nothing else, fail the link for good."""
+        self._check = None
+        mode = self.guard.config.safe_mode
+        devices = (*JOINTS, JAW)
+        try:
+            self._write(self._safe_mode_frames(devices), internal=True)
+            sent = f"sent it {mode.name} and nothing else"
+        except LinkDownError:
+            sent = f"could not even send it {mode.name}"
+        reason = (
+            f"a different arm answers on {self.transport.url}: {'; '.join(differences)}; "
+            f"{sent}; close this client and start a new one to use that arm"
+        )
+        with self._lock:
+            self.supervisor.set(LinkState.FAILED, reason, t)
+            self.watchdog.disarm(devices)
+            self.watchdog.take_safe_pending()
+        self.table.clear()
+        self.stats.identity_mismatches += 1
+        self._waiters.fail_all(lambda: ArmIdentityError(self.supervisor.down_message()))
+        self._emit(EventKind.IDENTITY, reason)
+
     def _link_restored(self, t: float) -> None:
         attempts = self.supervisor.restored(t)
         frames: list[bytes] = []
-        if self._safe_pending:
+        owed = self.watchdog.take_safe_pending()
+        if owed:
             frames += self._safe_mode_frames((*JOINTS, JAW))
-            self._safe_pending = False
         if self._stream is not None:
             frames += self._stream.start_frames()
         if frames:
             try:
                 self._write(frames, internal=True)
             except LinkDownError:
+                if owed:
+                    self.watchdog.mark_safe_pending()
                 return
         self._emit(
             EventKind.LINK_UP,
