@@ -29,12 +29,22 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from protocol import DecoderStats, Mode, Packet, PacketDecoder, PacketID, commands
+from protocol import (
+    DecoderStats,
+    Mode,
+    Packet,
+    PacketDecoder,
+    PacketID,
+    ProtocolError,
+    commands,
+    decode_packet,
+)
 from protocol.alpha5 import ALL_DEVICES, JAW, JOINTS, Range
 from reach_driver.errors import (
     ArmIdentityError,
     DriverError,
     GarbageError,
+    LimitError,
     LinkDownError,
     NoResponseError,
     TransportError,
@@ -111,7 +121,7 @@ class ArmClient:
             self._write, self._waiters, self.stats, transport.url, self._broadcast_ok
         )
         self._gate = CommandGate(
-            self.guard, self.watchdog, self.table, transport.url, self._broadcast_ok
+            self.guard, self.watchdog, self.table, transport.url, self._broadcast_ok, self.devices
         )
         self.supervisor = LinkSupervisor(
             transport,
@@ -346,7 +356,22 @@ class ArmClient:
         return out
 
     def write_limits(self, device: int, kind: LimitKind, maximum: float, minimum: float) -> Range:
-        """Set one limit on the arm, read it back and adopt what the arm reports."""
+        """Tighten one limit on the arm, read it back and adopt what the arm reports.
+
+        Refused (`LimitError`, nothing sent) unless finite, inside the factory envelope and
+        inside the present limit; `widen_limits` is the call that may widen it.
+        """
+        return self._set_limits(int(device), kind, maximum, minimum, widen=False)
+
+    def widen_limits(self, device: int, kind: LimitKind, maximum: float, minimum: float) -> Range:
+        """Like `write_limits`, but may widen the present limit (never past the factory
+        envelope, never to a non-finite value)."""
+        return self._set_limits(int(device), kind, maximum, minimum, widen=True)
+
+    def _set_limits(
+        self, device: int, kind: LimitKind, maximum: float, minimum: float, *, widen: bool
+    ) -> Range:
+        self._gate.check_limit_write(device, kind, (maximum, minimum), widen=widen)
         self._write([commands.limits(int(device), kind.packet_id, maximum, minimum).encode()])
         self.table.forget(int(device), kind.packet_id)
         reply = self.request(device, [kind.packet_id])[kind.packet_id]
@@ -409,14 +434,23 @@ class ArmClient:
     # ----------------------------------------------------------------- commands
 
     def send(self, *packets: Packet) -> None:
-        """Write packets as they are, after the same safety checks as the command helpers."""
+        """Write packets as they are, after the same safety checks as the command helpers.
+
+        Every packet passes the gate (`reach_driver.gate`): only packets known to be
+        harmless, and checked motion and limit writes, go out; one refusal sends nothing.
+        """
         for p in packets:
             self._gate.check_packet(p)
         self._write_commands(packets)
 
+    def send_unchecked(self, *packets: Packet) -> None:
+        """Write packets with no safety check at all (bench work, protocol tests). Nothing
+        in the CLI uses it."""
+        self._write_commands(packets)
+
     def set_mode(self, devices: int | Sequence[int], mode: Mode) -> None:
         devs = [devices] if isinstance(devices, int) else list(devices)
-        self._write_commands([commands.mode(int(d), mode) for d in devs])
+        self.send(*(commands.mode(int(d), mode) for d in devs))
 
     def command_position(self, device: int, value: float) -> None:
         """Absolute position (rad; mm for the jaw); refused outside the position limit."""
@@ -460,10 +494,11 @@ class ArmClient:
         self._write_commands([builder(d, float(v)) for d, v in zip(devs, sent, strict=True)])
         return sent
 
-    def _write_commands(self, packets: Sequence[Packet]) -> None:
-        """Write checked commands; the watchdog learns which joints they arm or disarm."""
-        self._write([p.encode() for p in packets])
-        self.watchdog.note_sent(packets, self.clock())
+    def _write_commands(self, packets: Sequence[Packet], *, disarm: bool = True) -> float:
+        """Write checked commands; the watchdog learns which joints they arm (or disarm)."""
+        done = self._write([p.encode() for p in packets])
+        self.watchdog.note_sent(packets, self.clock(), disarm=disarm)
+        return done
 
     def safe_stop(self, devices: Sequence[int] | None = None) -> None:
         """Put joints (default: the four joints and the jaw) in the configured safe mode."""
@@ -499,7 +534,25 @@ class ArmClient:
         return self.clock()
 
     def write_frames(self, frames: Sequence[bytes]) -> float:
-        """Raw, unchecked frames (for tools and tests); returns the write completion time."""
+        """Encoded frames, each decoded and passed through the same gate as `send`; returns
+        the write completion time. Joints they arm are armed in the watchdog, but nothing
+        here disarms one (tests use it to fake feedback on loop://)."""
+        packets = []
+        for frame in frames:
+            try:
+                packets.append(decode_packet(frame))
+            except ProtocolError as exc:
+                raise LimitError(
+                    f"refused: a frame that does not decode ({exc}) cannot be checked; "
+                    "write_frames_unchecked() writes it as it is; nothing was sent"
+                ) from None
+        for p in packets:
+            self._gate.check_packet(p)
+        return self._write_commands(packets, disarm=False)
+
+    def write_frames_unchecked(self, frames: Sequence[bytes]) -> float:
+        """Raw frames with no check at all (malformed-frame tests, tools); returns the write
+        completion time. Nothing in the CLI uses it."""
         return self._write(frames)
 
     # ----------------------------------------------------------------- the reader thread

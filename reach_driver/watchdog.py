@@ -49,14 +49,16 @@ class Watchdog:
         with self._lock:
             return tuple(self._armed)
 
-    def note_sent(self, packets: Iterable[Packet], now: float) -> None:
-        """Arm or disarm joints by what was just written to them."""
+    def note_sent(self, packets: Iterable[Packet], now: float, *, disarm: bool = True) -> None:
+        """Arm or disarm joints by what was just written to them (only arm, if not `disarm`)."""
         with self._lock:
             for p in packets:
                 dev = int(p.device_id)
                 if p.packet_id in CONTINUOUS_PACKETS:
                     self._last_command_t = now
                     self._armed.setdefault(dev, now)
+                elif not disarm:
+                    continue
                 elif p.packet_id == PacketID.POSITION:
                     self._armed.pop(dev, None)
                 elif p.packet_id == PacketID.MODE and p.data and p.data[0] not in CONTINUOUS_MODES:
