@@ -50,7 +50,7 @@ from reach_driver.errors import (
     TransportError,
 )
 from reach_driver.faults import FaultFlags
-from reach_driver.gate import CommandGate
+from reach_driver.gate import LIMIT_KIND_OF, CommandGate
 from reach_driver.identity import IDENTITY_PACKETS, DeviceIdentity, IdentityCheck
 from reach_driver.link import (
     ClientEvent,
@@ -62,8 +62,14 @@ from reach_driver.link import (
 )
 from reach_driver.listeners import ListenerSet, PacketListener, PacketQueue, Subscription
 from reach_driver.requests import Replies, Requester, Waiters
-from reach_driver.safety import LimitKind, SafetyConfig, SafetyGuard
-from reach_driver.state import ArmState, JointState, StateTable, joint_name
+from reach_driver.safety import (
+    LimitKind,
+    SafetyConfig,
+    SafetyGuard,
+    as_range,
+    envelope_problem,
+)
+from reach_driver.state import ArmState, JointState, StateTable, joint_name, packet_value
 from reach_driver.streaming import Stream
 from reach_driver.supervisor import LinkSupervisor
 from reach_driver.transport import Transport
@@ -74,7 +80,6 @@ log = logging.getLogger(__name__)
 __all__ = ["ArmClient", "ClientStats"]
 
 EVENT_HISTORY = 200
-LIMIT_KIND_OF: dict[int, LimitKind] = {kind.packet_id: kind for kind in LimitKind}
 
 
 class ArmClient:
@@ -329,10 +334,12 @@ class ArmClient:
     def read_limits(
         self, devices: Sequence[int] | None = None
     ) -> dict[int, dict[LimitKind, Range]]:
-        """Read position, velocity and current limits; the safety guard adopts them.
+        """Read position, velocity and current limits; the safety guard adopts the plausible
+        ones (finite, inside the factory envelope) and returns those.
 
-        A device that does not report a limit keeps the documented default (and a warning
-        is recorded in `warnings`).
+        A device that does not report a limit, or reports one that is not plausible, keeps
+        the one in force (the documented default at first) and a warning is recorded in
+        `warnings`.
         """
         devs = list(devices or self.found_devices or self.devices)
         kinds = list(LimitKind)
@@ -342,16 +349,17 @@ class ArmClient:
         got = self.request_many(devs, [k.packet_id for k in kinds], partial=True)
         out: dict[int, dict[LimitKind, Range]] = {}
         for d in devs:
-            js = self.table.get(d)
             for kind in kinds:
-                reading = getattr(js, f"{kind.value}_limits")
-                if reading is not None and kind.packet_id in got.get(d, {}):
-                    self.guard.set_arm_limit(d, kind, reading.value)
-                    out.setdefault(d, {})[kind] = reading.value
-                elif not self.guard.has_arm_limit(d, kind):
+                reply = got.get(d, {}).get(kind.packet_id)
+                value, problem = _limit_verdict(reply, d, kind)
+                if value is not None and problem is None:  # adopted as it arrived
+                    out.setdefault(d, {})[kind] = as_range(kind, value)
+                elif reply is not None or not self.guard.has_arm_limit(d, kind):
+                    said = "did not report its" if reply is None else "reported implausible"
                     self.warnings.append(
-                        f"{joint_name(d)} did not report its {kind.value} limits; "
-                        "using the documented defaults"
+                        f"{joint_name(d)} {said} {kind.value} limits"
+                        + (f" ({problem})" if reply is not None else "")
+                        + "; keeping the ones in force"
                     )
         return out
 
@@ -375,9 +383,13 @@ class ArmClient:
         self._write([commands.limits(int(device), kind.packet_id, maximum, minimum).encode()])
         self.table.forget(int(device), kind.packet_id)
         reply = self.request(device, [kind.packet_id])[kind.packet_id]
-        lo, hi = sorted(reply.floats())
-        self.guard.set_arm_limit(device, kind, (lo, hi))
-        return (lo, hi)
+        value, problem = _limit_verdict(reply, device, kind)
+        if value is None or problem is not None:
+            raise LimitError(
+                f"{joint_name(device)} answered the {kind.value} limit write with "
+                f"{problem or 'a malformed payload'}; not adopted, the old limit stays"
+            )
+        return as_range(kind, value)
 
     def read_info(self, devices: Sequence[int] | None = None) -> dict[int, JointState]:
         """Versions, serial and model numbers, modes and status flags of each device."""
@@ -596,16 +608,35 @@ class ArmClient:
         pid = packet.packet_id
         if self.table.update(packet, t):
             if pid in LIMIT_KIND_OF:
-                kind = LIMIT_KIND_OF[int(pid)]
-                reading = getattr(self.table.get(int(packet.device_id)), f"{kind.value}_limits")
-                if reading is not None:
-                    self.guard.set_arm_limit(int(packet.device_id), kind, reading.value)
+                self._consider_limits(packet)
             elif pid == PacketID.HARDWARE_STATUS:
                 event = self.faults.note(packet)
                 if event is not None:
                     self._emit(*event)
         self._waiters.offer(packet)
         self.listeners.dispatch(packet, t)
+
+    def _consider_limits(self, packet: Packet) -> None:
+        """Adopt limits the arm reported only if they were asked for (a request for this
+        packet from this device is waiting) and are plausible; else keep the ones in force,
+        count it and say so. The state table keeps the raw reading either way."""
+        dev, kind = int(packet.device_id), LIMIT_KIND_OF[int(packet.packet_id)]
+        value, problem = _limit_verdict(packet, dev, kind)
+        if value is None:
+            return  # malformed: the state table counted it
+        if problem is None and not self._waiters.wants(packet.key):
+            problem = "not asked for"
+        if problem is None:
+            self.guard.set_arm_limit(dev, kind, value)
+            return
+        self.stats.limits_rejected += 1
+        kept = self.guard.present_limit(dev, kind)
+        self._emit(
+            EventKind.LIMITS_REJECTED,
+            f"{joint_name(dev)} reported {kind.value} limits {list(value)} ({problem}); "
+            f"safety keeps {list(kept) if kept else 'none'}",
+            dev,
+        )
 
     def _broadcast_ok(self) -> bool:
         return self.transport.broadcast_ok
@@ -730,6 +761,21 @@ class ArmClient:
             EventKind.LINK_UP,
             f"{self.transport.url} answering again after {attempts} attempt(s)",
         )
+
+
+def _limit_verdict(
+    packet: Packet | None, device: int, kind: LimitKind
+) -> tuple[Range | None, str | None]:
+    """(the limits a packet carries, why they are not plausible or None); (None, None) for
+    no packet or a malformed one."""
+    if packet is None:
+        return None, None
+    try:
+        value = packet_value(packet)
+    except ProtocolError:
+        return None, None
+    assert isinstance(value, tuple)
+    return value, envelope_problem(device, kind, value)
 
 
 def _four(values: Sequence[float] | np.ndarray) -> list[float]:
