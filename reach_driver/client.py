@@ -9,6 +9,10 @@ waiting requests by (device, packet id), feeds subscribers, runs the watchdog an
 keepalive, and reopens the link with backoff when it is lost. Commands are written from the
 caller's thread; while the link is down they fail at once with `LinkDownError`.
 
+`start()` records each device's identity (serial and model numbers, firmware version). After
+a reconnect that identity is confirmed before anything else is sent or accepted; a different
+arm gets only its safe stop and the link becomes FAILED (`ArmIdentityError`).
+
 `ArmClient` is the facade over the pieces, each in its own module: request matching
 (`requests`), link supervision and reconnecting (`supervisor`), which joints are armed and
 the watchdog (`watchdog`), the checks before a command goes out (`gate`), status flags
@@ -25,17 +29,29 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from protocol import DecoderStats, Mode, Packet, PacketDecoder, PacketID, commands
+from protocol import (
+    DecoderStats,
+    Mode,
+    Packet,
+    PacketDecoder,
+    PacketID,
+    ProtocolError,
+    commands,
+    decode_packet,
+)
 from protocol.alpha5 import ALL_DEVICES, JAW, JOINTS, Range
 from reach_driver.errors import (
+    ArmIdentityError,
     DriverError,
     GarbageError,
+    LimitError,
     LinkDownError,
     NoResponseError,
     TransportError,
 )
 from reach_driver.faults import FaultFlags
-from reach_driver.gate import CommandGate
+from reach_driver.gate import LIMIT_KIND_OF, CommandGate
+from reach_driver.identity import IDENTITY_PACKETS, DeviceIdentity, IdentityCheck
 from reach_driver.link import (
     ClientEvent,
     ClientStats,
@@ -46,8 +62,14 @@ from reach_driver.link import (
 )
 from reach_driver.listeners import ListenerSet, PacketListener, PacketQueue, Subscription
 from reach_driver.requests import Replies, Requester, Waiters
-from reach_driver.safety import LimitKind, SafetyConfig, SafetyGuard
-from reach_driver.state import ArmState, JointState, StateTable, joint_name
+from reach_driver.safety import (
+    LimitKind,
+    SafetyConfig,
+    SafetyGuard,
+    as_range,
+    envelope_problem,
+)
+from reach_driver.state import ArmState, JointState, StateTable, joint_name, packet_value
 from reach_driver.streaming import Stream
 from reach_driver.supervisor import LinkSupervisor
 from reach_driver.transport import Transport
@@ -58,7 +80,6 @@ log = logging.getLogger(__name__)
 __all__ = ["ArmClient", "ClientStats"]
 
 EVENT_HISTORY = 200
-LIMIT_KIND_OF: dict[int, LimitKind] = {kind.packet_id: kind for kind in LimitKind}
 
 
 class ArmClient:
@@ -88,13 +109,15 @@ class ArmClient:
         self.stats = ClientStats()
         self.events: deque[ClientEvent] = deque(maxlen=EVENT_HISTORY)
         self.found_devices: tuple[int, ...] = ()
+        #: What each device reported at connect; a reconnect must find the same.
+        self.identity: dict[int, DeviceIdentity] = {}
+        self._check: IdentityCheck | None = None  # reader thread only
         self.warnings: list[str] = []
         self._event_callbacks: list[EventCallback] = []
-        self._lock = threading.RLock()  # link loss: link state, watchdog and safe_pending together
+        self._lock = threading.RLock()  # link state and the watchdog change together
         self._write_lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self._safe_pending = False  # the safe mode goes out as soon as the link is back
         self._stream: Stream | None = None
         self.watchdog = Watchdog()
         self.faults = FaultFlags()
@@ -103,7 +126,7 @@ class ArmClient:
             self._write, self._waiters, self.stats, transport.url, self._broadcast_ok
         )
         self._gate = CommandGate(
-            self.guard, self.watchdog, self.table, transport.url, self._broadcast_ok
+            self.guard, self.watchdog, self.table, transport.url, self._broadcast_ok, self.devices
         )
         self.supervisor = LinkSupervisor(
             transport,
@@ -115,13 +138,14 @@ class ArmClient:
             send_internal=lambda frames: self._write(frames, internal=True),
             probe_frame=self._probe_frame,
             on_lost=self._link_lost,
-            reset_decoder=self.decoder.reset,
+            reset_decoder=self._reopened,
         )
 
     # ----------------------------------------------------------------- lifecycle
 
     def start(self, *, discover: bool = True, read_limits: bool = True) -> ArmClient:
-        """Open the link, start the reader, find the devices and read their limits.
+        """Open the link, start the reader, find the devices, read their identity (checked
+        again after every reconnect) and their limits.
 
         Raises `NoResponseError` (or `GarbageError` when bytes arrive but never decode, the
         sign of a wrong baud rate) if no device answers; the link is closed again then.
@@ -139,6 +163,7 @@ class ArmClient:
         try:
             if discover:
                 self.discover()
+                self.read_identity()
             if read_limits and self.found_devices:
                 self.read_limits()
         except BaseException:
@@ -296,13 +321,25 @@ class ArmClient:
             )
         return self.found_devices
 
+    def read_identity(self, devices: Sequence[int] | None = None) -> dict[int, DeviceIdentity]:
+        """Serial and model numbers and firmware version of each device that answers; kept
+        in `identity` to confirm the same arm answers after a reconnect."""
+        devs = list(devices or self.found_devices or self.devices)
+        got = self.request_many(devs, IDENTITY_PACKETS, partial=True)
+        for d in devs:
+            if got.get(d):
+                self.identity[d] = DeviceIdentity.from_replies(got[d])
+        return dict(self.identity)
+
     def read_limits(
         self, devices: Sequence[int] | None = None
     ) -> dict[int, dict[LimitKind, Range]]:
-        """Read position, velocity and current limits; the safety guard adopts them.
+        """Read position, velocity and current limits; the safety guard adopts the plausible
+        ones (finite, inside the factory envelope) and returns those.
 
-        A device that does not report a limit keeps the documented default (and a warning
-        is recorded in `warnings`).
+        A device that does not report a limit, or reports one that is not plausible, keeps
+        the one in force (the documented default at first) and a warning is recorded in
+        `warnings`.
         """
         devs = list(devices or self.found_devices or self.devices)
         kinds = list(LimitKind)
@@ -312,27 +349,47 @@ class ArmClient:
         got = self.request_many(devs, [k.packet_id for k in kinds], partial=True)
         out: dict[int, dict[LimitKind, Range]] = {}
         for d in devs:
-            js = self.table.get(d)
             for kind in kinds:
-                reading = getattr(js, f"{kind.value}_limits")
-                if reading is not None and kind.packet_id in got.get(d, {}):
-                    self.guard.set_arm_limit(d, kind, reading.value)
-                    out.setdefault(d, {})[kind] = reading.value
-                elif not self.guard.has_arm_limit(d, kind):
+                reply = got.get(d, {}).get(kind.packet_id)
+                value, problem = _limit_verdict(reply, d, kind)
+                if value is not None and problem is None:  # adopted as it arrived
+                    out.setdefault(d, {})[kind] = as_range(kind, value)
+                elif reply is not None or not self.guard.has_arm_limit(d, kind):
+                    said = "did not report its" if reply is None else "reported implausible"
                     self.warnings.append(
-                        f"{joint_name(d)} did not report its {kind.value} limits; "
-                        "using the documented defaults"
+                        f"{joint_name(d)} {said} {kind.value} limits"
+                        + (f" ({problem})" if reply is not None else "")
+                        + "; keeping the ones in force"
                     )
         return out
 
     def write_limits(self, device: int, kind: LimitKind, maximum: float, minimum: float) -> Range:
-        """Set one limit on the arm, read it back and adopt what the arm reports."""
+        """Tighten one limit on the arm, read it back and adopt what the arm reports.
+
+        Refused (`LimitError`, nothing sent) unless finite, inside the factory envelope and
+        inside the present limit; `widen_limits` is the call that may widen it.
+        """
+        return self._set_limits(int(device), kind, maximum, minimum, widen=False)
+
+    def widen_limits(self, device: int, kind: LimitKind, maximum: float, minimum: float) -> Range:
+        """Like `write_limits`, but may widen the present limit (never past the factory
+        envelope, never to a non-finite value)."""
+        return self._set_limits(int(device), kind, maximum, minimum, widen=True)
+
+    def _set_limits(
+        self, device: int, kind: LimitKind, maximum: float, minimum: float, *, widen: bool
+    ) -> Range:
+        self._gate.check_limit_write(device, kind, (maximum, minimum), widen=widen)
         self._write([commands.limits(int(device), kind.packet_id, maximum, minimum).encode()])
         self.table.forget(int(device), kind.packet_id)
         reply = self.request(device, [kind.packet_id])[kind.packet_id]
-        lo, hi = sorted(reply.floats())
-        self.guard.set_arm_limit(device, kind, (lo, hi))
-        return (lo, hi)
+        value, problem = _limit_verdict(reply, device, kind)
+        if value is None or problem is not None:
+            raise LimitError(
+                f"{joint_name(device)} answered the {kind.value} limit write with "
+                f"{problem or 'a malformed payload'}; not adopted, the old limit stays"
+            )
+        return as_range(kind, value)
 
     def read_info(self, devices: Sequence[int] | None = None) -> dict[int, JointState]:
         """Versions, serial and model numbers, modes and status flags of each device."""
@@ -389,14 +446,23 @@ class ArmClient:
     # ----------------------------------------------------------------- commands
 
     def send(self, *packets: Packet) -> None:
-        """Write packets as they are, after the same safety checks as the command helpers."""
+        """Write packets as they are, after the same safety checks as the command helpers.
+
+        Every packet passes the gate (`reach_driver.gate`): only packets known to be
+        harmless, and checked motion and limit writes, go out; one refusal sends nothing.
+        """
         for p in packets:
             self._gate.check_packet(p)
         self._write_commands(packets)
 
+    def send_unchecked(self, *packets: Packet) -> None:
+        """Write packets with no safety check at all (bench work, protocol tests). Nothing
+        in the CLI uses it."""
+        self._write_commands(packets)
+
     def set_mode(self, devices: int | Sequence[int], mode: Mode) -> None:
         devs = [devices] if isinstance(devices, int) else list(devices)
-        self._write_commands([commands.mode(int(d), mode) for d in devs])
+        self.send(*(commands.mode(int(d), mode) for d in devs))
 
     def command_position(self, device: int, value: float) -> None:
         """Absolute position (rad; mm for the jaw); refused outside the position limit."""
@@ -440,10 +506,11 @@ class ArmClient:
         self._write_commands([builder(d, float(v)) for d, v in zip(devs, sent, strict=True)])
         return sent
 
-    def _write_commands(self, packets: Sequence[Packet]) -> None:
-        """Write checked commands; the watchdog learns which joints they arm or disarm."""
-        self._write([p.encode() for p in packets])
-        self.watchdog.note_sent(packets, self.clock())
+    def _write_commands(self, packets: Sequence[Packet], *, disarm: bool = True) -> float:
+        """Write checked commands; the watchdog learns which joints they arm (or disarm)."""
+        done = self._write([p.encode() for p in packets])
+        self.watchdog.note_sent(packets, self.clock(), disarm=disarm)
+        return done
 
     def safe_stop(self, devices: Sequence[int] | None = None) -> None:
         """Put joints (default: the four joints and the jaw) in the configured safe mode."""
@@ -467,6 +534,8 @@ class ArmClient:
         """Write frames in one go; returns the time the write completed. Only the reader
         thread's own writes (`internal`) go out while the link is not UP."""
         if not internal and self.supervisor.state is not LinkState.UP:
+            if self.supervisor.state is LinkState.FAILED:
+                raise ArmIdentityError(self.supervisor.down_message())
             raise LinkDownError(self.supervisor.down_message())
         with self._write_lock:
             try:
@@ -477,7 +546,25 @@ class ArmClient:
         return self.clock()
 
     def write_frames(self, frames: Sequence[bytes]) -> float:
-        """Raw, unchecked frames (for tools and tests); returns the write completion time."""
+        """Encoded frames, each decoded and passed through the same gate as `send`; returns
+        the write completion time. Joints they arm are armed in the watchdog, but nothing
+        here disarms one (tests use it to fake feedback on loop://)."""
+        packets = []
+        for frame in frames:
+            try:
+                packets.append(decode_packet(frame))
+            except ProtocolError as exc:
+                raise LimitError(
+                    f"refused: a frame that does not decode ({exc}) cannot be checked; "
+                    "write_frames_unchecked() writes it as it is; nothing was sent"
+                ) from None
+        for p in packets:
+            self._gate.check_packet(p)
+        return self._write_commands(packets, disarm=False)
+
+    def write_frames_unchecked(self, frames: Sequence[bytes]) -> float:
+        """Raw frames with no check at all (malformed-frame tests, tools); returns the write
+        completion time. Nothing in the CLI uses it."""
         return self._write(frames)
 
     # ----------------------------------------------------------------- the reader thread
@@ -503,6 +590,8 @@ class ArmClient:
                 chunk = self.transport.read()
             except TransportError as exc:
                 self._link_lost(str(exc))
+                if self.supervisor.state is LinkState.FAILED:
+                    self._stop.wait(0.1)  # failed for good: nothing to reopen
                 continue
             now = self.clock()
             if chunk:
@@ -512,21 +601,42 @@ class ArmClient:
 
     def _dispatch(self, packet: Packet, t: float) -> None:
         self.stats.packets += 1
-        if self.supervisor.heard(t):
-            self._link_restored(t)
+        if self.supervisor.state is LinkState.FAILED:
+            return  # another arm: nothing it says is this arm's state
+        if self.supervisor.heard(t) and not self._confirm_identity(packet, t):
+            return
         pid = packet.packet_id
         if self.table.update(packet, t):
             if pid in LIMIT_KIND_OF:
-                kind = LIMIT_KIND_OF[int(pid)]
-                reading = getattr(self.table.get(int(packet.device_id)), f"{kind.value}_limits")
-                if reading is not None:
-                    self.guard.set_arm_limit(int(packet.device_id), kind, reading.value)
+                self._consider_limits(packet)
             elif pid == PacketID.HARDWARE_STATUS:
                 event = self.faults.note(packet)
                 if event is not None:
                     self._emit(*event)
         self._waiters.offer(packet)
         self.listeners.dispatch(packet, t)
+
+    def _consider_limits(self, packet: Packet) -> None:
+        """Adopt limits the arm reported only if they were asked for (a request for this
+        packet from this device is waiting) and are plausible; else keep the ones in force,
+        count it and say so. The state table keeps the raw reading either way."""
+        dev, kind = int(packet.device_id), LIMIT_KIND_OF[int(packet.packet_id)]
+        value, problem = _limit_verdict(packet, dev, kind)
+        if value is None:
+            return  # malformed: the state table counted it
+        if problem is None and not self._waiters.wants(packet.key):
+            problem = "not asked for"
+        if problem is None:
+            self.guard.set_arm_limit(dev, kind, value)
+            return
+        self.stats.limits_rejected += 1
+        kept = self.guard.present_limit(dev, kind)
+        self._emit(
+            EventKind.LIMITS_REJECTED,
+            f"{joint_name(dev)} reported {kind.value} limits {list(value)} ({problem}); "
+            f"safety keeps {list(kept) if kept else 'none'}",
+            dev,
+        )
 
     def _broadcast_ok(self) -> bool:
         return self.transport.broadcast_ok
@@ -551,7 +661,7 @@ class ArmClient:
             self._write(self._safe_mode_frames(devices), internal=True)
             sent = f"put {', '.join(joint_name(d) for d in devices)} in {mode.name}"
         except LinkDownError:
-            self._safe_pending = True
+            self.watchdog.mark_safe_pending()
             sent = f"could not send {mode.name} (link down): will on reconnect"
         self._emit(EventKind.WATCHDOG, f"{reason}; {sent}")
 
@@ -565,9 +675,7 @@ class ArmClient:
                 return
             # Feedback is gone while joints obey the last velocity/current: the same as
             # stale feedback. The safe mode goes out first thing after reconnecting.
-            armed = self.watchdog.trip_on_link_loss()
-            if armed:
-                self._safe_pending = True
+            armed = self.watchdog.trip_on_link_loss()  # owes the safe mode if armed
         self._waiters.fail_all(lambda: LinkDownError(self.supervisor.down_message()))
         if was_up:
             self.stats.link_drops += 1
@@ -582,23 +690,92 @@ class ArmClient:
         if not self.link_config.reconnect:
             self._stop.set()
 
+    def _reopened(self) -> None:
+        """The supervisor reopened the link (reader thread): a fresh start for the check."""
+        self.decoder.reset()
+        self._check = None
+
+    def _confirm_identity(self, packet: Packet, t: float) -> bool:
+        """While PROBING: True once the link is UP again and `packet` may be used. With an
+        identity on record, the reopened link stays PROBING until every device confirmed it
+        (its replies are not state); a difference fails the link at once."""
+        if not self.identity:
+            self._link_restored(t)
+            return True
+        check = self._check
+        if check is None:
+            self._check = check = IdentityCheck(self.identity)
+            self.supervisor.extend_probe(t)
+            try:
+                self._write(check.frames(), internal=True)
+            except LinkDownError:
+                pass
+            return False
+        check.offer(packet)
+        if check.differences:
+            self._identity_failed(check.differences, t)
+        elif check.complete:
+            self._check = None
+            self._link_restored(t)
+        return False
+
+    def _identity_failed(self, differences: Sequence[str], t: float) -> None:
+        """A different arm answers: stop it, send it nothing else, fail the link for good."""
+        self._check = None
+        mode = self.guard.config.safe_mode
+        devices = (*JOINTS, JAW)
+        try:
+            self._write(self._safe_mode_frames(devices), internal=True)
+            sent = f"sent it {mode.name} and nothing else"
+        except LinkDownError:
+            sent = f"could not even send it {mode.name}"
+        reason = (
+            f"a different arm answers on {self.transport.url}: {'; '.join(differences)}; "
+            f"{sent}; close this client and start a new one to use that arm"
+        )
+        with self._lock:
+            self.supervisor.set(LinkState.FAILED, reason, t)
+            self.watchdog.disarm(devices)
+            self.watchdog.take_safe_pending()
+        self.table.clear()
+        self.stats.identity_mismatches += 1
+        self._waiters.fail_all(lambda: ArmIdentityError(self.supervisor.down_message()))
+        self._emit(EventKind.IDENTITY, reason)
+
     def _link_restored(self, t: float) -> None:
         attempts = self.supervisor.restored(t)
         frames: list[bytes] = []
-        if self._safe_pending:
+        owed = self.watchdog.take_safe_pending()
+        if owed:
             frames += self._safe_mode_frames((*JOINTS, JAW))
-            self._safe_pending = False
         if self._stream is not None:
             frames += self._stream.start_frames()
         if frames:
             try:
                 self._write(frames, internal=True)
             except LinkDownError:
+                if owed:
+                    self.watchdog.mark_safe_pending()
                 return
         self._emit(
             EventKind.LINK_UP,
             f"{self.transport.url} answering again after {attempts} attempt(s)",
         )
+
+
+def _limit_verdict(
+    packet: Packet | None, device: int, kind: LimitKind
+) -> tuple[Range | None, str | None]:
+    """(the limits a packet carries, why they are not plausible or None); (None, None) for
+    no packet or a malformed one."""
+    if packet is None:
+        return None, None
+    try:
+        value = packet_value(packet)
+    except ProtocolError:
+        return None, None
+    assert isinstance(value, tuple)
+    return value, envelope_problem(device, kind, value)
 
 
 def _four(values: Sequence[float] | np.ndarray) -> list[float]:

@@ -31,6 +31,12 @@ class LinkDownError(DriverError):
     """A command was issued while the link is down; it was not sent."""
 
 
+class ArmIdentityError(LinkDownError):
+    """After a reconnect a different arm answered (serial or model number, or firmware
+    version, differs from what was read at connect). Nothing but its safe stop was sent to
+    it; the link stays failed: close the client and start a new one to use that arm."""
+
+
 class RequestTimeoutError(DriverError, TimeoutError):
     """A device did not answer a REQUEST within its timeout and retries."""
 

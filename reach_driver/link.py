@@ -13,6 +13,7 @@ class LinkState(str, Enum):
     DOWN = "down"  # lost; the transport is closed and will be reopened after a backoff
     PROBING = "probing"  # reopened, waiting for the arm to answer before commands resume
     CLOSED = "closed"  # the client was closed
+    FAILED = "failed"  # a different arm answered after a reconnect: nothing is sent to it
 
 
 class EventKind(str, Enum):
@@ -22,6 +23,8 @@ class EventKind(str, Enum):
     WATCHDOG = "watchdog"
     FAULT = "fault"
     FAULT_CLEARED = "fault cleared"
+    IDENTITY = "different arm"
+    LIMITS_REJECTED = "limits rejected"
 
 
 @dataclass(frozen=True)
@@ -88,3 +91,5 @@ class ClientStats:
     reconnects: int = 0
     watchdog_trips: int = 0
     keepalives: int = 0
+    identity_mismatches: int = 0
+    limits_rejected: int = 0  # limits the arm reported that safety did not adopt

@@ -3,6 +3,10 @@
 A caller writes its requests and waits on a `Waiter`; the reader thread offers every packet
 to the waiters wanting its (device, packet id). Nothing else is needed to tell replies
 apart, because a device answers one packet per id asked for.
+
+One waiter stays registered across all attempts of a request, so a late reply to the first
+REQUEST that arrives just as the retry goes out is still caught (with a waiter per attempt,
+it could land between one's removal and the next one's registration, in neither).
 """
 
 from __future__ import annotations
@@ -21,21 +25,38 @@ Replies = dict[int, dict[int, Packet]]  # device -> packet id -> reply
 
 
 class Waiter:
-    """One outstanding request: the (device, packet id) pairs still wanted."""
+    """One outstanding request: the (device, packet id) pairs still wanted. Offered packets
+    on the reader thread, read by the caller: both under its lock."""
 
     def __init__(self, wanted: Iterable[Key]) -> None:
+        self._lock = threading.Lock()
         self.wanted = set(wanted)
         self.got: dict[Key, Packet] = {}
         self.event = threading.Event()
         self.error: DriverError | None = None
 
+    def still_wants(self, key: Key) -> bool:
+        with self._lock:
+            return key in self.wanted
+
+    def missing(self) -> set[Key]:
+        with self._lock:
+            return set(self.wanted)
+
+    def replies(self) -> dict[Key, Packet]:
+        with self._lock:
+            return dict(self.got)
+
     def offer(self, packet: Packet) -> None:
         key = (int(packet.device_id), int(packet.packet_id))
-        if key in self.wanted:
+        with self._lock:
+            if key not in self.wanted:
+                return
             self.wanted.discard(key)
             self.got[key] = packet
-            if not self.wanted:
-                self.event.set()
+            done = not self.wanted
+        if done:
+            self.event.set()
 
     def fail(self, error: DriverError) -> None:
         self.error = error
@@ -62,6 +83,12 @@ class Waiters:
                     items.remove(waiter)
                 if not items:
                     del self._by_key[key]
+
+    def wants(self, key: Key) -> bool:
+        """Whether an outstanding request waits for this (device, packet id)."""
+        k = (int(key[0]), int(key[1]))
+        with self._lock:
+            return any(w.still_wants(k) for w in self._by_key.get(k, ()))
 
     def offer(self, packet: Packet) -> None:
         with self._lock:
@@ -128,26 +155,25 @@ class Requester:
         self, devs: list[int], pids: list[int], *, timeout_s: float, retries: int, partial: bool
     ) -> Replies:
         attempts = 1 + retries
-        wanted = {(d, p) for d in devs for p in pids}
-        got: dict[Key, Packet] = {}
-        for attempt in range(attempts):
-            waiter = Waiter(wanted)
-            self._waiters.add(waiter)
-            try:
-                frames = _request_frames(devs, pids, wanted)
+        waiter = Waiter((d, p) for d in devs for p in pids)
+        self._waiters.add(waiter)  # once, for every attempt: see the module docstring
+        try:
+            for attempt in range(attempts):
+                missing = waiter.missing()
+                if not missing:
+                    break
+                frames = _request_frames(devs, pids, missing)
                 self._write(frames)
                 self._stats.requests_sent += len(frames)
                 if attempt:
                     self._stats.request_retries += len(frames)
                 waiter.event.wait(timeout_s)
-            finally:
-                self._waiters.remove(waiter)
-            got.update(waiter.got)
-            wanted = waiter.wanted
-            if waiter.error is not None:
-                raise waiter.error
-            if not wanted:
-                break
+                if waiter.error is not None:
+                    raise waiter.error
+        finally:
+            self._waiters.remove(waiter)
+        got = waiter.replies()
+        wanted = waiter.missing()
         if wanted and not partial:
             self._stats.request_timeouts += 1
             never = ", ".join(

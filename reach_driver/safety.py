@@ -76,6 +76,9 @@ class SafetyConfig:
     barrier_width: float = 0.1
     watchdog_s: float | None = 0.2
     safe_mode: Mode = Mode.ZERO_VELOCITY
+    #: INDEXED_POSITION's reference is not documented, so its target cannot be checked;
+    #: only with this set does the gate let it out (finite, to a known joint).
+    allow_indexed_position: bool = False
 
     def __post_init__(self) -> None:
         if self.barrier_width < 0 or self.position_margin < 0:
@@ -103,6 +106,41 @@ class EffectiveLimit:
         return self.low <= value <= self.high
 
 
+def _slack(bound: float) -> float:
+    """Float32 rounding of a bound as it crosses the wire (6.143 comes back 6.1430001)."""
+    return 1e-6 * max(1.0, abs(bound))
+
+
+def as_range(kind: LimitKind, values: Range) -> Range:
+    """(min, max) from a limits payload in either order; a magnitude reported as [max, 0]
+    (velocity, current) is symmetric."""
+    lo, hi = sorted(values)
+    if kind is not LimitKind.POSITION and lo >= 0:
+        lo = -hi
+    return (lo, hi)
+
+
+def envelope_problem(device: int, kind: LimitKind, values: Range) -> str | None:
+    """Why a limit cannot be real for this device (not finite, empty, outside the factory
+    envelope of `protocol.alpha5`), or None when it is plausible."""
+    if not all(math.isfinite(v) for v in values):
+        return f"{kind.value} limits {list(values)} are not finite"
+    lo, hi = as_range(kind, values)
+    if not lo < hi:
+        return f"{kind.value} limits [{lo:.4g}, {hi:.4g}] are empty"
+    factory = DEFAULT_LIMITS[kind].get(int(device))
+    if factory is None:
+        return f"{joint_name(device)} has no factory {kind.value} envelope"
+    flo, fhi = factory
+    if lo < flo - _slack(flo) or hi > fhi + _slack(fhi):
+        unit = kind.unit(device)
+        return (
+            f"{kind.value} limits [{lo:.4g}, {hi:.4g}] {unit} of {joint_name(device)} leave "
+            f"the factory envelope [{flo:.4g}, {fhi:.4g}] {unit}"
+        )
+    return None
+
+
 class SafetyGuard:
     """Checks commands against the effective limits; holds no connection of its own."""
 
@@ -112,10 +150,13 @@ class SafetyGuard:
         self.barrier_cuts = 0
 
     def set_arm_limit(self, device: int, kind: LimitKind, value: Range) -> None:
-        lo, hi = sorted(value)
-        if kind is not LimitKind.POSITION and lo >= 0:
-            lo = -hi  # a magnitude reported as [max, 0]: symmetric
-        self._arm[(kind, int(device))] = (lo, hi)
+        """Adopt a limit the arm reported (the caller checked it with `envelope_problem`)."""
+        self._arm[(kind, int(device))] = as_range(kind, value)
+
+    def present_limit(self, device: int, kind: LimitKind) -> Range | None:
+        """The arm's limit as adopted, else the documented default; None for no device."""
+        dev = int(device)
+        return self._arm.get((kind, dev)) or DEFAULT_LIMITS[kind].get(dev)
 
     def has_arm_limit(self, device: int, kind: LimitKind) -> bool:
         return (kind, int(device)) in self._arm

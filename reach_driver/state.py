@@ -227,6 +227,11 @@ class StateTable:
         with self._lock:
             return ArmState(dict(self._joints), now)
 
+    def clear(self) -> None:
+        """Forget everything (a different arm answers: none of it describes this one)."""
+        with self._lock:
+            self._joints.clear()
+
     def forget(self, device: int, packet_id: int) -> None:
         """Drop one value (e.g. limits before re-reading them, so stale ones cannot answer)."""
         tracked = _TRACKED.get(packet_id)

@@ -3,7 +3,8 @@
 UDP and CAN have no other way to tell a dead link, so a keepalive REQUEST goes out after
 `LinkConfig.keepalive_s` without a valid packet and the link counts as lost after
 `stale_link_s`. A lost link is closed and reopened with doubling delays; once reopened it is
-PROBING until the arm answers, and only then UP again (commands resume).
+PROBING until the arm answers, and only then UP again (commands resume). If the client
+finds a different arm answering, it sets FAILED: terminal, never reopened.
 
 The supervisor holds the link's state and timers and runs on the reader thread; what losing
 or regaining the link means for commands, requests and the watchdog is the client's.
@@ -71,11 +72,19 @@ class LinkSupervisor:
 
     def mark_down(self, reason: str) -> bool | None:
         """Mark the link DOWN; whether it was UP, or None if it was already down or closed."""
-        if self._stop.is_set() or self.state in (LinkState.DOWN, LinkState.CLOSED):
+        if self._stop.is_set() or self.state in (
+            LinkState.DOWN,
+            LinkState.CLOSED,
+            LinkState.FAILED,
+        ):
             return None
         was_up = self.state is LinkState.UP
         self.set(LinkState.DOWN, reason, self._clock())
         return was_up
+
+    def extend_probe(self, now: float) -> None:
+        """Something answered; give the client a full probe timeout to confirm the arm."""
+        self._probe_deadline = now + self.config.probe_timeout_s
 
     def restored(self, t: float) -> int:
         """The arm answers again: UP. Returns how many reopening attempts it took."""
@@ -87,6 +96,8 @@ class LinkSupervisor:
 
     def down_message(self) -> str:
         url = self.transport.url
+        if self.state is LinkState.FAILED:
+            return f"link to {url} failed: {self.reason}; nothing was sent"
         if self.state is LinkState.CLOSED:
             why = f" ({self.reason})" if "crashed" in self.reason else ""
             return f"client for {url} is not running{why}; start() it first"

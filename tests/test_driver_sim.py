@@ -303,7 +303,7 @@ def test_a_link_error_flag_is_only_a_warning_for_move(sim, capsys) -> None:
     from protocol import Packet
 
     with ArmClient(open_transport(ports(sim)["pty"])) as arm:
-        arm.write_frames([Packet(DeviceID.D, PacketID.MODE, b"").encode()])  # bad payload
+        arm.write_frames_unchecked([Packet(DeviceID.D, PacketID.MODE, b"").encode()])  # bad payload
         assert wait_until(lambda: "SERIAL_ERROR" in arm.read_status().get(4, []), timeout=10.0)
     target = sim.snapshot().q + np.array([0.0, 0.1, 0.0, 0.0])
     assert main(["--port", ports(sim)["pty"], "move", *map(str, target)]) == Exit.OK
