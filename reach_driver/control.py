@@ -65,6 +65,13 @@ TELEMETRY = (PacketID.POSITION, PacketID.VELOCITY)
 # CURRENT first: a joint's heartbeat sends its ids in order, so the measured current is in
 # before the VELOCITY that completes the state.
 TELEMETRY_WITH_CURRENT = (PacketID.CURRENT, PacketID.POSITION, PacketID.VELOCITY)
+REPLY_BYTES = len(commands.current(int(JOINTS[0]), 0.0).encode())  # one float reply: 10 B
+
+
+def telemetry_fits(ids: Sequence[int], hz: int, wire_bytes_per_s: float | None) -> bool:
+    """Whether the four joints' heartbeat of `ids` at `hz` fits the link (None: no limit)."""
+    return wire_bytes_per_s is None or hz * N * len(ids) * REPLY_BYTES <= wire_bytes_per_s
+
 
 RECONNECT_WAIT_S = 3.0
 STATUS_PERIOD_S = 1.0
@@ -237,6 +244,12 @@ class _Run:
         subscription = client.subscribe(asm)
         try:
             ids = TELEMETRY_WITH_CURRENT if loop.measure_current else TELEMETRY
+            wire = client.transport.wire_bytes_per_s
+            if ids is TELEMETRY_WITH_CURRENT and not telemetry_fits(ids, loop.hz, wire):
+                # A slow line cannot carry CURRENT too at this rate (115200 baud: 96 Hz):
+                # the arm's queue would drop frames and states would arrive stale.
+                log.warning("%d Hz exceeds the line with CURRENT: streaming without it", loop.hz)
+                ids = TELEMETRY
             client.stream(ids, loop.hz, JOINTS)
             ticks0: int | None = None
             while not loop._stop.is_set():

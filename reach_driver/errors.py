@@ -27,6 +27,10 @@ class PortPermissionError(TransportError):
     """The serial device exists but this user may not open it."""
 
 
+class PortBusyError(TransportError):
+    """The serial device is held by another program (or another driver in this one)."""
+
+
 class LinkDownError(DriverError):
     """A command was issued while the link is down; it was not sent."""
 

@@ -22,6 +22,7 @@ from reach_driver.errors import BadUrlError, TransportError
 DEFAULT_BAUD = 115200
 DEFAULT_UDP_PORT = 6789
 DEFAULT_READ_TIMEOUT_S = 0.01
+DELIMITER = b"\x00"
 
 
 @dataclass
@@ -58,6 +59,10 @@ class Transport(abc.ABC):
     #: Each read returns whole frames (datagrams): the template ends it with a 0x00 so a
     #: truncated tail can never merge with the next read's first frame.
     reads_whole_frames: ClassVar[bool] = False
+    #: A byte stream (serial, the CAN tunnel): `open()` writes one 0x00 first, so the arm's
+    #: decoder drops any partial frame a previous host left on the line instead of gluing
+    #: our first request to it. Not for datagrams: the arm ends each datagram's last frame.
+    opens_with_delimiter: ClassVar[bool] = False
     #: The link library's exceptions, reported as `TransportError` by the templates.
     link_errors: ClassVar[tuple[type[BaseException], ...]] = (OSError,)
     #: How the templates' messages name a failed read and write ("read from URL failed: ...").
@@ -87,6 +92,12 @@ class Transport(abc.ABC):
             return
         self._open_internal()
         self.stats.opens += 1
+        if self.opens_with_delimiter:
+            try:
+                self._write_pieces([DELIMITER])
+            except TransportError:
+                self.close()  # never left open half set up
+                raise
 
     def read(self) -> bytes:
         """What arrived within `read_timeout_s` (b"" if nothing)."""

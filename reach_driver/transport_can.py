@@ -137,6 +137,9 @@ class CanTransport(Transport):
     """One end of the CAN tunnel; the host end by default, the gateway end with `swapped()`."""
 
     link_errors: ClassVar[tuple[type[BaseException], ...]] = (can.CanError,)
+    # A byte stream: a host that died mid-write left part of a frame in the gateway's path,
+    # and a restarted sequence only sometimes shows as a gap (which would close it).
+    opens_with_delimiter: ClassVar[bool] = True
     read_failed: ClassVar[str] = "CAN receive on"
     write_failed: ClassVar[str] = "CAN send on"
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import os
 import time
 from collections.abc import Sequence
 from typing import ClassVar
@@ -11,6 +12,7 @@ import serial
 
 from reach_driver.errors import (
     BadUrlError,
+    PortBusyError,
     PortNotFoundError,
     PortPermissionError,
     TransportError,
@@ -20,6 +22,8 @@ from reach_driver.transport import DEFAULT_BAUD, DEFAULT_READ_TIMEOUT_S, Transpo
 BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
 DEFAULT_RS485_GAP_S = 0.002
 RS485_MAX_WAIT_S = 0.05
+#: errnos meaning another opener holds the port: flock (exclusive=True) or TIOCEXCL.
+BUSY_ERRNOS = (errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY)
 
 
 def _available_ports() -> str:
@@ -32,6 +36,72 @@ def _available_ports() -> str:
     return ", ".join(names) if names else "none"
 
 
+def _command_of(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            words = f.read().rstrip(b"\0").split(b"\0")
+    except OSError:
+        return "?"
+    command = " ".join(" ".join(w.decode(errors="replace") for w in words).split())
+    return command if len(command) <= 120 else command[:117] + "..."
+
+
+def port_holders(path: str) -> tuple[str, list[int]]:
+    """Who holds `path` (Linux, best effort, never raises): ("locked", pids of the flock on it
+    in /proc/locks), else ("open", every process with it open in /proc/*/fd), else ("", [])."""
+    try:
+        real = os.path.realpath(path)
+        st = os.stat(real)
+    except OSError:
+        return "", []
+    dev, ino = (os.major(st.st_dev), os.minor(st.st_dev)), st.st_ino
+    locked: list[int] = []
+    try:
+        with open("/proc/locks") as f:
+            for line in f:
+                # "1: FLOCK  ADVISORY  WRITE 1234 00:19:5 0 EOF" (waiters have "->")
+                fields = line.split()
+                if len(fields) < 6 or fields[1] != "FLOCK":
+                    continue
+                major, minor, inode = fields[5].split(":")
+                if (int(major, 16), int(minor, 16)) == dev and int(inode) == ino:
+                    locked.append(int(fields[4]))
+    except (OSError, ValueError):
+        locked = []
+    if locked:
+        return "locked", sorted(set(locked))
+    holders = set()
+    try:
+        pids = [int(p) for p in os.listdir("/proc") if p.isdigit()]
+    except OSError:
+        return "", []
+    for pid in pids:
+        try:
+            fds = os.listdir(f"/proc/{pid}/fd")
+        except OSError:
+            continue  # gone, or another user's
+        for fd in fds:
+            try:
+                if os.readlink(f"/proc/{pid}/fd/{fd}") == real:
+                    holders.add(pid)
+                    break
+            except OSError:
+                continue
+    return ("open", sorted(holders)) if holders else ("", [])
+
+
+def _describe_holders(path: str) -> str:
+    how, pids = port_holders(path)
+    if not pids:
+        return ""
+
+    def who(pid: int) -> str:
+        mine = "this process: " if pid == os.getpid() else ""
+        return f"pid {pid} ({mine}{_command_of(pid)})"
+
+    return f" ({how} by {', '.join(who(pid) for pid in pids)})"
+
+
 class SerialTransport(Transport):
     """8N1 serial; with `rs485=True` frames are written one at a time with idle gaps between.
 
@@ -39,9 +109,14 @@ class SerialTransport(Transport):
     until the line has been quiet for `rs485_gap_s` (after our own bytes have left the UART,
     estimated from the baud rate, and after the last byte received). Broadcast requests are
     refused by the client there, since every joint would answer at once and collide.
+
+    The port is opened exclusively (on POSIX an advisory flock, which every reach-driver
+    takes): a second opener gets `PortBusyError` naming the holder, and the first is left
+    undisturbed. Each open starts with a 0x00 (see `Transport.opens_with_delimiter`).
     """
 
     takes_serial_options: ClassVar[bool] = True
+    opens_with_delimiter: ClassVar[bool] = True
     # TypeError/AttributeError: pyserial's fd becomes None under a concurrent close.
     link_errors: ClassVar[tuple[type[BaseException], ...]] = (
         serial.SerialException,
@@ -99,6 +174,7 @@ class SerialTransport(Transport):
                 stopbits=serial.STOPBITS_ONE,
                 timeout=self.read_timeout_s,
                 write_timeout=1.0,
+                exclusive=True if os.name == "posix" else None,
                 do_not_open=True,
             )
             port.open()
@@ -123,8 +199,11 @@ class SerialTransport(Transport):
                 f"permission denied opening {self.url}: add your user to the group owning it "
                 "(usually 'dialout': sudo usermod -aG dialout $USER, then log in again)"
             )
-        if code == errno.EBUSY:
-            return TransportError(f"{self.url} is busy: another program has it open")
+        if code in BUSY_ERRNOS:
+            return PortBusyError(
+                f"{self.url} is in use{_describe_holders(self.url)}: one program at a time "
+                "may drive the arm; close the other (perhaps another reach-driver) and try again"
+            )
         return TransportError(f"cannot open serial port {self.url}: {exc}")
 
     def close(self) -> None:

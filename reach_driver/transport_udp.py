@@ -27,6 +27,9 @@ class UdpTransport(Transport):
     """Frames travel several to a datagram both ways; each datagram is a whole number of frames."""
 
     reads_whole_frames: ClassVar[bool] = True
+    # No 0x00 on open: a datagram cannot leave a partial frame behind (we split on frame
+    # boundaries, and the arm, like reach-sim, ends each datagram's last frame).
+    opens_with_delimiter: ClassVar[bool] = False
     link_errors: ClassVar[tuple[type[BaseException], ...]] = (OSError,)
     read_failed: ClassVar[str] = "receive on"
     write_failed: ClassVar[str] = "send to"

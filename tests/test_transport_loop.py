@@ -59,7 +59,8 @@ def test_loop_transport_round_trips_frames_and_counts_bytes() -> None:
     frames = [commands.position(1, 1.5).encode(), commands.request(0xFF, [3, 2]).encode()]
     t.write_frames(frames)
     data = read_all(t)
-    assert data == bytes.fromhex("01 01 07 C0 3F 03 01 08 CB 00 07 03 02 60 FF 06 0B 00")
+    # the 0x00 written on open first, then the frames
+    assert data == bytes.fromhex("00 01 01 07 C0 3F 03 01 08 CB 00 07 03 02 60 FF 06 0B 00")
     assert t.stats.bytes_out == t.stats.bytes_in == len(data)
     t.close()
     assert not t.is_open
@@ -102,8 +103,9 @@ def test_rs485_spaces_frames_and_refuses_broadcast_requests() -> None:
     t = open_transport("loop://", rs485=True)
     assert not t.broadcast_ok
     frames = [commands.velocity(5, 0.0).encode()] * 3
+    writes = t.stats.writes  # the 0x00 written on open is one
     t.write_frames(frames)
-    assert t.stats.writes == 3  # one write per frame, with a quiet gap before each
+    assert t.stats.writes - writes == 3  # one write per frame, with a quiet gap before each
     arm = ArmClient(t, link=LinkConfig(stale_link_s=5.0, keepalive_s=2.0))
     arm.start(discover=False, read_limits=False)
     try:

@@ -14,6 +14,14 @@ figures:
 - CPU per cycle: the loop thread, and the whole driver process (reader thread included);
 - the same loop on an unthrottled pty in the same process: the baseline the throttled run
   is compared with, and the host-paced (poll) loop on the throttled line.
+
+The figure judged is the rate of *complete* states (a state with a lost reading filled in
+does not count) as a share of the wire budget; the aim is AIM (95%), and the script exits 1
+when it is missed, or when a run fails.
+
+The loop streams without CURRENT (`measure_current=False`): with it a state is 12 frames,
+120 B, and 115200 baud carries at most 96 states/s (the loop itself drops CURRENT when the
+line cannot carry it at the rate asked, see `reach_driver.control.telemetry_fits`).
 """
 
 from __future__ import annotations
@@ -40,6 +48,8 @@ from reach_driver import (
 from reach_driver.transport_serial import BITS_PER_BYTE
 
 ROOT = Path(__file__).resolve().parents[1]
+AIM = 0.95  # complete states per second, as a share of the wire budget
+HEARTBEAT_SHARE = 0.97  # default heartbeat: this share of the budget, rounded down
 
 
 def wire_budget_hz(baud: int) -> tuple[float, int, int]:
@@ -87,22 +97,34 @@ def run_loop(baud: int | None, hz: float, seconds: float, pacing: Pacing) -> Con
     try:
         with ArmClient(open_transport(sim.link)) as client:
             q = client.read_joints((PacketID.POSITION, PacketID.VELOCITY)).q
-            loop = ControlLoop(client, load_controller("pid"), 1.0 / hz, pacing=pacing)
+            loop = ControlLoop(
+                client, load_controller("pid"), 1.0 / hz, pacing=pacing, measure_current=False
+            )
             return loop.run(q, seconds)
     finally:
         sim.close()
 
 
+def complete_rate(s: ControlSummary) -> float:
+    """States per second the loop acted on that had every reading fresh."""
+    t = s.timing
+    return max(t.steps - t.partial_states, 0) / s.wall_seconds if s.wall_seconds > 0 else 0.0
+
+
 def report(name: str, s: ControlSummary, budget: float | None) -> None:
     t = s.timing
-    share = f" = {100 * t.rate_hz / budget:.1f}% of the wire budget" if budget else ""
+    share = f" = {100 * complete_rate(s) / budget:.1f}% of the wire budget" if budget else ""
     print(f"{name}")
-    print(f"  rate        {t.rate_hz:8.1f} Hz over {s.wall_seconds:.1f} s{share}")
+    print(
+        f"  rate        {t.rate_hz:8.1f} Hz over {s.wall_seconds:.1f} s; complete states"
+        f" {complete_rate(s):.1f}/s{share}"
+    )
     print(
         f"  period      mean {t.period_mean_s * 1e3:.2f} ms, jitter sd"
         f" {t.period_jitter_s * 1e3:.2f} ms, max {t.period_jitter_max_s * 1e3:.2f} ms;"
         f" missed deadlines {t.missed_deadlines},"
-        f" skipped states {t.skipped_states}"
+        f" skipped states {t.skipped_states}, partial states {t.partial_states},"
+        f" incomplete ticks {t.incomplete_ticks}"
     )
     print(
         f"  latency     state complete -> command written p50 {t.latency_p50_s * 1e3:.3f} ms,"
@@ -124,15 +146,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=10.0, help="per run (default 10)")
     parser.add_argument("--baud", type=int, default=115200, help="throttled line (default 115200)")
     parser.add_argument(
-        "--hz", type=int, help="heartbeat rate (default: 95%% of the budget, rounded down)"
+        "--hz",
+        type=int,
+        help=f"heartbeat rate (default: {100 * HEARTBEAT_SHARE:.0f}%% of the budget, rounded down)",
     )
     parser.add_argument("--poll-hz", type=float, default=50.0, help="polled loop rate (default 50)")
     args = parser.parse_args(argv)
 
     budget, telemetry, command = wire_budget_hz(args.baud)
     # A heartbeat at the full budget leaves no slack for the emulator's timing: the queue on
-    # the line then grows and every state arrives late. 95% keeps it empty.
-    hz = args.hz or int(np.floor(budget * 0.95))
+    # the line then grows and every state arrives late. 97% keeps it empty and clears the aim.
+    hz = args.hz or int(np.floor(budget * HEARTBEAT_SHARE))
     print(
         f"wire budget at {args.baud} baud 8N1: {telemetry} B of telemetry per state -> "
         f"{budget:.1f} states/s max; commands {command} B/cycle on the other wire "
@@ -148,13 +172,20 @@ def main(argv: list[str] | None = None) -> int:
     report(f"poll pacing at {args.poll_hz:g} Hz, {args.baud} baud", poll, budget)
     base = run_loop(None, hz, args.seconds, Pacing.STREAM)
     report("baseline: stream pacing, unthrottled pty", base, None)
-    ratio = stream.timing.rate_hz / base.timing.rate_hz
+    ratio = complete_rate(stream) / complete_rate(base) if complete_rate(base) else 0.0
+    reached = complete_rate(stream) / budget
     print(
-        f"\nthrottled / unthrottled rate: {ratio:.3f}; latency p99 ratio "
-        f"{stream.timing.latency_p99_s / base.timing.latency_p99_s:.2f}; "
-        f"reached {100 * stream.timing.rate_hz / budget:.1f}% of the wire budget (aim >= 90%)"
+        f"\nthrottled / unthrottled complete-state rate: {ratio:.3f}; latency p99 ratio "
+        f"{stream.timing.latency_p99_s / base.timing.latency_p99_s:.2f}"
     )
-    ok = stream.ok and base.ok and stream.timing.rate_hz >= 0.9 * budget
+    ok = stream.ok and base.ok and reached >= AIM
+    verdict = "met" if ok else "MISSED"
+    print(
+        f"wire budget ratio {reached:.3f} (complete states {complete_rate(stream):.1f}/s of "
+        f"{budget:.1f}/s); aim >= {AIM:.2f}: {verdict}"
+    )
+    if not (stream.ok and base.ok):
+        print(f"a run failed: {stream.error or base.error}")
     return 0 if ok else 1
 
 

@@ -1,0 +1,70 @@
+"""What the control loop streams must fit the link: on a 115200 baud line CURRENT, POSITION
+and VELOCITY of four joints (120 B a state) fit 96 Hz, POSITION and VELOCITY (80 B) 144 Hz."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from protocol import PacketID
+from reach_driver import ArmClient, ControlLoop, ControlState, open_transport
+from reach_driver.control import TELEMETRY, TELEMETRY_WITH_CURRENT, telemetry_fits
+from reach_sim_bridge.server import SimConfig, SimServer
+
+LINE = 115200 / 10  # bytes/s, 8N1
+
+
+def test_telemetry_fits_the_wire_budget_arithmetic() -> None:
+    assert telemetry_fits(TELEMETRY_WITH_CURRENT, 96, LINE)
+    assert not telemetry_fits(TELEMETRY_WITH_CURRENT, 97, LINE)
+    assert telemetry_fits(TELEMETRY, 144, LINE)
+    assert not telemetry_fits(TELEMETRY, 145, LINE)
+    assert telemetry_fits(TELEMETRY_WITH_CURRENT, 255, None)  # UDP, CAN: not the limit
+
+
+class Zero:
+    def reset(self) -> None:
+        pass
+
+    def act(self, state: ControlState, target: np.ndarray) -> np.ndarray:
+        return np.zeros(4)
+
+
+@pytest.fixture
+def slow_line(tmp_path):
+    server = SimServer(SimConfig(speed=2.0, link=str(tmp_path / "arm"), baud=115200))
+    server.start()
+    client = ArmClient(open_transport(str(server.link))).start()
+    streamed: list[tuple[int, ...]] = []
+    real_stream = client.stream
+
+    def spy(ids, hz, devices):  # what the loop asks the joints to stream
+        streamed.append(tuple(int(i) for i in ids))
+        return real_stream(ids, hz, devices)
+
+    client.stream = spy  # type: ignore[method-assign]
+    yield client, streamed
+    client.close()
+    server.stop()
+    assert server.error is None
+
+
+def test_a_rate_the_line_cannot_carry_with_current_streams_without_it(slow_line, caplog) -> None:
+    client, streamed = slow_line
+    q = client.read_joints((PacketID.POSITION, PacketID.VELOCITY)).q
+    with caplog.at_level(logging.WARNING, logger="reach_driver.control"):
+        summary = ControlLoop(client, Zero(), 1 / 120).run(q, 0.3)
+    assert summary.ok, summary.error
+    assert streamed == [tuple(int(i) for i in TELEMETRY)]
+    assert "120 Hz exceeds the line with CURRENT" in caplog.text
+    assert summary.trace is not None and np.isnan(summary.trace.current_mA[1:]).all()
+
+
+def test_a_rate_that_fits_keeps_the_measured_current(slow_line) -> None:
+    client, streamed = slow_line
+    q = client.read_joints((PacketID.POSITION, PacketID.VELOCITY)).q
+    summary = ControlLoop(client, Zero(), 1 / 50).run(q, 0.3)
+    assert summary.ok, summary.error
+    assert streamed == [tuple(int(i) for i in TELEMETRY_WITH_CURRENT)]
