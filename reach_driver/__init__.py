@@ -16,6 +16,7 @@ from reach_driver.controllers import (
 )
 from reach_driver.errors import (
     ArmFaultError,
+    ArmIdentityError,
     BadUrlError,
     DriverError,
     GarbageError,
@@ -23,6 +24,7 @@ from reach_driver.errors import (
     LinkDownError,
     NoResponseError,
     PortNotFoundError,
+    PortBusyError,
     PortPermissionError,
     RequestTimeoutError,
     TransportError,
@@ -41,6 +43,7 @@ __all__ = [
     "JOINTS",
     "ArmClient",
     "ArmFaultError",
+    "ArmIdentityError",
     "ArmState",
     "BadUrlError",
     "ClientEvent",
@@ -63,6 +66,7 @@ __all__ = [
     "Pacing",
     "PacketQueue",
     "PortNotFoundError",
+    "PortBusyError",
     "PortPermissionError",
     "Reading",
     "RequestTimeoutError",

@@ -411,7 +411,7 @@ class _Run:
             wait = self.loop.reconnect_wait_s if client.link_config.reconnect else 0.0
             deadline = time.monotonic() + wait
             while client.link_state is not LinkState.UP and time.monotonic() < deadline:
-                if client.link_state is LinkState.CLOSED:
+                if client.link_state in (LinkState.CLOSED, LinkState.FAILED):
                     break
                 time.sleep(0.02)
             if client.link_state is not LinkState.UP:
