@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 from rich.console import Console
 from rich.live import Live
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from protocol import Mode, PacketID
@@ -28,9 +29,11 @@ from reach_driver.cli.render import (
     print_recording,
     print_summary,
 )
+from reach_driver.client import ArmClient
 from reach_driver.control import ControlLoop, control_period
 from reach_driver.controllers import available_controllers, load_controller
 from reach_driver.errors import ArmFaultError, DriverError
+from reach_driver.link import EventKind, LinkState
 from reach_driver.records import ControlSummary, StepRecord
 from reach_driver.safety import LimitKind
 
@@ -99,6 +102,7 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
         if args.jaw is not None:
             client.command_jaw(args.jaw)
         start_err = float(np.max(np.abs(target - q0))) or 1.0
+        move_started = client.clock()
         deadline = time.monotonic() + args.move_timeout
         with Progress(
             TextColumn("[bold]move[/]"),
@@ -123,6 +127,10 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 if worst <= args.tolerance and jaw_err <= args.jaw_tolerance:
                     progress.update(task, completed=1.0)
                     break
+                if client.link_state is not LinkState.UP:
+                    progress.stop()
+                    _report_link_lost(client, target, move_started)
+                    return Exit.LINK_LOST
                 faults = blocking_faults(state.faults, None)
                 if faults:
                     client.safe_stop(devices)
@@ -140,6 +148,36 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
         except DriverError:
             pass
         client.close()
+
+
+def _report_link_lost(client: ArmClient, target: np.ndarray, move_started: float) -> None:
+    """Why a move ended on a lost link: since when, and the last positions the arm sent."""
+    now = client.clock()
+    downs = [e.t for e in client.events if e.kind is EventKind.LINK_DOWN]
+    since = downs[-1] if downs else now
+    wall = time.time() - (now - since)
+    stamp = time.strftime("%H:%M:%S", time.localtime(wall)) + f".{int(wall * 1e3) % 1000:03d}"
+    state = client.state
+    positions = []
+    ages = []
+    for letter, dev in zip(JOINT_LETTERS, JOINTS, strict=True):
+        reading = state.joint(dev).position
+        if reading is None:
+            positions.append(f"{letter} -")
+        else:
+            positions.append(f"{letter} {reading.value:.4f}")
+            ages.append(reading.age(now))
+    age = f" ({max(ages):.2f} s old)" if ages else ""
+    goal = " ".join(f"{v:.4f}" for v in target)
+    message = (
+        f"during the move: {client.link_reason}; down for {now - since:.2f} s "
+        f"(since {stamp}, {since - move_started:.2f} s into the move); last known positions "
+        f"(rad) {' '.join(positions)}{age}. The arm was commanded to {goal} in position mode "
+        "and may still be moving there."
+    )
+    Console(stderr=True, highlight=False).print(
+        f"[red]link lost[/] {escape(message)}", soft_wrap=True
+    )
 
 
 def cmd_run(args: argparse.Namespace, console: Console) -> Exit:

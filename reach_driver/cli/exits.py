@@ -11,4 +11,5 @@ class Exit(IntEnum):
     USAGE = 2
     LIMIT = 3
     NO_ARM = 4
+    LINK_LOST = 5  # the link went down while a command was under way
     INTERRUPTED = 130

@@ -34,9 +34,10 @@ examples:
       --seconds 20 --record run.rrd
   reach-driver inspect run.rrd
 
-exit status: 0 done; 1 failed (timeout, fault, lost link); 2 bad usage; 3 refused by a
-limit (nothing moved); 4 no arm (wrong port, no permission, nothing answering, wrong baud);
-130 interrupted (arm left in a safe mode). docs/hil.md: using a real arm.
+exit status: 0 done; 1 failed (timeout, fault, lost link during run); 2 bad usage; 3 refused
+by a limit (nothing moved); 4 no arm (wrong port, no permission, nothing answering, wrong
+baud); 5 the link was lost during a move (the message says since when and the last known
+positions); 130 interrupted (arm left in a safe mode). docs/hil.md: using a real arm.
 """
 
 
@@ -138,7 +139,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="position-mode move of E D C B (rad) and optionally the jaw (mm)",
         description="Move the four joints to absolute angles (rad, as the arm reports them) "
         "in position mode and wait until every joint is within --tolerance. Targets outside "
-        "the limits are refused before anything moves (exit 3).",
+        "the limits are refused before anything moves (exit 3). If the link goes down during the "
+        "move it stops waiting at once and exits 5, saying since when and the last positions "
+        "the arm reported.",
     )
     move.add_argument("angles", nargs=4, type=float, metavar=("E", "D", "C", "B"))
     move.add_argument("--jaw", type=float, metavar="MM", help="jaw opening in mm")
