@@ -218,6 +218,14 @@ class RunRecorder:
         self._rec.flush(timeout_sec=5.0)
         self._rec.disconnect()
 
+    def abandon(self) -> None:
+        """Stop writing without flushing: after a write error, when a flush would only wait for
+        a sink that is gone. What reached the file before stays readable."""
+        if self._closed:
+            return
+        self._closed = True
+        self._rec.disconnect()
+
     def __enter__(self) -> RunRecorder:
         return self
 

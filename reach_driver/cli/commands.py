@@ -19,7 +19,7 @@ from protocol import Mode, PacketID
 from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS
 from reach_driver.cli.connect import connect
 from reach_driver.cli.exits import Exit
-from reach_driver.cli.recorder import recorder_hook
+from reach_driver.cli.recorder import CliRecorder
 from reach_driver.cli.render import (
     blocking_faults,
     info_json,
@@ -34,7 +34,7 @@ from reach_driver.control import ControlLoop, control_period
 from reach_driver.controllers import available_controllers, load_controller
 from reach_driver.errors import ArmFaultError, DriverError
 from reach_driver.link import EventKind, LinkState
-from reach_driver.records import ControlSummary, StepRecord
+from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind
 
 
@@ -185,9 +185,8 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
     controller = load_controller(args.controller, **params)
     period, mismatch = control_period(controller, args.period)
     if mismatch:
-        Console(stderr=True, highlight=False).print(f"[yellow]warning[/]: {mismatch}")
-    hook: Callable[[StepRecord], None] | None = None
-    finish: Callable[[ControlSummary | None, str | None], None] | None = None
+        Console(stderr=True, highlight=False).print(f"[yellow]warning[/]: {escape(mismatch)}")
+    recorder: CliRecorder | None = None
     client = connect(args, console)
     summary: ControlSummary | None = None
     error: str | None = None
@@ -208,7 +207,8 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
                 "target": target.tolist(),
                 "seconds": args.seconds,
             }
-            hook, finish = recorder_hook(args.record, meta)
+            recorder = CliRecorder(args.record, meta)
+        hook = recorder.on_step if recorder is not None else None
         loop = ControlLoop(client, controller, period, pacing=args.pacing, on_step=hook)
         try:
             summary = loop.run(target, args.seconds)
@@ -216,22 +216,33 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             error = "interrupted"
             raise
         error = summary.error
+        if recorder is not None:
+            recorder.finish(summary, error)  # before the last lines, which say how it went
         print_summary(console, summary)
         print_metrics(console, summary)
-        console.print(f"arm left in {summary.left_in}")
-        if args.record:
+        console.print(f"arm left in {escape(summary.left_in)}")
+        if recorder is not None and recorder.failed:
             console.print(
-                f"recorded {args.record}: open it with `rerun {args.record}`, "
-                f"summarise it with `reach-driver inspect {args.record}`",
+                f"[yellow]recording incomplete[/]: {escape(recorder.failed)}; what reached "
+                f"the file before that reads back with `reach-driver inspect "
+                f"{escape(args.record)}`",
+                soft_wrap=True,
+            )
+        elif args.record:
+            console.print(
+                f"recorded {escape(args.record)}: open it with `rerun {escape(args.record)}`, "
+                f"summarise it with `reach-driver inspect {escape(args.record)}`",
                 soft_wrap=True,  # keep the commands copyable
             )
         if summary.error:
-            console.print(f"[red]run failed[/]: {summary.error}")
+            console.print(f"[red]run failed[/]: {escape(summary.error)}")
             return Exit.FAILED
+        if recorder is not None and recorder.failed:
+            return Exit.RECORDING_INCOMPLETE
         return Exit.OK
     finally:
-        if finish is not None:
-            finish(summary, error)
+        if recorder is not None:
+            recorder.finish(summary, error)  # a no-op once finished
         client.close()
 
 

@@ -12,4 +12,5 @@ class Exit(IntEnum):
     LIMIT = 3
     NO_ARM = 4
     LINK_LOST = 5  # the link went down while a command was under way
+    RECORDING_INCOMPLETE = 6  # the run completed; its --record file stops early
     INTERRUPTED = 130

@@ -37,7 +37,9 @@ examples:
 exit status: 0 done; 1 failed (timeout, fault, lost link during run); 2 bad usage; 3 refused
 by a limit (nothing moved); 4 no arm (wrong port, no permission, nothing answering, wrong
 baud); 5 the link was lost during a move (the message says since when and the last known
-positions); 130 interrupted (arm left in a safe mode). docs/hil.md: using a real arm.
+positions); 6 a run completed but its --record file is incomplete (a write error, e.g. a
+full disk: recording stopped, control went on); 130 interrupted (arm left in a safe mode).
+docs/hil.md: using a real arm.
 """
 
 
@@ -167,7 +169,10 @@ def build_parser() -> argparse.ArgumentParser:
         "wall time and gives the same metrics.",
         epilog="exit status: 0 the run completed (whether or not it reached the target: see "
         "'reached'); 1 it was cut short (lost link, watchdog, fault, controller error); 3 the "
-        "target is outside a limit (nothing moved); 4 no arm; 130 interrupted.",
+        "target is outside a limit (nothing moved); 4 no arm; 6 the run completed but writing "
+        "its --record file failed (a full disk...): recording never stops control, so the "
+        "warning names the file and the error, recording stops, the run goes on and its "
+        "summary is printed; 130 interrupted.",
     )
     run.add_argument("--controller", required=True, help="e.g. pid, mpc, ddpg")
     run.add_argument("--target", nargs=4, type=float, required=True, metavar=("E", "D", "C", "B"))
@@ -192,7 +197,11 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KEY=VALUE",
         help="controller parameter (repeatable; comma-separated values give a list)",
     )
-    run.add_argument("--record", metavar="FILE.rrd", help="record the run for Rerun")
+    run.add_argument(
+        "--record",
+        metavar="FILE.rrd",
+        help="record the run for Rerun (a write error stops the recording, not the run: exit 6)",
+    )
 
     sub.add_parser("controllers", help="list the registered controllers")
     ins = sub.add_parser(
