@@ -120,6 +120,8 @@ class RunRecorder:
         self._closed = False
         self._t, self._step = 0.0, 0
         self._log_static_scene(metadata or {})
+        # On disk at once: a run killed before its first step is still recognised as a run.
+        self.flush()
 
     # -- static scene -------------------------------------------------------------------
     def _log_static_scene(self, metadata: Mapping[str, object]) -> None:

@@ -4,6 +4,7 @@ and what was written before is still read back."""
 from __future__ import annotations
 
 import errno
+import json
 import re
 import resource
 import signal
@@ -16,6 +17,7 @@ import pytest
 
 from reach_driver import recording
 from reach_driver.cli import Exit, main
+from reach_driver.rrd_summary import read_recording
 from reach_sim_bridge.server import SimConfig, SimServer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -93,3 +95,82 @@ def test_a_full_disk_mid_run_is_survived(sim, tmp_path) -> None:
     assert steps >= 100  # 6 s at 20 Hz, less states a busy host skipped
     assert "metrics" in out and "arm left in zero_velocity" in out
     assert "recording failed" in err and str(record) in err
+
+
+# -- 3: truncated and early-killed recordings read back ------------------------------------
+
+
+def _recorded(path: Path, n: int = 200) -> np.ndarray:
+    """n steps written by the project's RunRecorder as a run writes them: flushed every 10
+    steps (a 20 Hz loop and the 0.5 s flush period); their q."""
+    q = np.linspace([1.0, 1.0, 1.5, 0.5], [2.0, 1.6, 1.0, 0.9], n)
+    with recording.RunRecorder(path, metadata={"controller": "synthetic"}) as rec:
+        rec.log_event("start")
+        for k in range(n):
+            sample = recording.StepSample(
+                t=k * 0.05,
+                step=k,
+                q=q[k],
+                qdot=np.zeros(4),
+                target=q[-1],
+                current_cmd_mA=np.full(4, 100.0),
+                current_meas_mA=np.full(4, 90.0),
+                torque_Nm=np.full(4, 0.5),
+            )
+            rec.log_step(sample)
+            rec.log_link(k * 0.05, k, good=k, bad=0, state_age_s=0.004)
+            if k % 10 == 9:
+                rec.flush()
+        rec.log_summary({"reached": True})
+    return q
+
+
+@pytest.mark.parametrize("fraction", [0.999, 0.9, 0.5, 0.3])
+def test_a_truncated_recording_reads_up_to_its_last_complete_message(
+    tmp_path, fraction, capsys
+) -> None:
+    full = tmp_path / "run.rrd"
+    q = _recorded(full)
+    data = full.read_bytes()
+    cut = tmp_path / "cut.rrd"
+    cut.write_bytes(data[: int(len(data) * fraction)])  # disk full, or killed mid-message
+    run = read_recording(cut)
+    n = len(run.step)
+    assert n >= 10 and run.step.tolist() == list(range(n))  # the steps before the cut
+    np.testing.assert_allclose(run.q, q[:n])
+    assert run.truncated and not run.closed_cleanly
+    if fraction > 0.99:
+        assert n == 200  # only the footer was cut
+    assert main(["inspect", str(cut)]) == Exit.OK
+    out = capsys.readouterr().out
+    assert f"{n} steps" in out and "truncated" in out
+
+
+def test_cutting_a_recording_later_never_reads_fewer_steps(tmp_path) -> None:
+    full = tmp_path / "run.rrd"
+    _recorded(full, 120)
+    data = full.read_bytes()
+    counts = []
+    for fraction in (0.3, 0.45, 0.6, 0.75, 0.9):
+        cut = tmp_path / f"cut{fraction}.rrd"
+        cut.write_bytes(data[: int(len(data) * fraction)])
+        counts.append(len(read_recording(cut).step))
+    assert counts == sorted(counts) and counts[-1] > counts[0], counts
+
+
+def test_a_run_killed_before_its_first_step_is_still_recognised(tmp_path, capsys) -> None:
+    path = tmp_path / "run.rrd"
+    rec = recording.RunRecorder(path, metadata={"controller": "pid", "seconds": 20})
+    killed = tmp_path / "killed.rrd"
+    killed.write_bytes(path.read_bytes())  # what a kill at 0.3 s leaves on disk
+    rec.close()
+    run = read_recording(killed)
+    assert len(run.step) == 0
+    assert run.metadata["controller"] == "pid"
+    assert main(["inspect", str(killed)]) == Exit.OK
+    out = capsys.readouterr().out
+    assert "0 steps" in out and "not a run recorded" not in out
+    assert "pid" in out
+    assert main(["inspect", "--json", str(killed)]) == Exit.OK
+    data = json.loads(capsys.readouterr().out)
+    assert data["steps"] == 0 and data["metadata"]["controller"] == "pid"
