@@ -18,7 +18,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from protocol import Mode, PacketID
 from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS
 from reach_driver.cli.connect import connect
-from reach_driver.cli.exits import Exit
+from reach_driver.cli.exits import Exit, UsageError
 from reach_driver.cli.recorder import CliRecorder
 from reach_driver.cli.render import (
     blocking_faults,
@@ -30,7 +30,7 @@ from reach_driver.cli.render import (
     print_summary,
 )
 from reach_driver.client import ArmClient
-from reach_driver.control import ControlLoop, control_period
+from reach_driver.control import ControlLoop, Pacing, control_period
 from reach_driver.controllers import available_controllers, load_controller
 from reach_driver.errors import ArmFaultError, DriverError
 from reach_driver.link import EventKind, LinkState
@@ -182,8 +182,17 @@ def _report_link_lost(client: ArmClient, target: np.ndarray, move_started: float
 
 def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
     params = dict(args.param)
-    controller = load_controller(args.controller, **params)
+    try:
+        controller = load_controller(args.controller, **params)
+    except (OSError, ValueError) as exc:  # a missing weights file, a bad gain...
+        given = " ".join(f"{k}={v}" for k, v in params.items())
+        raise UsageError(f"controller {args.controller!r} with --param {given}: {exc}") from None
     period, mismatch = control_period(controller, args.period)
+    if args.pacing == Pacing.STREAM.value and not 1 <= round(1.0 / period) <= 255:
+        raise UsageError(
+            f"period {period:g} s needs a {1.0 / period:.3g} Hz heartbeat; with --pacing stream "
+            "the period must be 1/255 s (3.9 ms) .. 1 s (--pacing poll allows down to 0.001 s)"
+        )
     if mismatch:
         Console(stderr=True, highlight=False).print(f"[yellow]warning[/]: {escape(mismatch)}")
     recorder: CliRecorder | None = None
@@ -258,7 +267,7 @@ def cmd_inspect(args: argparse.Namespace, console: Console) -> Exit:
     try:
         summary: dict[str, Any] = summarize_recording(args.file)
     except (RecordingReadError, OSError) as exc:
-        console.print(f"[red]error[/]: cannot read {args.file}: {exc}")
+        console.print(f"[red]error[/]: cannot read {escape(args.file)}: {escape(str(exc))}")
         return Exit.FAILED
     if args.json:
         console.print_json(json.dumps(summary, default=float))

@@ -5,6 +5,10 @@ from __future__ import annotations
 from enum import IntEnum
 
 
+class UsageError(Exception):
+    """A bad option or parameter found after parsing (exit 2, one line, no traceback)."""
+
+
 class Exit(IntEnum):
     OK = 0
     FAILED = 1

@@ -54,9 +54,48 @@ def _param(text: str) -> tuple[str, Any]:
     if not sep or not key:
         raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
     try:
-        return key, _floats(value)
+        number = _floats(value)
     except ValueError:
         return key, value
+    if not all(math.isfinite(v) for v in (number if isinstance(number, list) else [number])):
+        raise argparse.ArgumentTypeError(f"{key}: values must be finite numbers, got {value!r}")
+    return key, number
+
+
+MIN_PERIOD_S = 0.001
+
+
+def _period(text: str) -> float:
+    value = _positive(text)
+    if value < MIN_PERIOD_S:
+        raise argparse.ArgumentTypeError(
+            f"must be at least {MIN_PERIOD_S} s (1 ms), got {text}; with --pacing stream the "
+            "arm's heartbeat allows 1/255 s (3.9 ms) .. 1 s"
+        )
+    return value
+
+
+def _rate(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number of Hz, got {text!r}") from None
+    if not 1 <= value <= 255:
+        raise argparse.ArgumentTypeError(
+            f"must be 1..255 Hz (the arm's HEARTBEAT_FREQUENCY, one byte; 0 turns streaming "
+            f"off), got {text}"
+        )
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return value
 
 
 def _positive(text: str) -> float:
@@ -94,7 +133,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="seconds to wait for each reply before retrying (default 0.1)",
     )
     parser.add_argument(
-        "--retries", type=int, default=2, help="retries per request before giving up (default 2)"
+        "--retries",
+        type=_non_negative_int,
+        default=2,
+        help="retries per request before giving up (default 2)",
     )
     parser.add_argument(
         "--watchdog",
@@ -133,7 +175,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Stream positions, velocities, currents and modes and show them live "
         "with per-joint update rates and the link's error counters. Ctrl-C to stop.",
     )
-    mon.add_argument("--rate", type=int, default=10, help="heartbeat rate in Hz (default 10)")
+    mon.add_argument(
+        "--rate", type=_rate, default=10, help="heartbeat rate, 1..255 Hz (default 10)"
+    )
     mon.add_argument("--seconds", type=_positive, help="stop after this many seconds")
 
     move = sub.add_parser(
@@ -179,9 +223,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--seconds", type=_positive, required=True, help="loop (arm) seconds")
     run.add_argument(
         "--period",
-        type=_positive,
+        type=_period,
         help="control period in arm seconds (default: the controller's own, e.g. the rate a "
-        "policy was trained at, else 0.05)",
+        "policy was trained at, else 0.05); at least 0.001 s, and 1/255 .. 1 s with --pacing "
+        "stream (the arm's heartbeat is 1..255 Hz)",
     )
     run.add_argument(
         "--pacing",

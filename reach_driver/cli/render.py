@@ -135,7 +135,9 @@ def blocking_faults(flags: dict[int, list[str]], console: Console | None) -> str
         link = [n for n in names if n in LINK_FLAGS]
         other = [n for n in names if n not in LINK_FLAGS]
         if link and console is not None:
-            console.print(f"[yellow]warning[/]: {joint_name(dev)} reports {', '.join(link)}")
+            console.print(
+                f"[yellow]warning[/]: {joint_name(dev)} reports {escape(', '.join(link))}"
+            )
         if other:
             blocking.append(f"{joint_name(dev)}: {', '.join(other)}")
     return "; ".join(blocking)
