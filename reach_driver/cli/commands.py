@@ -58,7 +58,12 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
     try:
         devices = client.found_devices
         ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT, PacketID.MODE)
-        client.stream(ids, args.rate, devices)
+        rate = client.stream(ids, args.rate, devices)
+        if rate != args.rate:
+            console.print(
+                f"[yellow]--rate {args.rate} Hz is more than the line carries for "
+                f"{len(ids)} values of {len(devices)} devices: streaming at {rate} Hz[/yellow]"
+            )
         end = time.monotonic() + args.seconds if args.seconds else math.inf
         last_counts = client.table.count_snapshot()
         last_t = time.monotonic()
