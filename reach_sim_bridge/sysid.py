@@ -105,7 +105,8 @@ def params_with(base: ArmParams, refs: Sequence[ParamRef], values: Sequence[floa
             continue
         vec = changes.setdefault(name, list(getattr(base, name)))
         vec[index] = float(value)
-    return replace(base, **{k: tuple(v) for k, v in changes.items()})
+    fields: dict[str, Any] = {k: tuple(v) for k, v in changes.items()}
+    return replace(base, **fields)
 
 
 def param_value(params: ArmParams, delay_s: float, ref: ParamRef) -> float:

@@ -25,12 +25,11 @@ PARAMS.report/report.md with PNG figures (measured vs nominal twin vs fitted twi
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +40,6 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from protocol import Mode, PacketID
 from protocol.alpha5 import (
     FACTORY_POSITION_LIMITS,
-    FACTORY_VELOCITY_LIMITS,
     JOINT_LETTERS,
     JOINTS,
     N_JOINTS,
