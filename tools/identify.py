@@ -115,7 +115,7 @@ def plan(scale: float = 1.0) -> list[Wave]:
     return [
         Wave("relay", "P1", 8.0 * s, "fit", speed=0.15),
         Wave("relay", "P1", 8.0 * s, "fit", speed=0.35),
-        Wave("chirp", "P1", 8.0 * s, "fit", f0=0.3, f1=3.0, gain=1.6),
+        Wave("chirp", "P1", 8.0 * s, "fit", f0=0.3, f1=5.0, gain=2.0),
         Wave("relay", "P2", 8.0 * s, "fit", speed=0.25),
         Wave("steps", "P3", 8.0 * s, "validate", gain=0.4, seed=1),
         Wave("chirp", "P3", 6.0 * s, "validate", f0=0.5, f1=2.5, gain=1.3),
@@ -264,8 +264,7 @@ class Excitation:
 # -- driving the arm -----------------------------------------------------------------------
 
 
-class Interrupted(Exception):
-    pass
+RETRIES = 2  # per segment, after a watchdog trip
 
 
 def move_to(client: ArmClient, target: np.ndarray, timeout_s: float = 30.0) -> float:
@@ -273,25 +272,26 @@ def move_to(client: ArmClient, target: np.ndarray, timeout_s: float = 30.0) -> f
     for dev, value in zip(JOINTS, target, strict=True):
         client.guard.check(int(dev), _position_kind(), float(value))
     t0 = time.monotonic()
-    client.stream((PacketID.POSITION, PacketID.VELOCITY), 20, JOINTS)
-    try:
-        client.set_mode(JOINTS, Mode.POSITION)
-        client.command_positions(target)
-        deadline = t0 + timeout_s
-        while True:
-            state = client.state
-            err = np.abs(target - state.q)
-            if np.all(err < 0.01) and np.all(np.abs(state.qdot) < 0.03):
-                break
-            faults = client.blocking_faults()
-            if faults:
-                client.safe_stop(JOINTS)
-                raise DriverError(f"fault during a move, joints stopped: {faults}")
-            if time.monotonic() > deadline:
-                raise DriverError(f"move to {target.round(3).tolist()} timed out ({err.max():.3f})")
-            time.sleep(0.02)
-    finally:
-        client.stop_stream()
+    client.set_mode(JOINTS, Mode.POSITION)
+    client.command_positions(target)
+    deadline = t0 + timeout_s
+    resend = t0 + 1.0
+    while True:
+        state = client.read_joints((PacketID.POSITION, PacketID.VELOCITY))
+        err = np.abs(target - state.q)
+        if np.all(err < 0.01) and np.all(np.abs(state.qdot) < 0.03):
+            break
+        faults = client.blocking_faults()
+        if faults:
+            client.safe_stop(JOINTS)
+            raise DriverError(f"fault during a move, joints stopped: {faults}")
+        now = time.monotonic()
+        if now > deadline:
+            raise DriverError(f"move to {target.round(3).tolist()} timed out ({err.max():.3f})")
+        if now > resend:  # a lost packet must not stall the move
+            client.command_positions(target)
+            resend = now + 1.0
+        time.sleep(0.02)
     return time.monotonic() - t0
 
 
@@ -307,6 +307,7 @@ class Session:
     arm_seconds: float = 0.0  # in current mode, exact (ticks)
     move_seconds: float = 0.0  # in moves, wall x the measured arm speed
     arm_speed: float = 1.0
+    retries: int = 0  # segments run again after a watchdog trip (a stalled host)
 
 
 def excite(
@@ -336,24 +337,32 @@ def excite(
             letter = JOINT_LETTERS[j]
             for k, wave in enumerate(waves):
                 center = pose(wave.pose)
-                progress.update(task, detail=f"{letter}: move to {wave.pose}")
-                wall = move_to(client, center)
-                session.move_seconds += wall * session.arm_speed
-                start = amps.start(j, wave.speed) if wave.kind == "relay" else amps.reference(j)
-                controller = Excitation(
-                    j,
-                    wave,
-                    center,
-                    period,
-                    amplitude=start,
-                    amp_max=0.8 * float(max_current[j]),
-                    gravity=twin.gravity_torque,
-                )
-                progress.update(task, detail=f"{letter}: {wave.label}")
-                loop = ControlLoop(client, controller, period)
-                summary = loop.run(center, wave.seconds)
-                if summary.error:
-                    raise DriverError(f"{letter} {wave.label}: {summary.stopped_by}")
+                for attempt in range(RETRIES + 1):
+                    progress.update(task, detail=f"{letter}: move to {wave.pose}")
+                    wall = move_to(client, center)
+                    session.move_seconds += wall * session.arm_speed
+                    start = amps.start(j, wave.speed) if wave.kind == "relay" else amps.reference(j)
+                    controller = Excitation(
+                        j,
+                        wave,
+                        center,
+                        period,
+                        amplitude=start,
+                        amp_max=0.8 * float(max_current[j]),
+                        gravity=twin.gravity_torque,
+                    )
+                    progress.update(task, detail=f"{letter}: {wave.label}")
+                    loop = ControlLoop(client, controller, period)
+                    summary = loop.run(center, wave.seconds)
+                    if not summary.error:
+                        break
+                    if client.tripped is None or attempt == RETRIES:
+                        raise DriverError(f"{letter} {wave.label}: {summary.stopped_by}")
+                    # The host stalled past the watchdog (the arm went to zero velocity):
+                    # say so, re-arm and run the segment again from its pose.
+                    session.retries += 1
+                    console.print(f"[yellow]{letter} {wave.label}: {client.tripped}; again[/]")
+                    client.rearm()
                 trace = summary.trace
                 if trace is None:
                     raise DriverError(f"{letter} {wave.label}: no trace")
@@ -669,6 +678,7 @@ def main(argv: list[str] | None = None) -> int:
                     "arm_seconds": session.arm_seconds,
                     "move_seconds": session.move_seconds,
                     "complete": not interrupted,
+                    "retries": session.retries,
                 }
                 save_segments(session.segments, log_path, header)
                 console.print(f"log {log_path} ({len(session.segments)} segments)")
