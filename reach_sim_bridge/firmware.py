@@ -71,6 +71,7 @@ class Ignored(str, Enum):
     READ_ONLY = "read_only"  # e.g. a host sending TEMPERATURE
     UNSUPPORTED_REQUEST = "unsupported_request"  # REQUEST/HEARTBEAT of an id we cannot report
     OTHER_DEVICE = "other_device"  # addressed to a device this arm does not have
+    PADDING = "request_padding"  # 0x00 slots in a REQUEST (or misplaced in a HEARTBEAT_SET)
 
 
 @dataclass(frozen=True)
@@ -649,11 +650,11 @@ class Firmware:
                 f"REQUEST takes 1 to {MAX_REQUEST_IDS} packet ids, got {len(ids)}",
             )
         if 0 in ids:
-            # Answer the real ids, but count the defect (pre-sized list with leading zeros).
-            self._error(
-                targets,
-                ErrorReason.BAD_PAYLOAD,
-                f"REQUEST {list(ids)} holds id 0 (padding is not a packet id)",
+            # A pre-sized list appended to (`00 00 00 03 02 05`): real arms answer the real
+            # ids and raise nothing, so padding is only counted, once per packet.
+            self.ignored.record(
+                Ignored.PADDING.value,
+                f"REQUEST {list(ids)}: 0x00 is padding, not a packet id; skipped",
             )
         broadcast = int(packet.device_id) == DeviceID.BROADCAST
         out: list[Packet] = []
@@ -678,6 +679,12 @@ class Firmware:
                 f"HEARTBEAT_SET takes at most {HEARTBEAT_SLOTS} ids, got {len(packet.data)}",
             )
         ids = tuple(pid for pid in packet.data if pid)
+        if bytes(ids) + bytes(len(packet.data) - len(ids)) != bytes(packet.data):
+            # Zeros are the slots' filler; one before an id is a client's pre-sized list.
+            self.ignored.record(
+                Ignored.PADDING.value,
+                f"HEARTBEAT_SET {list(packet.data)}: zeros before ids skipped",
+            )
         unknown = [pid for pid in ids if pid not in self._reporters]
         if unknown:
             self.ignored.record(

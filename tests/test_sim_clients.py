@@ -1,0 +1,90 @@
+"""Replays of what real clients of the arm put on the wire, against the virtual arm.
+
+The byte patterns come from reading the most used open driver for the Alpha 5 (a ROS 2
+driver and the C++ library under it) for what it sends, not from its code: zero-padded
+REQUEST lists at 100 Hz, zero-padded HEARTBEAT_SET, mode values the published protocol does
+not document, limits in [min, max] order behind eight zero bytes, and the monitor packets. A
+real arm answers all of it and shows no lasting fault; so must the emulator.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import pytest
+
+from protocol import (
+    DeviceID,
+    HardwareStatus,
+    Packet,
+    PacketDecoder,
+    PacketID,
+    encode_packet,
+)
+from reach_sim_bridge.arm import Alpha5Arm
+from reach_sim_bridge.firmware import Firmware
+
+A, B, C, D, E = DeviceID.A, DeviceID.B, DeviceID.C, DeviceID.D, DeviceID.E
+JOINTS = (E, D, C, B)
+#: What the driver asks of every joint at 100 Hz: a pre-sized list appended to.
+PADDED_REQUEST = bytes.fromhex("00 00 00 03 02 05")
+POLL_HZ = 100
+
+
+def wire(device: int, packet_id: int, data: bytes) -> bytes:
+    return encode_packet(device, packet_id, data)
+
+
+def feed(fw: Firmware, decoder: PacketDecoder, chunk: bytes) -> list[Packet]:
+    """Wire bytes into the firmware, as the server does; every reply."""
+    out: list[Packet] = []
+    for packet in decoder.feed(chunk):
+        out.extend(fw.handle(packet))
+    return out
+
+
+def poll_frames(devices: Iterable[int] = JOINTS) -> bytes:
+    return b"".join(wire(d, PacketID.REQUEST, PADDED_REQUEST) for d in devices)
+
+
+@pytest.fixture
+def fw() -> Firmware:
+    return Firmware(Alpha5Arm())
+
+
+def test_padded_requests_at_100_hz_get_answers_and_no_fault(fw: Firmware) -> None:
+    decoder = PacketDecoder()
+    seconds = 8.0
+    cycles = int(seconds * POLL_HZ)
+    answered = 0
+    raised = HardwareStatus.NONE
+    for _ in range(cycles):
+        replies = feed(fw, decoder, poll_frames())
+        assert [r.key for r in replies] == [
+            (d, p) for d in JOINTS for p in (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT)
+        ]
+        answered += len(replies)
+        for out in fw.tick(1.0 / POLL_HZ):
+            if out.packet_id == PacketID.HARDWARE_STATUS:
+                raised |= HardwareStatus.from_bytes(out.data)
+        for d in JOINTS:
+            raised |= fw.status(d)
+    assert answered == cycles * 4 * 3
+    assert decoder.stats.bad_frames == {} or not any(decoder.stats.bad_frames.values())
+    assert fw.errors.counts == {}, fw.errors.counts
+    assert raised == HardwareStatus.NONE, raised.flag_names()
+    # The padding is counted, once per padded packet, where the server's stats show it.
+    assert fw.ignored.counts["request_padding"] == cycles * 4
+
+
+def test_heartbeat_set_padding_in_any_slot_streams_the_ids(fw: Firmware) -> None:
+    decoder = PacketDecoder()
+    # Trailing zeros are the format; leading zeros are a pre-sized list appended to.
+    for payload in (bytes([3, 2]) + bytes(8), bytes(8) + bytes([3, 2])):
+        assert feed(fw, decoder, wire(D, PacketID.HEARTBEAT_SET, payload)) == []
+        assert feed(fw, decoder, wire(D, PacketID.HEARTBEAT_FREQUENCY, b"\x0a")) == []
+        out = [p for p in fw.tick(1.0) if p.device_id == D]
+        assert [p.packet_id for p in out] == [PacketID.POSITION, PacketID.VELOCITY] * 10
+    assert fw.errors.counts == {}
+    assert fw.ignored.counts == {"request_padding": 1}
+    assert fw.status(D) == HardwareStatus.NONE
