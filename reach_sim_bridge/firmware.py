@@ -14,7 +14,13 @@ packets switch STANDBY and the active modes implicitly; DISABLE and PASSIVE igno
 
 Bad input never stops the firmware: each bad packet is counted, logged (rate-limited) and
 raises the SERIAL_ERROR (or CRC_ERROR) flag, which is reported with HARDWARE_STATUS at 1 Hz
-until `error_hold_s` passes without a new error (or a RESET).
+until `error_hold_s` passes without a new error (or a RESET). Padding (0x00 in a REQUEST) is
+counted, never an error: real clients send it at 100 Hz and real arms answer the rest.
+
+Every device also reports its housing's climate and the supply voltage (the "Monitor"
+packets) from `reach_sim_bridge.monitor`, whose OVER_TEMPERATURE, OVER_HUMIDITY,
+OVER_PRESSURE and LOW_SUPPLY_VOLTAGE flags are conditions: they hold while the reading is
+past its level. Any flag set is reported with HARDWARE_STATUS at 1 Hz.
 """
 
 from __future__ import annotations
@@ -41,11 +47,13 @@ from protocol.commands import HEARTBEAT_SLOTS, MAX_REQUEST_IDS
 from protocol.payload import pack_floats, pack_u8s
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.events import EventLog
-from reach_sim_bridge.faults import SensorNoise
+from reach_sim_bridge.faults import Leak, SensorNoise
+from reach_sim_bridge.monitor import MONITOR_FLAGS, Monitor, MonitorConfig
 
 log = logging.getLogger(__name__)
 
 LINK_ERROR_FLAGS = HardwareStatus.SERIAL_ERROR | HardwareStatus.CRC_ERROR
+_MONITOR_STEPS = 5  # physics steps per monitor update (10 ms at the default 2 ms)
 
 # Control packets that switch the mode implicitly; DISABLE and PASSIVE ignore them.
 _LOCKED_MODES = frozenset({Mode.DISABLE, Mode.PASSIVE})
@@ -119,8 +127,10 @@ class FirmwareConfig:
     devices: tuple[DeviceSpec, ...] = ALPHA5_DEVICES
     software_version: tuple[int, int, int] = (0, 1, 0)  # the emulator's own version
     model_number: float = 5005.0  # emulator's own number: the vendor's are not published
-    temperature_c: float = 20.0
-    humidity_pct: float = 10.0
+    temperature_c: float = 20.0  # the water's: each housing starts at it (monitor model)
+    humidity_pct: float = 10.0  # in each housing at power-on
+    monitor: MonitorConfig = MonitorConfig()  # climate and supply model, factory levels
+    leaks: tuple[Leak, ...] = ()  # housings taking in water from the start
     status_period_s: float = 1.0  # HARDWARE_STATUS while an error flag is set
     error_hold_s: float = 5.0  # link error flags clear after this long without errors
     sensor_noise: SensorNoise | None = None
@@ -174,6 +184,7 @@ class Device:
     heartbeat_ids: tuple[int, ...] = ()
     heartbeat_hz: int = 0
     heartbeat_phase: float = 0.0
+    slot: int = 0  # index in the firmware's device list (and the monitor's)
 
 
 class _Rejected(Exception):
@@ -234,8 +245,25 @@ class Firmware:
                 self._jaw = dev
         if any(d is None for d in self._joints):
             raise ValueError("the firmware needs devices for all of E D C B")
-        for dev in self._devices:
+        for slot, dev in enumerate(self._devices):
             dev.position_target = self._position(dev)
+            dev.slot = slot
+        resistances = [
+            float(arm.jaw_motor.resistance[0])
+            if d.index < 0
+            else float(arm.motor.resistance[d.index])
+            for d in self._devices
+        ]
+        self.monitor = Monitor(
+            self.config.monitor,
+            resistances,
+            self.config.temperature_c,
+            arm.motor.supply_voltage,
+            self.config.humidity_pct,
+        )
+        self._monitor_countdown = 0
+        for leak in self.config.leaks:
+            self.inject_leak(leak)
         self._handlers: dict[int, Handler] = {
             PacketID.MODE: self._on_mode,
             PacketID.POSITION: self._on_position,
@@ -263,11 +291,16 @@ class Firmware:
             PacketID.SERIAL_NUMBER: lambda d: pack_floats(d.spec.serial_number),
             PacketID.MODEL_NUMBER: lambda d: pack_floats(self.config.model_number),
             PacketID.DEVICE_ID: lambda d: bytes((int(d.spec.device_id),)),
-            PacketID.HUMIDITY: lambda d: pack_floats(self.config.humidity_pct),
-            PacketID.TEMPERATURE: lambda d: pack_floats(self.config.temperature_c),
+            PacketID.HUMIDITY: lambda d: pack_floats(self.monitor.humidity_pct[d.slot]),
+            PacketID.TEMPERATURE: lambda d: pack_floats(self.monitor.temperature_c[d.slot]),
+            # 0x67 is INTERNAL_PRESSURE in V1.12.1 (newer SDKs: DEVICE_TYPE); 0x6E the newer
+            # PRESSURE. Both answer the internal pressure in bar (docs/protocol.md, 3a).
+            PacketID.INTERNAL_PRESSURE: lambda d: pack_floats(self.monitor.pressure_bar(d.slot)),
+            PacketID.PRESSURE: lambda d: pack_floats(self.monitor.pressure_bar(d.slot)),
+            PacketID.FACTORY_CLIMATE: lambda d: pack_floats(*self.config.monitor.factory_climate),
             PacketID.HARDWARE_STATUS: lambda d: d.status.to_bytes(),
             PacketID.SOFTWARE_VERSION: lambda d: pack_u8s(*self.config.software_version),
-            PacketID.VOLTAGE: lambda d: pack_floats(self.arm.motor.supply_voltage),
+            PacketID.VOLTAGE: lambda d: pack_floats(self.monitor.voltage_v),
             PacketID.HEARTBEAT_SET: lambda d: _heartbeat_payload(d.heartbeat_ids),
             PacketID.HEARTBEAT_FREQUENCY: lambda d: bytes((d.heartbeat_hz,)),
             PacketID.KM_END_POS: self._end_pose,
@@ -293,6 +326,15 @@ class Firmware:
         """Set a hardware status flag as a failing joint would (fault-injection tests); it is
         reported with HARDWARE_STATUS at 1 Hz like any other fault."""
         self._raise_flag([self._by_id[device_id]], flag)
+
+    def inject_leak(self, leak: Leak) -> None:
+        """Let water into one device's housing (replaces a leak already there): its humidity
+        and pressure drift up and raise OVER_HUMIDITY and OVER_PRESSURE (monitor model)."""
+        self.monitor.leak(self._by_id[int(leak.device_id)].slot, leak)
+
+    def stop_leak(self, device_id: int) -> None:
+        """The housing is sealed again; what got in stays (readings stop drifting)."""
+        self.monitor.leak(self._by_id[device_id].slot, None)
 
     def setpoints(self, device_id: int) -> tuple[Mode, float, float]:
         """(mode, position target, current applied in mA) of one device, for recordings."""
@@ -426,9 +468,36 @@ class Firmware:
         d.applied_mA = limits.clamp(gains.velocity_p * error + ki * integral)
         return d.applied_mA
 
+    def _monitor_step(self, h: float) -> None:
+        """Step the climate and supply model every `_MONITOR_STEPS` physics steps, and carry
+        its flags into each device's status (a newly raised one is reported at once)."""
+        self._monitor_countdown -= 1
+        if self._monitor_countdown > 0:
+            return
+        self._monitor_countdown = _MONITOR_STEPS
+        arm = self.arm
+        joint_mA = arm.current_mA.tolist()
+        jaw_mA = arm.jaw_current_mA
+        amps = [(jaw_mA if d.index < 0 else joint_mA[d.index]) / 1000.0 for d in self._devices]
+        monitor = self.monitor
+        monitor.step(h * _MONITOR_STEPS, amps, arm.motor.supply_voltage)
+        for d, flags in zip(self._devices, monitor.flags, strict=True):
+            now = d.status & MONITOR_FLAGS
+            if flags != now:
+                raised = flags & ~now
+                if raised and not d.status:
+                    d.status_phase = self.config.status_period_s  # report at once
+                d.status = (d.status & ~MONITOR_FLAGS) | flags
+                log.info(
+                    "device %s: monitor flags now %s",
+                    d.spec.letter,
+                    ", ".join(flags.flag_names()) or "clear",
+                )
+
     def _housekeeping(self, h: float, out: list[Packet]) -> None:
         now = self.arm.time
         cfg = self.config
+        self._monitor_step(h)
         for d in self._devices:
             if d.heartbeat_hz and d.heartbeat_ids:
                 d.heartbeat_phase += h
@@ -439,21 +508,21 @@ class Firmware:
                         packet = self.report(int(d.spec.device_id), pid)
                         if packet is not None:
                             out.append(packet)
-            if d.status & LINK_ERROR_FLAGS:
-                if now - d.last_error_time >= cfg.error_hold_s:
-                    d.status &= ~LINK_ERROR_FLAGS
-                    log.info(
-                        "device %s: link error flags cleared after %.1f s without errors",
-                        d.spec.letter,
-                        cfg.error_hold_s,
-                    )
-                    continue
-                d.status_phase += h
-                if d.status_phase >= cfg.status_period_s - 1e-9:
-                    d.status_phase = 0.0
-                    out.append(
-                        Packet(d.spec.device_id, PacketID.HARDWARE_STATUS, d.status.to_bytes())
-                    )
+            if not d.status:  # (a plain int test: IntFlag operators are slow per step)
+                continue
+            if d.status & LINK_ERROR_FLAGS and now - d.last_error_time >= cfg.error_hold_s:
+                d.status &= ~LINK_ERROR_FLAGS
+                log.info(
+                    "device %s: link error flags cleared after %.1f s without errors",
+                    d.spec.letter,
+                    cfg.error_hold_s,
+                )
+                continue
+            # Any flag set: HARDWARE_STATUS unprompted at about 1 Hz.
+            d.status_phase += h
+            if d.status_phase >= cfg.status_period_s - 1e-9:
+                d.status_phase = 0.0
+                out.append(Packet(d.spec.device_id, PacketID.HARDWARE_STATUS, d.status.to_bytes()))
 
     # -- measurements -----------------------------------------------------------------------
     def _position(self, d: Device) -> float:
@@ -493,7 +562,7 @@ class Firmware:
     def _raise_flag(self, targets: Sequence[Device], flag: HardwareStatus) -> None:
         now = self.arm.time
         for d in targets:
-            if not d.status & LINK_ERROR_FLAGS:
+            if not d.status:
                 d.status_phase = self.config.status_period_s  # report at the next step
             d.status |= flag
             d.last_error_time = now

@@ -88,3 +88,32 @@ def test_heartbeat_set_padding_in_any_slot_streams_the_ids(fw: Firmware) -> None
     assert fw.errors.counts == {}
     assert fw.ignored.counts == {"request_padding": 1}
     assert fw.status(D) == HardwareStatus.NONE
+
+
+#: The "Monitor" packets of protocol V1.12.1 and how many floats each carries.
+MONITOR = {
+    PacketID.INTERNAL_HUMIDITY: 1,  # 0x65, %
+    PacketID.INTERNAL_TEMPERATURE: 1,  # 0x66, deg C
+    PacketID.INTERNAL_PRESSURE: 1,  # 0x67, bar
+    PacketID.FACTORY_CLIMATE: 3,  # 0x28, [T, P, H]
+    PacketID.VOLTAGE: 1,  # 0x90, V
+}
+
+
+def test_every_monitor_packet_is_answered_by_every_device(fw: Firmware) -> None:
+    decoder = PacketDecoder()
+    ids = bytes(MONITOR)
+    for dev in (A, B, C, D, E):
+        # Encoded by hand and decoded from the wire: what a client sends and reads back.
+        replies = feed(fw, decoder, wire(dev, PacketID.REQUEST, ids))
+        back = PacketDecoder().feed(b"".join(r.encode() for r in replies))
+        assert [p.key for p in back] == [(dev, pid) for pid in MONITOR]
+        values = {p.packet_id: p.floats() for p in back}
+        assert all(len(values[pid]) == n for pid, n in MONITOR.items())
+        assert values[PacketID.INTERNAL_HUMIDITY] == [pytest.approx(10.0)]
+        assert values[PacketID.INTERNAL_TEMPERATURE] == [pytest.approx(20.0)]
+        assert values[PacketID.INTERNAL_PRESSURE] == [pytest.approx(1.0)]
+        assert values[PacketID.FACTORY_CLIMATE] == pytest.approx([20.0, 1.0, 10.0])
+        assert 18.0 < values[PacketID.VOLTAGE][0] <= 24.0
+    assert fw.errors.counts == {}
+    assert "unsupported_request" not in fw.ignored.counts

@@ -378,3 +378,104 @@ def test_wire_bytes_of_a_reply_match_the_conformance_vector() -> None:
     fw = Firmware(Alpha5Arm(), FirmwareConfig(software_version=(1, 2, 3)))
     reply = one(fw, B, PacketID.SOFTWARE_VERSION)
     assert reply.encode() == bytes.fromhex("08 01 02 03 6C 02 07 B8 00")
+
+
+# -- monitor: climate and supply -------------------------------------------------------------
+def statuses(out: list[Packet], device: int) -> list[HardwareStatus]:
+    return [
+        HardwareStatus.from_bytes(p.data)
+        for p in out
+        if p.packet_id == PacketID.HARDWARE_STATUS and p.device_id == device
+    ]
+
+
+def test_temperature_follows_the_motor_heat_and_raises_over_temperature() -> None:
+    from reach_sim_bridge.monitor import MonitorConfig
+
+    monitor = MonitorConfig(thermal_time_constant_s=2.0, over_temperature_c=30.0)
+    fw = Firmware(Alpha5Arm(), FirmwareConfig(monitor=monitor))
+    fw.handle(commands.current(E, 600.0))  # runs into E's end stop, then stalls at 600 mA
+    fw.tick(12.0)
+    amps = fw.arm.current_mA[0] / 1000.0
+    assert amps == pytest.approx(0.6, abs=0.01)
+    steady = 20.0 + 10.0 * amps**2 * 3.22  # T_water + R_th I^2 R, 31.6 degC
+    assert value(fw, E, PacketID.TEMPERATURE) == pytest.approx(steady, abs=0.3)
+    assert value(fw, D, PacketID.TEMPERATURE) < 25.0  # D only holds against gravity
+    assert HardwareStatus.OVER_TEMPERATURE in fw.status(E)
+    assert HardwareStatus.OVER_TEMPERATURE not in fw.status(D)
+    out = fw.tick(2.0)
+    assert len(statuses(out, E)) == 2  # reported at 1 Hz while set
+    fw.handle(commands.current(E, 0.0))  # cools with the same time constant
+    fw.tick(12.0)
+    assert value(fw, E, PacketID.TEMPERATURE) < 21.0
+    assert fw.status(E) == HardwareStatus.NONE
+    assert fw.errors.counts == {}
+
+
+def test_voltage_sags_with_current_and_raises_low_supply_voltage() -> None:
+    from reach_sim_bridge.monitor import MonitorConfig
+
+    fw = Firmware(Alpha5Arm(), FirmwareConfig(monitor=MonitorConfig(source_resistance_ohm=10.0)))
+    fw.tick(0.5)
+    idle = value(fw, B, PacketID.VOLTAGE)
+    assert 18.5 < idle < 24.0
+    fw.handle(commands.current(E, 600.0))
+    fw.tick(5.0)  # stalled at the end stop: 0.6 A more through 10 ohm
+    drawn = sum(abs(i) for i in fw.arm.current_mA) / 1000.0 + abs(fw.arm.jaw_current_mA) / 1e3
+    sag = value(fw, B, PacketID.VOLTAGE)
+    assert sag == pytest.approx(24.0 - 10.0 * (0.1 + drawn), abs=0.05)
+    assert sag < 18.0
+    for dev in (A, B, C, D, E):  # one supply: every device sees it
+        assert HardwareStatus.LOW_SUPPLY_VOLTAGE in fw.status(dev)
+        assert value(fw, dev, PacketID.VOLTAGE) == pytest.approx(sag)
+    fw.handle(commands.current(E, 0.0))
+    fw.tick(1.0)
+    assert value(fw, B, PacketID.VOLTAGE) > 18.5
+    assert all(fw.status(dev) == HardwareStatus.NONE for dev in (A, B, C, D, E))
+
+
+def test_a_leak_raises_humidity_and_pressure_of_that_device_only() -> None:
+    from reach_sim_bridge.faults import Leak
+
+    fw = Firmware(Alpha5Arm(), FirmwareConfig(leaks=(Leak(D, time_constant_s=4.0, depth_m=10),)))
+    out = fw.tick(12.0)  # three time constants
+    humidity = value(fw, D, PacketID.HUMIDITY)
+    assert humidity == pytest.approx(100.0 - 90.0 * math.exp(-3.0), abs=0.5)
+    pressure = value(fw, D, PacketID.INTERNAL_PRESSURE)
+    assert 1.8 < pressure < 2.1  # towards 1.013 + 10 m x 0.1006 bar/m
+    assert HardwareStatus.OVER_HUMIDITY in fw.status(D)
+    assert HardwareStatus.OVER_PRESSURE in fw.status(D)
+    assert statuses(out, D) and not statuses(out, C)
+    assert value(fw, C, PacketID.HUMIDITY) == pytest.approx(10.0)
+    assert value(fw, C, PacketID.INTERNAL_PRESSURE) == pytest.approx(1.0, abs=0.01)
+    # FACTORY_CLIMATE is what was measured at assembly: the leak does not change it.
+    assert one(fw, D, PacketID.FACTORY_CLIMATE).floats() == pytest.approx([20.0, 1.0, 10.0])
+    fw.handle(Packet(D, PacketID.RESET, b""))  # a RESET does not stop water
+    fw.tick(0.1)
+    assert HardwareStatus.OVER_HUMIDITY in fw.status(D)
+
+
+def test_a_leak_can_be_injected_at_run_time(fw: Firmware) -> None:
+    from reach_sim_bridge.faults import Leak
+
+    fw.tick(1.0)
+    assert fw.status(B) == HardwareStatus.NONE
+    fw.inject_leak(Leak(B, time_constant_s=1.0))
+    fw.tick(2.0)
+    assert HardwareStatus.OVER_HUMIDITY in fw.status(B)
+    fw.stop_leak(B)
+    humidity = value(fw, B, PacketID.HUMIDITY)
+    fw.tick(1.0)
+    assert value(fw, B, PacketID.HUMIDITY) == pytest.approx(humidity)  # no drying out
+
+
+def test_pressure_follows_temperature_in_a_sealed_housing() -> None:
+    from reach_sim_bridge.monitor import Monitor, MonitorConfig
+
+    monitor = Monitor(MonitorConfig(thermal_time_constant_s=1.0), [3.22], 20.0, 24.0)
+    for _ in range(1000):
+        monitor.step(0.01, [1.0], 24.0)
+    t = monitor.temperature_c[0]
+    assert t == pytest.approx(20.0 + 10.0 * 3.22, abs=0.01)
+    assert monitor.pressure_bar(0) == pytest.approx((t + 273.15) / 293.15, rel=1e-6)
+    assert monitor.voltage_v == pytest.approx(24.0 - 1.0 * 1.1, abs=1e-6)
