@@ -113,6 +113,10 @@ class Mode(IntEnum):
         return bytes((self.value,))
 
 
+#: Mode values a widely used open C++ client library defines that protocol V1.12.1 does not
+#: document (their meaning is not public). The virtual arm ignores and counts them.
+UNDOCUMENTED_MODES: frozenset[int] = frozenset({0x13, 0x14, 0x17, 0x18, 0x1A, 0x1C})
+
 _STATUS_SIZE = 4
 
 

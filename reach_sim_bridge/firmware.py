@@ -44,6 +44,7 @@ from protocol import (
 )
 from protocol.alpha5 import JOINT_LETTERS
 from protocol.commands import HEARTBEAT_SLOTS, MAX_REQUEST_IDS
+from protocol.ids import UNDOCUMENTED_MODES
 from protocol.payload import pack_floats, pack_u8s
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.events import EventLog
@@ -79,6 +80,7 @@ class Ignored(str, Enum):
     READ_ONLY = "read_only"  # e.g. a host sending TEMPERATURE
     UNSUPPORTED_REQUEST = "unsupported_request"  # REQUEST/HEARTBEAT of an id we cannot report
     OTHER_DEVICE = "other_device"  # addressed to a device this arm does not have
+    UNIMPLEMENTED_MODE = "unimplemented_mode"  # a mode value V1.12.1 does not document
     PADDING = "request_padding"  # 0x00 slots in a REQUEST (or misplaced in a HEARTBEAT_SET)
 
 
@@ -586,6 +588,14 @@ class Firmware:
             raise _Rejected(
                 ErrorReason.BAD_PAYLOAD, f"MODE payload must be 1 byte, got {len(data)}{hint}"
             )
+        if data[0] in UNDOCUMENTED_MODES:
+            # Sent by a widely used client library; undocumented, so not emulated: the device
+            # keeps its mode, and nothing is flagged.
+            self.ignored.record(
+                Ignored.UNIMPLEMENTED_MODE.value,
+                f"mode 0x{data[0]:02X} is not documented in protocol V1.12.1; mode kept",
+            )
+            return []
         try:
             mode = Mode(data[0])
         except ValueError:

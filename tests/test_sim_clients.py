@@ -117,3 +117,21 @@ def test_every_monitor_packet_is_answered_by_every_device(fw: Firmware) -> None:
         assert 18.0 < values[PacketID.VOLTAGE][0] <= 24.0
     assert fw.errors.counts == {}
     assert "unsupported_request" not in fw.ignored.counts
+
+
+#: Mode values the C++ library defines that protocol V1.12.1 does not document.
+UNDOCUMENTED_MODES = (0x13, 0x14, 0x17, 0x18, 0x1A, 0x1C)
+
+
+def test_undocumented_modes_are_ignored_and_counted_without_a_fault(fw: Firmware) -> None:
+    decoder = PacketDecoder()
+    feed(fw, decoder, wire(E, PacketID.VELOCITY, bytes.fromhex("cd cc 4c 3e")))  # 0.2 rad/s
+    for mode in UNDOCUMENTED_MODES:
+        for dev in JOINTS:
+            assert feed(fw, decoder, wire(dev, PacketID.MODE, bytes([mode]))) == []
+        fw.tick(0.05)
+    modes = [feed(fw, decoder, wire(d, PacketID.REQUEST, b"\x01"))[0].data[0] for d in JOINTS]
+    assert modes == [0x03, 0x00, 0x00, 0x00]  # E still in velocity, the rest in standby
+    assert fw.errors.counts == {}
+    assert fw.ignored.counts["unimplemented_mode"] == len(UNDOCUMENTED_MODES) * 4
+    assert all(fw.status(d) == HardwareStatus.NONE for d in JOINTS)
