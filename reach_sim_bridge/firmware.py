@@ -69,6 +69,7 @@ class ErrorReason(str, Enum):
     BAD_VALUE = "bad_value"  # NaN or infinite float
     UNKNOWN_MODE = "unknown_mode"
     BAD_LIMITS = "bad_limits"  # max < min, or a velocity/current range excluding 0
+    LIMITS_16_BYTES = "limits_16_bytes"  # 8 zero bytes then [min, max]: a client library's form
     UNKNOWN_PACKET = "unknown_packet"  # a packet id this firmware does not implement
 
 
@@ -659,7 +660,22 @@ class Firmware:
         return []
 
     def _on_limits(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        """Limits are refused (counted, changing nothing) when they are not [max, min], but no
+        status flag is raised: a client sending them once at start-up has no link fault."""
+        try:
+            return self._set_limits(targets, packet)
+        except _Rejected as rejected:
+            self._error(targets, rejected.reason, f"{packet!r}: {rejected}", flag=False)
+            return []
+
+    def _set_limits(self, targets: list[Device], packet: Packet) -> list[Packet]:
         pid = PacketID(int(packet.packet_id))
+        if len(packet.data) == 16:
+            raise _Rejected(
+                ErrorReason.LIMITS_16_BYTES,
+                f"{pid.name} payload of 16 bytes (8 zero bytes then [min, max]?) refused: the "
+                "payload is 8 bytes, [max, min] (protocol V1.12.1)",
+            )
         if len(packet.data) != 8:
             raise _Rejected(
                 ErrorReason.BAD_PAYLOAD,
@@ -670,7 +686,9 @@ class Firmware:
             raise _Rejected(ErrorReason.BAD_VALUE, f"{pid.name} [{hi}, {lo}] is not finite")
         if hi < lo:
             raise _Rejected(
-                ErrorReason.BAD_LIMITS, f"{pid.name} max {hi} < min {lo} (wire order is [max, min])"
+                ErrorReason.BAD_LIMITS,
+                f"{pid.name} max {hi} < min {lo}: refused (the wire order is [max, min]; "
+                "[min, max] is the order of protocol V1.9 and of some client libraries)",
             )
         if pid != PacketID.POSITION_LIMITS and not lo <= 0.0 <= hi:
             raise _Rejected(

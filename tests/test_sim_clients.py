@@ -135,3 +135,36 @@ def test_undocumented_modes_are_ignored_and_counted_without_a_fault(fw: Firmware
     assert fw.errors.counts == {}
     assert fw.ignored.counts["unimplemented_mode"] == len(UNDOCUMENTED_MODES) * 4
     assert all(fw.status(d) == HardwareStatus.NONE for d in JOINTS)
+
+
+def test_limits_in_min_max_order_or_the_16_byte_form_are_refused_without_a_fault(
+    fw: Firmware,
+) -> None:
+    from protocol.payload import pack_floats
+
+    decoder = PacketDecoder()
+    before = {
+        pid: feed(fw, decoder, wire(D, PacketID.REQUEST, bytes([pid])))[0].floats()
+        for pid in (PacketID.POSITION_LIMITS, PacketID.VELOCITY_LIMITS, PacketID.CURRENT_LIMITS)
+    }
+    sent = {
+        PacketID.POSITION_LIMITS: (0.5, 3.0),
+        PacketID.VELOCITY_LIMITS: (-0.3, 0.3),
+        PacketID.CURRENT_LIMITS: (-400.0, 400.0),
+    }
+    for pid, (lo, hi) in sent.items():
+        # The library's bytes: eight zeros (a sizing slip), then [min, max].
+        assert feed(fw, decoder, wire(D, pid, bytes(8) + pack_floats(lo, hi))) == []
+        # The same without the zeros: [min, max], the order V1.12.1 does not use.
+        assert feed(fw, decoder, wire(D, pid, pack_floats(lo, hi))) == []
+    after = {
+        pid: feed(fw, decoder, wire(D, PacketID.REQUEST, bytes([pid])))[0].floats() for pid in sent
+    }
+    assert after == before
+    assert fw.errors.counts == {"limits_16_bytes": 3, "bad_limits": 3}
+    fw.tick(0.1)
+    assert fw.status(D) == HardwareStatus.NONE
+    # The documented order still works.
+    feed(fw, decoder, wire(D, PacketID.CURRENT_LIMITS, pack_floats(400.0, -400.0)))
+    reply = feed(fw, decoder, wire(D, PacketID.REQUEST, bytes([PacketID.CURRENT_LIMITS])))
+    assert reply[0].floats() == [400.0, -400.0]
