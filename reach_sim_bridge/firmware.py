@@ -32,6 +32,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import Enum
 
+import numpy as np
+
 from protocol import (
     DecodeError,
     DecodeReason,
@@ -46,6 +48,7 @@ from protocol.alpha5 import JOINT_LETTERS
 from protocol.commands import HEARTBEAT_SLOTS, MAX_REQUEST_IDS
 from protocol.ids import UNDOCUMENTED_MODES
 from protocol.payload import pack_floats, pack_u8s
+from reach_sim_bridge import ik
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.events import EventLog
 from reach_sim_bridge.faults import Leak, SensorNoise
@@ -58,6 +61,19 @@ _MONITOR_STEPS = 5  # physics steps per monitor update (10 ms at the default 2 m
 
 # Control packets that switch the mode implicitly; DISABLE and PASSIVE ignore them.
 _LOCKED_MODES = frozenset({Mode.DISABLE, Mode.PASSIVE})
+# Packets that give a joint its own command, ending a Cartesian velocity (KM_END_VEL).
+_JOINT_COMMANDS = frozenset(
+    {
+        PacketID.MODE,
+        PacketID.POSITION,
+        PacketID.VELOCITY,
+        PacketID.CURRENT,
+        PacketID.INDEXED_POSITION,
+        PacketID.RELATIVE_POSITION,
+        PacketID.RESET,
+        PacketID.KM_END_POS,
+    }
+)
 # Modes whose loop servoes to `position_target`.
 _HOLDING_MODES = frozenset({Mode.POSITION, Mode.POSITION_HOLD, Mode.STANDBY, Mode.DISABLE})
 
@@ -82,6 +98,9 @@ class Ignored(str, Enum):
     UNSUPPORTED_REQUEST = "unsupported_request"  # REQUEST/HEARTBEAT of an id we cannot report
     OTHER_DEVICE = "other_device"  # addressed to a device this arm does not have
     UNIMPLEMENTED_MODE = "unimplemented_mode"  # a mode value V1.12.1 does not document
+    UNREACHABLE = "unreachable_pose"  # KM_END_POS the arm cannot reach: no motion
+    NOT_BASE = "not_the_base_device"  # KM_END_POS/KM_END_VEL to a device other than E
+    END_VELOCITY_STOPPED = "end_velocity_at_joint_limit"  # a Cartesian move ran into a limit
     PADDING = "request_padding"  # 0x00 slots in a REQUEST (or misplaced in a HEARTBEAT_SET)
 
 
@@ -282,7 +301,12 @@ class Firmware:
             PacketID.HEARTBEAT_SET: self._on_heartbeat_set,
             PacketID.HEARTBEAT_FREQUENCY: self._on_heartbeat_frequency,
             PacketID.RESET: self._on_reset,
+            PacketID.KM_END_POS: self._on_end_pos,
+            PacketID.KM_END_VEL: self._on_end_vel,
         }
+        # A Cartesian velocity being followed: (linear m/s, angular rad/s), base frame.
+        self._end_velocity: tuple[np.ndarray, np.ndarray] | None = None
+        self._end_velocity_countdown = 0
         self._reporters: dict[int, Callable[[Device], bytes | None]] = {
             PacketID.MODE: lambda d: bytes((int(d.mode),)),
             PacketID.POSITION: lambda d: pack_floats(self._noisy_position(d)),
@@ -307,6 +331,7 @@ class Firmware:
             PacketID.HEARTBEAT_SET: lambda d: _heartbeat_payload(d.heartbeat_ids),
             PacketID.HEARTBEAT_FREQUENCY: lambda d: bytes((d.heartbeat_hz,)),
             PacketID.KM_END_POS: self._end_pose,
+            PacketID.KM_END_VEL: self._end_twist,
         }
 
     # -- public -----------------------------------------------------------------------------
@@ -361,9 +386,15 @@ class Firmware:
                 return []
             targets = [dev]
         pid = int(packet.packet_id)
+        if (
+            self._end_velocity is not None
+            and pid in _JOINT_COMMANDS
+            and any(d.index >= 0 for d in targets)
+        ):
+            self._stop_end_velocity()
         handler = self._handlers.get(pid)
         if handler is None:
-            if pid in self._reporters or pid == PacketID.KM_END_VEL:
+            if pid in self._reporters:
                 self.ignored.record(
                     Ignored.READ_ONLY.value,
                     f"packet 0x{pid:02X} is read-only here (send a REQUEST)",
@@ -426,6 +457,8 @@ class Firmware:
     # -- control ----------------------------------------------------------------------------
     def _control_step(self, h: float) -> None:
         arm = self.arm
+        if self._end_velocity is not None:
+            self._follow_end_velocity(h)
         q = arm.q.tolist()
         qd = arm.qdot.tolist()
         currents = [self._loop(self._joints[i], q[i], qd[i], h) for i in range(4)]
@@ -553,6 +586,108 @@ class Firmware:
         if d.spec.device_id != DeviceID.E:
             return None  # the base device does the kinematics
         return pack_floats(*self.arm.end_effector_pose())
+
+    def _end_twist(self, d: Device) -> bytes | None:
+        if d.spec.device_id != DeviceID.E:
+            return None
+        linear, angular = ik.tcp_velocity(self.arm, self.arm.q, self.arm.qdot)
+        return pack_floats(*(linear * 1000.0).tolist(), *angular.tolist())
+
+    # -- end-effector moves (base device) ---------------------------------------------------
+    def _end_command(self, targets: list[Device], packet: Packet, name: str) -> list[float] | None:
+        """The 6 floats of a KM_END_POS/KM_END_VEL for the base device (None: not for it, or
+        a joint cannot take it; counted)."""
+        if not any(d.spec.device_id == DeviceID.E for d in targets):
+            self.ignored.record(
+                Ignored.NOT_BASE.value,
+                f"{name} to device 0x{int(packet.device_id):02X}: only the base device "
+                "(0x05) does kinematics",
+            )
+            return None
+        if len(packet.data) != 24:
+            raise _Rejected(
+                ErrorReason.BAD_PAYLOAD,
+                f"{name} payload must be 6 float32 (24 bytes), got {len(packet.data)}",
+            )
+        values = packet.floats()
+        if not all(math.isfinite(v) for v in values):
+            raise _Rejected(ErrorReason.BAD_VALUE, f"{name} {values} is not finite")
+        if len(self._control(self._joints, name)) < len(self._joints):
+            return None  # a joint in DISABLE or PASSIVE: the arm cannot move as a whole
+        return values
+
+    def _joint_limits(self) -> np.ndarray:
+        return np.array([[d.position_limits.lo, d.position_limits.hi] for d in self._joints])
+
+    def _on_end_pos(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        pose = self._end_command(targets, packet, "KM_END_POS")
+        if pose is None:
+            return []
+        wrist = self._joints[-1]
+        solution = ik.solve(self.arm, pose, self.arm.q, self._joint_limits(), wrist.continuous)
+        if not solution.reachable:
+            self.ignored.record(
+                Ignored.UNREACHABLE.value,
+                f"KM_END_POS ({pose[0]:.1f}, {pose[1]:.1f}, {pose[2]:.1f}) mm is out of reach "
+                f"inside the joint limits (closest {solution.position_error_mm:.1f} mm); "
+                "no motion",
+            )
+            return []
+        for d, angle in zip(self._joints, solution.q.tolist(), strict=True):
+            self._command_position(d, angle)
+        return []
+
+    def _on_end_vel(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        twist = self._end_command(targets, packet, "KM_END_VEL")
+        if twist is None:
+            return []
+        for d in self._joints:
+            self._set_mode(d, Mode.VELOCITY)
+            d.velocity_target = 0.0
+        if any(twist):
+            linear = np.array(twist[:3]) / 1000.0
+            self._end_velocity = (linear, np.array(twist[3:]))
+            self._end_velocity_countdown = 0
+        else:
+            self._end_velocity = None  # zero: stop, in velocity mode
+        return []
+
+    def _stop_end_velocity(self) -> None:
+        self._end_velocity = None
+        for d in self._joints:
+            if d.mode == Mode.VELOCITY:
+                d.velocity_target = 0.0
+
+    def _follow_end_velocity(self, h: float) -> None:
+        """Joint rates for the Cartesian velocity, every `_MONITOR_STEPS` physics steps,
+        inside each joint's rate and velocity limits; stops at a joint's position limit."""
+        self._end_velocity_countdown -= 1
+        if self._end_velocity_countdown > 0:
+            return
+        self._end_velocity_countdown = _MONITOR_STEPS
+        assert self._end_velocity is not None
+        linear, angular = self._end_velocity
+        joints = self._joints
+        max_rates = np.array(
+            [
+                max(min(d.spec.rate_limit, d.velocity_limits.hi, -d.velocity_limits.lo), 1e-9)
+                for d in joints
+            ]
+        )
+        q = self.arm.q
+        rates = ik.joint_rates(self.arm, q, linear, angular, max_rates).tolist()
+        lookahead = h * _MONITOR_STEPS
+        for d, angle, rate in zip(joints, q.tolist(), rates, strict=True):
+            ahead = angle + rate * lookahead
+            if not d.continuous and not d.position_limits.contains(ahead) and abs(rate) > 1e-6:
+                self.ignored.record(
+                    Ignored.END_VELOCITY_STOPPED.value,
+                    f"KM_END_VEL stopped: joint {d.spec.letter} at its position limit",
+                )
+                self._stop_end_velocity()
+                return
+        for d, rate in zip(joints, rates, strict=True):
+            d.velocity_target = rate
 
     # -- errors -----------------------------------------------------------------------------
     def _error(

@@ -254,3 +254,17 @@ def test_integer_like_ids_are_accepted() -> None:
     packet = Packet(Index(), Index())  # type: ignore[arg-type]
     assert (packet.device_id, packet.packet_id) == (DeviceID.E, PacketID.CURRENT)
     assert encode_packet(Index(), 3, b"") == Packet(5, 3).encode()  # type: ignore[arg-type]
+
+
+def test_end_effector_builders() -> None:
+    pos = commands.end_position(DeviceID.E, 100.0, -20.0, 250.0, 0.5, 0.0, -1.0)
+    assert pos.key == (DeviceID.E, PacketID.KM_END_POS)
+    assert pos.floats() == pytest.approx([100.0, -20.0, 250.0, 0.5, 0.0, -1.0])
+    assert len(pos.data) == 24
+    vel = commands.end_velocity(DeviceID.E, 0.0, 0.0, 20.0)
+    assert vel.key == (DeviceID.E, PacketID.KM_END_VEL)
+    assert vel.floats() == [0.0, 0.0, 20.0, 0.0, 0.0, 0.0]
+    with pytest.raises(PayloadError, match="z must be finite"):
+        commands.end_position(DeviceID.E, 0.0, 0.0, math.inf, 0.0, 0.0, 0.0)
+    with pytest.raises(PayloadError, match="wz must be finite"):
+        commands.end_velocity(DeviceID.E, 0.0, 0.0, 0.0, wz=math.nan)

@@ -479,3 +479,70 @@ def test_pressure_follows_temperature_in_a_sealed_housing() -> None:
     assert t == pytest.approx(20.0 + 10.0 * 3.22, abs=0.01)
     assert monitor.pressure_bar(0) == pytest.approx((t + 273.15) / 293.15, rel=1e-6)
     assert monitor.voltage_v == pytest.approx(24.0 - 1.0 * 1.1, abs=1e-6)
+
+
+# -- end-effector moves (KM_END_POS, KM_END_VEL on the base device) --------------------------
+def end_pos(device: int, *pose: float) -> Packet:
+    return Packet(device, PacketID.KM_END_POS, pack_floats(*pose))
+
+
+def test_a_reachable_end_pose_is_reached_within_5_mm(fw: Firmware) -> None:
+    goal_q = fw.arm.q + np.array([0.5, -0.4, 0.3, 0.6])
+    goal = fw.arm.pose_at(goal_q)  # reachable by construction
+    assert fw.handle(end_pos(E, *goal)) == []
+    assert fw.ignored.counts == {} and fw.errors.counts == {}
+    assert [one(fw, d, PacketID.MODE).u8s() for d in (E, D, C, B)] == [[Mode.POSITION]] * 4
+    fw.tick(3.0)  # the largest move is 0.6 rad at 0.87 rad/s, 0.5 at 0.52
+    reached = fw.arm.pose_at(fw.arm.q)  # FK of the arm's angles after settling
+    assert math.dist(reached[:3], goal[:3]) < 5.0
+    reported = one(fw, E, PacketID.KM_END_POS).floats()
+    assert math.dist(reported[:3], goal[:3]) < 5.0
+    assert reported[3:] == pytest.approx(goal[3:], abs=0.02)  # the roll too
+    assert np.abs(fw.arm.qdot).max() < 0.01
+
+
+def test_an_unreachable_end_pose_is_refused_with_no_motion(fw: Firmware) -> None:
+    q0 = fw.arm.q
+    assert fw.handle(end_pos(E, 1000.0, 0.0, 0.0, 0.0, 0.0, 0.0)) == []  # 1 m: beyond reach
+    assert fw.ignored.counts == {"unreachable_pose": 1}
+    assert fw.errors.counts == {}
+    fw.tick(1.0)
+    assert np.abs(fw.arm.q - q0).max() < 0.002
+    assert [one(fw, d, PacketID.MODE).u8s() for d in (E, D, C, B)] == [[Mode.STANDBY]] * 4
+    assert fw.status(E) == HardwareStatus.NONE
+
+
+def test_end_moves_go_to_the_base_device_only(fw: Firmware) -> None:
+    pose = fw.arm.end_effector_pose()
+    assert fw.handle(end_pos(D, *pose)) == []
+    assert fw.ignored.counts == {"not_the_base_device": 1}
+    assert fw.handle(Packet(E, PacketID.KM_END_POS, pack_floats(1.0, 2.0))) == []
+    assert fw.errors.counts == {"bad_payload": 1}
+
+
+def test_a_cartesian_velocity_moves_the_tool_in_a_straight_line(fw: Firmware) -> None:
+    start = fw.arm.end_effector_pose()
+    fw.handle(Packet(E, PacketID.KM_END_VEL, pack_floats(0.0, 0.0, 20.0, 0.0, 0.0, 0.0)))
+    fw.tick(1.0)
+    moved = np.subtract(fw.arm.end_effector_pose()[:3], start[:3])
+    assert moved[2] == pytest.approx(20.0, abs=3.0)  # 20 mm/s up, for 1 s (less the ramp)
+    assert np.hypot(moved[0], moved[1]) < 2.0
+    velocity = one(fw, E, PacketID.KM_END_VEL).floats()
+    assert velocity[:3] == pytest.approx([0.0, 0.0, 20.0], abs=1.0)
+    fw.handle(Packet(E, PacketID.KM_END_VEL, bytes(24)))  # zero: stop
+    fw.tick(0.5)
+    assert np.abs(fw.arm.qdot).max() < 0.01
+    # A joint command takes the arm back from Cartesian control.
+    fw.handle(Packet(E, PacketID.KM_END_VEL, pack_floats(0.0, 0.0, 20.0, 0.0, 0.0, 0.0)))
+    fw.tick(0.2)
+    fw.handle(commands.velocity(D, 0.0))
+    fw.tick(0.5)
+    assert abs(fw.arm.qdot[0]) < 0.01 and abs(fw.arm.qdot[1]) < 0.01
+
+
+def test_a_cartesian_velocity_is_kept_inside_the_joint_rate_limits(fw: Firmware) -> None:
+    fw.handle(Packet(E, PacketID.KM_END_VEL, pack_floats(0.0, 0.0, 2000.0, 0.0, 0.0, 0.0)))
+    fw.tick(1.0)
+    rates = np.abs(fw.arm.qdot)
+    assert np.all(rates <= np.array([RATE[E], RATE[D], RATE[C], RATE[B]]) + 0.02)
+    assert rates.max() > 0.4  # and it does move, at the fastest joint's limit
