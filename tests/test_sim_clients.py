@@ -168,3 +168,101 @@ def test_limits_in_min_max_order_or_the_16_byte_form_are_refused_without_a_fault
     feed(fw, decoder, wire(D, PacketID.CURRENT_LIMITS, pack_floats(400.0, -400.0)))
     reply = feed(fw, decoder, wire(D, PacketID.REQUEST, bytes([PacketID.CURRENT_LIMITS])))
     assert reply[0].floats() == [400.0, -400.0]
+
+
+# -- the whole client session, over the firmware and over a served pty ----------------------
+#: The device ids every device is asked for, once a second.
+MONITOR_REQUEST = bytes(MONITOR)
+POLL_REPLIES = [PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT]
+
+
+def client_session(seconds: float) -> list[tuple[float, bytes]]:
+    """(sim time, bytes written) of the client's session: its start-up, then the polling."""
+    from protocol.payload import pack_floats
+
+    start = b""
+    for dev in JOINTS:
+        for pid, lo, hi in (
+            (PacketID.POSITION_LIMITS, 0.0175, 3.4034),
+            (PacketID.VELOCITY_LIMITS, -0.5, 0.5),
+            (PacketID.CURRENT_LIMITS, -600.0, 600.0),
+        ):
+            start += wire(dev, pid, bytes(8) + pack_floats(lo, hi))  # the 16-byte form
+        for mode in UNDOCUMENTED_MODES:
+            start += wire(dev, PacketID.MODE, bytes([mode]))
+    # The jaw streams its position and velocity at 10 Hz from a pre-sized list.
+    start += wire(A, PacketID.HEARTBEAT_SET, bytes(8) + bytes([0x03, 0x02]))
+    start += wire(A, PacketID.HEARTBEAT_FREQUENCY, b"\x0a")
+    events = [(0.0, start)]
+    for k in range(int(seconds * POLL_HZ)):
+        chunk = poll_frames()
+        if k % POLL_HZ == 0:
+            chunk += b"".join(wire(d, PacketID.REQUEST, MONITOR_REQUEST) for d in (A, B, C, D, E))
+        events.append((k / POLL_HZ, chunk))
+    return events
+
+
+def check_session(replies: list[Packet], seconds: float) -> None:
+    """Real-arm answers: every poll and every monitor packet, each decoded; no status."""
+    polls = int(seconds * POLL_HZ)
+    keys = [p.key for p in replies]
+    for dev in JOINTS:
+        for pid in POLL_REPLIES:
+            assert keys.count((dev, pid)) == polls
+    for dev in (A, B, C, D, E):
+        for pid, n in MONITOR.items():
+            answers = [p for p in replies if p.key == (dev, pid)]
+            assert len(answers) == seconds, (dev, pid)  # once a second
+            assert all(len(p.floats()) == n for p in answers)
+    jaw = [p.packet_id for p in replies if p.device_id == A and p.packet_id in POLL_REPLIES]
+    assert len(jaw) >= 2 * 10 * (seconds - 1)  # the jaw's heartbeat
+    assert not [p for p in replies if p.packet_id == PacketID.HARDWARE_STATUS]
+
+
+SESSION_S = 8
+
+
+def test_client_session_over_the_firmware(fw: Firmware) -> None:
+    decoder = PacketDecoder()
+    replies: list[Packet] = []
+    for at, chunk in client_session(SESSION_S):
+        replies += fw.tick(max(0.0, at - fw.time))  # heartbeats and any status
+        replies += feed(fw, decoder, chunk)
+    replies += fw.tick(1.0 / POLL_HZ)
+    raw = b"".join(p.encode() for p in replies)
+    check_session(PacketDecoder().feed(raw), SESSION_S)
+    assert fw.errors.counts == {"limits_16_bytes": 12}  # refused, counted, no flag
+    assert fw.ignored.counts["request_padding"] == SESSION_S * POLL_HZ * 4 + 1
+    assert fw.ignored.counts["unimplemented_mode"] == 24
+    assert all(fw.status(d) == HardwareStatus.NONE for d in (A, B, C, D, E))
+
+
+def test_client_session_over_a_served_pty() -> None:
+    import serial
+
+    from reach_sim_bridge.server import SimConfig, SimServer
+
+    seconds = 4
+    with SimServer(SimConfig(speed=4.0)) as server:
+        assert server.pty_path is not None
+        port = serial.Serial(server.pty_path, 115200, timeout=0.0)
+        decoder = PacketDecoder()
+        replies: list[Packet] = []
+        t0 = server.sim_time
+        try:
+            for at, chunk in client_session(seconds):
+                assert server.wait_sim_time(t0 + at, timeout=20.0)
+                port.write(chunk)
+                replies += decoder.feed(port.read(port.in_waiting or 0))
+            assert server.wait_sim_time(server.sim_time + 0.2, timeout=20.0)
+            replies += decoder.feed(port.read(port.in_waiting or 0))
+        finally:
+            port.close()
+        stats = server.stats()
+        statuses = server.observe(lambda _arm, fw: [fw.status(d) for d in (A, B, C, D, E)])
+        assert server.error is None
+    check_session(replies, seconds)
+    assert stats.bad_frames == {}
+    assert stats.firmware_errors == {"limits_16_bytes": 12}
+    assert stats.ignored["request_padding"] == seconds * POLL_HZ * 4 + 1
+    assert statuses == [HardwareStatus.NONE] * 5
