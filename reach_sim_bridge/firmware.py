@@ -101,6 +101,7 @@ class Ignored(str, Enum):
     UNREACHABLE = "unreachable_pose"  # KM_END_POS the arm cannot reach: no motion
     NOT_BASE = "not_the_base_device"  # KM_END_POS/KM_END_VEL to a device other than E
     END_VELOCITY_STOPPED = "end_velocity_at_joint_limit"  # a Cartesian move ran into a limit
+    COLLISION = "broadcast_collision"  # half duplex: several devices answered at once
     PADDING = "request_padding"  # 0x00 slots in a REQUEST (or misplaced in a HEARTBEAT_SET)
 
 
@@ -153,6 +154,9 @@ class FirmwareConfig:
     humidity_pct: float = 10.0  # in each housing at power-on
     monitor: MonitorConfig = MonitorConfig()  # climate and supply model, factory levels
     leaks: tuple[Leak, ...] = ()  # housings taking in water from the start
+    # RS-485: one shared wire. A broadcast REQUEST that more than one device answers
+    # collides on it; the host gets none of the answers (counted as `broadcast_collision`).
+    half_duplex: bool = False
     status_period_s: float = 1.0  # HARDWARE_STATUS while an error flag is set
     error_hold_s: float = 5.0  # link error flags clear after this long without errors
     sensor_noise: SensorNoise | None = None
@@ -902,6 +906,13 @@ class Firmware:
                         Ignored.UNSUPPORTED_REQUEST.value,
                         f"device {d.spec.letter} has no 0x{pid:02X} to report",
                     )
+        if broadcast and self.config.half_duplex and len({p.device_id for p in out}) > 1:
+            self.ignored.record(
+                Ignored.COLLISION.value,
+                f"broadcast REQUEST {list(ids)}: {len(out)} answers from several devices "
+                "collided on the half-duplex line",
+            )
+            return []
         return out
 
     def _on_heartbeat_set(self, targets: list[Device], packet: Packet) -> list[Packet]:

@@ -546,3 +546,12 @@ def test_a_cartesian_velocity_is_kept_inside_the_joint_rate_limits(fw: Firmware)
     rates = np.abs(fw.arm.qdot)
     assert np.all(rates <= np.array([RATE[E], RATE[D], RATE[C], RATE[B]]) + 0.02)
     assert rates.max() > 0.4  # and it does move, at the fastest joint's limit
+
+
+def test_half_duplex_broadcast_requests_collide() -> None:
+    fw = Firmware(Alpha5Arm(), FirmwareConfig(half_duplex=True))
+    assert ask(fw, BROADCAST, PacketID.POSITION) == []  # five devices talk at once
+    assert fw.ignored.counts == {"broadcast_collision": 1}
+    assert [r.device_id for r in ask(fw, BROADCAST, PacketID.KM_END_POS)] == [E]  # one talker
+    assert [r.key for r in ask(fw, D, PacketID.POSITION)] == [(D, PacketID.POSITION)]
+    assert fw.errors.counts == {}
