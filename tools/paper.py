@@ -337,8 +337,16 @@ def paired_lines(
     return lines, numbers
 
 
-def seed_lines(every: dict[int, dict[str, dict[str, Any]]], n: int) -> list[str]:
+def _summary(run: Any) -> dict[str, float]:
+    """The means of a table run dict, or of anything with a `summary()` (an `Evaluation`)."""
+    return run.summary() if callable(getattr(run, "summary", None)) else summary(run)
+
+
+def seed_lines(
+    more: dict[int, dict[str, Any]], table: dict[str, Any], seed: int, n: int
+) -> list[str]:
     """The comparison repeated on other seeds, and how often DDPG beats MPC per metric."""
+    every = {seed: table, **more}
     lines = [
         "",
         f"### The same comparison on other seeds ({n} random targets each, same "
@@ -349,7 +357,7 @@ def seed_lines(every: dict[int, dict[str, dict[str, Any]]], n: int) -> list[str]
     ]
     for sd, runs in every.items():
         for name, run in runs.items():
-            s = summary(run)
+            s = _summary(run)
             lines.append(
                 f"| {sd} | {name} | {s['energy_j']:.2f} | {s['rmse']:.4f} | "
                 f"{s['mie']:.4f} | {s['msse']:.5f} | {s['overshoot_pct']:.2f} | "
@@ -359,13 +367,13 @@ def seed_lines(every: dict[int, dict[str, dict[str, Any]]], n: int) -> list[str]
     if pairs:
         counts = {k: 0 for k in TABLE_KEYS}
         for runs in pairs:
-            for k, better in wins(summary(runs["ddpg"]), summary(runs["mpc"])).items():
+            for k, better in wins(_summary(runs["ddpg"]), _summary(runs["mpc"])).items():
                 counts[k] += better
         lines += [
             "",
-            f"DDPG better than MPC on {len(pairs)} seeds (seed means): "
+            f"DDPG better than MPC on {len(pairs)} seeds: "
             + ", ".join(f"{SHORT[k]} {counts[k]}/{len(pairs)}" for k in TABLE_KEYS)
-            + ".",
+            + ". (Per-seed means; a tie is not a win.)",
         ]
     return lines
 
@@ -448,7 +456,7 @@ def markdown(
         lines.append(f"{name}: not run ({why}).")
     if more:
         every = {settings.seed: table, **more}
-        lines += seed_lines(every, settings.n)
+        lines += seed_lines(more, table, settings.seed, settings.n)
     else:
         every = {settings.seed: table} if table else {}
     if every:
