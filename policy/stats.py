@@ -80,6 +80,8 @@ class PairedDifference:
     n: int
     a_better: int
     """episodes with a_i < b_i (lower is better for every Table I metric)"""
+    ties: int = 0
+    """episodes with a_i == b_i"""
 
     @property
     def excludes_zero(self) -> bool:
@@ -108,6 +110,7 @@ def paired_difference_ci(
         high=high,
         n=int(diff.size),
         a_better=int(np.sum(a_arr < b_arr)),
+        ties=int(np.sum(a_arr == b_arr)),
     )
 
 

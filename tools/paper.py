@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import re
 import sys
@@ -235,9 +236,16 @@ CI_FORMAT = {
 
 
 def _ci(mean: float, low: float, high: float, key: str, signed: bool = False) -> str:
+    """mean [low, high] in the metric's printing unit; a difference (signed) gets enough
+    decimals for two significant digits of its interval's half-width."""
     scale, fmt, _ = CI_FORMAT[key]
-    sfmt = ("+" if signed else "") + fmt
-    return f"{mean * scale:{sfmt}} [{low * scale:{sfmt}}, {high * scale:{sfmt}}]"
+    if signed:
+        half = 0.5 * (high - low) * scale
+        digits = int(fmt[1:-1])
+        if half > 0:
+            digits = max(digits, int(-math.floor(math.log10(half))) + 1)
+        fmt = f"+.{digits}f"
+    return f"{mean * scale:{fmt}} [{low * scale:{fmt}}, {high * scale:{fmt}}]"
 
 
 def ci_lines(table: dict[str, dict[str, Any]], n: int, resamples: int, ci_seed: int) -> list[str]:
@@ -290,8 +298,12 @@ def paired_lines(
         ),
         "",
         f"| a - b | metric | seed {main_seed}: diff [95 % CI] | rel. [%] | "
-        + (f"pooled ({pooled_n}): diff [95 % CI] | rel. [%] | a better in |" if multi else "")
-        + ("" if multi else "a better in |"),
+        + (
+            f"pooled ({pooled_n}): diff [95 % CI] | rel. [%] | a better / tied in |"
+            if multi
+            else ""
+        )
+        + ("" if multi else "a better / tied in |"),
         "|---|---|---|---|" + ("---|---|---|" if multi else "---|"),
     ]
     unresolved: dict[str, list[str]] = {}
@@ -322,7 +334,7 @@ def paired_lines(
             lines.append(
                 f"| {label} | {SHORT[k]} [{unit}] | "
                 + " | ".join(cells)
-                + f" | {last.a_better}/{last.n} |"
+                + f" | {last.a_better} / {last.ties} of {last.n} |"
             )
     lines += [
         "",
