@@ -111,3 +111,16 @@ def test_reuse_only_takes_a_matching_run(tmp_path: Path, docs: Path) -> None:
     assert paper.load_table(path, "pid", config, paper.random_episodes(1, 7)) is None
     other = paper.RunConfig(seconds=1.0, seed=2020, param_spread=0.2)  # no noise
     assert paper.load_table(path, "pid", other, episodes) is None
+
+
+def test_new_metric_fields_do_not_change_table_i() -> None:
+    """A metrics module that gains fields (numeric or not) leaves the six columns alone."""
+    base = {"energy_j": 1.0, "rmse": 0.2, "mie": 0.9, "msse": 0.001}
+    base |= {"overshoot_pct": 2.0, "settling_time_s": 1.5, "reached": True}
+    plain = {"episodes": [{"metrics": dict(base), "rmse_floor": 0.19}] * 2}
+    extra = {"episodes": [{"metrics": base | {"at_rest": None, "rest_s": 3.0}, "rmse_floor": 0.19}]}
+    extra["episodes"] *= 2
+    s0, s1 = paper.summary(plain), paper.summary(extra)
+    assert "at_rest" not in s1 and s1["rest_s"] == 3.0
+    assert paper._fmt_row("x", s0) == paper._fmt_row("x", s1)
+    assert {k: s1[k] for k in s0} == s0

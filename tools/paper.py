@@ -140,8 +140,14 @@ def values(run: dict[str, Any], key: str) -> np.ndarray:
 
 def summary(run: dict[str, Any]) -> dict[str, float]:
     """Mean over episodes of every metric (reached as a fraction), as `Evaluation.summary`."""
-    keys = [*run["episodes"][0]["metrics"], "rmse_floor"]
-    return {k: float(np.mean(values(run, k))) for k in keys}
+
+    def numeric(k: str) -> bool:  # fields a newer metrics module adds may be anything
+        return all(isinstance(e["metrics"].get(k), int | float | bool) for e in run["episodes"])
+
+    keys = [k for k in run["episodes"][0]["metrics"] if numeric(k)]
+    out = {k: float(np.mean(values(run, k))) for k in keys}
+    out["rmse_floor"] = float(np.mean(values(run, "rmse_floor")))
+    return out
 
 
 def table_path(runs: Path, name: str, seed: int, main_seed: int) -> Path:
