@@ -25,8 +25,8 @@ def _paper() -> ModuleType:
 
 
 paper = _paper()
-# a tiny run: one controller, one 1-second episode, no other seeds, cheap bootstrap
-QUICK = ["--controllers", "pid", "--n", "1", "--seconds", "1", "--more-seeds", "--resamples", "50"]
+# a tiny run: one controller, one 1-second episode, no other seeds
+QUICK = ["--controllers", "pid", "--n", "1", "--seconds", "1", "--more-seeds"]
 
 
 @pytest.fixture
@@ -64,6 +64,13 @@ def test_write_docs_refuses_other_settings(
     assert "refusing" in out and "--force" in out and "n: 1 here, 20 there" in out
     assert (docs / "results.md").read_bytes() == before
     assert not (tmp_path / "runs").exists()  # refused before anything ran
+
+
+def test_write_docs_refuses_a_different_bootstrap(tmp_path: Path, docs: Path) -> None:
+    args = ["--write-docs", "--runs", str(tmp_path / "runs"), "--docs", str(docs)]
+    assert paper.main([*args, "--resamples", "100"]) == 2
+    assert paper.main([*args, "--ci-seed", "3"]) == 2
+    assert not (tmp_path / "runs").exists()
 
 
 def test_write_docs_force_replaces_only_the_block(tmp_path: Path, docs: Path) -> None:

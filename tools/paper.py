@@ -6,6 +6,7 @@ intervals in policy/stats.py.
 
     tools/paper.py                  # the committed table's settings; writes runs/paper/ only
     tools/paper.py --write-docs     # ... and docs/figures/*.png + docs/results.md's block
+    tools/paper.py --controllers pid --n 2 --more-seeds   # a quick look, runs/paper/ only
 
 Without ``--write-docs`` nothing under docs/ is touched: JSON, a preview of the generated
 block and the figures go to runs/paper/. ``--write-docs`` refuses a run whose settings
@@ -612,8 +613,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--runs",
         type=Path,
-        default=Path("runs/paper"),
-        help="JSON, block preview and (without --write-docs) figures (runs/paper)",
+        default=ROOT / "runs" / "paper",
+        help="JSON, block preview and (without --write-docs) figures (the repository's runs/paper)",
     )
     p.add_argument(
         "--docs",
@@ -705,6 +706,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.write_docs:
         reference = recorded_settings(doc) or COMMITTED
         diffs = settings.differences(reference)
+        if (args.resamples, args.ci_seed) != (DEFAULT_RESAMPLES, 0):
+            diffs.append(
+                f"bootstrap: {args.resamples} resamples, seed {args.ci_seed} here, "
+                f"{DEFAULT_RESAMPLES} and 0 in the committed text"
+            )
         if diffs and not args.force:
             console.print(
                 f"[red]refusing to write {doc}[/red]: this run's settings differ from those "
