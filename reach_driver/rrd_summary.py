@@ -197,6 +197,58 @@ def _metadata(text: str | None) -> dict[str, object]:
     return value if isinstance(value, dict) else {}
 
 
+@dataclass(frozen=True)
+class BlueprintView:
+    kind: str  # rerun's view class: "TimeSeries", "3D", "TextLog", ...
+    name: str
+    origin: str
+
+
+@dataclass(frozen=True)
+class RecordingBlueprint:
+    """What the viewer opens on: the default blueprint stored in the file."""
+
+    timeline: str | None  # the time panel's timeline
+    views: list[BlueprintView]
+
+
+def read_blueprint(path: str | Path) -> RecordingBlueprint:
+    """The default blueprint a recording carries (its views and the timeline it opens on)."""
+    reader = RrdReader(Path(path))
+    stores = reader.blueprints()
+    timeline: str | None = None
+    views: list[BlueprintView] = []
+    if not stores:
+        return RecordingBlueprint(None, [])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        chunks = reader.stream(store=stores[0]).to_chunks()
+    for chunk in chunks:
+        batch = chunk.to_record_batch()
+        names = batch.schema.names
+        if "TimePanelBlueprint:timeline" in names:
+            values = _flat(batch.column("TimePanelBlueprint:timeline").to_pylist())
+            timeline = str(values[-1]) if values and values[-1] is not None else timeline
+        if "ViewBlueprint:class_identifier" in names:
+            kinds = _flat(batch.column("ViewBlueprint:class_identifier").to_pylist())
+            titles = (
+                _flat(batch.column("ViewBlueprint:display_name").to_pylist())
+                if "ViewBlueprint:display_name" in names
+                else [""] * len(kinds)
+            )
+            origins = (
+                _flat(batch.column("ViewBlueprint:space_origin").to_pylist())
+                if "ViewBlueprint:space_origin" in names
+                else [""] * len(kinds)
+            )
+            views.extend(
+                BlueprintView(str(k), str(n or ""), str(o or ""))
+                for k, n, o in zip(kinds, titles, origins, strict=True)
+            )
+    views.sort(key=lambda v: (v.origin, v.name))
+    return RecordingBlueprint(timeline, views)
+
+
 def read_recording(path: str | Path) -> RecordedRun:
     path = Path(path)
     if not path.is_file():
