@@ -2,9 +2,13 @@
 
 A recording is the durable record of a run: joint positions against targets, errors,
 velocities, commanded and measured currents, torques, mode changes, link statistics and a 3D
-arm whose links follow the joint angles, with the target pose as a ghost. It is written
-incrementally and flushed on a short period, so what was logged before Ctrl-C or a crash stays
-readable (`reach-driver inspect FILE.rrd`, `rerun FILE.rrd`).
+arm drawn from the MJCF's link geoms (`reach_driver.arm_geometry`) posed by the driver's
+kinematics, with the target pose as a translucent ghost. It is written incrementally and
+flushed on a short period, so what was logged before Ctrl-C or a crash stays readable
+(`reach-driver inspect FILE.rrd`, `rerun FILE.rrd`).
+
+Timelines: `arm_time` (a duration: the arm's clock in seconds, the one the viewer opens on)
+and `step` (the control step index).
 
 Entity layout (read back by `reach_driver.rrd_summary`):
 
@@ -13,10 +17,15 @@ Entity layout (read back by `reach_driver.rrd_summary`):
     errors                Scalars [e_E, e_D, e_C, e_B]   rad (target - q)
     velocities            Scalars [qdot x4]   rad/s
     torques               Scalars [tau x4]   N m
-    link                  Scalars [good frames, bad frames, state age ms]
-    arm/...               Transform3D per link; target/... the ghost
+    link/frames           Scalars [good frames, bad frames]   counts since the run started
+    link/state_age        Scalars [age of the oldest reading in the state]   ms
+    link/latency          Scalars [state complete -> command written]   ms
+    arm                   the base's geoms (static)
+    arm/<link>/...        Transform3D per step (nested: each composes with its parent) and the
+                          link's Cylinders3D / Boxes3D (static, in the link's frame)
+    target/<link>/...     the same links, translucent, posed at the target (the ghost)
     events                TextLog (mode changes, faults, start/stop)
-    run/*                 static: targets, joint names, metrics, metadata
+    run/*                 static: metadata, summary; run/target Scalars when the target changes
 """
 
 from __future__ import annotations
@@ -33,20 +42,26 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from protocol.alpha5 import JOINT_LETTERS
+from reach_driver.arm_geometry import GEOMS, LinkGeom
 from reach_driver.kinematics import CHAIN, TCP_OFFSET_M, joint_transform
 
 TIMELINE_TIME = "arm_time"
 TIMELINE_STEP = "step"
+BASE_LINK = "m3_inline"
 
 _ARM_COLOR = (230, 150, 40, 255)
-_GHOST_COLOR = (80, 170, 255, 90)
-# Link geometry drawn in each link's own frame: from its origin to the next joint's origin.
-_LINK_SEGMENTS: dict[str, list[list[float]]] = {
-    "m2_1_1": [[0.0, 0.0, 0.0], [-0.02, 0.0, 0.033]],
-    "m2": [[0.0, 0.0, 0.0], [-0.04, 0.0, -0.1453]],
-    "m2_1_3": [[0.0, 0.0, 0.0], [0.02, 0.0, 0.033]],
-    "m1": [[0.0, 0.0, 0.0], [0.0, 0.0, TCP_OFFSET_M]],
-}
+_BASE_COLOR = (90, 90, 90, 255)
+_GHOST_COLOR = (80, 170, 255, 70)
+_TARGET_COLOR = (80, 170, 255, 255)
+_MEASURED_COLOR = (120, 120, 120, 255)
+_JOINT_COLORS = [(230, 90, 60, 255), (90, 180, 80, 255), (70, 130, 230, 255), (200, 170, 40, 255)]
+
+#: (entity, view title) of every time-series view of the default blueprint; titles carry units.
+LINK_VIEWS = (
+    ("link/frames", "link: frames received (count)"),
+    ("link/state_age", "link: state age (ms)"),
+    ("link/latency", "link: latency, state to command (ms)"),
+)
 
 
 @dataclass(frozen=True)
@@ -72,29 +87,81 @@ def _link_paths(root: str) -> list[str]:
     return paths
 
 
+def _series_view(origin: str, name: str) -> rrb.TimeSeriesView:
+    return rrb.TimeSeriesView(origin=origin, name=name)
+
+
 def default_blueprint() -> rrb.Blueprint:
-    """Opens on the 3D arm, position-vs-target per joint, torques and errors."""
-    position_views = [
-        rrb.TimeSeriesView(origin=f"/joints/{j}/position", name=f"{j}: position vs target")
+    """Opens on the arm-time timeline (seconds): the 3D arm and its ghost, errors and events;
+    per joint its position vs target (rad) beside its currents (mA); torques, velocities and
+    the link's counts, state age and latency, each on its own scale."""
+    joint_rows = [
+        rrb.Horizontal(
+            _series_view(f"/joints/{j}/position", f"{j}: position q vs target (rad)"),
+            _series_view(f"/joints/{j}/current", f"{j}: current, commanded vs measured (mA)"),
+        )
         for j in JOINT_LETTERS
     ]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
-                rrb.Spatial3DView(origin="/", contents=["/arm/**", "/target/**"], name="arm"),
-                rrb.TimeSeriesView(origin="/errors", name="errors (rad)"),
-                row_shares=[3, 2],
+                rrb.Spatial3DView(
+                    origin="/",
+                    contents=["/arm/**", "/target/**"],
+                    name="arm (m), target pose as a ghost",
+                ),
+                _series_view("/errors", "errors: target - q (rad)"),
+                rrb.TextLogView(origin="/events", name="events"),
+                row_shares=[4, 2, 1],
             ),
-            rrb.Vertical(*position_views),
+            rrb.Vertical(*joint_rows),
             rrb.Vertical(
-                rrb.TimeSeriesView(origin="/torques", name="torques (N m)"),
-                rrb.TimeSeriesView(origin="/velocities", name="velocities (rad/s)"),
-                rrb.TimeSeriesView(origin="/link", name="link"),
+                _series_view("/torques", "torques (N m)"),
+                _series_view("/velocities", "velocities (rad/s)"),
+                *(_series_view(f"/{entity}", name) for entity, name in LINK_VIEWS),
             ),
-            column_shares=[3, 3, 2],
+            column_shares=[3, 4, 2],
         ),
-        collapse_panels=True,
+        rrb.TimePanel(timeline=TIMELINE_TIME, state="collapsed"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
     )
+
+
+def log_link_geoms(
+    rec: rr.RecordingStream,
+    path: str,
+    geoms: Sequence[LinkGeom],
+    color: tuple[int, int, int, int],
+) -> None:
+    """A link's geoms (static, in the entity's own frame): MJCF cylinders and boxes."""
+    cylinders = [g for g in geoms if g.shape == "cylinder"]
+    boxes = [g for g in geoms if g.shape == "box"]
+    if cylinders:
+        rec.log(
+            path,
+            rr.Cylinders3D(
+                centers=[g.center for g in cylinders],
+                quaternions=[g.quat_xyzw for g in cylinders],
+                radii=[g.size[0] for g in cylinders],
+                lengths=[g.size[1] for g in cylinders],
+                colors=[color] * len(cylinders),
+                fill_mode="solid",
+            ),
+            static=True,
+        )
+    if boxes:
+        rec.log(
+            path,
+            rr.Boxes3D(
+                centers=[g.center for g in boxes],
+                quaternions=[g.quat_xyzw for g in boxes],
+                half_sizes=[g.size for g in boxes],
+                colors=[color] * len(boxes),
+                fill_mode="solid",
+            ),
+            static=True,
+        )
 
 
 class RunRecorder:
@@ -127,26 +194,31 @@ class RunRecorder:
     def _log_static_scene(self, metadata: Mapping[str, object]) -> None:
         rec = self._rec
         rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        base = [[-0.12, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.014]]
-        rec.log("arm", rr.LineStrips3D([base], radii=0.012, colors=[_ARM_COLOR]), static=True)
-        for links, color, radius in (
-            (self._arm_links, _ARM_COLOR, 0.01),
-            (self._ghost_links, _GHOST_COLOR, 0.008),
-        ):
+        log_link_geoms(rec, "arm", [g for g in GEOMS if g.link == BASE_LINK], _BASE_COLOR)
+        tcp = [[0.0, 0.0, TCP_OFFSET_M]]
+        for links, color in ((self._arm_links, _ARM_COLOR), (self._ghost_links, _GHOST_COLOR)):
             for path, frame in zip(links, CHAIN, strict=True):
-                segment = _LINK_SEGMENTS[frame.child_link]
-                rec.log(path, rr.LineStrips3D([segment], radii=radius, colors=[color]), static=True)
+                log_link_geoms(rec, path, [g for g in GEOMS if g.link == frame.child_link], color)
+            rec.log(f"{links[-1]}/tcp", rr.Points3D(tcp, radii=0.006, colors=[color]), static=True)
         for j in JOINT_LETTERS:
-            rec.log(f"joints/{j}/position", rr.SeriesLines(names=["q", "target"]), static=True)
             rec.log(
-                f"joints/{j}/current", rr.SeriesLines(names=["commanded", "measured"]), static=True
+                f"joints/{j}/position",
+                rr.SeriesLines(names=["q", "target"], colors=[_ARM_COLOR, _TARGET_COLOR]),
+                static=True,
+            )
+            rec.log(
+                f"joints/{j}/current",
+                rr.SeriesLines(
+                    names=["commanded", "measured"], colors=[_ARM_COLOR, _MEASURED_COLOR]
+                ),
+                static=True,
             )
         names = [f"{j}" for j in JOINT_LETTERS]
         for entity in ("errors", "velocities", "torques"):
-            rec.log(entity, rr.SeriesLines(names=names), static=True)
-        rec.log(
-            "link", rr.SeriesLines(names=["good frames", "bad frames", "state age ms"]), static=True
-        )
+            rec.log(entity, rr.SeriesLines(names=names, colors=_JOINT_COLORS), static=True)
+        rec.log("link/frames", rr.SeriesLines(names=["good frames", "bad frames"]), static=True)
+        rec.log("link/state_age", rr.SeriesLines(names=["state age ms"]), static=True)
+        rec.log("link/latency", rr.SeriesLines(names=["latency ms"]), static=True)
         meta = {"joint_names": list(JOINT_LETTERS), **dict(metadata)}
         rec.log("run/metadata", rr.TextDocument(json.dumps(meta, default=str)), static=True)
 
@@ -183,9 +255,23 @@ class RunRecorder:
         self._log_pose(self._arm_links, q)
         self._maybe_flush()
 
-    def log_link(self, t: float, step: int, good: int, bad: int, state_age_s: float) -> None:
+    def log_link(
+        self,
+        t: float,
+        step: int,
+        good: int,
+        bad: int,
+        state_age_s: float,
+        latency_s: float | None = None,
+    ) -> None:
+        """The link's health at one step: frame counts, state age and (if known) the latency
+        from the state being complete to the command being written, each its own entity."""
         self._set_time(t, step)
-        self._rec.log("link", rr.Scalars([float(good), float(bad), state_age_s * 1e3]))
+        rec = self._rec
+        rec.log("link/frames", rr.Scalars([float(good), float(bad)]))
+        rec.log("link/state_age", rr.Scalars(state_age_s * 1e3))
+        if latency_s is not None:
+            rec.log("link/latency", rr.Scalars(latency_s * 1e3))
 
     def log_event(
         self, text: str, level: str = "INFO", t: float | None = None, step: int | None = None

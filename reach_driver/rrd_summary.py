@@ -26,6 +26,9 @@ from protocol.alpha5 import JOINT_LETTERS
 from reach_driver.metrics import Trace, compute_metrics
 from reach_driver.recording import TIMELINE_STEP, TIMELINE_TIME
 
+#: `run/metadata`'s "source" in a simulator recording (reach_sim_bridge.recording).
+SIM_SOURCE = "reach-sim"
+
 
 class RecordingReadError(ValueError):
     """The file is missing, not a recording, or holds no run written by reach-stack."""
@@ -197,6 +200,58 @@ def _metadata(text: str | None) -> dict[str, object]:
     return value if isinstance(value, dict) else {}
 
 
+@dataclass(frozen=True)
+class BlueprintView:
+    kind: str  # rerun's view class: "TimeSeries", "3D", "TextLog", ...
+    name: str
+    origin: str
+
+
+@dataclass(frozen=True)
+class RecordingBlueprint:
+    """What the viewer opens on: the default blueprint stored in the file."""
+
+    timeline: str | None  # the time panel's timeline
+    views: list[BlueprintView]
+
+
+def read_blueprint(path: str | Path) -> RecordingBlueprint:
+    """The default blueprint a recording carries (its views and the timeline it opens on)."""
+    reader = RrdReader(Path(path))
+    stores = reader.blueprints()
+    timeline: str | None = None
+    views: list[BlueprintView] = []
+    if not stores:
+        return RecordingBlueprint(None, [])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        chunks = reader.stream(store=stores[0]).to_chunks()
+    for chunk in chunks:
+        batch = chunk.to_record_batch()
+        names = batch.schema.names
+        if "TimePanelBlueprint:timeline" in names:
+            values = _flat(batch.column("TimePanelBlueprint:timeline").to_pylist())
+            timeline = str(values[-1]) if values and values[-1] is not None else timeline
+        if "ViewBlueprint:class_identifier" in names:
+            kinds = _flat(batch.column("ViewBlueprint:class_identifier").to_pylist())
+            titles = (
+                _flat(batch.column("ViewBlueprint:display_name").to_pylist())
+                if "ViewBlueprint:display_name" in names
+                else [""] * len(kinds)
+            )
+            origins = (
+                _flat(batch.column("ViewBlueprint:space_origin").to_pylist())
+                if "ViewBlueprint:space_origin" in names
+                else [""] * len(kinds)
+            )
+            views.extend(
+                BlueprintView(str(k), str(n or ""), str(o or ""))
+                for k, n, o in zip(kinds, titles, origins, strict=True)
+            )
+    views.sort(key=lambda v: (v.origin, v.name))
+    return RecordingBlueprint(timeline, views)
+
+
 def read_recording(path: str | Path) -> RecordedRun:
     path = Path(path)
     if not path.is_file():
@@ -286,13 +341,63 @@ def read_recording(path: str | Path) -> RecordedRun:
     )
 
 
+def _finite_or_none(values: np.ndarray) -> list[float | None]:
+    return [float(v) if np.isfinite(v) else None for v in values]
+
+
+def _last_event(events: list[tuple[float, str, str]], prefix: str) -> str | None:
+    texts = [text[len(prefix) :].strip() for _, _, text in events if text.startswith(prefix)]
+    return texts[-1] if texts else None
+
+
+def _summarize_sim(path: str | Path, run: RecordedRun) -> dict[str, object]:
+    """A simulator recording (`reach-sim --record`): the arm's true state, no targets. The
+    position "setpoint" is the firmware's (None for a joint not in position mode)."""
+    modes_text = _last_event(run.events, "modes:")
+    modes: dict[str, str] = {}
+    for item in (modes_text or "").split(","):
+        joint, _, mode = item.strip().partition("=")
+        if joint and mode:
+            modes[joint] = mode
+    faults = [f"{t:8.3f}s {lv}: {tx}" for t, lv, tx in run.events if tx.startswith("faults:")]
+    final_faults = _last_event(run.events, "faults:")
+    empty = [None] * len(JOINT_LETTERS)
+    part = run.metadata.get("part")
+    out: dict[str, object] = {
+        "file": str(path),
+        "kind": "simulator",
+        "steps": int(len(run.step)),  # samples logged (fewer per second while the arm idles)
+        "duration_s": run.duration_s,
+        "start_s": float(run.t[0]) if len(run.t) else None,  # sim time of the first sample
+        "end_s": float(run.t[-1]) if len(run.t) else None,
+        "joints": list(JOINT_LETTERS),
+        "final_position": _finite_or_none(run.q[-1]) if len(run.step) else empty,
+        "final_setpoint": _finite_or_none(run.target[-1]) if len(run.step) else empty,
+        "final_modes": [modes.get(j) for j in JOINT_LETTERS],
+        "final_faults": final_faults or "none",
+        "faults": faults,
+        "part": part,  # 0 for the first file written; a later part starts mid-run
+        "closed_cleanly": run.closed_cleanly,
+        "truncated": run.truncated,
+        "truncated_bytes": run.truncated_bytes,
+        "events": [f"{t:8.3f}s {lv}: {tx}" for t, lv, tx in run.events],
+        "metadata": run.metadata,
+    }
+    return out
+
+
 def summarize_recording(path: str | Path) -> dict[str, object]:
     """Duration, joints, final errors and the evaluation metrics, computed from the recording.
+
+    `kind` says what wrote it: "run" (`reach-driver run --record`: targets, errors, metrics)
+    or "simulator" (`reach-sim --record`: the true state, no targets; see `_summarize_sim`).
 
     Metrics need a uniform period: they use the median step period, and the last target of the
     run (a run with several targets is scored against its final one).
     """
     run = read_recording(path)
+    if run.metadata.get("source") == SIM_SOURCE:
+        return _summarize_sim(path, run)
     if len(run.step):
         final_target: list[float | None] = run.target[-1].tolist()
         final_position: list[float | None] = run.q[-1].tolist()
@@ -301,6 +406,7 @@ def summarize_recording(path: str | Path) -> dict[str, object]:
         final_target = final_position = final_error = [None] * len(JOINT_LETTERS)
     out: dict[str, object] = {
         "file": str(path),
+        "kind": "run",
         "steps": int(len(run.step)),
         "duration_s": run.duration_s,
         "joints": list(JOINT_LETTERS),

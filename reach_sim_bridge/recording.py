@@ -1,32 +1,117 @@
 """`reach-sim --record FILE.rrd`: the virtual arm's true state as a Rerun recording.
 
 The simulator sees what no client can: true joint angles, the current actually drawn, the
-torque delivered. Sampling them at a fixed sim-time rate gives a ground-truth record to lay
-beside the driver's own recording of the same run. Entity names follow the driver's
-(`joints/<J>/position` = [q, firmware position setpoint], `torques`, `velocities`, `events`),
-so `reach-driver inspect` reads either file; the 3D arm is a skeleton through the links' origins
-computed by MuJoCo.
+torque delivered. Sampling them on sim time gives a ground-truth record to lay beside the
+driver's own recording of the same run. Entity names follow the driver's
+(`joints/<J>/position` = [q, firmware position setpoint], `joints/<J>/current` = [applied,
+drawn], `torques`, `velocities`, `link/frames`, `events`), so `reach-driver inspect` reads
+either file (it says which); the 3D arm is the MJCF's own geoms (`arm/links` cylinders,
+`arm/jaw` boxes) posed by MuJoCo. Timelines: `arm_time` (sim seconds, the one the viewer opens
+on) and `step` (the full-rate sample index).
+
+A simulator left running must not fill the disk, so the recording is bounded twice:
+
+- **rate**: every full-rate sample (`rate_hz`) is looked at, but while the arm is quiet (no
+  joint moving faster than `IDLE_SPEED`, currents steady, modes, setpoints and faults
+  unchanged) only `idle_rate_hz` of them are logged; the first sample that is not quiet is
+  logged at once, with the quiet one before it so a plot does not ramp across the gap, and
+  the full rate is kept for `HOLD_S` after the arm settles. Chunks are written every
+  `flush_period_s` wall seconds at the full rate and at most every `IDLE_FLUSH_S` when idle
+  (rerun's per-chunk overhead, not the samples, is what made idle recordings large).
+- **size**: with `max_bytes`, the recording is split into `parts` files of `max_bytes /
+  parts` each, rotated like logs: FILE.rrd is the newest, FILE.1.rrd the one before, ... up
+  to FILE.<parts-1>.rrd; the oldest is deleted. Every part is a complete recording (metadata,
+  blueprint, the arm's geometry, the modes and faults as they stand) under the same recording
+  id, so `rerun FILE.*.rrd FILE.rrd` shows them as one.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import threading
+import time
 from dataclasses import dataclass
+from datetime import timedelta
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from protocol import Mode
+from protocol import HardwareStatus, Mode
 from protocol.alpha5 import JOINT_LETTERS as JOINTS
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.firmware import Firmware
 from reach_sim_bridge.server import SimServer
 
 DEVICE_IDS = (0x05, 0x04, 0x03, 0x02)
+TIMELINE_TIME = "arm_time"
+TIMELINE_STEP = "step"
+
+#: The default size cap of a recording, all its parts together (reach-sim --record-max-mb).
+DEFAULT_MAX_BYTES = 200_000_000
+IDLE_SPEED = 0.005  # rad/s: slower than this on every joint is "not moving"
+IDLE_CURRENT_MA = 5.0  # a drawn current this far from the last logged one is a change
+HOLD_S = 0.5  # sim seconds of full rate kept after the arm settles
+IDLE_FLUSH_S = 30.0  # wall seconds: the longest a sample waits in memory
+_MIN_ROWS_PER_FLUSH = 50  # samples: fewer per flush and the chunk overhead dominates
+# The footer rerun writes on closing a file indexes every chunk (~1.1 kB each, measured with
+# rerun 0.41): a part is rotated when its size plus the footer still to come reaches its cap.
+_FOOTER_BYTES_PER_CHUNK = 1200
+_CHUNKS_AT_OPEN = 60  # the blueprint's and the static scene's
+_PER_SAMPLE_ENTITIES = 13  # joints x 8, torques, velocities, links, jaw, link/frames
+
+_ARM_COLOR = (230, 150, 40, 255)
+_BASE_COLOR = (90, 90, 90, 255)
+_LINKS = ("m3_inline", "m2_1_1", "m2", "m2_1_3", "m1", "jaw")
+
+
+@dataclass(frozen=True)
+class _Geoms:
+    """The drawn geoms of the model: ids, and their static sizes and colours."""
+
+    cylinders: np.ndarray
+    boxes: np.ndarray
+    radii: np.ndarray
+    lengths: np.ndarray
+    half_sizes: np.ndarray
+    colors: list[tuple[int, int, int, int]]
+
+
+def _geoms(model: mujoco.MjModel) -> _Geoms:
+    bodies = {model.body(name).id for name in _LINKS}
+    base = model.body("m3_inline").id
+    cyl, box = int(mujoco.mjtGeom.mjGEOM_CYLINDER), int(mujoco.mjtGeom.mjGEOM_BOX)
+    cylinders = [
+        g
+        for g in range(model.ngeom)
+        if model.geom_bodyid[g] in bodies and model.geom_type[g] == cyl
+    ]
+    boxes = [
+        g
+        for g in range(model.ngeom)
+        if model.geom_bodyid[g] in bodies and model.geom_type[g] == box
+    ]
+    return _Geoms(
+        cylinders=np.array(cylinders, dtype=int),
+        boxes=np.array(boxes, dtype=int),
+        radii=model.geom_size[cylinders, 0].copy(),
+        lengths=2.0 * model.geom_size[cylinders, 1].copy(),
+        half_sizes=model.geom_size[boxes].copy(),
+        colors=[_BASE_COLOR if model.geom_bodyid[g] == base else _ARM_COLOR for g in cylinders],
+    )
+
+
+def _quats_xyzw(xmat: np.ndarray) -> np.ndarray:
+    out = np.empty((len(xmat), 4))
+    wxyz = np.zeros(4)
+    for i, m in enumerate(xmat):
+        mujoco.mju_mat2Quat(wxyz, m)
+        out[i] = (wxyz[1], wxyz[2], wxyz[3], wxyz[0])
+    return out
 
 
 @dataclass(frozen=True)
@@ -39,134 +124,310 @@ class _Sample:
     applied_mA: np.ndarray
     setpoint: np.ndarray
     modes: tuple[Mode, ...]
-    skeleton: np.ndarray
+    status: tuple[HardwareStatus, ...]
+    cylinder_pos: np.ndarray
+    cylinder_quat: np.ndarray
+    box_pos: np.ndarray
+    box_quat: np.ndarray
 
 
-def _sample(arm: Alpha5Arm, firmware: Firmware) -> _Sample:
-    setpoints = [firmware.setpoints(dev) for dev in DEVICE_IDS]
-    modes = tuple(m for m, _, _ in setpoints)
-    target = np.array([p if m == Mode.POSITION else math.nan for m, p, _ in setpoints])
-    return _Sample(
-        t=arm.time,
-        q=arm.q.copy(),
-        qdot=arm.qdot.copy(),
-        tau=arm.tau.copy(),
-        drawn_mA=arm.current_mA.copy(),
-        applied_mA=np.array([a for _, _, a in setpoints]),
-        setpoint=target,
-        modes=modes,
-        skeleton=arm.skeleton(),
+def _sampler(geoms: _Geoms):  # type: ignore[no-untyped-def]
+    def sample(arm: Alpha5Arm, firmware: Firmware) -> _Sample:
+        setpoints = [firmware.setpoints(dev) for dev in DEVICE_IDS]
+        modes = tuple(m for m, _, _ in setpoints)
+        target = np.array([p if m == Mode.POSITION else math.nan for m, p, _ in setpoints])
+        arm.skeleton()  # runs the kinematics: the geoms' world poses below are current
+        data = arm.data
+        return _Sample(
+            t=arm.time,
+            q=arm.q.copy(),
+            qdot=arm.qdot.copy(),
+            tau=arm.tau.copy(),
+            drawn_mA=arm.current_mA.copy(),
+            applied_mA=np.array([a for _, _, a in setpoints]),
+            setpoint=target,
+            modes=modes,
+            status=tuple(firmware.status(dev) for dev in DEVICE_IDS),
+            cylinder_pos=data.geom_xpos[geoms.cylinders].copy(),
+            cylinder_quat=_quats_xyzw(data.geom_xmat[geoms.cylinders]),
+            box_pos=data.geom_xpos[geoms.boxes].copy(),
+            box_quat=_quats_xyzw(data.geom_xmat[geoms.boxes]),
+        )
+
+    return sample
+
+
+def part_path(path: Path, n: int) -> Path:
+    """FILE.rrd for the newest part (n = 0), FILE.<n>.rrd for the older ones."""
+    return path if n == 0 else path.with_name(f"{path.stem}.{n}{path.suffix}")
+
+
+def _blueprint() -> rrb.Blueprint:
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Spatial3DView(origin="/", contents=["/arm/**"], name="arm, true state (m)"),
+                rrb.TextLogView(origin="/events", name="events (modes, faults)"),
+                row_shares=[4, 1],
+            ),
+            rrb.Vertical(
+                *[
+                    rrb.Horizontal(
+                        rrb.TimeSeriesView(
+                            origin=f"/joints/{j}/position",
+                            name=f"{j}: true position vs setpoint (rad)",
+                        ),
+                        rrb.TimeSeriesView(
+                            origin=f"/joints/{j}/current",
+                            name=f"{j}: current, applied vs drawn (mA)",
+                        ),
+                    )
+                    for j in JOINTS
+                ]
+            ),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin="/torques", name="torques delivered (N m)"),
+                rrb.TimeSeriesView(origin="/velocities", name="velocities (rad/s)"),
+                rrb.TimeSeriesView(origin="/link/frames", name="link: frames (count)"),
+            ),
+            column_shares=[3, 4, 2],
+        ),
+        rrb.TimePanel(timeline=TIMELINE_TIME, state="collapsed"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
     )
 
 
 class SimRecorder:
-    """Samples a running SimServer at `rate_hz` of sim time into a .rrd, in its own thread."""
+    """Samples a running SimServer at `rate_hz` of sim time into a .rrd, in its own thread
+    (bounded in rate when the arm is idle and in size by `max_bytes`; see the module)."""
 
     def __init__(
         self,
         server: SimServer,
         path: str | Path,
         rate_hz: float = 50.0,
-        flush_period_s: float = 0.5,
+        flush_period_s: float = 2.0,
+        *,
+        idle_rate_hz: float = 2.0,
+        max_bytes: int | None = DEFAULT_MAX_BYTES,
+        parts: int = 4,
     ) -> None:
-        if rate_hz <= 0:
+        if not (math.isfinite(rate_hz) and rate_hz > 0):
             raise ValueError(f"recording rate must be positive, got {rate_hz}")
+        if not (math.isfinite(idle_rate_hz) and 0 < idle_rate_hz <= rate_hz):
+            raise ValueError(f"idle rate must be in (0, {rate_hz}] Hz, got {idle_rate_hz}")
+        if max_bytes is not None and max_bytes <= 0:
+            raise ValueError(f"max_bytes must be positive (or None: no cap), got {max_bytes}")
+        if parts < 2:
+            raise ValueError(f"a capped recording needs at least 2 parts, got {parts}")
         self.server = server
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.rate_hz, self.idle_rate_hz = float(rate_hz), float(idle_rate_hz)
         self.period = 1.0 / rate_hz
-        self.samples = 0
-        self._flush_every = max(1, int(flush_period_s * rate_hz))
+        self.idle_period = 1.0 / idle_rate_hz
+        self.max_bytes, self.parts = max_bytes, parts
+        self.part_bytes = None if max_bytes is None else max(1, max_bytes // parts)
+        self.flush_period_s = flush_period_s
+        self.samples = 0  # logged
+        self.looked = 0  # sampled, logged or not
+        self.rotations = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._rec = rr.RecordingStream("reach-sim", recording_id=f"reach-sim-{id(self)}")
-        blueprint = rrb.Blueprint(
-            rrb.Horizontal(
-                rrb.Spatial3DView(origin="/", contents=["/arm/**"], name="arm (true state)"),
-                rrb.Vertical(
-                    *[
-                        rrb.TimeSeriesView(
-                            origin=f"/joints/{j}/position", name=f"{j}: position vs setpoint"
-                        )
-                        for j in JOINTS
-                    ]
-                ),
-                rrb.Vertical(
-                    rrb.TimeSeriesView(origin="/torques", name="torques (N m)"),
-                    rrb.TimeSeriesView(origin="/velocities", name="velocities"),
-                    rrb.TimeSeriesView(origin="/link", name="link"),
-                ),
-            ),
-            collapse_panels=True,
+        self._recording_id = f"reach-sim-{time.time_ns()}"
+        self._geoms = server.observe(lambda arm, _fw: _geoms(arm.model))
+        self._sample = _sampler(self._geoms)
+        self._lock = threading.Lock()  # the stream, across rotation and outside flushes
+        self._rec = self._open_part()
+        self._last_flush = time.monotonic()
+        self._rows_since_flush = 0
+        self._urgent = False
+        self._events_since_flush = False
+
+    # -- parts ------------------------------------------------------------------------------
+    def _open_part(self) -> rr.RecordingStream:
+        rec = rr.RecordingStream(
+            "reach-sim",
+            recording_id=self._recording_id,
+            batcher_config=rr.ChunkBatcherConfig(flush_tick=timedelta(seconds=IDLE_FLUSH_S + 5.0)),
         )
-        self._rec.save(str(self.path), default_blueprint=blueprint)
-        self._rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        rec.save(str(self.path), default_blueprint=_blueprint())
+        rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        g = self._geoms
+        rec.log(
+            "arm/links",
+            rr.Cylinders3D(radii=g.radii, lengths=g.lengths, colors=g.colors, fill_mode="solid"),
+            static=True,
+        )
+        if len(g.boxes):
+            rec.log(
+                "arm/jaw",
+                rr.Boxes3D(
+                    half_sizes=g.half_sizes,
+                    colors=[_ARM_COLOR] * len(g.boxes),
+                    fill_mode="solid",
+                ),
+                static=True,
+            )
         for j in JOINTS:
-            self._rec.log(
-                f"joints/{j}/position", rr.SeriesLines(names=["q", "setpoint"]), static=True
-            )
-            self._rec.log(
-                f"joints/{j}/current", rr.SeriesLines(names=["applied", "drawn"]), static=True
-            )
+            rec.log(f"joints/{j}/position", rr.SeriesLines(names=["q", "setpoint"]), static=True)
+            rec.log(f"joints/{j}/current", rr.SeriesLines(names=["applied", "drawn"]), static=True)
         for entity in ("torques", "velocities"):
-            self._rec.log(entity, rr.SeriesLines(names=list(JOINTS)), static=True)
-        self._rec.log(
-            "link", rr.SeriesLines(names=["frames in", "bad frames", "frames out"]), static=True
+            rec.log(entity, rr.SeriesLines(names=list(JOINTS)), static=True)
+        rec.log(
+            "link/frames",
+            rr.SeriesLines(names=["frames in", "bad frames", "frames out"]),
+            static=True,
         )
         meta = {
             "source": "reach-sim",
             "joint_names": list(JOINTS),
-            "rate_hz": rate_hz,
-            "speed": server.config.speed,
+            "rate_hz": self.rate_hz,
+            "idle_rate_hz": self.idle_rate_hz,
+            "speed": self.server.config.speed,
+            "part": self.rotations,  # 0 for the first file written, counting up
+            "max_bytes": self.max_bytes,
+            "parts": self.parts,
         }
-        self._rec.log("run/metadata", rr.TextDocument(json.dumps(meta)), static=True)
+        rec.log("run/metadata", rr.TextDocument(json.dumps(meta)), static=True)
+        # Each part states the modes and faults it starts with.
         self._modes: tuple[Mode, ...] | None = None
+        self._status: tuple[HardwareStatus, ...] | None = None
+        self._chunks = _CHUNKS_AT_OPEN
+        return rec
 
+    def _rotate(self) -> None:
+        """Close the current part and start the next: FILE.rrd -> FILE.1.rrd -> ..."""
+        self._rec.flush(timeout_sec=5.0)
+        self._rec.disconnect()
+        oldest = part_path(self.path, self.parts - 1)
+        oldest.unlink(missing_ok=True)
+        for n in range(self.parts - 2, -1, -1):
+            src = part_path(self.path, n)
+            if src.exists():
+                os.replace(src, part_path(self.path, n + 1))
+        self.rotations += 1
+        self._rec = self._open_part()
+
+    # -- sampling ---------------------------------------------------------------------------
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name="reach-sim-recorder", daemon=True)
         self._thread.start()
 
+    def _quiet(self, s: _Sample, last: _Sample | None) -> bool:
+        if last is None or s.modes != last.modes or s.status != last.status:
+            return False
+        if float(np.max(np.abs(s.qdot))) >= IDLE_SPEED:
+            return False
+        if float(np.max(np.abs(s.drawn_mA - last.drawn_mA))) >= IDLE_CURRENT_MA:
+            return False
+        return bool(np.array_equal(s.setpoint, last.setpoint, equal_nan=True))
+
     def _run(self) -> None:
         k, last_t = 0, -math.inf
+        logged: _Sample | None = None  # the last sample logged
+        skipped: tuple[_Sample, int] | None = None  # the last quiet one left out
+        active_until = -math.inf
         while not self._stop.is_set():
             if not self.server.wait_sim_time(k * self.period, timeout=0.2):
                 if not self.server.running:
                     break
                 continue
-            sample = self.server.observe(_sample)
+            sample = self.server.observe(self._sample)
             if sample.t > last_t:  # the sim may not have stepped since the last look
-                self.log(sample, k)
+                self.looked += 1
                 last_t = sample.t
+                if not self._quiet(sample, logged):
+                    if skipped is not None and logged is not None:
+                        self.log(*skipped)  # the state just before it changed
+                    active_until = sample.t + HOLD_S
+                if (
+                    logged is None
+                    or sample.t <= active_until
+                    or sample.t - logged.t >= self.idle_period - 0.5 * self.period
+                ):
+                    self.log(sample, k)
+                    logged, skipped = sample, None
+                else:
+                    skipped = (sample, k)
+                self._maybe_flush()
             k = max(k + 1, int(sample.t / self.period) + 1)
 
     def log(self, s: _Sample, k: int) -> None:
-        rec = self._rec
-        rec.set_time("arm_time", duration=s.t)
-        rec.set_time("step", sequence=k)
-        for i, j in enumerate(JOINTS):
-            rec.log(f"joints/{j}/position", rr.Scalars([s.q[i], s.setpoint[i]]))
-            rec.log(f"joints/{j}/current", rr.Scalars([s.applied_mA[i], s.drawn_mA[i]]))
-        rec.log("torques", rr.Scalars(s.tau))
-        rec.log("velocities", rr.Scalars(s.qdot))
-        rec.log(
-            "arm/skeleton", rr.LineStrips3D([s.skeleton], radii=0.01, colors=[(230, 150, 40, 255)])
-        )
-        stats = self.server.stats()
-        rec.log(
-            "link",
-            rr.Scalars([float(stats.frames_in), float(stats.bad_total), float(stats.frames_out)]),
-        )
-        if s.modes != self._modes:
-            names = ", ".join(f"{j}={m.name.lower()}" for j, m in zip(JOINTS, s.modes, strict=True))
-            rec.log("events", rr.TextLog(f"modes: {names}", level="INFO"))
-            self._modes = s.modes
-        self.samples += 1
-        if self.samples % self._flush_every == 0:
-            rec.flush(timeout_sec=2.0)
+        with self._lock:
+            rec = self._rec
+            rec.set_time(TIMELINE_TIME, duration=s.t)
+            rec.set_time(TIMELINE_STEP, sequence=k)
+            for i, j in enumerate(JOINTS):
+                rec.log(f"joints/{j}/position", rr.Scalars([s.q[i], s.setpoint[i]]))
+                rec.log(f"joints/{j}/current", rr.Scalars([s.applied_mA[i], s.drawn_mA[i]]))
+            rec.log("torques", rr.Scalars(s.tau))
+            rec.log("velocities", rr.Scalars(s.qdot))
+            rec.log(
+                "arm/links",
+                rr.Cylinders3D.from_fields(centers=s.cylinder_pos, quaternions=s.cylinder_quat),
+            )
+            if len(s.box_pos):
+                rec.log(
+                    "arm/jaw", rr.Boxes3D.from_fields(centers=s.box_pos, quaternions=s.box_quat)
+                )
+            stats = self.server.stats()
+            rec.log(
+                "link/frames",
+                rr.Scalars(
+                    [float(stats.frames_in), float(stats.bad_total), float(stats.frames_out)]
+                ),
+            )
+            if s.modes != self._modes:
+                names = ", ".join(
+                    f"{j}={m.name.lower()}" for j, m in zip(JOINTS, s.modes, strict=True)
+                )
+                rec.log("events", rr.TextLog(f"modes: {names}", level="INFO"))
+                self._modes = s.modes
+                self._urgent = self._events_since_flush = True
+            if s.status != self._status:
+                faults = [f"{j}={_flags(st)}" for j, st in zip(JOINTS, s.status, strict=True) if st]
+                text = "faults: " + (", ".join(faults) if faults else "none")
+                rec.log("events", rr.TextLog(text, level="WARN" if faults else "INFO"))
+                self._status = s.status
+                self._urgent = self._events_since_flush = True
+            self.samples += 1
+            self._rows_since_flush += 1
+
+    # -- writing ----------------------------------------------------------------------------
+    def _maybe_flush(self) -> None:
+        waited = time.monotonic() - self._last_flush
+        if waited < self.flush_period_s:
+            return
+        if self._rows_since_flush >= _MIN_ROWS_PER_FLUSH or self._urgent or waited >= IDLE_FLUSH_S:
+            self.flush()
+
+    def flush(self) -> None:
+        """Write what is buffered; start the next part if this one is full."""
+        with self._lock:
+            self._rec.flush(timeout_sec=2.0)
+            self._last_flush = time.monotonic()
+            if self._rows_since_flush:  # a chunk per entity logged since the last flush
+                self._chunks += _PER_SAMPLE_ENTITIES + int(self._events_since_flush)
+            self._rows_since_flush, self._urgent, self._events_since_flush = 0, False, False
+            if self.part_bytes is not None:
+                try:
+                    size = self.path.stat().st_size
+                except OSError:
+                    return
+                if size + self._chunks * _FOOTER_BYTES_PER_CHUNK >= self.part_bytes:
+                    self._rotate()
 
     def stop(self) -> None:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
-        self._rec.flush(timeout_sec=5.0)
-        self._rec.disconnect()
+        with self._lock:
+            self._rec.flush(timeout_sec=5.0)
+            self._rec.disconnect()
+
+
+def _flags(status: HardwareStatus) -> str:
+    names = [f.name for f in HardwareStatus if f and f in status and f.name]
+    return "|".join(names) if names else f"0x{int(status):08x}"
