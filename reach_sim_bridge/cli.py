@@ -259,6 +259,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="samples per second of sim time in the recording (default 50)",
     )
     out.add_argument(
+        "--record-max-mb",
+        type=_positive_float,
+        default=200.0,
+        metavar="MB",
+        help="cap on the recording's size on disk: it is split into parts FILE.rrd (newest), "
+        "FILE.1.rrd, ... FILE.3.rrd, the oldest deleted (default 200)",
+    )
+    out.add_argument(
         "-v",
         "--verbose",
         action="count",
@@ -328,7 +336,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.record is not None:
         from reach_sim_bridge.recording import SimRecorder
 
-        recorder = SimRecorder(server, args.record, rate_hz=args.record_rate)
+        recorder = SimRecorder(
+            server, args.record, rate_hz=args.record_rate, max_bytes=int(args.record_max_mb * 1e6)
+        )
         recorder.start()
     try:
         if path is not None:

@@ -205,6 +205,7 @@ class Device:
     integral: float = 0.0  # of the velocity error, in units (so i = ki * integral)
     applied_mA: float = 0.0
     status: HardwareStatus = HardwareStatus.NONE
+    injected: HardwareStatus = HardwareStatus.NONE  # by inject_fault: the monitor keeps these
     last_error_time: float = -math.inf
     status_phase: float = 0.0
     heartbeat_ids: tuple[int, ...] = ()
@@ -356,8 +357,11 @@ class Firmware:
 
     def inject_fault(self, device_id: int, flag: HardwareStatus) -> None:
         """Set a hardware status flag as a failing joint would (fault-injection tests); it is
-        reported with HARDWARE_STATUS at 1 Hz like any other fault."""
-        self._raise_flag([self._by_id[device_id]], flag)
+        reported with HARDWARE_STATUS at 1 Hz like any other fault, and stays until a RESET
+        (the monitor model does not clear an injected over-temperature, say)."""
+        device = self._by_id[device_id]
+        device.injected |= flag
+        self._raise_flag([device], flag)
 
     def inject_leak(self, leak: Leak) -> None:
         """Let water into one device's housing (replaces a leak already there): its humidity
@@ -521,8 +525,9 @@ class Firmware:
         amps = [(jaw_mA if d.index < 0 else joint_mA[d.index]) / 1000.0 for d in self._devices]
         monitor = self.monitor
         monitor.step(h * _MONITOR_STEPS, amps, arm.motor.supply_voltage)
-        for d, flags in zip(self._devices, monitor.flags, strict=True):
+        for d, modelled in zip(self._devices, monitor.flags, strict=True):
             now = d.status & MONITOR_FLAGS
+            flags = modelled | (d.injected & MONITOR_FLAGS)
             if flags != now:
                 raised = flags & ~now
                 if raised and not d.status:
@@ -872,7 +877,7 @@ class Firmware:
             self._apply_drive_limit(d)
             d.heartbeat_hz = saved.heartbeat_hz
             d.heartbeat_ids = ()  # not saved across power cycles
-            d.status = HardwareStatus.NONE
+            d.status = d.injected = HardwareStatus.NONE
             d.last_error_time = -math.inf
             self._set_mode(d, Mode.STANDBY)
             d.position_target = self._position(d)

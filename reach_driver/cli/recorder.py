@@ -90,7 +90,7 @@ class CliRecorder:
                     torque_Nm=r.torque_Nm,
                 )
             )
-            rec.log_link(r.t, r.step, r.good_frames, r.bad_frames, r.state_age_s)
+            rec.log_link(r.t, r.step, r.good_frames, r.bad_frames, r.state_age_s, r.latency_s)
             self.steps += 1
         except Exception as exc:
             self._fail(exc, f"at step {r.step} (t = {r.t:.2f} s; {self.steps} steps recorded)")

@@ -223,6 +223,9 @@ def print_recording(console: Console, summary: dict[str, Any]) -> None:
         )
     else:
         clean = ""
+    if summary.get("kind") == "simulator":
+        print_sim_recording(console, summary, clean)
+        return
     console.print(
         f"[bold]{escape(str(summary['file']))}[/]: {summary['steps']} steps, "
         f"{float(summary['duration_s']):.2f} s{clean}"
@@ -266,5 +269,42 @@ def print_recording(console: Console, summary: dict[str, Any]) -> None:
             )
         )
         console.print(table)
+    for line in summary.get("events", []):
+        console.print(f"  {escape(str(line))}")
+
+
+def print_sim_recording(console: Console, summary: dict[str, Any], clean: str) -> None:
+    """A simulator recording (`reach-sim --record`): the true state; it has no targets."""
+    part = summary.get("part")
+    span = (
+        f", sim time {float(summary['start_s']):.2f}..{float(summary['end_s']):.2f} s"
+        if summary.get("start_s") is not None
+        else ""
+    )
+    console.print(
+        f"[bold]{escape(str(summary['file']))}[/]: simulator recording (reach-sim --record, the "
+        f"arm's true state; no targets), {summary['steps']} samples, "
+        f"{float(summary['duration_s']):.2f} s{span}"
+        f"{f', part {part} of a rotated recording' if part else ''}{clean}",
+        soft_wrap=True,
+    )
+    joints = Table(title="final true state")
+    for col in ("joint", "mode", "position (rad)", "setpoint (rad)"):
+        joints.add_column(col, justify="right")
+    for j, mode, q, sp in zip(
+        summary["joints"],
+        summary["final_modes"],
+        summary["final_position"],
+        summary["final_setpoint"],
+        strict=True,
+    ):
+        joints.add_row(
+            j,
+            escape(str(mode or "?")),
+            "-" if q is None else f"{float(q):+.4f}",
+            "-" if sp is None else f"{float(sp):+.4f}",
+        )
+    console.print(joints)
+    console.print(f"faults at the end: {escape(str(summary.get('final_faults', 'none')))}")
     for line in summary.get("events", []):
         console.print(f"  {escape(str(line))}")
