@@ -88,7 +88,7 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
 
 
 def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
-    target = np.array(args.angles, dtype=float)
+    target = np.array([args.angle_e, args.angle_d, args.angle_c, args.angle_b], dtype=float)
     client = connect(args, console)
     try:
         # Check everything first: a refused target must leave every joint where it is.
