@@ -5,12 +5,17 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+from conftest import wait_until
 
+from protocol import Mode
 from reach_driver.cli import Exit, main
 from reach_driver.cli.parser import build_parser
 from reach_sim_bridge.server import SimConfig, SimServer
@@ -131,3 +136,85 @@ def test_an_unwritable_log_file_is_a_usage_error(tmp_path, capsys) -> None:
     code = main(["controllers", "--log-file", str(tmp_path / "no" / "dir" / "x.log")])
     assert code == Exit.USAGE
     assert "--log-file" in capsys.readouterr().err
+
+
+# -- 2: one exit-code table ----------------------------------------------------------------
+
+
+def test_help_shows_every_exit_status_once(capsys) -> None:
+    assert _status(["--help"]) == 0
+    out = capsys.readouterr().out
+    table = out.split("exit status (every command):")[1]
+    for code in Exit:
+        assert re.search(rf"^\s+{int(code)}  \S", table, re.MULTILINE), (code, table)
+
+
+def _popen(argv: list[str]) -> subprocess.Popen[str]:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    cmd = [sys.executable, "-m", "reach_driver", *argv]
+    return subprocess.Popen(
+        cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+    )
+
+
+def _interrupt(proc: subprocess.Popen[str], ready) -> tuple[str, str]:
+    try:
+        assert wait_until(ready, timeout=60.0), "the command never got going"
+        proc.send_signal(signal.SIGINT)
+        return proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def test_stopping_monitor_with_ctrl_c_is_a_normal_end(sim) -> None:
+    proc = _popen(["--port", str(sim.link), "monitor"])
+    heartbeat = sim.firmware._by_id[5]  # the monitor asked the arm to stream
+    out, err = _interrupt(proc, lambda: heartbeat.heartbeat_hz > 0)
+    assert proc.returncode == Exit.OK, err
+    assert "interrupted" not in err and "Traceback" not in err
+
+
+def test_ctrl_c_during_a_move_stops_the_joints_and_exits_130(sim) -> None:
+    target = sim.snapshot().q + np.array([-1.5, 0.0, 0.0, 0.0])  # seconds at the rate limit
+    proc = _popen(["--port", str(sim.link), "move", *map(str, target)])
+    out, err = _interrupt(proc, lambda: sim.firmware.mode(5) == Mode.POSITION)
+    assert proc.returncode == Exit.INTERRUPTED, err
+    assert "arm left in a safe mode" in err
+    # True: the joints hold where they are instead of going on to the target.
+    assert wait_until(
+        lambda: all(sim.firmware.mode(d) == Mode.ZERO_VELOCITY for d in (5, 4, 3, 2)), timeout=10.0
+    )
+
+
+def test_python_api_advice_is_not_shown_to_an_operator(monkeypatch, capsys) -> None:
+    from reach_driver.cli import commands
+    from reach_driver.errors import WatchdogTrippedError
+
+    def tripped(args, console):
+        raise WatchdogTrippedError(
+            "watchdog tripped (no command for 0.21 s); the arm was put in ZERO_VELOCITY; "
+            "call rearm() to command again"
+        )
+
+    monkeypatch.setitem(commands.COMMANDS, "controllers", tripped)
+    assert main(["controllers"]) == Exit.FAILED
+    err = capsys.readouterr().err
+    assert "rearm()" not in err
+    assert "watchdog tripped" in err and "run it again" in err
+
+
+def test_an_unreachable_arm_is_described_as_it_is_once_the_process_exits() -> None:
+    from reach_driver.cli.exits import left_in_for_operator
+
+    # The wording ControlLoop uses when the link is still down at the end of a run.
+    loop_says = (
+        "unknown: the link is down (read failed) after waiting 3 s; the driver sends "
+        "zero_velocity as soon as the arm answers again"
+    )
+    text = left_in_for_operator(loop_says, "/dev/ttyUSB0")
+    assert text.startswith("unknown: the link is down (read failed) after waiting 3 s")
+    assert "as soon as the arm answers" not in text
+    assert "sends nothing more" in text and "last mode and command" in text
+    assert "reach-driver --port /dev/ttyUSB0 info" in text
+    assert left_in_for_operator("zero_velocity", "x") == "zero_velocity"

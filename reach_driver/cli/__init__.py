@@ -19,7 +19,7 @@ from rich.markup import escape
 
 from reach_driver.cli.commands import COMMANDS
 from reach_driver.cli.connect import safety_config
-from reach_driver.cli.exits import Exit, UsageError
+from reach_driver.cli.exits import Exit, UsageError, for_operator
 from reach_driver.cli.parser import build_parser, package_version
 from reach_driver.errors import (
     BadUrlError,
@@ -112,6 +112,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _say(errors: Console, label: str, message: str, style: str = "red") -> None:
     """One line on stderr, and the same in --log-file."""
+    message = for_operator(message)
     log.error("%s: %s", label, message)
     shown = f"[{style}]{label}[/]" if style else label
     errors.print(f"{shown}: {escape(message)}", soft_wrap=True)
@@ -121,7 +122,10 @@ def _run(args: argparse.Namespace, console: Console, errors: Console) -> int:
     try:
         return int(COMMANDS[args.command](args, console))
     except KeyboardInterrupt:
-        _say(errors, "interrupted", "arm left in a safe mode, link closed", style="")
+        if args.command in ("move", "run"):
+            _say(errors, "interrupted", "arm left in a safe mode, link closed", style="")
+        else:
+            _say(errors, "interrupted", "nothing was commanded, link closed", style="")
         return int(Exit.INTERRUPTED)
     except LimitError as exc:
         _say(errors, "limit", str(exc))

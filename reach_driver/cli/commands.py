@@ -18,7 +18,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from protocol import Mode, PacketID
 from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS
 from reach_driver.cli.connect import connect
-from reach_driver.cli.exits import Exit, UsageError
+from reach_driver.cli.exits import Exit, UsageError, for_operator, left_in_for_operator
 from reach_driver.cli.recorder import CliRecorder
 from reach_driver.cli.render import (
     blocking_faults,
@@ -75,13 +75,18 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
             transient=False,
             auto_refresh=False,
         ) as live:
-            while time.monotonic() < end:
-                time.sleep(min(0.5, max(0.0, end - time.monotonic())))
-                now = time.monotonic()
-                counts = client.table.count_snapshot()
-                rates = {k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()}
-                last_counts, last_t = counts, now
-                live.update(monitor_table(client, rates, args.port), refresh=True)
+            try:
+                while time.monotonic() < end:
+                    time.sleep(min(0.5, max(0.0, end - time.monotonic())))
+                    now = time.monotonic()
+                    counts = client.table.count_snapshot()
+                    rates = {
+                        k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()
+                    }
+                    last_counts, last_t = counts, now
+                    live.update(monitor_table(client, rates, args.port), refresh=True)
+            except KeyboardInterrupt:
+                pass  # Ctrl-C is how a monitor is meant to end: exit 0
         return Exit.OK
     finally:
         client.close()
@@ -90,6 +95,8 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
 def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
     target = np.array([args.angle_e, args.angle_d, args.angle_c, args.angle_b], dtype=float)
     client = connect(args, console)
+    devices = [*JOINTS, JAW] if args.jaw is not None else list(JOINTS)
+    commanded = False
     try:
         # Check everything first: a refused target must leave every joint where it is.
         for dev, value in zip(JOINTS, target, strict=True):
@@ -99,9 +106,9 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
         faults = blocking_faults(client.read_status(), console)
         if faults:
             raise ArmFaultError(f"arm reports faults, not moving: {faults}")
-        devices = [*JOINTS, JAW] if args.jaw is not None else list(JOINTS)
         client.stream((PacketID.POSITION,), 20, devices)
         q0 = client.read_joints((PacketID.POSITION,)).q
+        commanded = True
         client.set_mode(devices, Mode.POSITION)
         client.command_positions(target)
         if args.jaw is not None:
@@ -147,6 +154,14 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 time.sleep(0.05)
         console.print(f"[green]reached[/] within {args.tolerance} rad: {detail}")
         return Exit.OK
+    except KeyboardInterrupt:
+        # Ctrl-C means stop: in position mode the joints would go on to the target.
+        if commanded and client.link_state is LinkState.UP:
+            try:
+                client.safe_stop(devices)
+            except DriverError:
+                pass  # the message says "interrupted"; close() tries once more
+        raise
     finally:
         try:
             client.stop_stream()
@@ -234,7 +249,8 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             recorder.finish(summary, error)  # before the last lines, which say how it went
         print_summary(console, summary)
         print_metrics(console, summary)
-        console.print(f"arm left in {escape(summary.left_in)}")
+        left_in = left_in_for_operator(summary.left_in, args.port)
+        console.print(f"arm left in {escape(left_in)}", soft_wrap=True)
         if recorder is not None and recorder.failed:
             console.print(
                 f"[yellow]recording incomplete[/]: {escape(recorder.failed)}; what reached "
@@ -249,7 +265,7 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
                 soft_wrap=True,  # keep the commands copyable
             )
         if summary.error:
-            console.print(f"[red]run failed[/]: {escape(summary.error)}")
+            console.print(f"[red]run failed[/]: {escape(for_operator(summary.error))}")
             return Exit.FAILED
         if recorder is not None and recorder.failed:
             return Exit.RECORDING_INCOMPLETE

@@ -9,6 +9,7 @@ from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
 from protocol.alpha5 import TORQUE_PER_AMP_NM
+from reach_driver.cli.exits import exit_table_text
 from reach_driver.control import Pacing
 from reach_driver.transport import DEFAULT_BAUD
 
@@ -31,15 +32,12 @@ examples:
   reach-driver --port udp://192.168.2.3 monitor
   reach-driver --port /dev/ttyUSB0 move 3.1 1.5 1.5 3.0 --jaw 8
   reach-driver --port /dev/ttyUSB0 run --controller pid --target 3.1 1.5 1.5 3.0 --seconds 10
-  reach-driver --port /dev/ttyUSB0 run --controller ddpg --target 5.78 1.97 1.67 3.96 \
+  reach-driver --port /dev/ttyUSB0 run --controller ddpg --target 5.78 1.97 1.67 3.96 \\
       --seconds 20 --record run.rrd
   reach-driver inspect run.rrd
 
-exit status: 0 done; 1 failed (timeout, fault, lost link during run); 2 bad usage; 3 refused
-by a limit (nothing moved); 4 no arm (wrong port, no permission, nothing answering, wrong
-baud); 5 the link was lost during a move (the message says since when and the last known
-positions); 6 a run completed but its --record file is incomplete (a write error, e.g. a
-full disk: recording stopped, control went on); 130 interrupted (arm left in a safe mode).
+exit status (every command):
+{exits}
 docs/hil.md: using a real arm.
 """
 
@@ -218,7 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="reach-driver",
         description=DESCRIPTION,
-        epilog=EPILOG,
+        epilog=EPILOG.format(exits=exit_table_text()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
@@ -306,12 +304,9 @@ def build_parser() -> argparse.ArgumentParser:
         "With --pacing stream (default) the arm's heartbeat paces "
         "the loop and time is arm time: against reach-sim --speed X a run takes 1/X of the "
         "wall time and gives the same metrics.",
-        epilog="exit status: 0 the run completed (whether or not it reached the target: see "
-        "'reached'); 1 it was cut short (lost link, watchdog, fault, controller error); 3 the "
-        "target is outside a limit (nothing moved); 4 no arm; 6 the run completed but writing "
-        "its --record file failed (a full disk...): recording never stops control, so the "
-        "warning names the file and the error, recording stops, the run goes on and its "
-        "summary is printed; 130 interrupted.",
+        epilog="exit status: the table in `reach-driver --help`. Recording never stops "
+        "control: a write error to the --record file is named once, recording stops, the run "
+        "goes on, its summary is printed and it exits 6.",
     )
     run.add_argument("--controller", required=True, help="e.g. pid, mpc, ddpg")
     run.add_argument("--target", nargs=4, type=float, required=True, metavar=("E", "D", "C", "B"))

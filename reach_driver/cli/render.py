@@ -12,6 +12,7 @@ from rich.table import Table
 
 from protocol import DeviceID, Mode, PacketID
 from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS, TORQUE_PER_AMP_NM
+from reach_driver.cli.exits import for_operator
 from reach_driver.cli.report import run_metrics
 from reach_driver.client import ArmClient
 from reach_driver.metrics import METRIC_KEYS
@@ -204,7 +205,7 @@ def print_summary(console: Console, s: ControlSummary) -> None:
     )
     console.print(
         f"saturated steps {s.saturated_steps}, barrier cuts {s.barrier_steps}, stopped by "
-        f"{s.stopped_by}"
+        f"{escape(for_operator(s.stopped_by))}"
     )
 
 
