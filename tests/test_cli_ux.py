@@ -3,6 +3,7 @@ command, one exit-code table, a live view while the arm moves, JSON for scripts,
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import re
@@ -18,6 +19,7 @@ from conftest import wait_until
 from protocol import Mode
 from reach_driver.cli import Exit, main
 from reach_driver.cli.parser import build_parser
+from reach_driver.records import StepRecord
 from reach_sim_bridge.server import SimConfig, SimServer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -218,3 +220,97 @@ def test_an_unreachable_arm_is_described_as_it_is_once_the_process_exits() -> No
     assert "sends nothing more" in text and "last mode and command" in text
     assert "reach-driver --port /dev/ttyUSB0 info" in text
     assert left_in_for_operator("zero_velocity", "x") == "zero_velocity"
+
+
+# -- 3: feedback while the arm moves -------------------------------------------------------
+
+
+def _record(step: int, t: float, wall: float, bad: int = 0) -> StepRecord:
+    q = np.array([3.0, 1.5, 1.5, 3.0]) + 0.01 * step
+    return StepRecord(
+        step=step,
+        t=t,
+        wall_t=wall,
+        q=q,
+        qdot=np.zeros(4),
+        target=np.array([3.2, 1.6, 1.4, 3.1]),
+        raw_command_mA=np.array([100.0, 50.0, -50.0, 10.0]),
+        command_mA=np.array([100.0, 50.0, -50.0, 10.0]),
+        state_age_s=0.003,
+        latency_s=0.001,
+        saturated=False,
+        barrier=False,
+        good_frames=100 + step,
+        bad_frames=bad,
+        current_mA=np.array([98.0, 49.0, -51.0, 9.0]),
+    )
+
+
+def test_the_live_table_shows_each_joint_and_the_link() -> None:
+    from rich.console import Console
+
+    from reach_driver.cli.live import RunView
+
+    view = RunView(Console(file=io.StringIO(), force_terminal=True, width=100), seconds=20)
+    assert view.live_mode
+    for i in range(21):
+        view.on_step(_record(i, i * 0.05, i * 0.05, bad=2))
+    shown = Console(record=True, width=100, file=io.StringIO())
+    shown.print(view.render())
+    text = shown.export_text()
+    for column in ("angle [rad]", "target [rad]", "error [rad]", "current [mA]"):
+        assert column in text, text
+    assert "loop 20.0 Hz" in text and "frames 120 ok, 2 bad" in text
+    assert "state age 3.0 ms" in text and "t 1.0 of 20 s" in text
+    assert re.search(r"D │\s+1\.7000 │\s+1\.6000 │\s+-0\.1000 │\s+\+49 │\s+\+50", text), text
+
+
+def test_off_a_terminal_the_view_is_a_line_a_second_and_one_at_the_end() -> None:
+    from rich.console import Console
+
+    from reach_driver.cli.live import RunView
+
+    out = io.StringIO()
+    view = RunView(Console(file=out, width=100), seconds=20)
+    assert not view.live_mode
+    with view:
+        for i in range(10):  # well within a second
+            view.on_step(_record(i, i * 0.05, i * 0.05))
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 2, lines  # the first step, and where it ended
+    assert lines[0].startswith("t   0.0/20 s | error [rad] E +0.200 D +0.100")
+    assert "t   0.5/20 s" in lines[1] and "frames 109 ok 0 bad" in lines[1]
+    quiet = RunView(Console(file=io.StringIO()), seconds=20, enabled=False)
+    with quiet:
+        quiet.on_step(_record(0, 0.0, 0.0))
+    assert quiet.console.file.getvalue() == ""  # type: ignore[attr-defined]
+
+
+def test_run_shows_progress_while_it_goes_and_still_records(sim, tmp_path, capsys) -> None:
+    target = sim.snapshot().q + np.array([0.2, -0.1, 0.1, 0.2])
+    record = tmp_path / "run.rrd"
+    argv = ["--port", str(sim.link), "run", "--controller", "pid", "--target"]
+    argv += [*map(str, target), "--seconds", "2", "--record", str(record)]
+    assert main(argv) == Exit.OK
+    captured = capsys.readouterr()
+    progress = [line for line in captured.err.splitlines() if line.startswith("t ")]
+    assert len(progress) >= 2, captured.err
+    assert "error [rad]" in progress[0] and "loop" in progress[-1]
+    assert "t   2.0/2 s" in progress[-1] or "t   1.9/2 s" in progress[-1], progress
+    assert "error [rad]" not in captured.out  # stdout keeps the results only
+    from reach_driver.rrd_summary import summarize_recording
+
+    assert summarize_recording(record)["steps"] >= 30  # the recorder's hook ran too
+    argv[argv.index("--record") : argv.index("--record") + 2] = ["-q"]
+    assert main(argv) == Exit.OK
+    assert "error [rad]" not in capsys.readouterr().err
+
+
+def test_move_prints_the_remaining_error_as_it_goes(sim, capsys) -> None:
+    target = sim.snapshot().q + np.array([0.3, -0.2, 0.25, -0.4])
+    assert main(["--port", str(sim.link), "move", *map(str, target)]) == Exit.OK
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("move ")]
+    assert len(lines) >= 2, err
+    assert "error [rad] E +0.300" in lines[0] or "E +0.29" in lines[0], lines
+    assert float(lines[-1].rsplit("max |e| ", 1)[1]) <= 0.02

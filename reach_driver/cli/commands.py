@@ -19,6 +19,7 @@ from protocol import Mode, PacketID
 from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS
 from reach_driver.cli.connect import connect
 from reach_driver.cli.exits import Exit, UsageError, for_operator, left_in_for_operator
+from reach_driver.cli.live import MoveView, RunView, chain
 from reach_driver.cli.recorder import CliRecorder
 from reach_driver.cli.render import (
     blocking_faults,
@@ -116,13 +117,16 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
         start_err = float(np.max(np.abs(target - q0))) or 1.0
         move_started = client.clock()
         deadline = time.monotonic() + args.move_timeout
+        notes = Console(stderr=True, highlight=False)
+        lines = MoveView(notes, enabled=not args.quiet)
         with Progress(
             TextColumn("[bold]move[/]"),
             BarColumn(),
             TextColumn("{task.fields[detail]}"),
             TimeElapsedColumn(),
-            console=console,
-            transient=False,
+            console=notes,
+            transient=True,
+            disable=args.quiet or not notes.is_terminal,
         ) as progress:
             task = progress.add_task("move", total=1.0, detail="")
             while True:
@@ -136,7 +140,10 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 progress.update(
                     task, completed=min(1.0, max(0.0, 1.0 - worst / start_err)), detail=detail
                 )
-                if worst <= args.tolerance and jaw_err <= args.jaw_tolerance:
+                jaw_left = args.jaw - state.jaw_mm if args.jaw is not None else None
+                done = worst <= args.tolerance and jaw_err <= args.jaw_tolerance
+                lines.update(err, jaw_left, force=done)
+                if done:
                     progress.update(task, completed=1.0)
                     break
                 if client.link_state is not LinkState.UP:
@@ -237,10 +244,12 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
                 "seconds": args.seconds,
             }
             recorder = CliRecorder(args.record, meta)
-        hook = recorder.on_step if recorder is not None else None
+        view = RunView(Console(stderr=True, highlight=False), args.seconds, enabled=not args.quiet)
+        hook = chain(recorder.on_step if recorder is not None else None, view.on_step)
         loop = ControlLoop(client, controller, period, pacing=args.pacing, on_step=hook)
         try:
-            summary = loop.run(target, args.seconds)
+            with view:
+                summary = loop.run(target, args.seconds)
         except KeyboardInterrupt:
             error = "interrupted"
             raise
