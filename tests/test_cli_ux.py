@@ -16,9 +16,10 @@ import numpy as np
 import pytest
 from conftest import wait_until
 
-from protocol import Mode
+from protocol import Mode, PacketID
 from reach_driver.cli import Exit, main
 from reach_driver.cli.parser import build_parser
+from reach_driver.metrics import METRIC_KEYS
 from reach_driver.records import StepRecord
 from reach_sim_bridge.server import SimConfig, SimServer
 
@@ -314,3 +315,70 @@ def test_move_prints_the_remaining_error_as_it_goes(sim, capsys) -> None:
     assert len(lines) >= 2, err
     assert "error [rad] E +0.300" in lines[0] or "E +0.29" in lines[0], lines
     assert float(lines[-1].rsplit("max |e| ", 1)[1]) <= 0.02
+
+
+# -- 4: JSON for scripts, tables for people ------------------------------------------------
+
+
+def test_run_json_is_one_object_with_the_summary_and_metrics(sim, capsys) -> None:
+    target = sim.snapshot().q + np.array([0.1, 0.1, -0.1, 0.1])
+    argv = ["--port", str(sim.link), "run", "--controller", "pid", "--target"]
+    argv += [*map(str, target), "--seconds", "1", "--json"]
+    assert main(argv) == Exit.OK
+    out = capsys.readouterr().out
+    result = json.loads(out)  # the whole of stdout: one object, nothing else
+    assert result["exit"] == 0 and result["ok"] is True
+    assert result["controller"] == "pid" and result["left_in"] == "zero_velocity"
+    assert result["target"] == pytest.approx(list(target))
+    assert set(result["metrics"]) == set(METRIC_KEYS)
+    assert isinstance(result["metrics"]["reached"], bool)
+    assert result["steps"] >= 15 and len(result["final_error"]) == 4
+
+
+def test_monitor_json_is_one_object_per_line(sim, capsys) -> None:
+    argv = ["--port", str(sim.link), "monitor", "--seconds", "1.2", "--json"]
+    assert main(argv) == Exit.OK
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) >= 2, lines
+    rows = [json.loads(line) for line in lines]
+    assert rows[-1]["link"] == "up" and rows[-1]["good_frames"] > 0
+    assert set(rows[-1]["devices"]) == {"E", "D", "C", "B", "A"}
+    assert rows[-1]["devices"]["E"]["mode"] == "standby"
+    assert rows[-1]["devices"]["D"]["rate_hz"] > 0
+    assert rows[0]["t"] < rows[-1]["t"]
+
+
+def test_info_json_has_whole_serial_numbers_and_rounded_floats(sim, capsys) -> None:
+    assert main(["--port", str(sim.link), "info", "--json"]) == Exit.OK
+    devices = json.loads(capsys.readouterr().out)["devices"]
+    d = devices["D"]
+    assert d["serial_number"] == 4104 and isinstance(d["serial_number"], int)
+    assert isinstance(d["model_number"], int)
+    assert d["limits"]["position"] == [0.0175, 3.4034]  # float32 noise rounded away
+    assert devices["E"]["limits"]["position"] == [0.0175, 6.143]
+    for value in (d["position"], *d["limits"]["velocity"]):
+        assert len(repr(value).replace("-", "").replace(".", "").lstrip("0")) <= 6, value
+
+
+def test_info_fits_80_columns_with_units_on_every_column(sim, capsys) -> None:
+    from rich.console import Console
+
+    from reach_driver.cli.render import info_table
+    from reach_driver.client import ArmClient
+    from reach_driver.interfaces import open_transport
+
+    with ArmClient(open_transport(str(sim.link))) as client:
+        client.request_many(client.found_devices, [PacketID.POSITION], partial=True)
+        joints = client.read_info()
+    console = Console(record=True, width=80, file=io.StringIO())
+    console.print(info_table(str(sim.link), joints))
+    text = console.export_text()
+    assert max(len(line) for line in text.splitlines()) <= 80
+    cells = ("E (0x05)", "0.0175 .. 6.143 rad", "0.0175 .. 3.4034 rad", "0 .. 6.28319 rad")
+    cells += ("±0.5236 rad/s", "±600 mA", "±3 mm/s", "5.0000 mm", "0.1.0", "4104", "ok")
+    for cell in cells:
+        assert cell in text, text  # each on one line, not broken over two
+    # and through the CLI at 80 columns
+    done = _cli("--port", str(sim.link), "info", env={"COLUMNS": "80"})
+    assert done.returncode == 0, done.stderr
+    assert max(len(line) for line in done.stdout.splitlines()) <= 80, done.stdout

@@ -25,11 +25,14 @@ from reach_driver.cli.render import (
     blocking_faults,
     info_json,
     info_table,
+    jsonable,
+    monitor_json,
     monitor_table,
     print_metrics,
     print_recording,
     print_summary,
 )
+from reach_driver.cli.report import summary_dict
 from reach_driver.client import ArmClient
 from reach_driver.control import ControlLoop, Pacing, control_period
 from reach_driver.controllers import available_controllers, load_controller
@@ -61,7 +64,7 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
         ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT, PacketID.MODE)
         rate = client.stream(ids, args.rate, devices)
         if rate != args.rate:
-            console.print(
+            _notes().print(
                 f"[yellow]--rate {args.rate} Hz is more than the line carries for "
                 f"{len(ids)} values of {len(devices)} devices: streaming at {rate} Hz[/yellow]"
             )
@@ -69,6 +72,8 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
         last_counts = client.table.count_snapshot()
         last_t = time.monotonic()
         rates: dict[tuple[int, int], float] = {}
+        if args.json:
+            return _monitor_json(client, console, end, last_counts, last_t)
         with Live(
             monitor_table(client, rates, args.port),
             console=console,
@@ -91,6 +96,34 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
         return Exit.OK
     finally:
         client.close()
+
+
+def _monitor_json(
+    client: ArmClient,
+    console: Console,
+    end: float,
+    last_counts: dict[tuple[int, int], int],
+    last_t: float,
+) -> Exit:
+    """`monitor --json`: a JSON object per refresh, one a line (JSON Lines)."""
+    start = last_t
+    try:
+        while time.monotonic() < end:
+            time.sleep(min(0.5, max(0.0, end - time.monotonic())))
+            now = time.monotonic()
+            counts = client.table.count_snapshot()
+            rates = {k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()}
+            last_counts, last_t = counts, now
+            line = json.dumps(monitor_json(client, rates, now - start))
+            console.out(line, highlight=False)
+            console.file.flush()  # a reader on a pipe gets each line as it comes
+    except KeyboardInterrupt:
+        pass
+    return Exit.OK
+
+
+def _notes() -> Console:
+    return Console(stderr=True, highlight=False)
 
 
 def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
@@ -230,7 +263,7 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
         target = np.array(args.target, dtype=float)
         for dev, value in zip(JOINTS, target, strict=True):
             client.guard.check(dev, LimitKind.POSITION, float(value))
-        faults = blocking_faults(client.read_status(JOINTS), console)
+        faults = blocking_faults(client.read_status(JOINTS), _notes() if args.json else console)
         if faults:
             raise ArmFaultError(f"arm reports faults, not starting: {faults}")
         if args.record:
@@ -256,9 +289,30 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
         error = summary.error
         if recorder is not None:
             recorder.finish(summary, error)  # before the last lines, which say how it went
+        left_in = left_in_for_operator(summary.left_in, args.port)
+        if summary.error:
+            code = Exit.FAILED
+        elif recorder is not None and recorder.failed:
+            code = Exit.RECORDING_INCOMPLETE
+        else:
+            code = Exit.OK
+        if args.json:
+            out = summary_dict(summary)
+            out.update(
+                exit=int(code),
+                controller=args.controller,
+                target=summary.target,
+                error=None if summary.error is None else for_operator(summary.error),
+                left_in=left_in,
+                record=args.record,
+                recording_failed=recorder.failed if recorder is not None else None,
+            )
+            console.out(json.dumps(jsonable(out)), highlight=False)
+            if recorder is not None and recorder.failed:
+                _notes().print(f"[yellow]recording incomplete[/]: {escape(recorder.failed)}")
+            return code
         print_summary(console, summary)
         print_metrics(console, summary)
-        left_in = left_in_for_operator(summary.left_in, args.port)
         console.print(f"arm left in {escape(left_in)}", soft_wrap=True)
         if recorder is not None and recorder.failed:
             console.print(
@@ -275,10 +329,7 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             )
         if summary.error:
             console.print(f"[red]run failed[/]: {escape(for_operator(summary.error))}")
-            return Exit.FAILED
-        if recorder is not None and recorder.failed:
-            return Exit.RECORDING_INCOMPLETE
-        return Exit.OK
+        return code
     finally:
         if recorder is not None:
             recorder.finish(summary, error)  # a no-op once finished

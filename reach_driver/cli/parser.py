@@ -250,6 +250,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--rate", type=_rate, default=10, help="heartbeat rate, 1..255 Hz (default 10)"
     )
     mon.add_argument("--seconds", type=_positive, help="stop after this many seconds")
+    mon.add_argument(
+        "--json",
+        action="store_true",
+        help="a JSON object per refresh, one a line (JSON Lines), instead of the table",
+    )
 
     move = add(
         "move",
@@ -331,6 +336,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="KEY=VALUE",
         help="controller parameter (repeatable; comma-separated values give a list)",
+    )
+    run.add_argument(
+        "--json",
+        action="store_true",
+        help="print the summary and metrics as one JSON object on stdout (the live view "
+        "stays on stderr; -q silences it)",
     )
     run.add_argument(
         "--record",

@@ -6,7 +6,7 @@ import math
 from typing import Any
 
 import numpy as np
-from rich.console import Console
+from rich.console import Console, Group
 from rich.markup import escape
 from rich.table import Table
 
@@ -34,7 +34,9 @@ def limit_range(js: JointState, kind: LimitKind) -> str:
     if reading is None:
         return "-"
     lo, hi = reading.value
-    return f"{lo:.4g} .. {hi:.4g}"
+    if math.isclose(lo, -hi, rel_tol=1e-6) and hi > 0:
+        return f"±{hi:.6g}"
+    return f"{lo:.6g} .. {hi:.6g}"
 
 
 def mode_name(js: JointState) -> str:
@@ -44,6 +46,37 @@ def mode_name(js: JointState) -> str:
     return value.name.lower() if isinstance(value, Mode) else f"0x{value:02X}"
 
 
+def sig6(value: float) -> float:
+    """`value` to 6 significant digits: the arm sends float32, whose tail is noise."""
+    return float(f"{value:.6g}")
+
+
+def jsonable(value: Any, digits6: bool = False) -> Any:
+    """Plain JSON types: numpy arrays and scalars to lists and numbers, NaN/inf to null,
+    floats to 6 significant digits if asked."""
+    if isinstance(value, dict):
+        return {str(k): jsonable(v, digits6) for k, v in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [jsonable(v, digits6) for v in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        f = float(value)
+        if not math.isfinite(f):
+            return None
+        return sig6(f) if digits6 else f
+    return value
+
+
+def _whole(reading: Any) -> int | None:
+    """A serial or model number: the arm sends it as a float; it is a whole number."""
+    if reading is None or not math.isfinite(float(reading.value)):
+        return None
+    return int(round(float(reading.value)))
+
+
 def info_json(port: str, joints: dict[int, JointState]) -> dict[str, Any]:
     out = {}
     for dev, js in joints.items():
@@ -51,8 +84,8 @@ def info_json(port: str, joints: dict[int, JointState]) -> dict[str, Any]:
             "device": dev,
             "mode": mode_name(js),
             "software_version": js.software_version.value if js.software_version else None,
-            "serial_number": js.serial_number.value if js.serial_number else None,
-            "model_number": js.model_number.value if js.model_number else None,
+            "serial_number": _whole(js.serial_number),
+            "model_number": _whole(js.model_number),
             "position": js.position.value if js.position else None,
             "limits": {
                 kind.value: list(getattr(js, f"{kind.value}_limits").value)
@@ -61,41 +94,88 @@ def info_json(port: str, joints: dict[int, JointState]) -> dict[str, Any]:
             },
             "status_flags": js.fault_names,
         }
-    return {"port": port, "devices": out}
+    return jsonable({"port": port, "devices": out}, digits6=True)
 
 
-def info_table(port: str, joints: dict[int, JointState]) -> Table:
-    table = Table(title=f"Reach arm on {port}: {len(joints)} device(s)")
-    for column in (
-        "device",
-        "mode",
-        "version",
-        "serial",
-        "model",
-        "position",
-        "position limits",
-        "velocity limits",
-        "current limits (mA)",
-        "status",
-    ):
-        table.add_column(column)
+def _unit(dev: int, joint: str, jaw: str) -> str:
+    return jaw if dev == JAW else joint
+
+
+def info_table(port: str, joints: dict[int, JointState]) -> Group:
+    """Two tables that each fit 80 columns: who answers, and where and within what limits."""
+    ids = Table(title=f"Reach arm on {escape(port)}: {len(joints)} device(s)")
+    for column in ("device", "mode", "version", "serial no.", "model no.", "status"):
+        ids.add_column(column)
+    limits = Table(
+        title="position and limits",
+        caption="joints E D C B in rad and rad/s, the jaw A in mm and mm/s",
+        show_edge=False,
+    )
+    for column in ("device", "position", "position limits", "velocity limit", "current limit"):
+        limits.add_column(column, justify="right", no_wrap=True)
     for dev, js in joints.items():
         status = js.fault_names
-        table.add_row(
+        serial, model = _whole(js.serial_number), _whole(js.model_number)
+        ids.add_row(
             joint_name(dev),
             mode_name(js),
-            js.software_version.value if js.software_version else "-",
-            fmt(js.serial_number.value, 0) if js.serial_number else "-",
-            fmt(js.model_number.value, 0) if js.model_number else "-",
-            fmt(js.position.value) if js.position else "-",
-            limit_range(js, LimitKind.POSITION),
-            limit_range(js, LimitKind.VELOCITY),
-            limit_range(js, LimitKind.CURRENT),
-            ("[red]" + ", ".join(status) + "[/]")
+            escape(str(js.software_version.value)) if js.software_version else "-",
+            "-" if serial is None else str(serial),
+            "-" if model is None else str(model),
+            ("[red]" + escape(", ".join(status)) + "[/]")
             if status
             else ("ok" if js.status is not None else "-"),
         )
-    return table
+        pos_unit = _unit(dev, "rad", "mm")
+        vel_unit = _unit(dev, "rad/s", "mm/s")
+        limits.add_row(
+            joint_name(dev),
+            f"{fmt(js.position.value)} {pos_unit}" if js.position else "-",
+            _with_unit(limit_range(js, LimitKind.POSITION), pos_unit),
+            _with_unit(limit_range(js, LimitKind.VELOCITY), vel_unit),
+            _with_unit(limit_range(js, LimitKind.CURRENT), "mA"),
+        )
+    return Group(ids, limits)
+
+
+def _with_unit(text: str, unit: str) -> str:
+    return text if text == "-" else f"{text} {unit}"
+
+
+def monitor_json(
+    client: ArmClient, rates: dict[tuple[int, int], float], t: float
+) -> dict[str, Any]:
+    """One `monitor --json` line: the state of every device and the link's counters."""
+    now = client.clock()
+    state = client.state
+    devices = {}
+    for dev in (*JOINTS, JAW):
+        js = state.joint(dev)
+        devices[DeviceID(dev).name] = {
+            "mode": mode_name(js) if js.mode is not None else None,
+            "position": js.position.value if js.position else None,
+            "velocity": js.velocity.value if js.velocity else None,
+            "current_mA": js.current.value if js.current else None,
+            "age_s": js.position.age(now) if js.position else None,
+            "rate_hz": rates.get((int(dev), int(PacketID.POSITION))),
+        }
+    ts, ds, cs = client.transport.stats, client.decoder_stats, client.stats
+    return jsonable(
+        {
+            "t": t,
+            "link": client.link_state.value,
+            "devices": devices,
+            "bytes_in": ts.bytes_in,
+            "bytes_out": ts.bytes_out,
+            "good_frames": ds.good_frames,
+            "bad_frames": ds.bad_total,
+            "bad_frames_by_reason": {r.value: n for r, n in ds.bad_frames.items() if n},
+            "discarded_bytes": ds.bytes_discarded,
+            "reconnects": cs.reconnects,
+            "request_timeouts": cs.request_timeouts,
+        },
+        digits6=True,
+    )
 
 
 def monitor_table(client: ArmClient, rates: dict[tuple[int, int], float], port: str) -> Table:
