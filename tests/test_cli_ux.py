@@ -298,13 +298,13 @@ def test_run_shows_progress_while_it_goes_and_still_records(sim, tmp_path, capsy
     assert len(progress) >= 2, captured.err
     assert "error [rad]" in progress[0] and "loop" in progress[-1]
     assert "t   2.0/2 s" in progress[-1] or "t   1.9/2 s" in progress[-1], progress
-    assert "error [rad]" not in captured.out  # stdout keeps the results only
+    assert "| error [rad]" not in captured.out  # stdout keeps the results only
     from reach_driver.rrd_summary import summarize_recording
 
     assert summarize_recording(record)["steps"] >= 30  # the recorder's hook ran too
     argv[argv.index("--record") : argv.index("--record") + 2] = ["-q"]
     assert main(argv) == Exit.OK
-    assert "error [rad]" not in capsys.readouterr().err
+    assert "| error [rad]" not in capsys.readouterr().err
 
 
 def test_move_prints_the_remaining_error_as_it_goes(sim, capsys) -> None:
@@ -382,3 +382,49 @@ def test_info_fits_80_columns_with_units_on_every_column(sim, capsys) -> None:
     done = _cli("--port", str(sim.link), "info", env={"COLUMNS": "80"})
     assert done.returncode == 0, done.stderr
     assert max(len(line) for line in done.stdout.splitlines()) <= 80, done.stdout
+
+
+# -- 5: one name and unit per metric -------------------------------------------------------
+
+LABELS = (
+    "energy [J]",
+    "RMSE [rad]",
+    "MIE [rad s]",
+    "MSSE [rad]",
+    "overshoot [%]",
+    "settling time [s]",
+    "reached",
+)
+
+
+def test_every_metric_has_one_label_with_its_unit() -> None:
+    from reach_driver.cli.render import METRIC_LABELS, metric_label
+
+    assert set(METRIC_LABELS) >= set(METRIC_KEYS)
+    assert tuple(metric_label(k) for k in METRIC_KEYS) == LABELS
+    assert metric_label("at_rest_new_key") == "at_rest_new_key"  # unlabelled: shown by key
+
+
+def test_run_and_inspect_label_the_metrics_the_same_way(tmp_path) -> None:
+    from rich.console import Console
+
+    from reach_driver.cli.render import metrics_table, print_recording
+
+    values = {
+        "energy_j": 1.2,
+        "rmse": 0.1,
+        "mie": 0.3,
+        "msse": 0.001,
+        "overshoot_pct": 2.0,
+        "settling_time_s": 3.5,
+        "reached": True,
+    }
+    run = Console(record=True, width=200, file=io.StringIO())
+    run.print(metrics_table("metrics", values))
+    ins = Console(record=True, width=200, file=io.StringIO())
+    summary = {"file": "x.rrd", "steps": 2, "duration_s": 1.0, "joints": list("EDCB")}
+    summary |= {k: [0.0] * 4 for k in ("final_target", "final_position", "final_error")}
+    print_recording(ins, {**summary, "metrics": values})
+    for text in (run.export_text(), ins.export_text()):
+        for label in LABELS:
+            assert label in text, text

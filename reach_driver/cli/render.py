@@ -224,6 +224,8 @@ def blocking_faults(flags: dict[int, list[str]], console: Console | None) -> str
     return "; ".join(blocking)
 
 
+# One name and unit per metric, for every table that shows one (run, inspect). Belongs next to
+# reach_driver.metrics.METRIC_KEYS; a key without a label is shown by its key.
 METRIC_LABELS = {
     "energy_j": ("energy", "J"),
     "rmse": ("RMSE", "rad"),
@@ -235,24 +237,39 @@ METRIC_LABELS = {
 }
 
 
+def metric_label(key: str) -> str:
+    """'RMSE [rad]': the metric's name and unit as every table shows it."""
+    name, unit = METRIC_LABELS.get(key, (key, ""))
+    return f"{name} [{unit}]" if unit else name
+
+
+def metrics_table(title: str, values: dict[str, Any]) -> Table:
+    """One row of metrics, in METRIC_KEYS order (then any others), labelled with units."""
+    keys = [k for k in METRIC_KEYS if k in values] + [k for k in values if k not in METRIC_KEYS]
+    table = Table(title=title)
+    cells = []
+    for key in keys:
+        table.add_column(escape(metric_label(key)), justify="right")
+        value = values[key]
+        if isinstance(value, bool):
+            cells.append("yes" if value else "[red]no[/]")
+        elif isinstance(value, (int, float)):
+            cells.append(f"{float(value):.4g}")
+        else:
+            cells.append(escape(str(value)))
+    table.add_row(*cells)
+    table.caption = "--json keys: " + ", ".join(keys)
+    return table
+
+
 def print_metrics(console: Console, s: ControlSummary) -> None:
     metrics = run_metrics(s)
     if metrics is None:
         console.print("metrics: none (fewer than two states were seen)")
         return
-    values = metrics.as_dict()
-    table = Table(title="metrics (docs/metrics.md; from the reported angles)")
-    for key in METRIC_KEYS:
-        name, unit = METRIC_LABELS[key]
-        table.add_column(f"{name} [{unit}]" if unit else name, justify="right")
-    cells = []
-    for key in METRIC_KEYS:
-        value = values[key]
-        cells.append(
-            ("yes" if value else "[red]no[/]") if isinstance(value, bool) else f"{float(value):.4g}"
-        )
-    table.add_row(*cells)
-    console.print(table)
+    console.print(
+        metrics_table("metrics (docs/metrics.md; from the reported angles)", metrics.as_dict())
+    )
     tr = s.trace
     assert tr is not None
     measured = int(np.isfinite(tr.current_mA[1:]).all(axis=1).sum())
@@ -268,8 +285,8 @@ def print_metrics(console: Console, s: ControlSummary) -> None:
 
 def print_summary(console: Console, s: ControlSummary) -> None:
     table = Table(title=f"run: {s.steps} steps, {s.loop_seconds:.2f} s loop time")
-    for column in ("joint", "target", "final", "error"):
-        table.add_column(column, justify="right")
+    for column in ("joint", "target [rad]", "final [rad]", "error [rad]"):
+        table.add_column(escape(column), justify="right")
     for j, tgt, q, e in zip(JOINT_LETTERS, s.target, s.final_q, s.final_error, strict=True):
         table.add_row(j, fmt(tgt), fmt(q), fmt(e))
     console.print(table)
@@ -337,15 +354,6 @@ def print_recording(console: Console, summary: dict[str, Any]) -> None:
     console.print(joints)
     metrics = summary.get("metrics")
     if isinstance(metrics, dict):
-        table = Table(title="metrics (docs/metrics.md)")
-        for key in metrics:
-            table.add_column(key, justify="right")
-        table.add_row(
-            *(
-                ("yes" if v else "no") if isinstance(v, bool) else f"{float(v):.4g}"
-                for v in metrics.values()
-            )
-        )
-        console.print(table)
+        console.print(metrics_table("metrics (docs/metrics.md)", metrics))
     for line in summary.get("events", []):
         console.print(f"  {escape(str(line))}")
