@@ -80,6 +80,9 @@ def test_run_stops_when_the_link_is_lost(sim, capsys) -> None:
     # Either the next command found the link down or the feedback stopped: both say so.
     assert re.search(r"link (down|is down)|feedback stopped", captured.out), captured.out
     assert "arm left in unknown" in captured.out
+    # The process exits right after: it cannot promise to send anything later.
+    assert "as soon as the arm answers" not in captured.out
+    assert "sends nothing more" in captured.out
 
 
 # -- 4: hostile options, markup in messages, floods of fault events ------------------------

@@ -18,17 +18,21 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from protocol import Mode, PacketID
 from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS
 from reach_driver.cli.connect import connect
-from reach_driver.cli.exits import Exit, UsageError
+from reach_driver.cli.exits import Exit, UsageError, for_operator, left_in_for_operator
+from reach_driver.cli.live import MoveView, RunView, chain
 from reach_driver.cli.recorder import CliRecorder
 from reach_driver.cli.render import (
     blocking_faults,
     info_json,
     info_table,
+    jsonable,
+    monitor_json,
     monitor_table,
     print_metrics,
     print_recording,
     print_summary,
 )
+from reach_driver.cli.report import summary_dict
 from reach_driver.client import ArmClient
 from reach_driver.control import ControlLoop, Pacing, control_period
 from reach_driver.controllers import available_controllers, load_controller
@@ -60,7 +64,7 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
         ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT, PacketID.MODE)
         rate = client.stream(ids, args.rate, devices)
         if rate != args.rate:
-            console.print(
+            _notes().print(
                 f"[yellow]--rate {args.rate} Hz is more than the line carries for "
                 f"{len(ids)} values of {len(devices)} devices: streaming at {rate} Hz[/yellow]"
             )
@@ -68,6 +72,8 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
         last_counts = client.table.count_snapshot()
         last_t = time.monotonic()
         rates: dict[tuple[int, int], float] = {}
+        if args.json:
+            return _monitor_json(client, console, end, last_counts, last_t)
         with Live(
             monitor_table(client, rates, args.port),
             console=console,
@@ -75,21 +81,56 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
             transient=False,
             auto_refresh=False,
         ) as live:
-            while time.monotonic() < end:
-                time.sleep(min(0.5, max(0.0, end - time.monotonic())))
-                now = time.monotonic()
-                counts = client.table.count_snapshot()
-                rates = {k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()}
-                last_counts, last_t = counts, now
-                live.update(monitor_table(client, rates, args.port), refresh=True)
+            try:
+                while time.monotonic() < end:
+                    time.sleep(min(0.5, max(0.0, end - time.monotonic())))
+                    now = time.monotonic()
+                    counts = client.table.count_snapshot()
+                    rates = {
+                        k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()
+                    }
+                    last_counts, last_t = counts, now
+                    live.update(monitor_table(client, rates, args.port), refresh=True)
+            except KeyboardInterrupt:
+                pass  # Ctrl-C is how a monitor is meant to end: exit 0
         return Exit.OK
     finally:
         client.close()
 
 
+def _monitor_json(
+    client: ArmClient,
+    console: Console,
+    end: float,
+    last_counts: dict[tuple[int, int], int],
+    last_t: float,
+) -> Exit:
+    """`monitor --json`: a JSON object per refresh, one a line (JSON Lines)."""
+    start = last_t
+    try:
+        while time.monotonic() < end:
+            time.sleep(min(0.5, max(0.0, end - time.monotonic())))
+            now = time.monotonic()
+            counts = client.table.count_snapshot()
+            rates = {k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()}
+            last_counts, last_t = counts, now
+            line = json.dumps(monitor_json(client, rates, now - start))
+            console.out(line, highlight=False)
+            console.file.flush()  # a reader on a pipe gets each line as it comes
+    except KeyboardInterrupt:
+        pass
+    return Exit.OK
+
+
+def _notes() -> Console:
+    return Console(stderr=True, highlight=False)
+
+
 def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
-    target = np.array(args.angles, dtype=float)
+    target = np.array([args.angle_e, args.angle_d, args.angle_c, args.angle_b], dtype=float)
     client = connect(args, console)
+    devices = [*JOINTS, JAW] if args.jaw is not None else list(JOINTS)
+    commanded = False
     try:
         # Check everything first: a refused target must leave every joint where it is.
         for dev, value in zip(JOINTS, target, strict=True):
@@ -99,9 +140,9 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
         faults = blocking_faults(client.read_status(), console)
         if faults:
             raise ArmFaultError(f"arm reports faults, not moving: {faults}")
-        devices = [*JOINTS, JAW] if args.jaw is not None else list(JOINTS)
         client.stream((PacketID.POSITION,), 20, devices)
         q0 = client.read_joints((PacketID.POSITION,)).q
+        commanded = True
         client.set_mode(devices, Mode.POSITION)
         client.command_positions(target)
         if args.jaw is not None:
@@ -109,13 +150,16 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
         start_err = float(np.max(np.abs(target - q0))) or 1.0
         move_started = client.clock()
         deadline = time.monotonic() + args.move_timeout
+        notes = Console(stderr=True, highlight=False)
+        lines = MoveView(notes, enabled=not args.quiet)
         with Progress(
             TextColumn("[bold]move[/]"),
             BarColumn(),
             TextColumn("{task.fields[detail]}"),
             TimeElapsedColumn(),
-            console=console,
-            transient=False,
+            console=notes,
+            transient=True,
+            disable=args.quiet or not notes.is_terminal,
         ) as progress:
             task = progress.add_task("move", total=1.0, detail="")
             while True:
@@ -129,7 +173,10 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 progress.update(
                     task, completed=min(1.0, max(0.0, 1.0 - worst / start_err)), detail=detail
                 )
-                if worst <= args.tolerance and jaw_err <= args.jaw_tolerance:
+                jaw_left = args.jaw - state.jaw_mm if args.jaw is not None else None
+                done = worst <= args.tolerance and jaw_err <= args.jaw_tolerance
+                lines.update(err, jaw_left, force=done)
+                if done:
                     progress.update(task, completed=1.0)
                     break
                 if client.link_state is not LinkState.UP:
@@ -147,6 +194,14 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 time.sleep(0.05)
         console.print(f"[green]reached[/] within {args.tolerance} rad: {detail}")
         return Exit.OK
+    except KeyboardInterrupt:
+        # Ctrl-C means stop: in position mode the joints would go on to the target.
+        if commanded and client.link_state is LinkState.UP:
+            try:
+                client.safe_stop(devices)
+            except DriverError:
+                pass  # the message says "interrupted"; close() tries once more
+        raise
     finally:
         try:
             client.stop_stream()
@@ -208,7 +263,7 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
         target = np.array(args.target, dtype=float)
         for dev, value in zip(JOINTS, target, strict=True):
             client.guard.check(dev, LimitKind.POSITION, float(value))
-        faults = blocking_faults(client.read_status(JOINTS), console)
+        faults = blocking_faults(client.read_status(JOINTS), _notes() if args.json else console)
         if faults:
             raise ArmFaultError(f"arm reports faults, not starting: {faults}")
         if args.record:
@@ -222,19 +277,43 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
                 "seconds": args.seconds,
             }
             recorder = CliRecorder(args.record, meta)
-        hook = recorder.on_step if recorder is not None else None
+        view = RunView(Console(stderr=True, highlight=False), args.seconds, enabled=not args.quiet)
+        hook = chain(recorder.on_step if recorder is not None else None, view.on_step)
         loop = ControlLoop(client, controller, period, pacing=args.pacing, on_step=hook)
         try:
-            summary = loop.run(target, args.seconds)
+            with view:
+                summary = loop.run(target, args.seconds)
         except KeyboardInterrupt:
             error = "interrupted"
             raise
         error = summary.error
         if recorder is not None:
             recorder.finish(summary, error)  # before the last lines, which say how it went
+        left_in = left_in_for_operator(summary.left_in, args.port)
+        if summary.error:
+            code = Exit.FAILED
+        elif recorder is not None and recorder.failed:
+            code = Exit.RECORDING_INCOMPLETE
+        else:
+            code = Exit.OK
+        if args.json:
+            out = summary_dict(summary)
+            out.update(
+                exit=int(code),
+                controller=args.controller,
+                target=summary.target,
+                error=None if summary.error is None else for_operator(summary.error),
+                left_in=left_in,
+                record=args.record,
+                recording_failed=recorder.failed if recorder is not None else None,
+            )
+            console.out(json.dumps(jsonable(out)), highlight=False)
+            if recorder is not None and recorder.failed:
+                _notes().print(f"[yellow]recording incomplete[/]: {escape(recorder.failed)}")
+            return code
         print_summary(console, summary)
         print_metrics(console, summary)
-        console.print(f"arm left in {escape(summary.left_in)}")
+        console.print(f"arm left in {escape(left_in)}", soft_wrap=True)
         if recorder is not None and recorder.failed:
             console.print(
                 f"[yellow]recording incomplete[/]: {escape(recorder.failed)}; what reached "
@@ -249,11 +328,8 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
                 soft_wrap=True,  # keep the commands copyable
             )
         if summary.error:
-            console.print(f"[red]run failed[/]: {escape(summary.error)}")
-            return Exit.FAILED
-        if recorder is not None and recorder.failed:
-            return Exit.RECORDING_INCOMPLETE
-        return Exit.OK
+            console.print(f"[red]run failed[/]: {escape(for_operator(summary.error))}")
+        return code
     finally:
         if recorder is not None:
             recorder.finish(summary, error)  # a no-op once finished

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -16,6 +17,8 @@ from reach_driver.errors import BadUrlError
 from reach_driver.interfaces import open_transport
 from reach_driver.link import ClientEvent, EventKind
 from reach_driver.safety import SafetyConfig
+
+log = logging.getLogger("reach_driver.cli.events")  # to --log-file; the console shows them
 
 
 def connect(args: argparse.Namespace, console: Console) -> ArmClient:
@@ -34,6 +37,7 @@ def connect(args: argparse.Namespace, console: Console) -> ArmClient:
     client.on_event(EventPrinter(notes))
     client.start()
     for warning in client.warnings:
+        log.warning("%s", warning)
         notes.print(f"[yellow]warning[/]: {escape(warning)}")
     return client
 
@@ -72,6 +76,7 @@ class EventPrinter:
             held = self._held.pop(key, 0)
             if held and last is not None:
                 suffix = f" ({held} more like this in the last {now - last:.1f} s, not shown)"
+        log.info("%s: %s%s", event.kind.value, event.message, suffix)
         self.console.print(
             f"[{style}]{event.kind.value}[/]: {escape(event.message)}{suffix}", soft_wrap=True
         )

@@ -1,7 +1,9 @@
-"""The CLI's exit statuses (documented in `reach-driver --help`)."""
+"""The CLI's exit statuses, in one table (`reach-driver --help` shows it), and the wording of
+messages for a person at the command line rather than a Python caller."""
 
 from __future__ import annotations
 
+import textwrap
 from enum import IntEnum
 
 
@@ -18,3 +20,60 @@ class Exit(IntEnum):
     LINK_LOST = 5  # the link went down while a command was under way
     RECORDING_INCOMPLETE = 6  # the run completed; its --record file stops early
     INTERRUPTED = 130
+
+
+EXIT_TABLE: dict[Exit, str] = {
+    Exit.OK: "done: the command finished; a run lasted --seconds (whether it got there: "
+    "'reached'); monitor stopped by Ctrl-C or --seconds",
+    Exit.FAILED: "failed: a run cut short (watchdog, lost link, fault, controller error), a "
+    "move that timed out, a fault before starting, an unreadable recording",
+    Exit.USAGE: "bad command line: unknown option, malformed value, no --port",
+    Exit.LIMIT: "refused by a limit: nothing was sent, nothing moved",
+    Exit.NO_ARM: "no arm: wrong port, no permission, nothing answering, wrong baud",
+    Exit.LINK_LOST: "the link was lost during a move (the message says since when and the "
+    "last positions the arm reported)",
+    Exit.RECORDING_INCOMPLETE: "a run completed but its --record file is incomplete (e.g. a "
+    "full disk: recording stopped, control went on)",
+    Exit.INTERRUPTED: "move or run interrupted (Ctrl-C, SIGTERM): the joints were put in "
+    "zero_velocity",
+}
+
+
+def exit_table_text(indent: str = "  ") -> str:
+    """The table as `--help` prints it."""
+    lead = indent + " " * 5
+    return "\n".join(
+        textwrap.fill(text, 88, initial_indent=f"{indent}{int(code):>3}  ", subsequent_indent=lead)
+        for code, text in EXIT_TABLE.items()
+    )
+
+
+# Advice written for Python callers of the client, and what a CLI user should read instead.
+_API_ADVICE = {
+    "call rearm() to command again": "the command stopped; read the lines above for why "
+    "(a stalled controller, a loaded host, lost feedback), then run it again",
+}
+
+
+def for_operator(message: str) -> str:
+    """`message` without advice only a Python caller can follow."""
+    for api, operator in _API_ADVICE.items():
+        message = message.replace(api, operator)
+    return message
+
+
+def left_in_for_operator(left_in: str, port: str | None) -> str:
+    """How the arm was left, true once this process has exited. The loop's own wording for an
+    unreachable arm promises a safe mode 'as soon as the arm answers', which only holds while
+    the client lives; the CLI exits right after saying it."""
+    head, sep, _ = left_in.partition("; the driver sends ")
+    if not sep:
+        return left_in
+    where = f" --port {port}" if port else ""
+    return (
+        f"{head}. reach-driver exits now and sends nothing more: each joint keeps the last "
+        "mode and command it received (in current mode, the last current) until it is told "
+        "otherwise or powered off; the Alpha 5 has no documented watchdog of its own. If it "
+        f"is moving, cut its power; once it answers, `reach-driver{where} info` shows its "
+        "mode and position."
+    )

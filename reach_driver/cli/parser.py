@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 import math
 import os
+from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
 from protocol.alpha5 import TORQUE_PER_AMP_NM
+from reach_driver.cli.exits import exit_table_text
 from reach_driver.control import Pacing
 from reach_driver.transport import DEFAULT_BAUD
 
@@ -30,17 +32,21 @@ examples:
   reach-driver --port udp://192.168.2.3 monitor
   reach-driver --port /dev/ttyUSB0 move 3.1 1.5 1.5 3.0 --jaw 8
   reach-driver --port /dev/ttyUSB0 run --controller pid --target 3.1 1.5 1.5 3.0 --seconds 10
-  reach-driver --port /dev/ttyUSB0 run --controller ddpg --target 5.78 1.97 1.67 3.96 \
+  reach-driver --port /dev/ttyUSB0 run --controller ddpg --target 5.78 1.97 1.67 3.96 \\
       --seconds 20 --record run.rrd
   reach-driver inspect run.rrd
 
-exit status: 0 done; 1 failed (timeout, fault, lost link during run); 2 bad usage; 3 refused
-by a limit (nothing moved); 4 no arm (wrong port, no permission, nothing answering, wrong
-baud); 5 the link was lost during a move (the message says since when and the last known
-positions); 6 a run completed but its --record file is incomplete (a write error, e.g. a
-full disk: recording stopped, control went on); 130 interrupted (arm left in a safe mode).
+exit status (every command):
+{exits}
 docs/hil.md: using a real arm.
 """
+
+
+def package_version() -> str:
+    try:
+        return version("reach-stack")
+    except PackageNotFoundError:  # a source tree that was never installed
+        return "unknown (not installed)"
 
 
 def _floats(text: str) -> float | list[float]:
@@ -105,71 +111,136 @@ def _positive(text: str) -> float:
     return value
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="reach-driver",
-        description=DESCRIPTION,
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument(
+def _add_connection_options(
+    parser: argparse.ArgumentParser, default: Any, request_timeout: bool
+) -> None:
+    g = parser.add_argument_group("connection and safety (before or after the command)")
+    g.add_argument(
         "--port",
-        default=os.environ.get("REACH_PORT"),
+        default=default(os.environ.get("REACH_PORT")),
         help="device path, pyserial URL, udp://HOST[:PORT] or can://IF/CHANNEL "
         "(default: $REACH_PORT)",
     )
-    parser.add_argument(
-        "--baud", type=int, default=DEFAULT_BAUD, help="serial baud rate (default 115200, 8N1)"
+    g.add_argument(
+        "--baud",
+        type=int,
+        default=default(DEFAULT_BAUD),
+        help="serial baud rate (default 115200, 8N1)",
     )
-    parser.add_argument(
+    g.add_argument(
         "--rs485",
         action="store_true",
+        default=default(False),
         help="half-duplex RS-485: space writes, never broadcast requests",
     )
-    parser.add_argument(
-        "--timeout",
+    names = ["--timeout", "--reply-timeout"] if request_timeout else ["--reply-timeout"]
+    g.add_argument(
+        *names,
+        dest="timeout",
         type=_positive,
-        default=0.1,
+        default=default(0.1),
+        metavar="S",
         help="seconds to wait for each reply before retrying (default 0.1)",
     )
-    parser.add_argument(
+    g.add_argument(
         "--retries",
         type=_non_negative_int,
-        default=2,
+        default=default(2),
         help="retries per request before giving up (default 2)",
     )
-    parser.add_argument(
+    g.add_argument(
         "--watchdog",
         type=_positive,
-        default=0.2,
+        default=default(0.2),
+        metavar="S",
         help="seconds without a command or fresh feedback before the arm is put in a safe "
         "mode during velocity/current control (default 0.2)",
     )
-    parser.add_argument(
+    g.add_argument(
         "--max-current",
         metavar="MA[,MA,MA,MA]",
+        default=default(None),
         help="tighten the current limits the arm reports: one value for every joint or four "
         "comma-separated (E,D,C,B), in mA; a controller's output is clipped to them (for "
         "first runs on a real arm)",
     )
-    parser.add_argument(
+    g.add_argument(
         "--position-margin",
         type=float,
-        default=0.0,
+        default=default(0.0),
         metavar="RAD",
         help="keep this far inside the arm's position limits (default 0)",
     )
-    parser.add_argument("-v", "--verbose", action="store_true", help="log link events in detail")
+
+
+def _add_global_options(
+    parser: argparse.ArgumentParser,
+    *,
+    suppress: bool,
+    request_timeout: bool = True,
+    connection: bool = True,
+) -> None:
+    """The options every subcommand shares. On the top parser they carry the defaults; on
+    the parent every subparser gets, they default to SUPPRESS, so a value given after the
+    subcommand overrides one given before it and an absent one leaves it alone."""
+
+    def default(value: object) -> object:
+        return argparse.SUPPRESS if suppress else value
+
+    if connection:
+        _add_connection_options(parser, default, request_timeout)
+    out = parser.add_argument_group("output (before or after the command)")
+    out.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        default=default(0),
+        help="log link events (-vv: and debug detail) to stderr",
+    )
+    out.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        default=default(False),
+        help="no live view or progress lines: results, warnings and errors only",
+    )
+    out.add_argument(
+        "--log-file",
+        metavar="FILE",
+        default=default(None),
+        help="append the driver's log (link events, retries, debug with -vv) to FILE",
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="reach-driver",
+        description=DESCRIPTION,
+        epilog=EPILOG.format(exits=exit_table_text()),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
+    _add_global_options(parser, suppress=False)
+    common = argparse.ArgumentParser(add_help=False)
+    _add_global_options(common, suppress=True)
+    # `move --timeout` is the move's own timeout; the reply timeout is --reply-timeout there.
+    common_move = argparse.ArgumentParser(add_help=False)
+    _add_global_options(common_move, suppress=True, request_timeout=False)
+    offline = argparse.ArgumentParser(add_help=False)  # commands that need no arm
+    _add_global_options(offline, suppress=True, connection=False)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
-    sub.add_parser(
+    def add(name: str, parents: list[argparse.ArgumentParser] | None = None, **kw: Any) -> Any:
+        return sub.add_parser(name, parents=parents or [common], **kw)
+
+    add(
         "info",
         help="devices found, versions, serials, limits, modes, status flags",
         description="List the devices that answer with their software versions, serial and "
         "model numbers, modes, limits and hardware status flags by name.",
     ).add_argument("--json", action="store_true", help="print JSON instead of a table")
 
-    mon = sub.add_parser(
+    mon = add(
         "monitor",
         help="live table of joint states, update rates and link error counters",
         description="Stream positions, velocities, currents and modes and show them live "
@@ -179,9 +250,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--rate", type=_rate, default=10, help="heartbeat rate, 1..255 Hz (default 10)"
     )
     mon.add_argument("--seconds", type=_positive, help="stop after this many seconds")
+    mon.add_argument(
+        "--json",
+        action="store_true",
+        help="a JSON object per refresh, one a line (JSON Lines), instead of the table",
+    )
 
-    move = sub.add_parser(
+    move = add(
         "move",
+        parents=[common_move],
         help="position-mode move of E D C B (rad) and optionally the jaw (mm)",
         description="Move the four joints to absolute angles (rad, as the arm reports them) "
         "in position mode and wait until every joint is within --tolerance. Targets outside "
@@ -189,17 +266,38 @@ def build_parser() -> argparse.ArgumentParser:
         "move it stops waiting at once and exits 5, saying since when and the last positions "
         "the arm reported.",
     )
-    move.add_argument("angles", nargs=4, type=float, metavar=("E", "D", "C", "B"))
+    # Four positionals, not nargs=4 with a tuple metavar: argparse crashes formatting that
+    # (help and the "required" error) on Python 3.10-3.13.
+    for letter, what in zip("EDCB", ("base", "shoulder", "elbow", "wrist"), strict=True):
+        move.add_argument(
+            f"angle_{letter.lower()}", type=float, metavar=letter, help=f"{what} angle, rad"
+        )
     move.add_argument("--jaw", type=float, metavar="MM", help="jaw opening in mm")
     move.add_argument(
-        "--tolerance", type=_positive, default=0.02, help="rad per joint (default 0.02)"
+        "--tolerance",
+        type=_positive,
+        default=0.02,
+        metavar="RAD",
+        help="done when every joint is this close to its target (default 0.02 rad)",
     )
-    move.add_argument("--jaw-tolerance", type=_positive, default=0.5, help="mm (default 0.5)")
     move.add_argument(
-        "--timeout", dest="move_timeout", type=_positive, default=60.0, help="s (default 60)"
+        "--jaw-tolerance",
+        type=_positive,
+        default=0.5,
+        metavar="MM",
+        help="done when the jaw is this close (default 0.5 mm)",
+    )
+    move.add_argument(
+        "--timeout",
+        dest="move_timeout",
+        type=_positive,
+        default=60.0,
+        metavar="S",
+        help="give up (exit 1, joints stopped) after this many seconds (default 60); the "
+        "reply timeout is --reply-timeout here",
     )
 
-    run = sub.add_parser(
+    run = add(
         "run",
         help="closed-loop control with a registered controller",
         description="Run a controller (found by name in the reach_stack.controllers entry "
@@ -211,12 +309,9 @@ def build_parser() -> argparse.ArgumentParser:
         "With --pacing stream (default) the arm's heartbeat paces "
         "the loop and time is arm time: against reach-sim --speed X a run takes 1/X of the "
         "wall time and gives the same metrics.",
-        epilog="exit status: 0 the run completed (whether or not it reached the target: see "
-        "'reached'); 1 it was cut short (lost link, watchdog, fault, controller error); 3 the "
-        "target is outside a limit (nothing moved); 4 no arm; 6 the run completed but writing "
-        "its --record file failed (a full disk...): recording never stops control, so the "
-        "warning names the file and the error, recording stops, the run goes on and its "
-        "summary is printed; 130 interrupted.",
+        epilog="exit status: the table in `reach-driver --help`. Recording never stops "
+        "control: a write error to the --record file is named once, recording stops, the run "
+        "goes on, its summary is printed and it exits 6.",
     )
     run.add_argument("--controller", required=True, help="e.g. pid, mpc, ddpg")
     run.add_argument("--target", nargs=4, type=float, required=True, metavar=("E", "D", "C", "B"))
@@ -243,14 +338,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="controller parameter (repeatable; comma-separated values give a list)",
     )
     run.add_argument(
+        "--json",
+        action="store_true",
+        help="print the summary and metrics as one JSON object on stdout (the live view "
+        "stays on stderr; -q silences it)",
+    )
+    run.add_argument(
         "--record",
         metavar="FILE.rrd",
         help="record the run for Rerun (a write error stops the recording, not the run: exit 6)",
     )
 
-    sub.add_parser("controllers", help="list the registered controllers")
-    ins = sub.add_parser(
+    add("controllers", parents=[offline], help="list the registered controllers")
+    ins = add(
         "inspect",
+        parents=[offline],
         help="summarise a recorded run (.rrd): duration, final errors, events, metrics",
     )
     ins.add_argument("file", help="a recording written by `run --record`, or `reach-sim --record`")

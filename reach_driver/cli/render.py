@@ -6,12 +6,13 @@ import math
 from typing import Any
 
 import numpy as np
-from rich.console import Console
+from rich.console import Console, Group
 from rich.markup import escape
 from rich.table import Table
 
 from protocol import DeviceID, Mode, PacketID
 from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS, TORQUE_PER_AMP_NM
+from reach_driver.cli.exits import for_operator
 from reach_driver.cli.report import run_metrics
 from reach_driver.client import ArmClient
 from reach_driver.metrics import METRIC_KEYS
@@ -33,7 +34,9 @@ def limit_range(js: JointState, kind: LimitKind) -> str:
     if reading is None:
         return "-"
     lo, hi = reading.value
-    return f"{lo:.4g} .. {hi:.4g}"
+    if math.isclose(lo, -hi, rel_tol=1e-6) and hi > 0:
+        return f"±{hi:.6g}"
+    return f"{lo:.6g} .. {hi:.6g}"
 
 
 def mode_name(js: JointState) -> str:
@@ -43,6 +46,37 @@ def mode_name(js: JointState) -> str:
     return value.name.lower() if isinstance(value, Mode) else f"0x{value:02X}"
 
 
+def sig6(value: float) -> float:
+    """`value` to 6 significant digits: the arm sends float32, whose tail is noise."""
+    return float(f"{value:.6g}")
+
+
+def jsonable(value: Any, digits6: bool = False) -> Any:
+    """Plain JSON types: numpy arrays and scalars to lists and numbers, NaN/inf to null,
+    floats to 6 significant digits if asked."""
+    if isinstance(value, dict):
+        return {str(k): jsonable(v, digits6) for k, v in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [jsonable(v, digits6) for v in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        f = float(value)
+        if not math.isfinite(f):
+            return None
+        return sig6(f) if digits6 else f
+    return value
+
+
+def _whole(reading: Any) -> int | None:
+    """A serial or model number: the arm sends it as a float; it is a whole number."""
+    if reading is None or not math.isfinite(float(reading.value)):
+        return None
+    return int(round(float(reading.value)))
+
+
 def info_json(port: str, joints: dict[int, JointState]) -> dict[str, Any]:
     out = {}
     for dev, js in joints.items():
@@ -50,8 +84,8 @@ def info_json(port: str, joints: dict[int, JointState]) -> dict[str, Any]:
             "device": dev,
             "mode": mode_name(js),
             "software_version": js.software_version.value if js.software_version else None,
-            "serial_number": js.serial_number.value if js.serial_number else None,
-            "model_number": js.model_number.value if js.model_number else None,
+            "serial_number": _whole(js.serial_number),
+            "model_number": _whole(js.model_number),
             "position": js.position.value if js.position else None,
             "limits": {
                 kind.value: list(getattr(js, f"{kind.value}_limits").value)
@@ -60,41 +94,88 @@ def info_json(port: str, joints: dict[int, JointState]) -> dict[str, Any]:
             },
             "status_flags": js.fault_names,
         }
-    return {"port": port, "devices": out}
+    return jsonable({"port": port, "devices": out}, digits6=True)
 
 
-def info_table(port: str, joints: dict[int, JointState]) -> Table:
-    table = Table(title=f"Reach arm on {port}: {len(joints)} device(s)")
-    for column in (
-        "device",
-        "mode",
-        "version",
-        "serial",
-        "model",
-        "position",
-        "position limits",
-        "velocity limits",
-        "current limits (mA)",
-        "status",
-    ):
-        table.add_column(column)
+def _unit(dev: int, joint: str, jaw: str) -> str:
+    return jaw if dev == JAW else joint
+
+
+def info_table(port: str, joints: dict[int, JointState]) -> Group:
+    """Two tables that each fit 80 columns: who answers, and where and within what limits."""
+    ids = Table(title=f"Reach arm on {escape(port)}: {len(joints)} device(s)")
+    for column in ("device", "mode", "version", "serial no.", "model no.", "status"):
+        ids.add_column(column)
+    limits = Table(
+        title="position and limits",
+        caption="joints E D C B in rad and rad/s, the jaw A in mm and mm/s",
+        show_edge=False,
+    )
+    for column in ("device", "position", "position limits", "velocity limit", "current limit"):
+        limits.add_column(column, justify="right", no_wrap=True)
     for dev, js in joints.items():
         status = js.fault_names
-        table.add_row(
+        serial, model = _whole(js.serial_number), _whole(js.model_number)
+        ids.add_row(
             joint_name(dev),
             mode_name(js),
-            js.software_version.value if js.software_version else "-",
-            fmt(js.serial_number.value, 0) if js.serial_number else "-",
-            fmt(js.model_number.value, 0) if js.model_number else "-",
-            fmt(js.position.value) if js.position else "-",
-            limit_range(js, LimitKind.POSITION),
-            limit_range(js, LimitKind.VELOCITY),
-            limit_range(js, LimitKind.CURRENT),
-            ("[red]" + ", ".join(status) + "[/]")
+            escape(str(js.software_version.value)) if js.software_version else "-",
+            "-" if serial is None else str(serial),
+            "-" if model is None else str(model),
+            ("[red]" + escape(", ".join(status)) + "[/]")
             if status
             else ("ok" if js.status is not None else "-"),
         )
-    return table
+        pos_unit = _unit(dev, "rad", "mm")
+        vel_unit = _unit(dev, "rad/s", "mm/s")
+        limits.add_row(
+            joint_name(dev),
+            f"{fmt(js.position.value)} {pos_unit}" if js.position else "-",
+            _with_unit(limit_range(js, LimitKind.POSITION), pos_unit),
+            _with_unit(limit_range(js, LimitKind.VELOCITY), vel_unit),
+            _with_unit(limit_range(js, LimitKind.CURRENT), "mA"),
+        )
+    return Group(ids, limits)
+
+
+def _with_unit(text: str, unit: str) -> str:
+    return text if text == "-" else f"{text} {unit}"
+
+
+def monitor_json(
+    client: ArmClient, rates: dict[tuple[int, int], float], t: float
+) -> dict[str, Any]:
+    """One `monitor --json` line: the state of every device and the link's counters."""
+    now = client.clock()
+    state = client.state
+    devices = {}
+    for dev in (*JOINTS, JAW):
+        js = state.joint(dev)
+        devices[DeviceID(dev).name] = {
+            "mode": mode_name(js) if js.mode is not None else None,
+            "position": js.position.value if js.position else None,
+            "velocity": js.velocity.value if js.velocity else None,
+            "current_mA": js.current.value if js.current else None,
+            "age_s": js.position.age(now) if js.position else None,
+            "rate_hz": rates.get((int(dev), int(PacketID.POSITION))),
+        }
+    ts, ds, cs = client.transport.stats, client.decoder_stats, client.stats
+    return jsonable(
+        {
+            "t": t,
+            "link": client.link_state.value,
+            "devices": devices,
+            "bytes_in": ts.bytes_in,
+            "bytes_out": ts.bytes_out,
+            "good_frames": ds.good_frames,
+            "bad_frames": ds.bad_total,
+            "bad_frames_by_reason": {r.value: n for r, n in ds.bad_frames.items() if n},
+            "discarded_bytes": ds.bytes_discarded,
+            "reconnects": cs.reconnects,
+            "request_timeouts": cs.request_timeouts,
+        },
+        digits6=True,
+    )
 
 
 def monitor_table(client: ArmClient, rates: dict[tuple[int, int], float], port: str) -> Table:
@@ -143,6 +224,8 @@ def blocking_faults(flags: dict[int, list[str]], console: Console | None) -> str
     return "; ".join(blocking)
 
 
+# One name and unit per metric, for every table that shows one (run, inspect). Belongs next to
+# reach_driver.metrics.METRIC_KEYS; a key without a label is shown by its key.
 METRIC_LABELS = {
     "energy_j": ("energy", "J"),
     "rmse": ("RMSE", "rad"),
@@ -154,24 +237,39 @@ METRIC_LABELS = {
 }
 
 
+def metric_label(key: str) -> str:
+    """'RMSE [rad]': the metric's name and unit as every table shows it."""
+    name, unit = METRIC_LABELS.get(key, (key, ""))
+    return f"{name} [{unit}]" if unit else name
+
+
+def metrics_table(title: str, values: dict[str, Any]) -> Table:
+    """One row of metrics, in METRIC_KEYS order (then any others), labelled with units."""
+    keys = [k for k in METRIC_KEYS if k in values] + [k for k in values if k not in METRIC_KEYS]
+    table = Table(title=title)
+    cells = []
+    for key in keys:
+        table.add_column(escape(metric_label(key)), justify="right")
+        value = values[key]
+        if isinstance(value, bool):
+            cells.append("yes" if value else "[red]no[/]")
+        elif isinstance(value, (int, float)):
+            cells.append(f"{float(value):.4g}")
+        else:
+            cells.append(escape(str(value)))
+    table.add_row(*cells)
+    table.caption = "--json keys: " + ", ".join(keys)
+    return table
+
+
 def print_metrics(console: Console, s: ControlSummary) -> None:
     metrics = run_metrics(s)
     if metrics is None:
         console.print("metrics: none (fewer than two states were seen)")
         return
-    values = metrics.as_dict()
-    table = Table(title="metrics (docs/metrics.md; from the reported angles)")
-    for key in METRIC_KEYS:
-        name, unit = METRIC_LABELS[key]
-        table.add_column(f"{name} [{unit}]" if unit else name, justify="right")
-    cells = []
-    for key in METRIC_KEYS:
-        value = values[key]
-        cells.append(
-            ("yes" if value else "[red]no[/]") if isinstance(value, bool) else f"{float(value):.4g}"
-        )
-    table.add_row(*cells)
-    console.print(table)
+    console.print(
+        metrics_table("metrics (docs/metrics.md; from the reported angles)", metrics.as_dict())
+    )
     tr = s.trace
     assert tr is not None
     measured = int(np.isfinite(tr.current_mA[1:]).all(axis=1).sum())
@@ -187,8 +285,8 @@ def print_metrics(console: Console, s: ControlSummary) -> None:
 
 def print_summary(console: Console, s: ControlSummary) -> None:
     table = Table(title=f"run: {s.steps} steps, {s.loop_seconds:.2f} s loop time")
-    for column in ("joint", "target", "final", "error"):
-        table.add_column(column, justify="right")
+    for column in ("joint", "target [rad]", "final [rad]", "error [rad]"):
+        table.add_column(escape(column), justify="right")
     for j, tgt, q, e in zip(JOINT_LETTERS, s.target, s.final_q, s.final_error, strict=True):
         table.add_row(j, fmt(tgt), fmt(q), fmt(e))
     console.print(table)
@@ -204,7 +302,7 @@ def print_summary(console: Console, s: ControlSummary) -> None:
     )
     console.print(
         f"saturated steps {s.saturated_steps}, barrier cuts {s.barrier_steps}, stopped by "
-        f"{s.stopped_by}"
+        f"{escape(for_operator(s.stopped_by))}"
     )
 
 
@@ -259,16 +357,7 @@ def print_recording(console: Console, summary: dict[str, Any]) -> None:
     console.print(joints)
     metrics = summary.get("metrics")
     if isinstance(metrics, dict):
-        table = Table(title="metrics (docs/metrics.md)")
-        for key in metrics:
-            table.add_column(key, justify="right")
-        table.add_row(
-            *(
-                ("yes" if v else "no") if isinstance(v, bool) else f"{float(v):.4g}"
-                for v in metrics.values()
-            )
-        )
-        console.print(table)
+        console.print(metrics_table("metrics (docs/metrics.md)", metrics))
     for line in summary.get("events", []):
         console.print(f"  {escape(str(line))}")
 

@@ -1,0 +1,7 @@
+"""`python -m reach_sim_bridge`, the same as the `reach-sim` script."""
+
+import sys
+
+from reach_sim_bridge.cli import main
+
+sys.exit(main())

@@ -1,0 +1,155 @@
+"""Every command in README.md's and docs/hil.md's ```sh blocks still works.
+
+`reach-driver` commands run against a virtual arm (its pty or UDP address put where the text
+names a port, durations cut short, run in order in one directory so `inspect run.rrd` finds
+the recording `run --record run.rrd` wrote); a command with `...` in it, `reach-sim` (a
+server), `rerun` (a viewer) and the tools (minutes of work) are parsed by their own parser or
+asked for `--help`; `make` targets must exist. A command that no longer parses fails.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from reach_driver.cli import Exit, main
+from reach_driver.cli.parser import build_parser
+from reach_sim_bridge.server import SimConfig, SimServer
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ("README.md", "docs/hil.md")
+SHORT_SECONDS = "1"
+MONITOR_SECONDS = "0.5"
+
+
+def sh_commands(path: Path) -> list[str]:
+    """The commands of the file's ```sh blocks: comments dropped, continuations joined."""
+    commands: list[str] = []
+    for block in re.findall(r"^```sh\n(.*?)^```", path.read_text(), re.DOTALL | re.MULTILINE):
+        pending = ""
+        for raw in block.splitlines():
+            line = raw.split(" #", 1)[0].rstrip() if not raw.lstrip().startswith("#") else ""
+            if line.endswith("\\"):
+                pending += line[:-1] + " "
+                continue
+            line = (pending + line).strip()
+            pending = ""
+            if line:
+                commands.append(line)
+    return commands
+
+
+ALL = [(doc, cmd) for doc in DOCS for cmd in sh_commands(ROOT / doc)]
+
+
+def test_the_docs_have_commands_to_check() -> None:
+    assert len([c for d, c in ALL if d == "README.md"]) >= 8
+    assert len([c for d, c in ALL if d == "docs/hil.md"]) >= 6
+
+
+def _program(word: str) -> str:
+    return Path(word).name  # .venv/bin/reach-driver -> reach-driver
+
+
+def _tool_parser(script: str) -> argparse.ArgumentParser | None:
+    spec = importlib.util.spec_from_file_location(f"_doc_{Path(script).stem}", ROOT / script)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    build = getattr(module, "build_parser", None)
+    return build() if build is not None else None
+
+
+def _parses(parser: argparse.ArgumentParser, argv: list[str]) -> None:
+    try:
+        parser.parse_args(argv)
+    except SystemExit as exc:  # argparse's way of saying no
+        pytest.fail(f"{parser.prog} {' '.join(argv)}: does not parse (exit {exc.code})")
+
+
+def _help(cmd: list[str]) -> None:
+    done = subprocess.run(
+        [*cmd, "--help"], cwd=ROOT, capture_output=True, text=True, timeout=300, check=False
+    )
+    assert done.returncode == 0, done.stderr
+    assert "usage" in done.stdout.lower(), done.stdout
+
+
+@pytest.fixture(scope="module")
+def arm(tmp_path_factory):
+    """A virtual arm sped up 8x, and a directory the commands run in."""
+    work = tmp_path_factory.mktemp("docs")
+    server = SimServer(SimConfig(speed=8.0, link=str(work / "arm"), udp=("127.0.0.1", 0)))
+    server.start()
+    yield server, work
+    server.stop()
+    assert server.error is None
+
+
+def _for_the_virtual_arm(argv: list[str], server: SimServer) -> list[str]:
+    """The port pointed at the virtual arm, long runs cut short, monitor bounded."""
+    out = list(argv)
+    host, port = server.udp_address
+    if "--port" in out:
+        i = out.index("--port") + 1
+        out[i] = f"udp://{host}:{port}" if out[i].startswith("udp://") else str(server.link)
+    if "--seconds" in out:
+        out[out.index("--seconds") + 1] = SHORT_SECONDS
+    if "monitor" in out and "--seconds" not in out:
+        out += ["--seconds", MONITOR_SECONDS]
+    return out
+
+
+@pytest.mark.parametrize(("doc", "command"), ALL, ids=[f"{d}: {c}" for d, c in ALL])
+def test_documented_command_works(doc, command, arm, monkeypatch, capsys) -> None:
+    server, work = arm
+    words = shlex.split(command)
+    program = _program(words[0])
+    if program == "python":
+        program, words = _program(words[1]), words[1:]
+    args = words[1:]
+    monkeypatch.chdir(work)
+    if program == "make":
+        makefile = (ROOT / "Makefile").read_text()
+        for target in args:
+            assert re.search(rf"^{re.escape(target)}:", makefile, re.MULTILINE), target
+    elif program == "reach-driver":
+        if "..." in args:  # an elided command: the command before it must parse
+            head = args[: args.index("...")]
+            _parses(build_parser(), head + _required(head))
+            return
+        argv = _for_the_virtual_arm(args, server)
+        _parses(build_parser(), argv)
+        code = main(argv)
+        captured = capsys.readouterr()
+        assert code == Exit.OK, f"{' '.join(argv)} -> {code}\n{captured.out}\n{captured.err}"
+    elif program == "reach-sim":
+        from reach_sim_bridge.cli import build_parser as sim_parser
+
+        _parses(sim_parser(), args)  # a server: parsed, not started (the fixture is one)
+        _help([sys.executable, "-m", "reach_sim_bridge"])
+    elif program == "rerun":
+        _help([str(Path(sys.executable).with_name("rerun"))])  # a viewer needs a display
+    elif program.startswith("tools/") or program.endswith(".py"):
+        script = words[0] if words[0].startswith("tools/") else program
+        parser = _tool_parser(script)
+        if parser is not None and args != ["--help"]:
+            _parses(parser, args)
+        _help([sys.executable, str(ROOT / script)])
+    else:
+        pytest.fail(f"{doc}: no rule for {command!r}; add one to this test")
+
+
+def _required(head: list[str]) -> list[str]:
+    """What an elided `run ...` needs to parse (the text elides exactly these)."""
+    if head and head[-1] == "run":
+        return ["--controller", "pid", "--target", "3", "1.5", "1.5", "3", "--seconds", "1"]
+    return []
