@@ -9,6 +9,7 @@ import signal
 import sys
 import threading
 from collections.abc import Sequence
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from types import FrameType
 
@@ -105,6 +106,13 @@ def _noise(text: str) -> SensorNoise:
         raise argparse.ArgumentTypeError(f"bad --sensor-noise {text!r}: {exc}") from None
 
 
+def _version() -> str:
+    try:
+        return version("reach-stack")
+    except PackageNotFoundError:  # running from a source tree that was never installed
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="reach-sim",
@@ -112,6 +120,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     link = p.add_argument_group("serving")
     link.add_argument(
         "--link",
@@ -240,9 +249,10 @@ def build_parser() -> argparse.ArgumentParser:
     out.add_argument(
         "--stats-interval",
         type=_non_negative,
-        default=10.0,
+        default=None,
         metavar="S",
-        help="log frame/error counters every S wall seconds (0: never; default 10)",
+        help="log frame/error counters every S wall seconds (0: never; default: never, "
+        "every 10 s with -v)",
     )
     out.add_argument(
         "--record",
@@ -312,6 +322,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(
         level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr
     )
+    if args.stats_interval is None:  # quiet unless asked: a server runs for hours
+        args.stats_interval = 10.0 if args.verbose else 0.0
     if args.stats_interval > 0.0:
         logging.getLogger("reach_sim_bridge.server").setLevel(min(level, logging.INFO))
     try:

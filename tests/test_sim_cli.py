@@ -169,3 +169,14 @@ def test_link_onto_a_real_file_fails_without_touching_it(tmp_path: Path) -> None
     assert result.returncode == 1
     assert "not a symlink" in result.stderr
     assert precious.read_text() == "keep"
+
+
+def test_reach_sim_is_quiet_by_default_and_says_its_version() -> None:
+    assert build_parser().parse_args([]).stats_interval is None  # main(): never; 10 s with -v
+    proc = subprocess.run(
+        [sys.executable, "-m", "reach_sim_bridge", "--version"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 0 and proc.stdout.startswith("reach-sim ")
