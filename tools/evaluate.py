@@ -42,6 +42,10 @@ UNITS = {
     "overshoot_pct": "%",
     "settling_time_s": "s",
     "reached": "fraction",
+    "at_rest": "fraction",
+    "rest_speed_rms": "rad/s",
+    "command_reversals": "count",
+    "energy_after_settling_j": "J",
     "rmse_floor": "rad",
 }
 
@@ -252,6 +256,8 @@ def run(args: argparse.Namespace, console: Console) -> Evaluation:
 
         def done(i: int, r: EpisodeResult) -> None:
             mark = "reached" if r.metrics.reached else "NOT reached"
+            if not r.metrics.at_rest:
+                mark += " (not at rest)"
             progress.update(task, advance=1, last=f"#{i} rmse {r.metrics.rmse:.3f} {mark}")
 
         if args.via_driver:
