@@ -15,9 +15,11 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from policy.campaign import RayUnavailable, evaluate_parallel
 from policy.evaluation import (
     DEFAULT_RATE_HZ,
     DEFAULT_SECONDS,
@@ -169,6 +171,20 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.rrd",
         help="also write a Rerun recording of every episode",
     )
+    p.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="run episodes in parallel on Ray with N CPUs on this machine (results are the "
+        "serial run's: each episode's randomness depends on its seed only); needs the "
+        "optional extra: pip install -e '.[scale]'",
+    )
+    p.add_argument(
+        "--address",
+        metavar="ADDR",
+        help="run episodes on the Ray cluster at ADDR (e.g. ray://head:10001 or auto); "
+        "its nodes need reach-stack installed",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar or table")
     return p
 
@@ -242,7 +258,15 @@ def run(args: argparse.Namespace, console: Console) -> Evaluation:
         seed=args.seed,
         param_spread=args.perturb,
     )
-    controller = load_controller(args.controller, **_parse_kv(args.param))
+    params = _parse_kv(args.param)
+    parallel = args.workers is not None or args.address is not None
+    if parallel and args.via_driver:
+        raise ValueError("--workers/--address run the direct backend; drop --via-driver")
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers must be at least 1, got {args.workers}")
+    # Built here even for Ray, whose workers build their own: a bad name or parameter fails
+    # before a cluster is started.
+    controller = load_controller(args.controller, **params)
     with Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -260,7 +284,17 @@ def run(args: argparse.Namespace, console: Console) -> Evaluation:
                 mark += " (not at rest)"
             progress.update(task, advance=1, last=f"#{i} rmse {r.metrics.rmse:.3f} {mark}")
 
-        if args.via_driver:
+        if parallel:
+            evaluation = evaluate_parallel(
+                args.controller,
+                params,
+                episodes,
+                config,
+                workers=args.workers,
+                address=args.address,
+                on_episode=done,
+            )
+        elif args.via_driver:
             evaluation = evaluate_via_driver(
                 controller,
                 episodes,
@@ -281,8 +315,8 @@ def main(argv: list[str] | None = None) -> int:
     console = Console(stderr=True)
     try:
         evaluation = run(args, console)
-    except (ValueError, DriverError) as exc:
-        console.print(f"[red]error:[/red] {exc}")
+    except (ValueError, DriverError, RayUnavailable) as exc:
+        console.print(f"[red]error:[/red] {escape(str(exc))}")
         return 2
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(evaluation.to_dict(), indent=1), encoding="utf-8")
