@@ -12,16 +12,19 @@ A cluster's nodes need this repository installed (``pip install -e '.[scale]'``)
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from types import ModuleType
-from typing import Any
+from typing import Any, TypeVar
 
 from policy.direct import DirectArm
 from policy.rollout import Episode, EpisodeResult, Evaluation, RunConfig
 from reach_driver.controllers import Controller, load_controller
 
 INSTALL_HINT = "pip install -e '.[scale]'"
+J = TypeVar("J")
+R = TypeVar("R")
 
 
 class RayUnavailable(RuntimeError):
@@ -65,20 +68,10 @@ def run_job(job: Job) -> tuple[int, EpisodeResult]:
     return job.index, result
 
 
-def evaluate_parallel(
-    controller_name: str,
-    params: dict[str, Any],
-    episodes: Sequence[Episode],
-    config: RunConfig,
-    workers: int | None = None,
-    address: str | None = None,
-    on_episode: Callable[[int, EpisodeResult], None] | None = None,
-) -> Evaluation:
-    """`evaluate(load_controller(controller_name, **params), episodes, config)` on Ray.
-
-    Starts a local Ray with ``workers`` CPUs (or joins the cluster at ``address``) unless Ray
-    is already initialised, and shuts down only what it started. ``on_episode`` is called as
-    episodes finish (in completion order); the results come back in episode order."""
+@contextmanager
+def ray_session(workers: int | None = None, address: str | None = None) -> Iterator[ModuleType]:
+    """Ray, started locally with ``workers`` CPUs or joined at ``address`` unless already
+    initialised (then reused as it is); shut down on exit only if started here."""
     if workers is not None and workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     ray = import_ray()
@@ -89,23 +82,49 @@ def evaluate_parallel(
         else:
             ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
     try:
-        remote = ray.remote(num_cpus=1)(run_job)
-        params_json = json.dumps(params, sort_keys=True)
-        pending = [
-            remote.remote(Job(controller_name, params_json, episode, config, i))
-            for i, episode in enumerate(episodes)
-        ]
-        results: dict[int, EpisodeResult] = {}
-        while pending:
-            done, pending = ray.wait(pending, num_returns=1)
-            index, result = ray.get(done[0])
-            results[index] = result
-            if on_episode is not None:
-                on_episode(index, result)
-        cpus = int(ray.cluster_resources().get("CPU", 0))
+        yield ray
     finally:
         if started:
             ray.shutdown()
-    stats = {"engine": "ray", "cluster_cpus": cpus, "address": address or "local"}
-    ordered = [results[i] for i in range(len(episodes))]
-    return Evaluation(controller_name, config, ordered, stats)
+
+
+def run_on_ray(
+    fn: Callable[[J], R],
+    jobs: Sequence[J],
+    workers: int | None = None,
+    address: str | None = None,
+    on_result: Callable[[R], None] | None = None,
+) -> list[R]:
+    """``[fn(job) for job in jobs]``, one Ray task (one CPU) per job. ``fn`` must be a
+    module-level function (workers import it by name); ``on_result`` sees results as they
+    finish, the list comes back in job order."""
+    with ray_session(workers, address) as ray:
+        remote = ray.remote(num_cpus=1)(fn)
+        index = {remote.remote(job): i for i, job in enumerate(jobs)}
+        results: dict[int, R] = {}
+        pending = list(index)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            results[index[done[0]]] = ray.get(done[0])
+            if on_result is not None:
+                on_result(results[index[done[0]]])
+    return [results[i] for i in range(len(jobs))]
+
+
+def evaluate_parallel(
+    controller_name: str,
+    params: dict[str, Any],
+    episodes: Sequence[Episode],
+    config: RunConfig,
+    workers: int | None = None,
+    address: str | None = None,
+    on_episode: Callable[[int, EpisodeResult], None] | None = None,
+) -> Evaluation:
+    """`evaluate(load_controller(controller_name, **params), episodes, config)` on Ray
+    (`ray_session`); ``on_episode`` is called as episodes finish, in completion order."""
+    params_json = json.dumps(params, sort_keys=True)
+    jobs = [Job(controller_name, params_json, e, config, i) for i, e in enumerate(episodes)]
+    done = None if on_episode is None else (lambda r: on_episode(*r))
+    pairs = run_on_ray(run_job, jobs, workers, address, done)
+    stats = {"engine": "ray", "workers": workers, "address": address or "local"}
+    return Evaluation(controller_name, config, [r for _, r in pairs], stats)

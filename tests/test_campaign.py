@@ -90,3 +90,14 @@ def test_workers_with_via_driver_or_below_one_are_refused(tmp_path: Path, capsys
     assert cli.main([*COMMON, "--workers", "0", "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "--via-driver" in err and "at least 1" in err
+
+
+def test_the_stability_screen_on_ray_gives_the_serial_metrics(ray_local: Any) -> None:
+    from policy.selection import screen
+
+    shipped = ROOT / "policy" / "weights" / "ddpg_actor.npz"
+    serial = screen(shipped, 2, seed=3, perturb=0.2)
+    assert screen(shipped, 2, seed=3, perturb=0.2, workers=2) == serial
+    assert all(m.at_rest for m in serial)
+    with pytest.raises(ValueError, match="factory"):
+        screen(shipped, 1, seed=3, perturb=0.2, factory=lambda _p: None, workers=2)
