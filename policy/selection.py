@@ -19,7 +19,7 @@ import numpy as np
 from policy.batched import eval_envs
 from policy.campaign import run_on_ray
 from policy.env import EnvConfig
-from policy.rollout import Episode, score
+from policy.rollout import Episode, EpisodeResult, score
 from policy.scenarios import SCENARIOS, TABLE_KEYS, wins
 from policy.weights import ActorWeights
 from protocol.alpha5 import N_JOINTS
@@ -48,7 +48,7 @@ def _shipped(path: Path) -> Any:
 
 def _screen(
     path: Path, indices: Sequence[int], seed: int, perturb: float, factory: ControllerFactory
-) -> list[Metrics]:
+) -> list[EpisodeResult]:
     """Screen episodes ``indices`` in lock-step on the training env, each scored by the one
     scorer (`policy.rollout.score`) on the true state, commands included."""
     weights = ActorWeights.load(path)
@@ -76,7 +76,7 @@ def _screen(
     for n, env in enumerate(envs):
         trace = Trace(dt, q[:, n], qdot[:, n], tau[:, n], env.target.copy(), power[:, n])
         episode = Episode(q[0, n], env.target, np.asarray(env.arm.torque_scale))
-        out.append(score(episode, trace, command[:, n]).metrics)
+        out.append(score(episode, trace, command[:, n]))
     return out
 
 
@@ -91,7 +91,7 @@ class ScreenJob:
 
 
 def screen_job(job: ScreenJob) -> Metrics:
-    return _screen(Path(job.weights), [job.index], job.seed, job.perturb, _shipped)[0]
+    return _screen(Path(job.weights), [job.index], job.seed, job.perturb, _shipped)[0].metrics
 
 
 def screen(
@@ -108,7 +108,8 @@ def screen(
     run on Ray (`policy.campaign`) with the same results: each env's randomness comes from
     its own reset seed. A custom ``factory`` runs in this process only."""
     if workers is None and address is None:
-        return _screen(path, range(episodes), seed, perturb, factory or _shipped)
+        results = _screen(path, range(episodes), seed, perturb, factory or _shipped)
+        return [r.metrics for r in results]
     if factory is not None:
         raise ValueError("a custom controller factory cannot be sent to Ray workers")
     jobs = [ScreenJob(str(path), i, seed, perturb) for i in range(episodes)]
