@@ -21,6 +21,7 @@ from reach_driver.metrics import (
     command_reversals,
     compute_metrics,
     rest,
+    rest_window,
 )
 from reach_sim_bridge.faults import SensorNoise
 
@@ -89,15 +90,28 @@ def test_small_commands_around_zero_are_not_reversals() -> None:
     rng = np.random.default_rng(1)
     noise = rng.normal(0, 20.0, (41, 4))  # below 10 % of 600 / 300 mA most of the time
     noise[:, 3] = rng.normal(0, 8.0, 41)
-    assert command_reversals(noise, DT) <= 1
+    assert command_reversals(noise, 40) <= 1
     big = np.where(np.arange(41) % 2 == 0, 100.0, -100.0)[:, None] * np.ones(4)
-    assert command_reversals(big, DT) == 39  # the last 2 s: 40 samples, 39 changes
+    assert command_reversals(big, 40) == 39  # the last 2 s: 40 samples, 39 changes
 
 
 def test_without_commands_the_torque_stands_in() -> None:
     trace = _settled_then(5.0)
     bare = Trace(trace.dt, trace.q, trace.qdot, trace.tau, trace.target)
     assert rest(bare).reversals > REST_REVERSALS_MAX
+
+
+def test_a_short_episode_is_judged_from_its_settling_on() -> None:
+    """A 2 s episode's last 2 s hold its motion: only the part after settling counts, unless
+    it never settled."""
+    assert rest_window(41, DT, settling_time_s=1.2) == 17  # samples 24..40
+    assert rest_window(401, DT, settling_time_s=1.2) == 40
+    assert rest_window(41, DT, settling_time_s=2.0) == 40  # never settled: the last 2 s
+    t = np.arange(41) * DT
+    q = np.minimum(START + t[:, None] * 1.0, TARGET)  # all joints there by 1 s
+    qdot = np.where(q < TARGET, 1.0, 0.0)
+    m = compute_metrics(Trace(DT, q, qdot, np.zeros_like(q), TARGET, command_mA=np.zeros_like(q)))
+    assert m.settling_time_s <= 1.0 and m.at_rest and m.reached
 
 
 def test_rest_keys_are_metrics_fields() -> None:

@@ -33,7 +33,7 @@ from policy.evaluation import (
     random_episodes,
 )
 from reach_driver.errors import DriverError
-from reach_driver.metrics import METRIC_KEYS
+from reach_driver.metrics import ALL_METRIC_KEYS
 from reach_sim_bridge.faults import SensorNoise
 
 UNITS = {
@@ -224,16 +224,18 @@ def record_evaluation(evaluation: Evaluation, path: Path) -> None:
 def summary_table(evaluation: Evaluation) -> Table:
     table = Table(title=f"{evaluation.controller}: {len(evaluation.results)} episodes")
     table.add_column("#", justify="right")
-    for key in METRIC_KEYS:
+    for key in ALL_METRIC_KEYS:
         table.add_column(f"{key}\n[{UNITS[key]}]", justify="right")
     table.add_column("rmse_floor\n[rad]", justify="right")
     for i, r in enumerate(evaluation.results):
         m = r.metrics.as_dict()
-        cells = [_fmt(m[k]) for k in METRIC_KEYS] + [_fmt(r.rmse_floor)]
+        cells = [_fmt(m[k]) for k in ALL_METRIC_KEYS] + [_fmt(r.rmse_floor)]
         table.add_row(str(i), *cells)
     s = evaluation.summary()
     table.add_section()
-    table.add_row("mean", *[_fmt(s[k]) for k in METRIC_KEYS], _fmt(s["rmse_floor"]), style="bold")
+    table.add_row(
+        "mean", *[_fmt(s[k]) for k in ALL_METRIC_KEYS], _fmt(s["rmse_floor"]), style="bold"
+    )
     return table
 
 
