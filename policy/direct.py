@@ -25,6 +25,7 @@ from policy.rollout import (
 from protocol.alpha5 import N_JOINTS
 from reach_driver.controllers import Controller, ControlState
 from reach_driver.metrics import Trace
+from reach_sim_bridge.params import ArmParams
 
 ArmFactory = Callable[[int], ArmLike]
 """Builds a fresh arm for an episode from its seed."""
@@ -42,6 +43,8 @@ class DirectArm:
         arm = self.arm_factory(episode_seed)
         if abs(config.physics_dt - float(getattr(arm, "dt", config.physics_dt))) > 1e-12:
             raise ValueError("the arm's physics step differs from RunConfig.physics_dt")
+        if config.params is not None:
+            use_params(arm, config.params)
         check_inside_limits(arm.position_limits, episode.start, "start")
         check_inside_limits(arm.position_limits, episode.target, "target")
         if config.param_spread > 0:
@@ -81,3 +84,12 @@ class DirectArm:
 
     def stats(self) -> dict[str, Any]:
         return {}
+
+
+def use_params(arm: ArmLike, params: ArmParams) -> None:
+    """Make `arm` the arm `params` describes, and the one `randomize` perturbs around."""
+    set_params = getattr(arm, "set_params", None)
+    if set_params is None:
+        raise ValueError("RunConfig.params needs an arm with set_params (Alpha5Arm)")
+    set_params(params)
+    arm.nominal_params = params  # type: ignore[attr-defined]

@@ -25,6 +25,7 @@ from reach_driver.controllers import Controller, ControlState
 from reach_driver.metrics import Metrics, Trace, compute_metrics, rmse_floor, summarize
 from reach_sim_bridge.faults import SensorNoise
 from reach_sim_bridge.motor import no_load_speed
+from reach_sim_bridge.params import ArmParams
 
 DEFAULT_SECONDS = 20.0
 DEFAULT_RATE_HZ = 20.0
@@ -124,6 +125,9 @@ class RunConfig:
     """> 0: each episode's arm has friction, armature, masses and buoyancy scaled by factors
     drawn in [1 - spread, 1 + spread] (the paper's randomly degraded model), unknown to the
     controller."""
+    params: ArmParams | None = None
+    """The arm every episode runs on (a `--params` file, e.g. an identified twin); None is the
+    nominal model. `param_spread` perturbs around it."""
 
     def __post_init__(self) -> None:
         if not (self.seconds > 0 and math.isfinite(self.seconds)):
@@ -155,7 +159,7 @@ class RunConfig:
         return np.random.default_rng([episode_seed, PERTURBATION_STREAM])
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        out: dict[str, Any] = {
             "seconds": self.seconds,
             "rate_hz": self.rate_hz,
             "noise": None if self.noise is None else asdict(self.noise),
@@ -163,6 +167,9 @@ class RunConfig:
             "physics_dt": self.physics_dt,
             "param_spread": self.param_spread,
         }
+        if self.params is not None:
+            out["params"] = self.params.to_json_dict()
+        return out
 
 
 DEFAULT_RUN = RunConfig()

@@ -249,6 +249,7 @@ def run_episode_via_driver(
             latency_ms=driver.latency_ms,
         ),
         seed=driver.seed,
+        params=config.params,
     )
     server = SimServer(sim_config)
     arm = server.arm

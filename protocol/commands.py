@@ -74,3 +74,38 @@ def limits(device_id: int, packet_id: PacketID | int, maximum: float, minimum: f
 def save(device_id: int) -> Packet:
     """SAVE (payload 0x00): store settings on one device; send it to each device."""
     return Packet(device_id, PacketID.SAVE, b"\x00")
+
+
+def end_position(
+    device_id: int, x_mm: float, y_mm: float, z_mm: float, roll: float, pitch: float, yaw: float
+) -> Packet:
+    """KM_END_POS: move the tool centre point to (x, y, z) mm and three angles (rad, R =
+    Rz(yaw) Ry(pitch) Rx(roll)). Send it to the base device (0x05 on the Alpha 5); a 4-joint
+    arm follows the position and the roll about the tool axis only (docs/protocol.md)."""
+    values = (x_mm, y_mm, z_mm, roll, pitch, yaw)
+    names = ("x", "y", "z", "roll", "pitch", "yaw")
+    return Packet(
+        device_id,
+        PacketID.KM_END_POS,
+        pack_floats(*(finite(n, v) for n, v in zip(names, values, strict=True))),
+    )
+
+
+def end_velocity(
+    device_id: int,
+    vx_mm_s: float,
+    vy_mm_s: float,
+    vz_mm_s: float,
+    wx: float = 0.0,
+    wy: float = 0.0,
+    wz: float = 0.0,
+) -> Packet:
+    """KM_END_VEL: Cartesian velocity of the tool centre point, mm/s and rad/s in the base
+    frame, to the base device; all zeros stops. A joint command ends it."""
+    values = (vx_mm_s, vy_mm_s, vz_mm_s, wx, wy, wz)
+    names = ("vx", "vy", "vz", "wx", "wy", "wz")
+    return Packet(
+        device_id,
+        PacketID.KM_END_VEL,
+        pack_floats(*(finite(n, v) for n, v in zip(names, values, strict=True))),
+    )

@@ -22,6 +22,7 @@ class PacketID(IntEnum):
     POSITION_LIMITS = 0x10
     VELOCITY_LIMITS = 0x11
     CURRENT_LIMITS = 0x12
+    FACTORY_CLIMATE = 0x28  # 3 x f32 [temperature degC, pressure bar, humidity %] at assembly
     SAVE = 0x50
     # Presets, obstacles and collision ids are listed by range only: named by their hex id.
     PRESET_55 = 0x55
@@ -39,7 +40,9 @@ class PacketID(IntEnum):
     MODEL_NUMBER = 0x62
     DEVICE_ID = 0x64
     HUMIDITY = 0x65
+    INTERNAL_HUMIDITY = 0x65  # the "Monitor" section's name (V1.12.1)
     TEMPERATURE = 0x66
+    INTERNAL_TEMPERATURE = 0x66
     INTERNAL_PRESSURE = 0x67
     DEVICE_TYPE = 0x67  # newer SDKs reuse 0x67 and move pressure to 0x6E
     HARDWARE_STATUS = 0x68
@@ -110,6 +113,10 @@ class Mode(IntEnum):
         return bytes((self.value,))
 
 
+#: Mode values a widely used open C++ client library defines that protocol V1.12.1 does not
+#: document (their meaning is not public). The virtual arm ignores and counts them.
+UNDOCUMENTED_MODES: frozenset[int] = frozenset({0x13, 0x14, 0x17, 0x18, 0x1A, 0x1C})
+
 _STATUS_SIZE = 4
 
 
@@ -117,8 +124,10 @@ class HardwareStatus(IntFlag):
     """HARDWARE_STATUS flags; the value is the 4 status bytes read big-endian.
 
     The fact sheet names byte A "the high byte of the first u16" and lists it first; we take
-    wire order A, B, C, D, so byte A (data[0]) holds bits 24..31 and byte B (data[1]) bits
-    16..23. Bytes C and D have no documented flags; their bits are kept, never dropped.
+    wire order A, B, C, D, so byte A (data[0]) holds bits 24..31, byte B (data[1]) bits
+    16..23, byte C bits 8..15 and byte D bits 0..7. Reserved bits have no name; they are kept
+    in the value, never dropped. Some flags only exist on some products (docs/protocol.md,
+    section 8).
     """
 
     NONE = 0
@@ -140,6 +149,17 @@ class HardwareStatus(IntFlag):
     OVER_PRESSURE = 0x04 << 16
     DRIVER_OVER_CURRENT_UNDER_VOLTAGE = 0x02 << 16
     DRIVER_OVER_TEMPERATURE = 0x01 << 16
+    # byte C
+    JAW_ZERO_REQUIRED = 0x10 << 8
+    JOINT_SERVICE_DUE = 0x08 << 8  # Bravo
+    READ_PROTECTION_ENABLED = 0x04 << 8
+    ENCODER_FAULT = 0x02 << 8  # from backlash
+    # byte D
+    ENCODER_POSITION_INVALID = 0x80  # factory calibration
+    LOW_SUPPLY_VOLTAGE = 0x10
+    INVALID_FIRMWARE = 0x08  # Bravo compute module
+    CAN_BUS_ERROR = 0x02
+    POSITION_REPORT_NOT_RECEIVED = 0x01  # compute module
 
     @classmethod
     def from_bytes(  # type: ignore[override]

@@ -427,16 +427,41 @@ class ArmClient:
         ids: Sequence[int] = (PacketID.POSITION, PacketID.VELOCITY),
         hz: int = 20,
         devices: Sequence[int] = JOINTS,
-    ) -> None:
-        """Have each device send `ids` at `hz` (its heartbeat), re-applied after a reconnect.
+    ) -> int:
+        """Have each device send `ids` at `hz` (its heartbeat), re-applied after a reconnect;
+        the rate used: capped, with a warning, to what a rate-limited line carries.
 
         Each device is addressed on its own (no broadcast: the jaw would stream too, and on
         RS-485 every joint would answer at once).
         """
         if not 1 <= hz <= 255:
             raise ValueError(f"heartbeat frequency must be 1..255 Hz, got {hz}")
-        self._stream = Stream(tuple(int(i) for i in ids), int(hz), tuple(int(d) for d in devices))
-        self._write(self._stream.start_frames())
+        stream = Stream(tuple(int(i) for i in ids), int(hz), tuple(int(d) for d in devices))
+        wire = self.transport.wire_bytes_per_s
+        if wire is not None and not stream.fits(wire):
+            # The arm would queue what the line cannot carry and send it late, shown as fresh
+            # (or drop it): cap the rate to what fits and say so.
+            capped = stream.max_hz(wire)
+            if capped < 1:
+                raise LimitError(
+                    f"the line ({wire:.0f} B/s) cannot carry {len(stream.ids)} ids from "
+                    f"{len(stream.devices)} devices even at 1 Hz ({stream.bytes_per_beat()} B "
+                    "a beat): stream fewer ids or devices"
+                )
+            log.warning(
+                "%d Hz of %d ids from %d devices needs %.0f B/s, more than the line's %.0f: "
+                "streaming at %d Hz",
+                hz,
+                len(stream.ids),
+                len(stream.devices),
+                hz * stream.bytes_per_beat(),
+                wire,
+                capped,
+            )
+            stream = Stream(stream.ids, capped, stream.devices)
+        self._stream = stream
+        self._write(stream.start_frames())
+        return stream.hz
 
     def stop_stream(self) -> None:
         stream, self._stream = self._stream, None

@@ -44,6 +44,7 @@ from reach_driver.link import LinkState
 from reach_driver.records import ControlSummary, LoopTrace, StepHook, StepRecord, TimingStats
 from reach_driver.safety import LimitKind
 from reach_driver.state import joint_name
+from reach_driver.streaming import Stream
 from reach_driver.trace import FinalState, TraceRows
 
 log = logging.getLogger(__name__)
@@ -65,12 +66,11 @@ TELEMETRY = (PacketID.POSITION, PacketID.VELOCITY)
 # CURRENT first: a joint's heartbeat sends its ids in order, so the measured current is in
 # before the VELOCITY that completes the state.
 TELEMETRY_WITH_CURRENT = (PacketID.CURRENT, PacketID.POSITION, PacketID.VELOCITY)
-REPLY_BYTES = len(commands.current(int(JOINTS[0]), 0.0).encode())  # one float reply: 10 B
 
 
 def telemetry_fits(ids: Sequence[int], hz: int, wire_bytes_per_s: float | None) -> bool:
     """Whether the four joints' heartbeat of `ids` at `hz` fits the link (None: no limit)."""
-    return wire_bytes_per_s is None or hz * N * len(ids) * REPLY_BYTES <= wire_bytes_per_s
+    return Stream(tuple(ids), hz, tuple(JOINTS)).fits(wire_bytes_per_s)
 
 
 RECONNECT_WAIT_S = 3.0
@@ -411,7 +411,7 @@ class _Run:
             wait = self.loop.reconnect_wait_s if client.link_config.reconnect else 0.0
             deadline = time.monotonic() + wait
             while client.link_state is not LinkState.UP and time.monotonic() < deadline:
-                if client.link_state is LinkState.CLOSED:
+                if client.link_state in (LinkState.CLOSED, LinkState.FAILED):
                     break
                 time.sleep(0.02)
             if client.link_state is not LinkState.UP:

@@ -120,6 +120,8 @@ class RunRecorder:
         self._closed = False
         self._t, self._step = 0.0, 0
         self._log_static_scene(metadata or {})
+        # On disk at once: a run killed before its first step is still recognised as a run.
+        self.flush()
 
     # -- static scene -------------------------------------------------------------------
     def _log_static_scene(self, metadata: Mapping[str, object]) -> None:
@@ -216,6 +218,14 @@ class RunRecorder:
             return
         self._closed = True
         self._rec.flush(timeout_sec=5.0)
+        self._rec.disconnect()
+
+    def abandon(self) -> None:
+        """Stop writing without flushing: after a write error, when a flush would only wait for
+        a sink that is gone. What reached the file before stays readable."""
+        if self._closed:
+            return
+        self._closed = True
         self._rec.disconnect()
 
     def __enter__(self) -> RunRecorder:

@@ -1,12 +1,18 @@
 """Read a run back from its .rrd recording (`reach-driver inspect`).
 
 Uses rerun's chunk reader (`rerun.chunk.RrdReader`), which also reads a file whose writer was
-killed before it could write its footer: a crashed run's recording still summarises.
+killed before it could write its footer: a crashed run's recording still summarises. A file
+cut inside a message (a full disk, a kill mid-write) is refused by that reader as a whole, so
+it is read up to its last complete message instead (`RecordedRun.truncated`); a run killed
+before its first step is still recognised by the metadata written when it opened.
 """
 
 from __future__ import annotations
 
 import json
+import shutil
+import struct
+import tempfile
 import warnings
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -41,6 +47,8 @@ class RecordedRun:
     metadata: dict[str, object] = field(default_factory=dict)
     summary: dict[str, object] = field(default_factory=dict)
     closed_cleanly: bool = True
+    truncated: bool = False  # cut inside a message: read up to the last complete one
+    truncated_bytes: int = 0  # the bytes of the incomplete message that were skipped
 
     @property
     def duration_s(self) -> float:
@@ -87,24 +95,144 @@ def _static_text(chunks: list) -> str | None:
     return None
 
 
+# The .rrd framing (rerun 0.2x..0.4x): a 12-byte file header ("RRF2", version, options), then
+# messages, each a u64 kind and a u64 payload length (little-endian) and the payload; kind 0
+# ends the stream (the footer follows it).
+_RRD_MAGIC = b"RRF2"
+_RRD_HEADER = 12
+_MSG_HEADER = struct.Struct("<QQ")
+
+
+def complete_prefix(path: str | Path) -> tuple[int, int] | None:
+    """(bytes of whole messages from the start, file size) of an .rrd file; None if the file
+    does not start with the framing this module knows."""
+    with open(path, "rb") as f:
+        if f.read(4) != _RRD_MAGIC:
+            return None
+        size = f.seek(0, 2)
+        good = offset = _RRD_HEADER
+        while offset + _MSG_HEADER.size <= size:
+            f.seek(offset)
+            kind, length = _MSG_HEADER.unpack(f.read(_MSG_HEADER.size))
+            end = offset + _MSG_HEADER.size + length
+            if kind == 0 or end > size:  # the end of the stream, or a message cut short
+                break
+            good = offset = end
+        return good, size
+
+
+def _read_chunks(path: Path) -> tuple[list, bool]:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        chunks = RrdReader(path).stream().to_chunks()
+    # A writer that died before closing leaves no footer; the data before it is still good.
+    return chunks, not any("no footer" in str(w.message) for w in caught)
+
+
+def _read_truncated(path: Path, exc: Exception) -> tuple[list, int]:
+    """The chunks of the whole messages before a cut (and how many bytes were skipped)."""
+    try:
+        found = complete_prefix(path)
+    except OSError:
+        found = None
+    if found is None or found[0] <= _RRD_HEADER or found[0] >= found[1]:
+        raise RecordingReadError(f"{path} is not a readable .rrd recording: {exc}") from exc
+    good, size = found
+    with tempfile.TemporaryDirectory(prefix="reach-inspect-") as tmp:
+        copy = Path(tmp) / path.name
+        with open(path, "rb") as src, open(copy, "wb") as dst:
+            shutil.copyfileobj(_Limited(src, good), dst)
+        try:
+            chunks, _ = _read_chunks(copy)
+        except Exception as again:
+            raise RecordingReadError(
+                f"{path} is not a readable .rrd recording: {exc} (and its first {good} bytes, "
+                f"the whole messages before the cut, do not read either: {again})"
+            ) from exc
+    return chunks, size - good
+
+
+class _Limited:
+    """The first `n` bytes of a binary file, for copyfileobj."""
+
+    def __init__(self, f: object, n: int) -> None:
+        self.f, self.left = f, n
+
+    def read(self, size: int = -1) -> bytes:
+        if self.left <= 0:
+            return b""
+        want = self.left if size < 0 else min(size, self.left)
+        data: bytes = self.f.read(want)  # type: ignore[attr-defined]
+        self.left -= len(data)
+        return data
+
+
+def _events(by_entity: dict[str, list]) -> list[tuple[float, str, str]]:
+    events: list[tuple[float, str, str]] = []
+    for chunk in by_entity.get("/events", []):
+        batch = chunk.to_record_batch()
+        if "TextLog:text" not in batch.schema.names:
+            continue
+        ts = _seconds(batch.column(TIMELINE_TIME))
+        texts = _flat(batch.column("TextLog:text").to_pylist())
+        levels = (
+            _flat(batch.column("TextLog:level").to_pylist())
+            if "TextLog:level" in batch.schema.names
+            else ["INFO"] * len(texts)
+        )
+        events.extend(
+            (float(tt), str(lv), str(tx)) for tt, lv, tx in zip(ts, levels, texts, strict=True)
+        )
+    events.sort(key=lambda e: e[0])
+    return events
+
+
+def _metadata(text: str | None) -> dict[str, object]:
+    if not text:
+        return {}
+    try:
+        value = json.loads(text)
+    except ValueError:
+        return {}
+    return value if isinstance(value, dict) else {}
+
+
 def read_recording(path: str | Path) -> RecordedRun:
     path = Path(path)
     if not path.is_file():
         raise RecordingReadError(f"no such recording: {path}")
+    truncated_bytes = 0
     try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            chunks = RrdReader(path).stream().to_chunks()
+        chunks, closed_cleanly = _read_chunks(path)
     except Exception as exc:  # rerun raises its own types for unreadable files
-        raise RecordingReadError(f"{path} is not a readable .rrd recording: {exc}") from exc
-    # A writer that died before closing leaves no footer; the data before it is still good.
-    closed_cleanly = not any("no footer" in str(w.message) for w in caught)
+        chunks, truncated_bytes = _read_truncated(path, exc)
+        closed_cleanly = False
     by_entity: dict[str, list] = defaultdict(list)
     for chunk in chunks:
         by_entity[str(chunk.entity_path)].append(chunk)
 
     series = {name: _temporal_series(c) for name, c in by_entity.items()}
     positions = [series.get(f"/joints/{j}/position") for j in JOINT_LETTERS]
+    meta_text = _static_text(by_entity.get("/run/metadata", []))
+    metadata = _metadata(meta_text)
+    if any(p is None or len(p[1]) == 0 for p in positions) and "joint_names" in metadata:
+        # Written when the recorder opened: a run that ended (was killed) before its first step.
+        empty = np.zeros((0, len(JOINT_LETTERS)))
+        return RecordedRun(
+            t=np.zeros(0),
+            step=np.zeros(0, dtype=int),
+            q=empty,
+            target=empty,
+            qdot=None,
+            torque=None,
+            current_cmd=empty,
+            current_meas=empty,
+            events=_events(by_entity),
+            metadata=metadata,
+            closed_cleanly=closed_cleanly,
+            truncated=truncated_bytes > 0,
+            truncated_bytes=truncated_bytes,
+        )
     if any(p is None or len(p[1]) == 0 for p in positions):
         raise RecordingReadError(
             f"{path} holds no joint positions: not a run recorded by reach-stack "
@@ -134,24 +262,7 @@ def read_recording(path: str | Path) -> RecordedRun:
     t_all, s_all, _ = positions[0]  # type: ignore[misc]
     t_index = {int(k): float(tt) for tt, k in zip(t_all, s_all, strict=True)}
 
-    events: list[tuple[float, str, str]] = []
-    for chunk in by_entity.get("/events", []):
-        batch = chunk.to_record_batch()
-        if "TextLog:text" not in batch.schema.names:
-            continue
-        ts = _seconds(batch.column(TIMELINE_TIME))
-        texts = _flat(batch.column("TextLog:text").to_pylist())
-        levels = (
-            _flat(batch.column("TextLog:level").to_pylist())
-            if "TextLog:level" in batch.schema.names
-            else ["INFO"] * len(texts)
-        )
-        events.extend(
-            (float(tt), str(lv), str(tx)) for tt, lv, tx in zip(ts, levels, texts, strict=True)
-        )
-    events.sort(key=lambda e: e[0])
-
-    meta_text = _static_text(by_entity.get("/run/metadata", []))
+    events = _events(by_entity)
     summary_text = _static_text(by_entity.get("/run/summary", []))
     return RecordedRun(
         t=np.array([t_index[int(k)] for k in steps]),
@@ -167,9 +278,11 @@ def read_recording(path: str | Path) -> RecordedRun:
         if all(c is not None for c in cur)
         else np.full((len(steps), 4), np.nan),
         events=events,
-        metadata=json.loads(meta_text) if meta_text else {},
+        metadata=metadata,
         summary=json.loads(summary_text) if summary_text else {},
         closed_cleanly=closed_cleanly,
+        truncated=truncated_bytes > 0,
+        truncated_bytes=truncated_bytes,
     )
 
 
@@ -180,16 +293,23 @@ def summarize_recording(path: str | Path) -> dict[str, object]:
     run (a run with several targets is scored against its final one).
     """
     run = read_recording(path)
-    final_error = run.target[-1] - run.q[-1]
+    if len(run.step):
+        final_target: list[float | None] = run.target[-1].tolist()
+        final_position: list[float | None] = run.q[-1].tolist()
+        final_error: list[float | None] = (run.target[-1] - run.q[-1]).tolist()
+    else:  # ended before its first step: nothing to show but how it started
+        final_target = final_position = final_error = [None] * len(JOINT_LETTERS)
     out: dict[str, object] = {
         "file": str(path),
         "steps": int(len(run.step)),
         "duration_s": run.duration_s,
         "joints": list(JOINT_LETTERS),
-        "final_target": run.target[-1].tolist(),
-        "final_position": run.q[-1].tolist(),
-        "final_error": final_error.tolist(),
+        "final_target": final_target,
+        "final_position": final_position,
+        "final_error": final_error,
         "closed_cleanly": run.closed_cleanly,
+        "truncated": run.truncated,
+        "truncated_bytes": run.truncated_bytes,
         "events": [f"{t:8.3f}s {lv}: {tx}" for t, lv, tx in run.events],
         "metadata": run.metadata,
     }

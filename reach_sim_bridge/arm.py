@@ -361,12 +361,23 @@ class Alpha5Arm:
         """Tool centre point in the base frame: x, y, z (mm), roll, pitch, yaw (rad, URDF
         rpy convention R = Rz(yaw) Ry(pitch) Rx(roll))."""
         mujoco.mj_kinematics(self.model, self.data)
-        pos = self.data.site_xpos[self._tcp] * 1000.0
-        rot = self.data.site_xmat[self._tcp].reshape(3, 3)
-        roll = math.atan2(rot[2, 1], rot[2, 2])
-        pitch = math.atan2(-rot[2, 0], math.hypot(rot[0, 0], rot[1, 0]))
-        yaw = math.atan2(rot[1, 0], rot[0, 0])
-        return float(pos[0]), float(pos[1]), float(pos[2]), roll, pitch, yaw
+        return _pose(self.data.site_xpos[self._tcp], self.data.site_xmat[self._tcp])
+
+    def pose_at(self, q: ArrayLike) -> tuple[float, float, float, float, float, float]:
+        """`end_effector_pose()` with the joints at q (E D C B, rad); the arm is not moved."""
+        s = self._at(q)
+        return _pose(s.site_xpos[self._tcp], s.site_xmat[self._tcp])
+
+    def tcp_kinematics(self, q: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The tool centre point with the joints at q (E D C B, rad), for inverse kinematics:
+        position (m), rotation matrix (columns: the tool axes in the base frame), and the
+        position (m/rad) and rotation (rad/rad) Jacobians, 3 x 4 each, in the base frame."""
+        s = self._at(q)
+        jacp = np.zeros((3, self.model.nv))
+        jacr = np.zeros((3, self.model.nv))
+        mujoco.mj_jacSite(self.model, s, jacp, jacr, self._tcp)
+        rot = s.site_xmat[self._tcp].reshape(3, 3).copy()
+        return s.site_xpos[self._tcp].copy(), rot, jacp[:, :4].copy(), jacr[:, :4].copy()
 
     def skeleton(self) -> FloatArray:
         """World positions (m) of the base, each moving link's origin and the tool centre point:
@@ -397,3 +408,12 @@ class Alpha5Arm:
         full = np.zeros((self.model.nv, self.model.nv))
         mujoco.mj_fullM(self.model, s, full)
         return full[:4, :4].copy()
+
+
+def _pose(pos_m: ArrayLike, xmat: ArrayLike) -> tuple[float, float, float, float, float, float]:
+    pos = np.asarray(pos_m) * 1000.0
+    rot = np.asarray(xmat).reshape(3, 3)
+    roll = math.atan2(rot[2, 1], rot[2, 2])
+    pitch = math.atan2(-rot[2, 0], math.hypot(rot[0, 0], rot[1, 0]))
+    yaw = math.atan2(rot[1, 0], rot[0, 0])
+    return float(pos[0]), float(pos[1]), float(pos[2]), roll, pitch, yaw

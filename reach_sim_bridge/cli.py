@@ -19,6 +19,7 @@ from reach_sim_bridge.faults import (
     SensorNoise,
     torque_scales,
 )
+from reach_sim_bridge.params import ArmParams, load_arm_params
 from reach_sim_bridge.server import SimConfig, SimServer, serve_forever
 from reach_sim_bridge.udp import DEFAULT_UDP_HOST, DEFAULT_UDP_PORT, parse_udp_address
 
@@ -40,6 +41,7 @@ examples:
   reach-sim --udp --no-pty                      # UDP only, 127.0.0.1:6789
   reach-sim --speed 5 --torque-scale E=0.25      # paper scenario 3, five times real time
   reach-sim --baud 115200 --latency-ms 5 --drop-rate 0.01 --sensor-noise
+  reach-sim --params arm.json --randomize-params 3  # an identified arm, perturbed
 """
 
 
@@ -165,6 +167,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="initial jaw opening in mm (default 5)",
     )
     arm.add_argument(
+        "--params",
+        type=Path,
+        metavar="FILE.json",
+        help="serve the arm this parameter file describes: a JSON object of ArmParams "
+        "field names (any subset; arrays of four in E D C B order; the rest nominal; keys "
+        "starting with _ ignored), as tools/identify.py writes. --randomize-params then "
+        "perturbs around it and --torque-scale multiplies its torque_scale",
+    )
+    arm.add_argument(
         "--dt",
         type=_positive_float,
         default=0.002,
@@ -268,6 +279,9 @@ def config_from_args(args: argparse.Namespace) -> SimConfig:
         latency_ms=args.latency_ms,
     )
     start = None if args.start is None else tuple(args.start)
+    params: ArmParams | None = None
+    if getattr(args, "params", None) is not None:
+        params = load_arm_params(args.params)
     return SimConfig(
         speed=args.speed,
         pty=not args.no_pty,
@@ -279,6 +293,7 @@ def config_from_args(args: argparse.Namespace) -> SimConfig:
         dt=args.dt,
         faults=faults,
         seed=args.seed,
+        params=params,
     )
 
 

@@ -127,3 +127,33 @@ class LinkFaults:
             damaged[index] ^= mask
         self.corrupted_bytes += int(hits.size)
         return bytes(damaged)
+
+
+#: Pressure of sea water per metre of depth (bar/m): rho g = 1025 kg/m^3 x 9.81 m/s^2.
+BAR_PER_METRE = 0.1006
+ATMOSPHERE_BAR = 1.01325
+
+
+@dataclass(frozen=True)
+class Leak:
+    """Water getting into one device's housing (the monitor's leak fault).
+
+    Inside the housing, humidity rises towards 100 % and the gas pressure towards the water
+    pressure outside, each as a first-order lag with `time_constant_s`: the smaller, the
+    bigger the leak. A leak is physical: a RESET does not stop it.
+    """
+
+    device_id: int
+    time_constant_s: float = 600.0
+    depth_m: float = 10.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.time_constant_s) and self.time_constant_s > 0.0):
+            raise ValueError(f"leak time constant must be > 0 s, got {self.time_constant_s}")
+        if not (math.isfinite(self.depth_m) and self.depth_m >= 0.0):
+            raise ValueError(f"leak depth must be a finite number >= 0 m, got {self.depth_m}")
+
+    @property
+    def outside_pressure_bar(self) -> float:
+        """Absolute water pressure at the housing (bar)."""
+        return ATMOSPHERE_BAR + BAR_PER_METRE * self.depth_m

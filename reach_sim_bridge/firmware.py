@@ -14,7 +14,13 @@ packets switch STANDBY and the active modes implicitly; DISABLE and PASSIVE igno
 
 Bad input never stops the firmware: each bad packet is counted, logged (rate-limited) and
 raises the SERIAL_ERROR (or CRC_ERROR) flag, which is reported with HARDWARE_STATUS at 1 Hz
-until `error_hold_s` passes without a new error (or a RESET).
+until `error_hold_s` passes without a new error (or a RESET). Padding (0x00 in a REQUEST) is
+counted, never an error: real clients send it at 100 Hz and real arms answer the rest.
+
+Every device also reports its housing's climate and the supply voltage (the "Monitor"
+packets) from `reach_sim_bridge.monitor`, whose OVER_TEMPERATURE, OVER_HUMIDITY,
+OVER_PRESSURE and LOW_SUPPLY_VOLTAGE flags are conditions: they hold while the reading is
+past its level. Any flag set is reported with HARDWARE_STATUS at 1 Hz.
 """
 
 from __future__ import annotations
@@ -25,6 +31,8 @@ import random
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import Enum
+
+import numpy as np
 
 from protocol import (
     DecodeError,
@@ -38,17 +46,34 @@ from protocol import (
 )
 from protocol.alpha5 import JOINT_LETTERS
 from protocol.commands import HEARTBEAT_SLOTS, MAX_REQUEST_IDS
+from protocol.ids import UNDOCUMENTED_MODES
 from protocol.payload import pack_floats, pack_u8s
+from reach_sim_bridge import ik
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.events import EventLog
-from reach_sim_bridge.faults import SensorNoise
+from reach_sim_bridge.faults import Leak, SensorNoise
+from reach_sim_bridge.monitor import MONITOR_FLAGS, Monitor, MonitorConfig
 
 log = logging.getLogger(__name__)
 
 LINK_ERROR_FLAGS = HardwareStatus.SERIAL_ERROR | HardwareStatus.CRC_ERROR
+_MONITOR_STEPS = 5  # physics steps per monitor update (10 ms at the default 2 ms)
 
 # Control packets that switch the mode implicitly; DISABLE and PASSIVE ignore them.
 _LOCKED_MODES = frozenset({Mode.DISABLE, Mode.PASSIVE})
+# Packets that give a joint its own command, ending a Cartesian velocity (KM_END_VEL).
+_JOINT_COMMANDS = frozenset(
+    {
+        PacketID.MODE,
+        PacketID.POSITION,
+        PacketID.VELOCITY,
+        PacketID.CURRENT,
+        PacketID.INDEXED_POSITION,
+        PacketID.RELATIVE_POSITION,
+        PacketID.RESET,
+        PacketID.KM_END_POS,
+    }
+)
 # Modes whose loop servoes to `position_target`.
 _HOLDING_MODES = frozenset({Mode.POSITION, Mode.POSITION_HOLD, Mode.STANDBY, Mode.DISABLE})
 
@@ -60,6 +85,7 @@ class ErrorReason(str, Enum):
     BAD_VALUE = "bad_value"  # NaN or infinite float
     UNKNOWN_MODE = "unknown_mode"
     BAD_LIMITS = "bad_limits"  # max < min, or a velocity/current range excluding 0
+    LIMITS_16_BYTES = "limits_16_bytes"  # 8 zero bytes then [min, max]: a client library's form
     UNKNOWN_PACKET = "unknown_packet"  # a packet id this firmware does not implement
 
 
@@ -71,6 +97,12 @@ class Ignored(str, Enum):
     READ_ONLY = "read_only"  # e.g. a host sending TEMPERATURE
     UNSUPPORTED_REQUEST = "unsupported_request"  # REQUEST/HEARTBEAT of an id we cannot report
     OTHER_DEVICE = "other_device"  # addressed to a device this arm does not have
+    UNIMPLEMENTED_MODE = "unimplemented_mode"  # a mode value V1.12.1 does not document
+    UNREACHABLE = "unreachable_pose"  # KM_END_POS the arm cannot reach: no motion
+    NOT_BASE = "not_the_base_device"  # KM_END_POS/KM_END_VEL to a device other than E
+    END_VELOCITY_STOPPED = "end_velocity_at_joint_limit"  # a Cartesian move ran into a limit
+    COLLISION = "broadcast_collision"  # half duplex: several devices answered at once
+    PADDING = "request_padding"  # 0x00 slots in a REQUEST (or misplaced in a HEARTBEAT_SET)
 
 
 @dataclass(frozen=True)
@@ -118,8 +150,13 @@ class FirmwareConfig:
     devices: tuple[DeviceSpec, ...] = ALPHA5_DEVICES
     software_version: tuple[int, int, int] = (0, 1, 0)  # the emulator's own version
     model_number: float = 5005.0  # emulator's own number: the vendor's are not published
-    temperature_c: float = 20.0
-    humidity_pct: float = 10.0
+    temperature_c: float = 20.0  # the water's: each housing starts at it (monitor model)
+    humidity_pct: float = 10.0  # in each housing at power-on
+    monitor: MonitorConfig = MonitorConfig()  # climate and supply model, factory levels
+    leaks: tuple[Leak, ...] = ()  # housings taking in water from the start
+    # RS-485: one shared wire. A broadcast REQUEST that more than one device answers
+    # collides on it; the host gets none of the answers (counted as `broadcast_collision`).
+    half_duplex: bool = False
     status_period_s: float = 1.0  # HARDWARE_STATUS while an error flag is set
     error_hold_s: float = 5.0  # link error flags clear after this long without errors
     sensor_noise: SensorNoise | None = None
@@ -173,6 +210,7 @@ class Device:
     heartbeat_ids: tuple[int, ...] = ()
     heartbeat_hz: int = 0
     heartbeat_phase: float = 0.0
+    slot: int = 0  # index in the firmware's device list (and the monitor's)
 
 
 class _Rejected(Exception):
@@ -233,8 +271,25 @@ class Firmware:
                 self._jaw = dev
         if any(d is None for d in self._joints):
             raise ValueError("the firmware needs devices for all of E D C B")
-        for dev in self._devices:
+        for slot, dev in enumerate(self._devices):
             dev.position_target = self._position(dev)
+            dev.slot = slot
+        resistances = [
+            float(arm.jaw_motor.resistance[0])
+            if d.index < 0
+            else float(arm.motor.resistance[d.index])
+            for d in self._devices
+        ]
+        self.monitor = Monitor(
+            self.config.monitor,
+            resistances,
+            self.config.temperature_c,
+            arm.motor.supply_voltage,
+            self.config.humidity_pct,
+        )
+        self._monitor_countdown = 0
+        for leak in self.config.leaks:
+            self.inject_leak(leak)
         self._handlers: dict[int, Handler] = {
             PacketID.MODE: self._on_mode,
             PacketID.POSITION: self._on_position,
@@ -250,7 +305,12 @@ class Firmware:
             PacketID.HEARTBEAT_SET: self._on_heartbeat_set,
             PacketID.HEARTBEAT_FREQUENCY: self._on_heartbeat_frequency,
             PacketID.RESET: self._on_reset,
+            PacketID.KM_END_POS: self._on_end_pos,
+            PacketID.KM_END_VEL: self._on_end_vel,
         }
+        # A Cartesian velocity being followed: (linear m/s, angular rad/s), base frame.
+        self._end_velocity: tuple[np.ndarray, np.ndarray] | None = None
+        self._end_velocity_countdown = 0
         self._reporters: dict[int, Callable[[Device], bytes | None]] = {
             PacketID.MODE: lambda d: bytes((int(d.mode),)),
             PacketID.POSITION: lambda d: pack_floats(self._noisy_position(d)),
@@ -262,14 +322,20 @@ class Firmware:
             PacketID.SERIAL_NUMBER: lambda d: pack_floats(d.spec.serial_number),
             PacketID.MODEL_NUMBER: lambda d: pack_floats(self.config.model_number),
             PacketID.DEVICE_ID: lambda d: bytes((int(d.spec.device_id),)),
-            PacketID.HUMIDITY: lambda d: pack_floats(self.config.humidity_pct),
-            PacketID.TEMPERATURE: lambda d: pack_floats(self.config.temperature_c),
+            PacketID.HUMIDITY: lambda d: pack_floats(self.monitor.humidity_pct[d.slot]),
+            PacketID.TEMPERATURE: lambda d: pack_floats(self.monitor.temperature_c[d.slot]),
+            # 0x67 is INTERNAL_PRESSURE in V1.12.1 (newer SDKs: DEVICE_TYPE); 0x6E the newer
+            # PRESSURE. Both answer the internal pressure in bar (docs/protocol.md, 3a).
+            PacketID.INTERNAL_PRESSURE: lambda d: pack_floats(self.monitor.pressure_bar(d.slot)),
+            PacketID.PRESSURE: lambda d: pack_floats(self.monitor.pressure_bar(d.slot)),
+            PacketID.FACTORY_CLIMATE: lambda d: pack_floats(*self.config.monitor.factory_climate),
             PacketID.HARDWARE_STATUS: lambda d: d.status.to_bytes(),
             PacketID.SOFTWARE_VERSION: lambda d: pack_u8s(*self.config.software_version),
-            PacketID.VOLTAGE: lambda d: pack_floats(self.arm.motor.supply_voltage),
+            PacketID.VOLTAGE: lambda d: pack_floats(self.monitor.voltage_v),
             PacketID.HEARTBEAT_SET: lambda d: _heartbeat_payload(d.heartbeat_ids),
             PacketID.HEARTBEAT_FREQUENCY: lambda d: bytes((d.heartbeat_hz,)),
             PacketID.KM_END_POS: self._end_pose,
+            PacketID.KM_END_VEL: self._end_twist,
         }
 
     # -- public -----------------------------------------------------------------------------
@@ -293,6 +359,15 @@ class Firmware:
         reported with HARDWARE_STATUS at 1 Hz like any other fault."""
         self._raise_flag([self._by_id[device_id]], flag)
 
+    def inject_leak(self, leak: Leak) -> None:
+        """Let water into one device's housing (replaces a leak already there): its humidity
+        and pressure drift up and raise OVER_HUMIDITY and OVER_PRESSURE (monitor model)."""
+        self.monitor.leak(self._by_id[int(leak.device_id)].slot, leak)
+
+    def stop_leak(self, device_id: int) -> None:
+        """The housing is sealed again; what got in stays (readings stop drifting)."""
+        self.monitor.leak(self._by_id[device_id].slot, None)
+
     def setpoints(self, device_id: int) -> tuple[Mode, float, float]:
         """(mode, position target, current applied in mA) of one device, for recordings."""
         d = self._by_id[device_id]
@@ -315,9 +390,15 @@ class Firmware:
                 return []
             targets = [dev]
         pid = int(packet.packet_id)
+        if (
+            self._end_velocity is not None
+            and pid in _JOINT_COMMANDS
+            and any(d.index >= 0 for d in targets)
+        ):
+            self._stop_end_velocity()
         handler = self._handlers.get(pid)
         if handler is None:
-            if pid in self._reporters or pid == PacketID.KM_END_VEL:
+            if pid in self._reporters:
                 self.ignored.record(
                     Ignored.READ_ONLY.value,
                     f"packet 0x{pid:02X} is read-only here (send a REQUEST)",
@@ -380,6 +461,8 @@ class Firmware:
     # -- control ----------------------------------------------------------------------------
     def _control_step(self, h: float) -> None:
         arm = self.arm
+        if self._end_velocity is not None:
+            self._follow_end_velocity(h)
         q = arm.q.tolist()
         qd = arm.qdot.tolist()
         currents = [self._loop(self._joints[i], q[i], qd[i], h) for i in range(4)]
@@ -425,9 +508,36 @@ class Firmware:
         d.applied_mA = limits.clamp(gains.velocity_p * error + ki * integral)
         return d.applied_mA
 
+    def _monitor_step(self, h: float) -> None:
+        """Step the climate and supply model every `_MONITOR_STEPS` physics steps, and carry
+        its flags into each device's status (a newly raised one is reported at once)."""
+        self._monitor_countdown -= 1
+        if self._monitor_countdown > 0:
+            return
+        self._monitor_countdown = _MONITOR_STEPS
+        arm = self.arm
+        joint_mA = arm.current_mA.tolist()
+        jaw_mA = arm.jaw_current_mA
+        amps = [(jaw_mA if d.index < 0 else joint_mA[d.index]) / 1000.0 for d in self._devices]
+        monitor = self.monitor
+        monitor.step(h * _MONITOR_STEPS, amps, arm.motor.supply_voltage)
+        for d, flags in zip(self._devices, monitor.flags, strict=True):
+            now = d.status & MONITOR_FLAGS
+            if flags != now:
+                raised = flags & ~now
+                if raised and not d.status:
+                    d.status_phase = self.config.status_period_s  # report at once
+                d.status = (d.status & ~MONITOR_FLAGS) | flags
+                log.info(
+                    "device %s: monitor flags now %s",
+                    d.spec.letter,
+                    ", ".join(flags.flag_names()) or "clear",
+                )
+
     def _housekeeping(self, h: float, out: list[Packet]) -> None:
         now = self.arm.time
         cfg = self.config
+        self._monitor_step(h)
         for d in self._devices:
             if d.heartbeat_hz and d.heartbeat_ids:
                 d.heartbeat_phase += h
@@ -438,21 +548,21 @@ class Firmware:
                         packet = self.report(int(d.spec.device_id), pid)
                         if packet is not None:
                             out.append(packet)
-            if d.status & LINK_ERROR_FLAGS:
-                if now - d.last_error_time >= cfg.error_hold_s:
-                    d.status &= ~LINK_ERROR_FLAGS
-                    log.info(
-                        "device %s: link error flags cleared after %.1f s without errors",
-                        d.spec.letter,
-                        cfg.error_hold_s,
-                    )
-                    continue
-                d.status_phase += h
-                if d.status_phase >= cfg.status_period_s - 1e-9:
-                    d.status_phase = 0.0
-                    out.append(
-                        Packet(d.spec.device_id, PacketID.HARDWARE_STATUS, d.status.to_bytes())
-                    )
+            if not d.status:  # (a plain int test: IntFlag operators are slow per step)
+                continue
+            if d.status & LINK_ERROR_FLAGS and now - d.last_error_time >= cfg.error_hold_s:
+                d.status &= ~LINK_ERROR_FLAGS
+                log.info(
+                    "device %s: link error flags cleared after %.1f s without errors",
+                    d.spec.letter,
+                    cfg.error_hold_s,
+                )
+                continue
+            # Any flag set: HARDWARE_STATUS unprompted at about 1 Hz.
+            d.status_phase += h
+            if d.status_phase >= cfg.status_period_s - 1e-9:
+                d.status_phase = 0.0
+                out.append(Packet(d.spec.device_id, PacketID.HARDWARE_STATUS, d.status.to_bytes()))
 
     # -- measurements -----------------------------------------------------------------------
     def _position(self, d: Device) -> float:
@@ -481,6 +591,108 @@ class Firmware:
             return None  # the base device does the kinematics
         return pack_floats(*self.arm.end_effector_pose())
 
+    def _end_twist(self, d: Device) -> bytes | None:
+        if d.spec.device_id != DeviceID.E:
+            return None
+        linear, angular = ik.tcp_velocity(self.arm, self.arm.q, self.arm.qdot)
+        return pack_floats(*(linear * 1000.0).tolist(), *angular.tolist())
+
+    # -- end-effector moves (base device) ---------------------------------------------------
+    def _end_command(self, targets: list[Device], packet: Packet, name: str) -> list[float] | None:
+        """The 6 floats of a KM_END_POS/KM_END_VEL for the base device (None: not for it, or
+        a joint cannot take it; counted)."""
+        if not any(d.spec.device_id == DeviceID.E for d in targets):
+            self.ignored.record(
+                Ignored.NOT_BASE.value,
+                f"{name} to device 0x{int(packet.device_id):02X}: only the base device "
+                "(0x05) does kinematics",
+            )
+            return None
+        if len(packet.data) != 24:
+            raise _Rejected(
+                ErrorReason.BAD_PAYLOAD,
+                f"{name} payload must be 6 float32 (24 bytes), got {len(packet.data)}",
+            )
+        values = packet.floats()
+        if not all(math.isfinite(v) for v in values):
+            raise _Rejected(ErrorReason.BAD_VALUE, f"{name} {values} is not finite")
+        if len(self._control(self._joints, name)) < len(self._joints):
+            return None  # a joint in DISABLE or PASSIVE: the arm cannot move as a whole
+        return values
+
+    def _joint_limits(self) -> np.ndarray:
+        return np.array([[d.position_limits.lo, d.position_limits.hi] for d in self._joints])
+
+    def _on_end_pos(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        pose = self._end_command(targets, packet, "KM_END_POS")
+        if pose is None:
+            return []
+        wrist = self._joints[-1]
+        solution = ik.solve(self.arm, pose, self.arm.q, self._joint_limits(), wrist.continuous)
+        if not solution.reachable:
+            self.ignored.record(
+                Ignored.UNREACHABLE.value,
+                f"KM_END_POS ({pose[0]:.1f}, {pose[1]:.1f}, {pose[2]:.1f}) mm is out of reach "
+                f"inside the joint limits (closest {solution.position_error_mm:.1f} mm); "
+                "no motion",
+            )
+            return []
+        for d, angle in zip(self._joints, solution.q.tolist(), strict=True):
+            self._command_position(d, angle)
+        return []
+
+    def _on_end_vel(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        twist = self._end_command(targets, packet, "KM_END_VEL")
+        if twist is None:
+            return []
+        for d in self._joints:
+            self._set_mode(d, Mode.VELOCITY)
+            d.velocity_target = 0.0
+        if any(twist):
+            linear = np.array(twist[:3]) / 1000.0
+            self._end_velocity = (linear, np.array(twist[3:]))
+            self._end_velocity_countdown = 0
+        else:
+            self._end_velocity = None  # zero: stop, in velocity mode
+        return []
+
+    def _stop_end_velocity(self) -> None:
+        self._end_velocity = None
+        for d in self._joints:
+            if d.mode == Mode.VELOCITY:
+                d.velocity_target = 0.0
+
+    def _follow_end_velocity(self, h: float) -> None:
+        """Joint rates for the Cartesian velocity, every `_MONITOR_STEPS` physics steps,
+        inside each joint's rate and velocity limits; stops at a joint's position limit."""
+        self._end_velocity_countdown -= 1
+        if self._end_velocity_countdown > 0:
+            return
+        self._end_velocity_countdown = _MONITOR_STEPS
+        assert self._end_velocity is not None
+        linear, angular = self._end_velocity
+        joints = self._joints
+        max_rates = np.array(
+            [
+                max(min(d.spec.rate_limit, d.velocity_limits.hi, -d.velocity_limits.lo), 1e-9)
+                for d in joints
+            ]
+        )
+        q = self.arm.q
+        rates = ik.joint_rates(self.arm, q, linear, angular, max_rates).tolist()
+        lookahead = h * _MONITOR_STEPS
+        for d, angle, rate in zip(joints, q.tolist(), rates, strict=True):
+            ahead = angle + rate * lookahead
+            if not d.continuous and not d.position_limits.contains(ahead) and abs(rate) > 1e-6:
+                self.ignored.record(
+                    Ignored.END_VELOCITY_STOPPED.value,
+                    f"KM_END_VEL stopped: joint {d.spec.letter} at its position limit",
+                )
+                self._stop_end_velocity()
+                return
+        for d, rate in zip(joints, rates, strict=True):
+            d.velocity_target = rate
+
     # -- errors -----------------------------------------------------------------------------
     def _error(
         self, targets: Sequence[Device], reason: ErrorReason, message: str, flag: bool = True
@@ -492,7 +704,7 @@ class Firmware:
     def _raise_flag(self, targets: Sequence[Device], flag: HardwareStatus) -> None:
         now = self.arm.time
         for d in targets:
-            if not d.status & LINK_ERROR_FLAGS:
+            if not d.status:
                 d.status_phase = self.config.status_period_s  # report at the next step
             d.status |= flag
             d.last_error_time = now
@@ -516,6 +728,14 @@ class Firmware:
             raise _Rejected(
                 ErrorReason.BAD_PAYLOAD, f"MODE payload must be 1 byte, got {len(data)}{hint}"
             )
+        if data[0] in UNDOCUMENTED_MODES:
+            # Sent by a widely used client library; undocumented, so not emulated: the device
+            # keeps its mode, and nothing is flagged.
+            self.ignored.record(
+                Ignored.UNIMPLEMENTED_MODE.value,
+                f"mode 0x{data[0]:02X} is not documented in protocol V1.12.1; mode kept",
+            )
+            return []
         try:
             mode = Mode(data[0])
         except ValueError:
@@ -579,7 +799,22 @@ class Firmware:
         return []
 
     def _on_limits(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        """Limits are refused (counted, changing nothing) when they are not [max, min], but no
+        status flag is raised: a client sending them once at start-up has no link fault."""
+        try:
+            return self._set_limits(targets, packet)
+        except _Rejected as rejected:
+            self._error(targets, rejected.reason, f"{packet!r}: {rejected}", flag=False)
+            return []
+
+    def _set_limits(self, targets: list[Device], packet: Packet) -> list[Packet]:
         pid = PacketID(int(packet.packet_id))
+        if len(packet.data) == 16:
+            raise _Rejected(
+                ErrorReason.LIMITS_16_BYTES,
+                f"{pid.name} payload of 16 bytes (8 zero bytes then [min, max]?) refused: the "
+                "payload is 8 bytes, [max, min] (protocol V1.12.1)",
+            )
         if len(packet.data) != 8:
             raise _Rejected(
                 ErrorReason.BAD_PAYLOAD,
@@ -590,7 +825,9 @@ class Firmware:
             raise _Rejected(ErrorReason.BAD_VALUE, f"{pid.name} [{hi}, {lo}] is not finite")
         if hi < lo:
             raise _Rejected(
-                ErrorReason.BAD_LIMITS, f"{pid.name} max {hi} < min {lo} (wire order is [max, min])"
+                ErrorReason.BAD_LIMITS,
+                f"{pid.name} max {hi} < min {lo}: refused (the wire order is [max, min]; "
+                "[min, max] is the order of protocol V1.9 and of some client libraries)",
             )
         if pid != PacketID.POSITION_LIMITS and not lo <= 0.0 <= hi:
             raise _Rejected(
@@ -649,11 +886,11 @@ class Firmware:
                 f"REQUEST takes 1 to {MAX_REQUEST_IDS} packet ids, got {len(ids)}",
             )
         if 0 in ids:
-            # Answer the real ids, but count the defect (pre-sized list with leading zeros).
-            self._error(
-                targets,
-                ErrorReason.BAD_PAYLOAD,
-                f"REQUEST {list(ids)} holds id 0 (padding is not a packet id)",
+            # A pre-sized list appended to (`00 00 00 03 02 05`): real arms answer the real
+            # ids and raise nothing, so padding is only counted, once per packet.
+            self.ignored.record(
+                Ignored.PADDING.value,
+                f"REQUEST {list(ids)}: 0x00 is padding, not a packet id; skipped",
             )
         broadcast = int(packet.device_id) == DeviceID.BROADCAST
         out: list[Packet] = []
@@ -669,6 +906,13 @@ class Firmware:
                         Ignored.UNSUPPORTED_REQUEST.value,
                         f"device {d.spec.letter} has no 0x{pid:02X} to report",
                     )
+        if broadcast and self.config.half_duplex and len({p.device_id for p in out}) > 1:
+            self.ignored.record(
+                Ignored.COLLISION.value,
+                f"broadcast REQUEST {list(ids)}: {len(out)} answers from several devices "
+                "collided on the half-duplex line",
+            )
+            return []
         return out
 
     def _on_heartbeat_set(self, targets: list[Device], packet: Packet) -> list[Packet]:
@@ -678,6 +922,12 @@ class Firmware:
                 f"HEARTBEAT_SET takes at most {HEARTBEAT_SLOTS} ids, got {len(packet.data)}",
             )
         ids = tuple(pid for pid in packet.data if pid)
+        if bytes(ids) + bytes(len(packet.data) - len(ids)) != bytes(packet.data):
+            # Zeros are the slots' filler; one before an id is a client's pre-sized list.
+            self.ignored.record(
+                Ignored.PADDING.value,
+                f"HEARTBEAT_SET {list(packet.data)}: zeros before ids skipped",
+            )
         unknown = [pid for pid in ids if pid not in self._reporters]
         if unknown:
             self.ignored.record(

@@ -8,8 +8,13 @@ arrays name the body each joint moves (E -> m2_1_1, D -> m2, C -> m2_1_3, B -> m
 
 from __future__ import annotations
 
+import difflib
+import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -144,3 +149,189 @@ class ArmParams:
     def as_dict(self) -> dict[str, object]:
         """Plain values for logs and recordings."""
         return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """Every field as plain JSON values (the `--params` file format; see
+        `load_arm_params`): tuples become lists, the motor tables nested objects."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, MotorParams):
+                out[f.name] = {name: list(getattr(value, name)) for name in _MOTOR_FIELDS}
+            elif isinstance(value, tuple):
+                out[f.name] = list(value)
+            else:
+                out[f.name] = value
+        return out
+
+    @classmethod
+    def from_json_dict(cls, data: Any, where: str = "params") -> ArmParams:
+        """The arm a `--params` object describes: the fields it names, nominal otherwise.
+
+        Keys starting with ``_`` (``_fit``, ``_comment``...) are metadata and ignored.
+        Raises `ParamsFileError` (a ValueError) naming the key for unknown keys (with the
+        nearest field name), wrong types or lengths, and non-physical values."""
+        if not isinstance(data, Mapping):
+            raise ParamsFileError(
+                f"{where}: expected a JSON object of ArmParams fields, got {_kind(data)}"
+            )
+        nominal = cls()
+        values: dict[str, Any] = {}
+        for key, raw in data.items():
+            if not isinstance(key, str):
+                raise ParamsFileError(f"{where}: keys must be strings, got {key!r}")
+            if key.startswith("_"):
+                continue
+            if key not in _FILE_FIELDS:
+                raise ParamsFileError(f"{where}: unknown key {key!r}{_suggest(key, _FILE_FIELDS)}")
+            values[key] = _parse_field(key, raw, getattr(nominal, key), f"{where}: {key}")
+        try:
+            params = replace(nominal, **values)
+        except ValueError as exc:
+            raise ParamsFileError(f"{where}: {exc}") from exc
+        _check_physical(params, where)
+        return params
+
+
+class ParamsFileError(ValueError):
+    """An arm parameter file (or object) that does not describe a physical arm."""
+
+
+_MOTOR_FIELDS = (
+    "resistance_ohm",
+    "torque_constant",
+    "backemf_constant",
+    "gear_ratio",
+    "efficiency",
+)
+_FILE_FIELDS = tuple(f.name for f in fields(ArmParams))
+_BOOL_FIELDS = ("fluid_drag", "wrist_continuous", "self_collision")
+
+
+def _kind(value: Any) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, (int, float)):
+        return f"the number {value!r}"
+    if isinstance(value, str):
+        return f"the string {value!r}"
+    if isinstance(value, list):
+        return f"a list of {len(value)}"
+    if isinstance(value, Mapping):
+        return "an object"
+    return type(value).__name__
+
+
+def _suggest(key: str, names: tuple[str, ...]) -> str:
+    close = difflib.get_close_matches(key, names, n=1, cutoff=0.5)
+    if close:
+        return f"; did you mean {close[0]!r}?"
+    return f"; known keys: {', '.join(names)}"
+
+
+def _number(raw: Any, what: str) -> float:
+    if isinstance(raw, bool) or not isinstance(raw, (int, float)):
+        raise ParamsFileError(f"{what} must be a number, got {_kind(raw)}")
+    value = float(raw)
+    if not math.isfinite(value):
+        raise ParamsFileError(f"{what} must be finite, got {raw!r}")
+    return value
+
+
+def _numbers(raw: Any, n: int, what: str, order: str) -> tuple[float, ...]:
+    if not isinstance(raw, list):
+        raise ParamsFileError(f"{what} must be a list of {n} numbers ({order}), got {_kind(raw)}")
+    if len(raw) != n:
+        raise ParamsFileError(f"{what} needs {n} values ({order}), got {len(raw)}")
+    return tuple(_number(v, f"{what}[{i}]") for i, v in enumerate(raw))
+
+
+def _parse_field(key: str, raw: Any, nominal: Any, what: str) -> Any:
+    if key in _BOOL_FIELDS:
+        if not isinstance(raw, bool):
+            raise ParamsFileError(f"{what} must be true or false, got {_kind(raw)}")
+        return raw
+    if isinstance(nominal, MotorParams):
+        if not isinstance(raw, Mapping):
+            raise ParamsFileError(
+                f"{what} must be an object of {', '.join(_MOTOR_FIELDS)}, got {_kind(raw)}"
+            )
+        n = nominal.count
+        order = "E D C B" if n == 4 else "the jaw"
+        table: dict[str, tuple[float, ...]] = {}
+        for name, value in raw.items():
+            if name not in _MOTOR_FIELDS:
+                raise ParamsFileError(
+                    f"{what}: unknown key {name!r}{_suggest(str(name), _MOTOR_FIELDS)}"
+                )
+            if n == 1 and not isinstance(value, list):
+                value = [value]
+            table[name] = _numbers(value, n, f"{what}.{name}", order)
+        try:
+            return replace(nominal, **table)
+        except ValueError as exc:
+            raise ParamsFileError(f"{what}: {exc}") from exc
+    if key in _VEC4_FIELDS:
+        return _numbers(raw, 4, what, "E D C B")
+    if key == "gravity":
+        return _numbers(raw, 3, what, "x y z in the base frame, m/s^2")
+    return _number(raw, what)
+
+
+def _check_physical(p: ArmParams, where: str) -> None:
+    """What `ArmParams` itself allows but no arm has (a file states a real arm)."""
+    for joint, scale in zip("EDCB", p.torque_scale, strict=True):
+        if not 0.0 < scale <= 1.0:
+            raise ParamsFileError(
+                f"{where}: torque_scale of {joint} must be in (0, 1], got {scale:g}"
+            )
+    for joint, limit in zip("EDCB", p.current_limits_mA, strict=True):
+        if limit <= 0.0:
+            raise ParamsFileError(
+                f"{where}: current_limits_mA of {joint} must be > 0 mA, got {limit:g}"
+            )
+    if p.jaw_current_limit_mA <= 0.0:
+        raise ParamsFileError(
+            f"{where}: jaw_current_limit_mA must be > 0, got {p.jaw_current_limit_mA:g}"
+        )
+    if p.water_density > 2000.0:
+        raise ParamsFileError(
+            f"{where}: water_density is kg/m^3 (1000 fresh, ~1025 sea, 0 air), "
+            f"got {p.water_density:g}"
+        )
+    if not 0.0 < math.hypot(*p.gravity) < 20.0:
+        raise ParamsFileError(f"{where}: gravity {p.gravity} m/s^2 is not an Earth gravity")
+
+
+def load_arm_params(path: str | Path) -> ArmParams:
+    """The arm a `--params FILE.json` describes: a JSON object of `ArmParams` field names
+    (any subset; arrays of four in E D C B order; the rest nominal). Keys starting with
+    ``_`` are ignored (`tools/identify.py` writes its fit quality under ``_fit``)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ParamsFileError(f"cannot read arm parameters {path}: {exc.strerror or exc}") from exc
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ParamsFileError(f"{path} is not valid JSON: {exc}") from exc
+    return ArmParams.from_json_dict(data, where=str(path))
+
+
+def save_arm_params(
+    params: ArmParams, path: str | Path, extra: Mapping[str, Any] | None = None
+) -> Path:
+    """Write `params` in the `--params` format (every field), plus metadata keys from
+    `extra` (each must start with ``_`` so the loader ignores it)."""
+    data = params.to_json_dict()
+    for key, value in (extra or {}).items():
+        if not key.startswith("_"):
+            raise ValueError(f"metadata keys start with '_' (the loader ignores them), got {key!r}")
+        data[key] = value
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+    return path

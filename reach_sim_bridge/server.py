@@ -45,6 +45,7 @@ from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.events import EventLog
 from reach_sim_bridge.faults import FaultConfig, LinkFaults
 from reach_sim_bridge.firmware import Firmware, FirmwareConfig
+from reach_sim_bridge.params import ArmParams
 from reach_sim_bridge.pty import PtyEndpoint
 from reach_sim_bridge.udp import Address, UdpEndpoint, is_loopback
 
@@ -85,6 +86,9 @@ class SimConfig:
     faults: FaultConfig = field(default_factory=FaultConfig)
     firmware: FirmwareConfig = field(default_factory=FirmwareConfig)
     seed: int | None = None  # link faults and sensor noise
+    # The arm served (None: nominal); --randomize-params perturbs around it, and the
+    # faults' torque scale multiplies its own.
+    params: ArmParams | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speed) and self.speed > 0.0):
@@ -220,7 +224,7 @@ class SimServer:
 
     def _make_arm(self) -> Alpha5Arm:
         cfg = self.config
-        arm = Alpha5Arm(dt=cfg.dt, seed=cfg.faults.randomize_seed)
+        arm = Alpha5Arm(params=cfg.params, dt=cfg.dt, seed=cfg.faults.randomize_seed)
         if cfg.faults.randomize_seed is not None:
             params = arm.randomize()
             log.info(
@@ -237,7 +241,7 @@ class SimServer:
                     )
                 },
             )
-        arm.torque_scale = cfg.faults.torque_scale
+        arm.torque_scale = np.asarray(arm.params.torque_scale) * np.asarray(cfg.faults.torque_scale)
         arm.reset(q=None if cfg.start is None else np.asarray(cfg.start), jaw_mm=cfg.jaw_mm)
         return arm
 

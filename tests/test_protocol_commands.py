@@ -165,7 +165,7 @@ def test_unknown_ids_decode_as_plain_ints() -> None:
 
 
 def test_hardware_status_flags() -> None:
-    status = HardwareStatus.from_bytes(bytes([0x81, 0x40, 0x00, 0x03]))
+    status = HardwareStatus.from_bytes(bytes([0x81, 0x40, 0x00, 0x64]))
     assert HardwareStatus.FLASH_READ_FAILED in status
     assert HardwareStatus.ENCODER_NOT_DETECTED in status
     assert HardwareStatus.MOTOR_NOT_CONNECTED in status
@@ -175,14 +175,60 @@ def test_hardware_status_flags() -> None:
         "ENCODER_NOT_DETECTED",
         "MOTOR_NOT_CONNECTED",
     ]
-    assert status.to_bytes() == bytes([0x81, 0x40, 0x00, 0x03])  # undocumented bits kept
+    assert status.to_bytes() == bytes([0x81, 0x40, 0x00, 0x64])  # reserved bits kept
     assert HardwareStatus.from_bytes(bytes(4)) == HardwareStatus.NONE
     assert (HardwareStatus.DRIVER_OVER_TEMPERATURE | HardwareStatus.CRC_ERROR).to_bytes() == (
         bytes([0x08, 0x01, 0x00, 0x00])
     )
     with pytest.raises(PayloadError, match="must be 4 bytes, got 3"):
         HardwareStatus.from_bytes(b"\x00\x00\x00")
-    assert len({f.value for f in HardwareStatus if f.value}) == 16
+    # Bytes A and B (16 flags) and the documented bits of bytes C (4) and D (5).
+    assert len({f.value for f in HardwareStatus if f.value}) == 25
+
+
+#: Bytes C and D of HARDWARE_STATUS by name: (byte index, bit, name).
+STATUS_C_D = [
+    (2, 0x10, "JAW_ZERO_REQUIRED"),
+    (2, 0x08, "JOINT_SERVICE_DUE"),
+    (2, 0x04, "READ_PROTECTION_ENABLED"),
+    (2, 0x02, "ENCODER_FAULT"),
+    (3, 0x80, "ENCODER_POSITION_INVALID"),
+    (3, 0x10, "LOW_SUPPLY_VOLTAGE"),
+    (3, 0x08, "INVALID_FIRMWARE"),
+    (3, 0x02, "CAN_BUS_ERROR"),
+    (3, 0x01, "POSITION_REPORT_NOT_RECEIVED"),
+]
+
+
+@pytest.mark.parametrize(("index", "bit", "name"), STATUS_C_D)
+def test_hardware_status_bytes_c_and_d_by_name(index: int, bit: int, name: str) -> None:
+    data = bytearray(4)
+    data[index] = bit
+    status = HardwareStatus.from_bytes(bytes(data))
+    assert status == HardwareStatus[name]
+    assert status.flag_names() == [name]
+    assert status.to_bytes() == bytes(data)
+
+
+def test_hardware_status_all_four_bytes_round_trip() -> None:
+    every = HardwareStatus.NONE
+    for flag in HardwareStatus:
+        every |= flag
+    data = every.to_bytes()
+    assert data == bytes([0xFF, 0xFF, 0x1E, 0x9B])
+    assert HardwareStatus.from_bytes(data) == every
+    assert len(every.flag_names()) == 25
+    # Reserved bits are kept, never dropped, and never named.
+    reserved = HardwareStatus.from_bytes(bytes([0, 0, 0xE1, 0x64]))
+    assert reserved.flag_names() == []
+    assert reserved.to_bytes() == bytes([0, 0, 0xE1, 0x64])
+    mixed = HardwareStatus.from_bytes(bytes([0x40, 0x04, 0x10, 0x10]))
+    assert mixed.flag_names() == [
+        "OVER_HUMIDITY",
+        "OVER_PRESSURE",
+        "JAW_ZERO_REQUIRED",
+        "LOW_SUPPLY_VOLTAGE",
+    ]
 
 
 def test_packet_value_semantics() -> None:
@@ -208,3 +254,17 @@ def test_integer_like_ids_are_accepted() -> None:
     packet = Packet(Index(), Index())  # type: ignore[arg-type]
     assert (packet.device_id, packet.packet_id) == (DeviceID.E, PacketID.CURRENT)
     assert encode_packet(Index(), 3, b"") == Packet(5, 3).encode()  # type: ignore[arg-type]
+
+
+def test_end_effector_builders() -> None:
+    pos = commands.end_position(DeviceID.E, 100.0, -20.0, 250.0, 0.5, 0.0, -1.0)
+    assert pos.key == (DeviceID.E, PacketID.KM_END_POS)
+    assert pos.floats() == pytest.approx([100.0, -20.0, 250.0, 0.5, 0.0, -1.0])
+    assert len(pos.data) == 24
+    vel = commands.end_velocity(DeviceID.E, 0.0, 0.0, 20.0)
+    assert vel.key == (DeviceID.E, PacketID.KM_END_VEL)
+    assert vel.floats() == [0.0, 0.0, 20.0, 0.0, 0.0, 0.0]
+    with pytest.raises(PayloadError, match="z must be finite"):
+        commands.end_position(DeviceID.E, 0.0, 0.0, math.inf, 0.0, 0.0, 0.0)
+    with pytest.raises(PayloadError, match="wz must be finite"):
+        commands.end_velocity(DeviceID.E, 0.0, 0.0, 0.0, wz=math.nan)

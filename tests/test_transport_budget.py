@@ -68,3 +68,27 @@ def test_a_rate_that_fits_keeps_the_measured_current(slow_line) -> None:
     summary = ControlLoop(client, Zero(), 1 / 50).run(q, 0.3)
     assert summary.ok, summary.error
     assert streamed == [tuple(int(i) for i in TELEMETRY_WITH_CURRENT)]
+
+
+def test_a_heartbeat_the_line_cannot_carry_is_capped_and_said(slow_line, caplog) -> None:
+    client, _ = slow_line
+    ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT, PacketID.MODE)
+    devices = (5, 4, 3, 2, 1)
+    with caplog.at_level(logging.WARNING, logger="reach_driver.client"):
+        hz = client.stream(ids, 255, devices)
+    # 5 devices x (3 float replies of 10 B + a MODE reply of 7 B) = 185 B a beat: 62 Hz.
+    assert hz == int(LINE // 185) == 62
+    assert "streaming at 62 Hz" in caplog.text
+    assert client.stream(ids, 20, devices) == 20  # what fits is left alone
+    client.stop_stream()
+
+
+def test_a_stream_that_cannot_fit_even_at_1_hz_is_refused(slow_line) -> None:
+    from reach_driver import LimitError
+    from reach_driver.streaming import Stream
+
+    client, _ = slow_line
+    assert Stream((PacketID.POSITION,), 1, (5,)).bytes_per_beat() == 10
+    client.transport.baud = 50  # 5 B/s: not even one reply a second (the estimate only)
+    with pytest.raises(LimitError, match="even at 1 Hz"):
+        client.stream((PacketID.POSITION,), 1, (5,))

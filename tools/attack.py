@@ -28,8 +28,9 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from protocol import DeviceID, Mode, PacketDecoder, PacketID, commands, encode_packet
-from reach_driver import ArmClient, DriverError, SafetyConfig, open_transport
+from protocol import DeviceID, Mode, Packet, PacketDecoder, PacketID, commands, encode_packet
+from protocol.payload import pack_floats
+from reach_driver import ArmClient, DriverError, LimitKind, SafetyConfig, open_transport
 from reach_sim_bridge.server import SimConfig, SimServer
 
 E, D, C, B = DeviceID.E, DeviceID.D, DeviceID.C, DeviceID.B
@@ -287,6 +288,55 @@ def watchdog(scale: float, tmp: str) -> Outcome:
     )
 
 
+def hostile_arm(scale: float, tmp: str) -> Outcome:
+    """A fake arm on loop:// (the driver reads back what it writes) reports absurd limits
+    unasked, then the driver is asked for motion the gate must refuse: nothing may reach the
+    wire, and the factory envelope must stay in force."""
+    arm = ArmClient(open_transport("loop://"), safety=SafetyConfig(watchdog_s=None))
+    arm.start(discover=False, read_limits=False)
+    try:
+        lies = [
+            encode_packet(E, PacketID.POSITION_LIMITS, pack_floats(1e6, -1e6)),
+            encode_packet(D, PacketID.CURRENT_LIMITS, pack_floats(math.inf, -math.inf)),
+            encode_packet(C, PacketID.VELOCITY_LIMITS, pack_floats(1e30, -1e30)),
+        ]
+        arm.transport.write_frames(lies)
+        _wait(lambda: arm.joint(C).velocity_limits is not None, 2.0)
+        before = arm.transport.stats.bytes_out
+        motion = [
+            lambda: arm.command_position(E, 500.0),
+            lambda: arm.command_current(D, 1e5),
+            lambda: arm.send(encode_packet_as(E, PacketID.RELATIVE_POSITION, 2.0)),
+            lambda: arm.send(encode_packet_as(DeviceID.BROADCAST, PacketID.POSITION, 1.0)),
+            lambda: arm.send(encode_packet_as(0x09, PacketID.CURRENT, 100.0)),
+            lambda: arm.send(encode_packet_as(E, PacketID.KM_END_VEL, 10.0, 0, 0, 0, 0, 0)),
+            lambda: arm.write_limits(E, LimitKind.CURRENT, math.inf, -math.inf),
+        ]
+        refused = 0
+        for attempt in motion:
+            try:
+                attempt()
+            except (DriverError, ValueError):
+                refused += 1
+        leaked = arm.transport.stats.bytes_out - before
+        lim = arm.guard.limit(E, LimitKind.POSITION)
+        kept = abs(lim.low - 0.0175) < 1e-6 and abs(lim.high - 6.143) < 1e-6  # the factory's
+        rejected = arm.stats.limits_rejected
+    finally:
+        arm.close(safe=False)
+    return Outcome(
+        "hostile-arm",
+        f"{len(lies)} lies, {len(motion)} motion packets",
+        f"{rejected} limit reports rejected, {refused} packets refused, {leaked} bytes "
+        f"reached the wire, E's bound kept at [{lim.low:g}, {lim.high:g}]",
+        rejected == len(lies) and refused == len(motion) and leaked == 0 and kept,
+    )
+
+
+def encode_packet_as(device: int, packet_id: PacketID, *values: float) -> Packet:
+    return Packet(device, packet_id, pack_floats(*values))
+
+
 ATTACKS: dict[str, Callable[[float, str], Outcome]] = {
     "codec-fuzz": codec_fuzz,
     "junk-flood": junk_flood,
@@ -294,6 +344,7 @@ ATTACKS: dict[str, Callable[[float, str], Outcome]] = {
     "request-flood": request_flood,
     "bad-commands": bad_commands,
     "watchdog": watchdog,
+    "hostile-arm": hostile_arm,
 }
 
 

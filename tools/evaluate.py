@@ -35,6 +35,7 @@ from policy.evaluation import (
 from reach_driver.errors import DriverError
 from reach_driver.metrics import ALL_METRIC_KEYS
 from reach_sim_bridge.faults import SensorNoise
+from reach_sim_bridge.params import load_arm_params
 
 UNITS = {
     "energy_j": "J",
@@ -124,6 +125,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="randomly degrade each episode's arm: friction, armature, link masses "
         "and buoyancy each scaled by U(1-SPREAD, 1+SPREAD), e.g. 0.2 "
         "(default 0: the nominal arm)",
+    )
+    p.add_argument(
+        "--params",
+        type=Path,
+        metavar="FILE.json",
+        help="run every episode on the arm this parameter file describes (ArmParams "
+        "field names, any subset, E D C B; as tools/identify.py writes); --perturb then "
+        "spreads around it (default: the nominal arm)",
     )
     p.add_argument(
         "--seconds",
@@ -259,6 +268,7 @@ def run(args: argparse.Namespace, console: Console) -> Evaluation:
         noise=SensorNoise() if args.noise else None,
         seed=args.seed,
         param_spread=args.perturb,
+        params=None if args.params is None else load_arm_params(args.params),
     )
     params = _parse_kv(args.param)
     parallel = args.workers is not None or args.address is not None

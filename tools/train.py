@@ -29,6 +29,8 @@ from policy.env import EnvConfig
 from policy.expert import PDExpert
 from policy.trainer import Trainer, TrainState, make_expert
 from policy.weights import DEFAULT_WEIGHTS, ActorWeights
+from reach_sim_bridge.arm import Alpha5Arm
+from reach_sim_bridge.params import load_arm_params
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -93,6 +95,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "and buoyancy are scaled by U(1 - SPREAD, 1 + SPREAD) per episode",
     )
     p.add_argument(
+        "--params",
+        type=Path,
+        metavar="FILE.json",
+        help="train (or --evaluate) on the arm this parameter file describes (ArmParams "
+        "field names, any subset, E D C B; as tools/identify.py writes) instead of the "
+        "nominal model; --perturb and the env's param_perturbation spread around it",
+    )
+    p.add_argument(
         "--ship",
         action="store_true",
         help="copy RUN's best actor to policy/weights/ddpg_actor.npz (+ .json with "
@@ -101,8 +111,28 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+def params_arm_factory(path: Path | None) -> Any:
+    """An env arm factory for the arm in a `--params` file (None: the env's nominal arm)."""
+    if path is None:
+        return None
+    try:
+        params = load_arm_params(path)
+    except ValueError as exc:
+        raise SystemExit(f"--params: {exc}") from exc
+
+    def factory(config: EnvConfig) -> Any:
+        return Alpha5Arm(params=params, dt=config.physics_dt)
+
+    return factory
+
+
 def evaluate_weights(
-    which: str, episodes: int, seed: int, perturb: float = 0.0, expert_energy: float | None = None
+    which: str,
+    episodes: int,
+    seed: int,
+    perturb: float = 0.0,
+    expert_energy: float | None = None,
+    arm_factory: Any = None,
 ) -> dict[str, Any]:
     """Metrics of an actor file (or the expert) on the fixed evaluation episodes."""
     env_config = DDPGConfig.ours().env
@@ -121,7 +151,9 @@ def evaluate_weights(
         )
         policy = weights.forward
     eval_seed = DDPGConfig().eval_seed + seed
-    nominal = evaluate_batched(policy, env_config, episodes, eval_seed, expert=expert)
+    nominal = evaluate_batched(
+        policy, env_config, episodes, eval_seed, expert=expert, arm_factory=arm_factory
+    )
     weak = evaluate_batched(
         policy,
         env_config,
@@ -129,6 +161,7 @@ def evaluate_weights(
         eval_seed + WEAK_EVAL_SEED_OFFSET,
         torque_scale=WEAK_EVAL_TORQUE_SCALE,
         expert=expert,
+        arm_factory=arm_factory,
     )
     result = {
         "weights": which,
@@ -147,6 +180,7 @@ def evaluate_weights(
             eval_seed + 10_000,
             expert=expert,
             param_perturbation=perturb,
+            arm_factory=arm_factory,
         ).to_dict()
     return result
 
@@ -206,9 +240,10 @@ def apply_overrides(config: DDPGConfig, overrides: list[str]) -> DDPGConfig:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    arm_factory = params_arm_factory(args.params)
     if args.evaluate is not None:
         result = evaluate_weights(
-            args.evaluate, args.episodes, args.seed, args.perturb, args.expert_energy
+            args.evaluate, args.episodes, args.seed, args.perturb, args.expert_energy, arm_factory
         )
         print(json.dumps(result, indent=1))
         return 0
@@ -245,7 +280,7 @@ def main(argv: list[str] | None = None) -> int:
         print(line, flush=True)
 
     expert = make_expert(config)
-    trainer = Trainer(config, run_dir, expert=expert, log=log)
+    trainer = Trainer(config, run_dir, expert=expert, arm_factory=arm_factory, log=log)
     if args.resume:
         trainer.load()
         config.total_steps = max(config.total_steps, trainer.state.env_steps)

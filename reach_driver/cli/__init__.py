@@ -14,10 +14,11 @@ from collections.abc import Sequence
 from types import FrameType
 
 from rich.console import Console
+from rich.markup import escape
 
 from reach_driver.cli.commands import COMMANDS
 from reach_driver.cli.connect import safety_config
-from reach_driver.cli.exits import Exit
+from reach_driver.cli.exits import Exit, UsageError
 from reach_driver.cli.parser import build_parser
 from reach_driver.errors import (
     BadUrlError,
@@ -62,19 +63,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         errors.print("interrupted: arm left in a safe mode, link closed")
         return int(Exit.INTERRUPTED)
     except LimitError as exc:
-        errors.print(f"[red]limit[/]: {exc}")
+        errors.print(f"[red]limit[/]: {escape(str(exc))}")
         return int(Exit.LIMIT)
+    except UsageError as exc:
+        errors.print(f"[red]error[/]: {escape(str(exc))}")
+        return int(Exit.USAGE)
     except BadUrlError as exc:
-        errors.print(f"[red]error[/]: {exc}")
+        errors.print(f"[red]error[/]: {escape(str(exc))}")
         return int(Exit.USAGE)
     except (PortNotFoundError, PortPermissionError, GarbageError, NoResponseError) as exc:
-        errors.print(f"[red]no arm[/]: {exc}")
+        errors.print(f"[red]no arm[/]: {escape(str(exc))}")
         return int(Exit.NO_ARM)
     except TransportError as exc:
-        errors.print(f"[red]no arm[/]: {exc}")
+        errors.print(f"[red]no arm[/]: {escape(str(exc))}")
         return int(Exit.NO_ARM)
     except (LinkDownError, DriverError) as exc:
-        errors.print(f"[red]failed[/]: {exc}")
+        errors.print(f"[red]failed[/]: {escape(str(exc))}")
         return int(Exit.FAILED)
     finally:
         if signal.getsignal(signal.SIGTERM) is _raise_interrupt:

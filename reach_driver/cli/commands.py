@@ -12,13 +12,14 @@ from typing import Any
 import numpy as np
 from rich.console import Console
 from rich.live import Live
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from protocol import Mode, PacketID
 from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS
 from reach_driver.cli.connect import connect
-from reach_driver.cli.exits import Exit
-from reach_driver.cli.recorder import recorder_hook
+from reach_driver.cli.exits import Exit, UsageError
+from reach_driver.cli.recorder import CliRecorder
 from reach_driver.cli.render import (
     blocking_faults,
     info_json,
@@ -28,10 +29,12 @@ from reach_driver.cli.render import (
     print_recording,
     print_summary,
 )
-from reach_driver.control import ControlLoop, control_period
+from reach_driver.client import ArmClient
+from reach_driver.control import ControlLoop, Pacing, control_period
 from reach_driver.controllers import available_controllers, load_controller
 from reach_driver.errors import ArmFaultError, DriverError
-from reach_driver.records import ControlSummary, StepRecord
+from reach_driver.link import EventKind, LinkState
+from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind
 
 
@@ -55,7 +58,12 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
     try:
         devices = client.found_devices
         ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT, PacketID.MODE)
-        client.stream(ids, args.rate, devices)
+        rate = client.stream(ids, args.rate, devices)
+        if rate != args.rate:
+            console.print(
+                f"[yellow]--rate {args.rate} Hz is more than the line carries for "
+                f"{len(ids)} values of {len(devices)} devices: streaming at {rate} Hz[/yellow]"
+            )
         end = time.monotonic() + args.seconds if args.seconds else math.inf
         last_counts = client.table.count_snapshot()
         last_t = time.monotonic()
@@ -99,6 +107,7 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
         if args.jaw is not None:
             client.command_jaw(args.jaw)
         start_err = float(np.max(np.abs(target - q0))) or 1.0
+        move_started = client.clock()
         deadline = time.monotonic() + args.move_timeout
         with Progress(
             TextColumn("[bold]move[/]"),
@@ -123,6 +132,10 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 if worst <= args.tolerance and jaw_err <= args.jaw_tolerance:
                     progress.update(task, completed=1.0)
                     break
+                if client.link_state is not LinkState.UP:
+                    progress.stop()
+                    _report_link_lost(client, target, move_started)
+                    return Exit.LINK_LOST
                 faults = blocking_faults(state.faults, None)
                 if faults:
                     client.safe_stop(devices)
@@ -142,14 +155,52 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
         client.close()
 
 
+def _report_link_lost(client: ArmClient, target: np.ndarray, move_started: float) -> None:
+    """Why a move ended on a lost link: since when, and the last positions the arm sent."""
+    now = client.clock()
+    downs = [e.t for e in client.events if e.kind is EventKind.LINK_DOWN]
+    since = downs[-1] if downs else now
+    wall = time.time() - (now - since)
+    stamp = time.strftime("%H:%M:%S", time.localtime(wall)) + f".{int(wall * 1e3) % 1000:03d}"
+    state = client.state
+    positions = []
+    ages = []
+    for letter, dev in zip(JOINT_LETTERS, JOINTS, strict=True):
+        reading = state.joint(dev).position
+        if reading is None:
+            positions.append(f"{letter} -")
+        else:
+            positions.append(f"{letter} {reading.value:.4f}")
+            ages.append(reading.age(now))
+    age = f" ({max(ages):.2f} s old)" if ages else ""
+    goal = " ".join(f"{v:.4f}" for v in target)
+    message = (
+        f"during the move: {client.link_reason}; down for {now - since:.2f} s "
+        f"(since {stamp}, {since - move_started:.2f} s into the move); last known positions "
+        f"(rad) {' '.join(positions)}{age}. The arm was commanded to {goal} in position mode "
+        "and may still be moving there."
+    )
+    Console(stderr=True, highlight=False).print(
+        f"[red]link lost[/] {escape(message)}", soft_wrap=True
+    )
+
+
 def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
     params = dict(args.param)
-    controller = load_controller(args.controller, **params)
+    try:
+        controller = load_controller(args.controller, **params)
+    except (OSError, ValueError) as exc:  # a missing weights file, a bad gain...
+        given = " ".join(f"{k}={v}" for k, v in params.items())
+        raise UsageError(f"controller {args.controller!r} with --param {given}: {exc}") from None
     period, mismatch = control_period(controller, args.period)
+    if args.pacing == Pacing.STREAM.value and not 1 <= round(1.0 / period) <= 255:
+        raise UsageError(
+            f"period {period:g} s needs a {1.0 / period:.3g} Hz heartbeat; with --pacing stream "
+            "the period must be 1/255 s (3.9 ms) .. 1 s (--pacing poll allows down to 0.001 s)"
+        )
     if mismatch:
-        Console(stderr=True, highlight=False).print(f"[yellow]warning[/]: {mismatch}")
-    hook: Callable[[StepRecord], None] | None = None
-    finish: Callable[[ControlSummary | None, str | None], None] | None = None
+        Console(stderr=True, highlight=False).print(f"[yellow]warning[/]: {escape(mismatch)}")
+    recorder: CliRecorder | None = None
     client = connect(args, console)
     summary: ControlSummary | None = None
     error: str | None = None
@@ -170,7 +221,8 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
                 "target": target.tolist(),
                 "seconds": args.seconds,
             }
-            hook, finish = recorder_hook(args.record, meta)
+            recorder = CliRecorder(args.record, meta)
+        hook = recorder.on_step if recorder is not None else None
         loop = ControlLoop(client, controller, period, pacing=args.pacing, on_step=hook)
         try:
             summary = loop.run(target, args.seconds)
@@ -178,22 +230,33 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             error = "interrupted"
             raise
         error = summary.error
+        if recorder is not None:
+            recorder.finish(summary, error)  # before the last lines, which say how it went
         print_summary(console, summary)
         print_metrics(console, summary)
-        console.print(f"arm left in {summary.left_in}")
-        if args.record:
+        console.print(f"arm left in {escape(summary.left_in)}")
+        if recorder is not None and recorder.failed:
             console.print(
-                f"recorded {args.record}: open it with `rerun {args.record}`, "
-                f"summarise it with `reach-driver inspect {args.record}`",
+                f"[yellow]recording incomplete[/]: {escape(recorder.failed)}; what reached "
+                f"the file before that reads back with `reach-driver inspect "
+                f"{escape(args.record)}`",
+                soft_wrap=True,
+            )
+        elif args.record:
+            console.print(
+                f"recorded {escape(args.record)}: open it with `rerun {escape(args.record)}`, "
+                f"summarise it with `reach-driver inspect {escape(args.record)}`",
                 soft_wrap=True,  # keep the commands copyable
             )
         if summary.error:
-            console.print(f"[red]run failed[/]: {summary.error}")
+            console.print(f"[red]run failed[/]: {escape(summary.error)}")
             return Exit.FAILED
+        if recorder is not None and recorder.failed:
+            return Exit.RECORDING_INCOMPLETE
         return Exit.OK
     finally:
-        if finish is not None:
-            finish(summary, error)
+        if recorder is not None:
+            recorder.finish(summary, error)  # a no-op once finished
         client.close()
 
 
@@ -209,7 +272,7 @@ def cmd_inspect(args: argparse.Namespace, console: Console) -> Exit:
     try:
         summary: dict[str, Any] = summarize_recording(args.file)
     except (RecordingReadError, OSError) as exc:
-        console.print(f"[red]error[/]: cannot read {args.file}: {exc}")
+        console.print(f"[red]error[/]: cannot read {escape(args.file)}: {escape(str(exc))}")
         return Exit.FAILED
     if args.json:
         console.print_json(json.dumps(summary, default=float))

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import argparse
 import math
+import time
+from collections.abc import Callable
 
 from rich.console import Console
+from rich.markup import escape
 
 from protocol.alpha5 import JOINTS
 from reach_driver.client import ArmClient
@@ -28,16 +31,50 @@ def connect(args: argparse.Namespace, console: Console) -> ArmClient:
 
     # Events and warnings go to stderr so `info --json` stays parseable.
     notes = Console(stderr=True, highlight=False)
-
-    def report(event: ClientEvent) -> None:
-        style = "green" if event.kind in (EventKind.LINK_UP, EventKind.FAULT_CLEARED) else "red"
-        notes.print(f"[{style}]{event.kind.value}[/]: {event.message}")
-
-    client.on_event(report)
+    client.on_event(EventPrinter(notes))
     client.start()
     for warning in client.warnings:
-        notes.print(f"[yellow]warning[/]: {warning}")
+        notes.print(f"[yellow]warning[/]: {escape(warning)}")
     return client
+
+
+class EventPrinter:
+    """Prints client events, the arm's text escaped (`[MOTOR_OVER_TEMP]` is not markup). A
+    flapping status flag can raise thousands of fault events a second: the same fault line
+    (kind, device, text) is printed at most once per `interval_s`, and the next one printed
+    says how many were held back."""
+
+    RATE_LIMITED = frozenset({EventKind.FAULT, EventKind.FAULT_CLEARED})
+
+    def __init__(
+        self,
+        console: Console,
+        clock: Callable[[], float] = time.monotonic,
+        interval_s: float = 1.0,
+    ) -> None:
+        self.console = console
+        self.clock = clock
+        self.interval_s = interval_s
+        self._last: dict[tuple[str, int | None, str], float] = {}
+        self._held: dict[tuple[str, int | None, str], int] = {}
+
+    def __call__(self, event: ClientEvent) -> None:
+        style = "green" if event.kind in (EventKind.LINK_UP, EventKind.FAULT_CLEARED) else "red"
+        suffix = ""
+        if event.kind in self.RATE_LIMITED:
+            key = (event.kind.value, event.device, event.message)
+            now = self.clock()
+            last = self._last.get(key)
+            if last is not None and now - last < self.interval_s:
+                self._held[key] = self._held.get(key, 0) + 1
+                return
+            self._last[key] = now
+            held = self._held.pop(key, 0)
+            if held and last is not None:
+                suffix = f" ({held} more like this in the last {now - last:.1f} s, not shown)"
+        self.console.print(
+            f"[{style}]{event.kind.value}[/]: {escape(event.message)}{suffix}", soft_wrap=True
+        )
 
 
 def safety_config(args: argparse.Namespace) -> SafetyConfig:

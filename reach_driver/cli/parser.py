@@ -34,9 +34,12 @@ examples:
       --seconds 20 --record run.rrd
   reach-driver inspect run.rrd
 
-exit status: 0 done; 1 failed (timeout, fault, lost link); 2 bad usage; 3 refused by a
-limit (nothing moved); 4 no arm (wrong port, no permission, nothing answering, wrong baud);
-130 interrupted (arm left in a safe mode). docs/hil.md: using a real arm.
+exit status: 0 done; 1 failed (timeout, fault, lost link during run); 2 bad usage; 3 refused
+by a limit (nothing moved); 4 no arm (wrong port, no permission, nothing answering, wrong
+baud); 5 the link was lost during a move (the message says since when and the last known
+positions); 6 a run completed but its --record file is incomplete (a write error, e.g. a
+full disk: recording stopped, control went on); 130 interrupted (arm left in a safe mode).
+docs/hil.md: using a real arm.
 """
 
 
@@ -51,9 +54,48 @@ def _param(text: str) -> tuple[str, Any]:
     if not sep or not key:
         raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
     try:
-        return key, _floats(value)
+        number = _floats(value)
     except ValueError:
         return key, value
+    if not all(math.isfinite(v) for v in (number if isinstance(number, list) else [number])):
+        raise argparse.ArgumentTypeError(f"{key}: values must be finite numbers, got {value!r}")
+    return key, number
+
+
+MIN_PERIOD_S = 0.001
+
+
+def _period(text: str) -> float:
+    value = _positive(text)
+    if value < MIN_PERIOD_S:
+        raise argparse.ArgumentTypeError(
+            f"must be at least {MIN_PERIOD_S} s (1 ms), got {text}; with --pacing stream the "
+            "arm's heartbeat allows 1/255 s (3.9 ms) .. 1 s"
+        )
+    return value
+
+
+def _rate(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number of Hz, got {text!r}") from None
+    if not 1 <= value <= 255:
+        raise argparse.ArgumentTypeError(
+            f"must be 1..255 Hz (the arm's HEARTBEAT_FREQUENCY, one byte; 0 turns streaming "
+            f"off), got {text}"
+        )
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return value
 
 
 def _positive(text: str) -> float:
@@ -91,7 +133,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="seconds to wait for each reply before retrying (default 0.1)",
     )
     parser.add_argument(
-        "--retries", type=int, default=2, help="retries per request before giving up (default 2)"
+        "--retries",
+        type=_non_negative_int,
+        default=2,
+        help="retries per request before giving up (default 2)",
     )
     parser.add_argument(
         "--watchdog",
@@ -130,7 +175,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Stream positions, velocities, currents and modes and show them live "
         "with per-joint update rates and the link's error counters. Ctrl-C to stop.",
     )
-    mon.add_argument("--rate", type=int, default=10, help="heartbeat rate in Hz (default 10)")
+    mon.add_argument(
+        "--rate", type=_rate, default=10, help="heartbeat rate, 1..255 Hz (default 10)"
+    )
     mon.add_argument("--seconds", type=_positive, help="stop after this many seconds")
 
     move = sub.add_parser(
@@ -138,7 +185,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="position-mode move of E D C B (rad) and optionally the jaw (mm)",
         description="Move the four joints to absolute angles (rad, as the arm reports them) "
         "in position mode and wait until every joint is within --tolerance. Targets outside "
-        "the limits are refused before anything moves (exit 3).",
+        "the limits are refused before anything moves (exit 3). If the link goes down during the "
+        "move it stops waiting at once and exits 5, saying since when and the last positions "
+        "the arm reported.",
     )
     move.add_argument("angles", nargs=4, type=float, metavar=("E", "D", "C", "B"))
     move.add_argument("--jaw", type=float, metavar="MM", help="jaw opening in mm")
@@ -164,16 +213,20 @@ def build_parser() -> argparse.ArgumentParser:
         "wall time and gives the same metrics.",
         epilog="exit status: 0 the run completed (whether or not it reached the target: see "
         "'reached'); 1 it was cut short (lost link, watchdog, fault, controller error); 3 the "
-        "target is outside a limit (nothing moved); 4 no arm; 130 interrupted.",
+        "target is outside a limit (nothing moved); 4 no arm; 6 the run completed but writing "
+        "its --record file failed (a full disk...): recording never stops control, so the "
+        "warning names the file and the error, recording stops, the run goes on and its "
+        "summary is printed; 130 interrupted.",
     )
     run.add_argument("--controller", required=True, help="e.g. pid, mpc, ddpg")
     run.add_argument("--target", nargs=4, type=float, required=True, metavar=("E", "D", "C", "B"))
     run.add_argument("--seconds", type=_positive, required=True, help="loop (arm) seconds")
     run.add_argument(
         "--period",
-        type=_positive,
+        type=_period,
         help="control period in arm seconds (default: the controller's own, e.g. the rate a "
-        "policy was trained at, else 0.05)",
+        "policy was trained at, else 0.05); at least 0.001 s, and 1/255 .. 1 s with --pacing "
+        "stream (the arm's heartbeat is 1..255 Hz)",
     )
     run.add_argument(
         "--pacing",
@@ -189,7 +242,11 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KEY=VALUE",
         help="controller parameter (repeatable; comma-separated values give a list)",
     )
-    run.add_argument("--record", metavar="FILE.rrd", help="record the run for Rerun")
+    run.add_argument(
+        "--record",
+        metavar="FILE.rrd",
+        help="record the run for Rerun (a write error stops the recording, not the run: exit 6)",
+    )
 
     sub.add_parser("controllers", help="list the registered controllers")
     ins = sub.add_parser(

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from protocol import DeviceID, Mode, PacketID
@@ -134,7 +135,9 @@ def blocking_faults(flags: dict[int, list[str]], console: Console | None) -> str
         link = [n for n in names if n in LINK_FLAGS]
         other = [n for n in names if n not in LINK_FLAGS]
         if link and console is not None:
-            console.print(f"[yellow]warning[/]: {joint_name(dev)} reports {', '.join(link)}")
+            console.print(
+                f"[yellow]warning[/]: {joint_name(dev)} reports {escape(', '.join(link))}"
+            )
         if other:
             blocking.append(f"{joint_name(dev)}: {', '.join(other)}")
     return "; ".join(blocking)
@@ -207,16 +210,38 @@ def print_summary(console: Console, s: ControlSummary) -> None:
 
 def print_recording(console: Console, summary: dict[str, Any]) -> None:
     """A recording's summary (`reach-driver inspect`)."""
-    clean = (
-        ""
-        if summary.get("closed_cleanly", True)
-        else " [yellow](not closed cleanly: the "
-        "writer stopped early; everything before that is shown)[/]"
-    )
+    if summary.get("truncated"):
+        clean = (
+            f" [yellow](truncated: the file ends inside a message; the last "
+            f"{summary.get('truncated_bytes', 0)} bytes were skipped, everything before them "
+            "is shown)[/]"
+        )
+    elif not summary.get("closed_cleanly", True):
+        clean = (
+            " [yellow](not closed cleanly: the writer stopped early; everything before that "
+            "is shown)[/]"
+        )
+    else:
+        clean = ""
     console.print(
-        f"[bold]{summary['file']}[/]: {summary['steps']} steps, "
+        f"[bold]{escape(str(summary['file']))}[/]: {summary['steps']} steps, "
         f"{float(summary['duration_s']):.2f} s{clean}"
     )
+    if not summary["steps"]:
+        meta = summary.get("metadata") or {}
+        about = ", ".join(
+            f"{key} {meta[key]}"
+            for key in ("controller", "port", "target", "seconds", "period_s")
+            if key in meta
+        )
+        console.print(
+            "recorded by reach-stack, but no steps: the run ended (or was killed) before its "
+            f"first step{': ' + escape(about) if about else ''}",
+            soft_wrap=True,
+        )
+        for line in summary.get("events", []):
+            console.print(f"  {escape(str(line))}")
+        return
     joints = Table(title="final state (rad)")
     for col in ("joint", "target", "position", "error"):
         joints.add_column(col, justify="right")
@@ -242,4 +267,4 @@ def print_recording(console: Console, summary: dict[str, Any]) -> None:
         )
         console.print(table)
     for line in summary.get("events", []):
-        console.print(f"  {line}")
+        console.print(f"  {escape(str(line))}")

@@ -1,0 +1,708 @@
+#!/usr/bin/env python3
+"""Identify an Alpha 5 (virtual or real) through the driver and fit the twin to it.
+
+    reach-sim --link /tmp/alpha5 --speed 4 &
+    tools/identify.py --port /tmp/alpha5 --out arm.json            # excite, record, fit, report
+    tools/identify.py --fit-only arm.log.npz --out arm.json        # refit a recorded log
+    reach-sim --params arm.json ...                                # serve the fitted twin
+
+Each joint in turn is driven in current mode through `reach_driver` (`ArmClient` with its
+limits, barrier and watchdog on; `ControlLoop`, stream pacing, so time is the arm's) while
+the other joints are held by a PID: adaptive relay swings at three speeds and a current chirp
+(the fitting motions) and pseudo-random current steps and a second chirp at another pose (the
+validation motions), each inside a window around its pose (the excitation backs off near the
+window edges and above a speed limit), with a position-mode move to the segment's pose
+before each. Ctrl-C leaves the arm in the driver's safe mode (zero velocity).
+
+The log is a plain .npz (`reach_sim_bridge.sysid.save_segments`: per segment the loop's
+q, qdot, commands and measured currents on its tick grid); the fit is by simulation
+(`reach_sim_bridge.sysid`, docs/identification.md). Outputs: PARAMS.json in the `--params`
+format with the fit under "_fit" (the loader ignores keys starting with _): per parameter its
+value and 1-sigma uncertainty, the delay, R^2 and residual RMS; PARAMS.log.npz; and a report
+PARAMS.report/report.md with PNG figures (measured vs nominal twin vs fitted twin).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+from protocol import Mode, PacketID
+from protocol.alpha5 import (
+    FACTORY_POSITION_LIMITS,
+    JOINT_LETTERS,
+    JOINTS,
+    N_JOINTS,
+    TORQUE_PER_AMP_NM,
+)
+from reach_driver import ArmClient, ControlLoop, DriverError, SafetyConfig, open_transport
+from reach_driver.controllers import ControlState
+from reach_driver.interfaces import DEFAULT_BAUD
+from reach_sim_bridge.arm import Alpha5Arm
+from reach_sim_bridge.params import ArmParams, load_arm_params, save_arm_params
+from reach_sim_bridge.sysid import (
+    DEFAULT_WINDOW_S,
+    FitResult,
+    Replay,
+    Segment,
+    fit_arm,
+    load_segments,
+    quality,
+    ref_name,
+    save_segments,
+)
+
+K_MA = np.asarray(TORQUE_PER_AMP_NM) / 1000.0  # N m per mA, E D C B
+#: The middle of the factory envelope: the pose every identification starts and ends at.
+HOME = np.array(
+    [0.5 * (FACTORY_POSITION_LIMITS[d][0] + FACTORY_POSITION_LIMITS[d][1]) for d in JOINTS]
+)
+#: Fitting poses P1, P2 and the validation pose P3 (offsets from HOME, rad): D and C at other
+#: angles load them differently with gravity.
+POSE_OFFSETS = {
+    "P1": np.zeros(4),
+    "P2": np.array([0.5, -0.45, 0.5, 0.8]),
+    "P3": np.array([-0.5, 0.45, -0.45, -0.8]),
+}
+WINDOW = np.array([0.35, 0.35, 0.35, 0.6])  # rad each side of the pose, the excited joint
+GUARD = 0.15  # rad beyond the window: the excited joint is servoed back to its pose
+SPEED_CAP = np.array([0.45, 0.45, 0.45, 0.75])  # rad/s, under the factory rate limits
+HOLD_KP = np.array([3000.0, 3000.0, 3000.0, 300.0])  # mA/rad
+HOLD_KD = np.array([200.0, 200.0, 200.0, 20.0])  # mA s/rad
+HOLD_KI = np.array([6000.0, 6000.0, 6000.0, 600.0])  # mA/(rad s)
+HOLD_I_MAX = np.array([250.0, 250.0, 250.0, 60.0])  # mA the integral may add
+CHIRP_SPRING = np.array([600.0, 600.0, 600.0, 60.0])  # mA/rad centring the chirped joint
+CHIRP_DAMP = np.array([20.0, 20.0, 20.0, 2.0])  # mA s/rad
+
+
+@dataclass(frozen=True)
+class Wave:
+    """One excitation of one joint: relay (speed target), chirp, or random steps."""
+
+    kind: str  # "relay" | "chirp" | "steps"
+    pose: str  # "P1" | "P2" | "P3"
+    seconds: float
+    role: str  # "fit" | "validate"
+    speed: float = 0.25  # relay: rad/s peak speed aimed for
+    f0: float = 0.3  # chirp: Hz
+    f1: float = 3.0
+    gain: float = 1.5  # chirp: amplitude / the joint's relay amplitude; steps: spread
+    seed: int = 0
+
+    @property
+    def label(self) -> str:
+        detail = {
+            "relay": f"{self.speed:g} rad/s",
+            "chirp": f"{self.f0:g}-{self.f1:g} Hz",
+            "steps": f"seed {self.seed}",
+        }[self.kind]
+        return f"{self.kind} {detail} at {self.pose}"
+
+
+def plan(scale: float = 1.0) -> list[Wave]:
+    """The segments of one joint (arm seconds scale with `scale`)."""
+    s = scale
+    return [
+        Wave("relay", "P1", 8.0 * s, "fit", speed=0.15),
+        Wave("relay", "P1", 8.0 * s, "fit", speed=0.35),
+        Wave("chirp", "P1", 8.0 * s, "fit", f0=0.3, f1=5.0, gain=2.0),
+        Wave("relay", "P2", 8.0 * s, "fit", speed=0.25),
+        Wave("steps", "P3", 8.0 * s, "validate", gain=0.4, seed=1),
+        Wave("chirp", "P3", 6.0 * s, "validate", f0=0.5, f1=2.5, gain=1.3),
+    ]
+
+
+def pose(name: str) -> np.ndarray:
+    return HOME + POSE_OFFSETS[name]
+
+
+@dataclass
+class Amplitudes:
+    """The excitation current found per joint (mA), adapted by the relay swings."""
+
+    nominal: ArmParams = field(default_factory=ArmParams)
+    ratio: dict[int, float] = field(default_factory=dict)  # found / nominal estimate
+    found: dict[int, float] = field(default_factory=dict)  # the last relay's amplitude
+
+    def nominal_for(self, joint: int, speed: float) -> float:
+        """What the nominal twin needs to hold `speed` against friction (mA)."""
+        p = self.nominal
+        torque = p.frictionloss[joint] + p.damping[joint] * speed
+        return float(torque / K_MA[joint])
+
+    def start(self, joint: int, speed: float) -> float:
+        """A relay's first amplitude: the nominal estimate, corrected by earlier relays."""
+        return self.nominal_for(joint, speed) * self.ratio.get(joint, 1.0)
+
+    def learn(self, joint: int, speed: float, amplitude: float) -> None:
+        self.ratio[joint] = amplitude / self.nominal_for(joint, speed)
+        self.found[joint] = amplitude
+
+    def reference(self, joint: int) -> float:
+        """The current that chirps and steps are scaled by (mA)."""
+        return self.found.get(joint, self.start(joint, 0.25))
+
+
+class Excitation:
+    """A `Controller` exciting one joint with `wave` around `center` while holding the
+    others there (PID), with the nominal twin's gravity as feed-forward for all joints."""
+
+    def __init__(
+        self,
+        joint: int,
+        wave: Wave,
+        center: np.ndarray,
+        period: float,
+        amplitude: float,
+        amp_max: float,
+        gravity: Any,
+    ) -> None:
+        self.joint = joint
+        self.wave = wave
+        self.center = np.asarray(center, dtype=float)
+        self.period = period
+        self.amplitude = float(amplitude)
+        self.amp_max = float(amp_max)
+        self.gravity = gravity
+        self.rng = np.random.default_rng(wave.seed)
+        self.reset()
+
+    def reset(self) -> None:
+        self.integral = np.zeros(N_JOINTS)
+        self.direction = 1.0
+        self.peak = 0.0
+        self.pass_t = 0.0
+        self.stall_t = 0.0
+        self.step_end = -1.0
+        self.step_level = 0.0
+        self.flips = 0
+
+    def _hold(self, q: np.ndarray, qdot: np.ndarray) -> np.ndarray:
+        err = self.center - q
+        self.integral = np.clip(
+            self.integral + HOLD_KI * err * self.period, -HOLD_I_MAX, HOLD_I_MAX
+        )
+        return HOLD_KP * err - HOLD_KD * qdot + self.integral
+
+    def act(self, state: ControlState, target: np.ndarray) -> np.ndarray:
+        q, qdot, t = state.q, state.qdot, float(state.t)
+        j, w = self.joint, self.wave
+        ff = -np.asarray(self.gravity(q)) / K_MA  # mA holding the nominal twin's weight
+        out = ff + self._hold(q, qdot)
+        x = q[j] - self.center[j]
+        v = qdot[j]
+        if abs(x) > WINDOW[j] + GUARD:
+            # Outside the window and the guard band: servo back (the hold law, this joint).
+            return out
+        self.integral[j] = 0.0
+        if w.kind == "relay":
+            u = self._relay(x, v, t)
+        elif w.kind == "chirp":
+            tt = t
+            phase = 2 * math.pi * (w.f0 * tt + 0.5 * (w.f1 - w.f0) * tt * tt / w.seconds)
+            amp = w.gain * self.amplitude
+            u = amp * math.sin(phase) - CHIRP_SPRING[j] * x - CHIRP_DAMP[j] * v
+        else:
+            u = self._steps(x, t)
+        if abs(x) > WINDOW[j] and u * x > 0:
+            u = 0.0  # never push further out past the window edge
+        if abs(v) > SPEED_CAP[j] and u * v > 0:
+            u = 0.0  # coast down from above the speed cap
+        out[j] = ff[j] + float(np.clip(u, -self.amp_max, self.amp_max))
+        return out
+
+    def _relay(self, x: float, v: float, t: float) -> float:
+        j, w = self.joint, self.wave
+        self.peak = max(self.peak, abs(v))
+        edge = WINDOW[j] * 0.9
+        if (self.direction > 0 and x > edge) or (self.direction < 0 and x < -edge):
+            self.direction = -self.direction
+            self.flips += 1
+            self._adapt(w.speed)
+            self.peak = 0.0
+            self.pass_t = t
+        elif abs(v) < 0.02 and t - self.stall_t > 0.5 and t - self.pass_t > 0.5:
+            # Not moving: friction above what was tried; more current.
+            self.stall_t = t
+            if self.peak < 0.3 * w.speed:
+                self.amplitude = min(self.amplitude * 1.3, self.amp_max)
+        return self.direction * self.amplitude
+
+    def _adapt(self, speed: float) -> None:
+        if self.peak < 0.85 * speed:
+            self.amplitude = min(self.amplitude * 1.2, self.amp_max)
+        elif self.peak > 1.15 * speed:
+            self.amplitude *= 0.85
+
+    def _steps(self, x: float, t: float) -> float:
+        j, w = self.joint, self.wave
+        if t >= self.step_end:
+            self.step_end = t + float(self.rng.uniform(0.4, 1.0))
+            if self.rng.random() < 0.25:
+                self.step_level = 0.0
+            else:
+                sign = 1.0 if self.rng.random() < 0.5 else -1.0
+                if abs(x) > 0.5 * WINDOW[j]:
+                    sign = -math.copysign(1.0, x)
+                spread = float(self.rng.uniform(1.0 - w.gain, 1.0 + w.gain))
+                self.step_level = sign * spread * self.amplitude
+        if abs(x) > 0.9 * WINDOW[j] and self.step_level * x > 0:
+            self.step_level = -self.step_level
+        return self.step_level
+
+
+# -- driving the arm -----------------------------------------------------------------------
+
+
+RETRIES = 2  # per segment, after a watchdog trip
+
+
+def move_to(client: ArmClient, target: np.ndarray, timeout_s: float = 30.0) -> float:
+    """Position-mode move to `target` (checked by the driver); wall seconds it took."""
+    for dev, value in zip(JOINTS, target, strict=True):
+        client.guard.check(int(dev), _position_kind(), float(value))
+    t0 = time.monotonic()
+    client.set_mode(JOINTS, Mode.POSITION)
+    client.command_positions(target)
+    deadline = t0 + timeout_s
+    resend = t0 + 1.0
+    while True:
+        state = client.read_joints((PacketID.POSITION, PacketID.VELOCITY))
+        err = np.abs(target - state.q)
+        if np.all(err < 0.01) and np.all(np.abs(state.qdot) < 0.03):
+            break
+        faults = client.blocking_faults()
+        if faults:
+            client.safe_stop(JOINTS)
+            raise DriverError(f"fault during a move, joints stopped: {faults}")
+        now = time.monotonic()
+        if now > deadline:
+            raise DriverError(f"move to {target.round(3).tolist()} timed out ({err.max():.3f})")
+        if now > resend:  # a lost packet must not stall the move
+            client.command_positions(target)
+            resend = now + 1.0
+        time.sleep(0.02)
+    return time.monotonic() - t0
+
+
+def _position_kind() -> Any:
+    from reach_driver import LimitKind
+
+    return LimitKind.POSITION
+
+
+@dataclass
+class Session:
+    segments: list[Segment] = field(default_factory=list)
+    arm_seconds: float = 0.0  # in current mode, exact (ticks)
+    move_seconds: float = 0.0  # in moves, wall x the measured arm speed
+    arm_speed: float = 1.0
+    retries: int = 0  # segments run again after a watchdog trip (a stalled host)
+
+
+def excite(
+    client: ArmClient,
+    joints: Sequence[int],
+    waves: Sequence[Wave],
+    rate_hz: float,
+    console: Console,
+    session: Session,
+    max_current: np.ndarray,
+) -> None:
+    """Run every wave on every joint, appending to `session` as segments finish."""
+    period = 1.0 / rate_hz
+    twin = Alpha5Arm()
+    amps = Amplitudes()
+    total = sum(w.seconds for w in waves) * len(joints)
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed:.0f}/{task.total:.0f} arm s"),
+        TimeElapsedColumn(),
+        TextColumn("{task.fields[detail]}"),
+        console=console,
+    ) as progress:
+        task = progress.add_task("identify", total=total, detail="")
+        for j in joints:
+            letter = JOINT_LETTERS[j]
+            for k, wave in enumerate(waves):
+                center = pose(wave.pose)
+                for attempt in range(RETRIES + 1):
+                    progress.update(task, detail=f"{letter}: move to {wave.pose}")
+                    wall = move_to(client, center)
+                    session.move_seconds += wall * session.arm_speed
+                    start = amps.start(j, wave.speed) if wave.kind == "relay" else amps.reference(j)
+                    controller = Excitation(
+                        j,
+                        wave,
+                        center,
+                        period,
+                        amplitude=start,
+                        amp_max=0.8 * float(max_current[j]),
+                        gravity=twin.gravity_torque,
+                    )
+                    progress.update(task, detail=f"{letter}: {wave.label}")
+                    loop = ControlLoop(client, controller, period)
+                    summary = loop.run(center, wave.seconds)
+                    if not summary.error:
+                        break
+                    if client.tripped is None or attempt == RETRIES:
+                        raise DriverError(f"{letter} {wave.label}: {summary.stopped_by}")
+                    # The host stalled past the watchdog (the arm went to zero velocity):
+                    # say so, re-arm and run the segment again from its pose.
+                    session.retries += 1
+                    console.print(f"[yellow]{letter} {wave.label}: {client.tripped}; again[/]")
+                    client.rearm()
+                trace = summary.trace
+                if trace is None:
+                    raise DriverError(f"{letter} {wave.label}: no trace")
+                session.arm_speed = summary.timing.arm_speed or session.arm_speed
+                if wave.kind == "relay":
+                    amps.learn(j, wave.speed, controller.amplitude)
+                session.segments.append(
+                    Segment(
+                        name=f"{letter}{k}-{wave.kind}-{wave.pose}",
+                        joint=j,
+                        role=wave.role,
+                        period=trace.dt,
+                        q=trace.q,
+                        qdot=trace.qdot,
+                        command_mA=trace.command_mA,
+                        current_mA=trace.current_mA,
+                        meta={
+                            "wave": wave.label,
+                            "pose": center.tolist(),
+                            "amplitude_mA": controller.amplitude,
+                            "flips": controller.flips,
+                            "saturated_steps": summary.saturated_steps,
+                            "barrier_steps": summary.barrier_steps,
+                            "left_in": summary.left_in,
+                        },
+                    )
+                )
+                session.arm_seconds += trace.t[-1]
+                progress.update(task, advance=wave.seconds)
+        progress.update(task, detail="home")
+        session.move_seconds += move_to(client, HOME) * session.arm_speed
+
+
+# -- fitting and reporting -----------------------------------------------------------------
+
+
+@dataclass
+class FitOutcome:
+    params: ArmParams
+    delay_s: float
+    results: dict[int, FitResult]
+    nominal_quality: dict[str, Any]
+    fitted_quality: dict[str, Any]
+    fit_seconds: float
+
+
+def fit(
+    segments: Sequence[Segment],
+    console: Console,
+    window_s: float = DEFAULT_WINDOW_S,
+    max_iter: int = 12,
+) -> tuple[FitOutcome, Replay]:
+    t0 = time.monotonic()
+    replay = Replay(window_s=window_s)
+    nominal = ArmParams()
+
+    def on_joint(j: int, r: FitResult) -> None:
+        cells = ", ".join(
+            f"{ref_name(ref)} {v:.4g} +- {s:.2g}"
+            for ref, v, s in zip(r.refs, r.values, r.sigma, strict=True)
+        )
+        console.print(
+            f"fitted {JOINT_LETTERS[j]} in {r.iterations} iterations ({r.rollouts} rollouts): "
+            f"{cells}"
+        )
+
+    def on_iter(j: int, it: int, cost: float) -> None:
+        console.print(f"  {JOINT_LETTERS[j]} iteration {it}: cost {cost:.4g}", style="dim")
+
+    params, delay, results = fit_arm(
+        replay,
+        segments,
+        nominal,
+        0.005,
+        max_iter=max_iter,
+        on_joint=on_joint,
+        on_iteration=on_iter,
+    )
+    nominal_delay = delay  # the delay is a property of the link, not of the twin
+    nom_q: dict[str, Any] = {}
+    fit_q: dict[str, Any] = {}
+    for role in ("fit", "validate"):
+        for j in sorted({s.joint for s in segments}):
+            segs = [s for s in segments if s.joint == j and s.role == role]
+            if not segs:
+                continue
+            key = f"{role}/{JOINT_LETTERS[j]}"
+            for label, w in (("window", window_s), ("open_loop", 0.0)):
+                nom_q.setdefault(key, {})[label] = quality(
+                    replay, nominal, nominal_delay, segs, w
+                ).as_dict()
+                fit_q.setdefault(key, {})[label] = quality(replay, params, delay, segs, w).as_dict()
+    outcome = FitOutcome(params, delay, results, nom_q, fit_q, time.monotonic() - t0)
+    return outcome, replay
+
+
+def fit_metadata(
+    outcome: FitOutcome, session: Session | None, window_s: float, log_path: Path | None
+) -> dict[str, Any]:
+    params_table: dict[str, Any] = {}
+    for r in outcome.results.values():
+        params_table.update(r.table())
+    return {
+        "method": "least squares over MuJoCo rollouts (reach_sim_bridge.sysid), multiple "
+        f"shooting over {window_s:g} s windows; docs/identification.md",
+        "parameters": params_table,
+        "delay_s": outcome.delay_s,
+        "quality_fitted": outcome.fitted_quality,
+        "quality_nominal": outcome.nominal_quality,
+        "sigma_note": "1 sigma from sqrt(diag(s^2 (J^T J)^-1)) at the optimum; residuals are "
+        "correlated in time, so these understate the true uncertainty",
+        "arm_seconds": None if session is None else session.arm_seconds + session.move_seconds,
+        "log": None if log_path is None else str(log_path),
+        "fit_seconds": outcome.fit_seconds,
+    }
+
+
+def write_report(
+    outcome: FitOutcome,
+    replay: Replay,
+    segments: Sequence[Segment],
+    out_dir: Path,
+    window_s: float,
+    session: Session | None,
+    truth: ArmParams | None,
+) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    nominal = ArmParams()
+    lines = ["# Identification report", ""]
+    if session is not None:
+        lines += [
+            f"Arm time: {session.arm_seconds:.1f} s excitation + ~{session.move_seconds:.1f} s "
+            f"moves; fit: {outcome.fit_seconds:.0f} s CPU-bound wall time.",
+            "",
+        ]
+    lines += [f"Transport delay (fitted): {outcome.delay_s * 1e3:.1f} ms.", ""]
+    header = "| parameter | nominal | fitted | 1 sigma |"
+    rule = "|---|---|---|---|"
+    if truth is not None:
+        header += " truth | error |"
+        rule += "---|---|"
+    lines += ["## Parameters", "", header, rule]
+    for r in outcome.results.values():
+        for ref, v, s in zip(r.refs, r.values, r.sigma, strict=True):
+            name, idx = ref
+            nom = 0.005 if name == "delay_s" else getattr(nominal, name)[idx]
+            row = f"| {ref_name(ref)} | {nom:.4g} | {v:.4g} | {s:.2g} |"
+            if truth is not None:
+                if name == "delay_s":
+                    row += " - | - |"
+                else:
+                    tv = getattr(truth, name)[idx]
+                    row += f" {tv:.4g} | {100 * (v - tv) / tv:+.1f} % |"
+            lines.append(row)
+    lines += [
+        "",
+        f"## Prediction quality ({window_s:g} s windows from the measured state, and open "
+        "loop over whole segments)",
+        "",
+        "| motions / joint | twin | R^2 window | RMS window mrad | R^2 open loop | "
+        "RMS open loop mrad |",
+        "|---|---|---|---|---|---|",
+    ]
+    for key in outcome.fitted_quality:
+        for twin, table in (
+            ("nominal", outcome.nominal_quality),
+            ("fitted", outcome.fitted_quality),
+        ):
+            qw, qo = table[key]["window"], table[key]["open_loop"]
+            lines.append(
+                f"| {key} | {twin} | {qw['r2']:.4f} | {qw['rms_mrad']:.2f} | {qo['r2']:.4f} | "
+                f"{qo['rms_mrad']:.2f} |"
+            )
+    lines += ["", "## Validation motions", ""]
+    for seg in segments:
+        if seg.role != "validate":
+            continue
+        j = seg.joint
+        t = np.arange(seg.ticks + 1) * seg.period
+        fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
+        nom_r = replay.simulate(nominal, outcome.delay_s, seg, window_s)
+        fit_r = replay.simulate(outcome.params, outcome.delay_s, seg, window_s)
+        axes[0].plot(t, seg.q[:, j], "k", lw=1.5, label="measured")
+        axes[0].plot(t, nom_r.q[:, j], "C1", lw=1, label="nominal twin")
+        axes[0].plot(t, fit_r.q[:, j], "C0--", lw=1, label="fitted twin")
+        axes[0].set_ylabel(f"{JOINT_LETTERS[j]} angle (rad)")
+        axes[0].legend(loc="best", fontsize=8)
+        axes[1].plot(t, 1e3 * (nom_r.q[:, j] - seg.q[:, j]), "C1", lw=1, label="nominal")
+        axes[1].plot(t, 1e3 * (fit_r.q[:, j] - seg.q[:, j]), "C0", lw=1, label="fitted")
+        axes[1].set_ylabel("error (mrad)")
+        axes[1].legend(loc="best", fontsize=8)
+        axes[2].plot(t, seg.command_mA[:, j], "k", lw=1)
+        axes[2].set_ylabel("command (mA)")
+        axes[2].set_xlabel(f"arm time (s); {window_s:g} s windows start from the measured state")
+        fig.suptitle(f"{seg.name}: {seg.meta.get('wave', '')}")
+        fig.tight_layout()
+        png = out_dir / f"{seg.name}.png"
+        fig.savefig(png, dpi=90)
+        plt.close(fig)
+        lines += [f"![{seg.name}]({png.name})", ""]
+    path = out_dir / "report.md"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+# -- command line --------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="identify.py",
+        description=__doc__.split("\n\n")[0] if __doc__ else "",
+        epilog="Method: docs/identification.md. Real arms: docs/hil.md (identification).",
+    )
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--port", help="the arm, as reach-driver --port takes it")
+    src.add_argument("--fit-only", type=Path, metavar="LOG.npz", help="refit a recorded log")
+    p.add_argument("--out", type=Path, required=True, metavar="PARAMS.json")
+    p.add_argument("--log", type=Path, metavar="LOG.npz", help="default: PARAMS.log.npz")
+    p.add_argument("--report", type=Path, metavar="DIR", help="default: PARAMS.report/")
+    p.add_argument("--no-report", action="store_true")
+    p.add_argument(
+        "--joints", default="E,D,C,B", help="joints to identify, comma-separated (default all)"
+    )
+    p.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        help="scale every segment's length (default 1: 46 arm s per joint, ~4 min for "
+        "four joints with the moves)",
+    )
+    p.add_argument("--rate", type=float, default=50.0, help="control rate, Hz (default 50)")
+    p.add_argument("--baud", type=int, default=DEFAULT_BAUD, help="serial baud rate")
+    p.add_argument(
+        "--max-current",
+        type=float,
+        default=300.0,
+        metavar="MA",
+        help="cap on the excitation's current per joint in mA (default 300; B at most "
+        "half of it), also given to the driver as its current limit",
+    )
+    p.add_argument("--watchdog", type=float, default=0.2, metavar="S")
+    p.add_argument("--window", type=float, default=DEFAULT_WINDOW_S, metavar="S")
+    p.add_argument("--iterations", type=int, default=12)
+    p.add_argument(
+        "--truth",
+        type=Path,
+        metavar="PARAMS.json",
+        help="a virtual arm's true parameters: the report adds the error of each",
+    )
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    console = Console(stderr=True)
+    out: Path = args.out
+    log_path: Path = args.log or out.with_suffix(".log.npz")
+    report_dir: Path = args.report or out.with_suffix(".report")
+    try:
+        joints = [JOINT_LETTERS.index(x.strip().upper()) for x in args.joints.split(",")]
+    except ValueError:
+        console.print(f"[red]error:[/] --joints takes letters of E D C B, got {args.joints!r}")
+        return 2
+    truth = load_arm_params(args.truth) if args.truth else None
+    session: Session | None = None
+    if args.fit_only is not None:
+        segments = load_segments(args.fit_only)
+        log_path = args.fit_only
+    else:
+        max_current = np.array([1.0, 1.0, 1.0, 0.5]) * args.max_current
+        safety = SafetyConfig(
+            watchdog_s=args.watchdog,
+            current_limits_mA={int(d): float(m) for d, m in zip(JOINTS, max_current, strict=True)},
+        )
+        session = Session()
+        try:
+            client = ArmClient(open_transport(args.port, baud=args.baud), safety=safety)
+            client.start()
+        except (DriverError, ValueError) as exc:
+            console.print(f"[red]no arm:[/] {exc}")
+            return 4
+        interrupted = False
+        try:
+            faults = client.blocking_faults()
+            if faults:
+                console.print(f"[red]arm reports faults, not moving:[/] {faults}")
+                return 1
+            excite(client, joints, plan(args.scale), args.rate, console, session, max_current)
+        except KeyboardInterrupt:
+            interrupted = True
+        except DriverError as exc:
+            console.print(f"[red]identification stopped:[/] {exc}")
+            interrupted = True
+        finally:
+            try:
+                client.safe_stop(JOINTS)
+                left = "zero_velocity"
+            except DriverError as exc:
+                left = f"unknown ({exc})"
+            client.close()
+            console.print(f"arm left in {left}")
+            if session.segments:
+                header = {
+                    "port": args.port,
+                    "rate_hz": args.rate,
+                    "scale": args.scale,
+                    "arm_seconds": session.arm_seconds,
+                    "move_seconds": session.move_seconds,
+                    "complete": not interrupted,
+                    "retries": session.retries,
+                }
+                save_segments(session.segments, log_path, header)
+                console.print(f"log {log_path} ({len(session.segments)} segments)")
+        if interrupted:
+            return 130
+        segments = session.segments
+        console.print(
+            f"arm time {session.arm_seconds:.1f} s excitation + ~{session.move_seconds:.1f} s moves"
+        )
+    outcome, replay = fit(segments, console, args.window, args.iterations)
+    meta = fit_metadata(outcome, session, args.window, log_path)
+    save_arm_params(outcome.params, out, extra={"_fit": meta})
+    console.print(f"wrote {out}")
+    for key, q in outcome.fitted_quality.items():
+        nom = outcome.nominal_quality[key]["window"]
+        console.print(
+            f"{key}: R^2 {q['window']['r2']:.4f} RMS {q['window']['rms_mrad']:.2f} mrad "
+            f"(nominal twin {nom['r2']:.4f}, {nom['rms_mrad']:.2f} mrad)"
+        )
+    if not args.no_report:
+        path = write_report(outcome, replay, segments, report_dir, args.window, session, truth)
+        console.print(f"report {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
