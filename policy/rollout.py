@@ -9,6 +9,7 @@ with like.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import asdict, dataclass, field
@@ -204,7 +205,12 @@ def no_load_speeds() -> np.ndarray:
 
 
 def score(episode: Episode, trace: Trace, currents_mA: np.ndarray) -> EpisodeResult:
-    """The one scorer: `reach_driver.metrics` on the true trace, and its RMSE floor."""
+    """The one scorer: `reach_driver.metrics` on the true trace, and its RMSE floor.
+
+    The commands go into the trace (unless it has them) so the rest metric counts their
+    reversals, whichever backend produced it."""
+    if trace.command_mA is None:
+        trace = dataclasses.replace(trace, command_mA=np.asarray(currents_mA, dtype=float))
     n = trace.q.shape[0] - 1
     floor = rmse_floor(episode.start, trace.target, no_load_speeds(), trace.dt, n)
     return EpisodeResult(episode, trace, currents_mA, compute_metrics(trace), floor)

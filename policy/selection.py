@@ -1,32 +1,37 @@
 """The rule that picks which trained actor ships (tools/select_weights.py runs it).
 
 Fixed before looking at Table I's episodes: among the candidates that reach every scenario and
-every selection episode and have no restless episode, the one better than the reference
+every selection episode and have no restless episode (one not at rest, docs/metrics.md "Rest",
+on the stability screen), the one better than the reference
 controller on the most of Table I's six metrics; ties go to the lowest mean ratio
 candidate / reference over the six.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from policy.batched import eval_envs
-from policy.ddpg_controller import make_controller
+from policy.campaign import run_on_ray
 from policy.env import EnvConfig
+from policy.rollout import Episode, EpisodeResult, score
 from policy.scenarios import SCENARIOS, TABLE_KEYS, wins
 from policy.weights import ActorWeights
 from protocol.alpha5 import N_JOINTS
-from reach_driver.controllers import ControlState
+from reach_driver.controllers import ControlState, load_controller
+from reach_driver.metrics import Metrics, Trace
 
-#: mean |qdot| over an episode's last REST_WINDOW_S above which a joint is not at rest (rad/s)
-RESTLESS_SPEED = 0.05
-REST_WINDOW_S = 5.0
 #: screen episode i is reset with `seed * SCREEN_SEED_STRIDE + i`
 SCREEN_SEED_STRIDE = 1_000
+SCREENED = "ddpg"
+"""The screen runs the actor as shipped (with its reference integral), built by this name."""
+
+ControllerFactory = Callable[[Path], Any]
 
 
 def weights_of(candidate: Path) -> Path:
@@ -37,37 +42,92 @@ def weights_of(candidate: Path) -> Path:
     return path
 
 
+def _shipped(path: Path) -> Any:
+    return load_controller(SCREENED, weights=str(path))
+
+
+def _screen(
+    path: Path, indices: Sequence[int], seed: int, perturb: float, factory: ControllerFactory
+) -> list[EpisodeResult]:
+    """Screen episodes ``indices`` in lock-step on the training env, each scored by the one
+    scorer (`policy.rollout.score`) on the true state, commands included."""
+    weights = ActorWeights.load(path)
+    envs = eval_envs(
+        EnvConfig.from_dict(weights.metadata["env"]), len(indices), param_perturbation=perturb
+    )
+    controllers = [factory(path) for _ in envs]
+    for i, env, ctrl in zip(indices, envs, controllers, strict=True):
+        env.reset(seed=seed * SCREEN_SEED_STRIDE + i)
+        ctrl.reset()
+    steps = envs[0].config.steps_per_episode
+    dt = envs[0].control_dt
+    shape = (steps + 1, len(envs), N_JOINTS)
+    q, qdot, tau, power, command = (np.zeros(shape) for _ in range(5))
+    q[0] = np.stack([env.arm.q for env in envs])
+    for k in range(steps):
+        for n, (env, ctrl) in enumerate(zip(envs, controllers, strict=True)):
+            reading_q, reading_qdot = env.last_reading  # what the sensors said, noise included
+            state = ControlState(q=reading_q, qdot=reading_qdot, t=k * dt)
+            info = env.step(np.asarray(ctrl.act(state, env.target)) / weights.current_limits_mA)
+            q[k + 1, n], qdot[k + 1, n], tau[k + 1, n] = env.arm.q, env.arm.qdot, env.arm.tau
+            power[k + 1, n] = info[4]["power"]
+            command[k + 1, n] = env.prev_action * env.current_limits_mA
+    out = []
+    for n, env in enumerate(envs):
+        trace = Trace(dt, q[:, n], qdot[:, n], tau[:, n], env.target.copy(), power[:, n])
+        episode = Episode(q[0, n], env.target, np.asarray(env.arm.torque_scale))
+        out.append(score(episode, trace, command[:, n]))
+    return out
+
+
+@dataclass(frozen=True)
+class ScreenJob:
+    """One screen episode for a Ray worker (the controller is built there, by name)."""
+
+    weights: str
+    index: int
+    seed: int
+    perturb: float
+
+
+def screen_job(job: ScreenJob) -> Metrics:
+    return _screen(Path(job.weights), [job.index], job.seed, job.perturb, _shipped)[0].metrics
+
+
+def screen(
+    path: Path,
+    episodes: int,
+    seed: int,
+    perturb: float,
+    factory: ControllerFactory | None = None,
+    workers: int | None = None,
+    address: str | None = None,
+) -> list[Metrics]:
+    """Every screen episode's metrics, the actor run as shipped (`factory(path)`, by default
+    the `ddpg` controller with these weights). With ``workers`` or ``address`` the episodes
+    run on Ray (`policy.campaign`) with the same results: each env's randomness comes from
+    its own reset seed. A custom ``factory`` runs in this process only."""
+    if workers is None and address is None:
+        results = _screen(path, range(episodes), seed, perturb, factory or _shipped)
+        return [r.metrics for r in results]
+    if factory is not None:
+        raise ValueError("a custom controller factory cannot be sent to Ray workers")
+    jobs = [ScreenJob(str(path), i, seed, perturb) for i in range(episodes)]
+    return run_on_ray(screen_job, jobs, workers, address)
+
+
 def restless_episodes(
     path: Path,
     episodes: int,
     seed: int,
     perturb: float,
-    factory: Callable[[Path], Any] = make_controller,
+    factory: ControllerFactory | None = None,
+    workers: int | None = None,
+    address: str | None = None,
 ) -> list[int]:
-    """Screen episodes whose arm is still moving at the end, each run by the controller as
-    shipped (`factory(path)`: the actor with its reference integral) on the training env."""
-    weights = ActorWeights.load(path)
-    envs = eval_envs(
-        EnvConfig.from_dict(weights.metadata["env"]), episodes, param_perturbation=perturb
-    )
-    for env in envs:
-        env.measure_power = False  # only speeds are screened
-    controllers = [factory(path) for _ in envs]
-    for i, (env, ctrl) in enumerate(zip(envs, controllers, strict=True)):
-        env.reset(seed=seed * SCREEN_SEED_STRIDE + i)
-        ctrl.reset()
-    steps = envs[0].config.steps_per_episode
-    dt = envs[0].control_dt
-    window = int(round(REST_WINDOW_S / dt))
-    speed = np.zeros((episodes, N_JOINTS))
-    for k in range(steps):
-        for env, ctrl in zip(envs, controllers, strict=True):
-            q, qdot = env.last_reading  # what the sensors said, noise included
-            state = ControlState(q=q, qdot=qdot, t=k * dt)
-            env.step(np.asarray(ctrl.act(state, env.target)) / weights.current_limits_mA)
-        if k >= steps - window:
-            speed += np.abs(np.stack([env.arm.qdot for env in envs])) / window
-    return [i for i in range(episodes) if np.any(speed[i] > RESTLESS_SPEED)]
+    """Screen episodes that do not come to rest (`Metrics.at_rest`, docs/metrics.md "Rest")."""
+    metrics = screen(path, episodes, seed, perturb, factory, workers, address)
+    return [i for i, m in enumerate(metrics) if not m.at_rest]
 
 
 def choose(rows: list[dict[str, Any]], reference: dict[str, float]) -> dict[str, Any] | None:

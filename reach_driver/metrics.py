@@ -16,6 +16,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, TORQUE_PER_AMP_NM
+
 OVERSHOOT_MIN_STEP_RAD = 0.05
 """Joints whose step is smaller than this are left out of the overshoot (ratio is noise)."""
 SETTLING_BAND_FRACTION = 0.02
@@ -25,7 +27,23 @@ SETTLING_BAND_MIN_RAD = 0.01
 STEADY_STATE_WINDOW_S = 2.0
 """MSSE averages |e| over the last this many seconds."""
 REACHED_TOL_RAD = 0.02
-"""An episode reached its target when every final |e_j| is below this (rad)."""
+"""An episode reached its target when every final |e_j| is below this (and it is at rest)."""
+REST_WINDOW_S = 2.0
+"""Rest speed and command reversals are measured over the last this many seconds (from the
+settling time on, if that is later: `rest_window`)."""
+REST_SPEED_RMS_MAX = 0.05
+"""At rest: every joint's RMS true speed over the rest window at most this (rad/s). Settled
+episodes measure <= 0.014 rad/s (the MPC's worst), the chattering one 1.15 (docs/metrics.md,
+"Rest")."""
+REVERSAL_CURRENT_FRACTION = 0.10
+"""A command counts towards reversals only when |u_j| exceeds this fraction of the joint's
+current limit (60 mA on E D C, 30 mA on B), so noise around a zero hold is not chatter."""
+REST_REVERSALS_MAX = 4
+"""At rest: at most this many command sign reversals per joint in the rest window (settled: 0,
+chattering: 39 of 40 periods)."""
+REST_ENERGY_AFTER_SETTLING_MAX_J = 0.5
+"""At rest: at most this much energy spent after the settling time (J; settled <= 0.28, a
+burst of chatter that dies out 1.1-1.4, chatter to the end 20-50)."""
 
 METRIC_KEYS = (
     "energy_j",
@@ -36,6 +54,11 @@ METRIC_KEYS = (
     "settling_time_s",
     "reached",
 )
+"""The paper's six and `reached` (tables that list these keep working unchanged)."""
+REST_KEYS = ("at_rest", "rest_speed_rms", "command_reversals", "energy_after_settling_j")
+"""The rest metric and the numbers behind it (docs/metrics.md, "Rest")."""
+ALL_METRIC_KEYS = METRIC_KEYS + REST_KEYS
+"""Every field of `Metrics`: what `summarize` averages and evaluation summaries report."""
 
 
 @dataclass(frozen=True)
@@ -50,6 +73,9 @@ class Trace:
     power: np.ndarray | None = None
     """(N+1, 4) mean |tau qdot| over the period ending at each sample (W), integrated at the
     physics rate by the runner; without it |tau qdot| at the samples stands in for it."""
+    command_mA: np.ndarray | None = None
+    """(N+1, 4) current commanded over the period ending at each sample (mA); without it the
+    rest metric counts reversals of tau / TORQUE_PER_AMP_NM instead."""
 
     def __post_init__(self) -> None:
         if not self.dt > 0:
@@ -57,7 +83,7 @@ class Trace:
         q = np.asarray(self.q, dtype=float)
         if q.ndim != 2 or q.shape[0] < 2:
             raise ValueError(f"q must be (N+1, joints) with N >= 1, got shape {q.shape}")
-        for name in ("qdot", "tau", "power"):
+        for name in ("qdot", "tau", "power", "command_mA"):
             if getattr(self, name) is None:
                 continue
             arr = np.asarray(getattr(self, name), dtype=float)
@@ -89,6 +115,16 @@ class Metrics:
     overshoot_pct: float
     settling_time_s: float
     reached: bool
+    """Final errors inside REACHED_TOL_RAD and the episode at rest."""
+    # The rest metric (docs/metrics.md, "Rest"). Defaults keep hand-built Metrics valid: a
+    # Metrics built without rest figures claims nothing against rest.
+    at_rest: bool = True
+    rest_speed_rms: float = 0.0
+    """Worst joint's RMS true speed over the last REST_WINDOW_S (rad/s)."""
+    command_reversals: int = 0
+    """Worst joint's sign reversals of commands above the current threshold, last window."""
+    energy_after_settling_j: float = 0.0
+    """Energy spent after the settling time (J); 0 if the episode never settled."""
 
     def as_dict(self) -> dict[str, float | bool]:
         return asdict(self)
@@ -96,10 +132,16 @@ class Metrics:
 
 def energy(trace: Trace) -> float:
     """Mechanical energy delivered by the motors, sum |tau qdot| dt (J); braking counts too."""
+    return energy_after(trace, 0.0)
+
+
+def energy_after(trace: Trace, t: float) -> float:
+    """Energy spent in the periods that end after time ``t`` (J); 0 from the last sample on."""
+    first = int(round(t / trace.dt)) + 1
     if trace.power is not None:
-        power = np.abs(np.asarray(trace.power, dtype=float)[1:])
+        power = np.abs(np.asarray(trace.power, dtype=float)[first:])
     else:
-        power = np.abs(np.asarray(trace.tau)[1:] * np.asarray(trace.qdot)[1:])
+        power = np.abs(np.asarray(trace.tau)[first:] * np.asarray(trace.qdot)[first:])
     return float(power.sum() * trace.dt)
 
 
@@ -172,16 +214,92 @@ def reached(errors: np.ndarray, tol: float = REACHED_TOL_RAD) -> bool:
     return bool(np.all(np.abs(np.asarray(errors, dtype=float)[-1]) < tol))
 
 
+@dataclass(frozen=True)
+class Rest:
+    """Whether an episode came to rest, and the numbers behind the verdict."""
+
+    speed_rms: float
+    reversals: int
+    energy_after_settling_j: float
+
+    @property
+    def at_rest(self) -> bool:
+        return (
+            self.speed_rms <= REST_SPEED_RMS_MAX
+            and self.reversals <= REST_REVERSALS_MAX
+            and self.energy_after_settling_j <= REST_ENERGY_AFTER_SETTLING_MAX_J
+        )
+
+
+def rest_window(n_samples: int, dt: float, settling_time_s: float) -> int:
+    """How many of the last samples the rest metric looks at: those of the last REST_WINDOW_S,
+    but none before the settling time if the episode settled later than that (a short
+    episode's window would otherwise hold its motion). Never settled: the last REST_WINDOW_S."""
+    k = steady_state_samples(n_samples, dt, REST_WINDOW_S)
+    settled_at = int(round(settling_time_s / dt))
+    if settled_at < n_samples - 1:
+        k = min(k, n_samples - settled_at)
+    return k
+
+
+def rest_speed_rms(qdot: np.ndarray, samples: int) -> float:
+    """Worst joint's RMS speed over the last ``samples`` samples (rad/s)."""
+    v = np.asarray(qdot, dtype=float)[-samples:]
+    return float(np.sqrt(np.mean(v**2, axis=0)).max())
+
+
+def command_reversals(
+    command_mA: np.ndarray,
+    samples: int,
+    limits_mA: np.ndarray | tuple[float, ...] = DEFAULT_CURRENT_LIMITS_MA,
+) -> int:
+    """Worst joint's count of sign changes between successive commands whose magnitude
+    exceeds REVERSAL_CURRENT_FRACTION of its limit, over the last ``samples`` samples.
+
+    Bang-bang chatter reverses a large command every period; a joint holding still keeps
+    its command's sign (gravity) or stays below the threshold (noise around zero)."""
+    u = np.asarray(command_mA, dtype=float)[-samples:]
+    threshold = REVERSAL_CURRENT_FRACTION * np.asarray(limits_mA, dtype=float)
+    worst = 0
+    for j in range(u.shape[1]):
+        col = u[:, j]
+        signs = np.sign(col[np.abs(col) > threshold[j]])
+        worst = max(worst, int(np.count_nonzero(signs[1:] != signs[:-1])))
+    return worst
+
+
+def rest(trace: Trace, settling_time_s: float | None = None) -> Rest:
+    """The rest metric of ``trace`` (docs/metrics.md, "Rest")."""
+    if settling_time_s is None:
+        settling_time_s = settling_time(trace.q, trace.target, trace.dt)
+    if trace.command_mA is not None:
+        command = np.asarray(trace.command_mA, dtype=float)
+    else:
+        command = np.asarray(trace.tau, dtype=float) / np.asarray(TORQUE_PER_AMP_NM) * 1000.0
+    k = rest_window(trace.q.shape[0], trace.dt, settling_time_s)
+    return Rest(
+        speed_rms=rest_speed_rms(trace.qdot, k),
+        reversals=command_reversals(command, k),
+        energy_after_settling_j=energy_after(trace, settling_time_s),
+    )
+
+
 def compute_metrics(trace: Trace) -> Metrics:
     e = trace.errors
+    settling = settling_time(trace.q, trace.target, trace.dt)
+    still = rest(trace, settling)
     return Metrics(
         energy_j=energy(trace),
         rmse=rmse(e),
         mie=mean_integral_error(e, trace.dt),
         msse=mean_steady_state_error(e, trace.dt),
         overshoot_pct=overshoot_pct(trace.q, trace.target),
-        settling_time_s=settling_time(trace.q, trace.target, trace.dt),
-        reached=reached(e),
+        settling_time_s=settling,
+        reached=reached(e) and still.at_rest,
+        at_rest=still.at_rest,
+        rest_speed_rms=still.speed_rms,
+        command_reversals=still.reversals,
+        energy_after_settling_j=still.energy_after_settling_j,
     )
 
 
@@ -214,7 +332,9 @@ def rmse_floor(
 
 
 def summarize(metrics: list[Metrics]) -> dict[str, float]:
-    """Mean of every metric over episodes; ``reached`` becomes the reached fraction."""
+    """Mean of every metric over episodes; ``reached`` and ``at_rest`` become fractions."""
     if not metrics:
         raise ValueError("no episodes to summarize")
-    return {key: float(np.mean([float(getattr(m, key)) for m in metrics])) for key in METRIC_KEYS}
+    return {
+        key: float(np.mean([float(getattr(m, key)) for m in metrics])) for key in ALL_METRIC_KEYS
+    }

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from reach_driver.metrics import (
-    METRIC_KEYS,
+    ALL_METRIC_KEYS,
     Metrics,
     Trace,
     compute_metrics,
@@ -146,7 +146,7 @@ def test_compute_metrics_on_a_ramp_response() -> None:
         * dt
         / 4
     )
-    assert set(m.as_dict()) == set(METRIC_KEYS)
+    assert set(m.as_dict()) == set(ALL_METRIC_KEYS)
 
 
 def test_rmse_floor_closed_form() -> None:
@@ -173,8 +173,8 @@ def test_no_speed_limited_motion_beats_the_floor(start, target, slowdown) -> Non
 
 
 def test_summarize_means_and_reached_fraction() -> None:
-    a = Metrics(1.0, 0.2, 3.0, 0.01, 5.0, 2.0, True)
-    b = Metrics(3.0, 0.4, 1.0, 0.03, 15.0, 4.0, False)
+    a = Metrics(1.0, 0.2, 3.0, 0.01, 5.0, 2.0, True)  # built as before the rest metric
+    b = Metrics(3.0, 0.4, 1.0, 0.03, 15.0, 4.0, False, False, 1.0, 30, 40.0)
     s = summarize([a, b])
     assert s == pytest.approx(
         {
@@ -185,6 +185,10 @@ def test_summarize_means_and_reached_fraction() -> None:
             "overshoot_pct": 10.0,
             "settling_time_s": 3.0,
             "reached": 0.5,
+            "at_rest": 0.5,
+            "rest_speed_rms": 0.5,
+            "command_reversals": 15.0,
+            "energy_after_settling_j": 20.0,
         }
     )
     with pytest.raises(ValueError, match="no episodes"):

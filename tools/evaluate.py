@@ -15,9 +15,11 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from policy.campaign import RayUnavailable, evaluate_parallel
 from policy.evaluation import (
     DEFAULT_RATE_HZ,
     DEFAULT_SECONDS,
@@ -31,7 +33,7 @@ from policy.evaluation import (
     random_episodes,
 )
 from reach_driver.errors import DriverError
-from reach_driver.metrics import METRIC_KEYS
+from reach_driver.metrics import ALL_METRIC_KEYS
 from reach_sim_bridge.faults import SensorNoise
 from reach_sim_bridge.params import load_arm_params
 
@@ -43,6 +45,10 @@ UNITS = {
     "overshoot_pct": "%",
     "settling_time_s": "s",
     "reached": "fraction",
+    "at_rest": "fraction",
+    "rest_speed_rms": "rad/s",
+    "command_reversals": "count",
+    "energy_after_settling_j": "J",
     "rmse_floor": "rad",
 }
 
@@ -174,6 +180,20 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.rrd",
         help="also write a Rerun recording of every episode",
     )
+    p.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="run episodes in parallel on Ray with N CPUs on this machine (results are the "
+        "serial run's: each episode's randomness depends on its seed only); needs the "
+        "optional extra: pip install -e '.[scale]'",
+    )
+    p.add_argument(
+        "--address",
+        metavar="ADDR",
+        help="run episodes on the Ray cluster at ADDR (e.g. ray://head:10001 or auto); "
+        "its nodes need reach-stack installed",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar or table")
     return p
 
@@ -213,16 +233,18 @@ def record_evaluation(evaluation: Evaluation, path: Path) -> None:
 def summary_table(evaluation: Evaluation) -> Table:
     table = Table(title=f"{evaluation.controller}: {len(evaluation.results)} episodes")
     table.add_column("#", justify="right")
-    for key in METRIC_KEYS:
+    for key in ALL_METRIC_KEYS:
         table.add_column(f"{key}\n[{UNITS[key]}]", justify="right")
     table.add_column("rmse_floor\n[rad]", justify="right")
     for i, r in enumerate(evaluation.results):
         m = r.metrics.as_dict()
-        cells = [_fmt(m[k]) for k in METRIC_KEYS] + [_fmt(r.rmse_floor)]
+        cells = [_fmt(m[k]) for k in ALL_METRIC_KEYS] + [_fmt(r.rmse_floor)]
         table.add_row(str(i), *cells)
     s = evaluation.summary()
     table.add_section()
-    table.add_row("mean", *[_fmt(s[k]) for k in METRIC_KEYS], _fmt(s["rmse_floor"]), style="bold")
+    table.add_row(
+        "mean", *[_fmt(s[k]) for k in ALL_METRIC_KEYS], _fmt(s["rmse_floor"]), style="bold"
+    )
     return table
 
 
@@ -248,7 +270,15 @@ def run(args: argparse.Namespace, console: Console) -> Evaluation:
         param_spread=args.perturb,
         params=None if args.params is None else load_arm_params(args.params),
     )
-    controller = load_controller(args.controller, **_parse_kv(args.param))
+    params = _parse_kv(args.param)
+    parallel = args.workers is not None or args.address is not None
+    if parallel and args.via_driver:
+        raise ValueError("--workers/--address run the direct backend; drop --via-driver")
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers must be at least 1, got {args.workers}")
+    # Built here even for Ray, whose workers build their own: a bad name or parameter fails
+    # before a cluster is started.
+    controller = load_controller(args.controller, **params)
     with Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -262,9 +292,21 @@ def run(args: argparse.Namespace, console: Console) -> Evaluation:
 
         def done(i: int, r: EpisodeResult) -> None:
             mark = "reached" if r.metrics.reached else "NOT reached"
+            if not r.metrics.at_rest:
+                mark += " (not at rest)"
             progress.update(task, advance=1, last=f"#{i} rmse {r.metrics.rmse:.3f} {mark}")
 
-        if args.via_driver:
+        if parallel:
+            evaluation = evaluate_parallel(
+                args.controller,
+                params,
+                episodes,
+                config,
+                workers=args.workers,
+                address=args.address,
+                on_episode=done,
+            )
+        elif args.via_driver:
             evaluation = evaluate_via_driver(
                 controller,
                 episodes,
@@ -285,8 +327,8 @@ def main(argv: list[str] | None = None) -> int:
     console = Console(stderr=True)
     try:
         evaluation = run(args, console)
-    except (ValueError, DriverError) as exc:
-        console.print(f"[red]error:[/red] {exc}")
+    except (ValueError, DriverError, RayUnavailable) as exc:
+        console.print(f"[red]error:[/red] {escape(str(exc))}")
         return 2
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(evaluation.to_dict(), indent=1), encoding="utf-8")

@@ -12,9 +12,11 @@ the `ddpg` controller ships (the actor with its reference integral) on
 
 - a stability screen: ``--screen`` (200) more episodes (seed ``--screen-seed``, 12), noise and
   +-20 % degraded parameters, on the training environment; an episode is
-  restless when a joint's mean |qdot| over its last 5 s exceeds 0.05 rad/s (at rest it is a
-  few mrad/s). A policy that chatters on some arm (seen: one joint bang-banging at the
-  no-load speed, +-8 mrad around its target, 60 J instead of 4 J) is not shipped.
+  restless when it does not come to rest (`Metrics.at_rest`, docs/metrics.md "Rest": RMS speed,
+  command reversals and energy after settling). ``--workers N`` / ``--address ADDR`` run the
+  screen on Ray (policy/campaign.py) with the same results. A policy that chatters on some
+  arm (seen: one joint bang-banging at the no-load speed, +-8 mrad around its target, 60 J
+  instead of 4 J) is not shipped.
 
 Rule (policy/selection.py): among the candidates that reach every scenario and every
 selection episode and have no restless episode, the one better than the reference
@@ -36,11 +38,14 @@ from typing import Any
 
 import numpy as np
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
+from policy.campaign import RayUnavailable
 from policy.evaluation import RunConfig, evaluate, load_controller, random_episodes
 from policy.scenarios import SCENARIOS, TABLE_KEYS, wins
-from policy.selection import choose, restless_episodes, weights_of
+from policy.selection import choose, screen, weights_of
+from reach_driver.metrics import REST_KEYS
 from reach_sim_bridge.faults import SensorNoise
 
 
@@ -76,6 +81,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--screen-seed", type=int, default=12, help="stability screen's seed (default 12)"
     )
+    p.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="run the stability screen on Ray with N CPUs here (pip install -e '.[scale]')",
+    )
+    p.add_argument("--address", metavar="ADDR", help="run the screen on the Ray cluster at ADDR")
     p.add_argument("--out", type=Path, required=True, help="JSON with every candidate's figures")
     return p
 
@@ -106,6 +118,23 @@ def main(argv: list[str] | None = None) -> int:
         summary = evaluate(
             load_controller("ddpg", weights=path), episodes, config, name="ddpg"
         ).summary()
+        try:
+            screened = (
+                screen(
+                    path,
+                    args.screen,
+                    args.screen_seed,
+                    args.perturb,
+                    workers=args.workers,
+                    address=args.address,
+                )
+                if args.screen > 0
+                else []
+            )
+        except (RayUnavailable, ValueError) as exc:
+            console.print(f"[red]error:[/red] {escape(str(exc))}")
+            return 2
+        restless = [i for i, m in enumerate(screened) if not m.at_rest]
         rows.append(
             {
                 "candidate": str(candidate),
@@ -114,9 +143,10 @@ def main(argv: list[str] | None = None) -> int:
                 "scenario_final_error": [float(np.abs(r.final_error).max()) for r in sc.results],
                 "summary": summary,
                 "better_than_reference": wins(summary, reference),
-                "restless": restless_episodes(path, args.screen, args.screen_seed, args.perturb)
-                if args.screen > 0
-                else [],
+                "restless": restless,
+                "restless_rest": {
+                    i: {k: screened[i].as_dict()[k] for k in REST_KEYS} for i in restless
+                },
             }
         )
     best = choose(rows, reference)

@@ -1,0 +1,130 @@
+"""Evaluation campaigns on Ray: the episodes of `policy.evaluation.evaluate`, in parallel.
+
+Ray (the optional extra ``.[scale]``) schedules one task per episode on this machine
+(``ray.init(num_cpus=workers)``) or on a running cluster (``address``). The results are the
+serial run's: episode i runs with seed ``config.seed + i`` exactly as `evaluate` runs it (its
+arm, parameter draw and sensor noise depend on that seed alone, and the controller is reset
+before every episode), whichever worker runs it and in whatever order. Controllers are built
+inside the workers by name (`load_controller`), never pickled, once per worker process.
+A cluster's nodes need this repository installed (``pip install -e '.[scale]'``).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from types import ModuleType
+from typing import Any, TypeVar
+
+from policy.direct import DirectArm
+from policy.rollout import Episode, EpisodeResult, Evaluation, RunConfig
+from reach_driver.controllers import Controller, load_controller
+
+INSTALL_HINT = "pip install -e '.[scale]'"
+J = TypeVar("J")
+R = TypeVar("R")
+
+
+class RayUnavailable(RuntimeError):
+    """Ray is not installed; the message says how to install it."""
+
+
+def import_ray() -> ModuleType:
+    """Ray, or `RayUnavailable` naming the extra that installs it."""
+    try:
+        import ray
+    except ImportError as exc:
+        raise RayUnavailable(
+            f"parallel evaluation (--workers, --address) needs Ray: {INSTALL_HINT}"
+        ) from exc
+    return ray
+
+
+@dataclass(frozen=True)
+class Job:
+    """One episode, as every worker needs it (small and picklable)."""
+
+    controller: str
+    params_json: str
+    episode: Episode
+    config: RunConfig
+    index: int
+
+
+_CONTROLLERS: dict[tuple[str, str], Controller] = {}
+"""Per worker process: one controller per (name, parameters), reused as `evaluate` reuses one."""
+
+
+def run_job(job: Job) -> tuple[int, EpisodeResult]:
+    """Episode ``job.index`` with seed ``config.seed + index``, on this process's controller."""
+    key = (job.controller, job.params_json)
+    controller = _CONTROLLERS.get(key)
+    if controller is None:
+        controller = load_controller(job.controller, **json.loads(job.params_json))
+        _CONTROLLERS[key] = controller
+    result = DirectArm().run(controller, job.episode, job.config, job.config.seed + job.index)
+    return job.index, result
+
+
+@contextmanager
+def ray_session(workers: int | None = None, address: str | None = None) -> Iterator[ModuleType]:
+    """Ray, started locally with ``workers`` CPUs or joined at ``address`` unless already
+    initialised (then reused as it is); shut down on exit only if started here."""
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
+    ray = import_ray()
+    started = not ray.is_initialized()
+    if started:
+        if address is not None:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+    try:
+        yield ray
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def run_on_ray(
+    fn: Callable[[J], R],
+    jobs: Sequence[J],
+    workers: int | None = None,
+    address: str | None = None,
+    on_result: Callable[[R], None] | None = None,
+) -> list[R]:
+    """``[fn(job) for job in jobs]``, one Ray task (one CPU) per job. ``fn`` must be a
+    module-level function (workers import it by name); ``on_result`` sees results as they
+    finish, the list comes back in job order."""
+    with ray_session(workers, address) as ray:
+        remote = ray.remote(num_cpus=1)(fn)
+        index = {remote.remote(job): i for i, job in enumerate(jobs)}
+        results: dict[int, R] = {}
+        pending = list(index)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            results[index[done[0]]] = ray.get(done[0])
+            if on_result is not None:
+                on_result(results[index[done[0]]])
+    return [results[i] for i in range(len(jobs))]
+
+
+def evaluate_parallel(
+    controller_name: str,
+    params: dict[str, Any],
+    episodes: Sequence[Episode],
+    config: RunConfig,
+    workers: int | None = None,
+    address: str | None = None,
+    on_episode: Callable[[int, EpisodeResult], None] | None = None,
+) -> Evaluation:
+    """`evaluate(load_controller(controller_name, **params), episodes, config)` on Ray
+    (`ray_session`); ``on_episode`` is called as episodes finish, in completion order."""
+    params_json = json.dumps(params, sort_keys=True)
+    jobs = [Job(controller_name, params_json, e, config, i) for i, e in enumerate(episodes)]
+    done = None if on_episode is None else (lambda r: on_episode(*r))
+    pairs = run_on_ray(run_job, jobs, workers, address, done)
+    stats = {"engine": "ray", "workers": workers, "address": address or "local"}
+    return Evaluation(controller_name, config, [r for _, r in pairs], stats)

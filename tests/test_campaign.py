@@ -1,0 +1,103 @@
+"""Campaigns on Ray (policy/campaign.py, tools/evaluate.py --workers): the serial run's results,
+episode for episode, and a clear message when Ray is not installed."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+import pytest
+
+from policy import campaign
+from policy.evaluation import RunConfig, evaluate, load_controller, random_episodes
+from reach_sim_bridge.faults import SensorNoise
+
+ROOT = Path(__file__).resolve().parents[1]
+SEED = 31
+CONFIG = RunConfig(seconds=3.0, noise=SensorNoise(), seed=SEED, param_spread=0.2)
+COMMON = ["--controller", "pid", "--random", "4", "--seed", str(SEED), "--seconds", "3"]
+COMMON += ["--noise", "--perturb", "0.2", "--quiet"]
+
+
+def _cli() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("evaluate_cli", ROOT / "tools" / "evaluate.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def ray_local() -> Iterator[Any]:
+    """One local Ray with 2 CPUs for the module (campaigns reuse it and leave it up)."""
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+
+
+def test_two_workers_give_the_serial_results_episode_for_episode(ray_local: Any) -> None:
+    episodes = random_episodes(4, SEED)
+    serial = evaluate(load_controller("pid"), episodes, CONFIG, name="pid")
+    seen: list[int] = []
+    parallel = campaign.evaluate_parallel(
+        "pid", {}, episodes, CONFIG, workers=2, on_episode=lambda i, r: seen.append(i)
+    )
+    assert sorted(seen) == [0, 1, 2, 3]
+    assert parallel.summary() == serial.summary()
+    for a, b in zip(serial.results, parallel.results, strict=True):
+        assert a.metrics == b.metrics
+        np.testing.assert_array_equal(a.trace.q, b.trace.q)
+        np.testing.assert_array_equal(a.currents_mA, b.currents_mA)
+    assert parallel.controller_stats["engine"] == "ray"
+
+
+def test_cli_workers_2_writes_the_serial_json(ray_local: Any, tmp_path: Path) -> None:
+    cli = _cli()
+    serial, parallel = tmp_path / "serial.json", tmp_path / "parallel.json"
+    assert cli.main([*COMMON, "--out", str(serial)]) == 0
+    assert cli.main([*COMMON, "--workers", "2", "--out", str(parallel)]) == 0
+    a, b = json.loads(serial.read_text()), json.loads(parallel.read_text())
+    assert a["episodes"] == b["episodes"] and a["summary"] == b["summary"]
+
+
+def test_without_ray_workers_name_the_extra(
+    tmp_path: Path, capsys: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` now raises ImportError
+    out = tmp_path / "o.json"
+    assert _cli().main([*COMMON, "--workers", "2", "--out", str(out)]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "needs Ray" in err and "pip install -e '.[scale]'" in err
+    assert not out.exists()
+    with pytest.raises(campaign.RayUnavailable, match=r"\.\[scale\]"):
+        campaign.evaluate_parallel("pid", {}, random_episodes(1, 0), CONFIG, workers=1)
+
+
+def test_workers_with_via_driver_or_below_one_are_refused(tmp_path: Path, capsys: Any) -> None:
+    cli = _cli()
+    out = tmp_path / "o.json"
+    assert cli.main([*COMMON, "--workers", "2", "--via-driver", "--out", str(out)]) == 2
+    assert cli.main([*COMMON, "--workers", "0", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--via-driver" in err and "at least 1" in err
+
+
+def test_the_stability_screen_on_ray_gives_the_serial_metrics(ray_local: Any) -> None:
+    from policy.selection import screen
+
+    shipped = ROOT / "policy" / "weights" / "ddpg_actor.npz"
+    serial = screen(shipped, 2, seed=3, perturb=0.2)
+    assert screen(shipped, 2, seed=3, perturb=0.2, workers=2) == serial
+    assert all(m.at_rest for m in serial)
+    with pytest.raises(ValueError, match="factory"):
+        screen(shipped, 1, seed=3, perturb=0.2, factory=lambda _p: None, workers=2)
