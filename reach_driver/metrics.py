@@ -60,6 +60,27 @@ REST_KEYS = ("at_rest", "rest_speed_rms", "command_reversals", "energy_after_set
 ALL_METRIC_KEYS = METRIC_KEYS + REST_KEYS
 """Every field of `Metrics`: what `summarize` averages and evaluation summaries report."""
 
+METRIC_LABELS: dict[str, tuple[str, str]] = {
+    "energy_j": ("energy", "J"),
+    "rmse": ("RMSE", "rad"),
+    "mie": ("MIE", "rad s"),
+    "msse": ("MSSE", "rad"),
+    "overshoot_pct": ("overshoot", "%"),
+    "settling_time_s": ("settling time", "s"),
+    "reached": ("reached", ""),
+    "at_rest": ("at rest", ""),
+    "rest_speed_rms": ("rest speed RMS", "rad/s"),
+    "command_reversals": ("command reversals", ""),
+    "energy_after_settling_j": ("energy after settling", "J"),
+}
+"""Each metric's one name and unit, as every table (run, inspect, evaluate) shows it."""
+
+
+def metric_label(key: str) -> str:
+    """'RMSE [rad]': the metric's name and unit; an unlabelled key is shown as itself."""
+    name, unit = METRIC_LABELS.get(key, (key, ""))
+    return f"{name} [{unit}]" if unit else name
+
 
 @dataclass(frozen=True)
 class Trace:

@@ -33,24 +33,9 @@ from policy.evaluation import (
     random_episodes,
 )
 from reach_driver.errors import DriverError
-from reach_driver.metrics import ALL_METRIC_KEYS
+from reach_driver.metrics import ALL_METRIC_KEYS, metric_label
 from reach_sim_bridge.faults import SensorNoise
 from reach_sim_bridge.params import load_arm_params
-
-UNITS = {
-    "energy_j": "J",
-    "rmse": "rad",
-    "mie": "rad s",
-    "msse": "rad",
-    "overshoot_pct": "%",
-    "settling_time_s": "s",
-    "reached": "fraction",
-    "at_rest": "fraction",
-    "rest_speed_rms": "rad/s",
-    "command_reversals": "count",
-    "energy_after_settling_j": "J",
-    "rmse_floor": "rad",
-}
 
 
 def _parse_kv(items: list[str]) -> dict[str, Any]:
@@ -234,7 +219,7 @@ def summary_table(evaluation: Evaluation) -> Table:
     table = Table(title=f"{evaluation.controller}: {len(evaluation.results)} episodes")
     table.add_column("#", justify="right")
     for key in ALL_METRIC_KEYS:
-        table.add_column(f"{key}\n[{UNITS[key]}]", justify="right")
+        table.add_column(escape(metric_label(key).replace(" [", "\n[")), justify="right")
     table.add_column("rmse_floor\n[rad]", justify="right")
     for i, r in enumerate(evaluation.results):
         m = r.metrics.as_dict()

@@ -15,7 +15,7 @@ from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS, TORQUE_PER_AMP_NM
 from reach_driver.cli.exits import for_operator
 from reach_driver.cli.report import run_metrics
 from reach_driver.client import ArmClient
-from reach_driver.metrics import METRIC_KEYS
+from reach_driver.metrics import METRIC_KEYS, metric_label
 from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind
 from reach_driver.state import JointState, joint_name
@@ -226,23 +226,6 @@ def blocking_faults(flags: dict[int, list[str]], console: Console | None) -> str
 
 # One name and unit per metric, for every table that shows one (run, inspect). Belongs next to
 # reach_driver.metrics.METRIC_KEYS; a key without a label is shown by its key.
-METRIC_LABELS = {
-    "energy_j": ("energy", "J"),
-    "rmse": ("RMSE", "rad"),
-    "mie": ("MIE", "rad s"),
-    "msse": ("MSSE", "rad"),
-    "overshoot_pct": ("overshoot", "%"),
-    "settling_time_s": ("settling time", "s"),
-    "reached": ("reached", ""),
-}
-
-
-def metric_label(key: str) -> str:
-    """'RMSE [rad]': the metric's name and unit as every table shows it."""
-    name, unit = METRIC_LABELS.get(key, (key, ""))
-    return f"{name} [{unit}]" if unit else name
-
-
 def metrics_table(title: str, values: dict[str, Any]) -> Table:
     """One row of metrics, in METRIC_KEYS order (then any others), labelled with units."""
     keys = [k for k in METRIC_KEYS if k in values] + [k for k in values if k not in METRIC_KEYS]
