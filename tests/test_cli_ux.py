@@ -428,3 +428,18 @@ def test_run_and_inspect_label_the_metrics_the_same_way(tmp_path) -> None:
     for text in (run.export_text(), ins.export_text()):
         for label in LABELS:
             assert label in text, text
+
+
+def test_an_unknown_controller_is_a_bad_command_line_in_every_tool(capsys) -> None:
+    """Exit 2 from reach-driver run and from tools/evaluate.py alike (one exit-code table)."""
+    argv = ["--port", "/nonexistent", "run", "--controller", "nope", "--seconds", "1"]
+    assert main([*argv, "--target", "1", "1", "1", "1"]) == Exit.USAGE
+    assert "unknown controller 'nope'" in capsys.readouterr().err
+    tool = Path(__file__).resolve().parents[1] / "tools" / "evaluate.py"
+    proc = subprocess.run(
+        [sys.executable, str(tool), "--controller", "nope", "--random", "1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2, proc.stderr
