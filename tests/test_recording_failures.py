@@ -35,7 +35,9 @@ def sim(tmp_path):
 def _run_argv(sim: SimServer, record: Path, seconds: float = 2.0) -> list[str]:
     host, port = sim.udp_address
     target = sim.snapshot().q + np.array([0.3, -0.2, 0.2, 0.3])
-    argv = ["--port", f"udp://{host}:{port}", "run", "--controller", "pid", "--target"]
+    # A generous watchdog: these tests are about the recording, not a loaded host's pauses.
+    argv = ["--port", f"udp://{host}:{port}", "--watchdog", "1.0", "run", "--controller", "pid"]
+    argv.append("--target")
     return [*argv, *map(str, target), "--seconds", str(seconds), "--record", str(record)]
 
 
