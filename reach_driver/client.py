@@ -126,7 +126,13 @@ class ArmClient:
             self._write, self._waiters, self.stats, transport.url, self._broadcast_ok
         )
         self._gate = CommandGate(
-            self.guard, self.watchdog, self.table, transport.url, self._broadcast_ok, self.devices
+            self.guard,
+            self.watchdog,
+            self.table,
+            transport.url,
+            self._broadcast_ok,
+            self.devices,
+            faults=self.faults,
         )
         self.supervisor = LinkSupervisor(
             transport,
@@ -226,8 +232,9 @@ class ArmClient:
 
     def blocking_faults(self) -> dict[int, list[str]]:
         """Status flags, by device, that say a joint must not be driven (motor, driver,
-        encoder, pressure...), from the last HARDWARE_STATUS each device sent; link error
-        flags are left out."""
+        encoder, pressure...), from the last HARDWARE_STATUS each device sent; the policy
+        (which flags block, and why) is `reach_driver.faults.FLAG_POLICY`. The gate refuses
+        motion commands to these joints."""
         return self.faults.blocking()
 
     def on_event(self, callback: EventCallback) -> None:

@@ -14,6 +14,7 @@ from protocol import DeviceID, Mode, PacketID
 from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS, TORQUE_PER_AMP_NM
 from reach_driver.cli.report import run_metrics
 from reach_driver.client import ArmClient
+from reach_driver.faults import blocking_flags, flag_labels, status_bytes
 from reach_driver.metrics import METRIC_KEYS
 from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind
@@ -59,6 +60,8 @@ def info_json(port: str, joints: dict[int, JointState]) -> dict[str, Any]:
                 if getattr(js, f"{kind.value}_limits") is not None
             },
             "status_flags": js.fault_names,
+            "status": status_bytes(js.status.value) if js.status else None,
+            "blocking_flags": flag_labels(blocking_flags(js.status.value)) if js.status else [],
         }
     return {"port": port, "devices": out}
 
@@ -79,7 +82,6 @@ def info_table(port: str, joints: dict[int, JointState]) -> Table:
     ):
         table.add_column(column)
     for dev, js in joints.items():
-        status = js.fault_names
         table.add_row(
             joint_name(dev),
             mode_name(js),
@@ -90,11 +92,21 @@ def info_table(port: str, joints: dict[int, JointState]) -> Table:
             limit_range(js, LimitKind.POSITION),
             limit_range(js, LimitKind.VELOCITY),
             limit_range(js, LimitKind.CURRENT),
-            ("[red]" + ", ".join(status) + "[/]")
-            if status
-            else ("ok" if js.status is not None else "-"),
+            status_text(js),
         )
     return table
+
+
+def status_text(js: JointState) -> str:
+    """HARDWARE_STATUS by byte, one line each ('C: ENCODER_FAULT'): red if any flag blocks
+    the joint (reach_driver.faults), yellow if all are informational."""
+    if js.status is None:
+        return "-"
+    named = [f"{b}: {', '.join(n)}" for b, n in status_bytes(js.status.value).items() if n]
+    if not named:
+        return "ok"
+    colour = "red" if blocking_flags(js.status.value) else "yellow"
+    return f"[{colour}]" + escape("\n".join(named)) + "[/]"
 
 
 def monitor_table(client: ArmClient, rates: dict[tuple[int, int], float], port: str) -> Table:
