@@ -80,6 +80,15 @@ log = logging.getLogger(__name__)
 __all__ = ["ArmClient", "ClientStats"]
 
 EVENT_HISTORY = 200
+#: What `read_diagnostics` asks each device for (docs/protocol.md section 3a).
+DIAGNOSTICS = (
+    PacketID.VOLTAGE,
+    PacketID.INTERNAL_TEMPERATURE,
+    PacketID.INTERNAL_HUMIDITY,
+    PacketID.INTERNAL_PRESSURE,  # 0x67 as V1.12.1 has it (newer SDKs: DEVICE_TYPE)
+    PacketID.FACTORY_CLIMATE,
+    PacketID.HARDWARE_STATUS,
+)
 
 
 class ArmClient:
@@ -409,6 +418,14 @@ class ArmClient:
             PacketID.HARDWARE_STATUS,
         ]
         self.request_many(devs, ids, partial=True)
+        return {d: self.table.get(d) for d in devs}
+
+    def read_diagnostics(self, devices: Sequence[int] | None = None) -> dict[int, JointState]:
+        """The Monitor readings of each device (supply voltage, internal temperature,
+        humidity and pressure, the factory climate) and its status flags; a device or value
+        that does not answer is left as it was (None if never read)."""
+        devs = list(devices or self.found_devices or self.devices)
+        self.request_many(devs, DIAGNOSTICS, partial=True)
         return {d: self.table.get(d) for d in devs}
 
     def read_status(self, devices: Sequence[int] | None = None) -> dict[int, list[str]]:

@@ -4,8 +4,11 @@ virtual arm (docs/protocol.md sections 3a and 8; the policy is in reach_driver/f
 from __future__ import annotations
 
 import json
+import math
+import re
 from collections.abc import Iterator
 
+import numpy as np
 import pytest
 from conftest import wait_until
 
@@ -20,6 +23,7 @@ from reach_driver.faults import (
     blocking_flags,
     status_bytes,
 )
+from reach_sim_bridge.faults import Leak
 from reach_sim_bridge.firmware import FirmwareConfig
 from reach_sim_bridge.monitor import MONITOR_FLAGS, MonitorConfig
 from reach_sim_bridge.server import SimConfig, SimServer
@@ -221,3 +225,90 @@ def test_info_table_shows_flags_by_byte(sim, capsys) -> None:
     assert main(["--port", str(sim.link), "info"]) == Exit.OK
     out = capsys.readouterr().out
     assert "D: CAN_BUS_ERROR" in out and "C: JAW_ZERO_REQUIRED" in out
+
+
+# ------------------------------------------------------------------ Monitor readings
+
+ALL = [int(d) for d in (DeviceID.E, DeviceID.D, DeviceID.C, DeviceID.B, DeviceID.A)]
+
+
+def test_read_diagnostics_gives_plausible_readings_of_every_device(sim) -> None:
+    with _client(sim) as client:
+        got = client.read_diagnostics()
+    assert sorted(got) == sorted(ALL)
+    for dev, js in got.items():
+        assert js.voltage is not None and js.temperature is not None, dev
+        assert js.humidity is not None and js.internal_pressure is not None, dev
+        assert js.factory_climate is not None and js.status is not None, dev
+        values = [js.voltage.value, js.temperature.value, js.humidity.value]
+        values += [js.internal_pressure.value, *js.factory_climate.value]
+        assert all(math.isfinite(v) for v in values), dev
+        assert 18.0 <= js.voltage.value <= 30.0  # the rated supply range
+        assert 0.0 <= js.temperature.value <= 60.0
+        assert 0.0 <= js.humidity.value <= 40.0
+        assert 0.8 <= js.internal_pressure.value <= 1.3
+        climate = js.factory_climate.value
+        assert climate.temperature_c == pytest.approx(20.0)
+        assert climate.pressure_bar == pytest.approx(1.0)
+        assert climate.humidity_pct == pytest.approx(10.0)
+        assert js.status.value == HardwareStatus.NONE
+
+
+def test_a_leak_shows_as_rising_humidity_and_the_over_humidity_flag(tmp_path) -> None:
+    sim = _server(tmp_path, speed=8.0)
+    device = int(DeviceID.D)
+    try:
+        with _client(sim) as client:
+            before = client.read_diagnostics([device])[device].humidity
+            assert before is not None and before.value == pytest.approx(10.0)
+            # tau 5 s: the humidity crosses the 40 % level after 0.4 tau, 2 s of sim time
+            sim.observe(lambda arm, fw: fw.inject_leak(Leak(device, time_constant_s=5.0)))
+            seen: list[float] = []
+
+            def flagged() -> bool:
+                js = client.read_diagnostics([device])[device]
+                assert js.humidity is not None and js.status is not None
+                seen.append(js.humidity.value)
+                return bool(js.status.value & HardwareStatus.OVER_HUMIDITY)
+
+            assert wait_until(flagged, timeout=10.0, poll_s=0.05)
+            assert seen[-1] > 40.0
+            assert np.all(np.diff(seen) >= 0.0) and seen[-1] > seen[0]
+            assert "OVER_HUMIDITY" in client.blocking_faults()[device]
+            with pytest.raises(ArmFaultError, match="OVER_HUMIDITY"):
+                client.command_position(device, float(client.read_joints().q[1]))
+            others = client.read_diagnostics([int(DeviceID.E)])[int(DeviceID.E)]
+            assert others.humidity is not None and others.humidity.value < 11.0  # E is dry
+    finally:
+        sim.stop()
+
+
+def test_info_json_and_table_show_the_diagnostics_with_units(sim, capsys) -> None:
+    assert main(["--port", str(sim.link), "info", "--json"]) == Exit.OK
+    devices = json.loads(capsys.readouterr().out)["devices"]
+    diag = devices["C"]["diagnostics"]
+    assert 18.0 <= diag["voltage_v"] <= 30.0
+    assert diag["temperature_c"] == pytest.approx(20.0, abs=5.0)
+    assert diag["humidity_pct"] == pytest.approx(10.0, abs=1.0)
+    assert diag["internal_pressure_bar"] == pytest.approx(1.0, abs=0.1)
+    assert diag["factory_climate"] == {
+        "temperature_c": pytest.approx(20.0),
+        "pressure_bar": pytest.approx(1.0),
+        "humidity_pct": pytest.approx(10.0),
+    }
+    assert main(["--port", str(sim.link), "info"]) == Exit.OK
+    out = capsys.readouterr().out
+    for unit in ("V", "degC", "%", "bar"):
+        assert unit in out
+    # 24 V less the electronics' 0.1 A and the holding currents through the 1 ohm source
+    assert re.search(r" 2[0-4]\.\d\d ", out)
+
+
+def test_monitor_shows_diagnostics_and_status(sim, capsys) -> None:
+    sim.inject_fault(int(DeviceID.B), HardwareStatus.JOINT_SERVICE_DUE)
+    assert main(["--port", str(sim.link), "monitor", "--seconds", "1.2"]) == Exit.OK
+    out = capsys.readouterr().out
+    for column in ("supply V", "temp degC", "humidity %", "pressure bar", "status"):
+        assert column in out
+    assert re.search(r" 2[0-4]\.\d\d ", out)  # the supply, sagging with the motors' current
+    assert "C: JOINT_SERVICE_DUE" in out

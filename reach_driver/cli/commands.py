@@ -22,6 +22,7 @@ from reach_driver.cli.exits import Exit, UsageError
 from reach_driver.cli.recorder import CliRecorder
 from reach_driver.cli.render import (
     blocking_faults,
+    diagnostics_table,
     info_json,
     info_table,
     monitor_table,
@@ -43,11 +44,13 @@ def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
     try:
         # Where each joint is now, beside its limits: the start of any move or run.
         client.request_many(client.found_devices, [PacketID.POSITION], partial=True)
+        client.read_diagnostics()  # Monitor readings and status, read_info's joints carry them
         joints = client.read_info()
         if args.json:
             console.print_json(json.dumps(info_json(args.port, joints)))
             return Exit.OK
         console.print(info_table(args.port, joints))
+        console.print(diagnostics_table(args.port, joints))
         return Exit.OK
     finally:
         client.close()
@@ -80,6 +83,10 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
                 now = time.monotonic()
                 counts = client.table.count_snapshot()
                 rates = {k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()}
+                try:
+                    client.read_diagnostics(devices)  # Monitor readings and status flags
+                except DriverError:
+                    pass  # the table shows the link's state; the readings keep their last
                 last_counts, last_t = counts, now
                 live.update(monitor_table(client, rates, args.port), refresh=True)
         return Exit.OK

@@ -62,6 +62,7 @@ def info_json(port: str, joints: dict[int, JointState]) -> dict[str, Any]:
             "status_flags": js.fault_names,
             "status": status_bytes(js.status.value) if js.status else None,
             "blocking_flags": flag_labels(blocking_flags(js.status.value)) if js.status else [],
+            "diagnostics": diagnostics_json(js),
         }
     return {"port": port, "devices": out}
 
@@ -97,6 +98,59 @@ def info_table(port: str, joints: dict[int, JointState]) -> Table:
     return table
 
 
+#: The Monitor readings (docs/protocol.md 3a): column title, (JointState field, digits).
+DIAGNOSTIC_COLUMNS: tuple[tuple[str, tuple[str, int]], ...] = (
+    ("supply V", ("voltage", 2)),
+    ("temp degC", ("temperature", 1)),
+    ("humidity %", ("humidity", 1)),
+    ("pressure bar", ("internal_pressure", 3)),
+)
+
+
+def diagnostic_cells(js: JointState) -> list[str]:
+    cells = []
+    for _, (name, digits) in DIAGNOSTIC_COLUMNS:
+        reading = getattr(js, name)
+        cells.append(fmt(reading.value, digits) if reading is not None else "-")
+    return cells
+
+
+def diagnostics_json(js: JointState) -> dict[str, Any]:
+    """The Monitor readings with their units in the keys (None where not reported)."""
+
+    def value(reading: Any) -> Any:
+        return None if reading is None else reading.value
+
+    climate = value(js.factory_climate)
+    return {
+        "voltage_v": value(js.voltage),
+        "temperature_c": value(js.temperature),
+        "humidity_pct": value(js.humidity),
+        "internal_pressure_bar": value(js.internal_pressure),
+        "factory_climate": None if climate is None else climate._asdict(),
+    }
+
+
+def diagnostics_table(port: str, joints: dict[int, JointState]) -> Table:
+    """`info`'s second table: each device's Monitor readings beside its factory climate."""
+    table = Table(title=f"diagnostics on {port} (live; factory climate at assembly)")
+    table.add_column("device")
+    for column, _ in DIAGNOSTIC_COLUMNS:
+        table.add_column(column, justify="right")
+    table.add_column("factory degC / bar / %", justify="right")
+    for dev, js in joints.items():
+        climate = js.factory_climate.value if js.factory_climate else None
+        table.add_row(
+            joint_name(dev),
+            *diagnostic_cells(js),
+            "-"
+            if climate is None
+            else f"{climate.temperature_c:.1f} / {climate.pressure_bar:.3f} / "
+            f"{climate.humidity_pct:.1f}",
+        )
+    return table
+
+
 def status_text(js: JointState) -> str:
     """HARDWARE_STATUS by byte, one line each ('C: ENCODER_FAULT'): red if any flag blocks
     the joint (reach_driver.faults), yellow if all are informational."""
@@ -115,6 +169,9 @@ def monitor_table(client: ArmClient, rates: dict[tuple[int, int], float], port: 
     table = Table(title=f"{port}: link {client.link_state.value}")
     for column in ("joint", "mode", "position", "velocity", "current mA", "age ms", "rate Hz"):
         table.add_column(column, justify="right")
+    for column, _ in DIAGNOSTIC_COLUMNS:
+        table.add_column(column, justify="right")
+    table.add_column("status")
     for dev in (*JOINTS, JAW):
         js = state.joint(dev)
         age = js.position.age(now) * 1e3 if js.position else math.nan
@@ -126,6 +183,8 @@ def monitor_table(client: ArmClient, rates: dict[tuple[int, int], float], port: 
             fmt(js.current.value if js.current else None, 1),
             fmt(age, 0),
             fmt(rates.get((int(dev), int(PacketID.POSITION)), math.nan), 1),
+            *diagnostic_cells(js),
+            status_text(js),
         )
     ts, ds, cs = client.transport.stats, client.decoder_stats, client.stats
     bad = ", ".join(f"{r.value} {n}" for r, n in ds.bad_frames.items() if n) or "none"
