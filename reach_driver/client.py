@@ -40,6 +40,7 @@ from protocol import (
     decode_packet,
 )
 from protocol.alpha5 import ALL_DEVICES, JAW, JOINTS, Range
+from reach_driver import ik
 from reach_driver.errors import (
     ArmIdentityError,
     DriverError,
@@ -524,6 +525,32 @@ class ArmClient:
     def _positions(self, devices: Sequence[int], values: Sequence[float]) -> None:
         self._gate.check_positions(devices, values)
         self.send(*(commands.position(int(d), v) for d, v in zip(devices, values, strict=True)))
+
+    def solve_xyz(self, x: float, y: float, z: float) -> np.ndarray:
+        """Joint target E D C B (rad) putting the tool centre point at (x, y, z) mm in the
+        base frame, from the present angles, inside the position limits in force (the arm's,
+        tightened by the safety config); B keeps its angle (it does not move the tool
+        centre point). Sends nothing; `ik.UnreachableError` (a `LimitError`) if no angles
+        inside the limits get within `ik.TOLERANCE_MM`."""
+        q = self.state.q
+        if not np.all(np.isfinite(q)):
+            q = self.read_joints((PacketID.POSITION,)).q
+        limits = np.array(
+            [
+                [lim.low, lim.high]
+                for lim in (self.guard.limit(d, LimitKind.POSITION) for d in JOINTS)
+            ]
+        )
+        return ik.solve_or_refuse((x, y, z), q, limits)
+
+    def command_xyz(self, x: float, y: float, z: float) -> np.ndarray:
+        """Move the tool centre point to (x, y, z) mm: the driver's own inverse kinematics
+        (`solve_xyz`), then joint POSITION commands through the same gate as
+        `command_positions` (limits, blocking faults); never a raw KM_END_POS. Returns the
+        joint target sent."""
+        q = self.solve_xyz(x, y, z)
+        self.command_positions(q)
+        return q
 
     def command_jaw(self, mm: float) -> None:
         self.command_position(JAW, mm)

@@ -34,6 +34,7 @@ from reach_driver.client import ArmClient
 from reach_driver.control import ControlLoop, Pacing, control_period
 from reach_driver.controllers import available_controllers, load_controller
 from reach_driver.errors import ArmFaultError, DriverError
+from reach_driver.kinematics import tool_position
 from reach_driver.link import EventKind, LinkState
 from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind
@@ -95,9 +96,18 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
 
 
 def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
+    if args.xyz is not None and args.angles:
+        raise UsageError("move takes the four angles E D C B or --xyz X Y Z, not both")
+    if args.xyz is None and len(args.angles) != 4:
+        raise UsageError(
+            f"move needs the four angles E D C B (rad), got {len(args.angles)}; or --xyz X Y Z "
+            "(mm) for a tool position"
+        )
     target = np.array(args.angles, dtype=float)
     client = connect(args, console)
     try:
+        if args.xyz is not None:  # joint targets by the driver's IK; out of reach: exit 3
+            target = client.solve_xyz(*args.xyz)
         # Check everything first: a refused target must leave every joint where it is.
         for dev, value in zip(JOINTS, target, strict=True):
             client.guard.check(dev, LimitKind.POSITION, float(value))
@@ -136,7 +146,12 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 progress.update(
                     task, completed=min(1.0, max(0.0, 1.0 - worst / start_err)), detail=detail
                 )
-                if worst <= args.tolerance and jaw_err <= args.jaw_tolerance:
+                tool_err = _tool_error_mm(args, state.q)
+                if (
+                    worst <= args.tolerance
+                    and jaw_err <= args.jaw_tolerance
+                    and tool_err <= args.xyz_tolerance
+                ):
                     progress.update(task, completed=1.0)
                     break
                 if client.link_state is not LinkState.UP:
@@ -153,6 +168,9 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                     )
                 time.sleep(0.05)
         console.print(f"[green]reached[/] within {args.tolerance} rad: {detail}")
+        if args.xyz is not None:
+            goal = ", ".join(f"{v:.1f}" for v in args.xyz)
+            console.print(f"tool centre point {tool_err:.2f} mm from ({goal}) mm")
         return Exit.OK
     finally:
         try:
@@ -160,6 +178,14 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
         except DriverError:
             pass
         client.close()
+
+
+def _tool_error_mm(args: argparse.Namespace, q: np.ndarray) -> float:
+    """With --xyz: the distance (mm) of the reported angles' tool centre point from the
+    target; 0 without."""
+    if args.xyz is None:
+        return 0.0
+    return float(np.linalg.norm(tool_position(q) * 1000.0 - np.asarray(args.xyz, dtype=float)))
 
 
 def _report_link_lost(client: ArmClient, target: np.ndarray, move_started: float) -> None:

@@ -189,7 +189,21 @@ def build_parser() -> argparse.ArgumentParser:
         "move it stops waiting at once and exits 5, saying since when and the last positions "
         "the arm reported.",
     )
-    move.add_argument("angles", nargs=4, type=float, metavar=("E", "D", "C", "B"))
+    move.add_argument(
+        "angles", nargs="*", type=float, metavar="ANGLE", help="E D C B in rad (or --xyz)"
+    )
+    move.add_argument(
+        "--xyz",
+        nargs=3,
+        type=float,
+        metavar=("X", "Y", "Z"),
+        help="instead of the angles: the tool centre point's target in mm, base frame; the "
+        "driver's inverse kinematics turns it into joint positions inside the limits (B keeps "
+        "its angle); an unreachable target is refused before anything moves (exit 3)",
+    )
+    move.add_argument(
+        "--xyz-tolerance", type=_positive, default=2.0, help="mm, with --xyz (default 2)"
+    )
     move.add_argument("--jaw", type=float, metavar="MM", help="jaw opening in mm")
     move.add_argument(
         "--tolerance", type=_positive, default=0.02, help="rad per joint (default 0.02)"
