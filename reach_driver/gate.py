@@ -134,9 +134,10 @@ class CommandGate:
                 self._check_indexed(dev, packet.as_float())
             elif pid in END_EFFECTOR:
                 raise LimitError(
-                    f"refused: {packet_names([pid])} (end-effector motion) cannot be checked "
-                    "against the joint limits until the driver has an inverse-kinematics "
-                    "check; command joint positions (command_positions) instead; "
+                    f"refused: {packet_names([pid])} (end-effector motion) is solved by the "
+                    "arm's own firmware, so its joint targets cannot be checked against the "
+                    "limits first; command_xyz() solves it with the driver's inverse "
+                    "kinematics and sends checked joint positions; "
                     f"{NOTHING_SENT}"
                 )
             elif pid in LIMIT_KIND_OF:
