@@ -137,7 +137,7 @@ class CommandGate:
                     f"refused: {packet_names([pid])} (end-effector motion) is solved by the "
                     "arm's own firmware, so its joint targets cannot be checked against the "
                     "limits first; command_xyz() solves it with the driver's inverse "
-                    "kinematics and sends checked joint positions; "
+                    "kinematics and sends checked joint positions (or use command_positions); "
                     f"{NOTHING_SENT}"
                 )
             elif pid in LIMIT_KIND_OF:
