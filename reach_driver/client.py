@@ -40,6 +40,7 @@ from protocol import (
     decode_packet,
 )
 from protocol.alpha5 import ALL_DEVICES, JAW, JOINTS, Range
+from reach_driver import ik
 from reach_driver.errors import (
     ArmIdentityError,
     DriverError,
@@ -80,6 +81,15 @@ log = logging.getLogger(__name__)
 __all__ = ["ArmClient", "ClientStats"]
 
 EVENT_HISTORY = 200
+#: What `read_diagnostics` asks each device for (docs/protocol.md section 3a).
+DIAGNOSTICS = (
+    PacketID.VOLTAGE,
+    PacketID.INTERNAL_TEMPERATURE,
+    PacketID.INTERNAL_HUMIDITY,
+    PacketID.INTERNAL_PRESSURE,  # 0x67 as V1.12.1 has it (newer SDKs: DEVICE_TYPE)
+    PacketID.FACTORY_CLIMATE,
+    PacketID.HARDWARE_STATUS,
+)
 
 
 class ArmClient:
@@ -126,7 +136,13 @@ class ArmClient:
             self._write, self._waiters, self.stats, transport.url, self._broadcast_ok
         )
         self._gate = CommandGate(
-            self.guard, self.watchdog, self.table, transport.url, self._broadcast_ok, self.devices
+            self.guard,
+            self.watchdog,
+            self.table,
+            transport.url,
+            self._broadcast_ok,
+            self.devices,
+            faults=self.faults,
         )
         self.supervisor = LinkSupervisor(
             transport,
@@ -226,8 +242,9 @@ class ArmClient:
 
     def blocking_faults(self) -> dict[int, list[str]]:
         """Status flags, by device, that say a joint must not be driven (motor, driver,
-        encoder, pressure...), from the last HARDWARE_STATUS each device sent; link error
-        flags are left out."""
+        encoder, pressure...), from the last HARDWARE_STATUS each device sent; the policy
+        (which flags block, and why) is `reach_driver.faults.FLAG_POLICY`. The gate refuses
+        motion commands to these joints."""
         return self.faults.blocking()
 
     def on_event(self, callback: EventCallback) -> None:
@@ -404,6 +421,14 @@ class ArmClient:
         self.request_many(devs, ids, partial=True)
         return {d: self.table.get(d) for d in devs}
 
+    def read_diagnostics(self, devices: Sequence[int] | None = None) -> dict[int, JointState]:
+        """The Monitor readings of each device (supply voltage, internal temperature,
+        humidity and pressure, the factory climate) and its status flags; a device or value
+        that does not answer is left as it was (None if never read)."""
+        devs = list(devices or self.found_devices or self.devices)
+        self.request_many(devs, DIAGNOSTICS, partial=True)
+        return {d: self.table.get(d) for d in devs}
+
     def read_status(self, devices: Sequence[int] | None = None) -> dict[int, list[str]]:
         """Hardware status flags by name for each device that answers ([] when healthy)."""
         devs = list(devices or self.found_devices or self.devices)
@@ -500,6 +525,32 @@ class ArmClient:
     def _positions(self, devices: Sequence[int], values: Sequence[float]) -> None:
         self._gate.check_positions(devices, values)
         self.send(*(commands.position(int(d), v) for d, v in zip(devices, values, strict=True)))
+
+    def solve_xyz(self, x: float, y: float, z: float) -> np.ndarray:
+        """Joint target E D C B (rad) putting the tool centre point at (x, y, z) mm in the
+        base frame, from the present angles, inside the position limits in force (the arm's,
+        tightened by the safety config); B keeps its angle (it does not move the tool
+        centre point). Sends nothing; `ik.UnreachableError` (a `LimitError`) if no angles
+        inside the limits get within `ik.TOLERANCE_MM`."""
+        q = self.state.q
+        if not np.all(np.isfinite(q)):
+            q = self.read_joints((PacketID.POSITION,)).q
+        limits = np.array(
+            [
+                [lim.low, lim.high]
+                for lim in (self.guard.limit(d, LimitKind.POSITION) for d in JOINTS)
+            ]
+        )
+        return ik.solve_or_refuse((x, y, z), q, limits)
+
+    def command_xyz(self, x: float, y: float, z: float) -> np.ndarray:
+        """Move the tool centre point to (x, y, z) mm: the driver's own inverse kinematics
+        (`solve_xyz`), then joint POSITION commands through the same gate as
+        `command_positions` (limits, blocking faults); never a raw KM_END_POS. Returns the
+        joint target sent."""
+        q = self.solve_xyz(x, y, z)
+        self.command_positions(q)
+        return q
 
     def command_jaw(self, mm: float) -> None:
         self.command_position(JAW, mm)

@@ -5,6 +5,10 @@ Raw packets go through an allow-list: requests, heartbeat set-up and MODE pass; 
 limit writes are checked; anything else (presets, RESET, SAVE, end-effector commands, ids
 the protocol does not name) is refused, because a packet not known to be harmless may move
 the arm or widen a limit. `ArmClient.send_unchecked` is the one way round.
+
+A joint whose last HARDWARE_STATUS carries a blocking flag (`reach_driver.faults`) gets no
+motion command (POSITION, VELOCITY, CURRENT, relative moves, a MODE that drives it): the
+gate raises `ArmFaultError` naming the flag and why it blocks. Safe modes still go out.
 """
 
 from __future__ import annotations
@@ -15,7 +19,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from protocol import DeviceID, Mode, Packet, PacketID, ProtocolError
-from reach_driver.errors import LimitError, WatchdogTrippedError
+from reach_driver.errors import ArmFaultError, LimitError, WatchdogTrippedError
+from reach_driver.faults import FaultFlags, flag_labels, why_blocking
 from reach_driver.safety import LimitKind, SafetyGuard, as_range, envelope_problem
 from reach_driver.state import StateTable, joint_name, packet_names
 from reach_driver.watchdog import Watchdog
@@ -47,6 +52,7 @@ class CommandGate:
         url: str,
         broadcast_ok: Callable[[], bool],
         devices: Sequence[int] = (),
+        faults: FaultFlags | None = None,
     ) -> None:
         self.guard = guard
         self.watchdog = watchdog
@@ -54,6 +60,7 @@ class CommandGate:
         self.url = url
         self.broadcast_ok = broadcast_ok
         self.devices = frozenset(int(d) for d in devices)
+        self.faults = faults
 
     def check_device(self, device: int, what: str = "position/velocity/current") -> None:
         """A motion or limit packet goes to one joint of this arm, never to all at once."""
@@ -69,11 +76,25 @@ class CommandGate:
                 f"(no limits to check it against); {NOTHING_SENT}"
             )
 
+    def check_not_faulted(self, device: int, what: str = "motion commands") -> None:
+        """Refuse `what` to a joint whose last status carries a blocking flag."""
+        if self.faults is None:
+            return
+        flags = self.faults.flags(device)
+        reasons = why_blocking(flags)
+        if reasons:
+            raise ArmFaultError(
+                f"refused: {what} for {joint_name(device)}: it reports {reasons}; the joint "
+                f"is blocked until its status clears (read_status() re-reads it; reported: "
+                f"{', '.join(flag_labels(flags))}); {NOTHING_SENT}"
+            )
+
     def check_positions(self, devices: Sequence[int], values: Sequence[float]) -> None:
         """All targets before any is sent."""
         for d, v in zip(devices, values, strict=True):
             self.check_device(int(d))
             self.guard.check(int(d), LimitKind.POSITION, v)
+            self.check_not_faulted(int(d), "position")
 
     def continuous(
         self, pid: PacketID, devices: Sequence[int], values: Sequence[float] | np.ndarray
@@ -89,6 +110,7 @@ class CommandGate:
         for i, (d, v) in enumerate(zip(devs, vals, strict=True)):
             self.check_device(d)
             self.guard.check(d, kind, v)
+            self.check_not_faulted(d, kind.value)
             sent[i] = self.guard.soften(d, self._position(d), v)
         return devs, sent
 
@@ -112,9 +134,10 @@ class CommandGate:
                 self._check_indexed(dev, packet.as_float())
             elif pid in END_EFFECTOR:
                 raise LimitError(
-                    f"refused: {packet_names([pid])} (end-effector motion) cannot be checked "
-                    "against the joint limits until the driver has an inverse-kinematics "
-                    "check; command joint positions (command_positions) instead; "
+                    f"refused: {packet_names([pid])} (end-effector motion) is solved by the "
+                    "arm's own firmware, so its joint targets cannot be checked against the "
+                    "limits first; command_xyz() solves it with the driver's inverse "
+                    "kinematics and sends checked joint positions (or use command_positions); "
                     f"{NOTHING_SENT}"
                 )
             elif pid in LIMIT_KIND_OF:
@@ -145,6 +168,8 @@ class CommandGate:
         if device == DeviceID.BROADCAST and mode in SAFE_MODES:
             return
         self.check_device(device, f"MODE {mode.name}")
+        if mode not in SAFE_MODES:
+            self.check_not_faulted(device, f"MODE {mode.name}")
 
     def check_limit_write(
         self, device: int, kind: LimitKind, values: tuple[float, float], *, widen: bool = False
@@ -172,6 +197,7 @@ class CommandGate:
         pid, dev = int(packet.packet_id), int(packet.device_id)
         self.check_device(dev)
         value = packet.as_float()
+        self.check_not_faulted(dev, packet_names([pid]))
         if pid == PacketID.POSITION:
             self.guard.check(dev, LimitKind.POSITION, value)
             return
@@ -188,6 +214,7 @@ class CommandGate:
     def _check_relative(self, device: int, delta: float) -> None:
         """A relative move lands at the present position plus `delta`: check that target."""
         self.check_device(device, "relative position")
+        self.check_not_faulted(device, "relative position")
         if not math.isfinite(delta):
             raise LimitError(
                 f"refused: relative position {delta} for {joint_name(device)} is not finite; "
@@ -209,6 +236,7 @@ class CommandGate:
 
     def _check_indexed(self, device: int, value: float) -> None:
         self.check_device(device, "indexed position")
+        self.check_not_faulted(device, "indexed position")
         if not self.guard.config.allow_indexed_position:
             raise LimitError(
                 f"refused: INDEXED_POSITION to {joint_name(device)}: the protocol does not say "

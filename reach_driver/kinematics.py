@@ -73,3 +73,20 @@ def tool_position(q: np.ndarray) -> np.ndarray:
     """Tool centre point in the base frame (m)."""
     pos, rot = link_poses(q)[-1]
     return pos + rot @ np.array([0.0, 0.0, TCP_OFFSET_M])
+
+
+def tool_jacobian(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(tool centre point (m), 3 x 4 position Jacobian (m/rad)) at angles E D C B.
+
+    Column i is a_i x (p - o_i): joint i's axis in the base frame times the lever from its
+    origin to the tool centre point. B's column is zero: the tool centre point lies on B's
+    axis (tests/test_kinematics.py checks it against the simulator's Jacobian).
+    """
+    poses = link_poses(q)
+    pos, rot = poses[-1]
+    tcp = pos + rot @ np.array([0.0, 0.0, TCP_OFFSET_M])
+    jac = np.empty((3, len(CHAIN)))
+    for i, (frame, (origin, child_rot)) in enumerate(zip(CHAIN, poses, strict=True)):
+        axis = child_rot @ np.asarray(frame.axis, dtype=float)
+        jac[:, i] = np.cross(axis, tcp - origin)
+    return tcp, jac

@@ -10,7 +10,7 @@ import dataclasses
 import threading
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -75,6 +75,21 @@ def _limits(packet: Packet) -> Range:
     return (lo, hi)
 
 
+class Climate(NamedTuple):
+    """FACTORY_CLIMATE (0x28): the housing's climate when it was sealed at assembly."""
+
+    temperature_c: float
+    pressure_bar: float
+    humidity_pct: float
+
+
+def _climate(packet: Packet) -> Climate:
+    values = packet.floats()
+    if len(values) != 3:
+        raise ProtocolError(f"FACTORY_CLIMATE holds {len(values)} floats, expected 3")
+    return Climate(*values)
+
+
 def _status(packet: Packet) -> HardwareStatus:
     return HardwareStatus.from_bytes(packet.data)
 
@@ -111,7 +126,20 @@ class JointState:
     software_version: Reading[str] | None = _tracked(PacketID.SOFTWARE_VERSION, _version)
     serial_number: Reading[float] | None = _tracked(PacketID.SERIAL_NUMBER, _float)
     model_number: Reading[float] | None = _tracked(PacketID.MODEL_NUMBER, _float)
-    temperature: Reading[float] | None = _tracked(PacketID.TEMPERATURE, _float)
+    # The "Monitor" packets (docs/protocol.md section 3a), each from the device's own housing.
+    #: INTERNAL_TEMPERATURE (0x66), degC.
+    temperature: Reading[float] | None = _tracked(PacketID.INTERNAL_TEMPERATURE, _float)
+    #: INTERNAL_HUMIDITY (0x65), % relative humidity.
+    humidity: Reading[float] | None = _tracked(PacketID.INTERNAL_HUMIDITY, _float)
+    #: INTERNAL_PRESSURE (0x67), bar, as protocol V1.12.1 documents it. The newest vendor SDK
+    #: reuses 0x67 as DEVICE_TYPE (and reports pressure as 0x6E): firmware that follows it
+    #: answers a type code here, which would read as a nonsense pressure. The virtual arm
+    #: answers 0x67 and 0x6E with the same pressure.
+    internal_pressure: Reading[float] | None = _tracked(PacketID.INTERNAL_PRESSURE, _float)
+    #: FACTORY_CLIMATE (0x28): [temperature degC, pressure bar, humidity %] at assembly; a
+    #: leak shows as live humidity and pressure above these.
+    factory_climate: Reading[Climate] | None = _tracked(PacketID.FACTORY_CLIMATE, _climate)
+    #: VOLTAGE (0x90), V: the supply as the device sees it.
     voltage: Reading[float] | None = _tracked(PacketID.VOLTAGE, _float)
     heartbeat_hz: Reading[int] | None = _tracked(PacketID.HEARTBEAT_FREQUENCY, _u8)
 

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import errno
 import os
+import threading
 import time
+from collections import deque
 from collections.abc import Sequence
 from typing import ClassVar
 
@@ -22,6 +24,11 @@ from reach_driver.transport import DEFAULT_BAUD, DEFAULT_READ_TIMEOUT_S, Transpo
 BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
 DEFAULT_RS485_GAP_S = 0.002
 RS485_MAX_WAIT_S = 0.05
+#: How long after a frame has left the UART its local echo may still be read (generous: an
+#: echo let through would read as the arm reporting what we commanded).
+RS485_ECHO_WINDOW_S = 0.25
+#: Frames written without any echo before the adapter is taken not to echo.
+ECHO_MISSES_TO_GIVE_UP = 8
 #: errnos meaning another opener holds the port: flock (exclusive=True) or TIOCEXCL.
 BUSY_ERRNOS = (errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY)
 
@@ -110,6 +117,21 @@ class SerialTransport(Transport):
     estimated from the baud rate, and after the last byte received). Broadcast requests are
     refused by the client there, since every joint would answer at once and collide.
 
+    RS-485 also has these two properties (`rs485=True`):
+
+    - **Local echo.** Many two-wire adapters leave the receiver on while transmitting, so
+      every byte written comes back, and would read as the arm reporting what we commanded.
+      Received frames are compared, from their first byte, with the frames written in the
+      last `RS485_ECHO_WINDOW_S`; matching bytes are held back, a whole match is dropped
+      (`echo_bytes_dropped`), and the first byte that differs releases what was held,
+      unchanged, with the rest of that frame (an adapter that does not echo loses nothing:
+      the arm's reply differs from our request by its first bytes at the latest). After
+      `ECHO_MISSES_TO_GIVE_UP` frames without an echo and none ever seen, the adapter is
+      taken not to echo (`local_echo` False) and nothing is compared any more.
+    - **One wire.** Requests, commands and the arm's replies share it, so the budget
+      (`wire_bytes_per_s`, which caps heartbeat streaming) is half the line's byte rate:
+      the other half is left for what the host sends and the turnaround gaps.
+
     The port is opened exclusively (on POSIX an advisory flock, which every reach-driver
     takes): a second opener gets `PortBusyError` naming the holder, and the first is left
     undisturbed. Each open starts with a 0x00 (see `Transport.opens_with_delimiter`).
@@ -144,6 +166,16 @@ class SerialTransport(Transport):
         self._port: serial.SerialBase | None = None
         self._line_busy_until = 0.0  # monotonic time our last byte leaves the UART
         self._last_rx = 0.0
+        # RS-485 local echo: bytes written whose echo may still arrive, the received bytes
+        # matching them so far, and until when to wait (shared by writer and reader).
+        self._echo_lock = threading.Lock()
+        self._echo: deque[tuple[bytes, float]] = deque()  # (frame written, echo deadline)
+        self._held = bytearray()
+        self._foreign = False  # inside a received frame that is not an echo
+        self._echo_misses = 0
+        #: None until known; True once an echo was seen; False if the adapter does not echo.
+        self.local_echo: bool | None = None
+        self.echo_bytes_dropped = 0
 
     @classmethod
     def from_url(
@@ -158,7 +190,9 @@ class SerialTransport(Transport):
 
     @property
     def wire_bytes_per_s(self) -> float | None:
-        return self.baud / BITS_PER_BYTE
+        """The line's byte rate at 8N1; on RS-485 half of it (one wire both ways)."""
+        rate = self.baud / BITS_PER_BYTE
+        return rate / 2.0 if self.rs485 else rate
 
     @property
     def is_open(self) -> bool:
@@ -230,7 +264,48 @@ class SerialTransport(Transport):
                 data += port.read(more)
         if data:
             self._last_rx = time.monotonic()
+        if self.rs485:
+            return self._strip_echo(data)
         return data
+
+    def _strip_echo(self, data: bytes) -> bytes:
+        """`data` less the local echo of what we wrote (see the class docstring)."""
+        with self._echo_lock:
+            if self.local_echo is False:
+                return data
+            out = bytearray()
+            now = time.monotonic()
+            while self._echo and self._echo[0][1] < now:  # its echo never came
+                self._echo.popleft()
+                self._echo_misses += 1
+                if self.local_echo is None and self._echo_misses >= ECHO_MISSES_TO_GIVE_UP:
+                    self.local_echo = False  # this adapter does not echo: stop looking
+                    self._echo.clear()
+            if self._held and not any(p.startswith(self._held) for p, _ in self._echo):
+                out += self._held  # what matched an echo that expired: the arm's after all
+                self._held.clear()
+                self._foreign = True
+            for b in data:
+                if self._foreign or not self._echo:  # pass a frame that is not an echo whole
+                    out.append(b)
+                    self._foreign = b != 0
+                    continue
+                self._held.append(b)
+                held = bytes(self._held)
+                match = next(
+                    (k for k, (piece, _) in enumerate(self._echo) if piece.startswith(held)), None
+                )
+                if match is None:
+                    out += self._held
+                    self._held.clear()
+                    self._foreign = b != 0
+                elif len(held) == len(self._echo[match][0]):  # a whole echoed frame: drop it
+                    self.echo_bytes_dropped += len(held)
+                    self._held.clear()
+                    self.local_echo = True
+                    for _ in range(match + 1):  # and any earlier one whose echo was missed
+                        self._echo.popleft()
+            return bytes(out)
 
     def _pieces(self, frames: Sequence[bytes]) -> Sequence[bytes]:
         return list(frames) if self.rs485 else [b"".join(frames)]
@@ -239,11 +314,13 @@ class SerialTransport(Transport):
         port = self._require()
         if self.rs485:
             self._wait_for_quiet_line()
-        port.write(piece)
         now = time.monotonic()
-        self._line_busy_until = (
-            max(now, self._line_busy_until) + len(piece) * BITS_PER_BYTE / self.baud
-        )
+        busy_until = max(now, self._line_busy_until) + len(piece) * BITS_PER_BYTE / self.baud
+        if self.rs485 and self.local_echo is not False:
+            with self._echo_lock:  # before the write: the echo may be read at once
+                self._echo.append((bytes(piece), busy_until + RS485_ECHO_WINDOW_S))
+        port.write(piece)
+        self._line_busy_until = busy_until
 
     def _wait_for_quiet_line(self) -> None:
         # Our own bytes must have left; a chattering bus (heartbeats) is waited on only so

@@ -80,7 +80,7 @@ def test_move_with_too_few_angles_is_a_usage_error_not_a_traceback(capsys) -> No
     assert _status(["--port", "loop://", "move", "1", "2"]) == Exit.USAGE
     err = capsys.readouterr().err
     assert "Traceback" not in err
-    assert "required: C, B" in err
+    assert "needs the four angles E D C B (rad), got 2" in err
 
 
 def test_global_options_work_before_or_after_the_command() -> None:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from protocol.alpha5 import FACTORY_POSITION_LIMITS, JOINTS
-from reach_driver.kinematics import link_poses, tool_position
+from reach_driver.kinematics import link_poses, tool_jacobian, tool_position
 from reach_sim_bridge.arm import Alpha5Arm
 
 LINKS = ("m2_1_1", "m2", "m2_1_3", "m1")
@@ -46,3 +46,12 @@ def test_link_origins_match_the_mjcf(arm: Alpha5Arm) -> None:
             body = arm.data.body(name)
             np.testing.assert_allclose(pos, body.xpos, atol=1e-6)
             np.testing.assert_allclose(rot, body.xmat.reshape(3, 3), atol=1e-6)
+
+
+def test_tool_jacobian_matches_the_simulators(arm: Alpha5Arm) -> None:
+    for q in _poses(6, seed=5):
+        pos, jac = tool_jacobian(q)
+        sim_pos, _, sim_jacp, _ = arm.tcp_kinematics(q)
+        np.testing.assert_allclose(pos, sim_pos, atol=1e-6)
+        np.testing.assert_allclose(jac, sim_jacp, atol=1e-6)
+        np.testing.assert_allclose(jac[:, 3], 0.0, atol=1e-9)  # B does not move the tcp

@@ -23,6 +23,7 @@ from reach_driver.cli.live import MoveView, RunView, chain
 from reach_driver.cli.recorder import CliRecorder
 from reach_driver.cli.render import (
     blocking_faults,
+    diagnostics_table,
     info_json,
     info_table,
     jsonable,
@@ -37,6 +38,7 @@ from reach_driver.client import ArmClient
 from reach_driver.control import ControlLoop, Pacing, control_period
 from reach_driver.controllers import available_controllers, load_controller
 from reach_driver.errors import ArmFaultError, DriverError
+from reach_driver.kinematics import tool_position
 from reach_driver.link import EventKind, LinkState
 from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind
@@ -47,11 +49,13 @@ def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
     try:
         # Where each joint is now, beside its limits: the start of any move or run.
         client.request_many(client.found_devices, [PacketID.POSITION], partial=True)
+        client.read_diagnostics()  # Monitor readings and status, read_info's joints carry them
         joints = client.read_info()
         if args.json:
             console.print_json(json.dumps(info_json(args.port, joints)))
             return Exit.OK
         console.print(info_table(args.port, joints))
+        console.print(diagnostics_table(args.port, joints))
         return Exit.OK
     finally:
         client.close()
@@ -89,6 +93,10 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
                     rates = {
                         k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()
                     }
+                    try:
+                        client.read_diagnostics(devices)  # Monitor readings and status flags
+                    except DriverError:
+                        pass  # the table shows the link's state; the readings keep their last
                     last_counts, last_t = counts, now
                     live.update(monitor_table(client, rates, args.port), refresh=True)
             except KeyboardInterrupt:
@@ -127,11 +135,20 @@ def _notes() -> Console:
 
 
 def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
-    target = np.array([args.angle_e, args.angle_d, args.angle_c, args.angle_b], dtype=float)
+    if args.xyz is not None and args.angles:
+        raise UsageError("move takes the four angles E D C B or --xyz X Y Z, not both")
+    if args.xyz is None and len(args.angles) != 4:
+        raise UsageError(
+            f"move needs the four angles E D C B (rad), got {len(args.angles)}; or --xyz X Y Z "
+            "(mm) for a tool position"
+        )
+    target = np.array(args.angles, dtype=float)
     client = connect(args, console)
     devices = [*JOINTS, JAW] if args.jaw is not None else list(JOINTS)
     commanded = False
     try:
+        if args.xyz is not None:  # joint targets by the driver's IK; out of reach: exit 3
+            target = client.solve_xyz(*args.xyz)
         # Check everything first: a refused target must leave every joint where it is.
         for dev, value in zip(JOINTS, target, strict=True):
             client.guard.check(dev, LimitKind.POSITION, float(value))
@@ -174,7 +191,12 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                     task, completed=min(1.0, max(0.0, 1.0 - worst / start_err)), detail=detail
                 )
                 jaw_left = args.jaw - state.jaw_mm if args.jaw is not None else None
-                done = worst <= args.tolerance and jaw_err <= args.jaw_tolerance
+                tool_err = _tool_error_mm(args, state.q)
+                done = (
+                    worst <= args.tolerance
+                    and jaw_err <= args.jaw_tolerance
+                    and tool_err <= args.xyz_tolerance
+                )
                 lines.update(err, jaw_left, force=done)
                 if done:
                     progress.update(task, completed=1.0)
@@ -193,6 +215,9 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                     )
                 time.sleep(0.05)
         console.print(f"[green]reached[/] within {args.tolerance} rad: {detail}")
+        if args.xyz is not None:
+            goal = ", ".join(f"{v:.1f}" for v in args.xyz)
+            console.print(f"tool centre point {tool_err:.2f} mm from ({goal}) mm")
         return Exit.OK
     except KeyboardInterrupt:
         # Ctrl-C means stop: in position mode the joints would go on to the target.
@@ -208,6 +233,14 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
         except DriverError:
             pass
         client.close()
+
+
+def _tool_error_mm(args: argparse.Namespace, q: np.ndarray) -> float:
+    """With --xyz: the distance (mm) of the reported angles' tool centre point from the
+    target; 0 without."""
+    if args.xyz is None:
+        return 0.0
+    return float(np.linalg.norm(tool_position(q) * 1000.0 - np.asarray(args.xyz, dtype=float)))
 
 
 def _report_link_lost(client: ArmClient, target: np.ndarray, move_started: float) -> None:

@@ -266,12 +266,25 @@ def build_parser() -> argparse.ArgumentParser:
         "move it stops waiting at once and exits 5, saying since when and the last positions "
         "the arm reported.",
     )
-    # Four positionals, not nargs=4 with a tuple metavar: argparse crashes formatting that
-    # (help and the "required" error) on Python 3.10-3.13.
-    for letter, what in zip("EDCB", ("base", "shoulder", "elbow", "wrist"), strict=True):
-        move.add_argument(
-            f"angle_{letter.lower()}", type=float, metavar=letter, help=f"{what} angle, rad"
-        )
+    move.add_argument(
+        "angles",
+        nargs="*",
+        type=float,
+        metavar="ANGLE",
+        help="the four angles E D C B in rad: base angle, shoulder, elbow, wrist (or --xyz)",
+    )
+    move.add_argument(
+        "--xyz",
+        nargs=3,
+        type=float,
+        metavar=("X", "Y", "Z"),
+        help="instead of the angles: the tool centre point's target in mm, base frame; the "
+        "driver's inverse kinematics turns it into joint positions inside the limits (B keeps "
+        "its angle); an unreachable target is refused before anything moves (exit 3)",
+    )
+    move.add_argument(
+        "--xyz-tolerance", type=_positive, default=2.0, help="mm, with --xyz (default 2)"
+    )
     move.add_argument("--jaw", type=float, metavar="MM", help="jaw opening in mm")
     move.add_argument(
         "--tolerance",

@@ -10,17 +10,16 @@ from rich.console import Console, Group
 from rich.markup import escape
 from rich.table import Table
 
-from protocol import DeviceID, Mode, PacketID
+from protocol import DeviceID, HardwareStatus, Mode, PacketID
 from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS, TORQUE_PER_AMP_NM
 from reach_driver.cli.exits import for_operator
 from reach_driver.cli.report import run_metrics
 from reach_driver.client import ArmClient
+from reach_driver.faults import blocking_flags, flag_labels, status_bytes
 from reach_driver.metrics import METRIC_KEYS, metric_label
 from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind
 from reach_driver.state import JointState, joint_name
-
-LINK_FLAGS = frozenset({"SERIAL_ERROR", "CRC_ERROR"})
 
 
 def fmt(value: float | None, digits: int = 4) -> str:
@@ -93,6 +92,9 @@ def info_json(port: str, joints: dict[int, JointState]) -> dict[str, Any]:
                 if getattr(js, f"{kind.value}_limits") is not None
             },
             "status_flags": js.fault_names,
+            "status": status_bytes(js.status.value) if js.status else None,
+            "blocking_flags": flag_labels(blocking_flags(js.status.value)) if js.status else [],
+            "diagnostics": diagnostics_json(js),
         }
     return jsonable({"port": port, "devices": out}, digits6=True)
 
@@ -114,7 +116,6 @@ def info_table(port: str, joints: dict[int, JointState]) -> Group:
     for column in ("device", "position", "position limits", "velocity limit", "current limit"):
         limits.add_column(column, justify="right", no_wrap=True)
     for dev, js in joints.items():
-        status = js.fault_names
         serial, model = _whole(js.serial_number), _whole(js.model_number)
         ids.add_row(
             joint_name(dev),
@@ -122,9 +123,7 @@ def info_table(port: str, joints: dict[int, JointState]) -> Group:
             escape(str(js.software_version.value)) if js.software_version else "-",
             "-" if serial is None else str(serial),
             "-" if model is None else str(model),
-            ("[red]" + escape(", ".join(status)) + "[/]")
-            if status
-            else ("ok" if js.status is not None else "-"),
+            status_text(js),
         )
         pos_unit = _unit(dev, "rad", "mm")
         vel_unit = _unit(dev, "rad/s", "mm/s")
@@ -178,12 +177,83 @@ def monitor_json(
     )
 
 
+#: The Monitor readings (docs/protocol.md 3a): column title, (JointState field, digits).
+DIAGNOSTIC_COLUMNS: tuple[tuple[str, tuple[str, int]], ...] = (
+    ("supply V", ("voltage", 2)),
+    ("temp degC", ("temperature", 1)),
+    ("humidity %", ("humidity", 1)),
+    ("pressure bar", ("internal_pressure", 3)),
+)
+
+
+def diagnostic_cells(js: JointState) -> list[str]:
+    cells = []
+    for _, (name, digits) in DIAGNOSTIC_COLUMNS:
+        reading = getattr(js, name)
+        cells.append(fmt(reading.value, digits) if reading is not None else "-")
+    return cells
+
+
+def diagnostics_json(js: JointState) -> dict[str, Any]:
+    """The Monitor readings with their units in the keys (None where not reported)."""
+
+    def value(reading: Any) -> Any:
+        return None if reading is None else reading.value
+
+    climate = value(js.factory_climate)
+    return {
+        "voltage_v": value(js.voltage),
+        "temperature_c": value(js.temperature),
+        "humidity_pct": value(js.humidity),
+        "internal_pressure_bar": value(js.internal_pressure),
+        "factory_climate": None if climate is None else climate._asdict(),
+    }
+
+
+def diagnostics_table(port: str, joints: dict[int, JointState]) -> Table:
+    """`info`'s second table: each device's Monitor readings beside its factory climate."""
+    table = Table(
+        title=f"diagnostics on {port}",
+        caption="live readings; factory: the climate sealed in at assembly (degC/bar/%)",
+    )
+    table.add_column("device", no_wrap=True)
+    for column, _ in DIAGNOSTIC_COLUMNS:
+        table.add_column(column, justify="right")
+    table.add_column("factory", justify="right")
+    for dev, js in joints.items():
+        climate = js.factory_climate.value if js.factory_climate else None
+        table.add_row(
+            joint_name(dev),
+            *diagnostic_cells(js),
+            "-"
+            if climate is None
+            else f"{climate.temperature_c:.0f}/{climate.pressure_bar:.2f}/"
+            f"{climate.humidity_pct:.0f}",
+        )
+    return table
+
+
+def status_text(js: JointState) -> str:
+    """HARDWARE_STATUS by byte, one line each ('C: ENCODER_FAULT'): red if any flag blocks
+    the joint (reach_driver.faults), yellow if all are informational."""
+    if js.status is None:
+        return "-"
+    named = [f"{b}: {', '.join(n)}" for b, n in status_bytes(js.status.value).items() if n]
+    if not named:
+        return "ok"
+    colour = "red" if blocking_flags(js.status.value) else "yellow"
+    return f"[{colour}]" + escape("\n".join(named)) + "[/]"
+
+
 def monitor_table(client: ArmClient, rates: dict[tuple[int, int], float], port: str) -> Table:
     now = client.clock()
     state = client.state
     table = Table(title=f"{port}: link {client.link_state.value}")
     for column in ("joint", "mode", "position", "velocity", "current mA", "age ms", "rate Hz"):
         table.add_column(column, justify="right")
+    for column, _ in DIAGNOSTIC_COLUMNS:
+        table.add_column(column, justify="right")
+    table.add_column("status")
     for dev in (*JOINTS, JAW):
         js = state.joint(dev)
         age = js.position.age(now) * 1e3 if js.position else math.nan
@@ -195,6 +265,8 @@ def monitor_table(client: ArmClient, rates: dict[tuple[int, int], float], port: 
             fmt(js.current.value if js.current else None, 1),
             fmt(age, 0),
             fmt(rates.get((int(dev), int(PacketID.POSITION)), math.nan), 1),
+            *diagnostic_cells(js),
+            status_text(js),
         )
     ts, ds, cs = client.transport.stats, client.decoder_stats, client.stats
     bad = ", ".join(f"{r.value} {n}" for r, n in ds.bad_frames.items() if n) or "none"
@@ -208,19 +280,25 @@ def monitor_table(client: ArmClient, rates: dict[tuple[int, int], float], port: 
 
 
 def blocking_faults(flags: dict[int, list[str]], console: Console | None) -> str:
-    """Status flags that must stop a move, as text ('' if none). Link error flags (a CRC or
-    serial error the arm saw on the line) are only reported: they say nothing about the
-    motors, and the arm clears them by itself."""
+    """Status flags that must stop a move, as text ('' if none), by the one policy in
+    `reach_driver.faults`: the others (link errors the arm saw on the line, a service
+    reminder, read protection...) are only reported."""
     blocking = []
     for dev, names in flags.items():
-        link = [n for n in names if n in LINK_FLAGS]
-        other = [n for n in names if n not in LINK_FLAGS]
-        if link and console is not None:
+        status = HardwareStatus.NONE
+        for name in names:
+            if name in HardwareStatus.__members__:
+                status |= HardwareStatus[name]
+        stops = flag_labels(blocking_flags(status))
+        unknown = [n for n in names if n not in HardwareStatus.__members__]
+        stops += unknown  # a name this driver cannot place is treated as blocking
+        shown = [n for n in names if n not in stops]
+        if shown and console is not None:
             console.print(
-                f"[yellow]warning[/]: {joint_name(dev)} reports {escape(', '.join(link))}"
+                f"[yellow]warning[/]: {joint_name(dev)} reports {escape(', '.join(shown))}"
             )
-        if other:
-            blocking.append(f"{joint_name(dev)}: {', '.join(other)}")
+        if stops:
+            blocking.append(f"{joint_name(dev)}: {', '.join(stops)}")
     return "; ".join(blocking)
 
 
