@@ -163,7 +163,9 @@ class Replay:
         qd_out = np.full_like(seg.qdot, np.nan)
         others = [i for i in range(N_JOINTS) if i != seg.joint]
         data = arm.data
-        first = SKIP_TICKS + whole
+        # Windows start at the same ticks whatever the delay, so every candidate delay is
+        # scored on the same samples (the residual keeps its length while the fit moves it).
+        first = SKIP_TICKS + int(math.ceil(MAX_DELAY_S / period - 1e-12))
         for s in range(first, n, w_ticks):
             end = min(s + w_ticks, n)
             arm.reset(q=seg.q[s], qdot=seg.qdot[s])

@@ -85,6 +85,15 @@ def test_replay_of_the_true_arm_reproduces_the_log() -> None:
     assert np.ptp(seg.q[:, 0]) > 0.3  # the relay swung the joint
 
 
+def test_the_residual_has_one_length_whatever_the_delay() -> None:
+    """The fit's Jacobian needs residuals of one length: windows may not move with the delay
+    (a delay crossing a whole period once broke an identification with a shape mismatch)."""
+    seg = _record(ArmParams(), 0, "relay", 2.0)
+    replay = Replay(window_s=0.5)
+    lengths = {replay.residuals(ArmParams(), d, [seg]).size for d in (0.0, 0.019, 0.021, 0.07)}
+    assert len(lengths) == 1
+
+
 def test_the_fit_recovers_friction_armature_and_delay() -> None:
     truth = ArmParams().randomized(9)
     segs = [_record(truth, 0, "relay", 4.0), _record(truth, 0, "chirp", 4.0)]
@@ -156,7 +165,7 @@ def test_identify_a_hidden_virtual_arm_end_to_end(tmp_path: Path) -> None:
             "--params",
             str(hidden_path),
             "--speed",
-            "5",
+            "2.5",  # at 5x a loaded host's scheduling pauses become 50 ms of sim time and blur
             "--link",
             str(link),
             "--stats-interval",
@@ -212,4 +221,4 @@ def test_identify_a_hidden_virtual_arm_end_to_end(tmp_path: Path) -> None:
     assert meta["arm_seconds"] < 300
     assert (tmp_path / "arm.report" / "report.md").exists()
     assert (tmp_path / "arm.log.npz").exists()
-    assert wall < 120
+    assert wall < 240  # a broken loop fails instead of hanging
