@@ -329,3 +329,67 @@ def test_move_streams_the_arm_and_its_target_to_a_viewer(sim, receiver, capsys) 
     assert len(live.step) >= 3 and np.all(np.isfinite(live.q))
     np.testing.assert_allclose(live.target[-1], q)
     assert np.max(np.abs(live.q[-1] - q)) <= 0.02
+
+
+# -- reach-sim --viewer --------------------------------------------------------------------------
+
+
+def test_the_simulator_reads_viewer_words_as_the_driver_does() -> None:
+    from reach_sim_bridge import recording as sim_recording
+
+    for words in (["spawn"], ["connect"], ["connect", "9000"], ["serve", "9100", "9101"]):
+        driver, sim_spec = parse_viewer(words), sim_recording.parse_viewer(words)
+        assert (driver.mode, driver.url, driver.port, driver.web_port, driver.bind) == (
+            sim_spec.mode,
+            sim_spec.url,
+            sim_spec.port,
+            sim_spec.web_port,
+            sim_spec.bind,
+        )
+        assert driver.web_url == sim_spec.web_url
+
+
+def test_sim_recorder_streams_its_samples_and_still_writes_the_file(tmp_path, receiver) -> None:
+    from reach_sim_bridge.recording import SimRecorder
+    from reach_sim_bridge.recording import parse_viewer as sim_viewer
+
+    port, received, proc = receiver
+    path = tmp_path / "sim.rrd"
+    warnings: list[str] = []
+    with SimServer(SimConfig(speed=5.0, pty=False, udp=("127.0.0.1", 0))) as srv:
+        recorder = SimRecorder(
+            srv, path, viewer=sim_viewer(["connect", str(port)]), warn=warnings.append
+        )
+        assert recorder.viewing
+        recorder.start()
+        assert srv.wait_sim_time(srv.sim_time + 1.0, timeout=30)
+        recorder.stop()
+    assert warnings == []
+    _stop(proc)
+    local, live = read_recording(path), read_recording(received)
+    assert len(local.step) >= 2 and local.metadata["source"] == "reach-sim"
+    assert live.step.tolist() == local.step.tolist()
+    np.testing.assert_allclose(live.q, local.q)
+
+
+def test_reach_sim_viewer_serve_prints_the_address_and_streams_only(tmp_path) -> None:
+    grpc, web = _free_port(), _free_port()
+    cli = [sys.executable, "-m", "reach_sim_bridge.cli", "--no-pty", "--udp", "127.0.0.1:0"]
+    cli += ["--viewer", "serve", str(grpc), str(web)]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    proc = subprocess.Popen(
+        cli, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=env
+    )
+    try:
+        assert proc.stdout is not None and proc.stderr is not None
+        assert proc.stdout.readline().startswith("udp ")
+        line = proc.stderr.readline()
+        assert f"http://127.0.0.1:{web}/?url=rerun%2Bhttp://127.0.0.1:{grpc}/proxy" in line, line
+        assert wait_until(lambda: _listening(grpc), timeout=10)
+        page = urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=10).read()
+        assert b"<html" in page.lower()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert "recording" not in out and list(tmp_path.glob("*.rrd")) == []
