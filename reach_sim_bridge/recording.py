@@ -93,6 +93,7 @@ VIEWER_USAGE = (
 )
 _PROBE_TIMEOUT_S = 1.0
 _VIEWER_CLOSE_S = 1.0  # the longest closing waits for a viewer that stopped answering
+_VIEWER_WATCH_S = 1.0  # how often the viewer stream is flushed, off the control thread
 
 
 @dataclass(frozen=True)
@@ -424,16 +425,50 @@ class _Tee:
     ) -> None:
         self.file, self.viewer = file, viewer
         self._on_viewer_error = on_viewer_error
+        self._watching = threading.Event()
 
     def _to_viewer(self, call: Callable[[rr.RecordingStream], None]) -> None:
-        if self.viewer is None:
+        viewer = self.viewer
+        if viewer is None:
             return
         try:
-            call(self.viewer)
+            call(viewer)
         except Exception as exc:
-            viewer, self.viewer = self.viewer, None
-            _drop(viewer, wait_s=0.1)
-            self._on_viewer_error(exc)
+            self._fail(viewer, exc)
+
+    def _fail(self, viewer: rr.RecordingStream, exc: Exception) -> None:
+        if self.viewer is not viewer:
+            return  # already dropped
+        self.viewer = None
+        _drop(viewer, wait_s=0.1)
+        self._on_viewer_error(exc)
+
+    def watch(self, period_s: float = _VIEWER_WATCH_S) -> None:
+        """Flush the viewer stream every `period_s` on a thread of its own: a viewer that went
+        away (rerun reports it only on a flush) is noticed, named and dropped without the
+        control loop ever waiting for it. A flush that merely times out (a slow viewer) is
+        not a failure."""
+        if self.viewer is None or self._watching.is_set():
+            return
+        self._watching.set()
+
+        def run() -> None:
+            while self._watching.is_set():
+                time.sleep(period_s)
+                viewer = self.viewer
+                if viewer is None or not self._watching.is_set():
+                    return
+                try:
+                    viewer.flush(timeout_sec=period_s)
+                except Exception as exc:
+                    if "timed out" not in str(exc).lower():
+                        self._fail(viewer, exc)
+                        return
+
+        threading.Thread(target=run, name="rerun-viewer-watch", daemon=True).start()
+
+    def unwatch(self) -> None:
+        self._watching.clear()
 
     def log(self, path: str, entity: Any, static: bool = False) -> None:
         if self.file is not None:
@@ -511,6 +546,7 @@ class SimRecorder:
                 self._log_scene(_Tee(None, view, self._viewer_error))
         self._rec = self._open_part() if self.path is not None else None
         self._out.file = self._rec
+        self._out.watch()
         self._last_flush = time.monotonic()
         self._rows_since_flush = 0
         self._urgent = False
@@ -716,6 +752,7 @@ class SimRecorder:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
+        self._out.unwatch()
         with self._lock:
             viewer, self._out.viewer = self._out.viewer, None
             try:
