@@ -440,8 +440,8 @@ class _Tee:
         if self.viewer is not viewer:
             return  # already dropped
         self.viewer = None
+        self._on_viewer_error(exc)  # first: `viewing` is False only once it is said
         _drop(viewer, wait_s=0.1)
-        self._on_viewer_error(exc)
 
     def watch(self, period_s: float = _VIEWER_WATCH_S) -> None:
         """Flush the viewer stream every `period_s` on a thread of its own: a viewer that went
