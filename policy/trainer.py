@@ -81,6 +81,8 @@ class Trainer:
         self.expert = expert
         self.arm_factory = arm_factory
         self.log = log
+        #: called with (episodes done, episodes to do) after each demonstration episode
+        self.demo_progress: Callable[[int, int], None] | None = None
         if (config.bc_weight > 0 or config.demo_episodes > 0) and expert is None:
             raise ValueError("demonstrations / behaviour cloning need an expert controller")
         self.rng = np.random.default_rng(config.seed)
@@ -190,6 +192,8 @@ class Trainer:
                     a[None],
                 )
                 obs, done = next_obs, term or trunc
+            if self.demo_progress is not None:
+                self.demo_progress(ep + 1, cfg.demo_episodes)
         self.log(f"collected {len(self.demos)} demonstration transitions")
 
     # -- main loop -------------------------------------------------------------------------

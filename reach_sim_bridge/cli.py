@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from types import FrameType
+from typing import Any
 
 from reach_sim_bridge.faults import (
     DEFAULT_POSITION_NOISE,
@@ -43,6 +44,7 @@ examples:
   reach-sim --speed 5 --torque-scale E=0.25      # paper scenario 3, five times real time
   reach-sim --baud 115200 --latency-ms 5 --drop-rate 0.01 --sensor-noise
   reach-sim --params arm.json --randomize-params 3  # an identified arm, perturbed
+  reach-sim --link /tmp/alpha5 --record sim.rrd --viewer serve 9877 9091  # watch it live
 """
 
 
@@ -111,6 +113,25 @@ def _version() -> str:
         return version("reach-stack")
     except PackageNotFoundError:  # running from a source tree that was never installed
         return "unknown (not installed)"
+
+
+class _ViewerAction(argparse.Action):
+    """`--viewer MODE [VALUE...]` into a `ViewerSpec` (usage error if the words are wrong)."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        from reach_sim_bridge.recording import parse_viewer
+
+        try:
+            spec = parse_viewer(list(values))
+        except ValueError as exc:
+            raise argparse.ArgumentError(self, str(exc)) from None
+        setattr(namespace, self.dest, spec)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -262,6 +283,20 @@ def build_parser() -> argparse.ArgumentParser:
         "modes, link counters, 3D skeleton) to a Rerun recording",
     )
     out.add_argument(
+        "--viewer",
+        nargs="+",
+        action=_ViewerAction,
+        metavar=("MODE", "VALUE"),
+        default=None,
+        help="watch the arm's true state live in Rerun, beside --record (the file is still "
+        "written) or alone: spawn [PORT] starts the native viewer (needs a display); connect "
+        "[URL|PORT] streams to a running one (default rerun+http://127.0.0.1:9876/proxy); "
+        "serve [GRPC_PORT [WEB_PORT]] hosts a gRPC server (loopback, default 9876) and the web "
+        "viewer (default 9090) and prints the address to open (no display needed; ssh -L both "
+        "ports). A viewer that cannot start or goes away is named once and dropped; the "
+        "simulator runs on. A driver run served on 9876 at the same time needs other ports",
+    )
+    out.add_argument(
         "--record-rate",
         type=_positive_float,
         default=50.0,
@@ -345,11 +380,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"reach-sim: error: {exc}", file=sys.stderr)
         return 1
     recorder = None
-    if args.record is not None:
+    viewer = getattr(args, "viewer", None)
+    if args.record is not None or viewer is not None:
         from reach_sim_bridge.recording import SimRecorder
 
         recorder = SimRecorder(
-            server, args.record, rate_hz=args.record_rate, max_bytes=int(args.record_max_mb * 1e6)
+            server,
+            args.record,
+            rate_hz=args.record_rate,
+            max_bytes=int(args.record_max_mb * 1e6),
+            viewer=viewer,
+            announce=lambda msg: print(msg, file=sys.stderr, flush=True),
         )
         recorder.start()
     try:
@@ -369,7 +410,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         server.stop()
         if recorder is not None:
             recorder.stop()
-            print(f"recording {args.record} ({recorder.samples} samples)")
+            if args.record is not None:
+                print(f"recording {args.record} ({recorder.samples} samples)")
         s = server.stats()
         logging.getLogger("reach_sim_bridge.server").info(
             "stopped at t=%.1f s: frames in %d out %d, bad %s, errors %s",

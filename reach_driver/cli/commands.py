@@ -63,6 +63,9 @@ def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
 
 def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
     client = connect(args, console)
+    viewer = getattr(args, "viewer", None)
+    recorder: CliRecorder | None = None
+    stream: _StateStream | None = None
     try:
         devices = client.found_devices
         ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT, PacketID.MODE)
@@ -76,8 +79,12 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
         last_counts = client.table.count_snapshot()
         last_t = time.monotonic()
         rates: dict[tuple[int, int], float] = {}
+        if viewer is not None:
+            meta = {"command": "monitor", "port": args.port, "rate_hz": rate}
+            recorder = CliRecorder(None, meta, viewer=viewer)
+            stream = _StateStream(client, recorder)
         if args.json:
-            return _monitor_json(client, console, end, last_counts, last_t)
+            return _monitor_json(client, console, end, last_counts, last_t, stream)
         with Live(
             monitor_table(client, rates, args.port),
             console=console,
@@ -87,7 +94,7 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
         ) as live:
             try:
                 while time.monotonic() < end:
-                    time.sleep(min(0.5, max(0.0, end - time.monotonic())))
+                    _wait(min(0.5, max(0.0, end - time.monotonic())), stream)
                     now = time.monotonic()
                     counts = client.table.count_snapshot()
                     rates = {
@@ -103,7 +110,50 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
                 pass  # Ctrl-C is how a monitor is meant to end: exit 0
         return Exit.OK
     finally:
+        if recorder is not None:
+            recorder.close()
         client.close()
+
+
+class _StateStream:
+    """`monitor --viewer`, `move --viewer`: the arm's state to the viewer, at most 20 Hz."""
+
+    PERIOD_S = 0.05
+
+    def __init__(
+        self, client: ArmClient, recorder: CliRecorder, target: np.ndarray | None = None
+    ) -> None:
+        self.client, self.recorder, self.target = client, recorder, target
+        self.t0 = time.monotonic()
+        self.step = 0
+        self._last = -math.inf
+
+    def tick(self) -> None:
+        now = time.monotonic()
+        if now - self._last < self.PERIOD_S:
+            return
+        self._last = now
+        state = self.client.state
+        if not np.any(np.isfinite(state.q)):
+            return  # nothing has arrived yet
+        self.recorder.on_state(
+            now - self.t0, self.step, state.q, state.qdot, state.current, self.target
+        )
+        self.step += 1
+
+
+def _wait(seconds: float, stream: _StateStream | None) -> None:
+    """Sleep `seconds`, feeding the viewer stream meanwhile if there is one."""
+    if stream is None:
+        time.sleep(seconds)
+        return
+    end = time.monotonic() + seconds
+    while True:
+        stream.tick()
+        left = end - time.monotonic()
+        if left <= 0:
+            return
+        time.sleep(min(stream.PERIOD_S, left))
 
 
 def _monitor_json(
@@ -112,12 +162,13 @@ def _monitor_json(
     end: float,
     last_counts: dict[tuple[int, int], int],
     last_t: float,
+    stream: _StateStream | None = None,
 ) -> Exit:
     """`monitor --json`: a JSON object per refresh, one a line (JSON Lines)."""
     start = last_t
     try:
         while time.monotonic() < end:
-            time.sleep(min(0.5, max(0.0, end - time.monotonic())))
+            _wait(min(0.5, max(0.0, end - time.monotonic())), stream)
             now = time.monotonic()
             counts = client.table.count_snapshot()
             rates = {k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()}
@@ -146,6 +197,9 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
     client = connect(args, console)
     devices = [*JOINTS, JAW] if args.jaw is not None else list(JOINTS)
     commanded = False
+    recorder: CliRecorder | None = None
+    stream: _StateStream | None = None
+    viewer = getattr(args, "viewer", None)
     try:
         if args.xyz is not None:  # joint targets by the driver's IK; out of reach: exit 3
             target = client.solve_xyz(*args.xyz)
@@ -157,7 +211,13 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
         faults = blocking_faults(client.read_status(), console)
         if faults:
             raise ArmFaultError(f"arm reports faults, not moving: {faults}")
-        client.stream((PacketID.POSITION,), 20, devices)
+        ids: tuple[PacketID, ...] = (PacketID.POSITION,)
+        if viewer is not None:
+            ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT)
+            meta = {"command": "move", "port": args.port, "target": target.tolist()}
+            recorder = CliRecorder(None, meta, viewer=viewer)
+            stream = _StateStream(client, recorder, target)
+        client.stream(ids, 20, devices)
         q0 = client.read_joints((PacketID.POSITION,)).q
         commanded = True
         client.set_mode(devices, Mode.POSITION)
@@ -213,7 +273,7 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                     raise DriverError(
                         f"move timed out after {args.move_timeout:g} s; errors (rad) {detail}"
                     )
-                time.sleep(0.05)
+                _wait(0.05, stream)
         console.print(f"[green]reached[/] within {args.tolerance} rad: {detail}")
         if args.xyz is not None:
             goal = ", ".join(f"{v:.1f}" for v in args.xyz)
@@ -228,6 +288,8 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 pass  # the message says "interrupted"; close() tries once more
         raise
     finally:
+        if recorder is not None:
+            recorder.close()
         try:
             client.stop_stream()
         except DriverError:
@@ -302,7 +364,8 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
         faults = blocking_faults(client.read_status(JOINTS), _notes() if args.json else console)
         if faults:
             raise ArmFaultError(f"arm reports faults, not starting: {faults}")
-        if args.record:
+        viewer = getattr(args, "viewer", None)
+        if args.record or viewer is not None:
             meta: dict[str, object] = {
                 "controller": args.controller,
                 "params": params,
@@ -312,7 +375,7 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
                 "target": target.tolist(),
                 "seconds": args.seconds,
             }
-            recorder = CliRecorder(args.record, meta)
+            recorder = CliRecorder(args.record, meta, viewer=viewer)
         view = RunView(Console(stderr=True, highlight=False), args.seconds, enabled=not args.quiet)
         hook = chain(recorder.on_step if recorder is not None else None, view.on_step)
         loop = ControlLoop(client, controller, period, pacing=args.pacing, on_step=hook)

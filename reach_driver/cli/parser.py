@@ -35,6 +35,8 @@ examples:
   reach-driver --port /dev/ttyUSB0 run --controller ddpg --target 5.78 1.97 1.67 3.96 \\
       --seconds 20 --record run.rrd
   reach-driver inspect run.rrd
+  reach-driver --port /tmp/alpha5 run --controller pid --target 3.1 1.5 1.5 3.0 \\
+      --seconds 10 --viewer serve     # watch it live from a browser (or an SSH tunnel)
 
 exit status (every command):
 {exits}
@@ -109,6 +111,47 @@ def _positive(text: str) -> float:
     if not value > 0 or not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
     return value
+
+
+VIEWER_HELP = (
+    "watch live in Rerun, beside --record (the file is still written): spawn [PORT] starts "
+    "the native viewer (needs a display); connect [URL|PORT] streams to a running one "
+    "(default rerun+http://127.0.0.1:9876/proxy, what plain `rerun` listens on); serve "
+    "[GRPC_PORT [WEB_PORT]] hosts a gRPC server (loopback, default 9876) and the web viewer "
+    "(default 9090) here and prints the address to open: the way to watch on a machine "
+    "without a display (ssh -L both ports). A viewer that cannot start or goes away is "
+    "named once and dropped; control never stops for it. Put it after positional arguments"
+)
+
+
+class _ViewerAction(argparse.Action):
+    """`--viewer MODE [VALUE...]` into a `ViewerSpec` (usage error if the words are wrong)."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        from reach_driver.recording import parse_viewer
+
+        try:
+            spec = parse_viewer(list(values))
+        except ValueError as exc:
+            raise argparse.ArgumentError(self, str(exc)) from None
+        setattr(namespace, self.dest, spec)
+
+
+def _add_viewer_option(parser: argparse.ArgumentParser, help_text: str = VIEWER_HELP) -> None:
+    parser.add_argument(
+        "--viewer",
+        nargs="+",
+        action=_ViewerAction,
+        metavar=("MODE", "VALUE"),
+        default=None,
+        help=help_text,
+    )
 
 
 def _add_connection_options(
@@ -255,6 +298,11 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="a JSON object per refresh, one a line (JSON Lines), instead of the table",
     )
+    _add_viewer_option(
+        mon,
+        VIEWER_HELP + ". With a viewer, states go to it at 20 Hz; the table still refreshes "
+        "twice a second",
+    )
 
     move = add(
         "move",
@@ -309,6 +357,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="give up (exit 1, joints stopped) after this many seconds (default 60); the "
         "reply timeout is --reply-timeout here",
     )
+    _add_viewer_option(move)
 
     run = add(
         "run",
@@ -322,9 +371,14 @@ def build_parser() -> argparse.ArgumentParser:
         "With --pacing stream (default) the arm's heartbeat paces "
         "the loop and time is arm time: against reach-sim --speed X a run takes 1/X of the "
         "wall time and gives the same metrics.",
-        epilog="exit status: the table in `reach-driver --help`. Recording never stops "
+        epilog="watching a run from a second terminal: the arm's port is exclusive, so "
+        "`monitor` cannot share it; start the run with --viewer serve (then open the printed "
+        "address, or `rerun --connect rerun+http://127.0.0.1:9876/proxy` in the other "
+        "terminal) or start `rerun` there first and give the run --viewer connect. "
+        "Exit status: the table in `reach-driver --help`. Recording never stops "
         "control: a write error to the --record file is named once, recording stops, the run "
-        "goes on, its summary is printed and it exits 6.",
+        "goes on, its summary is printed and it exits 6. A viewer failing changes nothing "
+        "but a warning.",
     )
     run.add_argument("--controller", required=True, help="e.g. pid, mpc, ddpg")
     run.add_argument("--target", nargs=4, type=float, required=True, metavar=("E", "D", "C", "B"))
@@ -361,6 +415,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.rrd",
         help="record the run for Rerun (a write error stops the recording, not the run: exit 6)",
     )
+    _add_viewer_option(run)
 
     add("controllers", parents=[offline], help="list the registered controllers")
     ins = add(

@@ -1,9 +1,12 @@
-"""`run --record`: the control loop's steps and summary into a Rerun recording.
+"""`run --record` / `--viewer`: the control loop's steps and summary into a Rerun recording,
+a live viewer, or both.
 
 Recording never stops control: the first write error (a full disk, a removed drive, rerun's
 file sink gone) is reported once, recording stops there, and the run goes on as planned; what
 was written before the error stays readable (`reach-driver inspect`). `failed` says why, so
-the run can end with its own exit status (`Exit.RECORDING_INCOMPLETE`).
+the run can end with its own exit status (`Exit.RECORDING_INCOMPLETE`). A viewer that cannot
+be started or reached, or goes away, is named once and dropped; the file and the run go on
+and the exit status does not change.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from reach_driver.errors import DriverError
 from reach_driver.records import ControlSummary, StepRecord
 
 if TYPE_CHECKING:
-    from reach_driver.recording import RunRecorder
+    from reach_driver.recording import RunRecorder, ViewerSpec
 
 
 def _free_space(path: Path) -> str:
@@ -35,8 +38,15 @@ def _free_space(path: Path) -> str:
 class CliRecorder:
     """The hooks `run` gives the control loop (`on_step`) and calls at its end (`finish`)."""
 
-    def __init__(self, path: str, meta: dict[str, object], warn: Console | None = None) -> None:
-        """Opens the recording; fails (DriverError) before anything moves if it cannot."""
+    def __init__(
+        self,
+        path: str | None,
+        meta: dict[str, object],
+        warn: Console | None = None,
+        viewer: ViewerSpec | None = None,
+    ) -> None:
+        """Opens the recording (and the viewer); fails (DriverError) before anything moves if
+        the file cannot be written. A viewer that cannot be had only warns."""
         try:
             from reach_driver import recording
         except ImportError as exc:
@@ -49,14 +59,41 @@ class CliRecorder:
         self.failed: str | None = None
         self.steps = 0
         try:
-            self._rec: RunRecorder | None = recording.RunRecorder(path, metadata=meta)
+            self._rec: RunRecorder | None = recording.RunRecorder(
+                path,
+                metadata=meta,
+                viewer=viewer,
+                warn=lambda msg: self._warn.print(
+                    f"[yellow]warning[/]: {escape(msg)}", soft_wrap=True
+                ),
+                announce=lambda msg: self._warn.print(escape(msg), soft_wrap=True),
+            )
             self._rec.log_event("start")
         except Exception as exc:  # rerun raises RuntimeError for sink errors, Python OSError
-            raise DriverError(f"cannot record to {path}: {exc}{_free_space(Path(path))}") from None
+            where = f"{exc}{_free_space(Path(path))}" if path is not None else str(exc)
+            raise DriverError(f"cannot record to {path or 'the viewer'}: {where}") from None
+
+    @property
+    def viewer_failed(self) -> str | None:
+        rec = self._rec
+        return rec.viewer_failed if rec is not None else None
 
     def _fail(self, exc: Exception, where: str) -> None:
         """The first write error: say so once, stop recording, keep the run going."""
         rec, self._rec = self._rec, None
+        if self.path is None:  # stream only: the viewer's own errors never get here
+            self.failed = None
+            self._warn.print(
+                f"[yellow]warning[/]: live view failed {escape(where)}: "
+                f"{escape(type(exc).__name__)}: {escape(str(exc))}; the run goes on",
+                soft_wrap=True,
+            )
+            if rec is not None:
+                try:
+                    rec.abandon()
+                except Exception:
+                    pass
+            return
         self.failed = (
             f"writing {self.path} failed {where}: {type(exc).__name__}: {exc}"
             f"{_free_space(Path(self.path))}"
@@ -94,6 +131,37 @@ class CliRecorder:
             self.steps += 1
         except Exception as exc:
             self._fail(exc, f"at step {r.step} (t = {r.t:.2f} s; {self.steps} steps recorded)")
+
+    def on_state(
+        self,
+        t: float,
+        step: int,
+        q: np.ndarray,
+        qdot: np.ndarray,
+        current_mA: np.ndarray,
+        target: np.ndarray | None = None,
+    ) -> None:
+        """`monitor` and `move`: what the arm reports at one refresh (no controller)."""
+        rec = self._rec
+        if rec is None:
+            return
+        try:
+            rec.log_state(t, step, q, qdot, current_mA, target)
+            self.steps += 1
+        except Exception as exc:
+            self._fail(exc, f"at refresh {step} (t = {t:.2f} s)")
+
+    def close(self, text: str = "stop") -> None:
+        """End a `monitor` or `move` stream (no summary)."""
+        rec = self._rec
+        if rec is None:
+            return
+        try:
+            rec.log_event(text)
+            rec.close()
+            self._rec = None
+        except Exception as exc:
+            self._fail(exc, "while closing")
 
     def finish(self, summary: ControlSummary | None, error: str | None) -> None:
         rec = self._rec

@@ -1,0 +1,402 @@
+"""`--viewer spawn | connect | serve`: a run streamed live to Rerun beside its file.
+
+No display here, so the viewer is played by rerun's own CLI in headless mode: `rerun --bind
+127.0.0.1 --port P --save FILE` hosts the gRPC endpoint a viewer would and writes what it
+receives to FILE (rerun 0.41 has no in-process receiver in its Python API), and
+`rerun URL --save FILE` is a client pulling from a server a run hosts (`serve`). Everything is
+on loopback, on ports picked free, and bounded in time.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rerun_cli
+from conftest import wait_until
+
+from reach_driver.cli import Exit, main
+from reach_driver.recording import RunRecorder, StepSample, ViewerSpec, parse_viewer
+from reach_driver.rrd_summary import read_recording
+from reach_sim_bridge.server import SimConfig, SimServer
+
+RERUN = os.path.join(os.path.dirname(rerun_cli.__file__), "rerun")  # the binary, not a wrapper
+DT = 0.05
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _listening(port: int) -> bool:
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+            return True
+    except OSError:
+        return False
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=5)
+
+
+@pytest.fixture
+def receiver(tmp_path: Path) -> Iterator[tuple[int, Path, subprocess.Popen[bytes]]]:
+    """A headless stand-in for a viewer on a free loopback port, saving what reaches it."""
+    port, out = _free_port(), tmp_path / "received.rrd"
+    proc = subprocess.Popen(
+        [RERUN, "--bind", "127.0.0.1", "--port", str(port), "--save", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        assert wait_until(lambda: _listening(port), timeout=20), "rerun --save did not listen"
+        yield port, out, proc
+    finally:
+        _stop(proc)
+
+
+def _log_run(rec: RunRecorder, n: int) -> np.ndarray:
+    target = np.array([2.0, 1.6, 1.0, 0.9])
+    rec.log_event("start")
+    for k in range(n):
+        q = target - 0.5 * np.exp(-k * DT)
+        rec.log_step(
+            StepSample(
+                t=k * DT,
+                step=k,
+                q=q,
+                qdot=np.zeros(4),
+                target=target,
+                current_cmd_mA=np.full(4, 10.0 + k),
+                current_meas_mA=np.full(4, 9.0),
+                torque_Nm=np.full(4, 0.1),
+            )
+        )
+        rec.log_link(k * DT, k, good=k, bad=0, state_age_s=0.004, latency_s=0.001)
+    rec.log_summary({"reached": True})
+    return target
+
+
+# -- the words of --viewer -------------------------------------------------------------------
+
+
+def test_viewer_words_parse_with_their_defaults() -> None:
+    assert parse_viewer(["connect"]) == ViewerSpec("connect")
+    assert parse_viewer(["connect"]).url == "rerun+http://127.0.0.1:9876/proxy"
+    assert parse_viewer(["connect", "9000"]).url == "rerun+http://127.0.0.1:9000/proxy"
+    far = parse_viewer(["connect", "rerun+http://10.0.0.5:9877/proxy"])
+    assert (far.url, far.port) == ("rerun+http://10.0.0.5:9877/proxy", 9877)
+    assert parse_viewer(["spawn"]).port == 9876
+    serve = parse_viewer(["serve", "9100", "9101"])
+    assert (serve.port, serve.web_port, serve.bind) == (9100, 9101, "127.0.0.1")
+    assert serve.web_url == "http://127.0.0.1:9101/?url=rerun%2Bhttp://127.0.0.1:9100/proxy"
+    for bad in (["watch"], ["connect", "http://x"], ["serve", "1", "2", "3"], ["serve", "0"]):
+        with pytest.raises(ValueError):
+            parse_viewer(bad)
+    with pytest.raises(ValueError, match="after positional"):
+        parse_viewer(["spawn", "3", "1"])
+
+
+def test_bad_viewer_words_are_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(
+            ["--port", "loop://", "run", "--controller", "pid", "--target", "1", "1", "1", "1"]
+            + ["--seconds", "1", "--viewer", "watch"]
+        )
+    assert exc.value.code == 2
+    assert "--viewer" in capsys.readouterr().err
+
+
+# -- connect -------------------------------------------------------------------------------------
+
+
+def test_connect_streams_the_run_and_the_file_is_still_complete(tmp_path, receiver) -> None:
+    port, received, proc = receiver
+    path = tmp_path / "run.rrd"
+    warnings: list[str] = []
+    with RunRecorder(
+        path, viewer=parse_viewer(["connect", str(port)]), warn=warnings.append
+    ) as rec:
+        assert rec.viewing
+        target = _log_run(rec, 60)
+    assert warnings == []
+    _stop(proc)  # the receiver closes its file
+    local, live = read_recording(path), read_recording(received)
+    assert local.step.tolist() == list(range(60)) and local.closed_cleanly
+    assert live.step.tolist() == local.step.tolist()  # every step reached the viewer
+    np.testing.assert_allclose(live.q, local.q)
+    np.testing.assert_allclose(live.target, np.tile(target, (60, 1)))
+    assert live.summary == {"reached": True} and [e[2] for e in live.events] == ["start"]
+
+
+def test_streaming_only_writes_no_file(tmp_path, receiver) -> None:
+    port, received, proc = receiver
+    with RunRecorder(None, viewer=parse_viewer(["connect", str(port)])) as rec:
+        _log_run(rec, 10)
+    _stop(proc)
+    assert read_recording(received).step.tolist() == list(range(10))
+    assert list(tmp_path.glob("*.rrd")) == [received]
+
+
+def test_no_viewer_at_the_address_warns_once_and_the_file_is_complete(tmp_path) -> None:
+    path = tmp_path / "run.rrd"
+    warnings: list[str] = []
+    t0 = time.monotonic()
+    with RunRecorder(
+        path, viewer=parse_viewer(["connect", str(_free_port())]), warn=warnings.append
+    ) as rec:
+        assert not rec.viewing
+        _log_run(rec, 40)
+    assert time.monotonic() - t0 < 5.0  # nothing waited for the missing viewer
+    assert len(warnings) == 1 and "no Rerun viewer answers" in warnings[0], warnings
+    assert "control is unaffected" in warnings[0]
+    run = read_recording(path)
+    assert run.step.tolist() == list(range(40)) and run.closed_cleanly
+
+
+def test_a_viewer_that_goes_away_mid_run_never_stops_the_file_or_blocks(tmp_path, receiver):
+    port, _received, proc = receiver
+    path = tmp_path / "run.rrd"
+    warnings: list[str] = []
+    rec = RunRecorder(path, viewer=parse_viewer(["connect", str(port)]), warn=warnings.append)
+    _log_run(rec, 20)
+    proc.kill()  # the viewer window closed
+    proc.wait(timeout=5)
+    t0 = time.monotonic()
+    for k in range(20, 200):
+        rec.log_step(StepSample(k * DT, k, np.ones(4), np.zeros(4), np.full(4, 2.0), np.zeros(4)))
+        rec.flush()  # the control loop's flushes: the file only
+    assert time.monotonic() - t0 < 5.0
+    # rerun reports the lost viewer on a flush: the watcher's, off the control thread
+    assert wait_until(lambda: warnings and not rec.viewing, timeout=20), "the lost viewer"
+    assert len(warnings) == 1 and "failed" in warnings[0] and "recording goes on" in warnings[0]
+    for k in range(200, 220):
+        rec.log_step(StepSample(k * DT, k, np.ones(4), np.zeros(4), np.full(4, 2.0), np.zeros(4)))
+    t0 = time.monotonic()
+    rec.close()
+    assert time.monotonic() - t0 < 3.0
+    run = read_recording(path)
+    assert run.step.tolist() == list(range(220)) and run.closed_cleanly
+
+
+# -- spawn ---------------------------------------------------------------------------------------
+
+
+def test_spawn_without_a_display_warns_at_once_and_records(tmp_path, monkeypatch) -> None:
+    monkeypatch.setattr(sys, "platform", "linux")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    warnings: list[str] = []
+    path = tmp_path / "run.rrd"
+    with RunRecorder(path, viewer=parse_viewer(["spawn"]), warn=warnings.append) as rec:
+        _log_run(rec, 5)
+    assert len(warnings) == 1 and "needs a display" in warnings[0] and "serve" in warnings[0]
+    assert read_recording(path).step.tolist() == list(range(5))
+
+
+# -- serve ---------------------------------------------------------------------------------------
+
+
+def test_serve_hosts_grpc_and_the_web_viewer_and_prints_the_address(tmp_path) -> None:
+    grpc, web = _free_port(), _free_port()
+    said: list[str] = []
+    warnings: list[str] = []
+    spec = parse_viewer(["serve", str(grpc), str(web)])
+    path = tmp_path / "run.rrd"
+    pulled = tmp_path / "pulled.rrd"
+    rec = RunRecorder(path, viewer=spec, warn=warnings.append, announce=said.append)
+    client: subprocess.Popen[bytes] | None = None
+    try:
+        assert warnings == [] and rec.viewing
+        assert len(said) == 1 and spec.web_url in said[0] and f"ssh -L {web}:" in said[0]
+        assert wait_until(lambda: _listening(grpc), timeout=10)
+        assert not _listening_beyond_loopback(grpc)
+        page = urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=10).read()
+        assert b"<html" in page.lower()
+        _log_run(rec, 30)
+        # a viewer connecting late gets the run from the start (the server buffers it)
+        client = subprocess.Popen(
+            [RERUN, spec.url, "--save", str(pulled)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        assert wait_until(lambda: pulled.exists() and pulled.stat().st_size > 20_000, 20)
+        time.sleep(0.5)
+    finally:
+        if client is not None:
+            _stop(client)
+        rec.close()
+    assert read_recording(pulled).step.tolist() == list(range(30))
+    assert read_recording(path).step.tolist() == list(range(30))
+
+
+def _listening_beyond_loopback(port: int) -> bool:
+    """True if the port answers on this machine's other addresses (it should not)."""
+    try:
+        host = socket.gethostbyname(socket.gethostname())
+    except OSError:
+        return False
+    if host.startswith("127."):
+        return False
+    try:
+        with socket.create_connection((host, port), timeout=0.2):
+            return True
+    except OSError:
+        return False
+
+
+def test_serve_on_a_port_in_use_warns_and_records(tmp_path) -> None:
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        warnings: list[str] = []
+        path = tmp_path / "run.rrd"
+        with RunRecorder(
+            path, viewer=parse_viewer(["serve", str(port), str(_free_port())]), warn=warnings.append
+        ) as rec:
+            _log_run(rec, 5)
+    assert len(warnings) == 1 and f"port {port}" in warnings[0] and "in use" in warnings[0]
+    assert read_recording(path).step.tolist() == list(range(5))
+
+
+# -- the CLI -------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def sim(tmp_path: Path) -> Iterator[SimServer]:
+    server = SimServer(SimConfig(speed=4.0, link=str(tmp_path / "arm")))
+    server.start()
+    yield server
+    server.stop()
+    assert server.error is None
+
+
+def test_run_with_viewer_and_record_writes_both(sim, tmp_path, receiver, capsys) -> None:
+    port, received, proc = receiver
+    record = tmp_path / "run.rrd"
+    target = sim.snapshot().q + np.array([0.2, -0.1, 0.1, 0.2])
+    argv = ["--port", str(sim.link), "-q", "run", "--controller", "pid", "--target"]
+    argv += [*map(str, target), "--seconds", "1.5", "--record", str(record)]
+    argv += ["--viewer", "connect", f"rerun+http://127.0.0.1:{port}/proxy"]
+    assert main(argv) == Exit.OK
+    assert "warning" not in capsys.readouterr().err
+    _stop(proc)
+    local, live = read_recording(record), read_recording(received)
+    assert len(local.step) >= 20 and local.summary
+    assert live.step.tolist() == local.step.tolist() and live.summary == local.summary
+
+
+def test_run_with_an_absent_viewer_warns_and_exits_ok(sim, tmp_path, capsys) -> None:
+    target = sim.snapshot().q + np.array([0.1, 0.0, 0.0, 0.0])
+    argv = ["--port", str(sim.link), "-q", "run", "--controller", "pid", "--target"]
+    argv += [*map(str, target), "--seconds", "0.5", "--viewer", "connect", str(_free_port())]
+    assert main(argv) == Exit.OK
+    err = capsys.readouterr().err
+    assert err.count("no Rerun viewer answers") == 1, err
+
+
+def test_monitor_streams_the_arm_to_a_viewer(sim, receiver, capsys) -> None:
+    port, received, proc = receiver
+    argv = ["--port", str(sim.link), "-q", "monitor", "--seconds", "1"]
+    assert main([*argv, "--viewer", "connect", str(port)]) == 0
+    assert "warning" not in capsys.readouterr().err
+    _stop(proc)
+    live = read_recording(received)
+    assert len(live.step) >= 10  # 20 Hz for a second
+    assert np.all(np.isfinite(live.q)) and np.all(np.isnan(live.target))
+
+
+def test_move_streams_the_arm_and_its_target_to_a_viewer(sim, receiver, capsys) -> None:
+    port, received, proc = receiver
+    q = sim.snapshot().q + np.array([0.1, 0.0, 0.0, 0.0])
+    argv = ["--port", str(sim.link), "-q", "move", *map(str, q)]
+    assert main([*argv, "--viewer", "connect", str(port)]) == 0
+    assert "warning" not in capsys.readouterr().err
+    _stop(proc)
+    live = read_recording(received)
+    assert len(live.step) >= 3 and np.all(np.isfinite(live.q))
+    np.testing.assert_allclose(live.target[-1], q)
+    assert np.max(np.abs(live.q[-1] - q)) <= 0.02
+
+
+# -- reach-sim --viewer --------------------------------------------------------------------------
+
+
+def test_the_simulator_reads_viewer_words_as_the_driver_does() -> None:
+    from reach_sim_bridge import recording as sim_recording
+
+    for words in (["spawn"], ["connect"], ["connect", "9000"], ["serve", "9100", "9101"]):
+        driver, sim_spec = parse_viewer(words), sim_recording.parse_viewer(words)
+        assert (driver.mode, driver.url, driver.port, driver.web_port, driver.bind) == (
+            sim_spec.mode,
+            sim_spec.url,
+            sim_spec.port,
+            sim_spec.web_port,
+            sim_spec.bind,
+        )
+        assert driver.web_url == sim_spec.web_url
+
+
+def test_sim_recorder_streams_its_samples_and_still_writes_the_file(tmp_path, receiver) -> None:
+    from reach_sim_bridge.recording import SimRecorder
+    from reach_sim_bridge.recording import parse_viewer as sim_viewer
+
+    port, received, proc = receiver
+    path = tmp_path / "sim.rrd"
+    warnings: list[str] = []
+    with SimServer(SimConfig(speed=5.0, pty=False, udp=("127.0.0.1", 0))) as srv:
+        recorder = SimRecorder(
+            srv, path, viewer=sim_viewer(["connect", str(port)]), warn=warnings.append
+        )
+        assert recorder.viewing
+        recorder.start()
+        assert srv.wait_sim_time(srv.sim_time + 1.0, timeout=30)
+        recorder.stop()
+    assert warnings == []
+    _stop(proc)
+    local, live = read_recording(path), read_recording(received)
+    assert len(local.step) >= 2 and local.metadata["source"] == "reach-sim"
+    assert live.step.tolist() == local.step.tolist()
+    np.testing.assert_allclose(live.q, local.q)
+
+
+def test_reach_sim_viewer_serve_prints_the_address_and_streams_only(tmp_path) -> None:
+    grpc, web = _free_port(), _free_port()
+    cli = [sys.executable, "-m", "reach_sim_bridge.cli", "--no-pty", "--udp", "127.0.0.1:0"]
+    cli += ["--viewer", "serve", str(grpc), str(web)]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    proc = subprocess.Popen(
+        cli, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=env
+    )
+    try:
+        assert proc.stdout is not None and proc.stderr is not None
+        assert proc.stdout.readline().startswith("udp ")
+        line = proc.stderr.readline()
+        assert f"http://127.0.0.1:{web}/?url=rerun%2Bhttp://127.0.0.1:{grpc}/proxy" in line, line
+        assert wait_until(lambda: _listening(grpc), timeout=10)
+        page = urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=10).read()
+        assert b"<html" in page.lower()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert "recording" not in out and list(tmp_path.glob("*.rrd")) == []
