@@ -47,7 +47,22 @@ def _listening(port: int) -> bool:
         return False
 
 
-def _stop(proc: subprocess.Popen[bytes]) -> None:
+def _settle(path: Path, quiet_s: float = 0.5, timeout: float = 5.0) -> None:
+    """Give the receiver time to write what reached it: until its file stops growing (a
+    loaded host delivers the last messages late), at most `timeout` seconds."""
+    end, last, since = time.monotonic() + timeout, -1, time.monotonic()
+    while time.monotonic() < end:
+        size = path.stat().st_size if path.exists() else -1
+        if size != last:
+            last, since = size, time.monotonic()
+        elif size >= 0 and time.monotonic() - since >= quiet_s:
+            return
+        time.sleep(0.05)
+
+
+def _stop(proc: subprocess.Popen[bytes], received: Path | None = None) -> None:
+    if received is not None:
+        _settle(received)
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
         try:
@@ -138,7 +153,7 @@ def test_connect_streams_the_run_and_the_file_is_still_complete(tmp_path, receiv
         assert rec.viewing
         target = _log_run(rec, 60)
     assert warnings == []
-    _stop(proc)  # the receiver closes its file
+    _stop(proc, received)  # the receiver closes its file
     local, live = read_recording(path), read_recording(received)
     assert local.step.tolist() == list(range(60)) and local.closed_cleanly
     assert live.step.tolist() == local.step.tolist()  # every step reached the viewer
@@ -151,7 +166,7 @@ def test_streaming_only_writes_no_file(tmp_path, receiver) -> None:
     port, received, proc = receiver
     with RunRecorder(None, viewer=parse_viewer(["connect", str(port)])) as rec:
         _log_run(rec, 10)
-    _stop(proc)
+    _stop(proc, received)
     assert read_recording(received).step.tolist() == list(range(10))
     assert list(tmp_path.glob("*.rrd")) == [received]
 
@@ -299,7 +314,7 @@ def test_run_with_viewer_and_record_writes_both(sim, tmp_path, receiver, capsys)
     argv += ["--viewer", "connect", f"rerun+http://127.0.0.1:{port}/proxy"]
     assert main(argv) == Exit.OK
     assert "warning" not in capsys.readouterr().err
-    _stop(proc)
+    _stop(proc, received)
     local, live = read_recording(record), read_recording(received)
     assert len(local.step) >= 20 and local.summary
     assert live.step.tolist() == local.step.tolist() and live.summary == local.summary
@@ -319,7 +334,7 @@ def test_monitor_streams_the_arm_to_a_viewer(sim, receiver, capsys) -> None:
     argv = ["--port", str(sim.link), "-q", "monitor", "--seconds", "1"]
     assert main([*argv, "--viewer", "connect", str(port)]) == 0
     assert "warning" not in capsys.readouterr().err
-    _stop(proc)
+    _stop(proc, received)
     live = read_recording(received)
     assert len(live.step) >= 10  # 20 Hz for a second
     assert np.all(np.isfinite(live.q)) and np.all(np.isnan(live.target))
@@ -331,7 +346,7 @@ def test_move_streams_the_arm_and_its_target_to_a_viewer(sim, receiver, capsys) 
     argv = ["--port", str(sim.link), "-q", "move", *map(str, q)]
     assert main([*argv, "--viewer", "connect", str(port)]) == 0
     assert "warning" not in capsys.readouterr().err
-    _stop(proc)
+    _stop(proc, received)
     live = read_recording(received)
     assert len(live.step) >= 3 and np.all(np.isfinite(live.q))
     np.testing.assert_allclose(live.target[-1], q)
