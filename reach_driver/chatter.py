@@ -1,0 +1,186 @@
+"""Chatter: a joint caught in a sustained limit cycle around its goal (docs/chatter.md).
+
+A controller can keep every command inside the limits and still bang-bang a joint across its
+goal at full speed for as long as it is left running (the shipped DDPG does this on a few
+per cent of degraded arms, docs/results.md). Neither the limits nor the watchdog see it. The
+detector here does, from the streams the control loop already has: per joint the error to
+the target, the speed, the commanded current and the loop time.
+
+Definition (per joint, one sample per control step):
+
+- a step is *strong* when the joint is inside the band (``|target - q| < band_rad``), its
+  command is at least ``current_fraction`` of its current limit and it moves at least
+  ``min_speed_rad_s``;
+- a *reversal* is a strong step whose command has the opposite sign of the joint's previous
+  strong step;
+- leaving the band forgets the joint's history (the cycle must be *near the goal*), and so
+  does a new target;
+- the detector fires when one joint has made ``reversals`` reversals within the last
+  ``window_s`` seconds of loop time.
+
+It is pure (no I/O, no clock of its own, no driver state), so `reach_driver.control` runs it
+on line and `tools/screen_chatter.py` runs the same code over recorded traces.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+from protocol.alpha5 import JOINT_LETTERS, N_JOINTS
+
+__all__ = ["ChatterConfig", "ChatterDetector", "HoldMode", "Verdict"]
+
+
+class HoldMode(str, Enum):
+    """How the driver holds the arm once the guard fires."""
+
+    POSITION = "position"  # the arm's own position loop, at the angles it had when it fired
+    ZERO_VELOCITY = "zero_velocity"  # the arm's ZERO_VELOCITY mode (holds where it stops)
+
+
+@dataclass(frozen=True)
+class ChatterConfig:
+    """The guard's thresholds (the data behind them: docs/chatter.md)."""
+
+    band_rad: float = 0.05
+    """Only errors smaller than this count: the cycle is near the goal."""
+    current_fraction: float = 0.3
+    """Only commands of at least this fraction of the joint's current limit count."""
+    min_speed_rad_s: float = 0.3
+    """Only steps moving at least this fast count (a quarter of the no-load speed)."""
+    reversals: int = 8
+    """Fire at this many reversals ..."""
+    window_s: float = 1.5
+    """... within this many seconds of loop time."""
+    hold: HoldMode = HoldMode.POSITION
+    """What the driver does when it fires."""
+
+    def __post_init__(self) -> None:
+        for name in ("band_rad", "min_speed_rad_s", "window_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"chatter {name} must be positive, got {value}")
+        if not 0 < self.current_fraction <= 1:
+            raise ValueError(
+                f"chatter current_fraction must be in (0, 1], got {self.current_fraction}"
+            )
+        if self.reversals < 2:
+            raise ValueError(f"chatter reversals must be at least 2, got {self.reversals}")
+        object.__setattr__(self, "hold", HoldMode(self.hold))
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Why the detector fired: one joint's limit cycle, as measured over its reversals."""
+
+    joint: int  # index in E D C B
+    t: float  # loop time of the reversal that fired it (s)
+    reversals: int
+    span_s: float  # from the first counted reversal to the last
+    max_error_rad: float  # largest |error| at the counted reversals
+    mean_speed_rad_s: float  # mean |qdot| at them
+    mean_current_mA: float  # mean |command| at them
+
+    @property
+    def letter(self) -> str:
+        return JOINT_LETTERS[self.joint]
+
+    def describe(self) -> str:
+        return (
+            f"joint {self.letter} reversed {self.reversals} times in {self.span_s:.2f} s at "
+            f"+-{1000 * self.max_error_rad:.0f} mrad from its goal "
+            f"({self.mean_speed_rad_s:.2f} rad/s, +-{self.mean_current_mA:.0f} mA)"
+        )
+
+
+@dataclass
+class _Joint:
+    sign: float = 0.0  # sign of the last strong command, 0 for none
+    events: deque[tuple[float, float, float, float]] | None = None  # t, |e|, |qdot|, |u|
+
+    def forget(self) -> None:
+        self.sign = 0.0
+        self.events = deque()
+
+
+class ChatterDetector:
+    """`update` once per control step; returns the `Verdict` from the step it fires on (and
+    the same verdict on every later step, until `reset`)."""
+
+    def __init__(
+        self, config: ChatterConfig, current_limits_mA: Sequence[float] | np.ndarray
+    ) -> None:
+        limits = np.abs(np.asarray(current_limits_mA, dtype=float).reshape(-1))
+        if limits.shape != (N_JOINTS,) or not np.all(np.isfinite(limits) & (limits > 0)):
+            raise ValueError(f"need 4 positive current limits (E D C B), got {current_limits_mA}")
+        self.config = config
+        self.threshold_mA = config.current_fraction * limits
+        self._joints = [_Joint() for _ in range(N_JOINTS)]
+        self._target: np.ndarray | None = None
+        self.verdict: Verdict | None = None
+        self.reset()
+
+    def reset(self) -> None:
+        for j in self._joints:
+            j.forget()
+        self._target = None
+        self.verdict = None
+
+    def update(
+        self,
+        t: float,
+        q: Sequence[float] | np.ndarray,
+        qdot: Sequence[float] | np.ndarray,
+        command_mA: Sequence[float] | np.ndarray,
+        target: Sequence[float] | np.ndarray,
+    ) -> Verdict | None:
+        if self.verdict is not None:
+            return self.verdict
+        goal = np.asarray(target, dtype=float).reshape(-1)
+        if self._target is None or not np.array_equal(goal, self._target):
+            for j in self._joints:
+                j.forget()
+            self._target = goal.copy()
+        err = np.abs(goal - np.asarray(q, dtype=float).reshape(-1))
+        speed = np.abs(np.asarray(qdot, dtype=float).reshape(-1))
+        u = np.asarray(command_mA, dtype=float).reshape(-1)
+        cfg = self.config
+        for i, joint in enumerate(self._joints):
+            if not err[i] < cfg.band_rad:  # outside the band, or NaN
+                joint.forget()
+                continue
+            if not (abs(u[i]) >= self.threshold_mA[i] and speed[i] >= cfg.min_speed_rad_s):
+                continue
+            sign = math.copysign(1.0, u[i])
+            reversed_ = joint.sign != 0.0 and sign != joint.sign
+            joint.sign = sign
+            if not reversed_:
+                continue
+            events = joint.events
+            assert events is not None
+            events.append((float(t), float(err[i]), float(speed[i]), abs(float(u[i]))))
+            while events and events[0][0] <= t - cfg.window_s:
+                events.popleft()
+            if len(events) >= cfg.reversals:
+                self.verdict = self._verdict(i, float(t), events)
+                return self.verdict
+        return None
+
+    @staticmethod
+    def _verdict(joint: int, t: float, events: deque[tuple[float, float, float, float]]) -> Verdict:
+        arr = np.array(events)
+        return Verdict(
+            joint=joint,
+            t=t,
+            reversals=len(events),
+            span_s=float(arr[-1, 0] - arr[0, 0]),
+            max_error_rad=float(arr[:, 1].max()),
+            mean_speed_rad_s=float(arr[:, 2].mean()),
+            mean_current_mA=float(arr[:, 3].mean()),
+        )
