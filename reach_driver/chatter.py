@@ -54,9 +54,9 @@ class ChatterConfig:
     """Only commands of at least this fraction of the joint's current limit count."""
     min_speed_rad_s: float = 0.3
     """Only steps moving at least this fast count (a quarter of the no-load speed)."""
-    reversals: int = 8
+    reversals: int = 16
     """Fire at this many reversals ..."""
-    window_s: float = 1.5
+    window_s: float = 2.0
     """... within this many seconds of loop time."""
     hold: HoldMode = HoldMode.POSITION
     """What the driver does when it fires."""
@@ -124,6 +124,9 @@ class ChatterDetector:
         self._joints = [_Joint() for _ in range(N_JOINTS)]
         self._target: np.ndarray | None = None
         self.verdict: Verdict | None = None
+        self.peak = 0
+        """The most reversals one joint has had within one window so far (the margin to
+        `reversals`, for screens)."""
         self.reset()
 
     def reset(self) -> None:
@@ -131,6 +134,7 @@ class ChatterDetector:
             j.forget()
         self._target = None
         self.verdict = None
+        self.peak = 0
 
     def update(
         self,
@@ -167,6 +171,7 @@ class ChatterDetector:
             events.append((float(t), float(err[i]), float(speed[i]), abs(float(u[i]))))
             while events and events[0][0] <= t - cfg.window_s:
                 events.popleft()
+            self.peak = max(self.peak, len(events))
             if len(events) >= cfg.reversals:
                 self.verdict = self._verdict(i, float(t), events)
                 return self.verdict
