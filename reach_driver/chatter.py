@@ -13,10 +13,13 @@ Definition (per joint, one sample per control step):
   ``min_speed_rad_s``;
 - a *reversal* is a strong step whose command has the opposite sign of the joint's previous
   strong step;
-- leaving the band forgets the joint's history (the cycle must be *near the goal*), and so
-  does a new target;
-- the detector fires when one joint has made ``reversals`` reversals within the last
-  ``window_s`` seconds of loop time.
+- reversals no more than ``max_gap_s`` apart form one *cycle*; a longer gap ends it, and so
+  does leaving the band (the cycle must stay near the goal) or a new target;
+- the detector fires when one joint's cycle has lasted ``sustain_s`` seconds of loop time
+  (from its first reversal to its latest).
+
+An arrival that rings and then settles is a cycle too; ``sustain_s`` is set above the longest
+such ring measured (docs/chatter.md).
 
 It is pure (no I/O, no clock of its own, no driver state), so `reach_driver.control` runs it
 on line and `tools/screen_chatter.py` runs the same code over recorded traces.
@@ -25,7 +28,6 @@ on line and `tools/screen_chatter.py` runs the same code over recorded traces.
 from __future__ import annotations
 
 import math
-from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import Enum
@@ -54,15 +56,15 @@ class ChatterConfig:
     """Only commands of at least this fraction of the joint's current limit count."""
     min_speed_rad_s: float = 0.3
     """Only steps moving at least this fast count (a quarter of the no-load speed)."""
-    reversals: int = 16
-    """Fire at this many reversals ..."""
-    window_s: float = 2.0
-    """... within this many seconds of loop time."""
+    max_gap_s: float = 0.25
+    """Reversals further apart than this (loop time) are not one cycle."""
+    sustain_s: float = 5.0
+    """Fire once a cycle has lasted this long."""
     hold: HoldMode = HoldMode.POSITION
     """What the driver does when it fires."""
 
     def __post_init__(self) -> None:
-        for name in ("band_rad", "min_speed_rad_s", "window_s"):
+        for name in ("band_rad", "min_speed_rad_s", "max_gap_s", "sustain_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"chatter {name} must be positive, got {value}")
@@ -70,8 +72,6 @@ class ChatterConfig:
             raise ValueError(
                 f"chatter current_fraction must be in (0, 1], got {self.current_fraction}"
             )
-        if self.reversals < 2:
-            raise ValueError(f"chatter reversals must be at least 2, got {self.reversals}")
         object.__setattr__(self, "hold", HoldMode(self.hold))
 
 
@@ -102,11 +102,30 @@ class Verdict:
 @dataclass
 class _Joint:
     sign: float = 0.0  # sign of the last strong command, 0 for none
-    events: deque[tuple[float, float, float, float]] | None = None  # t, |e|, |qdot|, |u|
+    start: float = math.nan  # loop time of the cycle's first reversal (NaN: no cycle)
+    last: float = math.nan  # ... and of its latest
+    reversals: int = 0
+    max_error: float = 0.0
+    speed_sum: float = 0.0
+    current_sum: float = 0.0
 
     def forget(self) -> None:
         self.sign = 0.0
-        self.events = deque()
+        self.start = self.last = math.nan
+
+    def reversal(self, t: float, err: float, speed: float, current: float, gap: float) -> None:
+        if not t - self.last <= gap:  # the first reversal, or a gap too long: a new cycle
+            self.start, self.reversals = t, 0
+            self.max_error = self.speed_sum = self.current_sum = 0.0
+        self.last = t
+        self.reversals += 1
+        self.max_error = max(self.max_error, err)
+        self.speed_sum += speed
+        self.current_sum += current
+
+    @property
+    def span(self) -> float:
+        return 0.0 if math.isnan(self.start) else self.last - self.start
 
 
 class ChatterDetector:
@@ -124,9 +143,9 @@ class ChatterDetector:
         self._joints = [_Joint() for _ in range(N_JOINTS)]
         self._target: np.ndarray | None = None
         self.verdict: Verdict | None = None
-        self.peak = 0
-        """The most reversals one joint has had within one window so far (the margin to
-        `reversals`, for screens)."""
+        self.longest_s = 0.0
+        """The longest cycle of any joint so far, in seconds (the margin to `sustain_s`,
+        for screens)."""
         self.reset()
 
     def reset(self) -> None:
@@ -134,7 +153,7 @@ class ChatterDetector:
             j.forget()
         self._target = None
         self.verdict = None
-        self.peak = 0
+        self.longest_s = 0.0
 
     def update(
         self,
@@ -166,26 +185,19 @@ class ChatterDetector:
             joint.sign = sign
             if not reversed_:
                 continue
-            events = joint.events
-            assert events is not None
-            events.append((float(t), float(err[i]), float(speed[i]), abs(float(u[i]))))
-            while events and events[0][0] <= t - cfg.window_s:
-                events.popleft()
-            self.peak = max(self.peak, len(events))
-            if len(events) >= cfg.reversals:
-                self.verdict = self._verdict(i, float(t), events)
+            joint.reversal(
+                float(t), float(err[i]), float(speed[i]), abs(float(u[i])), cfg.max_gap_s
+            )
+            self.longest_s = max(self.longest_s, joint.span)
+            if joint.span >= cfg.sustain_s - 1e-9:
+                self.verdict = Verdict(
+                    joint=i,
+                    t=float(t),
+                    reversals=joint.reversals,
+                    span_s=joint.span,
+                    max_error_rad=joint.max_error,
+                    mean_speed_rad_s=joint.speed_sum / joint.reversals,
+                    mean_current_mA=joint.current_sum / joint.reversals,
+                )
                 return self.verdict
         return None
-
-    @staticmethod
-    def _verdict(joint: int, t: float, events: deque[tuple[float, float, float, float]]) -> Verdict:
-        arr = np.array(events)
-        return Verdict(
-            joint=joint,
-            t=t,
-            reversals=len(events),
-            span_s=float(arr[-1, 0] - arr[0, 0]),
-            max_error_rad=float(arr[:, 1].max()),
-            mean_speed_rad_s=float(arr[:, 2].mean()),
-            mean_current_mA=float(arr[:, 3].mean()),
-        )

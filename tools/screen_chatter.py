@@ -52,8 +52,9 @@ def replay(
     limits_mA: Sequence[float] = DEFAULT_CURRENT_LIMITS_MA,
     noise: SensorNoise | None = None,
     rng: np.random.Generator | None = None,
-) -> tuple[Verdict | None, int]:
-    """The detector over one episode: its verdict (None if it never fired) and its peak."""
+) -> tuple[Verdict | None, float]:
+    """The detector over one episode: its verdict (None if it never fired) and its longest
+    cycle (s; up to the verdict when it fired)."""
     det = ChatterDetector(config or ChatterConfig(), limits_mA)
     trace = result.trace
     n = trace.q.shape[0] - 1
@@ -63,8 +64,8 @@ def replay(
             q, qdot = noise.apply(q, qdot, rng or np.random.default_rng())
         verdict = det.update(k * trace.dt, q, qdot, result.currents_mA[k + 1], trace.target)
         if verdict is not None:
-            return verdict, det.peak
-    return None, det.peak
+            return verdict, det.longest_s
+    return None, det.longest_s
 
 
 def late_energy(result: EpisodeResult, window_s: float = LATE_WINDOW_S) -> float:
@@ -89,17 +90,17 @@ class Row:
     fired_t: float | None
     delay_s: float | None  # from the joint first entering the band to the verdict
     verdict: str | None
-    peak: int
+    longest_s: float  # the longest cycle the detector saw (s)
     noisy_fired: bool
-    noisy_peak: int
+    noisy_longest_s: float
 
 
 def screen_episode(
     name: str, index: int, seed: int, result: EpisodeResult, args: argparse.Namespace
 ) -> Row:
     config = ChatterConfig()
-    verdict, peak = replay(result, config)
-    noisy, noisy_peak = replay(
+    verdict, longest = replay(result, config)
+    noisy, noisy_longest = replay(
         result, config, noise=SensorNoise(), rng=np.random.default_rng([seed, NOISE_STREAM])
     )
     late = late_energy(result, args.late_window)
@@ -119,9 +120,9 @@ def screen_episode(
         fired_t=None if verdict is None else verdict.t,
         delay_s=delay,
         verdict=None if verdict is None else verdict.describe(),
-        peak=peak,
+        longest_s=longest,
         noisy_fired=noisy is not None,
-        noisy_peak=noisy_peak,
+        noisy_longest_s=noisy_longest,
     )
 
 
@@ -178,8 +179,11 @@ def tally(rows: list[Row]) -> dict[str, Any]:
         "false_positives": [r.index for r in good if r.fired],
         "noisy_caught": sum(r.noisy_fired for r in chat),
         "noisy_false_positives": [r.index for r in good if r.noisy_fired],
-        "good_peak_max": max((r.peak for r in good), default=0),
-        "good_noisy_peak_max": max((r.noisy_peak for r in good), default=0),
+        "good_longest_cycle_s": max((r.longest_s for r in good), default=0.0),
+        "good_noisy_longest_cycle_s": max((r.noisy_longest_s for r in good), default=0.0),
+        "good_longest_top": sorted(((round(r.longest_s, 2), r.index) for r in good), reverse=True)[
+            :5
+        ],
         "good_late_energy_max_j": max((r.late_energy_j for r in good), default=0.0),
         "chattering_late_energy_min_j": min((r.late_energy_j for r in chat), default=None),
         "delay_max_s": max((r.delay_s or 0.0 for r in chat if r.fired), default=None),
@@ -262,9 +266,10 @@ def main(argv: list[str] | None = None) -> int:
             f"{t['chattering_episodes'] if name != 'total' else ''}, caught {t['caught']} "
             f"(noisy {t['noisy_caught']}); {t['good']} good, false positives "
             f"{len(t['false_positives'])} (noisy {len(t['noisy_false_positives'])}); "
-            f"good peak {t['good_peak_max']} (noisy {t['good_noisy_peak_max']}) of "
-            f"{ChatterConfig().reversals}; late energy good <= {t['good_late_energy_max_j']:.3f} "
-            f"J, chattering >= {t['chattering_late_energy_min_j']}"
+            f"good longest cycle {t['good_longest_cycle_s']:.2f} s (noisy "
+            f"{t['good_noisy_longest_cycle_s']:.2f} s) of {ChatterConfig().sustain_s:g} s; "
+            f"late energy good <= {t['good_late_energy_max_j']:.3f} J, chattering >= "
+            f"{t['chattering_late_energy_min_j']}"
         )
     print(f"{len(rows)} episodes in {wall:.0f} s with {args.workers} worker(s); wrote {args.out}")
     return 0
