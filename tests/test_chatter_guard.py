@@ -303,7 +303,7 @@ def test_the_shipped_ddpgs_chatter_in_the_direct_runner_is_caught_and_the_pids_r
     assert screen.replay(pid) == (None, 0)
 
 
-def run_on_the_bad_arm(tmp_path: Path, name: str) -> Any:
+def run_on_the_bad_arm(tmp_path: Path, name: str, seconds: float = 8.0) -> Any:
     """The same episode through the driver (the served arm set up as policy/via_driver.py
     does), with the guard on."""
     episode = bad_episode()
@@ -319,7 +319,7 @@ def run_on_the_bad_arm(tmp_path: Path, name: str) -> Any:
         controller = NoisyReadings(load_controller(name), SensorNoise(), rng)
         safety = SafetyConfig(watchdog_s=WATCHDOG_S)
         with ArmClient(open_transport(str(server.link)), safety=safety) as client:
-            summary = ControlLoop(client, controller, DT).run(episode.target, 8.0)
+            summary = ControlLoop(client, controller, DT).run(episode.target, seconds)
         return summary, modes(server)
     finally:
         server.stop()
@@ -327,16 +327,31 @@ def run_on_the_bad_arm(tmp_path: Path, name: str) -> Any:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["ddpg", "pid"])
-def test_good_controllers_over_that_episode_through_the_driver_run_to_the_end(
-    tmp_path: Path, name: str
-) -> None:
-    # Through the driver (commands a few ms late, float32 angles) the shipped DDPG settles on
-    # this arm: the guard must then leave it alone, and the PID too.
-    summary, held = run_on_the_bad_arm(tmp_path, name)
+def test_the_pid_over_that_episode_through_the_driver_runs_to_the_end(tmp_path: Path) -> None:
+    summary, held = run_on_the_bad_arm(tmp_path, "pid")
     assert summary.ok and summary.chatter is None, summary.stopped_by
     assert held == [Mode.ZERO_VELOCITY] * 4
     assert np.max(np.abs(summary.final_error)) < 0.005
+
+
+@pytest.mark.slow
+def test_the_shipped_ddpg_over_that_episode_through_the_driver_is_stopped_iff_it_chatters(
+    tmp_path: Path,
+) -> None:
+    # Through the driver (commands a few ms of arm time late, float32 angles) whether the
+    # DDPG chatters on this arm depends on the host's timing: on a lightly loaded host it
+    # does (stopped at ~8 s), on a heavily loaded one it has settled. Either way the guard
+    # must be right.
+    summary, held = run_on_the_bad_arm(tmp_path, "ddpg", seconds=14.0)
+    if summary.chatter is None:
+        assert summary.ok, summary.stopped_by
+        assert summary.trace is not None
+        late = summary.trace.qdot[-40:]  # the last 2 s: at rest
+        assert np.max(np.sqrt(np.mean(late**2, axis=0))) < 0.05
+    else:
+        assert summary.chatter.letter == "C", summary.stopped_by
+        assert summary.chatter.mean_speed_rad_s > 0.9 and summary.chatter.reversals > 80
+        assert held == [Mode.POSITION] * 4
 
 
 @pytest.mark.slow
