@@ -6,6 +6,7 @@ episode run to the end."""
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -360,3 +361,16 @@ def test_the_shipped_ddpg_over_the_chattering_controllers_episode_runs_to_the_en
 ) -> None:
     summary = run_on(sim, load_controller("ddpg"), SafetyConfig())
     assert summary.ok and summary.chatter is None, summary.stopped_by
+
+
+def test_the_screen_tool_writes_its_counts(tmp_path: Path) -> None:
+    screen = load_tool("screen_chatter")
+    out = tmp_path / "screen.json"
+    short = ["--seconds", "8", "--late-window", "3"]  # every step has arrived by 5 s
+    argv = ["--controllers", "pid", "--episodes", "2", *short, "--out", str(out)]
+    assert screen.main(argv) == 0
+    report = json.loads(out.read_text())
+    total = report["total"]
+    assert total["episodes"] == 2 and total["false_positives"] == [] and total["chattering"] == 0
+    assert [r["index"] for r in report["episodes"]] == [0, 1]
+    assert report["settings"]["chatter_config"]["sustain_s"] == "5.0"
