@@ -13,7 +13,11 @@ Controller outputs are clipped to the current limits (counted as saturation) and
 the client's soft barrier; a per-step hook receives a `StepRecord` (a recorder logs these).
 The joints enter current mode only with the first command, so they hold their previous mode
 until the controller has seen a state. Each joint's status flags are polled once a second; a
-motor, driver or encoder fault ends the run (`ArmFaultError`). On any exit, Ctrl-C included,
+motor, driver or encoder fault ends the run (`ArmFaultError`). The chatter guard
+(`SafetyConfig.chatter`, `reach_driver.chatter`) watches every step sent: when a joint
+bang-bangs around its goal the driver stops asking the controller, holds the arm (POSITION
+at the present angles, or ZERO_VELOCITY) and ends the run with the reason in `stopped_by`
+and `chatter`. On any other exit, Ctrl-C included,
 the joints are put in the safe mode and streaming is stopped; if the link is down at that
 moment the loop waits a little for it to return so the safe mode can go out, and the summary
 says how the arm was left.
@@ -35,8 +39,9 @@ from enum import Enum
 import numpy as np
 
 from protocol import Mode, PacketID, commands
-from protocol.alpha5 import JOINTS, N_JOINTS
+from protocol.alpha5 import JAW, JOINTS, N_JOINTS
 from reach_driver.assembler import StateAssembler
+from reach_driver.chatter import ChatterDetector, HoldMode, Verdict
 from reach_driver.client import ArmClient
 from reach_driver.controllers import Controller, ControlState
 from reach_driver.errors import ArmFaultError, DriverError
@@ -173,6 +178,8 @@ class ControlLoop:
         run = _Run(self, goal, seconds)
         try:
             run.execute()
+        except _Guarded as exc:
+            run.error = run.stopped_by = str(exc)
         except DriverError as exc:
             run.error = str(exc)
             run.stopped_by = f"{type(exc).__name__}: {exc}"
@@ -180,7 +187,13 @@ class ControlLoop:
             run.cleanup()
         history = list(self.client.events)
         run.events = tuple(f"{e.kind.value}: {e.message}" for e in history[events_before:])
+        if run.verdict is not None:
+            run.events += (run.stopped_by,)
         return run.summary()
+
+
+class _Guarded(Exception):
+    """The chatter guard ended the run (the message is the summary's `stopped_by`)."""
 
 
 def _past(deadline: float) -> Callable[[], bool]:
@@ -222,6 +235,14 @@ class _Run:
         self.error: str | None = None
         self.stopped_by = "duration"
         self.assembler: StateAssembler | None = None
+        chatter = self.client.guard.config.chatter
+        self.chatter = (
+            None
+            if chatter is None
+            else ChatterDetector(chatter, np.maximum(np.abs(self.i_lo), np.abs(self.i_hi)))
+        )
+        self.verdict: Verdict | None = None
+        self.held_in_position = False
         self.t0_wall = time.monotonic()
         self.wall_end = self.t0_wall
         self.cpu0 = time.thread_time()
@@ -394,6 +415,29 @@ class _Run:
                 )
             )
         self.step += 1
+        if self.chatter is not None:
+            verdict = self.chatter.update(t, q, qdot, sent, self.goal)
+            if verdict is not None:
+                self._hold(verdict, q)
+
+    def _hold(self, verdict: Verdict, q: np.ndarray) -> None:
+        """The chatter guard fired: hold the arm, never ask the controller again."""
+        self.verdict = verdict
+        hold = self.client.guard.config.chatter
+        how = "held in zero velocity"
+        if hold is not None and hold.hold is HoldMode.POSITION:
+            try:
+                self.client.command_positions(q)
+                self.held_in_position = True
+                how = "held in position"
+            except DriverError as exc:  # e.g. an angle a hair outside a tightened bound
+                log.warning("chatter guard: could not hold in position (%s)", exc)
+                how = f"could not hold in position ({exc}); the safe mode follows"
+        if not self.held_in_position:
+            self.client.set_mode(JOINTS, Mode.ZERO_VELOCITY)
+        reason = f"chatter guard: {verdict.describe()} at t = {verdict.t:.2f} s; {how}"
+        log.warning("%s", reason)
+        raise _Guarded(reason)
 
     def _finish_timing(self) -> None:
         self.wall_end = time.monotonic()
@@ -425,6 +469,16 @@ class _Run:
             client.stop_stream()
         except DriverError as exc:
             log.warning("could not stop streaming: %s", exc)
+        if self.held_in_position:
+            # The guard's POSITION hold stays; the safe mode would release it.
+            try:
+                client.safe_stop([JAW])
+            except DriverError as exc:
+                log.warning("could not put the jaw in the safe mode: %s", exc)
+            self.left_in = (
+                f"position hold at the angles of t = {self.t:.2f} s (chatter guard){after}"
+            )
+            return
         if not self.loop.leave_safe:
             self.left_in = f"as the controller left it (leave_safe off){after}"
             return
@@ -489,4 +543,5 @@ class _Run:
             trace=self.trace(),
             left_in=self.left_in,
             events=self.events,
+            chatter=self.verdict,
         )

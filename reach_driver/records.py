@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from reach_driver.chatter import Verdict
+
 
 @dataclass(frozen=True)
 class StepRecord:
@@ -100,11 +102,12 @@ class ControlSummary:
     saturated_steps: int
     barrier_steps: int
     timing: TimingStats
-    stopped_by: str  # "duration", "stop requested", or the error that ended the run
+    stopped_by: str  # "duration", "stop requested", the chatter guard, or the error that ended it
     error: str | None = None
     trace: LoopTrace | None = None  # None when fewer than two states were seen
     left_in: str = ""  # how the run left the arm (safe mode sent, or why it could not be)
     events: tuple[str, ...] = ()  # link, watchdog and fault events during the run
+    chatter: Verdict | None = None  # set when the chatter guard ended the run (docs/chatter.md)
 
     @property
     def ok(self) -> bool:

@@ -22,6 +22,7 @@ from protocol.alpha5 import (
     JAW,
     Range,
 )
+from reach_driver.chatter import ChatterConfig
 from reach_driver.errors import LimitError
 from reach_driver.state import joint_name
 
@@ -61,11 +62,14 @@ DEFAULT_LIMITS: dict[LimitKind, Mapping[int, Range]] = {
 
 @dataclass(frozen=True)
 class SafetyConfig:
-    """Tightening of the arm's limits, the barrier and the watchdog.
+    """Tightening of the arm's limits, the barrier, the watchdog and the chatter guard.
 
     `position_bounds` maps a device to (min, max); `velocity_limits` and `current_limits_mA`
     to a magnitude. `watchdog_s=None` disables the watchdog; `enabled=False` disables the
     limit checks and the barrier (for bench work on a disconnected joint, never a default).
+    `chatter` is the control loop's chatter guard (`reach_driver.chatter`, docs/chatter.md):
+    a joint bang-banging around its goal ends the run with the arm held; `chatter=None`
+    turns it off (identification's relay swings, say).
     """
 
     enabled: bool = True
@@ -79,6 +83,7 @@ class SafetyConfig:
     #: INDEXED_POSITION's reference is not documented, so its target cannot be checked;
     #: only with this set does the gate let it out (finite, to a known joint).
     allow_indexed_position: bool = False
+    chatter: ChatterConfig | None = field(default_factory=ChatterConfig)
 
     def __post_init__(self) -> None:
         if self.barrier_width < 0 or self.position_margin < 0:
