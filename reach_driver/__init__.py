@@ -6,6 +6,7 @@ with ArmClient(open_transport("/dev/ttyUSB0")) as arm:   # start()s and close()s
 """
 
 from protocol.alpha5 import JAW, JOINTS
+from reach_driver.chatter import ChatterConfig, HoldMode
 from reach_driver.client import ArmClient, ClientStats
 from reach_driver.control import ControlLoop, Pacing
 from reach_driver.controllers import (
@@ -42,6 +43,8 @@ __all__ = [
     "JAW",
     "JOINTS",
     "ArmClient",
+    "ChatterConfig",
+    "HoldMode",
     "ArmFaultError",
     "ArmIdentityError",
     "ArmState",

@@ -641,6 +641,7 @@ def main(argv: list[str] | None = None) -> int:
         max_current = np.array([1.0, 1.0, 1.0, 0.5]) * args.max_current
         safety = SafetyConfig(
             watchdog_s=args.watchdog,
+            chatter=None,  # the relay swings are a deliberate bang-bang about a centre
             current_limits_mA={int(d): float(m) for d, m in zip(JOINTS, max_current, strict=True)},
         )
         session = Session()

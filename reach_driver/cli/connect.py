@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from protocol.alpha5 import JOINTS
+from reach_driver.chatter import ChatterConfig, HoldMode
 from reach_driver.client import ArmClient
 from reach_driver.errors import BadUrlError
 from reach_driver.interfaces import open_transport
@@ -102,4 +103,5 @@ def safety_config(args: argparse.Namespace) -> SafetyConfig:
         watchdog_s=args.watchdog,
         current_limits_mA=currents,
         position_margin=args.position_margin,
+        chatter=ChatterConfig(hold=HoldMode(args.chatter_hold)) if args.chatter_guard else None,
     )

@@ -214,6 +214,21 @@ def _add_connection_options(
         metavar="RAD",
         help="keep this far inside the arm's position limits (default 0)",
     )
+    g.add_argument(
+        "--no-chatter-guard",
+        dest="chatter_guard",
+        action="store_false",
+        default=default(True),
+        help="do not stop a run whose controller bang-bangs a joint around its goal "
+        "(docs/chatter.md; on by default)",
+    )
+    g.add_argument(
+        "--chatter-hold",
+        choices=["position", "zero_velocity"],
+        default=default("position"),
+        help="how the chatter guard holds the arm when it fires (default: position, at the "
+        "present angles)",
+    )
 
 
 def _add_global_options(

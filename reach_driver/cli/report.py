@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from reach_driver.metrics import Metrics, Trace, compute_metrics
@@ -26,6 +28,7 @@ def summary_dict(s: ControlSummary) -> dict[str, object]:
     return {
         "ok": s.ok,
         "stopped_by": s.stopped_by,
+        "chatter": None if s.chatter is None else dataclasses.asdict(s.chatter),
         "steps": s.steps,
         "loop_seconds": s.loop_seconds,
         "wall_seconds": s.wall_seconds,
