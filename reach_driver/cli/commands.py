@@ -109,6 +109,8 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
             except KeyboardInterrupt:
                 pass  # Ctrl-C is how a monitor is meant to end: exit 0
         return Exit.OK
+    except KeyboardInterrupt:
+        return Exit.OK  # Ctrl-C before the first refresh ends a monitor just as well
     finally:
         if recorder is not None:
             recorder.close()
