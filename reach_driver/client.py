@@ -429,6 +429,18 @@ class ArmClient:
         self.request_many(devs, DIAGNOSTICS, partial=True)
         return {d: self.table.get(d) for d in devs}
 
+    def read_modes(self, devices: Sequence[int] | None = None) -> dict[int, Mode | int | None]:
+        """Each device's mode as it answers now (None if it did not answer). Replies come
+        after every frame written before the request, so this confirms a mode change."""
+        devs = list(devices or self.found_devices or self.devices)
+        asked = self.clock()
+        self.request_many(devs, [PacketID.MODE], partial=True)
+        out: dict[int, Mode | int | None] = {}
+        for d in devs:
+            reading = self.table.get(d).mode
+            out[d] = None if reading is None or reading.t < asked else reading.value
+        return out
+
     def read_status(self, devices: Sequence[int] | None = None) -> dict[int, list[str]]:
         """Hardware status flags by name for each device that answers ([] when healthy)."""
         devs = list(devices or self.found_devices or self.devices)

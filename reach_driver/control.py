@@ -477,6 +477,7 @@ class _Run:
                 log.warning("could not put the jaw in the safe mode: %s", exc)
             self.left_in = (
                 f"position hold at the angles of t = {self.t:.2f} s (chatter guard){after}"
+                f"{self._confirmation(Mode.POSITION)}"
             )
             return
         if not self.loop.leave_safe:
@@ -484,10 +485,25 @@ class _Run:
             return
         try:
             client.safe_stop(JOINTS)
-            self.left_in = f"{mode}{after}"
+            self.left_in = f"{mode}{after}{self._confirmation(client.guard.config.safe_mode)}"
         except DriverError as exc:
             log.warning("could not put the joints in the safe mode: %s", exc)
             self.left_in = f"unknown: could not send {mode}: {exc}"
+
+    def _confirmation(self, safe: Mode) -> str:
+        """Read the modes back: the run says how it left the arm only once the arm says so."""
+        try:
+            modes = self.client.read_modes(JOINTS)
+        except DriverError as exc:
+            return f" (sent; not confirmed: {exc})"
+        silent = [joint_name(d) for d, m in modes.items() if m is None]
+        other = [
+            f"{joint_name(d)} in {_mode_name(m)}" for d, m in modes.items() if m not in (None, safe)
+        ]
+        if not silent and not other:
+            return " (confirmed by the arm)"
+        parts = ([f"no answer from {' '.join(silent)}"] if silent else []) + other
+        return f" (sent; not confirmed: {', '.join(parts)})"
 
     # -- results ----------------------------------------------------------------------------
     def trace(self) -> LoopTrace | None:
@@ -545,3 +561,7 @@ class _Run:
             events=self.events,
             chatter=self.verdict,
         )
+
+
+def _mode_name(mode: Mode | int | None) -> str:
+    return mode.name.lower() if isinstance(mode, Mode) else f"mode 0x{int(mode or 0):02X}"

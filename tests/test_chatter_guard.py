@@ -244,6 +244,7 @@ def test_the_guard_stops_a_chattering_controller_and_holds_the_arm_in_position(
     assert controller.calls == summary.steps
     assert verdict.span_s >= 5.0 - 1e-9 and summary.loop_seconds < 11.0  # times are sums of periods
     assert summary.left_in.startswith("position hold at the angles of t = ")
+    assert summary.left_in.endswith("(chatter guard) (confirmed by the arm)")
     # The arm's own position loop holds every joint, near where it was, and brings C to rest.
     assert modes(sim) == [Mode.POSITION] * 4
     assert wait_until(lambda: np.max(np.abs(sim.snapshot().qdot)) < 0.01, timeout=5)
@@ -255,7 +256,7 @@ def test_the_guard_can_hold_in_zero_velocity_instead(sim: SimServer) -> None:
     summary = run_on(sim, BangBang(), hold)
     assert summary.chatter is not None
     assert summary.stopped_by.endswith("; held in zero velocity")
-    assert summary.left_in == "zero_velocity"
+    assert summary.left_in == "zero_velocity (confirmed by the arm)"
     assert modes(sim) == [Mode.ZERO_VELOCITY] * 4
 
 
@@ -271,7 +272,7 @@ def test_pid_over_the_same_episode_runs_to_the_end(sim: SimServer) -> None:
     summary = run_on(sim, load_controller("pid"), SafetyConfig())
     assert summary.ok, summary.stopped_by
     assert summary.chatter is None and summary.stopped_by == "duration"
-    assert summary.left_in == "zero_velocity"
+    assert summary.left_in == "zero_velocity (confirmed by the arm)"
 
 
 # The arm on which the shipped DDPG chatters in the direct runner (docs/results.md): episode

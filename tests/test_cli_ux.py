@@ -328,7 +328,10 @@ def test_run_json_is_one_object_with_the_summary_and_metrics(sim, capsys) -> Non
     out = capsys.readouterr().out
     result = json.loads(out)  # the whole of stdout: one object, nothing else
     assert result["exit"] == 0 and result["ok"] is True
-    assert result["controller"] == "pid" and result["left_in"] == "zero_velocity"
+    assert (
+        result["controller"] == "pid"
+        and result["left_in"] == "zero_velocity (confirmed by the arm)"
+    )
     assert result["target"] == pytest.approx(list(target))
     assert set(result["metrics"]) == set(ALL_METRIC_KEYS)
     assert isinstance(result["metrics"]["reached"], bool)

@@ -364,7 +364,7 @@ def test_a_stalled_controller_is_stopped_by_the_watchdog(
         summary = ControlLoop(client, Stalls(), 0.05).run(SCENARIO_1.target, 5.0)
     assert seen["stopped"], "the watchdog did not stop the arm while the controller hung"
     assert summary.error is not None and "watchdog" in summary.error
-    assert summary.steps == 5 and summary.left_in == "zero_velocity"
+    assert summary.steps == 5 and summary.left_in == "zero_velocity (confirmed by the arm)"
     # ZERO_VELOCITY brakes the joints to rest (and holds them there against gravity).
     assert wait_until(lambda: np.max(np.abs(sim.snapshot().qdot)) < 0.01, timeout=5)
 

@@ -241,6 +241,7 @@ def test_losing_the_link_mid_control_leaves_the_arm_safe_on_reconnect(sim) -> No
     try:
         arm.read_joints()
         arm.command_current(DeviceID.D, 20.0)
+        assert wait_until(lambda: sim.firmware.mode(4) == Mode.CURRENT, timeout=5.0)
         sim.stop()
         sim.start()  # the same firmware state: D still in current mode
         assert sim.firmware.mode(4) == Mode.CURRENT
