@@ -7,6 +7,7 @@ its substeps, the way the firmware holds the last CURRENT packet. The controller
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -61,6 +62,10 @@ class DirectArm:
         currents = np.zeros((n + 1, N_JOINTS))
         q[0], qdot[0] = arm.q, arm.qdot
         target = episode.target.copy()
+        # Commands in flight (control latency): (physics step they take effect at, currents).
+        delay = config.latency_substeps
+        pending: deque[tuple[int, np.ndarray]] = deque()
+        applied = np.zeros(N_JOINTS)
         for k in range(n):
             state = ControlState(q[k].copy(), qdot[k].copy(), k * config.period)
             action = acting.act(state, target.copy())
@@ -72,8 +77,11 @@ class DirectArm:
             # Physics steps one at a time so the energy integrates |tau qdot| at the physics
             # rate (the back-EMF makes the torque vary within a held period).
             energy = np.zeros(N_JOINTS)
-            for _ in range(config.substeps):
-                arm.step(u, n=1)
+            pending.append((k * config.substeps + delay, u))
+            for i in range(config.substeps):
+                while pending and pending[0][0] <= k * config.substeps + i:
+                    applied = pending.popleft()[1]
+                arm.step(applied, n=1)
                 energy += np.abs(arm.tau * arm.qdot)
             power[k + 1] = energy / config.substeps
             q[k + 1], qdot[k + 1] = arm.q, arm.qdot

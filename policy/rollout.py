@@ -128,12 +128,18 @@ class RunConfig:
     params: ArmParams | None = None
     """The arm every episode runs on (a `--params` file, e.g. an identified twin); None is the
     nominal model. `param_spread` perturbs around it."""
+    latency_periods: float = 0.0
+    """Control latency in control periods: the command computed from the state at t takes
+    effect at t + latency (the previous one stays in force until then), rounded to physics
+    steps. Emulates a slow link or host on the direct backend (docs/robustness.md)."""
 
     def __post_init__(self) -> None:
         if not (self.seconds > 0 and math.isfinite(self.seconds)):
             raise ValueError(f"seconds must be positive, got {self.seconds}")
         if not (self.rate_hz > 0 and math.isfinite(self.rate_hz)):
             raise ValueError(f"rate must be positive, got {self.rate_hz} Hz")
+        if not (math.isfinite(self.latency_periods) and 0.0 <= self.latency_periods <= 10.0):
+            raise ValueError(f"latency_periods must be in [0, 10], got {self.latency_periods}")
         if not 0.0 <= self.param_spread < 1.0:
             raise ValueError(f"param_spread must be in [0, 1), got {self.param_spread}")
         sub = self.period / self.physics_dt
@@ -152,6 +158,10 @@ class RunConfig:
         return int(round(self.period / self.physics_dt))
 
     @property
+    def latency_substeps(self) -> int:
+        return int(round(self.latency_periods * self.substeps))
+
+    @property
     def n_steps(self) -> int:
         return int(round(self.seconds * self.rate_hz))
 
@@ -167,6 +177,8 @@ class RunConfig:
             "physics_dt": self.physics_dt,
             "param_spread": self.param_spread,
         }
+        if self.latency_periods:
+            out["latency_periods"] = self.latency_periods
         if self.params is not None:
             out["params"] = self.params.to_json_dict()
         return out

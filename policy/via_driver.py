@@ -239,6 +239,11 @@ def run_episode_via_driver(
     `on_server` is called with the running server before the loop starts (tests use it to
     inject faults). Raises ValueError for episodes outside the arm's limits and RuntimeError
     when the loop fails (the message says why)."""
+    if config.latency_periods:
+        raise ValueError(
+            "RunConfig.latency_periods is emulated by the direct backend only; through the "
+            "driver the latency is the link's own (DriverConfig.latency_ms adds to it)"
+        )
     sim_config = SimConfig(
         speed=driver.speed,
         pty=True,
