@@ -22,6 +22,7 @@ import numpy as np
 
 from policy.rollout import Episode
 from protocol.alpha5 import FACTORY_POSITION_LIMITS, JOINTS
+from reach_driver.metrics import metric_label
 
 ARM_LIMITS = np.array([FACTORY_POSITION_LIMITS[d] for d in JOINTS])
 """(4, 2) factory [min, max] per joint, rad, E D C B."""
@@ -31,7 +32,7 @@ START_PAPER = np.zeros(4)
 
 #: Table I's metrics in its column order (all: lower is better), and their headings.
 TABLE_KEYS = ("energy_j", "rmse", "mie", "msse", "overshoot_pct", "settling_time_s")
-TABLE_HEADS = ("E [J]", "RMSE [rad]", "MIE [rad s]", "MSSE [rad]", "OS [%]", "ST [s]")
+TABLE_HEADS = tuple(metric_label(k) for k in TABLE_KEYS)  # the names `run` and `inspect` use
 
 
 def paper_to_arm(q_paper: Sequence[float] | np.ndarray) -> np.ndarray:

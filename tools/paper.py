@@ -44,7 +44,7 @@ from policy.scenarios import SCENARIOS, TABLE_HEADS, TABLE_KEYS, Scenario, wins
 from policy.stats import DEFAULT_RESAMPLES, bootstrap_ci, paired_difference_ci
 from protocol.alpha5 import JOINT_LETTERS
 from reach_driver.controllers import Controller
-from reach_driver.metrics import settling_band
+from reach_driver.metrics import METRIC_LABELS, metric_label, settling_band
 from reach_sim_bridge.faults import SensorNoise
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -63,7 +63,7 @@ FIGURE_CONTROLLERS = ("ddpg", "mpc", "pid")
 COLORS = {"pid": "tab:green", "mpc": "tab:blue", "ddpg": "tab:red", "ddpg-pure": "tab:orange"}
 #: paired comparisons (a - b) reported with bootstrap intervals, when both were run
 PAIRS = (("ddpg", "mpc"), ("ddpg-pure", "mpc"), ("ddpg", "ddpg-pure"))
-SHORT = {k: h.split(" ")[0] for k, h in zip(TABLE_KEYS, TABLE_HEADS, strict=True)}
+SHORT = {k: METRIC_LABELS[k][0] for k in TABLE_KEYS}
 JOINT_NAMES = tuple(f"{letter} (paper joint {j + 1})" for j, letter in enumerate(JOINT_LETTERS))
 
 
@@ -231,32 +231,35 @@ def _fmt_row(name: str, s: dict[str, float]) -> str:
     )
 
 
-# per metric: scale for printing, format, unit in the CI tables
+# the scenario table's columns after "max final abs(e)", in order
+SCENARIO_KEYS = ("overshoot_pct", "settling_time_s", "rmse", "energy_j")
+
+# per metric: the number format in the CI tables (names and units: METRIC_LABELS)
 CI_FORMAT = {
-    "energy_j": (1.0, ".2f", "J"),
-    "rmse": (1e3, ".1f", "mrad"),
-    "mie": (1.0, ".4f", "rad s"),
-    "msse": (1e3, ".2f", "mrad"),
-    "overshoot_pct": (1.0, ".2f", "%"),
-    "settling_time_s": (1.0, ".3f", "s"),
+    "energy_j": ".2f",
+    "rmse": ".4f",
+    "mie": ".4f",
+    "msse": ".6f",
+    "overshoot_pct": ".2f",
+    "settling_time_s": ".3f",
 }
 
 
 def _ci(mean: float, low: float, high: float, key: str, signed: bool = False) -> str:
-    """mean [low, high] in the metric's printing unit; a difference (signed) gets enough
+    """mean [low, high] in the metric's unit; a difference (signed) gets enough
     decimals for two significant digits of its interval's half-width."""
-    scale, fmt, _ = CI_FORMAT[key]
+    fmt = CI_FORMAT[key]
     if signed:
-        half = 0.5 * (high - low) * scale
+        half = 0.5 * (high - low)
         digits = int(fmt[1:-1])
         if half > 0:
             digits = max(digits, int(-math.floor(math.log10(half))) + 1)
         fmt = f"+.{digits}f"
-    return f"{mean * scale:{fmt}} [{low * scale:{fmt}}, {high * scale:{fmt}}]"
+    return f"{mean:{fmt}} [{low:{fmt}}, {high:{fmt}}]"
 
 
 def ci_lines(table: dict[str, dict[str, Any]], n: int, resamples: int, ci_seed: int) -> list[str]:
-    heads = [f"{SHORT[k]} [{CI_FORMAT[k][2]}]" for k in TABLE_KEYS]
+    heads = [metric_label(k) for k in TABLE_KEYS]
     lines = [
         "",
         f"95 % confidence intervals of the means above, across the {n} episodes (percentile "
@@ -337,9 +340,8 @@ def paired_lines(
                     tag = f"seed {main_seed}" if which == "seed" else "pooled"
                     unresolved.setdefault(f"{label}, {tag}", []).append(SHORT[k])
             last = d  # the pooled one when there is one
-            unit = CI_FORMAT[k][2]
             lines.append(
-                f"| {label} | {SHORT[k]} [{unit}] | "
+                f"| {label} | {metric_label(k)} | "
                 + " | ".join(cells)
                 + f" | {last.a_better} / {last.ties} of {last.n} |"
             )
@@ -431,8 +433,7 @@ def markdown(
             f"{conditions(table_config)}, "
             f"{table_config.seconds:g} s at {table_config.rate_hz:g} Hz)",
             "",
-            "| controller | E [J] | RMSE [rad] | MIE [rad s] | MSSE [rad] | OS [%] | ST [s] "
-            "| reached | RMSE / floor |",
+            "| controller | " + " | ".join(TABLE_HEADS) + " | reached | RMSE / floor |",
             "|---|---|---|---|---|---|---|---|---|",
         ]
         floor = None
@@ -487,8 +488,9 @@ def markdown(
             f"### Scenarios ({conditions(scenario_config)}, {scenario_config.seconds:g} s at "
             f"{scenario_config.rate_hz:g} Hz)",
             "",
-            "| scenario | controller | reached | max final abs(e) [rad] | OS [%] | ST [s] "
-            "| RMSE [rad] | E [J] |",
+            "| scenario | controller | reached | max final abs(e) [rad] | "
+            + " | ".join(metric_label(k) for k in SCENARIO_KEYS)
+            + " |",
             "|---|---|---|---|---|---|---|---|",
         ]
         for sc in SCENARIOS:
