@@ -136,6 +136,9 @@ class JointState:
     #: answers a type code here, which would read as a nonsense pressure. The virtual arm
     #: answers 0x67 and 0x6E with the same pressure.
     internal_pressure: Reading[float] | None = _tracked(PacketID.INTERNAL_PRESSURE, _float)
+    #: PRESSURE (0x6E), bar: where the newest vendor SDK reports the pressure. Kept apart from
+    #: 0x67 so that firmware answering only one of them, or 0x67 as a type code, shows as such.
+    pressure: Reading[float] | None = _tracked(PacketID.PRESSURE, _float)
     #: FACTORY_CLIMATE (0x28): [temperature degC, pressure bar, humidity %] at assembly; a
     #: leak shows as live humidity and pressure above these.
     factory_climate: Reading[Climate] | None = _tracked(PacketID.FACTORY_CLIMATE, _climate)

@@ -181,8 +181,9 @@ def monitor_json(
 DIAGNOSTIC_COLUMNS: tuple[tuple[str, tuple[str, int]], ...] = (
     ("supply V", ("voltage", 2)),
     ("temp degC", ("temperature", 1)),
-    ("humidity %", ("humidity", 1)),
-    ("pressure bar", ("internal_pressure", 3)),
+    ("RH %", ("humidity", 1)),  # relative humidity
+    ("0x67 bar", ("internal_pressure", 3)),  # pressure as V1.12.1 documents it
+    ("0x6E bar", ("pressure", 3)),  # the newest SDK's pressure (0x67 is its DEVICE_TYPE)
 )
 
 
@@ -206,6 +207,7 @@ def diagnostics_json(js: JointState) -> dict[str, Any]:
         "temperature_c": value(js.temperature),
         "humidity_pct": value(js.humidity),
         "internal_pressure_bar": value(js.internal_pressure),
+        "pressure_0x6e_bar": value(js.pressure),
         "factory_climate": None if climate is None else climate._asdict(),
     }
 
@@ -214,7 +216,8 @@ def diagnostics_table(port: str, joints: dict[int, JointState]) -> Table:
     """`info`'s second table: each device's Monitor readings beside its factory climate."""
     table = Table(
         title=f"diagnostics on {port}",
-        caption="live readings; factory: the climate sealed in at assembly (degC/bar/%)",
+        caption="live readings; pressure: 0x67 as V1.12.1 has it, 0x6E as the newer SDK has it; "
+        "factory: the climate sealed in at assembly (degC/bar/%)",
     )
     table.add_column("device", no_wrap=True)
     for column, _ in DIAGNOSTIC_COLUMNS:
