@@ -155,6 +155,35 @@ class JointState:
         return self.status.value.flag_names() if self.status is not None else []
 
 
+class MonitorReading(NamedTuple):
+    """One Monitor reading as people and files see it: `info`/`monitor` columns, `--json`
+    keys and recordings' entities all come from `MONITOR_READINGS`."""
+
+    field: str  # the JointState field holding it
+    key: str  # its name with its unit: the JSON key and the recording's entity
+    column: str  # a short title with the unit, for tables
+    title: str  # a long title with the unit, for a recording's view
+    digits: int  # decimals shown in tables
+
+
+#: The Monitor readings (docs/protocol.md 3a) in the order every table and file shows them.
+MONITOR_READINGS: tuple[MonitorReading, ...] = (
+    MonitorReading("voltage", "voltage_v", "supply V", "supply voltage (V)", 2),
+    MonitorReading("temperature", "temperature_c", "temp degC", "internal temperature (degC)", 1),
+    MonitorReading("humidity", "humidity_pct", "RH %", "internal relative humidity (%)", 1),
+    MonitorReading(
+        "internal_pressure",
+        "internal_pressure_bar",
+        "0x67 bar",
+        "internal pressure, 0x67 as V1.12.1 has it (bar)",
+        3,
+    ),
+    MonitorReading(
+        "pressure", "pressure_0x6e_bar", "0x6E bar", "pressure, 0x6E as newer SDKs have it (bar)", 3
+    ),
+)
+
+
 @dataclass(frozen=True)
 class _Tracked:
     field: str  # the JointState field holding the value
