@@ -5,7 +5,6 @@ pressure at 0x67 and 0x6E) and HARDWARE_STATUS flags that the driver has are log
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +16,7 @@ from reach_driver.recording import DIAGNOSTIC_LETTERS, RunRecorder
 from reach_driver.rrd_summary import STATUS_KEY, read_recording, summarize_recording
 from reach_driver.state import MONITOR_READINGS, JointState, Reading
 from reach_sim_bridge.faults import Leak
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.server import SimServer
 
 KEYS = [m.key for m in MONITOR_READINGS]
 
@@ -50,15 +49,6 @@ def test_only_newer_readings_are_logged_and_flag_changes_are_named(tmp_path: Pat
     )
     events = [text for _, _, text in run.events]
     assert events == ["status D (0x04): LOW_SUPPLY_VOLTAGE"]  # NONE -> NONE named nothing
-
-
-@pytest.fixture
-def sim(tmp_path: Path) -> Iterator[SimServer]:
-    server = SimServer(SimConfig(speed=4.0, link=str(tmp_path / "arm")))
-    server.start()
-    yield server
-    server.stop()
-    assert server.error is None
 
 
 def test_a_recorded_run_holds_every_devices_diagnostics(sim: SimServer, tmp_path: Path) -> None:
