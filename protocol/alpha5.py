@@ -28,6 +28,9 @@ BASE = DeviceID.E
 
 Range = tuple[float, float]  # (minimum, maximum)
 
+#: The arm's serial line rate, bits/s, 8N1 (docs/protocol.md section 9).
+SERIAL_BAUD = 115200
+
 #: Factory position envelope per device (rad; mm for the jaws), as shipped from the factory.
 FACTORY_POSITION_LIMITS: dict[DeviceID, Range] = {
     DeviceID.E: (0.0175, 6.143),

@@ -87,6 +87,7 @@ DIAGNOSTICS = (
     PacketID.INTERNAL_TEMPERATURE,
     PacketID.INTERNAL_HUMIDITY,
     PacketID.INTERNAL_PRESSURE,  # 0x67 as V1.12.1 has it (newer SDKs: DEVICE_TYPE)
+    PacketID.PRESSURE,  # 0x6E, the newer SDKs' pressure
     PacketID.FACTORY_CLIMATE,
     PacketID.HARDWARE_STATUS,
 )

@@ -20,6 +20,14 @@ Entity layout (read back by `reach_driver.rrd_summary`):
     link/frames           Scalars [good frames, bad frames]   counts since the run started
     link/state_age        Scalars [age of the oldest reading in the state]   ms
     link/latency          Scalars [state complete -> command written]   ms
+    diagnostics/<key>     Scalars [E, D, C, B, A], one entity per Monitor reading, named with
+                          its unit (`reach_driver.state.MONITOR_READINGS`: voltage_v,
+                          temperature_c, humidity_pct, internal_pressure_bar (0x67),
+                          pressure_0x6e_bar); NaN where a device has not reported it. Logged
+                          when the driver has a newer reading, not every step.
+    diagnostics/status    Scalars [E, D, C, B, A]   each device's HARDWARE_STATUS as one 32-bit
+                          value (byte A highest; NaN until reported); a change of a device's
+                          flags is also an `events` line naming them
     arm                   the base's geoms (static)
     arm/<link>/...        Transform3D per step (nested: each composes with its parent) and the
                           link's Cylinders3D / Boxes3D (static, in the link's frame)
@@ -56,9 +64,11 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from protocol.alpha5 import JOINT_LETTERS
+from protocol import HardwareStatus
+from protocol.alpha5 import ALL_DEVICES, JOINT_LETTERS
 from reach_driver.arm_geometry import GEOMS, LinkGeom
 from reach_driver.kinematics import CHAIN, TCP_OFFSET_M, joint_transform
+from reach_driver.state import MONITOR_READINGS, JointState, Reading, joint_name
 
 TIMELINE_TIME = "arm_time"
 TIMELINE_STEP = "step"
@@ -76,6 +86,15 @@ LINK_VIEWS = (
     ("link/frames", "link: frames received (count)"),
     ("link/state_age", "link: state age (ms)"),
     ("link/latency", "link: latency, state to command (ms)"),
+)
+
+#: The devices of the diagnostics entities, in their order: the four joints, then the jaw.
+DIAGNOSTIC_LETTERS = tuple(d.name for d in ALL_DEVICES)
+STATUS_ENTITY = "diagnostics/status"
+#: (entity, view title) of the diagnostics' views: one per Monitor reading, then the flags.
+DIAGNOSTIC_VIEWS = (
+    *((f"diagnostics/{m.key}", m.title) for m in MONITOR_READINGS),
+    (STATUS_ENTITY, "HARDWARE_STATUS as one 32-bit value, byte A highest (flags)"),
 )
 
 
@@ -312,7 +331,8 @@ def _series_view(origin: str, name: str) -> rrb.TimeSeriesView:
 def default_blueprint() -> rrb.Blueprint:
     """Opens on the arm-time timeline (seconds): the 3D arm and its ghost, errors and events;
     per joint its position vs target (rad) beside its currents (mA); torques, velocities and
-    the link's counts, state age and latency, each on its own scale."""
+    the link's counts, state age and latency, each on its own scale; the devices' Monitor
+    readings and status flags."""
     joint_rows = [
         rrb.Horizontal(
             _series_view(f"/joints/{j}/position", f"{j}: position q vs target (rad)"),
@@ -338,7 +358,10 @@ def default_blueprint() -> rrb.Blueprint:
                 _series_view("/velocities", "velocities (rad/s)"),
                 *(_series_view(f"/{entity}", name) for entity, name in LINK_VIEWS),
             ),
-            column_shares=[3, 4, 2],
+            rrb.Vertical(
+                *(_series_view(f"/{entity}", name) for entity, name in DIAGNOSTIC_VIEWS),
+            ),
+            column_shares=[3, 4, 2, 2],
         ),
         rrb.TimePanel(timeline=TIMELINE_TIME, state="collapsed"),
         rrb.BlueprintPanel(state="collapsed"),
@@ -497,6 +520,9 @@ class RunRecorder:
         self._ghost_links = _link_paths("target")
         self._closed = False
         self._t, self._step = 0.0, 0
+        # Diagnostics: the arrival times last logged per reading, the flags last named.
+        self._diag_logged: dict[str, list[float | None]] = {}
+        self._flags_named: dict[int, HardwareStatus] = {}
         self._log_static_scene(metadata or {})
         # On disk at once: a run killed before its first step is still recognised as a run.
         self.flush()
@@ -544,6 +570,8 @@ class RunRecorder:
         rec.log("link/frames", rr.SeriesLines(names=["good frames", "bad frames"]), static=True)
         rec.log("link/state_age", rr.SeriesLines(names=["state age ms"]), static=True)
         rec.log("link/latency", rr.SeriesLines(names=["latency ms"]), static=True)
+        for entity, _ in DIAGNOSTIC_VIEWS:
+            rec.log(entity, rr.SeriesLines(names=list(DIAGNOSTIC_LETTERS)), static=True)
         meta = {"joint_names": list(JOINT_LETTERS), **dict(metadata)}
         rec.log("run/metadata", rr.TextDocument(json.dumps(meta, default=str)), static=True)
 
@@ -630,6 +658,43 @@ class RunRecorder:
         rec.log("link/state_age", rr.Scalars(state_age_s * 1e3))
         if latency_s is not None:
             rec.log("link/latency", rr.Scalars(latency_s * 1e3))
+
+    def log_diagnostics(self, t: float, step: int, joints: Mapping[int, JointState]) -> bool:
+        """The devices' Monitor readings and HARDWARE_STATUS flags, those the driver has a
+        newer reading of than last logged (so this can be called every step); an `events`
+        line when a device's flags change. True if anything was logged."""
+        fields = [(f"diagnostics/{m.key}", m.field) for m in MONITOR_READINGS]
+        logged = False
+        for entity, name in (*fields, (STATUS_ENTITY, "status")):
+            readings: list[Reading[Any] | None] = [
+                getattr(joints.get(int(d)) or JointState(int(d)), name) for d in ALL_DEVICES
+            ]
+            stamps = [None if r is None else r.t for r in readings]
+            if all(v is None for v in stamps) or stamps == self._diag_logged.get(entity):
+                continue
+            if not logged:
+                self._set_time(t, step)
+                logged = True
+            self._diag_logged[entity] = stamps
+            values = [np.nan if r is None else float(r.value) for r in readings]
+            self._rec.log(entity, rr.Scalars(values))
+            if entity == STATUS_ENTITY:
+                self._name_flag_changes(readings)
+        if logged:
+            self._maybe_flush()
+        return logged
+
+    def _name_flag_changes(self, readings: Sequence[Reading[Any] | None]) -> None:
+        for dev, reading in zip(ALL_DEVICES, readings, strict=True):
+            if reading is None:
+                continue
+            flags = HardwareStatus(reading.value)
+            if flags == self._flags_named.get(int(dev), HardwareStatus.NONE):
+                continue
+            self._flags_named[int(dev)] = flags
+            names = ", ".join(flags.flag_names()) or "cleared"
+            level = "WARNING" if flags else "INFO"
+            self._rec.log("events", rr.TextLog(f"status {joint_name(dev)}: {names}", level=level))
 
     def log_event(
         self, text: str, level: str = "INFO", t: float | None = None, step: int | None = None

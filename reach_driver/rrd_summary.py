@@ -22,9 +22,16 @@ import numpy as np
 import pyarrow as pa
 from rerun.chunk import RrdReader
 
+from protocol import HardwareStatus
 from protocol.alpha5 import JOINT_LETTERS
 from reach_driver.metrics import Trace, compute_metrics
-from reach_driver.recording import TIMELINE_STEP, TIMELINE_TIME
+from reach_driver.recording import (
+    DIAGNOSTIC_LETTERS,
+    STATUS_ENTITY,
+    TIMELINE_STEP,
+    TIMELINE_TIME,
+)
+from reach_driver.state import MONITOR_READINGS
 
 #: `run/metadata`'s "source" in a simulator recording (reach_sim_bridge.recording).
 SIM_SOURCE = "reach-sim"
@@ -32,6 +39,22 @@ SIM_SOURCE = "reach-sim"
 
 class RecordingReadError(ValueError):
     """The file is missing, not a recording, or holds no run written by reach-stack."""
+
+
+@dataclass(frozen=True)
+class DiagnosticSeries:
+    """One diagnostics entity read back: a row per time it was logged."""
+
+    t: np.ndarray  # arm time of each row (s)
+    values: np.ndarray  # (rows, 5) in DIAGNOSTIC_LETTERS order (E D C B A), NaN: not reported
+
+
+#: `RecordedRun.diagnostics`' keys: each Monitor reading's, and this one for the status flags.
+STATUS_KEY = "status"
+_DIAGNOSTIC_ENTITIES = {
+    **{f"/diagnostics/{m.key}": m.key for m in MONITOR_READINGS},
+    f"/{STATUS_ENTITY}": STATUS_KEY,
+}
 
 
 @dataclass
@@ -52,6 +75,9 @@ class RecordedRun:
     closed_cleanly: bool = True
     truncated: bool = False  # cut inside a message: read up to the last complete one
     truncated_bytes: int = 0  # the bytes of the incomplete message that were skipped
+    #: The devices' Monitor readings and status flags, by MONITOR_READINGS key and STATUS_KEY
+    #: (only those the recording holds: none in a recording made before they were logged).
+    diagnostics: dict[str, DiagnosticSeries] = field(default_factory=dict)
 
     @property
     def duration_s(self) -> float:
@@ -267,6 +293,11 @@ def read_recording(path: str | Path) -> RecordedRun:
         by_entity[str(chunk.entity_path)].append(chunk)
 
     series = {name: _temporal_series(c) for name, c in by_entity.items()}
+    diagnostics = {
+        key: DiagnosticSeries(series[entity][0], series[entity][2])
+        for entity, key in _DIAGNOSTIC_ENTITIES.items()
+        if entity in series and len(series[entity][1])
+    }
     positions = [series.get(f"/joints/{j}/position") for j in JOINT_LETTERS]
     meta_text = _static_text(by_entity.get("/run/metadata", []))
     metadata = _metadata(meta_text)
@@ -287,6 +318,7 @@ def read_recording(path: str | Path) -> RecordedRun:
             closed_cleanly=closed_cleanly,
             truncated=truncated_bytes > 0,
             truncated_bytes=truncated_bytes,
+            diagnostics=diagnostics,
         )
     if any(p is None or len(p[1]) == 0 for p in positions):
         raise RecordingReadError(
@@ -338,7 +370,40 @@ def read_recording(path: str | Path) -> RecordedRun:
         closed_cleanly=closed_cleanly,
         truncated=truncated_bytes > 0,
         truncated_bytes=truncated_bytes,
+        diagnostics=diagnostics,
     )
+
+
+def _column_stats(values: np.ndarray) -> dict[str, list[float | None]]:
+    """Per device (column): the last reported value and the range over the recording."""
+    final, low, high = [], [], []
+    for column in values.T:
+        seen = column[np.isfinite(column)]
+        final.append(float(seen[-1]) if len(seen) else None)
+        low.append(float(seen.min()) if len(seen) else None)
+        high.append(float(seen.max()) if len(seen) else None)
+    return {"final": final, "min": low, "max": high}
+
+
+def diagnostics_summary(run: RecordedRun) -> dict[str, object] | None:
+    """What `inspect` says of the diagnostics: per Monitor reading its rows and, per device
+    (E D C B A), the last value and the range; each device's last status flags by name
+    ("ok" when none, None if it never reported). None when the recording has none."""
+    if not run.diagnostics:
+        return None
+    out: dict[str, object] = {"devices": list(DIAGNOSTIC_LETTERS)}
+    for m in MONITOR_READINGS:
+        series = run.diagnostics.get(m.key)
+        if series is not None:
+            out[m.key] = {"rows": len(series.t), **_column_stats(series.values)}
+    status = run.diagnostics.get(STATUS_KEY)
+    if status is not None:
+        last = _column_stats(status.values)["final"]
+        out["final_status"] = {
+            letter: None if v is None else HardwareStatus(int(v)).flag_names() or ["ok"]
+            for letter, v in zip(DIAGNOSTIC_LETTERS, last, strict=True)
+        }
+    return out
 
 
 def _finite_or_none(values: np.ndarray) -> list[float | None]:
@@ -432,6 +497,9 @@ def summarize_recording(path: str | Path) -> dict[str, object]:
         )
         out["control_period_s"] = dt
         out["metrics"] = compute_metrics(trace).as_dict()
+    diagnostics = diagnostics_summary(run)
+    if diagnostics is not None:
+        out["diagnostics"] = diagnostics
     if run.summary:
         out["recorded_summary"] = run.summary
     return out

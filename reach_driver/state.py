@@ -136,6 +136,9 @@ class JointState:
     #: answers a type code here, which would read as a nonsense pressure. The virtual arm
     #: answers 0x67 and 0x6E with the same pressure.
     internal_pressure: Reading[float] | None = _tracked(PacketID.INTERNAL_PRESSURE, _float)
+    #: PRESSURE (0x6E), bar: where the newest vendor SDK reports the pressure. Kept apart from
+    #: 0x67 so that firmware answering only one of them, or 0x67 as a type code, shows as such.
+    pressure: Reading[float] | None = _tracked(PacketID.PRESSURE, _float)
     #: FACTORY_CLIMATE (0x28): [temperature degC, pressure bar, humidity %] at assembly; a
     #: leak shows as live humidity and pressure above these.
     factory_climate: Reading[Climate] | None = _tracked(PacketID.FACTORY_CLIMATE, _climate)
@@ -150,6 +153,35 @@ class JointState:
     @property
     def fault_names(self) -> list[str]:
         return self.status.value.flag_names() if self.status is not None else []
+
+
+class MonitorReading(NamedTuple):
+    """One Monitor reading as people and files see it: `info`/`monitor` columns, `--json`
+    keys and recordings' entities all come from `MONITOR_READINGS`."""
+
+    field: str  # the JointState field holding it
+    key: str  # its name with its unit: the JSON key and the recording's entity
+    column: str  # a short title with the unit, for tables
+    title: str  # a long title with the unit, for a recording's view
+    digits: int  # decimals shown in tables
+
+
+#: The Monitor readings (docs/protocol.md 3a) in the order every table and file shows them.
+MONITOR_READINGS: tuple[MonitorReading, ...] = (
+    MonitorReading("voltage", "voltage_v", "supply V", "supply voltage (V)", 2),
+    MonitorReading("temperature", "temperature_c", "temp degC", "internal temperature (degC)", 1),
+    MonitorReading("humidity", "humidity_pct", "RH %", "internal relative humidity (%)", 1),
+    MonitorReading(
+        "internal_pressure",
+        "internal_pressure_bar",
+        "0x67 bar",
+        "internal pressure, 0x67 as V1.12.1 has it (bar)",
+        3,
+    ),
+    MonitorReading(
+        "pressure", "pressure_0x6e_bar", "0x6E bar", "pressure, 0x6E as newer SDKs have it (bar)", 3
+    ),
+)
 
 
 @dataclass(frozen=True)

@@ -17,9 +17,10 @@ from dataclasses import dataclass
 from typing import ClassVar
 from urllib.parse import urlsplit
 
+from protocol.alpha5 import SERIAL_BAUD
 from reach_driver.errors import BadUrlError, TransportError
 
-DEFAULT_BAUD = 115200
+DEFAULT_BAUD = SERIAL_BAUD
 DEFAULT_UDP_PORT = 6789
 DEFAULT_READ_TIMEOUT_S = 0.01
 DELIMITER = b"\x00"

@@ -14,6 +14,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
+from protocol.alpha5 import SERIAL_BAUD
 from reach_sim_bridge.faults import (
     DEFAULT_POSITION_NOISE,
     DEFAULT_VELOCITY_NOISE,
@@ -22,7 +23,7 @@ from reach_sim_bridge.faults import (
     torque_scales,
 )
 from reach_sim_bridge.params import ArmParams, load_arm_params
-from reach_sim_bridge.server import SimConfig, SimServer, serve_forever
+from reach_sim_bridge.server import TURNAROUND_BYTES, SimConfig, SimServer, serve_forever
 from reach_sim_bridge.udp import DEFAULT_UDP_HOST, DEFAULT_UDP_PORT, parse_udp_address
 
 DESCRIPTION = """\
@@ -43,6 +44,7 @@ examples:
   reach-sim --udp --no-pty                      # UDP only, 127.0.0.1:6789
   reach-sim --speed 5 --torque-scale E=0.25      # paper scenario 3, five times real time
   reach-sim --baud 115200 --latency-ms 5 --drop-rate 0.01 --sensor-noise
+  reach-sim --link /tmp/alpha5 --half-duplex     # RS-485: one talker at a time, 115200 baud
   reach-sim --params arm.json --randomize-params 3  # an identified arm, perturbed
   reach-sim --link /tmp/alpha5 --record sim.rrd --viewer serve 9877 9091  # watch it live
 """
@@ -179,6 +181,15 @@ def build_parser() -> argparse.ArgumentParser:
         "BAUD/10 bytes/s (8N1), e.g. 115200. At most 0.2 s of output waits for the line; "
         "replies go ahead of heartbeats, and the oldest heartbeats are dropped (counted) "
         "when it is full. Default: unthrottled",
+    )
+    link.add_argument(
+        "--half-duplex",
+        action="store_true",
+        help="the pty as one RS-485 wire (at --baud, default "
+        f"{SERIAL_BAUD}): the arm answers only once the host's bytes have landed and the line "
+        f"has been quiet {TURNAROUND_BYTES} byte times; host bytes sent while the arm is "
+        "sending collide, and both frames are lost (counted as collisions); a broadcast "
+        "REQUEST that several devices answer gets no answer. UDP is unaffected",
     )
     arm = p.add_argument_group("arm")
     arm.add_argument(
@@ -340,7 +351,8 @@ def config_from_args(args: argparse.Namespace) -> SimConfig:
         pty=not args.no_pty,
         link=args.link,
         udp=args.udp,
-        baud=args.baud,
+        baud=SERIAL_BAUD if args.half_duplex and args.baud is None else args.baud,
+        half_duplex=args.half_duplex,
         start=start,  # type: ignore[arg-type]
         jaw_mm=args.jaw,
         dt=args.dt,

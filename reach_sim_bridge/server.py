@@ -22,6 +22,19 @@ Nothing a client sends can take that thread from the physics or make memory grow
   whole frames, counted in `stats()`. So a reply goes out within about OUT_QUEUE_S, unless
   newer replies push it out under a request flood, and the stream is never staler than
   that. Without --baud the pty's own buffer is the line (when full: lost_bytes).
+
+Half duplex (`SimConfig(half_duplex=True)`, `reach-sim --half-duplex`): the pty is one RS-485
+wire shared by the host and the arm, timed at `baud`, as the server sees the bytes:
+
+- The arm does not start a frame while host bytes are still arriving: it waits until the
+  line has been quiet for TURNAROUND_BYTES byte times after the host's last byte (the
+  driver-enable turnaround of an RS-485 transceiver), then sends. Frames already queued go
+  back to back, as one talker's.
+- A host frame any byte of which arrives while the arm is sending collides: the host's frame
+  is lost (never decoded, with whatever of it the arm held: `collisions` frames,
+  `collision_bytes`), and so is the arm's frame on the wire (`collided_out`).
+- The firmware's half duplex (a broadcast REQUEST that several devices answer gets no
+  answer) comes with it. UDP is not a shared wire and is unaffected.
 """
 
 from __future__ import annotations
@@ -40,6 +53,7 @@ from typing import TypeVar
 import numpy as np
 
 from protocol import DecodeError, HardwareStatus, Packet, PacketDecoder
+from protocol.alpha5 import SERIAL_BAUD
 from protocol.decoder import DecoderStats
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.events import EventLog
@@ -64,6 +78,9 @@ INPUT_UNITS_PER_S = 8000  # input work per sim second and endpoint: frames + rep
 INPUT_BURST = 400  # units banked at most (a burst a client may send at once)
 UDP_DATAGRAMS_PER_PASS = 16  # read (or dropped, without credit) per look at the socket
 DRAIN_READS = 16  # on stop, reads of each endpoint still acted on
+#: Half duplex: byte times of quiet line after the host's last byte before the arm may talk
+#: (at 115200 baud 0.35 ms; the driver's RS-485 transport waits 2 ms before it talks).
+TURNAROUND_BYTES = 4
 
 
 def out_queue_limit(baud: int) -> int:
@@ -80,6 +97,8 @@ class SimConfig:
     link: str | None = None  # stable symlink to the pty, removed on stop
     udp: Address | None = None  # (host, port); port 0 picks a free one
     baud: int | None = None  # throttle the pty to this line rate (10 bits per byte)
+    # The pty as one RS-485 wire (module docstring): needs the pty and its baud.
+    half_duplex: bool = False
     start: tuple[float, float, float, float] | None = None  # E D C B, rad; None = mid pose
     jaw_mm: float = 5.0
     dt: float = 0.002  # physics (and firmware loop) step, sim seconds
@@ -99,6 +118,11 @@ class SimConfig:
             raise ValueError("a link to the pty needs the pty")
         if self.baud is not None and self.baud <= 0:
             raise ValueError(f"baud must be a positive number of bits per second, got {self.baud}")
+        if self.half_duplex and (not self.pty or self.baud is None):
+            raise ValueError(
+                "half duplex times a shared serial wire: it needs the pty and its baud "
+                f"({SERIAL_BAUD} on the Alpha 5)"
+            )
         if self.start is not None:
             if len(self.start) != 4 or not all(math.isfinite(v) for v in self.start):
                 raise ValueError(f"start needs 4 finite angles E D C B (rad), got {self.start}")
@@ -113,7 +137,8 @@ class SimConfig:
 @dataclass(frozen=True)
 class ServerStats:
     """Counters since the last power cycle; every byte received is in a good frame, counted
-    as discarded, or (UDP without input credit) in input_dropped_bytes."""
+    as discarded, (UDP without input credit) in input_dropped_bytes, or (half duplex) in
+    collision_bytes."""
 
     frames_in: int
     frames_out: int  # put on the wire (frames dropped from the --baud queue are not)
@@ -123,6 +148,9 @@ class ServerStats:
     datagrams_out: int
     bad_frames: dict[str, int]  # by decoder reason (crc, cobs, length, ...)
     bytes_discarded: int
+    collisions: int  # half duplex: host frames lost, sent while the arm was sending
+    collision_bytes: int  # ... their bytes (received, in bytes_in, never decoded)
+    collided_out: int  # half duplex: the arm's frames lost on the wire to a collision
     firmware_errors: dict[str, int]  # well-framed packets rejected (bad payload, ...)
     ignored: dict[str, int]  # valid packets the arm ignores (out of limits, ...)
     dropped_frames: int  # by the drop-rate fault
@@ -165,6 +193,9 @@ class _Counters:
         self.replies_dropped = 0
         self.queued_peak_bytes = 0
         self.input_dropped_bytes = 0
+        self.collisions = 0
+        self.collision_bytes = 0
+        self.collided_out = 0
         self.lag_s = 0.0
 
 
@@ -196,6 +227,8 @@ class SimServer:
         cfg = self.config
         self.arm = self._make_arm()
         firmware_cfg = cfg.firmware
+        if cfg.half_duplex:  # one wire: broadcast answers collide on it too
+            firmware_cfg = replace(firmware_cfg, half_duplex=True)
         if cfg.faults.sensor_noise is not None:
             firmware_cfg = replace(
                 firmware_cfg, sensor_noise=cfg.faults.sensor_noise, seed=cfg.seed
@@ -206,7 +239,8 @@ class SimServer:
         self._pty_decoder = PacketDecoder(on_error=self._on_decode_error)
         self._udp_decoder = PacketDecoder(on_error=self._on_decode_error)
         self._counters = _Counters()
-        self._pty_in: deque[tuple[float, bytes]] = deque()  # (when it has landed, bytes)
+        # (when it has landed, bytes); None: a frame lost in a collision (half duplex)
+        self._pty_in: deque[tuple[float, bytes | None]] = deque()
         self._pty_pending: deque[Packet] = deque()  # decoded, waiting for input credit
         # (when ready to go, frame), replies ahead of the stream; _pty_queued bytes in both
         self._pty_replies: deque[tuple[float, bytes]] = deque()
@@ -218,6 +252,8 @@ class SimServer:
         self._out_limit = None if cfg.baud is None else out_queue_limit(cfg.baud)
         self._rx_free = 0.0  # when the serial line is next idle, each way
         self._tx_free = 0.0
+        self._turnaround = 0.0 if cfg.baud is None else TURNAROUND_BYTES * BITS_PER_BYTE / cfg.baud
+        self._rx_garbled = False  # half duplex: inside a host frame lost to a collision
         self._udp_out: deque[tuple[float, bytes, Address]] = deque()
         self._udp_peer: Address | None = None
         self._pty_credit = self._udp_credit = float(INPUT_BURST)  # input units, each end
@@ -259,6 +295,7 @@ class SimServer:
         self._udp_out.clear()
         self._pty_decoder.reset()
         self._rx_free = self._tx_free = 0.0
+        self._rx_garbled = False
         try:
             if cfg.pty:
                 self._pty = PtyEndpoint(cfg.link)
@@ -324,6 +361,7 @@ class SimServer:
             "_pty_partial",
             "_rx_free",
             "_tx_free",
+            "_rx_garbled",
             "_udp_out",
             "_udp_peer",
             "_pty_credit",
@@ -422,6 +460,9 @@ class SimServer:
                 dropped_frames=self._link_faults.dropped_frames,
                 corrupted_bytes=self._link_faults.corrupted_bytes,
                 lost_bytes=c.lost_bytes,
+                collisions=c.collisions,
+                collision_bytes=c.collision_bytes,
+                collided_out=c.collided_out,
                 stream_dropped=c.stream_dropped,
                 replies_dropped=c.replies_dropped,
                 queued_bytes=self._pty_queued,
@@ -556,10 +597,30 @@ class SimServer:
         while pos < len(data):
             end = data.find(0, pos)
             end = len(data) if end < 0 else end + 1
-            landed += (end - pos) / rate
-            self._pty_in.append((landed, data[pos:end]))
+            began, landed = landed, landed + (end - pos) / rate
+            piece = data[pos:end]
+            if self.config.half_duplex and (began < self._tx_free or self._rx_garbled):
+                self._collide(piece, landed)
+            else:
+                self._pty_in.append((landed, piece))
             pos = end
         self._rx_free = landed
+
+    def _collide(self, piece: bytes, landed: float) -> None:
+        """Half duplex: host bytes on the wire while the arm sends (or the rest of a frame
+        that did). Both talkers' frames are lost: the host's, from what the arm held of it
+        to its delimiter, and the arm's frame on the wire."""
+        c = self._counters
+        with self._lock:
+            c.bytes_in += len(piece)
+            c.collision_bytes += len(piece)
+            if not self._rx_garbled:
+                c.collisions += 1
+                self._pty_in.append((landed, None))  # the decoder drops what it holds of it
+            if self._pty_wire is not None:
+                self._pty_wire = None
+                c.collided_out += 1
+        self._rx_garbled = not piece.endswith(b"\x00")
 
     def _read_udp(self, udp: UdpEndpoint, now: float, limit: int) -> None:
         """Up to `limit` datagrams: acted on while there is credit, then dropped (so what
@@ -596,7 +657,11 @@ class SimServer:
         packets = decoder.feed(data)
         return packets, stats.good_frames + stats.bad_total - seen
 
-    def _decode_stream(self, data: bytes) -> None:
+    def _decode_stream(self, data: bytes | None) -> None:
+        if data is None:  # lost in a collision: so is what the decoder held of that frame
+            with self._lock:
+                self._pty_decoder.reset()
+            return
         with self._lock:
             self._counters.bytes_in += len(data)
             packets, frames = self._decode(self._pty_decoder, data)
@@ -687,11 +752,13 @@ class SimServer:
         has crossed the line, frame). The line starts a frame when it is free, the waiting
         reply if one was ready by then, else the oldest stream frame."""
         replies, stream = self._pty_replies, self._pty_stream
-        first = min(q[0][0] for q in (replies, stream) if q) if replies or stream else None
+        first = self._pty_first_ready()
         if first is None or first > now:
             return None
         rate = self._line_rate
         start = first if rate is None else max(self._tx_free, first)
+        if self.config.half_duplex:
+            start = max(start, now)  # the wire is the host's until now: no sending in the past
         queue = replies if replies and replies[0][0] <= start else stream
         _, frame = queue.popleft()
         self._pty_queued -= len(frame)
@@ -704,8 +771,17 @@ class SimServer:
         """When the pty output next needs the loop (None: nothing to send)."""
         if self._pty_wire is not None:
             return self._pty_wire[0]
+        return self._pty_first_ready()
+
+    def _pty_first_ready(self) -> float | None:
+        """When the first queued frame may start: when it is ready, and in half duplex not
+        before the host's bytes have landed and the turnaround has passed."""
         heads = [q[0][0] for q in (self._pty_replies, self._pty_stream) if q]
-        return min(heads) if heads else None
+        if not heads:
+            return None
+        if self.config.half_duplex:
+            return max(min(heads), self._rx_free + self._turnaround)
+        return min(heads)
 
     def _clear_pty_out(self) -> None:
         self._pty_replies.clear()
@@ -766,7 +842,7 @@ def serve_forever(server: SimServer, stop: threading.Event, stats_interval: floa
             next_report += stats_interval
             s = server.stats()
             log.info(
-                "t=%.1f s: frames in %d out %d, bad %s, errors %s, ignored %s, lag %.2f s",
+                "t=%.1f s: frames in %d out %d, bad %s, errors %s, ignored %s, lag %.2f s%s",
                 s.sim_time,
                 s.frames_in,
                 s.frames_out,
@@ -774,4 +850,7 @@ def serve_forever(server: SimServer, stop: threading.Event, stats_interval: floa
                 s.firmware_errors or "{}",
                 s.ignored or "{}",
                 s.lag_s,
+                f", collisions {s.collisions} (arm frames lost {s.collided_out})"
+                if server.config.half_duplex
+                else "",
             )

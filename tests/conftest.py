@@ -1,9 +1,31 @@
-"""Helpers shared by the test modules (import them as `from conftest import ...`)."""
+"""Helpers shared by the test modules (import them as `from conftest import ...`) and the
+`sim` fixture (a module's own `sim` fixture takes its place there)."""
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import pytest
+
+if TYPE_CHECKING:
+    from reach_sim_bridge.server import SimServer
+
+
+@pytest.fixture
+def sim(tmp_path: Path) -> Iterator[SimServer]:
+    """The virtual arm at 4x real time behind a pty linked at `tmp_path / "arm"`; its loop
+    must not have failed by the end of the test. (Imported here, not at the top: the codec's
+    tests need no simulator.)"""
+    from reach_sim_bridge.server import SimConfig, SimServer
+
+    server = SimServer(SimConfig(speed=4.0, link=str(tmp_path / "arm")))
+    server.start()
+    yield server
+    server.stop()
+    assert server.error is None
 
 
 def wait_until(

@@ -283,6 +283,37 @@ def test_a_leak_shows_as_rising_humidity_and_the_over_humidity_flag(tmp_path) ->
         sim.stop()
 
 
+def test_pressure_0x6e_is_decoded_and_tracked_apart_from_0x67() -> None:
+    """The newest SDK's PRESSURE (0x6E) lands in JointState.pressure, 0x67 stays where it was:
+    a firmware answering 0x67 as DEVICE_TYPE cannot overwrite the 0x6E pressure."""
+    from protocol import Packet
+    from protocol.payload import pack_floats
+    from reach_driver.client import DIAGNOSTICS
+    from reach_driver.state import StateTable, packet_value
+
+    assert PacketID.PRESSURE == 0x6E and PacketID.PRESSURE in DIAGNOSTICS
+    table = StateTable()
+    assert table.update(Packet(DeviceID.D, 0x6E, pack_floats(1.25)), t=1.0)
+    assert table.update(Packet(DeviceID.D, 0x67, bytes.fromhex("00 00 80 3f")), t=2.0)
+    js = table.get(DeviceID.D)
+    assert js.pressure is not None and js.pressure.value == pytest.approx(1.25)
+    assert js.pressure.t == 1.0
+    assert js.internal_pressure is not None and js.internal_pressure.value == 1.0
+    assert packet_value(Packet(DeviceID.D, 0x6E, pack_floats(0.5))) == pytest.approx(0.5)
+    assert not table.update(Packet(DeviceID.D, 0x6E, b"\x01"), t=3.0)  # not a float
+    assert table.bad_payloads == 1
+
+
+def test_the_virtual_arms_0x6e_pressure_reaches_info_json(sim, capsys) -> None:
+    with _client(sim) as client:
+        got = client.read_diagnostics([int(DeviceID.C)])[int(DeviceID.C)]
+    assert got.pressure is not None and got.internal_pressure is not None
+    assert got.pressure.value == pytest.approx(got.internal_pressure.value, abs=1e-3)
+    assert main(["--port", str(sim.link), "info", "--json"]) == Exit.OK
+    diag = json.loads(capsys.readouterr().out)["devices"]["C"]["diagnostics"]
+    assert diag["pressure_0x6e_bar"] == pytest.approx(1.0, abs=0.1)
+
+
 def test_info_json_and_table_show_the_diagnostics_with_units(sim, capsys) -> None:
     assert main(["--port", str(sim.link), "info", "--json"]) == Exit.OK
     devices = json.loads(capsys.readouterr().out)["devices"]
@@ -308,7 +339,7 @@ def test_monitor_shows_diagnostics_and_status(sim, capsys) -> None:
     sim.inject_fault(int(DeviceID.B), HardwareStatus.JOINT_SERVICE_DUE)
     assert main(["--port", str(sim.link), "monitor", "--seconds", "1.2"]) == Exit.OK
     out = capsys.readouterr().out
-    for column in ("supply V", "temp degC", "humidity %", "pressure bar", "status"):
+    for column in ("supply V", "temp degC", "RH %", "0x67 bar", "0x6E bar", "status"):
         assert column in out
     assert re.search(r" 2[0-4]\.\d\d ", out)  # the supply, sagging with the motors' current
     assert "C: JOINT_SERVICE_DUE" in out

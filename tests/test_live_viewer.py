@@ -296,15 +296,6 @@ def test_serve_on_a_port_in_use_warns_and_records(tmp_path) -> None:
 # -- the CLI -------------------------------------------------------------------------------------
 
 
-@pytest.fixture
-def sim(tmp_path: Path) -> Iterator[SimServer]:
-    server = SimServer(SimConfig(speed=4.0, link=str(tmp_path / "arm")))
-    server.start()
-    yield server
-    server.stop()
-    assert server.error is None
-
-
 def test_run_with_viewer_and_record_writes_both(sim, tmp_path, receiver, capsys) -> None:
     port, received, proc = receiver
     record = tmp_path / "run.rrd"

@@ -16,7 +16,14 @@ from rerun.chunk import RrdReader
 
 from reach_driver.arm_geometry import GEOMS
 from reach_driver.kinematics import link_poses
-from reach_driver.recording import LINK_VIEWS, TIMELINE_STEP, TIMELINE_TIME, RunRecorder, StepSample
+from reach_driver.recording import (
+    DIAGNOSTIC_VIEWS,
+    LINK_VIEWS,
+    TIMELINE_STEP,
+    TIMELINE_TIME,
+    RunRecorder,
+    StepSample,
+)
 from reach_driver.rrd_summary import read_blueprint, read_recording
 from reach_sim_bridge.arm import MODEL_PATH, Alpha5Arm
 
@@ -168,7 +175,7 @@ def test_run_recording_blueprint(tmp_path: Path) -> None:
     assert bp.timeline == TIMELINE_TIME  # opens on arm time, in seconds
     by_origin = {v.origin: v for v in bp.views}
     assert by_origin["/"].kind == "3D"
-    for entity, title in LINK_VIEWS:  # one view, one scale, each
+    for entity, title in (*LINK_VIEWS, *DIAGNOSTIC_VIEWS):  # one view, one scale, each
         assert (
             by_origin[f"/{entity}"].name == title and by_origin[f"/{entity}"].kind == "TimeSeries"
         )
@@ -179,7 +186,8 @@ def test_run_recording_blueprint(tmp_path: Path) -> None:
     assert "(rad/s)" in by_origin["/velocities"].name
     assert "(ms)" in by_origin["/link/state_age"].name
     series = [v for v in bp.views if v.kind == "TimeSeries"]
-    assert len(series) == 4 * 2 + 3 + len(LINK_VIEWS)  # joints; errors, torques, velocities
+    # joints; errors, torques, velocities; the link; the Monitor readings and the flags
+    assert len(series) == 4 * 2 + 3 + len(LINK_VIEWS) + 6
     for v in series:  # a unit in every plot's title
-        assert re.search(r"\((rad|rad/s|mA|N m|ms|count)\)", v.name), v.name
+        assert re.search(r"\((rad|rad/s|mA|N m|ms|count|V|degC|%|bar|flags)\)", v.name), v.name
     assert by_origin["/events"].kind == "TextLog"

@@ -9,6 +9,7 @@ real arm answers all of it and shows no lasting fault; so must the emulator.
 
 from __future__ import annotations
 
+import socket
 from collections.abc import Iterable
 
 import pytest
@@ -23,6 +24,7 @@ from protocol import (
 )
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.firmware import Firmware
+from reach_sim_bridge.server import SimConfig, SimServer
 
 A, B, C, D, E = DeviceID.A, DeviceID.B, DeviceID.C, DeviceID.D, DeviceID.E
 JOINTS = (E, D, C, B)
@@ -170,7 +172,7 @@ def test_limits_in_min_max_order_or_the_16_byte_form_are_refused_without_a_fault
     assert reply[0].floats() == [400.0, -400.0]
 
 
-# -- the whole client session, over the firmware and over a served pty ----------------------
+# -- the whole client session, over the firmware, a served pty and UDP ------------------------
 #: The device ids every device is asked for, once a second.
 MONITOR_REQUEST = bytes(MONITOR)
 POLL_REPLIES = [PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT]
@@ -237,32 +239,88 @@ def test_client_session_over_the_firmware(fw: Firmware) -> None:
     assert all(fw.status(d) == HardwareStatus.NONE for d in (A, B, C, D, E))
 
 
-def test_client_session_over_a_served_pty() -> None:
-    import serial
+class _PtyClient:
+    """The client's end of the served pty: writes a chunk, reads what has arrived."""
 
-    from reach_sim_bridge.server import SimConfig, SimServer
+    def __init__(self, server: SimServer) -> None:
+        import serial
 
-    seconds = 4
-    with SimServer(SimConfig(speed=4.0)) as server:
         assert server.pty_path is not None
-        port = serial.Serial(server.pty_path, 115200, timeout=0.0)
+        self.port = serial.Serial(server.pty_path, 115200, timeout=0.0)
+
+    def write(self, chunk: bytes) -> None:
+        self.port.write(chunk)
+
+    def read(self) -> bytes:
+        return bytes(self.port.read(self.port.in_waiting or 0))
+
+    def close(self) -> None:
+        self.port.close()
+
+
+class _UdpClient:
+    """A UDP client as the Ethernet arms' drivers are: one datagram per write, replies to
+    its source port, every datagram waiting read (each may hold several frames)."""
+
+    def __init__(self, server: SimServer) -> None:
+        assert server.udp_address is not None
+        self.address = server.udp_address
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setblocking(False)
+        self.datagrams = 0
+
+    def write(self, chunk: bytes) -> None:
+        self.sock.sendto(chunk, self.address)
+        self.datagrams += 1
+
+    def read(self) -> bytes:
+        out = b""
+        while True:
+            try:
+                out += self.sock.recv(65535)
+            except BlockingIOError:
+                return out
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+ENDPOINTS = {
+    "pty": (SimConfig(speed=4.0), _PtyClient),
+    "udp": (SimConfig(speed=4.0, pty=False, udp=("127.0.0.1", 0)), _UdpClient),
+}
+
+
+@pytest.mark.parametrize("endpoint", sorted(ENDPOINTS))
+def test_client_session_over_a_served_endpoint(endpoint: str) -> None:
+    """The whole session through reach-sim's pty or its UDP socket: real-arm answers (every
+    poll, every monitor packet, the jaw's heartbeat), no status report, no flag left."""
+    config, make_client = ENDPOINTS[endpoint]
+    seconds = 4
+    with SimServer(config) as server:
+        client = make_client(server)
         decoder = PacketDecoder()
         replies: list[Packet] = []
         t0 = server.sim_time
         try:
             for at, chunk in client_session(seconds):
                 assert server.wait_sim_time(t0 + at, timeout=20.0)
-                port.write(chunk)
-                replies += decoder.feed(port.read(port.in_waiting or 0))
+                client.write(chunk)
+                replies += decoder.feed(client.read())
             assert server.wait_sim_time(server.sim_time + 0.2, timeout=20.0)
-            replies += decoder.feed(port.read(port.in_waiting or 0))
+            replies += decoder.feed(client.read())
         finally:
-            port.close()
+            client.close()
         stats = server.stats()
         statuses = server.observe(lambda _arm, fw: [fw.status(d) for d in (A, B, C, D, E)])
         assert server.error is None
     check_session(replies, seconds)
+    assert decoder.stats.bad_total == 0
     assert stats.bad_frames == {}
     assert stats.firmware_errors == {"limits_16_bytes": 12}
     assert stats.ignored["request_padding"] == seconds * POLL_HZ * 4 + 1
+    assert stats.ignored["unimplemented_mode"] == 24
+    assert stats.input_dropped_bytes == 0 and stats.lost_bytes == 0
+    if endpoint == "udp":
+        assert stats.datagrams_in == client.datagrams == seconds * POLL_HZ + 1
     assert statuses == [HardwareStatus.NONE] * 5

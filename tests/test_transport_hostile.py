@@ -21,7 +21,6 @@ from conftest import wait_until
 from protocol import DeviceID, PacketDecoder, PacketID, commands
 from reach_driver import ArmClient, LinkConfig, TransportError, open_transport
 from reach_driver.errors import PortBusyError
-from reach_sim_bridge.server import SimConfig, SimServer
 
 ROOT = Path(__file__).resolve().parents[1]
 E = DeviceID.E
@@ -37,15 +36,6 @@ def pty() -> Iterator[tuple[int, str]]:
     yield master, path
     os.close(master)
     os.close(slave)
-
-
-@pytest.fixture
-def sim(tmp_path) -> Iterator[SimServer]:
-    server = SimServer(SimConfig(speed=4.0, link=str(tmp_path / "arm")))
-    server.start()
-    yield server
-    server.stop()
-    assert server.error is None
 
 
 def master_read(master: int, want: int, timeout: float = 2.0) -> bytes:

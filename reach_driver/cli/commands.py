@@ -76,12 +76,15 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
                 f"{len(ids)} values of {len(devices)} devices: streaming at {rate} Hz[/yellow]"
             )
         end = time.monotonic() + args.seconds if args.seconds else math.inf
+        _read_diagnostics(client)  # the first table (and a recording) starts with them
         last_counts = client.table.count_snapshot()
         last_t = time.monotonic()
         rates: dict[tuple[int, int], float] = {}
-        if viewer is not None:
+        if viewer is not None or args.record:
             meta = {"command": "monitor", "port": args.port, "rate_hz": rate}
-            recorder = CliRecorder(None, meta, viewer=viewer)
+            recorder = CliRecorder(
+                args.record, meta, viewer=viewer, diagnostics=lambda: client.state.joints
+            )
             stream = _StateStream(client, recorder)
         if args.json:
             return _monitor_json(client, console, end, last_counts, last_t, stream)
@@ -100,10 +103,7 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
                     rates = {
                         k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()
                     }
-                    try:
-                        client.read_diagnostics(devices)  # Monitor readings and status flags
-                    except DriverError:
-                        pass  # the table shows the link's state; the readings keep their last
+                    _read_diagnostics(client)
                     last_counts, last_t = counts, now
                     live.update(monitor_table(client, rates, args.port), refresh=True)
             except KeyboardInterrupt:
@@ -175,12 +175,21 @@ def _monitor_json(
             counts = client.table.count_snapshot()
             rates = {k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()}
             last_counts, last_t = counts, now
+            _read_diagnostics(client)
             line = json.dumps(monitor_json(client, rates, now - start))
             console.out(line, highlight=False)
             console.file.flush()  # a reader on a pipe gets each line as it comes
     except KeyboardInterrupt:
         pass
     return Exit.OK
+
+
+def _read_diagnostics(client: ArmClient) -> None:
+    """A monitor refresh's Monitor readings and status flags of every device found."""
+    try:
+        client.read_diagnostics()
+    except DriverError:
+        pass  # the table and JSON show the link's state; the readings keep their last
 
 
 def _notes() -> Console:
@@ -377,7 +386,10 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
                 "target": target.tolist(),
                 "seconds": args.seconds,
             }
-            recorder = CliRecorder(args.record, meta, viewer=viewer)
+            recorder = CliRecorder(
+                args.record, meta, viewer=viewer, diagnostics=lambda: client.state.joints
+            )
+            client.read_diagnostics()  # the run's recording opens with every device's readings
         view = RunView(Console(stderr=True, highlight=False), args.seconds, enabled=not args.quiet)
         hook = chain(recorder.on_step if recorder is not None else None, view.on_step)
         loop = ControlLoop(client, controller, period, pacing=args.pacing, on_step=hook)
@@ -389,6 +401,10 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             raise
         error = summary.error
         if recorder is not None:
+            try:
+                client.read_diagnostics()  # how the devices ended the run, for the recording
+            except DriverError:
+                pass  # a lost link is the summary's to report; the readings keep their last
             recorder.finish(summary, error)  # before the last lines, which say how it went
         left_in = left_in_for_operator(summary.left_in, args.port)
         if summary.error:

@@ -313,6 +313,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="a JSON object per refresh, one a line (JSON Lines), instead of the table",
     )
+    mon.add_argument(
+        "--record",
+        metavar="FILE.rrd",
+        help="record what the arm reports for Rerun: states at 20 Hz, each device's Monitor "
+        "readings and status flags as they are read (read back with `reach-driver inspect`)",
+    )
     _add_viewer_option(
         mon,
         VIEWER_HELP + ". With a viewer, states go to it at 20 Hz; the table still refreshes "

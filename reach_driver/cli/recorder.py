@@ -12,6 +12,7 @@ and the exit status does not change.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -22,6 +23,7 @@ from rich.markup import escape
 from reach_driver.cli.report import summary_dict
 from reach_driver.errors import DriverError
 from reach_driver.records import ControlSummary, StepRecord
+from reach_driver.state import JointState
 
 if TYPE_CHECKING:
     from reach_driver.recording import RunRecorder, ViewerSpec
@@ -44,9 +46,12 @@ class CliRecorder:
         meta: dict[str, object],
         warn: Console | None = None,
         viewer: ViewerSpec | None = None,
+        diagnostics: Callable[[], Mapping[int, JointState]] | None = None,
     ) -> None:
         """Opens the recording (and the viewer); fails (DriverError) before anything moves if
-        the file cannot be written. A viewer that cannot be had only warns."""
+        the file cannot be written. A viewer that cannot be had only warns. `diagnostics`
+        gives what the driver knows of each device (`ArmClient.state.joints`): its Monitor
+        readings and status flags are logged at each step or refresh that has newer ones."""
         try:
             from reach_driver import recording
         except ImportError as exc:
@@ -58,6 +63,7 @@ class CliRecorder:
         self._warn = warn or Console(stderr=True, highlight=False)
         self.failed: str | None = None
         self.steps = 0
+        self._diagnostics = diagnostics
         try:
             self._rec: RunRecorder | None = recording.RunRecorder(
                 path,
@@ -128,6 +134,7 @@ class CliRecorder:
                 )
             )
             rec.log_link(r.t, r.step, r.good_frames, r.bad_frames, r.state_age_s, r.latency_s)
+            self._log_diagnostics(rec, r.t, r.step)
             self.steps += 1
         except Exception as exc:
             self._fail(exc, f"at step {r.step} (t = {r.t:.2f} s; {self.steps} steps recorded)")
@@ -147,9 +154,14 @@ class CliRecorder:
             return
         try:
             rec.log_state(t, step, q, qdot, current_mA, target)
+            self._log_diagnostics(rec, t, step)
             self.steps += 1
         except Exception as exc:
             self._fail(exc, f"at refresh {step} (t = {t:.2f} s)")
+
+    def _log_diagnostics(self, rec: RunRecorder, t: float, step: int) -> None:
+        if self._diagnostics is not None:
+            rec.log_diagnostics(t, step, self._diagnostics())
 
     def close(self, text: str = "stop") -> None:
         """End a `monitor` or `move` stream (no summary)."""
@@ -184,6 +196,7 @@ class CliRecorder:
                         torque_Nm=tr.torque_Nm[-1],
                     )
                 )
+                self._log_diagnostics(rec, float(tr.t[-1]), summary.steps)  # read after the run
             if error:
                 rec.log_event(error, level="ERROR")
             if summary is not None:

@@ -19,7 +19,7 @@ from reach_driver.faults import blocking_flags, flag_labels, status_bytes
 from reach_driver.metrics import METRIC_KEYS, metric_label
 from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind
-from reach_driver.state import JointState, joint_name
+from reach_driver.state import MONITOR_READINGS, JointState, joint_name
 
 
 def fmt(value: float | None, digits: int = 4) -> str:
@@ -157,6 +157,8 @@ def monitor_json(
             "current_mA": js.current.value if js.current else None,
             "age_s": js.position.age(now) if js.position else None,
             "rate_hz": rates.get((int(dev), int(PacketID.POSITION))),
+            "status": status_bytes(js.status.value) if js.status else None,
+            "diagnostics": diagnostics_json(js),
         }
     ts, ds, cs = client.transport.stats, client.decoder_stats, client.stats
     return jsonable(
@@ -177,48 +179,35 @@ def monitor_json(
     )
 
 
-#: The Monitor readings (docs/protocol.md 3a): column title, (JointState field, digits).
-DIAGNOSTIC_COLUMNS: tuple[tuple[str, tuple[str, int]], ...] = (
-    ("supply V", ("voltage", 2)),
-    ("temp degC", ("temperature", 1)),
-    ("humidity %", ("humidity", 1)),
-    ("pressure bar", ("internal_pressure", 3)),
-)
-
-
 def diagnostic_cells(js: JointState) -> list[str]:
     cells = []
-    for _, (name, digits) in DIAGNOSTIC_COLUMNS:
-        reading = getattr(js, name)
-        cells.append(fmt(reading.value, digits) if reading is not None else "-")
+    for m in MONITOR_READINGS:
+        reading = getattr(js, m.field)
+        cells.append(fmt(reading.value, m.digits) if reading is not None else "-")
     return cells
 
 
 def diagnostics_json(js: JointState) -> dict[str, Any]:
     """The Monitor readings with their units in the keys (None where not reported)."""
-
-    def value(reading: Any) -> Any:
-        return None if reading is None else reading.value
-
-    climate = value(js.factory_climate)
-    return {
-        "voltage_v": value(js.voltage),
-        "temperature_c": value(js.temperature),
-        "humidity_pct": value(js.humidity),
-        "internal_pressure_bar": value(js.internal_pressure),
-        "factory_climate": None if climate is None else climate._asdict(),
-    }
+    out: dict[str, Any] = {}
+    for m in MONITOR_READINGS:
+        reading = getattr(js, m.field)
+        out[m.key] = None if reading is None else reading.value
+    climate = js.factory_climate
+    out["factory_climate"] = None if climate is None else climate.value._asdict()
+    return out
 
 
 def diagnostics_table(port: str, joints: dict[int, JointState]) -> Table:
     """`info`'s second table: each device's Monitor readings beside its factory climate."""
     table = Table(
         title=f"diagnostics on {port}",
-        caption="live readings; factory: the climate sealed in at assembly (degC/bar/%)",
+        caption="live readings; pressure: 0x67 as V1.12.1 has it, 0x6E as the newer SDK has it; "
+        "factory: the climate sealed in at assembly (degC/bar/%)",
     )
     table.add_column("device", no_wrap=True)
-    for column, _ in DIAGNOSTIC_COLUMNS:
-        table.add_column(column, justify="right")
+    for m in MONITOR_READINGS:
+        table.add_column(m.column, justify="right")
     table.add_column("factory", justify="right")
     for dev, js in joints.items():
         climate = js.factory_climate.value if js.factory_climate else None
@@ -251,8 +240,8 @@ def monitor_table(client: ArmClient, rates: dict[tuple[int, int], float], port: 
     table = Table(title=f"{port}: link {client.link_state.value}")
     for column in ("joint", "mode", "position", "velocity", "current mA", "age ms", "rate Hz"):
         table.add_column(column, justify="right")
-    for column, _ in DIAGNOSTIC_COLUMNS:
-        table.add_column(column, justify="right")
+    for m in MONITOR_READINGS:
+        table.add_column(m.column, justify="right")
     table.add_column("status")
     for dev in (*JOINTS, JAW):
         js = state.joint(dev)
@@ -419,8 +408,33 @@ def print_recording(console: Console, summary: dict[str, Any]) -> None:
     metrics = summary.get("metrics")
     if isinstance(metrics, dict):
         console.print(metrics_table("metrics (docs/metrics.md)", metrics))
+    diagnostics = summary.get("diagnostics")
+    if isinstance(diagnostics, dict):
+        console.print(recorded_diagnostics_table(diagnostics))
     for line in summary.get("events", []):
         console.print(f"  {escape(str(line))}")
+
+
+def recorded_diagnostics_table(diagnostics: dict[str, Any]) -> Table:
+    """`inspect`: each device's last Monitor readings and status flags in the recording."""
+    table = Table(
+        title="diagnostics (last reading of each device)",
+        caption="--json adds each reading's min and max over the recording",
+    )
+    table.add_column("device")
+    shown = [m for m in MONITOR_READINGS if m.key in diagnostics]
+    for m in shown:
+        table.add_column(m.column, justify="right")
+    table.add_column("status")
+    status = diagnostics.get("final_status") or {}
+    for i, letter in enumerate(diagnostics["devices"]):
+        cells = []
+        for m in shown:
+            value = diagnostics[m.key]["final"][i]
+            cells.append("-" if value is None else fmt(value, m.digits))
+        flags = status.get(letter)
+        table.add_row(letter, *cells, "-" if flags is None else escape(", ".join(flags)))
+    return table
 
 
 def print_sim_recording(console: Console, summary: dict[str, Any], clean: str) -> None:
