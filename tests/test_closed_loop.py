@@ -252,8 +252,12 @@ def test_ddpg_reaches_scenario_1_through_reach_driver_and_prints_its_metrics(
     assert summary["duration_s"] == pytest.approx(8.0, abs=0.051)  # or one tick on, if late
     assert recorded["metrics"]["reached"] is True
     # `reach-driver inspect` scores the recording like the run printed it, energy included
-    # (exactly when no tick was lost; the printed trace interpolates a lost one).
-    for key in ("energy_j", "rmse", "mie", "msse", "settling_time_s"):
+    # exactly when no tick was lost (the printed trace interpolates a lost one, and energy,
+    # integrated from power, is the metric that interpolation moves most).
+    keys = ["rmse", "mie", "msse", "settling_time_s"]
+    if recorded["steps"] == 160:
+        keys.append("energy_j")
+    for key in keys:
         assert summary["metrics"][key] == pytest.approx(recorded["metrics"][key], rel=0.02)
     assert 5.0 < recorded["metrics"]["energy_j"] < 40.0
 

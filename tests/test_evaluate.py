@@ -327,7 +327,10 @@ def test_paper_counts_ddpg_wins_over_mpc_across_seeds() -> None:
     }  # a tie is not a win
     text = "\n".join(paper.seed_lines(more, table, 2020, 20))
     assert "| 2020 | ddpg | 10.40 |" in text and "| 2120 | mpc | 10.70 |" in text
-    assert "on 2 seeds: E 1/2, RMSE 2/2, MIE 2/2, MSSE 1/2, OS 2/2, ST 1/2." in text
+    assert (
+        "on 2 seeds: energy 1/2, RMSE 2/2, MIE 2/2, MSSE 1/2, overshoot 2/2, settling time 1/2."
+        in text
+    )
 
 
 def _select() -> ModuleType:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import serial
+from conftest import wait_until
 
 from protocol import DeviceID, commands
 from reach_driver.rrd_summary import read_recording
@@ -117,6 +118,10 @@ def test_a_capped_recording_rotates_into_parts_that_each_read(tmp_path: Path) ->
                 port.write(commands.position(DeviceID.D, 1.2 if k % 2 else 1.9).encode())
                 assert srv.wait_sim_time(srv.sim_time + 1.0, timeout=30)
                 k += 1
+            # The newest part may have just been opened: let it take a few samples too (a
+            # loaded host can leave the recorder's thread behind the arm).
+            seen = recorder.samples
+            assert wait_until(lambda: recorder.samples >= seen + 3, timeout=30)
         recorder.stop()
     assert recorder.rotations >= parts + 1
     files = [path.with_name(f"sim.{n}.rrd") for n in range(parts - 1, 0, -1)] + [path]
