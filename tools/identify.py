@@ -48,18 +48,23 @@ from protocol.alpha5 import (
 from reach_driver import ArmClient, ControlLoop, DriverError, SafetyConfig, open_transport
 from reach_driver.controllers import ControlState
 from reach_driver.interfaces import DEFAULT_BAUD
+from reach_driver.records import StepRecord
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.params import ArmParams, load_arm_params, save_arm_params
 from reach_sim_bridge.sysid import (
     DEFAULT_WINDOW_S,
     FitResult,
+    LinkTiming,
     Replay,
     Segment,
     fit_arm,
+    link_delays,
     load_segments,
     quality,
     ref_name,
     save_segments,
+    segment_delays,
+    tune_offsets,
 )
 
 K_MA = np.asarray(TORQUE_PER_AMP_NM) / 1000.0  # N m per mA, E D C B
@@ -302,12 +307,201 @@ def _position_kind() -> Any:
 
 
 @dataclass
+class StepStamps:
+    """The driver's timestamps of each step of one run (`ControlLoop`'s `on_step`): the arm
+    time of the tick, the host time its state was complete and the host time the command
+    was written (the hook runs right after the write)."""
+
+    t: list[float] = field(default_factory=list)
+    received: list[float] = field(default_factory=list)
+    written: list[float] = field(default_factory=list)
+    latency: list[float] = field(default_factory=list)
+    state_age: list[float] = field(default_factory=list)
+    good: list[int] = field(default_factory=list)
+    bad: list[int] = field(default_factory=list)
+
+    def on_step(self, r: StepRecord) -> None:
+        now = time.monotonic()
+        self.t.append(r.t)
+        self.written.append(now)
+        self.received.append(now - r.latency_s)
+        self.latency.append(r.latency_s)
+        self.state_age.append(r.state_age_s)
+        self.good.append(r.good_frames)
+        self.bad.append(r.bad_frames)
+
+    def timing(self, trace_t: np.ndarray) -> LinkTiming | None:
+        """The measured delays per command row of a trace whose ticks are the steps seen
+        (None when the trace filled ticks the loop never acted on: the delay is then left
+        to the fit alone)."""
+        if len(self.t) != len(trace_t) - 1 or len(self.t) < 2:
+            return None
+        if not np.allclose(np.asarray(self.t), trace_t[:-1], atol=1e-9):
+            return None
+        return link_delays(np.asarray(self.t), np.asarray(self.received), np.asarray(self.written))
+
+
+@dataclass
 class Session:
     segments: list[Segment] = field(default_factory=list)
     arm_seconds: float = 0.0  # in current mode, exact (ticks)
     move_seconds: float = 0.0  # in moves, wall x the measured arm speed
     arm_speed: float = 1.0
     retries: int = 0  # segments run again after a watchdog trip (a stalled host)
+
+
+class ExcitationRecorder:
+    """The excitation as a Rerun recording (.rrd), written with `reach_driver.recording` (the
+    entities `reach-driver run --record` writes, so `reach-driver inspect` and the viewer
+    read it): every tick of every segment on one arm-time timeline, an event where each
+    segment starts, the link's latency and state age per step, and at the end a summary whose
+    `segments` index (name, joint, role, first step, rows, measured link delays) lets
+    `load_recording` rebuild the segments exactly. Each segment is logged when it ends, from
+    its trace (the rows the fit uses). A write error is reported once and stops the recording;
+    the identification goes on (the .npz log is the fit's own copy)."""
+
+    def __init__(self, path: Path, metadata: dict[str, Any], console: Console) -> None:
+        from reach_driver import recording
+
+        self._recording = recording
+        self.path = path
+        self.console = console
+        self.failed: str | None = None
+        self.index: list[dict[str, Any]] = []
+        self.step = 0
+        try:
+            self._rec: Any = recording.RunRecorder(
+                path,
+                metadata={"source": "tools/identify.py", **metadata},
+                warn=lambda msg: console.print(f"[yellow]warning[/]: {msg}"),
+            )
+            self._rec.log_event("start")
+        except Exception as exc:  # rerun raises RuntimeError for sink errors, Python OSError
+            raise DriverError(f"cannot record to {path}: {exc}") from None
+
+    def _fail(self, exc: Exception) -> None:
+        rec, self._rec = self._rec, None
+        self.failed = f"writing {self.path} failed: {type(exc).__name__}: {exc}"
+        self.console.print(
+            f"[yellow]warning[/]: {self.failed}; recording stopped, the identification goes on"
+        )
+        if rec is not None:
+            try:
+                rec.abandon()
+            except Exception:
+                pass
+
+    def add(self, seg: Segment, center: np.ndarray, t0: float, stamps: StepStamps) -> None:
+        """Log one finished segment from arm time `t0` on (its ticks are rows 0..n)."""
+        rec = self._rec
+        if rec is None:
+            return
+        recording = self._recording
+        n = seg.ticks
+        current = seg.current_mA if seg.current_mA is not None else np.full_like(seg.q, np.nan)
+        try:
+            rec.log_event(
+                f"segment {seg.name} ({seg.role}): {seg.meta.get('wave', '')}", t=t0, step=self.step
+            )
+            for k in range(n + 1):
+                t = t0 + k * seg.period
+                rec.log_step(
+                    recording.StepSample(
+                        t=t,
+                        step=self.step + k,
+                        q=seg.q[k],
+                        qdot=seg.qdot[k],
+                        target=center,
+                        current_cmd_mA=seg.command_mA[k + 1] if k < n else np.zeros(N_JOINTS),
+                        current_meas_mA=current[k],
+                    )
+                )
+                if k < len(stamps.t):
+                    rec.log_link(
+                        t,
+                        self.step + k,
+                        stamps.good[k],
+                        stamps.bad[k],
+                        stamps.state_age[k],
+                        stamps.latency[k],
+                    )
+        except Exception as exc:
+            self._fail(exc)
+            return
+        self.index.append(
+            {
+                "name": seg.name,
+                "joint": seg.joint,
+                "role": seg.role,
+                "period": seg.period,
+                "meta": seg.meta,
+                "first_step": self.step,
+                "rows": n + 1,
+                "t0": t0,
+                "command_row0": seg.command_mA[0].tolist(),
+                "link_delay_s": None
+                if seg.link_delay_s is None
+                else [None if not math.isfinite(v) else v for v in seg.link_delay_s.tolist()],
+            }
+        )
+        self.step += n + 1
+
+    def close(self, header: dict[str, Any]) -> None:
+        rec = self._rec
+        if rec is None:
+            return
+        try:
+            rec.log_summary({"identification": header, "segments": self.index})
+            rec.log_event("stop")
+            rec.close()
+            self._rec = None
+        except Exception as exc:
+            self._fail(exc)
+
+
+def load_recording(path: Path) -> list[Segment]:
+    """The segments of an excitation recorded by `ExcitationRecorder` (ValueError saying what
+    is missing: a recording cut before its end has its steps but no index)."""
+    from reach_driver.rrd_summary import read_recording
+
+    run = read_recording(path)
+    index = run.summary.get("segments") if isinstance(run.summary, dict) else None
+    if not isinstance(index, list) or not index:
+        raise ValueError(
+            f"{path}: no identification index (not written by identify.py, or cut before the "
+            f"excitation ended; its .npz log has the finished segments)"
+        )
+    rows_at = {int(s): i for i, s in enumerate(run.step)}
+    out = []
+    for meta in index:
+        first, rows = int(meta["first_step"]), int(meta["rows"])
+        try:
+            sel = np.array([rows_at[first + k] for k in range(rows)])
+        except KeyError as exc:
+            raise ValueError(f"{path}: segment {meta['name']} lacks step {exc}") from None
+        if run.qdot is None:
+            raise ValueError(f"{path}: no velocities recorded")
+        command = np.empty((rows, N_JOINTS))
+        command[0] = meta["command_row0"]
+        command[1:] = run.current_cmd[sel[:-1]]
+        delays = meta.get("link_delay_s")
+        out.append(
+            Segment(
+                name=meta["name"],
+                joint=int(meta["joint"]),
+                role=meta["role"],
+                period=float(meta["period"]),
+                q=run.q[sel],
+                qdot=run.qdot[sel],
+                command_mA=command,
+                current_mA=run.current_meas[sel],
+                meta=dict(meta.get("meta", {})),
+                link_delay_s=None
+                if delays is None
+                else np.array([np.nan if v is None else v for v in delays], dtype=float),
+            )
+        )
+    return out
 
 
 def excite(
@@ -318,8 +512,10 @@ def excite(
     console: Console,
     session: Session,
     max_current: np.ndarray,
+    recorder: ExcitationRecorder | None = None,
 ) -> None:
-    """Run every wave on every joint, appending to `session` as segments finish."""
+    """Run every wave on every joint, appending to `session` (and `recorder`) as segments
+    finish."""
     period = 1.0 / rate_hz
     twin = Alpha5Arm()
     amps = Amplitudes()
@@ -352,7 +548,8 @@ def excite(
                         gravity=twin.gravity_torque,
                     )
                     progress.update(task, detail=f"{letter}: {wave.label}")
-                    loop = ControlLoop(client, controller, period)
+                    stamps = StepStamps()
+                    loop = ControlLoop(client, controller, period, on_step=stamps.on_step)
                     summary = loop.run(center, wave.seconds)
                     if not summary.error:
                         break
@@ -369,27 +566,34 @@ def excite(
                 session.arm_speed = summary.timing.arm_speed or session.arm_speed
                 if wave.kind == "relay":
                     amps.learn(j, wave.speed, controller.amplitude)
-                session.segments.append(
-                    Segment(
-                        name=f"{letter}{k}-{wave.kind}-{wave.pose}",
-                        joint=j,
-                        role=wave.role,
-                        period=trace.dt,
-                        q=trace.q,
-                        qdot=trace.qdot,
-                        command_mA=trace.command_mA,
-                        current_mA=trace.current_mA,
-                        meta={
-                            "wave": wave.label,
-                            "pose": center.tolist(),
-                            "amplitude_mA": controller.amplitude,
-                            "flips": controller.flips,
-                            "saturated_steps": summary.saturated_steps,
-                            "barrier_steps": summary.barrier_steps,
-                            "left_in": summary.left_in,
-                        },
-                    )
+                timing = stamps.timing(trace.t)
+                segment = Segment(
+                    name=f"{letter}{k}-{wave.kind}-{wave.pose}",
+                    joint=j,
+                    role=wave.role,
+                    period=trace.dt,
+                    q=trace.q,
+                    qdot=trace.qdot,
+                    command_mA=trace.command_mA,
+                    current_mA=trace.current_mA,
+                    meta={
+                        "wave": wave.label,
+                        "pose": center.tolist(),
+                        "amplitude_mA": controller.amplitude,
+                        "flips": controller.flips,
+                        "saturated_steps": summary.saturated_steps,
+                        "barrier_steps": summary.barrier_steps,
+                        "left_in": summary.left_in,
+                        "link_delay_p50_ms": None if timing is None else timing.p50_s * 1e3,
+                        "link_delay_p99_ms": None if timing is None else timing.p99_s * 1e3,
+                    },
+                    link_delay_s=None if timing is None else timing.delays_s,
                 )
+                session.segments.append(segment)
+                if recorder is not None:
+                    recorder.add(
+                        segment, center, session.arm_seconds + session.move_seconds, stamps
+                    )
                 session.arm_seconds += trace.t[-1]
                 progress.update(task, advance=wave.seconds)
         progress.update(task, detail="home")
@@ -407,6 +611,9 @@ class FitOutcome:
     nominal_quality: dict[str, Any]
     fitted_quality: dict[str, Any]
     fit_seconds: float
+    quantum_s: float = 0.0
+    # The segments as each twin was scored ("nominal", "fitted"): with their delay offsets.
+    scored: dict[str, list[Segment]] = field(default_factory=dict)
 
 
 def fit(
@@ -432,30 +639,42 @@ def fit(
     def on_iter(j: int, it: int, cost: float) -> None:
         console.print(f"  {JOINT_LETTERS[j]} iteration {it}: cost {cost:.4g}", style="dim")
 
-    params, delay, results = fit_arm(
+    arm_fit = fit_arm(
         replay,
         segments,
         nominal,
-        0.005,
         max_iter=max_iter,
         on_joint=on_joint,
         on_iteration=on_iter,
     )
-    nominal_delay = delay  # the delay is a property of the link, not of the twin
+    params = arm_fit.params
     nom_q: dict[str, Any] = {}
     fit_q: dict[str, Any] = {}
+    # Each twin is scored with the delay offsets that suit it best (one per segment, the
+    # part of the delay the timestamps do not see; tuned on the 1 s windows): a nuisance of
+    # the measurement, not a parameter of the arm, so the nominal twin gets the same chance.
+    scored: dict[str, list[Segment]] = {"nominal": [], "fitted": []}
     for role in ("fit", "validate"):
         for j in sorted({s.joint for s in segments}):
             segs = [s for s in segments if s.joint == j and s.role == role]
             if not segs:
                 continue
             key = f"{role}/{JOINT_LETTERS[j]}"
-            for label, w in (("window", window_s), ("open_loop", 0.0)):
-                nom_q.setdefault(key, {})[label] = quality(
-                    replay, nominal, nominal_delay, segs, w
-                ).as_dict()
-                fit_q.setdefault(key, {})[label] = quality(replay, params, delay, segs, w).as_dict()
-    outcome = FitOutcome(params, delay, results, nom_q, fit_q, time.monotonic() - t0)
+            for twin, p, table in (("nominal", nominal, nom_q), ("fitted", params, fit_q)):
+                ready = tune_offsets(replay, p, segs)
+                scored[twin].extend(ready)
+                for label, w in (("window", window_s), ("open_loop", 0.0)):
+                    table.setdefault(key, {})[label] = quality(replay, p, 0.0, ready, w).as_dict()
+    outcome = FitOutcome(
+        params,
+        arm_fit.delay_s,
+        arm_fit.results,
+        nom_q,
+        fit_q,
+        time.monotonic() - t0,
+        quantum_s=arm_fit.quantum_s,
+        scored=scored,
+    )
     return outcome, replay
 
 
@@ -470,6 +689,12 @@ def fit_metadata(
         f"shooting over {window_s:g} s windows; docs/identification.md",
         "parameters": params_table,
         "delay_s": outcome.delay_s,
+        "delay_note": "median of the delays the replay used (per command: measured from the "
+        "driver's timestamps plus a per-segment offset); not an arm parameter",
+        "command_step_s": outcome.quantum_s,
+        "delay_offsets_ms": {
+            seg.name: round(seg.offset_s * 1e3, 3) for seg in outcome.scored.get("fitted", [])
+        },
         "quality_fitted": outcome.fitted_quality,
         "quality_nominal": outcome.nominal_quality,
         "sigma_note": "1 sigma from sqrt(diag(s^2 (J^T J)^-1)) at the optimum; residuals are "
@@ -478,6 +703,14 @@ def fit_metadata(
         "log": None if log_path is None else str(log_path),
         "fit_seconds": outcome.fit_seconds,
     }
+
+
+def _scored(outcome: FitOutcome, twin: str, seg: Segment) -> Segment:
+    """`seg` with the delay offset it was scored with for `twin` (itself if not scored)."""
+    for x in outcome.scored.get(twin, []):
+        if x.name == seg.name:
+            return x
+    return seg
 
 
 def write_report(
@@ -503,7 +736,14 @@ def write_report(
             f"moves; fit: {outcome.fit_seconds:.0f} s CPU-bound wall time.",
             "",
         ]
-    lines += [f"Transport delay (fitted): {outcome.delay_s * 1e3:.1f} ms.", ""]
+    delays = np.concatenate([segment_delays(x) for x in outcome.scored.get("fitted", segments)])
+    lines += [
+        f"Transport delay (measured per command from the driver's timestamps, plus a "
+        f"per-segment offset): median {1e3 * float(np.median(delays)):.1f} ms, 99th percentile "
+        f"{1e3 * float(np.percentile(delays, 99)):.1f} ms; the arm takes commands every "
+        f"{outcome.quantum_s * 1e3:g} ms (chosen by the fit).",
+        "",
+    ]
     header = "| parameter | nominal | fitted | 1 sigma |"
     rule = "|---|---|---|---|"
     if truth is not None:
@@ -548,8 +788,10 @@ def write_report(
         j = seg.joint
         t = np.arange(seg.ticks + 1) * seg.period
         fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
-        nom_r = replay.simulate(nominal, outcome.delay_s, seg, window_s)
-        fit_r = replay.simulate(outcome.params, outcome.delay_s, seg, window_s)
+        nom_seg = _scored(outcome, "nominal", seg)
+        fit_seg = _scored(outcome, "fitted", seg)
+        nom_r = replay.simulate(nominal, 0.0, nom_seg, window_s)
+        fit_r = replay.simulate(outcome.params, 0.0, fit_seg, window_s)
         axes[0].plot(t, seg.q[:, j], "k", lw=1.5, label="measured")
         axes[0].plot(t, nom_r.q[:, j], "C1", lw=1, label="nominal twin")
         axes[0].plot(t, fit_r.q[:, j], "C0--", lw=1, label="fitted twin")
@@ -584,9 +826,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--port", help="the arm, as reach-driver --port takes it")
-    src.add_argument("--fit-only", type=Path, metavar="LOG.npz", help="refit a recorded log")
+    src.add_argument(
+        "--fit-only",
+        type=Path,
+        metavar="LOG",
+        help="refit a recorded excitation: its .npz log or its .rrd recording",
+    )
     p.add_argument("--out", type=Path, required=True, metavar="PARAMS.json")
     p.add_argument("--log", type=Path, metavar="LOG.npz", help="default: PARAMS.log.npz")
+    p.add_argument(
+        "--record",
+        type=Path,
+        metavar="FILE.rrd",
+        help="the excitation as a Rerun recording (default: PARAMS.rrd)",
+    )
+    p.add_argument("--no-record", action="store_true", help="write no .rrd")
     p.add_argument("--report", type=Path, metavar="DIR", help="default: PARAMS.report/")
     p.add_argument("--no-report", action="store_true")
     p.add_argument(
@@ -627,6 +881,7 @@ def main(argv: list[str] | None = None) -> int:
     out: Path = args.out
     log_path: Path = args.log or out.with_suffix(".log.npz")
     report_dir: Path = args.report or out.with_suffix(".report")
+    record_path: Path | None = None if args.no_record else (args.record or out.with_suffix(".rrd"))
     try:
         joints = [JOINT_LETTERS.index(x.strip().upper()) for x in args.joints.split(",")]
     except ValueError:
@@ -635,7 +890,14 @@ def main(argv: list[str] | None = None) -> int:
     truth = load_arm_params(args.truth) if args.truth else None
     session: Session | None = None
     if args.fit_only is not None:
-        segments = load_segments(args.fit_only)
+        try:
+            if args.fit_only.suffix == ".rrd":
+                segments = load_recording(args.fit_only)
+            else:
+                segments = load_segments(args.fit_only)
+        except (OSError, ValueError, KeyError) as exc:
+            console.print(f"[red]cannot read {args.fit_only}:[/] {exc}")
+            return 2
         log_path = args.fit_only
     else:
         max_current = np.array([1.0, 1.0, 1.0, 0.5]) * args.max_current
@@ -651,13 +913,34 @@ def main(argv: list[str] | None = None) -> int:
         except (DriverError, ValueError) as exc:
             console.print(f"[red]no arm:[/] {exc}")
             return 4
+        recorder: ExcitationRecorder | None = None
+        if record_path is not None:
+            try:
+                recorder = ExcitationRecorder(
+                    record_path,
+                    {"port": args.port, "rate_hz": args.rate, "scale": args.scale},
+                    console,
+                )
+            except DriverError as exc:
+                client.close()
+                console.print(f"[red]error:[/] {exc}")
+                return 2
         interrupted = False
         try:
             faults = client.blocking_faults()
             if faults:
                 console.print(f"[red]arm reports faults, not moving:[/] {faults}")
                 return 1
-            excite(client, joints, plan(args.scale), args.rate, console, session, max_current)
+            excite(
+                client,
+                joints,
+                plan(args.scale),
+                args.rate,
+                console,
+                session,
+                max_current,
+                recorder,
+            )
         except KeyboardInterrupt:
             interrupted = True
         except DriverError as exc:
@@ -671,18 +954,22 @@ def main(argv: list[str] | None = None) -> int:
                 left = f"unknown ({exc})"
             client.close()
             console.print(f"arm left in {left}")
+            header = {
+                "port": args.port,
+                "rate_hz": args.rate,
+                "scale": args.scale,
+                "arm_seconds": session.arm_seconds,
+                "move_seconds": session.move_seconds,
+                "complete": not interrupted,
+                "retries": session.retries,
+            }
             if session.segments:
-                header = {
-                    "port": args.port,
-                    "rate_hz": args.rate,
-                    "scale": args.scale,
-                    "arm_seconds": session.arm_seconds,
-                    "move_seconds": session.move_seconds,
-                    "complete": not interrupted,
-                    "retries": session.retries,
-                }
                 save_segments(session.segments, log_path, header)
                 console.print(f"log {log_path} ({len(session.segments)} segments)")
+            if recorder is not None:
+                recorder.close(header)
+                if recorder.failed is None:
+                    console.print(f"recording {record_path} ({recorder.step} steps)")
         if interrupted:
             return 130
         segments = session.segments
