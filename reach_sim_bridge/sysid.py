@@ -158,7 +158,8 @@ def link_delays(
     number. The arm's clock is mapped to the host's by the lower envelope of ``received -
     t / speed`` (the least transit seen): its slope gives the arm speed (1 on a real arm,
     `reach-sim --speed` on a virtual one), a running minimum over +-`envelope_s` follows
-    offset steps (a simulator that fell behind re-anchors its clock). A command written at
+    offset steps (a simulator that fell behind re-anchors its clock; the minimum looks ahead
+    over 2 `envelope_s`). A command written at
     host time w then lands at arm time ``(w - offset) * speed`` plus the least transit and
     whatever the arm itself adds, which is the same for every command: that constant is left
     to the fit. Returns per command row the delay after its tick (row 0 NaN)."""
@@ -177,9 +178,12 @@ def link_delays(
     offset = received - t * inv_speed
     period = float(np.median(np.diff(t))) if t.size > 1 else 1.0
     half = max(int(round(envelope_s / max(period, 1e-9))), 1)
-    padded = np.concatenate([np.full(half, np.inf), offset, np.full(half, np.inf)])
-    windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1)
-    floor = windows.min(axis=1)
+    # The minimum over the ticks ahead (the last ones share the final window): the offset
+    # only ever steps up (a simulator re-anchors later, never earlier), so looking ahead
+    # never reaches across a step to the lower offset before it.
+    span = min(2 * half + 1, offset.size)
+    ahead = np.lib.stride_tricks.sliding_window_view(offset, span).min(axis=1)
+    floor = np.concatenate([ahead, np.full(offset.size - ahead.size, ahead[-1])])
     delay = np.maximum((written - floor) * speed - t, 0.0)
     out = np.concatenate([[np.nan], delay])
     return LinkTiming(
@@ -645,10 +649,10 @@ def fit_arm(
     """Fit every joint that has "fit" segments, in `JOINT_ORDER`, each from the arm found so
     far, with the delay held out of the physical fit (it trades off against the armature):
 
-    1. each segment's delay offset is tuned on the arm so far (`tune_offsets`; the per-tick
-       delays measured from the driver's timestamps stay as they are);
-    2. Levenberg-Marquardt over the joint's physical parameters with those delays fixed;
-    3. the offsets are tuned again on the fitted joint and the fit polished from there.
+    1. Levenberg-Marquardt over the joint's physical parameters with the delays fixed at what
+       the driver's timestamps measured per command (`link_delays`; offsets zero);
+    2. each segment's delay offset is tuned on the fitted joint (`tune_offsets`) and the fit
+       polished from there.
 
     On the first joint the arm's command step is chosen among `quanta` (the one whose
     re-tuned residual is smallest; a fresh fit if it is not the first tried)."""
@@ -672,7 +676,9 @@ def fit_arm(
             base: ArmParams, segs: list[Segment] = segs, j: int = j
         ) -> tuple[FitResult, list[Segment]]:
             refs = default_refs(j, fit_delay=False)
-            ready = tune_offsets(replay, base, segs)
+            # Offsets start at zero (the timestamps' word): tuned on an arm still far from
+            # this one they would soak up its errors, the very trade-off they are to avoid.
+            ready = [replace(x, offset_s=0.0) for x in segs]
             result = fit_joint(replay, ready, base, 0.0, refs, max_iter=max_iter, on_iteration=note)
             ready = tune_offsets(replay, result.params, ready)
             polished = fit_joint(

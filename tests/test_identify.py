@@ -23,11 +23,14 @@ from reach_sim_bridge.sysid import (
     Replay,
     Segment,
     default_refs,
+    fit_arm,
     fit_joint,
+    link_delays,
     load_segments,
     params_with,
     quality,
     save_segments,
+    tune_offsets,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,10 +47,15 @@ def _tool() -> ModuleType:
 
 
 def _record(
-    params: ArmParams, joint: int, wave_kind: str, seconds: float, delay_steps: int = 2
+    params: ArmParams,
+    joint: int,
+    wave_kind: str,
+    seconds: float,
+    delay_steps: int | np.ndarray = 2,
 ) -> Segment:
     """A segment made by stepping `Alpha5Arm` directly with the tool's excitation, the
-    command landing `delay_steps` physics steps after each tick."""
+    command landing `delay_steps` physics steps after each tick (one number, or one per
+    tick: a jittering link)."""
     idt = _tool()
     arm = Alpha5Arm(params=params)
     twin = Alpha5Arm()
@@ -62,10 +70,12 @@ def _record(
     cmd = np.zeros((n + 1, 4))
     q[0], qd[0] = arm.q, arm.qdot
     held = np.zeros(4)
+    steps = np.broadcast_to(np.asarray(delay_steps, dtype=int), (n,))
     for k in range(n):
         u = ctl.act(ControlState(q[k].copy(), qd[k].copy(), k * PERIOD), center)
-        arm.step(held, n=delay_steps)
-        arm.step(u, n=10 - delay_steps)
+        if steps[k] > 0:
+            arm.step(held, n=int(steps[k]))
+        arm.step(u, n=10 - int(steps[k]))
         held = u
         cmd[k + 1] = u
         q[k + 1], qd[k + 1] = arm.q, arm.qdot
@@ -106,6 +116,53 @@ def test_the_fit_recovers_friction_armature_and_delay() -> None:
         assert 0 < got[f"{name}[E]"]["sigma"] < 0.1 * true_value
     assert result.delay_s == pytest.approx(0.004, abs=0.001)
     assert result.params.frictionloss[1:] == ArmParams().frictionloss[1:]
+
+
+def test_link_delays_follow_the_timestamps() -> None:
+    """The arm's clock mapped to the host's by the lower envelope: a simulator at 2.5x, its
+    states reaching the host up to 3 ms late, the clock re-anchored once (the sim fell
+    behind), commands written 0.5 to 4 ms after the state: the delays come back to within
+    the least transit, which is what the offset is for."""
+    rng = np.random.default_rng(3)
+    n, speed = 400, 2.5
+    t = np.arange(n) * PERIOD
+    host = 10.0 + t / speed + np.where(t > 4.0, 0.03, 0.0)  # when the arm sent tick k
+    received = host + 0.0002 + rng.exponential(0.0008, n).clip(0, 0.003)
+    received[::50] = host[::50] + 0.0002  # the least transit is seen now and then
+    written = received + rng.uniform(0.0005, 0.004, n)
+    timing = link_delays(t, received, written)
+    true_delay = (written - host) * speed  # arm seconds from tick to command write
+    assert np.isnan(timing.delays_s[0]) and timing.delays_s.shape == (n + 1,)
+    assert timing.arm_speed == pytest.approx(speed, rel=1e-3)
+    err = timing.delays_s[1:] - (true_delay - 0.0002 * speed)
+    assert np.max(np.abs(err)) < 2e-4
+    with pytest.raises(ValueError, match="equal"):
+        link_delays(t, received[:-1], written)
+
+
+def test_measured_delays_break_the_armature_delay_tie() -> None:
+    """A link whose delay jitters from tick to tick (0 to 8 ms, on the arm's 2 ms step grid),
+    as a loaded host makes it: with the measured per-command delays (here the truth plus up
+    to 0.5 ms of error) and commands taken on the step grid, the replay of the true arm is
+    exact, and `fit_arm` recovers the armature within 3 %."""
+    truth = ArmParams().randomized(9)
+    rng = np.random.default_rng(1)
+    segs = []
+    for kind in ("relay", "chirp"):
+        steps = rng.integers(0, 5, size=200)
+        seg = _record(truth, 0, kind, 4.0, delay_steps=steps)
+        measured = np.concatenate([[np.nan], steps * 0.002 + rng.uniform(0, 0.0005, 200)])
+        segs.append(
+            Segment(kind, 0, "fit", PERIOD, seg.q, seg.qdot, seg.command_mA, link_delay_s=measured)
+        )
+    replay = Replay(window_s=1.0, quantum_s=0.002)
+    exact = tune_offsets(replay, truth, segs)
+    assert quality(replay, truth, 0.0, exact).rms_rad < 1e-6
+    result = fit_arm(Replay(window_s=1.0), segs, ArmParams(), max_iter=8)
+    assert result.quantum_s == 0.002
+    got = result.params
+    for name in ("armature", "damping", "frictionloss"):
+        assert getattr(got, name)[0] == pytest.approx(getattr(truth, name)[0], rel=0.03), name
 
 
 def test_refs_and_params_with() -> None:
@@ -222,3 +279,25 @@ def test_identify_a_hidden_virtual_arm_end_to_end(tmp_path: Path) -> None:
     assert (tmp_path / "arm.report" / "report.md").exists()
     assert (tmp_path / "arm.log.npz").exists()
     assert wall < 240  # a broken loop fails instead of hanging
+
+
+def _twin_gap() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("twin_gap", ROOT / "tools" / "twin_gap.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_twin_gap_pairs_the_same_episodes_on_three_arms() -> None:
+    """The arm against itself: no gap; against the nominal twin: some. Same episodes."""
+    from policy.evaluation import RunConfig, random_episodes
+
+    gap = _twin_gap()
+    hidden = ArmParams().randomized(11)
+    (g,) = gap.measure_gap(["pid"], hidden, hidden, random_episodes(1, 0), RunConfig(seconds=4))
+    assert g.worst_energy("fitted") == 0.0 and g.worst_settling("fitted") == 0.0
+    assert g.meets_targets("fitted")
+    assert g.worst_energy("nominal") > 0.005
+    assert "pid" in gap.markdown([g]) and g.summary()["fitted"]["meets_targets"]

@@ -553,13 +553,17 @@ def excite(
                     summary = loop.run(center, wave.seconds)
                     if not summary.error:
                         break
-                    if client.tripped is None or attempt == RETRIES:
+                    stalled = "feedback stopped" in summary.error
+                    if (client.tripped is None and not stalled) or attempt == RETRIES:
                         raise DriverError(f"{letter} {wave.label}: {summary.stopped_by}")
-                    # The host stalled past the watchdog (the arm went to zero velocity):
-                    # say so, re-arm and run the segment again from its pose.
+                    # The host stalled past the watchdog (the arm went to zero velocity) or
+                    # long enough for the loop to give up on the feedback (the loop left the
+                    # arm safe): say so, re-arm and run the segment again from its pose.
                     session.retries += 1
-                    console.print(f"[yellow]{letter} {wave.label}: {client.tripped}; again[/]")
-                    client.rearm()
+                    why = client.tripped or summary.error
+                    console.print(f"[yellow]{letter} {wave.label}: {why}; again[/]")
+                    if client.tripped is not None:
+                        client.rearm()
                 trace = summary.trace
                 if trace is None:
                     raise DriverError(f"{letter} {wave.label}: no trace")
@@ -867,6 +871,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--window", type=float, default=DEFAULT_WINDOW_S, metavar="S")
     p.add_argument("--iterations", type=int, default=12)
     p.add_argument(
+        "--check-controller",
+        metavar="NAMES",
+        help="with --truth: run these controllers (comma-separated, e.g. pid,ddpg) on the "
+        "hidden arm, the fitted twin and the nominal twin on the same episodes and report "
+        "the energy and settling-time gaps (tools/twin_gap.py)",
+    )
+    p.add_argument("--check-episodes", type=int, default=6, metavar="N")
+    p.add_argument(
         "--truth",
         type=Path,
         metavar="PARAMS.json",
@@ -986,10 +998,54 @@ def main(argv: list[str] | None = None) -> int:
             f"{key}: R^2 {q['window']['r2']:.4f} RMS {q['window']['rms_mrad']:.2f} mrad "
             f"(nominal twin {nom['r2']:.4f}, {nom['rms_mrad']:.2f} mrad)"
         )
+    gap_text = None
+    if args.check_controller:
+        if truth is None:
+            console.print("[red]error:[/] --check-controller needs --truth (the hidden arm)")
+            return 2
+        gap_text, gap_summary = check_controllers(
+            args.check_controller.split(","), truth, outcome.params, args.check_episodes, console
+        )
+        meta["controller_gap"] = gap_summary
+        save_arm_params(outcome.params, out, extra={"_fit": meta})
     if not args.no_report:
         path = write_report(outcome, replay, segments, report_dir, args.window, session, truth)
+        if gap_text is not None:
+            with path.open("a", encoding="utf-8") as f:
+                f.write("\n" + gap_text)
         console.print(f"report {path}")
     return 0
+
+
+def check_controllers(
+    names: Sequence[str], truth: ArmParams, fitted: ArmParams, episodes: int, console: Console
+) -> tuple[str, list[dict[str, Any]]]:
+    """tools/twin_gap.py on the fit: its markdown and per-controller summary."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "twin_gap", Path(__file__).resolve().parent / "twin_gap.py"
+    )
+    if spec is None or spec.loader is None:
+        raise RuntimeError("tools/twin_gap.py not found beside identify.py")
+    gap = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = gap
+    spec.loader.exec_module(gap)
+    from policy.evaluation import random_episodes
+
+    gaps = gap.measure_gap(
+        [n.strip() for n in names if n.strip()], truth, fitted, random_episodes(episodes, 0)
+    )
+    for g in gaps:
+        f, n = g.summary()["fitted"], g.summary()["nominal"]
+        console.print(
+            f"{g.controller}: energy error fitted {100 * f['energy_error_max']:.2f} % "
+            f"(nominal {100 * n['energy_error_max']:.2f} %), settling error fitted "
+            f"{f['settling_error_max_s']:.3f} s (nominal {n['settling_error_max_s']:.3f} s), "
+            f"worst of {len(g.episodes)} episodes; targets "
+            f"{'met' if f['meets_targets'] else 'NOT met'}"
+        )
+    return gap.markdown(gaps), [g.summary() for g in gaps]
 
 
 if __name__ == "__main__":
