@@ -43,6 +43,10 @@ MAX_DELAY_S = 0.1
 DEFAULT_WINDOW_S = 1.0
 VELOCITY_WEIGHT_S = 0.02
 """Velocity residuals (rad/s) are weighted by this (s) next to position residuals (rad)."""
+ROBUST_CLIP = 3.0
+"""`Replay.window_weights`: windows worse than this times the median window are down-weighted."""
+STALL_S = 0.02
+"""A command measured later than this after its tick (s) cuts the replay's window there."""
 PLAN_CACHE = 256  # command schedules kept by `Replay` (per segment and delay)
 SKIP_TICKS = 3
 """Ticks at the start of a segment not used: the joints leave position mode there."""
@@ -70,7 +74,9 @@ class Segment:
     current_mA: FloatArray | None = None  # measured, NaN where not reported
     meta: dict[str, Any] = field(default_factory=dict)
     # Measured part of the transport delay of each command row (arm s; row 0 unused), from
-    # the driver's timestamps (`link_delays`); None: the delay is one constant.
+    # the driver's timestamps (`link_delays`); NaN: no command was sent at that tick (the
+    # loop was late and skipped it), the row holds the previous one; None: the delay is one
+    # constant.
     link_delay_s: FloatArray | None = None
     # The constant added to this segment's delays (s), found by `tune_offsets`: the part of
     # the delay the timestamps cannot see (the least transit, the arm's own step).
@@ -90,9 +96,10 @@ class Segment:
             raise ValueError(f"segment {self.name}: role must be fit or validate")
         if self.link_delay_s is not None:
             d = np.asarray(self.link_delay_s, dtype=float)
-            if d.shape != (self.q.shape[0],) or not np.all(np.isfinite(d[1:])):
+            if d.shape != (self.q.shape[0],) or not np.any(np.isfinite(d[1:])):
                 raise ValueError(
-                    f"segment {self.name}: link_delay_s must be ({self.q.shape[0]},) and finite"
+                    f"segment {self.name}: link_delay_s must be ({self.q.shape[0]},) with a "
+                    "finite delay for at least one command"
                 )
             object.__setattr__(self, "link_delay_s", d)
 
@@ -200,6 +207,7 @@ class Rollout:
 
     q: FloatArray
     qdot: FloatArray
+    window: NDArray[np.int64] | None = None  # per row: the window that predicted it, or -1
 
 
 def params_with(base: ArmParams, refs: Sequence[ParamRef], values: Sequence[float]) -> ArmParams:
@@ -234,9 +242,11 @@ class Replay:
         window_s: float = DEFAULT_WINDOW_S,
         teacher_force: bool = True,
         quantum_s: float = 0.0,
+        stall_s: float = STALL_S,
     ) -> None:
         self.arm = Alpha5Arm(params=base, dt=dt)
         self.quantum_s = float(quantum_s)
+        self.stall_s = float(stall_s)
         self.window_s = window_s
         self.teacher_force = teacher_force
         self.rollouts = 0
@@ -260,11 +270,16 @@ class Replay:
         n = seg.ticks
         cmd = seg.command_mA
         delays = np.full(n + 1, float(delay_s) + seg.offset_s)
+        held = np.zeros(n + 1, dtype=bool)
         if seg.link_delay_s is not None:
-            delays[1:] += seg.link_delay_s[1:]
+            held = ~np.isfinite(seg.link_delay_s)
+            delays[1:] += np.where(held[1:], 0.0, seg.link_delay_s[1:])
         delays = np.clip(delays, 0.0, MAX_DELAY_S)
         # arrival[r - 1]: when row r (1..n) lands; before the first landing row 1 is held.
         arrival = np.arange(n) * period + delays[1:]
+        # A row no command was sent for holds the one before: it "lands" with it.
+        for r in np.flatnonzero(held[2:]) + 2:
+            arrival[r - 1] = arrival[r - 2]
         if self.quantum_s > 0:
             # The arm acts on a command from the start of its own control step in which the
             # command came in (the virtual arm steps its physics lazily, 2 ms at a time).
@@ -302,6 +317,38 @@ class Replay:
             out.append(runs)
         return out
 
+    def windows(self, seg: Segment, w_ticks: int) -> list[tuple[int, int]]:
+        """The (start, end) ticks of each multiple-shooting window: every `w_ticks` from the
+        first usable tick, and, when windowed, cut where the link stalled (a command whose
+        measured delay exceeds `stall_s`, or a tick the loop skipped): the window ends at the
+        tick before and the next starts from the state measured once the late command has
+        landed. Why: on a loaded host the arm's side may have stalled too (the virtual arm
+        then catches up in a burst), which no timestamp on the host shows. Windows depend on
+        the measured data only, so every candidate parameter set and offset is scored on the
+        same samples (the residual keeps its length while the fit moves them)."""
+        n, period = seg.ticks, seg.period
+        first = SKIP_TICKS + int(math.ceil(MAX_DELAY_S / period - 1e-12))
+        d = seg.link_delay_s
+        if d is None or self.stall_s <= 0 or w_ticks >= n:
+            return [(s, min(s + w_ticks, n)) for s in range(first, n, w_ticks)]
+        bad = ~np.isfinite(d) | (np.nan_to_num(d, nan=0.0) > self.stall_s)
+        bad[0] = False
+        out: list[tuple[int, int]] = []
+        s = first
+        while s < n:
+            end = min(s + w_ticks, n)
+            hit = np.flatnonzero(bad[s + 1 : end + 1])
+            if hit.size == 0:
+                out.append((s, end))
+                s = end
+                continue
+            r = s + 1 + int(hit[0])  # row r acts over tick r-1 .. r
+            if r - 1 > s:
+                out.append((s, r - 1))
+            late = float(d[r]) if math.isfinite(d[r]) else period
+            s = max(r - 1 + int(math.ceil(late / period - 1e-9)) + 1, s + 1)
+        return out
+
     def simulate(
         self, params: ArmParams, delay_s: float, seg: Segment, window_s: float | None = None
     ) -> Rollout:
@@ -324,16 +371,13 @@ class Replay:
                 self._plans.pop(next(iter(self._plans)))
             cached = self._plans[key] = (seg, self.schedule(seg, delay_s))
         plan = cached[1]
-        n = seg.ticks
         q_out = np.full_like(seg.q, np.nan)
         qd_out = np.full_like(seg.qdot, np.nan)
         others = [i for i in range(N_JOINTS) if i != seg.joint]
         data = arm.data
-        # Windows start at the same ticks whatever the delay, so every candidate delay is
-        # scored on the same samples (the residual keeps its length while the fit moves it).
-        first = SKIP_TICKS + int(math.ceil(MAX_DELAY_S / period - 1e-12))
-        for s in range(first, n, w_ticks):
-            end = min(s + w_ticks, n)
+        win = np.full(seg.q.shape[0], -1, dtype=np.int64)
+        for w, (s, end) in enumerate(self.windows(seg, w_ticks)):
+            win[s + 1 : end + 1] = w
             arm.reset(q=seg.q[s], qdot=seg.qdot[s])
             for k in range(s, end):
                 if self.teacher_force and k > s:
@@ -344,7 +388,7 @@ class Replay:
                     arm.step(current, n=steps)
                 q_out[k + 1] = arm.q
                 qd_out[k + 1] = arm.qdot
-        return Rollout(q_out, qd_out)
+        return Rollout(q_out, qd_out, win)
 
     def residuals(
         self,
@@ -364,6 +408,41 @@ class Replay:
             if velocity_weight > 0:
                 parts.append(velocity_weight * (r.qdot[ok, j] - seg.qdot[ok, j]))
         return np.concatenate(parts) if parts else np.zeros(0)
+
+    def window_weights(
+        self,
+        params: ArmParams,
+        delay_s: float,
+        segments: Sequence[Segment],
+        velocity_weight: float = VELOCITY_WEIGHT_S,
+        clip: float = ROBUST_CLIP,
+    ) -> FloatArray:
+        """Weights for `residuals` (same layout): 1 for a window whose RMS angle error on
+        `params` is within `clip` times the median window's, less for worse ones (down to
+        clip x median / RMS: a Huber weight per window). Why: a window in which the arm's
+        side stalled unseen is replayed wrong whatever the parameters, and least squares
+        would bend the parameters to it."""
+        per_seg = []
+        rms_all = []
+        for seg in segments:
+            r = self.simulate(params, delay_s, seg)
+            j = seg.joint
+            ok = np.isfinite(r.q[:, j])
+            err = r.q[ok, j] - seg.q[ok, j]
+            win = r.window[ok] if r.window is not None else np.zeros(err.size, dtype=np.int64)
+            rms = {int(w): float(np.sqrt(np.mean(err[win == w] ** 2))) for w in np.unique(win)}
+            per_seg.append((win, rms))
+            rms_all.extend(rms.values())
+        if not rms_all:
+            return np.zeros(0)
+        limit = clip * max(float(np.median(rms_all)), 1e-12)
+        parts = []
+        for win, rms in per_seg:
+            w = np.array([min(1.0, limit / max(rms[int(x)], 1e-15)) for x in win])
+            parts.append(w)
+            if velocity_weight > 0:
+                parts.append(w)
+        return np.concatenate(parts)
 
 
 @dataclass(frozen=True)
@@ -466,6 +545,7 @@ def fit_joint(
     tol: float = 1e-4,
     velocity_weight: float = VELOCITY_WEIGHT_S,
     on_iteration: Callable[[int, float], None] | None = None,
+    weights: FloatArray | None = None,
 ) -> FitResult:
     """Levenberg-Marquardt over `refs` (log of each physical value; the delay in seconds)
     on the residuals of `segments`, starting from `start` and `delay_s`."""
@@ -497,7 +577,8 @@ def fit_joint(
 
     def fun(x: FloatArray) -> FloatArray:
         p, d = unpack(x)
-        return replay.residuals(p, d, segments, velocity_weight)
+        r = replay.residuals(p, d, segments, velocity_weight)
+        return r if weights is None else r * weights
 
     def jacobian(x: FloatArray, r0: FloatArray) -> FloatArray:
         cols = []
@@ -622,6 +703,7 @@ def segment_delays(seg: Segment, extra_s: float = 0.0) -> FloatArray:
     d = np.full(seg.ticks, seg.offset_s + extra_s)
     if seg.link_delay_s is not None:
         d += seg.link_delay_s[1:]
+    d = d[np.isfinite(d)]
     return np.clip(d, 0.0, MAX_DELAY_S)
 
 
@@ -681,14 +763,16 @@ def fit_arm(
             ready = [replace(x, offset_s=0.0) for x in segs]
             result = fit_joint(replay, ready, base, 0.0, refs, max_iter=max_iter, on_iteration=note)
             ready = tune_offsets(replay, result.params, ready)
+            weights = replay.window_weights(result.params, 0.0, ready)
             polished = fit_joint(
                 replay,
                 ready,
                 result.params,
                 0.0,
                 refs,
-                max_iter=max(2, max_iter // 3),
+                max_iter=max(3, max_iter // 2),
                 on_iteration=note,
+                weights=weights,
             )
             return replace(
                 polished,
@@ -699,15 +783,20 @@ def fit_arm(
 
         result, ready = one(params)
         if first and len(quanta) > 1:
-            best = (result.costs[-1], replay.quantum_s, result, ready)
+
+            def plain_cost(p: ArmParams, segs: list[Segment]) -> float:
+                r = replay.residuals(p, 0.0, segs)
+                return float(r @ r)
+
+            best = (plain_cost(result.params, ready), replay.quantum_s, result, ready)
             for q in quanta[1:]:
                 replay.quantum_s = float(q)
                 trial = tune_offsets(replay, result.params, ready)
-                r = replay.residuals(result.params, 0.0, trial)
-                if float(r @ r) < best[0]:
+                if plain_cost(result.params, trial) < best[0]:
                     res_q, ready_q = one(params)
-                    if res_q.costs[-1] < best[0]:
-                        best = (res_q.costs[-1], float(q), res_q, ready_q)
+                    cost_q = plain_cost(res_q.params, ready_q)
+                    if cost_q < best[0]:
+                        best = (cost_q, float(q), res_q, ready_q)
             _, quantum, result, ready = best
             replay.quantum_s = quantum
         first = False

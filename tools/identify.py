@@ -29,7 +29,7 @@ import math
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -330,15 +330,21 @@ class StepStamps:
         self.good.append(r.good_frames)
         self.bad.append(r.bad_frames)
 
-    def timing(self, trace_t: np.ndarray) -> LinkTiming | None:
-        """The measured delays per command row of a trace whose ticks are the steps seen
-        (None when the trace filled ticks the loop never acted on: the delay is then left
-        to the fit alone)."""
-        if len(self.t) != len(trace_t) - 1 or len(self.t) < 2:
+    def timing(self, trace_t: np.ndarray, dt: float) -> LinkTiming | None:
+        """The measured delays per command row of a trace on the tick grid `dt` (None with
+        fewer than two steps: the delay is then left to the fit alone). A tick the loop
+        skipped (it was late and took the newer state) sent no command: its row holds the
+        previous command and is NaN (the replay lands it with the one before)."""
+        if len(self.t) < 2:
             return None
-        if not np.allclose(np.asarray(self.t), trace_t[:-1], atol=1e-9):
-            return None
-        return link_delays(np.asarray(self.t), np.asarray(self.received), np.asarray(self.written))
+        t = np.asarray(self.t)
+        measured = link_delays(t, np.asarray(self.received), np.asarray(self.written))
+        n = len(trace_t) - 1
+        rows = np.rint(t / dt).astype(int) + 1  # the command sent at tick k is row k + 1
+        delays = np.full(n + 1, np.nan)
+        keep = (rows >= 1) & (rows <= n)
+        delays[rows[keep]] = measured.delays_s[1:][keep]
+        return replace(measured, delays_s=delays)  # NaN: a skipped tick, no command sent
 
 
 @dataclass
@@ -570,7 +576,7 @@ def excite(
                 session.arm_speed = summary.timing.arm_speed or session.arm_speed
                 if wave.kind == "relay":
                     amps.learn(j, wave.speed, controller.amplitude)
-                timing = stamps.timing(trace.t)
+                timing = stamps.timing(trace.t, trace.dt)
                 segment = Segment(
                     name=f"{letter}{k}-{wave.kind}-{wave.pose}",
                     joint=j,
