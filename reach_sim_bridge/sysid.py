@@ -654,9 +654,10 @@ JOINT_ORDER = ("E", "B", "C", "D")
 D, whose load includes it."""
 
 
-OFFSET_SPAN_S = 0.003
-"""`tune_offsets` searches +-this (s) around zero when the timestamps measured the delays."""
-OFFSET_STEP_S = 0.0005
+OFFSET_SPAN_S = 0.006
+"""`tune_offsets` searches +-this (s) around zero when the timestamps measured the delays ..."""
+OFFSET_STEP_S = 0.001
+"""... on this grid, then refines twice by half a step (to 0.25 ms)."""
 CONSTANT_DELAY_MAX_S = 0.03
 """... and 0 .. this when they did not (the whole delay is then one constant)."""
 QUANTA_S = (0.002, 0.0)
@@ -671,7 +672,7 @@ def tune_offsets(
     velocity_weight: float = VELOCITY_WEIGHT_S,
 ) -> list[Segment]:
     """Each segment with the delay offset (a nuisance, one per segment) that fits it best on
-    `params`, by a grid search then a half-step refinement: with commands taken on the arm's
+    `params`, by a grid search then two half-step refinements: with commands taken on the arm's
     step grid the residual is piecewise constant in the offset (no gradient to follow), and
     the offset left by the timestamps' clock mapping differs from run to run by a fraction of
     a millisecond (the least transit seen in that run)."""
@@ -680,7 +681,7 @@ def tune_offsets(
         if seg.link_delay_s is not None:
             grid = np.arange(-OFFSET_SPAN_S, OFFSET_SPAN_S + 1e-12, OFFSET_STEP_S)
         else:
-            grid = np.arange(0.0, CONSTANT_DELAY_MAX_S + 1e-12, 2 * OFFSET_STEP_S)
+            grid = np.arange(0.0, CONSTANT_DELAY_MAX_S + 1e-12, OFFSET_STEP_S)
 
         def cost(offset: float, seg: Segment = seg) -> float:
             r = replay.residuals(
@@ -689,11 +690,15 @@ def tune_offsets(
             return float(r @ r)
 
         costs = [cost(o) for o in grid]
-        best = int(np.argmin(costs))
+        best_cost, best = min(zip(costs, grid.tolist()))
         step = float(grid[1] - grid[0]) if grid.size > 1 else OFFSET_STEP_S
-        candidates = [(costs[best], float(grid[best]))]
-        for o in (grid[best] - step / 2, grid[best] + step / 2):
-            candidates.append((cost(o), float(o)))
+        for _ in range(2):  # refine: half a step either side, twice
+            step /= 2
+            for o in (best - step, best + step):
+                c = cost(o)
+                if c < best_cost:
+                    best_cost, best = c, o
+        candidates = [(best_cost, best)]
         out.append(replace(seg, offset_s=min(candidates)[1]))
     return out
 
