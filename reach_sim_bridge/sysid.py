@@ -690,7 +690,7 @@ def tune_offsets(
             return float(r @ r)
 
         costs = [cost(o) for o in grid]
-        best_cost, best = min(zip(costs, grid.tolist()))
+        best_cost, best = min(zip(costs, grid.tolist(), strict=True))
         step = float(grid[1] - grid[0]) if grid.size > 1 else OFFSET_STEP_S
         for _ in range(2):  # refine: half a step either side, twice
             step /= 2
