@@ -10,14 +10,19 @@ parameter set is scored by replaying the logged commands open loop through MuJoC
 - the joints not being excited are held on their measured path (their position and
   velocity are set to the logged values at every tick), so one joint's fit does not
   depend on the others' parameters beyond what the pose makes them load it with;
-- the link's transport delay `delay_s` shifts every command: command row i (held over
-  (t[i-1], t[i]] by the host) acts over (t[i-1] + delay, t[i] + delay]; a fraction of a
-  physics step is blended so the residual is continuous in the delay.
+- the link's transport delay: command row i (sent at tick i-1) lands at t[i-1] plus its
+  delay, measured per command from the driver's timestamps (`link_delays`, the segment's
+  `link_delay_s`) plus a constant per segment (`offset_s`, `tune_offsets`), on the arm's
+  own step grid (`Replay.quantum_s`), and is held until the next lands;
+- windows are cut where the link stalled (`Replay.windows`).
 
-`fit_joint` runs Levenberg-Marquardt with forward-difference Jacobians over log-parameters
-(armature, viscous damping, Coulomb friction of the joint, optionally a link mass: the net
-gravity-buoyancy load) and the delay, and gives each an uncertainty from the Jacobian at
-the optimum, sqrt(diag(sigma^2 (J^T J)^-1)). Numpy only.
+`fit_arm` fits each joint by Levenberg-Marquardt with forward-difference Jacobians over
+log-parameters (armature, viscous damping, Coulomb friction of the joint, and a link mass for
+the net gravity-buoyancy load where there is one) with the delays held fixed: fitted beside
+the armature, one constant delay traded off against it (both delay the response to a current
+step by a fraction of a tick). Each value gets an uncertainty from the Jacobian at the
+optimum, sqrt(diag(sigma^2 (J^T J)^-1)). `fit_joint` can still fit a constant delay
+(`DELAY`) where there are no timestamps. Numpy only.
 """
 
 from __future__ import annotations

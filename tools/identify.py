@@ -14,12 +14,16 @@ validation motions), each inside a window around its pose (the excitation backs 
 window edges and above a speed limit), with a position-mode move to the segment's pose
 before each. Ctrl-C leaves the arm in the driver's safe mode (zero velocity).
 
-The log is a plain .npz (`reach_sim_bridge.sysid.save_segments`: per segment the loop's
-q, qdot, commands and measured currents on its tick grid); the fit is by simulation
-(`reach_sim_bridge.sysid`, docs/identification.md). Outputs: PARAMS.json in the `--params`
-format with the fit under "_fit" (the loader ignores keys starting with _): per parameter its
-value and 1-sigma uncertainty, the delay, R^2 and residual RMS; PARAMS.log.npz; and a report
-PARAMS.report/report.md with PNG figures (measured vs nominal twin vs fitted twin).
+Two records of the excitation: PARAMS.log.npz (`reach_sim_bridge.sysid.save_segments`: per
+segment the loop's q, qdot, commands and measured currents on its tick grid, and each
+command's transport delay measured from the driver's timestamps) and PARAMS.rrd (`--record`,
+a Rerun recording through `reach_driver.recording`; `--fit-only` reads either). The fit is by
+simulation (`reach_sim_bridge.sysid`, docs/identification.md), with the delay measured, not
+fitted (it trades off against the armature). Outputs: PARAMS.json in the `--params` format
+with the fit under "_fit" (the loader ignores keys starting with _): per parameter its value
+and 1-sigma uncertainty, the delays, R^2 and residual RMS; and a report
+PARAMS.report/report.md with PNG figures (measured vs nominal twin vs fitted twin), with
+`--truth HIDDEN.json --check-controller pid,ddpg` the controller gap (tools/twin_gap.py).
 """
 
 from __future__ import annotations
