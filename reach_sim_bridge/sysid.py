@@ -283,8 +283,8 @@ class Replay:
         # arrival[r - 1]: when row r (1..n) lands; before the first landing row 1 is held.
         arrival = np.arange(n) * period + delays[1:]
         # A row no command was sent for holds the one before: it "lands" with it.
-        for r in np.flatnonzero(held[2:]) + 2:
-            arrival[r - 1] = arrival[r - 2]
+        for row in (np.flatnonzero(held[2:]) + 2).tolist():
+            arrival[row - 1] = arrival[row - 2]
         if self.quantum_s > 0:
             # The arm acts on a command from the start of its own control step in which the
             # command came in (the virtual arm steps its physics lazily, 2 ms at a time).
@@ -428,7 +428,7 @@ class Replay:
         side stalled unseen is replayed wrong whatever the parameters, and least squares
         would bend the parameters to it."""
         per_seg = []
-        rms_all = []
+        rms_all: list[float] = []
         for seg in segments:
             r = self.simulate(params, delay_s, seg)
             j = seg.joint
