@@ -37,13 +37,17 @@ ROOT = Path(__file__).resolve().parents[1]
 PERIOD = 0.02
 
 
-def _tool() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("identify_cli", ROOT / "tools" / "identify.py")
+def _load_tool(name: str, filename: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(name, ROOT / "tools" / filename)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)
     return module
+
+
+def _tool() -> ModuleType:
+    return _load_tool("identify_cli", "identify.py")
 
 
 def _record(
@@ -288,12 +292,7 @@ def test_identify_a_hidden_virtual_arm_end_to_end(tmp_path: Path) -> None:
 
 
 def _twin_gap() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("twin_gap", ROOT / "tools" / "twin_gap.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return _load_tool("twin_gap", "twin_gap.py")
 
 
 def test_twin_gap_pairs_the_same_episodes_on_three_arms() -> None:
