@@ -659,7 +659,7 @@ JOINT_ORDER = ("E", "B", "C", "D")
 D, whose load includes it."""
 
 
-OFFSET_SPAN_S = 0.006
+OFFSET_SPAN_S = 0.01
 """`tune_offsets` searches +-this (s) around zero when the timestamps measured the delays ..."""
 OFFSET_STEP_S = 0.001
 """... on this grid, then refines twice by half a step (to 0.25 ms)."""
