@@ -274,7 +274,7 @@ class Excitation:
 # -- driving the arm -----------------------------------------------------------------------
 
 
-RETRIES = 2  # per segment, after a watchdog trip
+RETRIES = 4  # per segment, after a watchdog trip or a feedback stall
 MOVE_SILENCE_S = 3.0  # a move gives up when the arm has not answered for this long
 
 
@@ -379,9 +379,12 @@ class ExcitationRecorder:
     read it): every tick of every segment on one arm-time timeline, an event where each
     segment starts, the link's latency and state age per step, and at the end a summary whose
     `segments` index (name, joint, role, first step, rows, measured link delays) lets
-    `load_recording` rebuild the segments exactly. Each segment is logged when it ends, from
-    its trace (the rows the fit uses). A write error is reported once and stops the recording;
-    the identification goes on (the .npz log is the fit's own copy)."""
+    `load_recording` rebuild the segments exactly. The file is opened before the arm moves
+    (an unwritable path fails first) and the segments, from their traces (the rows the fit
+    uses), are logged when the excitation ends or stops (Ctrl-C, an error): encoding them
+    while the control loop runs took CPU from it on a loaded 2-core host. A write error is
+    reported once and stops the recording; the identification goes on (the .npz log is the
+    fit's own copy)."""
 
     def __init__(self, path: Path, metadata: dict[str, Any], console: Console) -> None:
         from reach_driver import recording
@@ -392,6 +395,7 @@ class ExcitationRecorder:
         self.failed: str | None = None
         self.index: list[dict[str, Any]] = []
         self.step = 0
+        self._pending: list[tuple[Segment, np.ndarray, float, StepStamps]] = []
         try:
             self._rec: Any = recording.RunRecorder(
                 path,
@@ -415,7 +419,11 @@ class ExcitationRecorder:
                 pass
 
     def add(self, seg: Segment, center: np.ndarray, t0: float, stamps: StepStamps) -> None:
-        """Log one finished segment from arm time `t0` on (its ticks are rows 0..n)."""
+        """Keep one finished segment (from arm time `t0` on) for `close` to log."""
+        self._pending.append((seg, center, t0, stamps))
+
+    def _log(self, seg: Segment, center: np.ndarray, t0: float, stamps: StepStamps) -> None:
+        """Log one segment (its ticks are rows 0..n)."""
         rec = self._rec
         if rec is None:
             return
@@ -470,6 +478,10 @@ class ExcitationRecorder:
         self.step += n + 1
 
     def close(self, header: dict[str, Any]) -> None:
+        """Log the segments kept, the index and the end; close the file."""
+        for item in self._pending:
+            self._log(*item)
+        self._pending.clear()
         rec = self._rec
         if rec is None:
             return
