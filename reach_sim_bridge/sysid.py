@@ -414,6 +414,31 @@ class Replay:
                 parts.append(velocity_weight * (r.qdot[ok, j] - seg.qdot[ok, j]))
         return np.concatenate(parts) if parts else np.zeros(0)
 
+    def window_errors(
+        self, params: ArmParams, delay_s: float, segments: Sequence[Segment]
+    ) -> list[tuple[NDArray[np.int64], dict[int, float]]]:
+        """Per segment: the window of each residual row, and each window's RMS angle error."""
+        out = []
+        for seg in segments:
+            r = self.simulate(params, delay_s, seg)
+            j = seg.joint
+            ok = np.isfinite(r.q[:, j])
+            err = r.q[ok, j] - seg.q[ok, j]
+            win = r.window[ok] if r.window is not None else np.zeros(err.size, dtype=np.int64)
+            rms = {int(w): float(np.sqrt(np.mean(err[win == w] ** 2))) for w in np.unique(win)}
+            out.append((win, rms))
+        return out
+
+    def median_window_rms(
+        self, params: ArmParams, delay_s: float, segments: Sequence[Segment]
+    ) -> float:
+        """The median window's RMS angle error: what most of the data says, whatever a few
+        stalled windows do."""
+        values = [
+            v for _, rms in self.window_errors(params, delay_s, segments) for v in rms.values()
+        ]
+        return float(np.median(values)) if values else math.inf
+
     def window_weights(
         self,
         params: ArmParams,
@@ -427,17 +452,8 @@ class Replay:
         clip x median / RMS: a Huber weight per window). Why: a window in which the arm's
         side stalled unseen is replayed wrong whatever the parameters, and least squares
         would bend the parameters to it."""
-        per_seg = []
-        rms_all: list[float] = []
-        for seg in segments:
-            r = self.simulate(params, delay_s, seg)
-            j = seg.joint
-            ok = np.isfinite(r.q[:, j])
-            err = r.q[ok, j] - seg.q[ok, j]
-            win = r.window[ok] if r.window is not None else np.zeros(err.size, dtype=np.int64)
-            rms = {int(w): float(np.sqrt(np.mean(err[win == w] ** 2))) for w in np.unique(win)}
-            per_seg.append((win, rms))
-            rms_all.extend(rms.values())
+        per_seg = self.window_errors(params, delay_s, segments)
+        rms_all = [v for _, rms in per_seg for v in rms.values()]
         if not rms_all:
             return np.zeros(0)
         limit = clip * max(float(np.median(rms_all)), 1e-12)
@@ -747,7 +763,7 @@ def fit_arm(
        polished from there.
 
     On the first joint the arm's command step is chosen among `quanta` (the one whose
-    re-tuned residual is smallest; a fresh fit if it is not the first tried)."""
+    re-tuned median window error is smallest; a fresh fit if it is not the first tried)."""
     params = start if start is not None else ArmParams()
     results: dict[int, FitResult] = {}
     tuned: list[Segment] = []
@@ -795,8 +811,9 @@ def fit_arm(
         if first and len(quanta) > 1:
 
             def plain_cost(p: ArmParams, segs: list[Segment]) -> float:
-                r = replay.residuals(p, 0.0, segs)
-                return float(r @ r)
+                # The median window, not the sum: on a loaded host a few stalled windows
+                # replay badly under either step and would decide the choice.
+                return replay.median_window_rms(p, 0.0, segs)
 
             best = (plain_cost(result.params, ready), replay.quantum_s, result, ready)
             for q in quanta[1:]:
