@@ -153,16 +153,16 @@ def test_measured_delays_break_the_armature_delay_tie() -> None:
     rng = np.random.default_rng(1)
     segs = []
     for kind in ("relay", "chirp"):
-        steps = rng.integers(0, 5, size=200)
-        seg = _record(truth, 0, kind, 4.0, delay_steps=steps)
-        measured = np.concatenate([[np.nan], steps * 0.002 + rng.uniform(0, 0.0005, 200)])
+        steps = rng.integers(0, 5, size=150)
+        seg = _record(truth, 0, kind, 3.0, delay_steps=steps)
+        measured = np.concatenate([[np.nan], steps * 0.002 + rng.uniform(0, 0.0005, 150)])
         segs.append(
             Segment(kind, 0, "fit", PERIOD, seg.q, seg.qdot, seg.command_mA, link_delay_s=measured)
         )
     replay = Replay(window_s=1.0, quantum_s=0.002)
     exact = tune_offsets(replay, truth, segs)
     assert quality(replay, truth, 0.0, exact).rms_rad < 1e-6
-    result = fit_arm(Replay(window_s=1.0), segs, ArmParams(), max_iter=8)
+    result = fit_arm(Replay(window_s=1.0), segs, ArmParams(), max_iter=6)
     assert result.quantum_s == 0.002
     got = result.params
     for name in ("armature", "damping", "frictionloss"):
