@@ -836,6 +836,30 @@ def fit_arm(
     return ArmFit(params, results, tuple(tuned), replay.quantum_s, float(np.median(delays)))
 
 
+def segment_from_index(
+    meta: dict[str, Any],
+    q: FloatArray,
+    qdot: FloatArray,
+    command_mA: FloatArray,
+    current_mA: FloatArray | None,
+    link_delay_s: FloatArray | None,
+) -> Segment:
+    """A segment from its index entry (name, joint, role, period, meta: as `save_segments`
+    and tools/identify.py's recording write it) and its arrays."""
+    return Segment(
+        name=meta["name"],
+        joint=int(meta["joint"]),
+        role=meta["role"],
+        period=float(meta["period"]),
+        q=q,
+        qdot=qdot,
+        command_mA=command_mA,
+        current_mA=current_mA,
+        meta=dict(meta.get("meta", {})),
+        link_delay_s=link_delay_s,
+    )
+
+
 def load_segments(path: Any) -> list[Segment]:
     """Segments from an `.npz` log written by `save_segments` (tools/identify.py)."""
     import json
@@ -847,17 +871,8 @@ def load_segments(path: Any) -> list[Segment]:
             cur = data[f"s{i}_current_mA"] if f"s{i}_current_mA" in data else None
             link = data[f"s{i}_link_delay_s"] if f"s{i}_link_delay_s" in data else None
             out.append(
-                Segment(
-                    name=meta["name"],
-                    joint=int(meta["joint"]),
-                    role=meta["role"],
-                    period=float(meta["period"]),
-                    q=data[f"s{i}_q"],
-                    qdot=data[f"s{i}_qdot"],
-                    command_mA=data[f"s{i}_command_mA"],
-                    current_mA=cur,
-                    meta=dict(meta.get("meta", {})),
-                    link_delay_s=link,
+                segment_from_index(
+                    meta, data[f"s{i}_q"], data[f"s{i}_qdot"], data[f"s{i}_command_mA"], cur, link
                 )
             )
     return out

@@ -69,6 +69,7 @@ from reach_sim_bridge.sysid import (
     ref_name,
     save_segments,
     segment_delays,
+    segment_from_index,
     tune_offsets,
 )
 
@@ -521,17 +522,13 @@ def load_recording(path: Path) -> list[Segment]:
         command[1:] = run.current_cmd[sel[:-1]]
         delays = meta.get("link_delay_s")
         out.append(
-            Segment(
-                name=meta["name"],
-                joint=int(meta["joint"]),
-                role=meta["role"],
-                period=float(meta["period"]),
-                q=run.q[sel],
-                qdot=run.qdot[sel],
-                command_mA=command,
-                current_mA=run.current_meas[sel],
-                meta=dict(meta.get("meta", {})),
-                link_delay_s=None
+            segment_from_index(
+                meta,
+                run.q[sel],
+                run.qdot[sel],
+                command,
+                run.current_meas[sel],
+                None
                 if delays is None
                 else np.array([np.nan if v is None else v for v in delays], dtype=float),
             )
