@@ -10,14 +10,19 @@ parameter set is scored by replaying the logged commands open loop through MuJoC
 - the joints not being excited are held on their measured path (their position and
   velocity are set to the logged values at every tick), so one joint's fit does not
   depend on the others' parameters beyond what the pose makes them load it with;
-- the link's transport delay `delay_s` shifts every command: command row i (held over
-  (t[i-1], t[i]] by the host) acts over (t[i-1] + delay, t[i] + delay]; a fraction of a
-  physics step is blended so the residual is continuous in the delay.
+- the link's transport delay: command row i (sent at tick i-1) lands at t[i-1] plus its
+  delay, measured per command from the driver's timestamps (`link_delays`, the segment's
+  `link_delay_s`) plus a constant per segment (`offset_s`, `tune_offsets`), on the arm's
+  own step grid (`Replay.quantum_s`), and is held until the next lands;
+- windows are cut where the link stalled (`Replay.windows`).
 
-`fit_joint` runs Levenberg-Marquardt with forward-difference Jacobians over log-parameters
-(armature, viscous damping, Coulomb friction of the joint, optionally a link mass: the net
-gravity-buoyancy load) and the delay, and gives each an uncertainty from the Jacobian at
-the optimum, sqrt(diag(sigma^2 (J^T J)^-1)). Numpy only.
+`fit_arm` fits each joint by Levenberg-Marquardt with forward-difference Jacobians over
+log-parameters (armature, viscous damping, Coulomb friction of the joint, and a link mass for
+the net gravity-buoyancy load where there is one) with the delays held fixed: fitted beside
+the armature, one constant delay traded off against it (both delay the response to a current
+step by a fraction of a tick). Each value gets an uncertainty from the Jacobian at the
+optimum, sqrt(diag(sigma^2 (J^T J)^-1)). `fit_joint` can still fit a constant delay
+(`DELAY`) where there are no timestamps. Numpy only.
 """
 
 from __future__ import annotations
@@ -43,9 +48,16 @@ MAX_DELAY_S = 0.1
 DEFAULT_WINDOW_S = 1.0
 VELOCITY_WEIGHT_S = 0.02
 """Velocity residuals (rad/s) are weighted by this (s) next to position residuals (rad)."""
+ROBUST_CLIP = 3.0
+"""`Replay.window_weights`: windows worse than this times the median window are down-weighted."""
+STALL_S = 0.02
+"""A command measured later than this after its tick (s) cuts the replay's window there."""
+PLAN_CACHE = 256  # command schedules kept by `Replay` (per segment and delay)
 SKIP_TICKS = 3
 """Ticks at the start of a segment not used: the joints leave position mode there."""
 
+#: Per tick, runs of (current held, physics steps): how `Replay` drives the arm.
+Schedule = list[list[tuple[FloatArray, int]]]
 #: A parameter: (ArmParams field, joint index) or (DELAY, -1).
 ParamRef = tuple[str, int]
 
@@ -66,6 +78,14 @@ class Segment:
     command_mA: FloatArray  # (n + 1, 4)
     current_mA: FloatArray | None = None  # measured, NaN where not reported
     meta: dict[str, Any] = field(default_factory=dict)
+    # Measured part of the transport delay of each command row (arm s; row 0 unused), from
+    # the driver's timestamps (`link_delays`); NaN: no command was sent at that tick (the
+    # loop was late and skipped it), the row holds the previous one; None: the delay is one
+    # constant.
+    link_delay_s: FloatArray | None = None
+    # The constant added to this segment's delays (s), found by `tune_offsets`: the part of
+    # the delay the timestamps cannot see (the least transit, the arm's own step).
+    offset_s: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("q", "qdot", "command_mA"):
@@ -79,6 +99,14 @@ class Segment:
             raise ValueError(f"segment {self.name}: joint index {self.joint} not in 0..3")
         if self.role not in ("fit", "validate"):
             raise ValueError(f"segment {self.name}: role must be fit or validate")
+        if self.link_delay_s is not None:
+            d = np.asarray(self.link_delay_s, dtype=float)
+            if d.shape != (self.q.shape[0],) or not np.any(np.isfinite(d[1:])):
+                raise ValueError(
+                    f"segment {self.name}: link_delay_s must be ({self.q.shape[0]},) with a "
+                    "finite delay for at least one command"
+                )
+            object.__setattr__(self, "link_delay_s", d)
 
     @property
     def ticks(self) -> int:
@@ -90,11 +118,101 @@ class Segment:
 
 
 @dataclass(frozen=True)
+class LinkTiming:
+    """What the driver's timestamps say about one run's link (`link_delays`)."""
+
+    delays_s: FloatArray  # (n + 1,) arm s from tick i-1 to command row i landing; row 0 NaN
+    arm_speed: float  # arm seconds per host second (the lower envelope's slope)
+    p50_s: float
+    p99_s: float
+
+
+DELAY_ENVELOPE_S = 0.5
+"""Half-width (arm s) of the running minimum that tracks the clock offset (`link_delays`)."""
+
+
+def _lower_hull_line(x: FloatArray, y: FloatArray) -> tuple[float, float]:
+    """(intercept, slope) of the line under every point (x, y) that is closest to them on
+    average: the lower convex hull's edge above mean(x) (a two-variable linear program)."""
+    hull: list[int] = []
+    for i in np.argsort(x, kind="stable"):
+        while len(hull) >= 2:
+            a, b = hull[-2], hull[-1]
+            cross = (x[b] - x[a]) * (y[i] - y[a]) - (y[b] - y[a]) * (x[i] - x[a])
+            if cross <= 0:
+                hull.pop()
+            else:
+                break
+        hull.append(int(i))
+    if len(hull) < 2:
+        return float(y[hull[0]]), 0.0
+    xm = float(np.mean(x))
+    for a, b in zip(hull[:-1], hull[1:], strict=True):
+        if x[b] >= xm or b == hull[-1]:
+            slope = float((y[b] - y[a]) / (x[b] - x[a]))
+            return float(y[a] - slope * x[a]), slope
+    raise AssertionError("unreachable")
+
+
+def link_delays(
+    t: FloatArray,
+    received: FloatArray,
+    written: FloatArray,
+    envelope_s: float = DELAY_ENVELOPE_S,
+) -> LinkTiming:
+    """The measured part of each command's transport delay, in arm time, from what the host
+    knows: tick k's arm time ``t[k]`` (the heartbeat count), the host time its state was
+    complete ``received[k]`` and the host time the command made from it was written
+    ``written[k]`` (k = 0 .. n-1; the command is row k + 1 of the segment).
+
+    Why: a fitted constant delay trades off against the armature (both delay the response to a
+    current step by a fraction of a tick), and on a loaded host the real delay is not one
+    number. The arm's clock is mapped to the host's by the lower envelope of ``received -
+    t / speed`` (the least transit seen): its slope gives the arm speed (1 on a real arm,
+    `reach-sim --speed` on a virtual one), a running minimum over +-`envelope_s` follows
+    offset steps (a simulator that fell behind re-anchors its clock; the minimum looks ahead
+    over 2 `envelope_s`). A command written at
+    host time w then lands at arm time ``(w - offset) * speed`` plus the least transit and
+    whatever the arm itself adds, which is the same for every command: that constant is left
+    to the fit. Returns per command row the delay after its tick (row 0 NaN)."""
+    t = np.asarray(t, dtype=float)
+    received = np.asarray(received, dtype=float)
+    written = np.asarray(written, dtype=float)
+    if not t.shape == received.shape == written.shape or t.ndim != 1 or t.size < 2:
+        raise ValueError("link_delays needs three equal 1-D arrays of at least 2 ticks")
+    if not (np.all(np.isfinite(received)) and np.all(np.isfinite(written))):
+        raise ValueError("link_delays: timestamps must be finite")
+    # received = offset + t / speed + transit: the envelope's slope is 1 / speed.
+    _, inv_speed = _lower_hull_line(t, received)
+    if not inv_speed > 0:
+        raise ValueError("link_delays: the arm's clock does not advance against the host's")
+    speed = 1.0 / inv_speed
+    offset = received - t * inv_speed
+    period = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    half = max(int(round(envelope_s / max(period, 1e-9))), 1)
+    # The minimum over the ticks ahead (the last ones share the final window): the offset
+    # only ever steps up (a simulator re-anchors later, never earlier), so looking ahead
+    # never reaches across a step to the lower offset before it.
+    span = min(2 * half + 1, offset.size)
+    ahead = np.lib.stride_tricks.sliding_window_view(offset, span).min(axis=1)
+    floor = np.concatenate([ahead, np.full(offset.size - ahead.size, ahead[-1])])
+    delay = np.maximum((written - floor) * speed - t, 0.0)
+    out = np.concatenate([[np.nan], delay])
+    return LinkTiming(
+        delays_s=out,
+        arm_speed=speed,
+        p50_s=float(np.percentile(delay, 50)),
+        p99_s=float(np.percentile(delay, 99)),
+    )
+
+
+@dataclass(frozen=True)
 class Rollout:
     """The twin's prediction of a segment: NaN where no prediction (window starts)."""
 
     q: FloatArray
     qdot: FloatArray
+    window: NDArray[np.int64] | None = None  # per row: the window that predicted it, or -1
 
 
 def params_with(base: ArmParams, refs: Sequence[ParamRef], values: Sequence[float]) -> ArmParams:
@@ -128,11 +246,113 @@ class Replay:
         dt: float = 0.002,
         window_s: float = DEFAULT_WINDOW_S,
         teacher_force: bool = True,
+        quantum_s: float = 0.0,
+        stall_s: float = STALL_S,
     ) -> None:
         self.arm = Alpha5Arm(params=base, dt=dt)
+        self.quantum_s = float(quantum_s)
+        self.stall_s = float(stall_s)
         self.window_s = window_s
         self.teacher_force = teacher_force
         self.rollouts = 0
+        # (id(segment), delay) -> (segment, schedule): the fit scores many parameter sets at
+        # one delay; the segment is kept so its id cannot be reused while cached.
+        self._plans: dict[
+            tuple[int, float], tuple[Segment, list[list[tuple[FloatArray, int]]]]
+        ] = {}
+
+    def schedule(self, seg: Segment, delay_s: float) -> list[list[tuple[FloatArray, int]]]:
+        """The currents the arm held over each tick of `seg`: per tick, runs of (current, physics
+        steps). Command row i (sent at tick i-1) lands at t[i-1] + its delay, the delay being
+        `delay_s` plus the segment's measured `link_delay_s` (if any), clipped to
+        [0, MAX_DELAY_S]; it is held until the next one lands (a serial link keeps the order).
+        A physics step in which a command lands gets the time-weighted mean of the currents
+        it held, so rollouts are continuous in the delay."""
+        period, dt = seg.period, self.arm.dt
+        substeps = int(round(period / dt))
+        if abs(substeps * dt - period) > 1e-9 or substeps < 1:
+            raise ValueError(f"segment period {period} s is not a whole number of {dt} s steps")
+        n = seg.ticks
+        cmd = seg.command_mA
+        delays = np.full(n + 1, float(delay_s) + seg.offset_s)
+        held = np.zeros(n + 1, dtype=bool)
+        if seg.link_delay_s is not None:
+            held = ~np.isfinite(seg.link_delay_s)
+            delays[1:] += np.where(held[1:], 0.0, seg.link_delay_s[1:])
+        delays = np.clip(delays, 0.0, MAX_DELAY_S)
+        # arrival[r - 1]: when row r (1..n) lands; before the first landing row 1 is held.
+        arrival = np.arange(n) * period + delays[1:]
+        # A row no command was sent for holds the one before: it "lands" with it.
+        for row in (np.flatnonzero(held[2:]) + 2).tolist():
+            arrival[row - 1] = arrival[row - 2]
+        if self.quantum_s > 0:
+            # The arm acts on a command from the start of its own control step in which the
+            # command came in (the virtual arm steps its physics lazily, 2 ms at a time).
+            arrival = np.floor(arrival / self.quantum_s + 1e-9) * self.quantum_s
+        arrival = np.maximum.accumulate(arrival)
+        bounds = (np.arange(n * substeps + 1) / substeps) * period
+        first_row = np.maximum(np.searchsorted(arrival, bounds[:-1], side="right"), 1)
+        last_row = np.maximum(np.searchsorted(arrival, bounds[1:], side="left"), 1)
+        out: Schedule = []
+        for k in range(n):
+            runs: list[tuple[FloatArray, int]] = []
+            run_row, run_len = -1, 0
+            for m in range(k * substeps, (k + 1) * substeps):
+                r0, r1 = int(first_row[m]), int(last_row[m])
+                if r0 == r1:
+                    if r0 == run_row:
+                        run_len += 1
+                        continue
+                    if run_len:
+                        runs.append((cmd[run_row], run_len))
+                    run_row, run_len = r0, 1
+                    continue
+                if run_len:
+                    runs.append((cmd[run_row], run_len))
+                run_row, run_len = -1, 0
+                lo, hi = bounds[m], bounds[m + 1]
+                mixed = np.zeros(N_JOINTS)
+                for r in range(r0, r1 + 1):
+                    start = lo if r == r0 else max(lo, arrival[r - 1])
+                    stop = hi if r == r1 else min(hi, arrival[r])
+                    mixed += max(stop - start, 0.0) * cmd[r]
+                runs.append((mixed / (hi - lo), 1))
+            if run_len:
+                runs.append((cmd[run_row], run_len))
+            out.append(runs)
+        return out
+
+    def windows(self, seg: Segment, w_ticks: int) -> list[tuple[int, int]]:
+        """The (start, end) ticks of each multiple-shooting window: every `w_ticks` from the
+        first usable tick, and, when windowed, cut where the link stalled (a command whose
+        measured delay exceeds `stall_s`, or a tick the loop skipped): the window ends at the
+        tick before and the next starts from the state measured once the late command has
+        landed. Why: on a loaded host the arm's side may have stalled too (the virtual arm
+        then catches up in a burst), which no timestamp on the host shows. Windows depend on
+        the measured data only, so every candidate parameter set and offset is scored on the
+        same samples (the residual keeps its length while the fit moves them)."""
+        n, period = seg.ticks, seg.period
+        first = SKIP_TICKS + int(math.ceil(MAX_DELAY_S / period - 1e-12))
+        d = seg.link_delay_s
+        if d is None or self.stall_s <= 0 or w_ticks >= n:
+            return [(s, min(s + w_ticks, n)) for s in range(first, n, w_ticks)]
+        bad = ~np.isfinite(d) | (np.nan_to_num(d, nan=0.0) > self.stall_s)
+        bad[0] = False
+        out: list[tuple[int, int]] = []
+        s = first
+        while s < n:
+            end = min(s + w_ticks, n)
+            hit = np.flatnonzero(bad[s + 1 : end + 1])
+            if hit.size == 0:
+                out.append((s, end))
+                s = end
+                continue
+            r = s + 1 + int(hit[0])  # row r acts over tick r-1 .. r
+            if r - 1 > s:
+                out.append((s, r - 1))
+            late = float(d[r]) if math.isfinite(d[r]) else period
+            s = max(r - 1 + int(math.ceil(late / period - 1e-9)) + 1, s + 1)
+        return out
 
     def simulate(
         self, params: ArmParams, delay_s: float, seg: Segment, window_s: float | None = None
@@ -142,52 +362,38 @@ class Replay:
         arm = self.arm
         arm.set_params(params)
         self.rollouts += 1
-        period, dt = seg.period, arm.dt
-        substeps = int(round(period / dt))
-        if abs(substeps * dt - period) > 1e-9 or substeps < 1:
-            raise ValueError(f"segment period {period} s is not a whole number of {dt} s steps")
+        period = seg.period
         window = self.window_s if window_s is None else window_s
         w_ticks = (
             seg.ticks
             if not (window > 0 and math.isfinite(window))
             else max(1, int(round(window / period)))
         )
-        delay = min(max(float(delay_s), 0.0), MAX_DELAY_S)
-        whole = int(math.floor(delay / period + 1e-12))
-        rem_steps = (delay - whole * period) / dt
-        a = min(int(math.floor(rem_steps)), substeps - 1)
-        frac = min(max(rem_steps - a, 0.0), 1.0)
-        cmd = seg.command_mA
-        n = seg.ticks
+        key = (id(seg), float(delay_s))
+        cached = self._plans.get(key)
+        if cached is None or cached[0] is not seg:
+            if len(self._plans) >= PLAN_CACHE:
+                self._plans.pop(next(iter(self._plans)))
+            cached = self._plans[key] = (seg, self.schedule(seg, delay_s))
+        plan = cached[1]
         q_out = np.full_like(seg.q, np.nan)
         qd_out = np.full_like(seg.qdot, np.nan)
         others = [i for i in range(N_JOINTS) if i != seg.joint]
         data = arm.data
-        # Windows start at the same ticks whatever the delay, so every candidate delay is
-        # scored on the same samples (the residual keeps its length while the fit moves it).
-        first = SKIP_TICKS + int(math.ceil(MAX_DELAY_S / period - 1e-12))
-        for s in range(first, n, w_ticks):
-            end = min(s + w_ticks, n)
+        win = np.full(seg.q.shape[0], -1, dtype=np.int64)
+        for w, (s, end) in enumerate(self.windows(seg, w_ticks)):
+            win[s + 1 : end + 1] = w
             arm.reset(q=seg.q[s], qdot=seg.qdot[s])
             for k in range(s, end):
                 if self.teacher_force and k > s:
                     for i in others:
                         data.qpos[i] = seg.q[k, i]
                         data.qvel[i] = seg.qdot[k, i]
-                old = cmd[max(k - whole, 1)]
-                new = cmd[min(k + 1 - whole, n)]
-                rest = substeps
-                if a > 0:
-                    arm.step(old, n=a)
-                    rest -= a
-                if frac > 1e-9:
-                    arm.step(frac * old + (1.0 - frac) * new, n=1)
-                    rest -= 1
-                if rest > 0:
-                    arm.step(new, n=rest)
+                for current, steps in plan[k]:
+                    arm.step(current, n=steps)
                 q_out[k + 1] = arm.q
                 qd_out[k + 1] = arm.qdot
-        return Rollout(q_out, qd_out)
+        return Rollout(q_out, qd_out, win)
 
     def residuals(
         self,
@@ -207,6 +413,57 @@ class Replay:
             if velocity_weight > 0:
                 parts.append(velocity_weight * (r.qdot[ok, j] - seg.qdot[ok, j]))
         return np.concatenate(parts) if parts else np.zeros(0)
+
+    def window_errors(
+        self, params: ArmParams, delay_s: float, segments: Sequence[Segment]
+    ) -> list[tuple[NDArray[np.int64], dict[int, float]]]:
+        """Per segment: the window of each residual row, and each window's RMS angle error."""
+        out = []
+        for seg in segments:
+            r = self.simulate(params, delay_s, seg)
+            j = seg.joint
+            ok = np.isfinite(r.q[:, j])
+            err = r.q[ok, j] - seg.q[ok, j]
+            win = r.window[ok] if r.window is not None else np.zeros(err.size, dtype=np.int64)
+            rms = {int(w): float(np.sqrt(np.mean(err[win == w] ** 2))) for w in np.unique(win)}
+            out.append((win, rms))
+        return out
+
+    def median_window_rms(
+        self, params: ArmParams, delay_s: float, segments: Sequence[Segment]
+    ) -> float:
+        """The median window's RMS angle error: what most of the data says, whatever a few
+        stalled windows do."""
+        values = [
+            v for _, rms in self.window_errors(params, delay_s, segments) for v in rms.values()
+        ]
+        return float(np.median(values)) if values else math.inf
+
+    def window_weights(
+        self,
+        params: ArmParams,
+        delay_s: float,
+        segments: Sequence[Segment],
+        velocity_weight: float = VELOCITY_WEIGHT_S,
+        clip: float = ROBUST_CLIP,
+    ) -> FloatArray:
+        """Weights for `residuals` (same layout): 1 for a window whose RMS angle error on
+        `params` is within `clip` times the median window's, less for worse ones (down to
+        clip x median / RMS: a Huber weight per window). Why: a window in which the arm's
+        side stalled unseen is replayed wrong whatever the parameters, and least squares
+        would bend the parameters to it."""
+        per_seg = self.window_errors(params, delay_s, segments)
+        rms_all = [v for _, rms in per_seg for v in rms.values()]
+        if not rms_all:
+            return np.zeros(0)
+        limit = clip * max(float(np.median(rms_all)), 1e-12)
+        parts = []
+        for win, rms in per_seg:
+            w = np.array([min(1.0, limit / max(rms[int(x)], 1e-15)) for x in win])
+            parts.append(w)
+            if velocity_weight > 0:
+                parts.append(w)
+        return np.concatenate(parts)
 
 
 @dataclass(frozen=True)
@@ -309,6 +566,7 @@ def fit_joint(
     tol: float = 1e-4,
     velocity_weight: float = VELOCITY_WEIGHT_S,
     on_iteration: Callable[[int, float], None] | None = None,
+    weights: FloatArray | None = None,
 ) -> FitResult:
     """Levenberg-Marquardt over `refs` (log of each physical value; the delay in seconds)
     on the residuals of `segments`, starting from `start` and `delay_s`."""
@@ -340,7 +598,8 @@ def fit_joint(
 
     def fun(x: FloatArray) -> FloatArray:
         p, d = unpack(x)
-        return replay.residuals(p, d, segments, velocity_weight)
+        r = replay.residuals(p, d, segments, velocity_weight)
+        return r if weights is None else r * weights
 
     def jacobian(x: FloatArray, r0: FloatArray) -> FloatArray:
         cols = []
@@ -416,23 +675,101 @@ JOINT_ORDER = ("E", "B", "C", "D")
 D, whose load includes it."""
 
 
+OFFSET_SPAN_S = 0.01
+"""`tune_offsets` searches +-this (s) around zero when the timestamps measured the delays ..."""
+OFFSET_STEP_S = 0.001
+"""... on this grid, then refines twice by half a step (to 0.25 ms)."""
+CONSTANT_DELAY_MAX_S = 0.03
+"""... and 0 .. this when they did not (the whole delay is then one constant)."""
+QUANTA_S = (0.002, 0.0)
+"""The arm's command steps `fit_arm` chooses between: the virtual arm steps its physics (and
+takes commands) every 2 ms; a real arm's current loop is fast enough to count as 0."""
+
+
+def tune_offsets(
+    replay: Replay,
+    params: ArmParams,
+    segments: Sequence[Segment],
+    velocity_weight: float = VELOCITY_WEIGHT_S,
+) -> list[Segment]:
+    """Each segment with the delay offset (a nuisance, one per segment) that fits it best on
+    `params`, by a grid search then two half-step refinements: with commands taken on the arm's
+    step grid the residual is piecewise constant in the offset (no gradient to follow), and
+    the offset left by the timestamps' clock mapping differs from run to run by a fraction of
+    a millisecond (the least transit seen in that run)."""
+    out = []
+    for seg in segments:
+        if seg.link_delay_s is not None:
+            grid = np.arange(-OFFSET_SPAN_S, OFFSET_SPAN_S + 1e-12, OFFSET_STEP_S)
+        else:
+            grid = np.arange(0.0, CONSTANT_DELAY_MAX_S + 1e-12, OFFSET_STEP_S)
+
+        def cost(offset: float, seg: Segment = seg) -> float:
+            r = replay.residuals(
+                params, 0.0, [replace(seg, offset_s=float(offset))], velocity_weight
+            )
+            return float(r @ r)
+
+        costs = [cost(o) for o in grid]
+        best_cost, best = min(zip(costs, grid.tolist(), strict=True))
+        step = float(grid[1] - grid[0]) if grid.size > 1 else OFFSET_STEP_S
+        for _ in range(2):  # refine: half a step either side, twice
+            step /= 2
+            for o in (best - step, best + step):
+                c = cost(o)
+                if c < best_cost:
+                    best_cost, best = c, o
+        candidates = [(best_cost, best)]
+        out.append(replace(seg, offset_s=min(candidates)[1]))
+    return out
+
+
+def segment_delays(seg: Segment, extra_s: float = 0.0) -> FloatArray:
+    """The delay of each command row the replay uses (s; rows 1..n)."""
+    d = np.full(seg.ticks, seg.offset_s + extra_s)
+    if seg.link_delay_s is not None:
+        d += seg.link_delay_s[1:]
+    d = d[np.isfinite(d)]
+    return np.clip(d, 0.0, MAX_DELAY_S)
+
+
+@dataclass(frozen=True)
+class ArmFit:
+    """`fit_arm`'s result: the arm, each joint's fit, the segments with their delay offsets,
+    the command step chosen, and the median delay the replay used."""
+
+    params: ArmParams
+    results: dict[int, FitResult]
+    segments: tuple[Segment, ...]  # the fitting segments, offsets tuned on the fitted arm
+    quantum_s: float
+    delay_s: float  # median over every command of every fitting segment
+
+
 def fit_arm(
     replay: Replay,
     segments: Sequence[Segment],
     start: ArmParams | None = None,
-    delay_s: float = 0.0,
-    fit_delay: bool = True,
     max_iter: int = 12,
     on_joint: Callable[[int, FitResult], None] | None = None,
     on_iteration: Callable[[int, int, float], None] | None = None,
-) -> tuple[ArmParams, float, dict[int, FitResult]]:
+    quanta: Sequence[float] = QUANTA_S,
+) -> ArmFit:
     """Fit every joint that has "fit" segments, in `JOINT_ORDER`, each from the arm found so
-    far; the delay found by one joint starts the next. Returns the arm, the delay (the
-    median of the joints' delay estimates) and each joint's result."""
+    far, with the delay held out of the physical fit (it trades off against the armature):
+
+    1. Levenberg-Marquardt over the joint's physical parameters with the delays fixed at what
+       the driver's timestamps measured per command (`link_delays`; offsets zero);
+    2. each segment's delay offset is tuned on the fitted joint (`tune_offsets`) and the fit
+       polished from there.
+
+    On the first joint the arm's command step is chosen among `quanta` (the one whose
+    re-tuned median window error is smallest; a fresh fit if it is not the first tried)."""
     params = start if start is not None else ArmParams()
-    delay = delay_s
     results: dict[int, FitResult] = {}
-    delays: list[float] = []
+    tuned: list[Segment] = []
+    quanta = tuple(quanta) or (replay.quantum_s,)
+    replay.quantum_s = float(quanta[0])
+    first = True
     for letter in JOINT_ORDER:
         j = JOINT_LETTERS.index(letter)
         segs = [s for s in segments if s.joint == j and s.role == "fit"]
@@ -443,25 +780,84 @@ def fit_arm(
             if on_iteration is not None:
                 on_iteration(j, it, cost)
 
-        result = fit_joint(
-            replay,
-            segs,
-            params,
-            delay,
-            default_refs(j, fit_delay),
-            max_iter=max_iter,
-            on_iteration=note,
-        )
+        def one(
+            base: ArmParams, segs: list[Segment] = segs, j: int = j
+        ) -> tuple[FitResult, list[Segment]]:
+            refs = default_refs(j, fit_delay=False)
+            # Offsets start at zero (the timestamps' word): tuned on an arm still far from
+            # this one they would soak up its errors, the very trade-off they are to avoid.
+            ready = [replace(x, offset_s=0.0) for x in segs]
+            result = fit_joint(replay, ready, base, 0.0, refs, max_iter=max_iter, on_iteration=note)
+            ready = tune_offsets(replay, result.params, ready)
+            weights = replay.window_weights(result.params, 0.0, ready)
+            polished = fit_joint(
+                replay,
+                ready,
+                result.params,
+                0.0,
+                refs,
+                max_iter=max(3, max_iter // 2),
+                on_iteration=note,
+                weights=weights,
+            )
+            return replace(
+                polished,
+                iterations=result.iterations + polished.iterations,
+                rollouts=result.rollouts + polished.rollouts,
+                costs=result.costs + polished.costs,
+            ), ready
+
+        result, ready = one(params)
+        if first and len(quanta) > 1:
+
+            def plain_cost(p: ArmParams, segs: list[Segment]) -> float:
+                # The median window, not the sum: on a loaded host a few stalled windows
+                # replay badly under either step and would decide the choice.
+                return replay.median_window_rms(p, 0.0, segs)
+
+            best = (plain_cost(result.params, ready), replay.quantum_s, result, ready)
+            for q in quanta[1:]:
+                replay.quantum_s = float(q)
+                trial = tune_offsets(replay, result.params, ready)
+                if plain_cost(result.params, trial) < best[0]:
+                    res_q, ready_q = one(params)
+                    cost_q = plain_cost(res_q.params, ready_q)
+                    if cost_q < best[0]:
+                        best = (cost_q, float(q), res_q, ready_q)
+            _, quantum, result, ready = best
+            replay.quantum_s = quantum
+        first = False
         params = result.params
-        if fit_delay:
-            delays.append(result.delay_s)
-            delay = result.delay_s
         results[j] = result
+        tuned.extend(ready)
         if on_joint is not None:
             on_joint(j, result)
-    if delays:
-        delay = float(np.median(delays))
-    return params, delay, results
+    delays = np.concatenate([segment_delays(s) for s in tuned]) if tuned else np.zeros(1)
+    return ArmFit(params, results, tuple(tuned), replay.quantum_s, float(np.median(delays)))
+
+
+def segment_from_index(
+    meta: dict[str, Any],
+    q: FloatArray,
+    qdot: FloatArray,
+    command_mA: FloatArray,
+    current_mA: FloatArray | None,
+    link_delay_s: FloatArray | None,
+) -> Segment:
+    """A segment from its index entry (name, joint, role, period, meta: as `save_segments`
+    and tools/identify.py's recording write it) and its arrays."""
+    return Segment(
+        name=meta["name"],
+        joint=int(meta["joint"]),
+        role=meta["role"],
+        period=float(meta["period"]),
+        q=q,
+        qdot=qdot,
+        command_mA=command_mA,
+        current_mA=current_mA,
+        meta=dict(meta.get("meta", {})),
+        link_delay_s=link_delay_s,
+    )
 
 
 def load_segments(path: Any) -> list[Segment]:
@@ -473,17 +869,10 @@ def load_segments(path: Any) -> list[Segment]:
         out = []
         for i, meta in enumerate(index):
             cur = data[f"s{i}_current_mA"] if f"s{i}_current_mA" in data else None
+            link = data[f"s{i}_link_delay_s"] if f"s{i}_link_delay_s" in data else None
             out.append(
-                Segment(
-                    name=meta["name"],
-                    joint=int(meta["joint"]),
-                    role=meta["role"],
-                    period=float(meta["period"]),
-                    q=data[f"s{i}_q"],
-                    qdot=data[f"s{i}_qdot"],
-                    command_mA=data[f"s{i}_command_mA"],
-                    current_mA=cur,
-                    meta=dict(meta.get("meta", {})),
+                segment_from_index(
+                    meta, data[f"s{i}_q"], data[f"s{i}_qdot"], data[f"s{i}_command_mA"], cur, link
                 )
             )
     return out
@@ -502,6 +891,8 @@ def save_segments(segments: Sequence[Segment], path: Any, header: dict[str, Any]
         arrays[f"s{i}_command_mA"] = seg.command_mA
         if seg.current_mA is not None:
             arrays[f"s{i}_current_mA"] = np.asarray(seg.current_mA, dtype=float)
+        if seg.link_delay_s is not None:
+            arrays[f"s{i}_link_delay_s"] = seg.link_delay_s
         index.append(
             {
                 "name": seg.name,

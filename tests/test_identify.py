@@ -23,19 +23,22 @@ from reach_sim_bridge.sysid import (
     Replay,
     Segment,
     default_refs,
+    fit_arm,
     fit_joint,
+    link_delays,
     load_segments,
     params_with,
     quality,
     save_segments,
+    tune_offsets,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
 PERIOD = 0.02
 
 
-def _tool() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("identify_cli", ROOT / "tools" / "identify.py")
+def _load_tool(name: str, filename: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(name, ROOT / "tools" / filename)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
@@ -43,11 +46,20 @@ def _tool() -> ModuleType:
     return module
 
 
+def _tool() -> ModuleType:
+    return _load_tool("identify_cli", "identify.py")
+
+
 def _record(
-    params: ArmParams, joint: int, wave_kind: str, seconds: float, delay_steps: int = 2
+    params: ArmParams,
+    joint: int,
+    wave_kind: str,
+    seconds: float,
+    delay_steps: int | np.ndarray = 2,
 ) -> Segment:
     """A segment made by stepping `Alpha5Arm` directly with the tool's excitation, the
-    command landing `delay_steps` physics steps after each tick."""
+    command landing `delay_steps` physics steps after each tick (one number, or one per
+    tick: a jittering link)."""
     idt = _tool()
     arm = Alpha5Arm(params=params)
     twin = Alpha5Arm()
@@ -62,10 +74,12 @@ def _record(
     cmd = np.zeros((n + 1, 4))
     q[0], qd[0] = arm.q, arm.qdot
     held = np.zeros(4)
+    steps = np.broadcast_to(np.asarray(delay_steps, dtype=int), (n,))
     for k in range(n):
         u = ctl.act(ControlState(q[k].copy(), qd[k].copy(), k * PERIOD), center)
-        arm.step(held, n=delay_steps)
-        arm.step(u, n=10 - delay_steps)
+        if steps[k] > 0:
+            arm.step(held, n=int(steps[k]))
+        arm.step(u, n=10 - int(steps[k]))
         held = u
         cmd[k + 1] = u
         q[k + 1], qd[k + 1] = arm.q, arm.qdot
@@ -108,6 +122,53 @@ def test_the_fit_recovers_friction_armature_and_delay() -> None:
     assert result.params.frictionloss[1:] == ArmParams().frictionloss[1:]
 
 
+def test_link_delays_follow_the_timestamps() -> None:
+    """The arm's clock mapped to the host's by the lower envelope: a simulator at 2.5x, its
+    states reaching the host up to 3 ms late, the clock re-anchored once (the sim fell
+    behind), commands written 0.5 to 4 ms after the state: the delays come back to within
+    the least transit, which is what the offset is for."""
+    rng = np.random.default_rng(3)
+    n, speed = 400, 2.5
+    t = np.arange(n) * PERIOD
+    host = 10.0 + t / speed + np.where(t > 4.0, 0.03, 0.0)  # when the arm sent tick k
+    received = host + 0.0002 + rng.exponential(0.0008, n).clip(0, 0.003)
+    received[::50] = host[::50] + 0.0002  # the least transit is seen now and then
+    written = received + rng.uniform(0.0005, 0.004, n)
+    timing = link_delays(t, received, written)
+    true_delay = (written - host) * speed  # arm seconds from tick to command write
+    assert np.isnan(timing.delays_s[0]) and timing.delays_s.shape == (n + 1,)
+    assert timing.arm_speed == pytest.approx(speed, rel=1e-3)
+    err = timing.delays_s[1:] - (true_delay - 0.0002 * speed)
+    assert np.max(np.abs(err)) < 2e-4
+    with pytest.raises(ValueError, match="equal"):
+        link_delays(t, received[:-1], written)
+
+
+def test_measured_delays_break_the_armature_delay_tie() -> None:
+    """A link whose delay jitters from tick to tick (0 to 8 ms, on the arm's 2 ms step grid),
+    as a loaded host makes it: with the measured per-command delays (here the truth plus up
+    to 0.5 ms of error) and commands taken on the step grid, the replay of the true arm is
+    exact, and `fit_arm` recovers the armature within 3 %."""
+    truth = ArmParams().randomized(9)
+    rng = np.random.default_rng(1)
+    segs = []
+    for kind in ("relay", "chirp"):
+        steps = rng.integers(0, 5, size=150)
+        seg = _record(truth, 0, kind, 3.0, delay_steps=steps)
+        measured = np.concatenate([[np.nan], steps * 0.002 + rng.uniform(0, 0.0005, 150)])
+        segs.append(
+            Segment(kind, 0, "fit", PERIOD, seg.q, seg.qdot, seg.command_mA, link_delay_s=measured)
+        )
+    replay = Replay(window_s=1.0, quantum_s=0.002)
+    exact = tune_offsets(replay, truth, segs)
+    assert quality(replay, truth, 0.0, exact).rms_rad < 1e-6
+    result = fit_arm(Replay(window_s=1.0), segs, ArmParams(), max_iter=6)
+    assert result.quantum_s == 0.002
+    got = result.params
+    for name in ("armature", "damping", "frictionloss"):
+        assert getattr(got, name)[0] == pytest.approx(getattr(truth, name)[0], rel=0.03), name
+
+
 def test_refs_and_params_with() -> None:
     assert [r[0] for r in default_refs(1)] == [
         "armature",
@@ -143,17 +204,15 @@ def test_the_excitation_stays_inside_its_window_and_speed() -> None:
             assert np.max(np.abs(seg.q[:, others] - idt.HOME[others])) < 0.05
 
 
-ERR_TOL = 0.10  # relative: friction (measured within 1.5 %)
-ARMATURE_TOL = 0.5  # relative: -3.9 % on an idle host, -10 % to -80 % on a loaded one (it trades
-# off against the fitted delay, which a loaded host makes jitter): the 10 % target is not met,
-# so this is only a sanity bound; friction and damping carry the test
+ERR_TOL = 0.10  # relative, friction, damping and armature: the issue's target
 
 
 @pytest.mark.slow
 def test_identify_a_hidden_virtual_arm_end_to_end(tmp_path: Path) -> None:
     """reach-sim --params HIDDEN on a pty; identify.py through the driver; the fit is within
-    10 % on friction (30 % on armature) and predicts the validation motions far better than the
-    nominal twin. Two joints (E without, C with a gravity load), half-length segments."""
+    10 % on friction, damping and armature and predicts the validation motions far better
+    than the nominal twin; the excitation is in the .rrd as in the .npz. Two joints (E
+    without, C with a gravity load), half-length segments."""
     hidden = ArmParams().randomized(2024)
     hidden_path = save_arm_params(hidden, tmp_path / "hidden.json")
     link = tmp_path / "alpha5"
@@ -165,7 +224,7 @@ def test_identify_a_hidden_virtual_arm_end_to_end(tmp_path: Path) -> None:
             "--params",
             str(hidden_path),
             "--speed",
-            "2.5",  # at 5x a loaded host's scheduling pauses become 50 ms of sim time and blur
+            "1.5",  # a host pause of 30 ms is 45 ms of arm time: faster, stalls blur the data
             "--link",
             str(link),
             "--stats-interval",
@@ -209,16 +268,66 @@ def test_identify_a_hidden_virtual_arm_end_to_end(tmp_path: Path) -> None:
         for name in ("frictionloss", "armature", "damping"):
             true_value = getattr(hidden, name)[j]
             got = getattr(fitted, name)[j]
-            tol = ARMATURE_TOL if name == "armature" else ERR_TOL
-            assert abs(got - true_value) < tol * true_value, (JOINT_LETTERS[j], name)
+            assert abs(got - true_value) < ERR_TOL * true_value, (JOINT_LETTERS[j], name)
     for letter in ("E", "C"):
         fit_q = meta["quality_fitted"][f"validate/{letter}"]["window"]
         nom_q = meta["quality_nominal"][f"validate/{letter}"]["window"]
         assert fit_q["r2"] >= 0.99
-        # Measured: E 1.7, C 7.9 mrad (C misses the 2 mrad aim: docs/identification.md).
-        assert fit_q["rms_mrad"] < 12.0
-        assert fit_q["rms_mrad"] * 5 < nom_q["rms_mrad"]
+        # Half-length segments on a loaded host (docs/identification.md, run D): measured
+        # 0.38-4.4 mrad and 3x-70x closer than the nominal twin; the 2 mrad and 5x targets
+        # are met by the full-length runs (A-C), not always by this short one.
+        assert fit_q["rms_mrad"] < 5.0
+        assert fit_q["rms_mrad"] * 3 < nom_q["rms_mrad"]
     assert meta["arm_seconds"] < 300
     assert (tmp_path / "arm.report" / "report.md").exists()
     assert (tmp_path / "arm.log.npz").exists()
-    assert wall < 240  # a broken loop fails instead of hanging
+    # The recording holds every tick of every segment, as the log does.
+    logged = load_segments(tmp_path / "arm.log.npz")
+    recorded = _tool().load_recording(tmp_path / "arm.rrd")
+    assert [s.name for s in recorded] == [s.name for s in logged] and len(logged) == 12
+    for a, b in zip(logged, recorded, strict=True):
+        assert np.array_equal(a.q, b.q) and np.array_equal(a.command_mA, b.command_mA)
+        assert a.link_delay_s is not None and b.link_delay_s is not None
+        assert np.array_equal(a.link_delay_s, b.link_delay_s, equal_nan=True)
+    assert meta["command_step_s"] == 0.002  # the virtual arm takes commands every 2 ms
+    assert wall < 300  # a broken loop fails instead of hanging
+
+
+def _twin_gap() -> ModuleType:
+    return _load_tool("twin_gap", "twin_gap.py")
+
+
+def test_twin_gap_pairs_the_same_episodes_on_three_arms() -> None:
+    """The arm against itself: no gap; against the nominal twin: some. Same episodes."""
+    from policy.evaluation import RunConfig, random_episodes
+
+    gap = _twin_gap()
+    hidden = ArmParams().randomized(11)
+    (g,) = gap.measure_gap(["pid"], hidden, hidden, random_episodes(1, 0), RunConfig(seconds=4))
+    assert g.worst_energy("fitted") == 0.0 and g.worst_settling("fitted") == 0.0
+    assert g.meets_targets("fitted")
+    assert g.worst_energy("nominal") > 0.005
+    assert "pid" in gap.markdown([g]) and g.summary()["fitted"]["meets_targets"]
+
+
+#: A twin `tools/identify.py` fitted (four joints, `--scale 1`, through the driver on
+#: `reach-sim --params` of `ArmParams().randomized(11)`; docs/identification.md, run A).
+IDENTIFIED = ROOT / "tests" / "data" / "identified_seed11.json"
+
+
+def test_the_fitted_twin_predicts_controller_metrics() -> None:
+    """The issue's target for the gap a twin closes: pid and ddpg on the fitted twin spend
+    within 5 % of the energy they spend on the hidden arm and settle within 0.1 s of it, on
+    every episode, and closer than on the nominal twin (measured: docs/identification.md)."""
+    from policy.evaluation import RunConfig, random_episodes
+
+    gap = _twin_gap()
+    hidden = ArmParams().randomized(11)
+    fitted = load_arm_params(IDENTIFIED)
+    gaps = gap.measure_gap(
+        ["pid", "ddpg"], hidden, fitted, random_episodes(2, 0), RunConfig(seconds=10)
+    )
+    for g in gaps:
+        assert g.meets_targets("fitted"), g.summary()
+        assert g.mean_energy("fitted") < g.mean_energy("nominal") / 3, g.summary()
+        assert g.worst_settling("fitted") <= g.worst_settling("nominal")

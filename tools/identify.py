@@ -14,12 +14,16 @@ validation motions), each inside a window around its pose (the excitation backs 
 window edges and above a speed limit), with a position-mode move to the segment's pose
 before each. Ctrl-C leaves the arm in the driver's safe mode (zero velocity).
 
-The log is a plain .npz (`reach_sim_bridge.sysid.save_segments`: per segment the loop's
-q, qdot, commands and measured currents on its tick grid); the fit is by simulation
-(`reach_sim_bridge.sysid`, docs/identification.md). Outputs: PARAMS.json in the `--params`
-format with the fit under "_fit" (the loader ignores keys starting with _): per parameter its
-value and 1-sigma uncertainty, the delay, R^2 and residual RMS; PARAMS.log.npz; and a report
-PARAMS.report/report.md with PNG figures (measured vs nominal twin vs fitted twin).
+Two records of the excitation: PARAMS.log.npz (`reach_sim_bridge.sysid.save_segments`: per
+segment the loop's q, qdot, commands and measured currents on its tick grid, and each
+command's transport delay measured from the driver's timestamps) and PARAMS.rrd (`--record`,
+a Rerun recording through `reach_driver.recording`; `--fit-only` reads either). The fit is by
+simulation (`reach_sim_bridge.sysid`, docs/identification.md), with the delay measured, not
+fitted (it trades off against the armature). Outputs: PARAMS.json in the `--params` format
+with the fit under "_fit" (the loader ignores keys starting with _): per parameter its value
+and 1-sigma uncertainty, the delays, R^2 and residual RMS; and a report
+PARAMS.report/report.md with PNG figures (measured vs nominal twin vs fitted twin), with
+`--truth HIDDEN.json --check-controller pid,ddpg` the controller gap (tools/twin_gap.py).
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ import math
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,19 +51,26 @@ from protocol.alpha5 import (
 )
 from reach_driver import ArmClient, ControlLoop, DriverError, SafetyConfig, open_transport
 from reach_driver.controllers import ControlState
+from reach_driver.errors import NoResponseError, RequestTimeoutError
 from reach_driver.interfaces import DEFAULT_BAUD
+from reach_driver.records import StepRecord
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.params import ArmParams, load_arm_params, save_arm_params
 from reach_sim_bridge.sysid import (
     DEFAULT_WINDOW_S,
     FitResult,
+    LinkTiming,
     Replay,
     Segment,
     fit_arm,
+    link_delays,
     load_segments,
     quality,
     ref_name,
     save_segments,
+    segment_delays,
+    segment_from_index,
+    tune_offsets,
 )
 
 K_MA = np.asarray(TORQUE_PER_AMP_NM) / 1000.0  # N m per mA, E D C B
@@ -264,7 +275,8 @@ class Excitation:
 # -- driving the arm -----------------------------------------------------------------------
 
 
-RETRIES = 2  # per segment, after a watchdog trip
+RETRIES = 4  # per segment, after a watchdog trip or a feedback stall
+MOVE_SILENCE_S = 3.0  # a move gives up when the arm has not answered for this long
 
 
 def move_to(client: ArmClient, target: np.ndarray, timeout_s: float = 30.0) -> float:
@@ -276,8 +288,19 @@ def move_to(client: ArmClient, target: np.ndarray, timeout_s: float = 30.0) -> f
     client.command_positions(target)
     deadline = t0 + timeout_s
     resend = t0 + 1.0
+    quiet_since: float | None = None
     while True:
-        state = client.read_joints((PacketID.POSITION, PacketID.VELOCITY))
+        try:
+            state = client.read_joints((PacketID.POSITION, PacketID.VELOCITY))
+        except (RequestTimeoutError, NoResponseError) as exc:
+            # A loaded host (or a busy line) can miss a few replies; the move goes on (the
+            # arm holds its position target) unless the arm stays silent for MOVE_SILENCE_S.
+            now = time.monotonic()
+            quiet_since = now if quiet_since is None else quiet_since
+            if now - quiet_since > MOVE_SILENCE_S or now > deadline:
+                raise DriverError(f"the arm stopped answering during a move: {exc}") from None
+            continue
+        quiet_since = None
         err = np.abs(target - state.q)
         if np.all(err < 0.01) and np.all(np.abs(state.qdot) < 0.03):
             break
@@ -302,12 +325,215 @@ def _position_kind() -> Any:
 
 
 @dataclass
+class StepStamps:
+    """The driver's timestamps of each step of one run (`ControlLoop`'s `on_step`): the arm
+    time of the tick, the host time its state was complete and the host time the command
+    was written (the hook runs right after the write)."""
+
+    t: list[float] = field(default_factory=list)
+    received: list[float] = field(default_factory=list)
+    written: list[float] = field(default_factory=list)
+    latency: list[float] = field(default_factory=list)
+    state_age: list[float] = field(default_factory=list)
+    good: list[int] = field(default_factory=list)
+    bad: list[int] = field(default_factory=list)
+
+    def on_step(self, r: StepRecord) -> None:
+        now = time.monotonic()
+        self.t.append(r.t)
+        self.written.append(now)
+        self.received.append(now - r.latency_s)
+        self.latency.append(r.latency_s)
+        self.state_age.append(r.state_age_s)
+        self.good.append(r.good_frames)
+        self.bad.append(r.bad_frames)
+
+    def timing(self, trace_t: np.ndarray, dt: float) -> LinkTiming | None:
+        """The measured delays per command row of a trace on the tick grid `dt` (None with
+        fewer than two steps: the delay is then left to the fit alone). A tick the loop
+        skipped (it was late and took the newer state) sent no command: its row holds the
+        previous command and is NaN (the replay lands it with the one before)."""
+        if len(self.t) < 2:
+            return None
+        t = np.asarray(self.t)
+        measured = link_delays(t, np.asarray(self.received), np.asarray(self.written))
+        n = len(trace_t) - 1
+        rows = np.rint(t / dt).astype(int) + 1  # the command sent at tick k is row k + 1
+        delays = np.full(n + 1, np.nan)
+        keep = (rows >= 1) & (rows <= n)
+        delays[rows[keep]] = measured.delays_s[1:][keep]
+        return replace(measured, delays_s=delays)  # NaN: a skipped tick, no command sent
+
+
+@dataclass
 class Session:
     segments: list[Segment] = field(default_factory=list)
     arm_seconds: float = 0.0  # in current mode, exact (ticks)
     move_seconds: float = 0.0  # in moves, wall x the measured arm speed
     arm_speed: float = 1.0
     retries: int = 0  # segments run again after a watchdog trip (a stalled host)
+
+
+class ExcitationRecorder:
+    """The excitation as a Rerun recording (.rrd), written with `reach_driver.recording` (the
+    entities `reach-driver run --record` writes, so `reach-driver inspect` and the viewer
+    read it): every tick of every segment on one arm-time timeline, an event where each
+    segment starts, the link's latency and state age per step, and at the end a summary whose
+    `segments` index (name, joint, role, first step, rows, measured link delays) lets
+    `load_recording` rebuild the segments exactly. The file is opened before the arm moves
+    (an unwritable path fails first) and the segments, from their traces (the rows the fit
+    uses), are logged when the excitation ends or stops (Ctrl-C, an error): encoding them
+    while the control loop runs took CPU from it on a loaded 2-core host. A write error is
+    reported once and stops the recording; the identification goes on (the .npz log is the
+    fit's own copy)."""
+
+    def __init__(self, path: Path, metadata: dict[str, Any], console: Console) -> None:
+        from reach_driver import recording
+
+        self._recording = recording
+        self.path = path
+        self.console = console
+        self.failed: str | None = None
+        self.index: list[dict[str, Any]] = []
+        self.step = 0
+        self._pending: list[tuple[Segment, np.ndarray, float, StepStamps]] = []
+        try:
+            self._rec: Any = recording.RunRecorder(
+                path,
+                metadata={"source": "tools/identify.py", **metadata},
+                warn=lambda msg: console.print(f"[yellow]warning[/]: {msg}"),
+            )
+            self._rec.log_event("start")
+        except Exception as exc:  # rerun raises RuntimeError for sink errors, Python OSError
+            raise DriverError(f"cannot record to {path}: {exc}") from None
+
+    def _fail(self, exc: Exception) -> None:
+        rec, self._rec = self._rec, None
+        self.failed = f"writing {self.path} failed: {type(exc).__name__}: {exc}"
+        self.console.print(
+            f"[yellow]warning[/]: {self.failed}; recording stopped, the identification goes on"
+        )
+        if rec is not None:
+            try:
+                rec.abandon()
+            except Exception:
+                pass
+
+    def add(self, seg: Segment, center: np.ndarray, t0: float, stamps: StepStamps) -> None:
+        """Keep one finished segment (from arm time `t0` on) for `close` to log."""
+        self._pending.append((seg, center, t0, stamps))
+
+    def _log(self, seg: Segment, center: np.ndarray, t0: float, stamps: StepStamps) -> None:
+        """Log one segment (its ticks are rows 0..n)."""
+        rec = self._rec
+        if rec is None:
+            return
+        recording = self._recording
+        n = seg.ticks
+        current = seg.current_mA if seg.current_mA is not None else np.full_like(seg.q, np.nan)
+        try:
+            rec.log_event(
+                f"segment {seg.name} ({seg.role}): {seg.meta.get('wave', '')}", t=t0, step=self.step
+            )
+            for k in range(n + 1):
+                t = t0 + k * seg.period
+                rec.log_step(
+                    recording.StepSample(
+                        t=t,
+                        step=self.step + k,
+                        q=seg.q[k],
+                        qdot=seg.qdot[k],
+                        target=center,
+                        current_cmd_mA=seg.command_mA[k + 1] if k < n else np.zeros(N_JOINTS),
+                        current_meas_mA=current[k],
+                    )
+                )
+                if k < len(stamps.t):
+                    rec.log_link(
+                        t,
+                        self.step + k,
+                        stamps.good[k],
+                        stamps.bad[k],
+                        stamps.state_age[k],
+                        stamps.latency[k],
+                    )
+        except Exception as exc:
+            self._fail(exc)
+            return
+        self.index.append(
+            {
+                "name": seg.name,
+                "joint": seg.joint,
+                "role": seg.role,
+                "period": seg.period,
+                "meta": seg.meta,
+                "first_step": self.step,
+                "rows": n + 1,
+                "t0": t0,
+                "command_row0": seg.command_mA[0].tolist(),
+                "link_delay_s": None
+                if seg.link_delay_s is None
+                else [None if not math.isfinite(v) else v for v in seg.link_delay_s.tolist()],
+            }
+        )
+        self.step += n + 1
+
+    def close(self, header: dict[str, Any]) -> None:
+        """Log the segments kept, the index and the end; close the file."""
+        for item in self._pending:
+            self._log(*item)
+        self._pending.clear()
+        rec = self._rec
+        if rec is None:
+            return
+        try:
+            rec.log_summary({"identification": header, "segments": self.index})
+            rec.log_event("stop")
+            rec.close()
+            self._rec = None
+        except Exception as exc:
+            self._fail(exc)
+
+
+def load_recording(path: Path) -> list[Segment]:
+    """The segments of an excitation recorded by `ExcitationRecorder` (ValueError saying what
+    is missing: a recording cut before its end has its steps but no index)."""
+    from reach_driver.rrd_summary import read_recording
+
+    run = read_recording(path)
+    index = run.summary.get("segments") if isinstance(run.summary, dict) else None
+    if not isinstance(index, list) or not index:
+        raise ValueError(
+            f"{path}: no identification index (not written by identify.py, or cut before the "
+            f"excitation ended; its .npz log has the finished segments)"
+        )
+    rows_at = {int(s): i for i, s in enumerate(run.step)}
+    out = []
+    for meta in index:
+        first, rows = int(meta["first_step"]), int(meta["rows"])
+        try:
+            sel = np.array([rows_at[first + k] for k in range(rows)])
+        except KeyError as exc:
+            raise ValueError(f"{path}: segment {meta['name']} lacks step {exc}") from None
+        if run.qdot is None:
+            raise ValueError(f"{path}: no velocities recorded")
+        command = np.empty((rows, N_JOINTS))
+        command[0] = meta["command_row0"]
+        command[1:] = run.current_cmd[sel[:-1]]
+        delays = meta.get("link_delay_s")
+        out.append(
+            segment_from_index(
+                meta,
+                run.q[sel],
+                run.qdot[sel],
+                command,
+                run.current_meas[sel],
+                None
+                if delays is None
+                else np.array([np.nan if v is None else v for v in delays], dtype=float),
+            )
+        )
+    return out
 
 
 def excite(
@@ -318,8 +544,10 @@ def excite(
     console: Console,
     session: Session,
     max_current: np.ndarray,
+    recorder: ExcitationRecorder | None = None,
 ) -> None:
-    """Run every wave on every joint, appending to `session` as segments finish."""
+    """Run every wave on every joint, appending to `session` (and `recorder`) as segments
+    finish."""
     period = 1.0 / rate_hz
     twin = Alpha5Arm()
     amps = Amplitudes()
@@ -352,44 +580,56 @@ def excite(
                         gravity=twin.gravity_torque,
                     )
                     progress.update(task, detail=f"{letter}: {wave.label}")
-                    loop = ControlLoop(client, controller, period)
+                    stamps = StepStamps()
+                    loop = ControlLoop(client, controller, period, on_step=stamps.on_step)
                     summary = loop.run(center, wave.seconds)
                     if not summary.error:
                         break
-                    if client.tripped is None or attempt == RETRIES:
+                    stalled = "feedback stopped" in summary.error
+                    if (client.tripped is None and not stalled) or attempt == RETRIES:
                         raise DriverError(f"{letter} {wave.label}: {summary.stopped_by}")
-                    # The host stalled past the watchdog (the arm went to zero velocity):
-                    # say so, re-arm and run the segment again from its pose.
+                    # The host stalled past the watchdog (the arm went to zero velocity) or
+                    # long enough for the loop to give up on the feedback (the loop left the
+                    # arm safe): say so, re-arm and run the segment again from its pose.
                     session.retries += 1
-                    console.print(f"[yellow]{letter} {wave.label}: {client.tripped}; again[/]")
-                    client.rearm()
+                    why = client.tripped or summary.error
+                    console.print(f"[yellow]{letter} {wave.label}: {why}; again[/]")
+                    if client.tripped is not None:
+                        client.rearm()
                 trace = summary.trace
                 if trace is None:
                     raise DriverError(f"{letter} {wave.label}: no trace")
                 session.arm_speed = summary.timing.arm_speed or session.arm_speed
                 if wave.kind == "relay":
                     amps.learn(j, wave.speed, controller.amplitude)
-                session.segments.append(
-                    Segment(
-                        name=f"{letter}{k}-{wave.kind}-{wave.pose}",
-                        joint=j,
-                        role=wave.role,
-                        period=trace.dt,
-                        q=trace.q,
-                        qdot=trace.qdot,
-                        command_mA=trace.command_mA,
-                        current_mA=trace.current_mA,
-                        meta={
-                            "wave": wave.label,
-                            "pose": center.tolist(),
-                            "amplitude_mA": controller.amplitude,
-                            "flips": controller.flips,
-                            "saturated_steps": summary.saturated_steps,
-                            "barrier_steps": summary.barrier_steps,
-                            "left_in": summary.left_in,
-                        },
-                    )
+                timing = stamps.timing(trace.t, trace.dt)
+                segment = Segment(
+                    name=f"{letter}{k}-{wave.kind}-{wave.pose}",
+                    joint=j,
+                    role=wave.role,
+                    period=trace.dt,
+                    q=trace.q,
+                    qdot=trace.qdot,
+                    command_mA=trace.command_mA,
+                    current_mA=trace.current_mA,
+                    meta={
+                        "wave": wave.label,
+                        "pose": center.tolist(),
+                        "amplitude_mA": controller.amplitude,
+                        "flips": controller.flips,
+                        "saturated_steps": summary.saturated_steps,
+                        "barrier_steps": summary.barrier_steps,
+                        "left_in": summary.left_in,
+                        "link_delay_p50_ms": None if timing is None else timing.p50_s * 1e3,
+                        "link_delay_p99_ms": None if timing is None else timing.p99_s * 1e3,
+                    },
+                    link_delay_s=None if timing is None else timing.delays_s,
                 )
+                session.segments.append(segment)
+                if recorder is not None:
+                    recorder.add(
+                        segment, center, session.arm_seconds + session.move_seconds, stamps
+                    )
                 session.arm_seconds += trace.t[-1]
                 progress.update(task, advance=wave.seconds)
         progress.update(task, detail="home")
@@ -407,6 +647,9 @@ class FitOutcome:
     nominal_quality: dict[str, Any]
     fitted_quality: dict[str, Any]
     fit_seconds: float
+    quantum_s: float = 0.0
+    # The segments as each twin was scored ("nominal", "fitted"): with their delay offsets.
+    scored: dict[str, list[Segment]] = field(default_factory=dict)
 
 
 def fit(
@@ -432,30 +675,42 @@ def fit(
     def on_iter(j: int, it: int, cost: float) -> None:
         console.print(f"  {JOINT_LETTERS[j]} iteration {it}: cost {cost:.4g}", style="dim")
 
-    params, delay, results = fit_arm(
+    arm_fit = fit_arm(
         replay,
         segments,
         nominal,
-        0.005,
         max_iter=max_iter,
         on_joint=on_joint,
         on_iteration=on_iter,
     )
-    nominal_delay = delay  # the delay is a property of the link, not of the twin
+    params = arm_fit.params
     nom_q: dict[str, Any] = {}
     fit_q: dict[str, Any] = {}
+    # Each twin is scored with the delay offsets that suit it best (one per segment, the
+    # part of the delay the timestamps do not see; tuned on the 1 s windows): a nuisance of
+    # the measurement, not a parameter of the arm, so the nominal twin gets the same chance.
+    scored: dict[str, list[Segment]] = {"nominal": [], "fitted": []}
     for role in ("fit", "validate"):
         for j in sorted({s.joint for s in segments}):
             segs = [s for s in segments if s.joint == j and s.role == role]
             if not segs:
                 continue
             key = f"{role}/{JOINT_LETTERS[j]}"
-            for label, w in (("window", window_s), ("open_loop", 0.0)):
-                nom_q.setdefault(key, {})[label] = quality(
-                    replay, nominal, nominal_delay, segs, w
-                ).as_dict()
-                fit_q.setdefault(key, {})[label] = quality(replay, params, delay, segs, w).as_dict()
-    outcome = FitOutcome(params, delay, results, nom_q, fit_q, time.monotonic() - t0)
+            for twin, p, table in (("nominal", nominal, nom_q), ("fitted", params, fit_q)):
+                ready = tune_offsets(replay, p, segs)
+                scored[twin].extend(ready)
+                for label, w in (("window", window_s), ("open_loop", 0.0)):
+                    table.setdefault(key, {})[label] = quality(replay, p, 0.0, ready, w).as_dict()
+    outcome = FitOutcome(
+        params,
+        arm_fit.delay_s,
+        arm_fit.results,
+        nom_q,
+        fit_q,
+        time.monotonic() - t0,
+        quantum_s=arm_fit.quantum_s,
+        scored=scored,
+    )
     return outcome, replay
 
 
@@ -470,6 +725,12 @@ def fit_metadata(
         f"shooting over {window_s:g} s windows; docs/identification.md",
         "parameters": params_table,
         "delay_s": outcome.delay_s,
+        "delay_note": "median of the delays the replay used (per command: measured from the "
+        "driver's timestamps plus a per-segment offset); not an arm parameter",
+        "command_step_s": outcome.quantum_s,
+        "delay_offsets_ms": {
+            seg.name: round(seg.offset_s * 1e3, 3) for seg in outcome.scored.get("fitted", [])
+        },
         "quality_fitted": outcome.fitted_quality,
         "quality_nominal": outcome.nominal_quality,
         "sigma_note": "1 sigma from sqrt(diag(s^2 (J^T J)^-1)) at the optimum; residuals are "
@@ -478,6 +739,14 @@ def fit_metadata(
         "log": None if log_path is None else str(log_path),
         "fit_seconds": outcome.fit_seconds,
     }
+
+
+def _scored(outcome: FitOutcome, twin: str, seg: Segment) -> Segment:
+    """`seg` with the delay offset it was scored with for `twin` (itself if not scored)."""
+    for x in outcome.scored.get(twin, []):
+        if x.name == seg.name:
+            return x
+    return seg
 
 
 def write_report(
@@ -503,7 +772,14 @@ def write_report(
             f"moves; fit: {outcome.fit_seconds:.0f} s CPU-bound wall time.",
             "",
         ]
-    lines += [f"Transport delay (fitted): {outcome.delay_s * 1e3:.1f} ms.", ""]
+    delays = np.concatenate([segment_delays(x) for x in outcome.scored.get("fitted", segments)])
+    lines += [
+        f"Transport delay (measured per command from the driver's timestamps, plus a "
+        f"per-segment offset): median {1e3 * float(np.median(delays)):.1f} ms, 99th percentile "
+        f"{1e3 * float(np.percentile(delays, 99)):.1f} ms; the arm takes commands every "
+        f"{outcome.quantum_s * 1e3:g} ms (chosen by the fit).",
+        "",
+    ]
     header = "| parameter | nominal | fitted | 1 sigma |"
     rule = "|---|---|---|---|"
     if truth is not None:
@@ -548,8 +824,10 @@ def write_report(
         j = seg.joint
         t = np.arange(seg.ticks + 1) * seg.period
         fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
-        nom_r = replay.simulate(nominal, outcome.delay_s, seg, window_s)
-        fit_r = replay.simulate(outcome.params, outcome.delay_s, seg, window_s)
+        nom_seg = _scored(outcome, "nominal", seg)
+        fit_seg = _scored(outcome, "fitted", seg)
+        nom_r = replay.simulate(nominal, 0.0, nom_seg, window_s)
+        fit_r = replay.simulate(outcome.params, 0.0, fit_seg, window_s)
         axes[0].plot(t, seg.q[:, j], "k", lw=1.5, label="measured")
         axes[0].plot(t, nom_r.q[:, j], "C1", lw=1, label="nominal twin")
         axes[0].plot(t, fit_r.q[:, j], "C0--", lw=1, label="fitted twin")
@@ -584,9 +862,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--port", help="the arm, as reach-driver --port takes it")
-    src.add_argument("--fit-only", type=Path, metavar="LOG.npz", help="refit a recorded log")
+    src.add_argument(
+        "--fit-only",
+        type=Path,
+        metavar="LOG",
+        help="refit a recorded excitation: its .npz log or its .rrd recording",
+    )
     p.add_argument("--out", type=Path, required=True, metavar="PARAMS.json")
     p.add_argument("--log", type=Path, metavar="LOG.npz", help="default: PARAMS.log.npz")
+    p.add_argument(
+        "--record",
+        type=Path,
+        metavar="FILE.rrd",
+        help="the excitation as a Rerun recording (default: PARAMS.rrd)",
+    )
+    p.add_argument("--no-record", action="store_true", help="write no .rrd")
     p.add_argument("--report", type=Path, metavar="DIR", help="default: PARAMS.report/")
     p.add_argument("--no-report", action="store_true")
     p.add_argument(
@@ -613,6 +903,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--window", type=float, default=DEFAULT_WINDOW_S, metavar="S")
     p.add_argument("--iterations", type=int, default=12)
     p.add_argument(
+        "--check-controller",
+        metavar="NAMES",
+        help="with --truth: run these controllers (comma-separated, e.g. pid,ddpg) on the "
+        "hidden arm, the fitted twin and the nominal twin on the same episodes and report "
+        "the energy and settling-time gaps (tools/twin_gap.py)",
+    )
+    p.add_argument("--check-episodes", type=int, default=6, metavar="N")
+    p.add_argument(
         "--truth",
         type=Path,
         metavar="PARAMS.json",
@@ -627,6 +925,7 @@ def main(argv: list[str] | None = None) -> int:
     out: Path = args.out
     log_path: Path = args.log or out.with_suffix(".log.npz")
     report_dir: Path = args.report or out.with_suffix(".report")
+    record_path: Path | None = None if args.no_record else (args.record or out.with_suffix(".rrd"))
     try:
         joints = [JOINT_LETTERS.index(x.strip().upper()) for x in args.joints.split(",")]
     except ValueError:
@@ -635,7 +934,14 @@ def main(argv: list[str] | None = None) -> int:
     truth = load_arm_params(args.truth) if args.truth else None
     session: Session | None = None
     if args.fit_only is not None:
-        segments = load_segments(args.fit_only)
+        try:
+            if args.fit_only.suffix == ".rrd":
+                segments = load_recording(args.fit_only)
+            else:
+                segments = load_segments(args.fit_only)
+        except (OSError, ValueError, KeyError) as exc:
+            console.print(f"[red]cannot read {args.fit_only}:[/] {exc}")
+            return 2
         log_path = args.fit_only
     else:
         max_current = np.array([1.0, 1.0, 1.0, 0.5]) * args.max_current
@@ -651,13 +957,34 @@ def main(argv: list[str] | None = None) -> int:
         except (DriverError, ValueError) as exc:
             console.print(f"[red]no arm:[/] {exc}")
             return 4
+        recorder: ExcitationRecorder | None = None
+        if record_path is not None:
+            try:
+                recorder = ExcitationRecorder(
+                    record_path,
+                    {"port": args.port, "rate_hz": args.rate, "scale": args.scale},
+                    console,
+                )
+            except DriverError as exc:
+                client.close()
+                console.print(f"[red]error:[/] {exc}")
+                return 2
         interrupted = False
         try:
             faults = client.blocking_faults()
             if faults:
                 console.print(f"[red]arm reports faults, not moving:[/] {faults}")
                 return 1
-            excite(client, joints, plan(args.scale), args.rate, console, session, max_current)
+            excite(
+                client,
+                joints,
+                plan(args.scale),
+                args.rate,
+                console,
+                session,
+                max_current,
+                recorder,
+            )
         except KeyboardInterrupt:
             interrupted = True
         except DriverError as exc:
@@ -671,18 +998,22 @@ def main(argv: list[str] | None = None) -> int:
                 left = f"unknown ({exc})"
             client.close()
             console.print(f"arm left in {left}")
+            header = {
+                "port": args.port,
+                "rate_hz": args.rate,
+                "scale": args.scale,
+                "arm_seconds": session.arm_seconds,
+                "move_seconds": session.move_seconds,
+                "complete": not interrupted,
+                "retries": session.retries,
+            }
             if session.segments:
-                header = {
-                    "port": args.port,
-                    "rate_hz": args.rate,
-                    "scale": args.scale,
-                    "arm_seconds": session.arm_seconds,
-                    "move_seconds": session.move_seconds,
-                    "complete": not interrupted,
-                    "retries": session.retries,
-                }
                 save_segments(session.segments, log_path, header)
                 console.print(f"log {log_path} ({len(session.segments)} segments)")
+            if recorder is not None:
+                recorder.close(header)
+                if recorder.failed is None:
+                    console.print(f"recording {record_path} ({recorder.step} steps)")
         if interrupted:
             return 130
         segments = session.segments
@@ -699,10 +1030,54 @@ def main(argv: list[str] | None = None) -> int:
             f"{key}: R^2 {q['window']['r2']:.4f} RMS {q['window']['rms_mrad']:.2f} mrad "
             f"(nominal twin {nom['r2']:.4f}, {nom['rms_mrad']:.2f} mrad)"
         )
+    gap_text = None
+    if args.check_controller:
+        if truth is None:
+            console.print("[red]error:[/] --check-controller needs --truth (the hidden arm)")
+            return 2
+        gap_text, gap_summary = check_controllers(
+            args.check_controller.split(","), truth, outcome.params, args.check_episodes, console
+        )
+        meta["controller_gap"] = gap_summary
+        save_arm_params(outcome.params, out, extra={"_fit": meta})
     if not args.no_report:
         path = write_report(outcome, replay, segments, report_dir, args.window, session, truth)
+        if gap_text is not None:
+            with path.open("a", encoding="utf-8") as f:
+                f.write("\n" + gap_text)
         console.print(f"report {path}")
     return 0
+
+
+def check_controllers(
+    names: Sequence[str], truth: ArmParams, fitted: ArmParams, episodes: int, console: Console
+) -> tuple[str, list[dict[str, Any]]]:
+    """tools/twin_gap.py on the fit: its markdown and per-controller summary."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "twin_gap", Path(__file__).resolve().parent / "twin_gap.py"
+    )
+    if spec is None or spec.loader is None:
+        raise RuntimeError("tools/twin_gap.py not found beside identify.py")
+    gap = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = gap
+    spec.loader.exec_module(gap)
+    from policy.evaluation import random_episodes
+
+    gaps = gap.measure_gap(
+        [n.strip() for n in names if n.strip()], truth, fitted, random_episodes(episodes, 0)
+    )
+    for g in gaps:
+        f, n = g.summary()["fitted"], g.summary()["nominal"]
+        console.print(
+            f"{g.controller}: energy error fitted {100 * f['energy_error_max']:.2f} % "
+            f"(nominal {100 * n['energy_error_max']:.2f} %), settling error fitted "
+            f"{f['settling_error_max_s']:.3f} s (nominal {n['settling_error_max_s']:.3f} s), "
+            f"worst of {len(g.episodes)} episodes; targets "
+            f"{'met' if f['meets_targets'] else 'NOT met'}"
+        )
+    return gap.markdown(gaps), [g.summary() for g in gaps]
 
 
 if __name__ == "__main__":
