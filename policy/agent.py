@@ -108,10 +108,14 @@ class Agent:
             # the Q term is made scale-free so bc_weight means the same all run
             lam = cfg.q_weight / q_pi.abs().mean().detach().clamp(min=1e-6)
             expert = torch.from_numpy(batch["expert"])
+            # rows without a label (NaN: the demonstrator is no teacher there) add no BC
+            labelled = ~torch.isnan(expert).any(dim=1, keepdim=True)
+            expert = torch.nan_to_num(expert)
             diff = pi - expert
             if cfg.bc_relative > 0:
                 diff = diff / (expert.abs() + cfg.bc_relative)
-            bc = (diff**2).mean()
+            diff = diff * labelled
+            bc = (diff**2).sum() / (labelled.sum().clamp(min=1) * diff.shape[1])
             actor_loss = -lam * q_pi.mean() + bc_weight * bc
             info["bc_loss"] = float(bc.detach())
         else:

@@ -38,11 +38,13 @@ def eval_envs(
     arm_factory: Any = None,
     param_perturbation: float = 0.0,
     training_workspace: bool = False,
+    envelope: bool = False,
 ) -> list[ReachAlphaEnv]:
     """Envs for `evaluate_batched`: sensor noise on, the whole evaluation workspace (even when
     the run trains on a wider one, so scores stay comparable across runs; `training_workspace`
     keeps the run's own), the nominal model unless `param_perturbation` > 0 (each episode's
-    arm then drawn by `ArmParams.randomized`)."""
+    arm then drawn by `ArmParams.randomized`) or `envelope` (each episode's arm drawn from the
+    uncertainty envelope, fixed by the episode's seed: `EnvConfig.envelope_fraction` 1)."""
     cfg = dataclasses.replace(
         env_config,
         torque_scale_low=None,
@@ -52,6 +54,7 @@ def eval_envs(
         workspace_high=env_config.workspace_high if training_workspace else None,
         param_perturbation=param_perturbation,
         torque_scale=torque_scale or (1.0, 1.0, 1.0, 1.0),
+        envelope_fraction=1.0 if envelope else 0.0,
     )
     envs = [ReachAlphaEnv(cfg, arm_factory=arm_factory) for _ in range(episodes)]
     for env in envs:
@@ -73,6 +76,8 @@ class EvalResult:
     steady_error: float  # MSSE: mean |e| over the last 2 s (rad)
     mie: float
     energy_j: float
+    at_rest_fraction: float = 1.0  # docs/metrics.md "Rest"; reached implies at rest
+    overshoot_max_pct: float = 0.0  # worst episode's overshoot
 
     @classmethod
     def of(cls, results: Sequence[EpisodeResult]) -> EvalResult:
@@ -90,6 +95,8 @@ class EvalResult:
             steady_error=summary["msse"],
             mie=summary["mie"],
             energy_j=summary["energy_j"],
+            at_rest_fraction=float(np.mean([r.metrics.at_rest for r in results])),
+            overshoot_max_pct=float(max(r.metrics.overshoot_pct for r in results)),
         )
 
     def score(self, energy_weight: float = 0.0) -> float:

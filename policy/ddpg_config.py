@@ -23,11 +23,16 @@ DEMO_SEED_OFFSET = 500_000
 #: checkpoint evaluation sets, seeded from `eval_seed` plus these
 WEAK_EVAL_SEED_OFFSET = 5_000
 WIDE_EVAL_SEED_OFFSET = 7_000
+ENVELOPE_EVAL_SEED_OFFSET = 9_000
 WEAK_EVAL_TORQUE_SCALE = (0.25, 1.0, 1.0, 1.0)  # E at 25 %: the paper's scenario 3
 MIN_SIDE_EVAL_EPISODES = 4
 #: the weak and wide sets add reached fraction x this, minus overshoot (%) x the other
 SIDE_REACHED_WEIGHT = 0.5
 SIDE_OVERSHOOT_WEIGHT = 0.005
+#: the envelope set (`eval_envelope_episodes`) adds reached fraction (reached includes at
+#: rest, docs/metrics.md) x this, minus overshoot (%) x SIDE_OVERSHOOT_WEIGHT: reaching every
+#: envelope arm outweighs the nominal set's finer differences
+ENVELOPE_REACHED_WEIGHT = 2.0
 #: rad: the curriculum's widest step (E's workspace span, 5.8 - 0.4)
 CURRICULUM_MAX_STEP = 5.4
 
@@ -105,6 +110,12 @@ class DDPGConfig:
     q_weight: float = 1.0
     #: the demonstrator's energy weight (`PDExpert.energy_lambda`, N m/s); None: the plain PD
     expert_energy_lambda: float | None = None
+    #: the demonstrator's gains (`PDExpert.kp` 1/rad, `.kd` s/rad, E D C B); None: its
+    #: defaults (8, 8, 8, 4) / (0.4, 0.4, 0.4, 0.1), tuned on the nominal arm. A softer
+    #: velocity loop (smaller kd, same kp / kd) limit-cycles on fewer latent arms
+    #: (docs/training.md "Robust fine-tune")
+    expert_kp: tuple[float, float, float, float] | None = None
+    expert_kd: tuple[float, float, float, float] | None = None
     #: start the actor (and its target) from these weights (.npz, the shipped format):
     #: fine-tuning a shipped policy towards a new demonstrator or reward
     init_actor: str | None = None
@@ -121,6 +132,53 @@ class DDPGConfig:
     eval_seed: int = 10_000
     #: subtracted from the evaluation score per joule of mean episode energy (0: ignored)
     score_energy_weight: float = 0.0
+    #: > 0: every checkpoint is also scored on this many fixed arms drawn from the uncertainty
+    #: envelope (`policy.envelope`, one episode each, seeded from eval_seed +
+    #: ENVELOPE_EVAL_SEED_OFFSET), weighted by ENVELOPE_REACHED_WEIGHT
+    eval_envelope_episodes: int = 0
+    #: demonstrator's labels only where it is a good teacher: on episodes whose control latency
+    #: exceeds this many periods the BC term is off (the PD on the true state limit-cycles
+    #: there, docs/training.md "Robust fine-tune"); None: BC everywhere
+    bc_max_latency: float | None = None
+
+    @classmethod
+    def robust(cls, **overrides: Any) -> DDPGConfig:
+        """Fine-tune of the shipped actor for the uncertainty envelope (issue 16): half the
+        episodes on envelope arms (friction, masses, weak joint, noise, latency), a penalty on
+        sign-flipping commands at the goal, a demonstrator with a softer velocity loop, BC only
+        where it is a good teacher (latency up to 1.5 periods), and a checkpoint screen on
+        envelope arms. The rest is the shipped actor's last stage (`fine-s10`)."""
+        base = cls.ours()
+        env = dataclasses.replace(
+            base.env,
+            reward=dataclasses.replace(base.env.reward, sign_flip_weight=2.0),
+            param_perturbation=0.2,
+            workspace_high=(5.8, 2.9, 2.9, 5.8),
+            envelope_fraction=0.5,
+        )
+        tuned = dataclasses.replace(
+            base,
+            name="robust",
+            env=env,
+            init_actor="policy/weights/ddpg_actor.npz",
+            total_steps=250_000,
+            expert_energy_lambda=6.0,
+            expert_kp=(3.0, 3.0, 3.0, 1.5),
+            expert_kd=(0.15, 0.15, 0.15, 0.04),
+            bc_weight=1.0,
+            bc_weight_final=1.0,
+            bc_relative=0.03,
+            q_weight=0.2,
+            actor_lr=1e-4,
+            eps_start=0.15,
+            eps_end=0.05,
+            eps_steps=100_000,
+            score_energy_weight=0.02,
+            eval_every=50_000,
+            eval_envelope_episodes=40,
+            bc_max_latency=1.5,
+        )
+        return dataclasses.replace(tuned, **overrides)
 
     @classmethod
     def paper(cls, **overrides: Any) -> DDPGConfig:
@@ -171,7 +229,11 @@ class DDPGConfig:
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> DDPGConfig:
-        presets: dict[str, Callable[..., DDPGConfig]] = {"paper": cls.paper, "ours": cls.ours}
+        presets: dict[str, Callable[..., DDPGConfig]] = {
+            "paper": cls.paper,
+            "ours": cls.ours,
+            "robust": cls.robust,
+        }
         if name not in presets:
             raise ValueError(f"unknown config {name!r}; choose from {sorted(presets)}")
         return presets[name](**overrides)
@@ -190,4 +252,7 @@ class DDPGConfig:
         data["env"] = EnvConfig.from_dict(data.get("env", {}))
         if "hidden" in data:
             data["hidden"] = tuple(data["hidden"])
+        for key in ("expert_kp", "expert_kd"):
+            if data.get(key) is not None:
+                data[key] = tuple(float(x) for x in data[key])
         return cls(**data)

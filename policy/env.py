@@ -13,6 +13,7 @@ the env: `time_limited(env)` wraps an env built directly the same way.
 from __future__ import annotations
 
 import dataclasses
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
@@ -23,6 +24,7 @@ import numpy as np
 from gymnasium.wrappers import TimeLimit
 
 from policy.arm import ArmLike
+from policy.envelope import Envelope, Variant, draws
 from policy.observation import (
     WORKSPACE_HALF_RANGE,
     WORKSPACE_HIGH,
@@ -63,6 +65,13 @@ class RewardConfig:
     near_scale: float = 0.05  # rad: width of the gate that switches on the penalties below
     velocity_weight: float = 0.0  # x mean gate * |qdot| / no-load speed
     action_change_weight: float = 0.0  # x mean gate * |a - a_prev|
+    #: x mean gate * [the command reversed its sign, both it and the previous one above
+    #: `sign_flip_threshold`]: the bang-bang of a limit cycle at the goal (docs/chatter.md),
+    #: counted as the rest metric counts `command_reversals` (docs/metrics.md)
+    sign_flip_weight: float = 0.0
+    #: fraction of the current limit both commands must exceed for a reversal to count
+    #: (the rest metric's 10 %)
+    sign_flip_threshold: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -91,6 +100,26 @@ class EnvConfig:
     #: workspace, e.g. B over most of its turn for the paper's scenarios (B up to 5.65 rad)
     workspace_low: tuple[float, float, float, float] | None = None
     workspace_high: tuple[float, float, float, float] | None = None
+    #: control latency in control periods: the action computed from the state at t takes
+    #: effect at t + latency, rounded to physics steps (the previous one stays in force until
+    #: then), as `policy.direct` emulates `RunConfig.latency_periods`
+    latency_periods: float = 0.0
+    #: multiple of the sensor noise's sigmas (with `sensor_noise`)
+    noise_scale: float = 1.0
+    #: share of episodes whose arm is drawn from the uncertainty envelope
+    #: (`policy.envelope.draws`, its default ranges around the nominal arm): parameters, weak
+    #: joint's torque scale, noise multiple and latency all come from the draw and replace
+    #: `param_perturbation`, `torque_scale(_low)`, `noise_scale` and `latency_periods` for
+    #: that episode; 0 disables, 1 trains on envelope arms only
+    envelope_fraction: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.envelope_fraction <= 1.0:
+            raise ValueError(f"envelope_fraction must be in [0, 1], got {self.envelope_fraction}")
+        if not 0.0 <= self.latency_periods <= 10.0:
+            raise ValueError(f"latency_periods must be in [0, 10], got {self.latency_periods}")
+        if not self.noise_scale >= 0.0:
+            raise ValueError(f"noise_scale must be >= 0, got {self.noise_scale}")
 
     def workspace(self) -> tuple[np.ndarray, np.ndarray]:
         """(low, high) of the episodes' starts and goals, rad, E D C B."""
@@ -128,7 +157,22 @@ class EnvConfig:
 
 
 #: the terms of `reward_terms`, in the order they are summed
-REWARD_TERMS = ("precision", "distance", "velocity", "action_change", "out_of_bounds")
+REWARD_TERMS = (
+    "precision",
+    "distance",
+    "velocity",
+    "action_change",
+    "sign_flip",
+    "out_of_bounds",
+)
+
+
+def sign_flips(action: np.ndarray, prev_action: np.ndarray, threshold: float) -> np.ndarray:
+    """Per joint 1.0 where the command reversed its sign with both it and the previous one
+    above `threshold` (fraction of the current limit), else 0.0."""
+    big = (np.abs(action) > threshold) & (np.abs(prev_action) > threshold)
+    out: np.ndarray = (big & (np.sign(action) != np.sign(prev_action))).astype(np.float64)
+    return out
 
 
 def reward_terms(
@@ -163,6 +207,9 @@ def reward_terms(
     terms["action_change"] = -float(
         config.action_change_weight * np.mean(gate * np.abs(action - prev_action))
     )
+    if config.sign_flip_weight:
+        flips = sign_flips(action, prev_action, config.sign_flip_threshold)
+        terms["sign_flip"] = -float(config.sign_flip_weight * np.mean(gate * flips))
     return terms
 
 
@@ -232,11 +279,21 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
     | `distance`      | 0                                    | -w_d mean_j abs(e_j) / half-range_j |
     | `velocity`      | 0                                    | -w_v mean_j g_j abs(qdot_j) / v0_j  |
     | `action_change` | 0                                    | -w_a mean_j g_j abs(a_j - a_prev_j) |
+    | `sign_flip`     | 0                                    | -w_f mean_j g_j flip_j              |
     | `out_of_bounds` | -10, alone, on a step ending with a joint outside the bounds (both)       |
 
     sigma 0.018 rad; gate g_j = exp(-0.5 (e_j / near_scale)^2) (calm arrival is asked for
-    near the goal only); v0_j the joint's no-load speed; bounds: the workspace widened by
+    near the goal only); v0_j the joint's no-load speed; flip_j 1 when the command a_j
+    reversed the sign of a_prev_j with both above `sign_flip_threshold` (10 % of the limit,
+    as the rest metric counts reversals), else 0; bounds: the workspace widened by
     `bounds_margin` (0.3 rad), within the joint limits.
+
+    ## Latency
+
+    With `latency_periods` L (or an envelope arm's), the action computed from the
+    observation at t is applied from t + L (rounded to physics steps of 2 ms) and the
+    previous one stays in force until then, exactly as `policy.direct` runs
+    `RunConfig.latency_periods`: the observation is the state the action was computed from.
 
     ## Starting state
 
@@ -244,8 +301,11 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
     C [0.5, 2.9], B [0.5, 2.8] rad, or `workspace_low` / `workspace_high`), the goal drawn in
     the same range (or within `max_step` of q0). Per episode, if configured: each joint's
     torque scale uniform in [`torque_scale_low`, `torque_scale`], the arm's parameters scaled
-    by U(1 +- `param_perturbation`). `reset(options=...)` may fix "start", "target",
-    "torque_scale".
+    by U(1 +- `param_perturbation`). With `envelope_fraction` > 0, that share of episodes
+    runs on an arm drawn from `policy.envelope` instead (`draws(1, seed)` with a seed from
+    the env's generator: friction, armature, masses, buoyancy, one weak joint, noise multiple,
+    latency; infeasible arms are redrawn); `info["variant"]` names it. `reset(options=...)`
+    may fix "start", "target", "torque_scale", and "variant" (a `policy.envelope.Variant`).
 
     ## Episode end
 
@@ -260,7 +320,8 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
 
     ## Info
 
-    `q`, `qdot` (true, rad, rad/s), `target` (rad), `time` (s since reset), `in_bounds`;
+    `q`, `qdot` (true, rad, rad/s), `target` (rad), `time` (s since reset), `in_bounds`,
+    `variant` (the envelope arm's name, or None);
     from `step` also `reward_terms`, and `power` (W per joint) when `measure_power` is set.
     """
 
@@ -300,6 +361,13 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         self.prev_action = np.zeros(N_JOINTS)
         self.steps = 0
         self.last_reading = (self.start.copy(), np.zeros(N_JOINTS))
+        #: this episode's envelope arm (None: the configured arm) and what it sets
+        self.variant: Variant | None = None
+        self.latency_substeps = self._latency(config.latency_periods)
+        self.noise = self._noise(config.noise_scale)
+        #: commands in flight: (physics step they take effect at, currents mA)
+        self._pending: deque[tuple[int, np.ndarray]] = deque()
+        self._applied = np.zeros(N_JOINTS)
 
     # -- gymnasium API -------------------------------------------------------------------
     def reset(
@@ -309,11 +377,21 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         super().reset(seed=seed)
         options = options or {}
         cfg = self.config
-        if cfg.param_perturbation > 0:
+        variant: Variant | None = options.get("variant")
+        if variant is None and cfg.envelope_fraction > 0:
+            if self.np_random.uniform() < cfg.envelope_fraction:
+                variant = self.draw_variant()
+        if variant is not None:
+            if self._nominal_params is None:
+                raise ValueError("envelope arms need an arm with params / set_params")
+            self.arm.set_params(variant.params)  # type: ignore[attr-defined]
+        elif cfg.param_perturbation > 0:
             if self._nominal_params is None:
                 raise ValueError("param_perturbation needs an arm with params / set_params")
             perturbed = self._nominal_params.randomized(self.np_random, cfg.param_perturbation)
             self.arm.set_params(perturbed)  # type: ignore[attr-defined]
+        elif self.variant is not None:  # back to the nominal arm after an envelope one
+            self.arm.set_params(self._nominal_params)  # type: ignore[attr-defined]
         low, high = self.workspace_low, self.workspace_high
         start = self.np_random.uniform(low, high)
         target = self.np_random.uniform(low, high)
@@ -327,12 +405,21 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
             start = self._joint_vector(options["start"], "start")
         if "target" in options:
             target = self._joint_vector(options["target"], "target")
+        if variant is not None:
+            scale = np.asarray(variant.torque_scale, dtype=np.float64)
         if "torque_scale" in options:
             scale = self._joint_vector(options["torque_scale"], "torque_scale")
+        self.variant = variant
+        latency = cfg.latency_periods if variant is None else variant.latency_periods
+        noise_scale = cfg.noise_scale if variant is None else variant.noise_scale
+        self.latency_substeps = self._latency(latency)
+        self.noise = self._noise(noise_scale)
         self.start, self.target = start, target
         self.arm.torque_scale = scale.copy()
         self.arm.reset(q=start.copy())
         self.prev_action = np.zeros(N_JOINTS)
+        self._pending.clear()
+        self._applied = np.zeros(N_JOINTS)
         self.steps = 0
         return self._observe(), self._info(in_bounds=True)
 
@@ -344,16 +431,7 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
             raise ValueError(f"action must be finite, got {action}")
         action = np.clip(action, -1.0, 1.0)
         currents = action * self.current_limits_mA
-        power = None
-        if self.measure_power:
-            # one physics step at a time, |tau qdot| at the physics rate (as the direct backend)
-            work = np.zeros(N_JOINTS)
-            for _ in range(self.n_substeps):
-                self.arm.step(currents, n=1)
-                work += np.abs(self.arm.tau * self.arm.qdot)
-            power = work / self.n_substeps
-        else:
-            self.arm.step(currents, n=self.n_substeps)
+        power = self._advance(currents)
         self.steps += 1
         q, qdot = np.asarray(self.arm.q), np.asarray(self.arm.qdot)
         in_bounds = bool(np.all((q > self.bounds_low) & (q < self.bounds_high)))
@@ -369,12 +447,49 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         return self._observe(), float(sum(terms.values())), False, False, info
 
     # -- helpers -------------------------------------------------------------------------
+    def draw_variant(self) -> Variant:
+        """A feasible arm of the envelope around the nominal one, from the env's generator."""
+        seed = int(self.np_random.integers(0, 2**31 - 1))
+        return draws(1, seed, Envelope(), self._nominal_params).variants[0]
+
+    def _latency(self, periods: float) -> int:
+        return int(round(periods * self.n_substeps))
+
+    @staticmethod
+    def _noise(scale: float) -> SensorNoise:
+        return SensorNoise(SENSOR_NOISE.position_std * scale, SENSOR_NOISE.velocity_std * scale)
+
+    def _advance(self, currents: np.ndarray) -> np.ndarray | None:
+        """One control period of physics: `currents` join the commands in flight and each
+        takes effect `latency_substeps` physics steps after the state it was computed from
+        (as `policy.direct`). Returns the period's mean |tau qdot| with `measure_power`."""
+        n = self.n_substeps
+        k0 = self.steps * n
+        self._pending.append((k0 + self.latency_substeps, currents))
+        work = np.zeros(N_JOINTS) if self.measure_power else None
+        i = 0
+        while i < n:
+            while self._pending and self._pending[0][0] <= k0 + i:
+                self._applied = self._pending.popleft()[1]
+            # hold the applied command up to the next switch (at most one per period)
+            until = n if not self._pending else min(n, self._pending[0][0] - k0)
+            if work is not None:
+                # one physics step at a time, |tau qdot| at the physics rate (as `direct`)
+                for _ in range(until - i):
+                    self.arm.step(self._applied, n=1)
+                    work += np.abs(self.arm.tau * self.arm.qdot)
+            else:
+                self.arm.step(self._applied, n=until - i)
+            i = until
+        return None if work is None else work / n
+
     def readings(self) -> tuple[np.ndarray, np.ndarray]:
-        """Joint angles and speeds as a sensor reports them (with noise if configured)."""
+        """Joint angles and speeds as a sensor reports them (with noise if configured, times
+        the episode's noise multiple)."""
         q = np.array(self.arm.q, dtype=np.float64)
         qdot = np.array(self.arm.qdot, dtype=np.float64)
         if self.config.sensor_noise:
-            q, qdot = SENSOR_NOISE.apply(q, qdot, self.np_random)
+            q, qdot = self.noise.apply(q, qdot, self.np_random)
         return q, qdot
 
     def _observe(self) -> np.ndarray:
@@ -390,6 +505,7 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
             "target": self.target.copy(),
             "time": self.steps * self.control_dt,
             "in_bounds": in_bounds,
+            "variant": None if self.variant is None else self.variant.name,
         }
 
     @staticmethod

@@ -18,8 +18,10 @@ import numpy as np
 
 from policy.batched import eval_envs
 from policy.campaign import run_on_ray
-from policy.env import EnvConfig
-from policy.rollout import Episode, EpisodeResult, score
+from policy.env import SENSOR_NOISE, EnvConfig
+from policy.envelope import Variant, draws
+from policy.evaluation import evaluate
+from policy.rollout import Episode, EpisodeResult, RunConfig, random_episodes, score
 from policy.scenarios import SCENARIOS, TABLE_KEYS, wins
 from policy.weights import ActorWeights
 from protocol.alpha5 import N_JOINTS
@@ -128,6 +130,48 @@ def restless_episodes(
     """Screen episodes that do not come to rest (`Metrics.at_rest`, docs/metrics.md "Rest")."""
     metrics = screen(path, episodes, seed, perturb, factory, workers, address)
     return [i for i, m in enumerate(metrics) if not m.at_rest]
+
+
+#: envelope evaluation: arm i runs episode i of `random_episodes(n, episode_seed)` with sensor
+#: noise seed ENVELOPE_NOISE_SEED + i (times its noise multiple)
+ENVELOPE_NOISE_SEED = 16_000
+
+
+def envelope_results(
+    controller: Any, n: int, seed: int, episode_seed: int
+) -> list[tuple[Variant, EpisodeResult]]:
+    """`controller` on `n` arms drawn from the envelope (`policy.envelope.draws(n, seed)`),
+    each with one episode, noise on, through `policy.evaluation.evaluate` (the direct
+    backend, which emulates the arm's latency)."""
+    variants = draws(n, seed).variants
+    episodes = random_episodes(n, episode_seed)
+    out = []
+    for i, (variant, episode) in enumerate(zip(variants, episodes, strict=True)):
+        base = RunConfig(noise=SENSOR_NOISE, seed=ENVELOPE_NOISE_SEED + i)
+        result = evaluate(controller, [variant.episode(episode)], variant.run_config(base))
+        out.append((variant, result.results[0]))
+    return out
+
+
+def envelope_summary(results: Sequence[tuple[Variant, EpisodeResult]]) -> dict[str, Any]:
+    """Counts and worst cases over `envelope_results` (the arms that failed, by name)."""
+    metrics = [r.metrics for _, r in results]
+    overshoot = np.array([m.overshoot_pct for m in metrics])
+    return {
+        "arms": len(metrics),
+        "reached": int(sum(m.reached for m in metrics)),
+        "at_rest": int(sum(m.at_rest for m in metrics)),
+        "overshoot_mean_pct": float(overshoot.mean()),
+        "overshoot_max_pct": float(overshoot.max()),
+        "overshoot_over_2pct": int(np.sum(overshoot > 2.0)),
+        "settling_mean_s": float(np.mean([m.settling_time_s for m in metrics])),
+        "energy_mean_j": float(np.mean([m.energy_j for m in metrics])),
+        "failed": [
+            {"arm": i, **v.to_dict(), "at_rest": r.metrics.at_rest}
+            for i, (v, r) in enumerate(results)
+            if not r.metrics.reached
+        ],
+    }
 
 
 def choose(rows: list[dict[str, Any]], reference: dict[str, float]) -> dict[str, Any] | None:

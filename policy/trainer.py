@@ -22,11 +22,13 @@ import numpy as np
 import torch
 
 from policy.agent import Agent
-from policy.batched import Expert, eval_envs, evaluate_batched
+from policy.batched import EvalResult, Expert, eval_envs, evaluate_batched
 from policy.ddpg_config import (
     CURRICULUM_MAX_STEP,
     DEMO_SEED_OFFSET,
     ENV_SEED_STRIDE,
+    ENVELOPE_EVAL_SEED_OFFSET,
+    ENVELOPE_REACHED_WEIGHT,
     MIN_SIDE_EVAL_EPISODES,
     SIDE_OVERSHOOT_WEIGHT,
     SIDE_REACHED_WEIGHT,
@@ -45,11 +47,21 @@ from policy.weights import save_actor_npz
 from protocol.alpha5 import N_JOINTS
 
 
+def _side_score(result: EvalResult, reached_weight: float) -> float:
+    """What a side set adds to the checkpoint score: reaching, less its overshoot."""
+    return reached_weight * result.reached_fraction - SIDE_OVERSHOOT_WEIGHT * result.overshoot_pct
+
+
 def make_expert(config: DDPGConfig) -> Expert | None:
     """The demonstrator a run needs (None without demonstrations or BC)."""
     if config.bc_weight <= 0 and config.demo_episodes <= 0:
         return None
-    return PDExpert(energy_lambda=config.expert_energy_lambda)
+    gains: dict[str, Any] = {}
+    if config.expert_kp is not None:
+        gains["kp"] = config.expert_kp
+    if config.expert_kd is not None:
+        gains["kd"] = config.expert_kd
+    return PDExpert(energy_lambda=config.expert_energy_lambda, **gains)
 
 
 @dataclass
@@ -127,6 +139,13 @@ class Trainer:
             if wide
             else []
         )
+        #: fixed arms of the uncertainty envelope (one per episode, fixed by its seed): the
+        #: screen that keeps an actor that chatters on a latent arm from being the best
+        self.eval_envelope = (
+            eval_envs(config.env, config.eval_envelope_episodes, None, arm_factory, envelope=True)
+            if config.eval_envelope_episodes > 0
+            else []
+        )
         self.state = TrainState()
         self.best_actor = copy.deepcopy(self.agent.actor.state_dict())
         self._obs: np.ndarray | None = None
@@ -168,7 +187,17 @@ class Trainer:
     def _expert_actions(self) -> np.ndarray:
         if self.expert is None:
             return np.zeros((len(self.envs), N_JOINTS), np.float32)
-        return np.stack([self.expert(env) for env in self.envs]).astype(np.float32)
+        return np.stack([self._label(env) for env in self.envs]).astype(np.float32)
+
+    def _label(self, env: ReachAlphaEnv) -> np.ndarray:
+        """The expert's action for `env`'s state; NaN (no BC) where `bc_max_latency` says the
+        demonstrator is no teacher."""
+        assert self.expert is not None
+        action = np.asarray(self.expert(env), dtype=np.float64)
+        limit = self.config.bc_max_latency
+        if limit is not None and env.latency_substeps > limit * env.n_substeps:
+            return np.full(N_JOINTS, np.nan)
+        return action
 
     # -- demonstrations --------------------------------------------------------------------
     def collect_demonstrations(self) -> None:
@@ -182,6 +211,7 @@ class Trainer:
             done = False
             while not done:
                 a = self.expert(env).astype(np.float32)
+                label = self._label(env).astype(np.float32)
                 next_obs, r, term, trunc, _ = timed.step(a)
                 self.demos.add(
                     obs[None],
@@ -189,7 +219,7 @@ class Trainer:
                     np.array([r]),
                     next_obs[None],
                     np.array([float(term)]),
-                    a[None],
+                    label[None],
                 )
                 obs, done = next_obs, term or trunc
             if self.demo_progress is not None:
@@ -293,21 +323,9 @@ class Trainer:
 
     def evaluate_and_keep_best(self) -> dict[str, Any]:
         cfg = self.config
-        nominal = evaluate_batched(
-            self.agent.act, cfg.env, cfg.eval_episodes, cfg.eval_seed, envs=self.eval_nominal
-        )
-        weak = evaluate_batched(
-            self.agent.act,
-            cfg.env,
-            len(self.eval_weak),
-            cfg.eval_seed + WEAK_EVAL_SEED_OFFSET,
-            envs=self.eval_weak,
-        )
-        score = (
-            nominal.score(cfg.score_energy_weight)
-            + SIDE_REACHED_WEIGHT * weak.reached_fraction
-            - SIDE_OVERSHOOT_WEIGHT * weak.overshoot_pct
-        )
+        nominal = self._side(self.eval_nominal, 0)
+        weak = self._side(self.eval_weak, WEAK_EVAL_SEED_OFFSET)
+        score = nominal.score(cfg.score_energy_weight) + _side_score(weak, SIDE_REACHED_WEIGHT)
         record: dict[str, Any] = {
             "env_steps": self.state.env_steps,
             "wall_s": round(self.state.wall_s, 1),
@@ -316,24 +334,23 @@ class Trainer:
             "torque_e_25pct": weak.to_dict(),
         }
         wide_note = ""
-        if self.eval_wide:
-            wide = evaluate_batched(
-                self.agent.act,
-                cfg.env,
-                len(self.eval_wide),
-                cfg.eval_seed + WIDE_EVAL_SEED_OFFSET,
-                envs=self.eval_wide,
+        sides = (
+            ("envelope", self.eval_envelope, ENVELOPE_EVAL_SEED_OFFSET, ENVELOPE_REACHED_WEIGHT),
+            ("training_workspace", self.eval_wide, WIDE_EVAL_SEED_OFFSET, SIDE_REACHED_WEIGHT),
+        )
+        for key, envs, offset, weight in sides:
+            if not envs:
+                continue
+            side = self._side(envs, offset)
+            score += _side_score(side, weight)
+            record[key] = side.to_dict()
+            wide_note += (
+                f" | {'wide' if key == 'training_workspace' else key}: reached "
+                f"{side.reached_fraction:.3f} rest {side.at_rest_fraction:.3f} "
+                f"final {side.final_error:.4f} OS {side.overshoot_pct:.2f}% "
+                f"max {side.overshoot_max_pct:.1f}%"
             )
-            score += (
-                SIDE_REACHED_WEIGHT * wide.reached_fraction
-                - SIDE_OVERSHOOT_WEIGHT * wide.overshoot_pct
-            )
-            record["score"] = score
-            record["training_workspace"] = wide.to_dict()
-            wide_note = (
-                f" | wide: reached {wide.reached_fraction:.2f} "
-                f"final {wide.final_error:.4f} OS {wide.overshoot_pct:.2f}%"
-            )
+        record["score"] = score
         self.state.history.append(record)
         if score > self.state.best_score:
             self.state.best_score = score
@@ -351,6 +368,13 @@ class Trainer:
             f"OS {weak.overshoot_pct:.2f}%{wide_note}" + (" *best*" if record.get("best") else "")
         )
         return record
+
+    def _side(self, envs: list[ReachAlphaEnv], seed_offset: int) -> EvalResult:
+        """The actor on one fixed checkpoint set (envs from `eval_envs`)."""
+        cfg = self.config
+        return evaluate_batched(
+            self.agent.act, cfg.env, len(envs), cfg.eval_seed + seed_offset, envs=envs
+        )
 
     def export_best(self, path: Path, record: dict[str, Any]) -> None:
         actor = Actor(self.obs_dim, N_JOINTS, self.config.hidden)

@@ -440,3 +440,87 @@ def test_reference_integral_removes_the_steady_error_friction_leaves() -> None:
     assert shipped["reached"] == pure["reached"] == 1.0
     assert shipped["msse"] < 0.6 * pure["msse"]  # the bias near the goal goes
     assert shipped["rmse"] <= pure["rmse"] * 1.01  # and the approach is the policy's own
+
+
+def test_robust_preset_screens_envelope_arms_and_masks_bc_on_latent_ones(tmp_path: Path) -> None:
+    cfg = DDPGConfig.robust()
+    assert cfg.env.envelope_fraction == 0.5 and cfg.env.reward.sign_flip_weight > 0
+    assert cfg.init_actor == "policy/weights/ddpg_actor.npz"
+    assert DDPGConfig.from_dict(cfg.to_dict()) == cfg
+    small = tiny(
+        cfg,
+        num_envs=2,
+        demo_episodes=1,
+        batch_size=64,
+        eval_episodes=2,
+        eval_envelope_episodes=3,
+        init_actor=None,
+        env=dataclasses.replace(cfg.env, episode_s=1.0, envelope_fraction=1.0),
+    )
+    trainer = Trainer(small, tmp_path, expert=PDExpert(), log=lambda _: None)
+    assert len(trainer.eval_envelope) == 3
+    assert all(env.config.envelope_fraction == 1.0 for env in trainer.eval_envelope)
+    assert trainer.eval_nominal[0].config.envelope_fraction == 0.0  # the nominal set stays
+    # no BC label on an arm slower than bc_max_latency; the expert's label elsewhere
+    env = trainer.envs[0]
+    env.reset(seed=0)
+    assert small.bc_max_latency == 1.5
+    env.latency_substeps = 2 * env.n_substeps  # two periods
+    assert np.all(np.isnan(trainer._label(env)))
+    env.latency_substeps = env.n_substeps
+    np.testing.assert_array_equal(trainer._label(env), PDExpert()(env))
+    assert make_expert(cfg) == PDExpert(kp=cfg.expert_kp, kd=cfg.expert_kd, energy_lambda=6.0)
+    trainer.run()
+    record = trainer.evaluate_and_keep_best()
+    assert set(record["envelope"]) >= {"reached_fraction", "at_rest_fraction"}
+
+
+def test_bc_ignores_unlabelled_rows() -> None:
+    from policy.agent import Agent
+
+    cfg = dataclasses.replace(DDPGConfig.ours(), policy_delay=1, batch_size=4)
+    rng = np.random.default_rng(0)
+    batch = {
+        "obs": rng.normal(size=(4, 20)).astype(np.float32),
+        "act": rng.uniform(-1, 1, size=(4, 4)).astype(np.float32),
+        "rew": np.zeros((4, 1), np.float32),
+        "next_obs": rng.normal(size=(4, 20)).astype(np.float32),
+        "term": np.zeros((4, 1), np.float32),
+        "expert": rng.uniform(-1, 1, size=(4, 4)).astype(np.float32),
+    }
+    batch["expert"][2:] = np.nan  # the demonstrator is no teacher on these rows
+    torch.manual_seed(0)
+    agent = Agent(cfg, 20)
+    with torch.no_grad():
+        pi = agent.actor(torch.from_numpy(batch["obs"][:2]))
+        label = torch.from_numpy(batch["expert"][:2])
+        want = float((((pi - label) / (label.abs() + cfg.bc_relative)) ** 2).mean())
+    info = agent.update(batch, 1.0)
+    assert info["bc_loss"] == pytest.approx(want, rel=1e-5)
+    assert all(torch.isfinite(w).all() for w in agent.actor.parameters())
+
+
+def test_envelope_evaluation_runs_the_shipped_controller_on_envelope_arms() -> None:
+    from policy.envelope import draws
+    from policy.selection import envelope_results, envelope_summary
+
+    results = envelope_results(make_controller(), 2, seed=1, episode_seed=5)
+    assert [v.name for v, _ in results] == [v.name for v in draws(2, 1).variants]
+    for variant, result in results:  # each arm's weak joint is in the episode
+        np.testing.assert_array_equal(result.episode.torque_scale, variant.torque_scale)
+    summary = envelope_summary(results)
+    assert summary["arms"] == 2 and 0 <= summary["at_rest"] <= 2
+    assert summary["reached"] == 2 - len(summary["failed"])
+    out = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "tools" / "train.py"),
+            "--evaluate",
+            "expert",
+            "--envelope",
+            "2",
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert out.returncode != 0 and "true state" in out.stderr

@@ -315,3 +315,127 @@ def test_training_workspace_can_be_widened() -> None:
     assert EnvConfig.from_dict(wide.to_dict()) == wide
     with pytest.raises(ValueError, match="low < high"):
         ReachAlphaEnv(EnvConfig(workspace_high=(5.8, 2.9, 2.9, 0.1)))
+
+
+def _first_motion(config: EnvConfig, start: np.ndarray) -> int:
+    """Physics steps after the first non-zero action until E moves (0 at once)."""
+    env = ReachAlphaEnv(config)
+    env.reset(seed=0, options={"start": start, "target": start, "torque_scale": np.ones(4)})
+    env.step(np.zeros(4))  # settle the zero command in flight
+    q0 = env.arm.q.copy()
+    for k in range(1, 10):
+        env.step(np.array([1.0, 0.0, 0.0, 0.0]))
+        if abs(env.arm.q[0] - q0[0]) > 1e-4:
+            return k
+    raise AssertionError("E never moved")
+
+
+def test_latency_delays_each_action_as_the_direct_backend_does() -> None:
+    start = np.array([3.0, 1.7, 1.7, 1.65])
+    frictionless = dataclasses.replace(ReachAlphaEnv(EnvConfig()).arm.params, frictionloss=(0,) * 4)
+
+    def arm_factory(config: EnvConfig) -> object:
+        from reach_sim_bridge.arm import Alpha5Arm
+
+        return Alpha5Arm(dt=config.physics_dt, params=frictionless)
+
+    # the step that first moves E: at once without latency, one period later with 1 period
+    env0 = ReachAlphaEnv(EnvConfig(), arm_factory=arm_factory)
+    env2 = ReachAlphaEnv(EnvConfig(latency_periods=2.0), arm_factory=arm_factory)
+    assert env2.latency_substeps == 2 * env2.n_substeps
+    for env in (env0, env2):
+        env.reset(seed=0, options={"start": start, "target": start})
+    q0 = env0.arm.q.copy()
+    moved = {}
+    for name, env in (("0", env0), ("2", env2)):
+        for k in range(1, 6):
+            env.step(np.array([1.0, 0.0, 0.0, 0.0]))
+            if env.arm.q[0] - q0[0] > 1e-4 and name not in moved:
+                moved[name] = k
+    assert moved == {"0": 1, "2": 3}
+    # a half-period latency: the command switches mid-period, same trace as policy.direct
+    from policy.direct import DirectArm
+    from policy.rollout import Episode, RunConfig
+
+    class Replay:
+        def __init__(self, actions: np.ndarray, limits: np.ndarray) -> None:
+            self.actions, self.limits, self.k = actions, limits, 0
+
+        def reset(self) -> None:
+            self.k = 0
+
+        def act(self, state: object, target: np.ndarray) -> np.ndarray:
+            a = self.actions[self.k] * self.limits
+            self.k += 1
+            return a
+
+    rng = np.random.default_rng(3)
+    actions = rng.uniform(-1, 1, size=(12, 4))
+    env = ReachAlphaEnv(EnvConfig(latency_periods=0.52, episode_s=0.6))
+    env.measure_power = True
+    env.reset(seed=0, options={"start": start, "target": start + 0.1})
+    for a in actions:
+        env.step(a)
+    backend = DirectArm(lambda seed: env.arm.__class__(dt=0.002))
+    result = backend.run(
+        Replay(actions, env.current_limits_mA),
+        Episode(start, start + 0.1),
+        RunConfig(seconds=0.6, latency_periods=0.52),
+        0,
+    )
+    np.testing.assert_allclose(result.trace.q[-1], env.arm.q, atol=1e-12)
+
+
+def test_envelope_arms_per_episode() -> None:
+    env = ReachAlphaEnv(EnvConfig(envelope_fraction=1.0, sensor_noise=True))
+    nominal = env.arm.params
+    seen = []
+    for seed in range(4):
+        _, info = env.reset(seed=seed)
+        v = env.variant
+        assert v is not None and info["variant"] == v.name
+        for name in ("frictionloss", "damping", "armature", "link_mass_kg", "link_volume_l"):
+            assert getattr(env.arm.params, name) == getattr(v.params, name)
+        assert v.params.frictionloss != nominal.frictionloss
+        np.testing.assert_array_equal(env.arm.torque_scale, v.torque_scale)
+        assert env.latency_substeps == round(v.latency_periods * env.n_substeps)
+        assert env.noise.position_std == pytest.approx(0.002 * v.noise_scale)
+        seen.append(v.name)
+    assert len(set(seen)) == 4
+    # deterministic per seed; a share of 0 leaves the configured arm, nominal again
+    assert ReachAlphaEnv(EnvConfig(envelope_fraction=1.0)).reset(seed=2)[1]["variant"] == seen[2]
+    env.config = EnvConfig()
+    _, info = env.reset(seed=0)
+    assert info["variant"] is None and env.latency_substeps == 0
+    assert env.arm.params.frictionloss == nominal.frictionloss
+    half = ReachAlphaEnv(EnvConfig(envelope_fraction=0.5))
+    share = np.mean([half.reset(seed=s)[1]["variant"] is not None for s in range(40)])
+    assert 0.2 < share < 0.8
+    cfg = EnvConfig(envelope_fraction=0.5, latency_periods=1.0, noise_scale=2.0)
+    assert EnvConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ValueError, match="envelope_fraction"):
+        EnvConfig(envelope_fraction=1.5)
+
+
+def test_sign_flip_penalty_is_paid_near_the_goal_only() -> None:
+    cfg = dataclasses.replace(SHAPED, sign_flip_weight=1.0)
+    q_req = np.array([3.0, 1.7, 1.7, 1.65])
+    flip = np.array([0.5, 0.0, 0.0, 0.0]), np.array([-0.5, 0.0, 0.0, 0.0])
+    z = np.zeros(4)
+
+    def term(q: np.ndarray, a: np.ndarray, a_prev: np.ndarray) -> float:
+        return reward_terms(q, z, q_req, a, a_prev, True, cfg)["sign_flip"]
+
+    near = term(q_req + 0.005, *flip)
+    assert near == pytest.approx(-0.25 * np.exp(-0.5 * (0.005 / 0.05) ** 2))  # mean over 4
+    assert term(q_req + np.array([0.5, 0, 0, 0]), *flip) > -1e-5  # far from the goal: ~0
+    assert term(q_req, flip[0], flip[0]) == 0.0  # same sign
+    assert term(q_req, np.array([0.05, 0, 0, 0]), flip[1]) == 0.0  # below 10 % of the limit
+    assert reward_terms(q_req, z, q_req, *flip, True, SHAPED)["sign_flip"] == 0.0  # weight 0
+    # in the env: a bang-bang at the goal pays it every step
+    env = ReachAlphaEnv(EnvConfig(reward=cfg))
+    env.reset(seed=0, options={"start": q_req, "target": q_req})
+    paid = [
+        env.step(np.array([s, 0, 0, 0]))[4]["reward_terms"]["sign_flip"] for s in (0.3, -0.3, 0.3)
+    ]
+    assert paid[0] == 0.0 and paid[1] < -0.2 and paid[2] < -0.2, paid

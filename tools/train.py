@@ -43,8 +43,11 @@ from policy.batched import evaluate_batched
 from policy.ddpg_config import WEAK_EVAL_SEED_OFFSET, WEAK_EVAL_TORQUE_SCALE, DDPGConfig
 from policy.env import EnvConfig
 from policy.expert import PDExpert
+from policy.selection import envelope_results, envelope_summary
 from policy.trainer import Trainer, TrainState, make_expert
 from policy.weights import DEFAULT_WEIGHTS, ActorWeights
+from reach_driver.controllers import load_controller
+from reach_driver.errors import DriverError
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.params import load_arm_params
 
@@ -56,8 +59,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument(
         "--config",
         default="ours",
-        choices=["ours", "paper"],
-        help="hyperparameter preset (policy.ddpg_config.DDPGConfig.ours / .paper)",
+        choices=["ours", "paper", "robust"],
+        help="hyperparameter preset (policy.ddpg_config.DDPGConfig.ours / .paper / .robust)",
     )
     p.add_argument("--run", type=Path, help="run directory (checkpoints, logs)")
     p.add_argument("--seed", type=int, default=0)
@@ -111,12 +114,34 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "and buoyancy are scaled by U(1 - SPREAD, 1 + SPREAD) per episode",
     )
     p.add_argument(
+        "--envelope",
+        type=int,
+        default=None,
+        metavar="N",
+        help="with --evaluate WEIGHTS|shipped: run the `ddpg` controller as shipped (actor + "
+        "reference integral; --pure: the actor alone) on N arms drawn from the uncertainty "
+        "envelope (policy.envelope.draws(N, --envelope-seed)), one episode each "
+        "(random_episodes(N, --episode-seed)), sensor noise on; print reached / at rest / "
+        "overshoot as JSON",
+    )
+    p.add_argument("--envelope-seed", type=int, default=1, help="seed of the envelope draws")
+    p.add_argument("--episode-seed", type=int, default=5, help="seed of the envelope episodes")
+    p.add_argument("--pure", action="store_true", help="with --envelope: the actor alone")
+    p.add_argument(
         "--params",
         type=Path,
         metavar="FILE.json",
         help="train (or --evaluate) on the arm this parameter file describes (ArmParams "
         "field names, any subset, E D C B; as tools/identify.py writes) instead of the "
         "nominal model; --perturb and the env's param_perturbation spread around it",
+    )
+    p.add_argument(
+        "--ship-as",
+        type=Path,
+        default=None,
+        metavar="FILE.npz",
+        help="with --ship: write the actor (+ .json) here instead of the shipped weights, "
+        "e.g. a candidate that does not meet the bar (policy/weights/ddpg_robust_actor.npz)",
     )
     p.add_argument(
         "--ship",
@@ -199,6 +224,30 @@ def evaluate_weights(
             arm_factory=arm_factory,
         ).to_dict()
     return result
+
+
+def evaluate_envelope(args: argparse.Namespace) -> dict[str, Any]:
+    """`--evaluate WEIGHTS --envelope N`: the controller on N envelope arms."""
+    if args.evaluate == "expert":
+        raise SystemExit("--envelope: the expert reads the env's true state; give weights")
+    if args.envelope < 1:
+        raise SystemExit(f"--envelope needs N >= 1, got {args.envelope}")
+    path = DEFAULT_WEIGHTS if args.evaluate == "shipped" else Path(args.evaluate)
+    name = "ddpg-pure" if args.pure else "ddpg"
+    try:
+        controller = load_controller(name, weights=str(path))
+    except DriverError as exc:
+        raise SystemExit(f"--evaluate: {exc}") from exc
+    t0 = time.monotonic()
+    results = envelope_results(controller, args.envelope, args.envelope_seed, args.episode_seed)
+    return {
+        "controller": name,
+        "weights": str(path),
+        "draws": f"policy.envelope.draws({args.envelope}, {args.envelope_seed})",
+        "episodes": f"random_episodes({args.envelope}, {args.episode_seed})",
+        "wall_s": round(time.monotonic() - t0, 1),
+        **envelope_summary(results),
+    }
 
 
 def ship(run_dir: Path, dest: Path = DEFAULT_WEIGHTS) -> Path:
@@ -302,9 +351,13 @@ FIXED_ON_RESUME = {
     "demo_episodes": "the demonstrations were collected when the run started",
     "expert_energy_lambda": "the demonstrations and the expert actions in the buffer came "
     "from that demonstrator",
+    "expert_kp": "the demonstrations and the expert actions in the buffer came from it",
+    "expert_kd": "the demonstrations and the expert actions in the buffer came from it",
     "init_actor": "it is only read when a run starts",
     "eval_episodes": "the best actor's score was measured on those episodes",
     "eval_seed": "the best actor's score was measured on those episodes",
+    "eval_envelope_episodes": "the best actor's score was measured on those arms",
+    "bc_max_latency": "the expert labels in the buffer were kept or dropped by it",
 }
 
 
@@ -338,6 +391,9 @@ def apply_on_resume(trainer: Trainer, new: DDPGConfig) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     arm_factory = params_arm_factory(args.params)
+    if args.evaluate is not None and args.envelope is not None:
+        print(json.dumps(evaluate_envelope(args), indent=1))
+        return 0
     if args.evaluate is not None:
         result = evaluate_weights(
             args.evaluate, args.episodes, args.seed, args.perturb, args.expert_energy, arm_factory
@@ -348,7 +404,8 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--run is required (except with --evaluate)")
     run_dir: Path = args.run
     if args.ship:
-        print(f"shipped {ship(run_dir)}")
+        verb = "wrote" if args.ship_as else "shipped"
+        print(f"{verb} {ship(run_dir, args.ship_as or DEFAULT_WEIGHTS)}")
         return 0
     config_path = run_dir / "config.json"
     changes: list[str] = []
