@@ -142,9 +142,18 @@ def test_a_run_writes_rows_a_summary_and_the_docs_block(
     report["summary"] = {}
     report["label"] = "pid"
     (tmp_path / "pid.json").write_text(json.dumps(report))
-    assert rb.main(["--from", str(tmp_path / "pid.json"), "--write-docs", "--doc", str(doc)]) == 0
+    regenerate = ["--from", str(tmp_path / "pid.json"), "--write-docs", "--doc", str(doc)]
+    assert rb.main(regenerate) == 0
     again = doc.read_text()
     assert again.count(rb.begin_marker("pid")) == 1 and "| draws | 2 |" in again
+    # a run with other settings does not replace the block without --force
+    report["settings"]["draws"] = 1000
+    (tmp_path / "pid.json").write_text(json.dumps(report))
+    capsys.readouterr()
+    assert rb.main(regenerate) == 2
+    assert "--force" in capsys.readouterr().err and doc.read_text() == again
+    assert rb.main([*regenerate, "--force"]) == 0
+    assert '"draws": 1000' in doc.read_text()
 
 
 def test_the_shipped_doc_has_the_markers_the_tool_writes() -> None:

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -54,6 +55,7 @@ OVERSHOOT_TARGET_PCT = 2.0
 WORST = 8
 NEW_BLOCKS = "<!-- robustness.py: new blocks go here -->"
 ENVELOPE = Envelope()
+SETTINGS_RE = re.compile(r"<!-- settings: (\{.*?\}) -->")
 
 
 def begin_marker(label: str) -> str:
@@ -397,12 +399,24 @@ def markdown_block(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def update_doc(text: str, block: str, label: str) -> str:
-    """``text`` with the block of ``label`` replaced, or inserted before the new-blocks marker."""
+def update_doc(
+    text: str, block: str, label: str, settings: dict[str, Any] | None = None, force: bool = True
+) -> str:
+    """``text`` with the block of ``label`` replaced, or inserted before the new-blocks marker.
+    Unless ``force``, a block whose recorded settings differ from ``settings`` is not replaced
+    (a smaller run does not silently overwrite a full one)."""
     begin, end = begin_marker(label), end_marker(label)
     if begin in text and end in text:
         head, rest = text.split(begin, 1)
-        _, tail = rest.split(end, 1)
+        old, tail = rest.split(end, 1)
+        m = SETTINGS_RE.search(old)
+        if not force and m is not None and settings is not None:
+            recorded = json.loads(m.group(1))
+            if recorded != settings:
+                raise ValueError(
+                    f"the {label!r} block in docs/robustness.md was made with {recorded}, "
+                    f"this run with {settings}; --force replaces it"
+                )
         return head + block + tail
     if NEW_BLOCKS not in text:
         raise ValueError(
@@ -572,6 +586,11 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="regenerate each label's block in docs/robustness.md",
     )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="with --write-docs: replace a block made with other settings",
+    )
     p.add_argument("--doc", type=Path, default=DOC, help=argparse.SUPPRESS)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -688,7 +707,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.write_docs:
             text = args.doc.read_text(encoding="utf-8")
             for report in reports:
-                text = update_doc(text, markdown_block(report), report["label"])
+                block = markdown_block(report)
+                text = update_doc(text, block, report["label"], report["settings"], args.force)
             args.doc.write_text(text, encoding="utf-8")
             console.print(f"wrote {args.doc}")
     except (ValueError, DriverError, RayUnavailable, OSError) as exc:
