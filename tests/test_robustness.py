@@ -118,7 +118,9 @@ def test_the_summary_holds_its_means_and_names_the_failures() -> None:
     assert s["worst"][0]["overshoot_pct"] == max(r["metrics"]["overshoot_pct"] for r in rows)
     latency = {c["level"]: c for c in s["by_factor"] if c["factor"] == "latency_periods"}
     assert latency["high"]["missed"] == 10 and latency["low"]["missed"] == 0
-    assert any(x.startswith("latency_periods high") for x in s["shared"])
+    assert s["shared"][0].startswith("latency_periods high: 50 % missed (10/20)")
+    assert {c["latency_periods"] for c in s["worst_pair"]} == {"low", "high"}
+    assert sum(c["missed"] for c in s["worst_pair"]) == 10
 
 
 def test_a_run_writes_rows_a_summary_and_the_docs_block(

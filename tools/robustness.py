@@ -298,21 +298,67 @@ def summarize_rows(rows: Sequence[dict[str, Any]], envelope: Envelope = ENVELOPE
         )
     ]
     out["shared"] = shared_by_failures(out["by_factor"], out["missed"])
+    out["worst_pair"] = worst_pair(rows, envelope)
     return out
 
 
 def shared_by_failures(by_factor: list[dict[str, Any]], missed: int) -> list[str]:
-    """Factor levels that at least 75 % of the misses share and whose miss rate is at least
-    twice the overall one: what the failures have in common."""
+    """What the misses have in common: each factor whose miss rate differs by at least 15
+    points between its levels, largest difference first, as "factor level: rate (misses/arms)
+    vs other levels' rates"."""
     if missed == 0:
         return []
-    total = sum(c["arms"] for c in by_factor if c["factor"] == FACTOR_ORDER[0])
-    overall = missed / total
-    out = []
-    for c in by_factor:
-        if c["missed"] >= 0.75 * missed and c["missed"] / c["arms"] >= 2 * overall:
-            out.append(f"{c['factor']} {c['level']} ({c['missed']}/{missed} misses)")
-    return out
+    spread = []
+    for name in FACTOR_ORDER:
+        cells = [c for c in by_factor if c["factor"] == name and c["level"] != "no weak joint"]
+        if len(cells) < 2:
+            continue
+        rates = sorted(cells, key=lambda c: -c["missed"] / c["arms"])
+        hi, lo = rates[0], rates[-1]
+        diff = hi["missed"] / hi["arms"] - lo["missed"] / lo["arms"]
+        if diff >= 0.15:
+            others = ", ".join(
+                f"{c['level']} {100 * c['missed'] / c['arms']:.0f} %" for c in rates[1:]
+            )
+            spread.append(
+                (
+                    diff,
+                    f"{name} {hi['level']}: {100 * hi['missed'] / hi['arms']:.0f} % missed "
+                    f"({hi['missed']}/{hi['arms']}) vs {others}",
+                )
+            )
+    return [text for _, text in sorted(spread, key=lambda x: -x[0])]
+
+
+def worst_pair(rows: Sequence[dict[str, Any]], envelope: Envelope = ENVELOPE) -> list[dict]:
+    """Miss rates over the levels of the two factors whose levels differ most (the first two
+    of `shared_by_failures`' order), cell by cell: where the misses concentrate."""
+    rates = []
+    for name in FACTOR_ORDER:
+        if name == "torque_scale":
+            continue
+        count: dict[str, list[int]] = {}
+        for r in rows:
+            lv = factor_level(name, r["factors"][name], r["factors"], envelope)
+            cell = count.setdefault(lv, [0, 0])
+            cell[0] += 1
+            cell[1] += int(failed(r))
+        if len(count) < 2:
+            continue
+        values = [m / n for n, m in count.values()]
+        rates.append((max(values) - min(values), name))
+    rates.sort(reverse=True)
+    if len(rates) < 2 or rates[0][0] < 0.15:
+        return []
+    a, b = rates[0][1], rates[1][1]
+    cells: dict[tuple[str, str], list[int]] = {}
+    for r in rows:
+        f = r["factors"]
+        key = (factor_level(a, f[a], f, envelope), factor_level(b, f[b], f, envelope))
+        cell = cells.setdefault(key, [0, 0])
+        cell[0] += 1
+        cell[1] += int(failed(r))
+    return [{a: ka, b: kb, "arms": n, "missed": m} for (ka, kb), (n, m) in sorted(cells.items())]
 
 
 # --- reports ----------------------------------------------------------------------------------
@@ -333,6 +379,12 @@ def _factor_brief(f: dict[str, float]) -> str:
         + (f" x{f['torque_scale']:.2g}" if f["weak_joint"] >= 0 else "")
         + f", noise x{f['noise']:.2g}, latency {f['latency_periods']:.2g}"
     )
+
+
+def _pair_cell(cell: dict[str, Any]) -> str:
+    keys = [k for k in cell if k not in ("arms", "missed")]
+    where = " & ".join(f"{k} {cell[k]}" for k in keys)
+    return f"{where} {cell['missed']}/{cell['arms']}"
 
 
 def markdown_block(report: dict[str, Any]) -> str:
@@ -372,19 +424,32 @@ def markdown_block(report: dict[str, Any]) -> str:
     for set_name, summ in report["summary"].items():
         lines.append(
             f"*{set_name}*: {summ['missed']} missed, {summ['not_at_rest']} not at rest"
-            + (f"; the misses share: {'; '.join(summ['shared'])}" if summ["shared"] else "")
+            + (f". Where they concentrate: {'; '.join(summ['shared'])}" if summ["shared"] else "")
             + "."
         )
+        if summ.get("worst_pair"):
+            lines.append("")
+            lines.append(
+                "Misses by the two factors that matter most: "
+                + ", ".join(_pair_cell(c) for c in summ["worst_pair"])
+                + "."
+            )
         if summ["missed"] or summ["overshoot_over_target"]:
             lines += [
                 "",
-                "| factor | level | arms | missed | not at rest | overshoot >= 2 % |",
-                "|---|---|---|---|---|---|",
+                "| factor | missed / arms by level | not at rest | overshoot >= 2 % |",
+                "|---|---|---|---|",
             ]
-            for c in summ["by_factor"]:
+            for name in FACTOR_ORDER:
+                cells = [c for c in summ["by_factor"] if c["factor"] == name]
                 lines.append(
-                    f"| {c['factor']} | {c['level']} | {c['arms']} | {c['missed']} "
-                    f"| {c['not_at_rest']} | {c['over']} |"
+                    f"| {name} | "
+                    + ", ".join(f"{c['level']} {c['missed']}/{c['arms']}" for c in cells)
+                    + " | "
+                    + ", ".join(f"{c['level']} {c['not_at_rest']}" for c in cells)
+                    + " | "
+                    + ", ".join(f"{c['level']} {c['over']}" for c in cells)
+                    + " |"
                 )
         lines += ["", f"Worst {set_name} by overshoot:", ""]
         for w in summ["worst"][:5]:
@@ -441,7 +506,8 @@ def print_summary(report: dict[str, Any], console: Console) -> None:
             f"overshoot >= {OVERSHOOT_TARGET_PCT:g} %: {summ['overshoot_over_target']}"
         )
         if summ["shared"]:
-            console.print("    the misses share: " + escape("; ".join(summ["shared"])))
+            for text in summ["shared"]:
+                console.print("    " + escape(text))
         for w in summ["worst"][:3]:
             console.print(f"    worst: {escape(w['name'])} {w['overshoot_pct']:.3g} %")
 
