@@ -161,7 +161,7 @@ def test_a_run_writes_rows_a_summary_and_the_docs_block(
 def test_the_shipped_doc_has_the_markers_the_tool_writes() -> None:
     text = (ROOT / "docs" / "robustness.md").read_text(encoding="utf-8")
     assert rb.NEW_BLOCKS in text
-    for label in ("ddpg", "ddpg-pure", "pid", "mpc"):
+    for label in ("ddpg", "ddpg-pure", "pid", "mpc", rb.COMPARISON):
         assert text.count(rb.begin_marker(label)) == 1, label
         assert text.count(rb.end_marker(label)) == 1, label
 
@@ -182,3 +182,21 @@ def test_bad_arguments_are_clear_errors(
 ) -> None:
     assert rb.main([*argv, "--out", str(tmp_path), "--quiet"]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_the_comparison_uses_only_the_arms_every_run_shares() -> None:
+    def report(label: str, indices: list[int], reached: bool) -> dict[str, Any]:
+        factors = dict.fromkeys(rb.FACTOR_ORDER, 1.0)
+        factors["weak_joint"] = -1.0
+        metrics = {"reached": reached, "at_rest": True, "overshoot_pct": 1.0}
+        metrics.update(settling_time_s=2.0, energy_j=10.0)
+        rows = [
+            {"set": "draws", "index": i, "name": f"d{i}", "factors": factors, "metrics": metrics}
+            for i in indices
+        ]
+        return {"label": label, "episodes": rows}
+
+    block = rb.comparison_block([report("a", [0, 1, 2, 3], True), report("b", [1, 3, 5], False)])
+    assert "| draws | 2 | a | 100.0 % [100.0, 100.0] |" in block
+    assert "| draws | 2 | b | 0.0 % [0.0, 0.0] |" in block
+    assert "corners" not in block

@@ -464,6 +464,41 @@ def markdown_block(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+COMPARISON = "comparison"
+
+
+def comparison_block(reports: Sequence[dict[str, Any]]) -> str:
+    """Every label on the arms all of them ran (per set, by arm index: a subset run shares
+    its arms and episodes with the full run), so controllers compare like with like."""
+    lines = [
+        begin_marker(COMPARISON),
+        "",
+        "| set | arms shared | controller | reached | at rest | overshoot [%] "
+        "| overshoot >= 2 % | settling [s] | energy [J] |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for set_name in SETS:
+        having = [r for r in reports if any(e["set"] == set_name for e in r["episodes"])]
+        if len(having) < 2:
+            continue
+        shared = set.intersection(
+            *({e["index"] for e in r["episodes"] if e["set"] == set_name} for r in having)
+        )
+        if not shared:
+            continue
+        for r in having:
+            rows = [e for e in r["episodes"] if e["set"] == set_name and e["index"] in shared]
+            summ = summarize_rows(rows)
+            lines.append(
+                f"| {set_name} | {len(shared)} | {r['label']} | {_ci(summ['reached'], True)} "
+                f"| {_ci(summ['at_rest'], True)} | {_ci(summ['overshoot_pct'], False)} "
+                f"| {summ['overshoot_over_target']} | {_ci(summ['settling_time_s'], False)} "
+                f"| {_ci(summ['energy_j'], False)} |"
+            )
+    lines.append(end_marker(COMPARISON))
+    return "\n".join(lines)
+
+
 def update_doc(
     text: str, block: str, label: str, settings: dict[str, Any] | None = None, force: bool = True
 ) -> str:
@@ -775,6 +810,8 @@ def main(argv: list[str] | None = None) -> int:
             for report in reports:
                 block = markdown_block(report)
                 text = update_doc(text, block, report["label"], report["settings"], args.force)
+            if len(reports) > 1 and begin_marker(COMPARISON) in text:
+                text = update_doc(text, comparison_block(reports), COMPARISON)
             args.doc.write_text(text, encoding="utf-8")
             console.print(f"wrote {args.doc}")
     except (ValueError, DriverError, RayUnavailable, OSError) as exc:
