@@ -200,3 +200,17 @@ def test_the_comparison_uses_only_the_arms_every_run_shares() -> None:
     assert "| draws | 2 | a | 100.0 % [100.0, 100.0] |" in block
     assert "| draws | 2 | b | 0.0 % [0.0, 0.0] |" in block
     assert "corners" not in block
+
+
+def test_an_actor_file_runs_under_its_own_label(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    weights = ROOT / "policy" / "weights" / "ddpg_actor.npz"
+    argv = ["--controller", "ddpg", "--label", "robust", "--param", f"weights={weights}"]
+    argv += ["--draws", "1", "--seconds", "2", "--out", str(tmp_path), "--quiet"]
+    assert rb.main(argv) == 0
+    report = json.loads((tmp_path / "robust.json").read_text())
+    assert report["label"] == "robust" and report["params"] == {"weights": str(weights)}
+    missing = ["--param", f"weights={tmp_path / 'none.npz'}"]
+    assert rb.main([*argv[:4], *missing, *argv[6:]]) == 2
+    assert "none.npz" in capsys.readouterr().err
