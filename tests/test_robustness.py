@@ -196,9 +196,12 @@ def test_the_comparison_uses_only_the_arms_every_run_shares() -> None:
         ]
         return {"label": label, "episodes": rows}
 
-    block = rb.comparison_block([report("a", [0, 1, 2, 3], True), report("b", [1, 3, 5], False)])
+    runs = [report("a", [0, 1, 2, 3], True), report("b", [1, 3, 5], False)]
+    block = rb.comparison_block([*runs, report("c", [1], True)])
     assert "| draws | 2 | a | 100.0 % [100.0, 100.0] |" in block
     assert "| draws | 2 | b | 0.0 % [0.0, 0.0] |" in block
+    assert "| draws | 1 | c |" in block and "| draws | 1 | b |" in block
+    assert "| draws | 4 |" not in block  # a alone is no comparison
     assert "corners" not in block
 
 

@@ -468,8 +468,9 @@ COMPARISON = "comparison"
 
 
 def comparison_block(reports: Sequence[dict[str, Any]]) -> str:
-    """Every label on the arms all of them ran (per set, by arm index: a subset run shares
-    its arms and episodes with the full run), so controllers compare like with like."""
+    """The labels on the arms they all ran (per set, by arm index: a subset run shares its
+    arms and episodes with the full run), so controllers compare like with like: one group
+    of rows per run size, each with every run at least that large."""
     lines = [
         begin_marker(COMPARISON),
         "",
@@ -478,23 +479,25 @@ def comparison_block(reports: Sequence[dict[str, Any]]) -> str:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for set_name in SETS:
-        having = [r for r in reports if any(e["set"] == set_name for e in r["episodes"])]
-        if len(having) < 2:
-            continue
-        shared = set.intersection(
-            *({e["index"] for e in r["episodes"] if e["set"] == set_name} for r in having)
-        )
-        if not shared:
-            continue
-        for r in having:
-            rows = [e for e in r["episodes"] if e["set"] == set_name and e["index"] in shared]
-            summ = summarize_rows(rows)
-            lines.append(
-                f"| {set_name} | {len(shared)} | {r['label']} | {_ci(summ['reached'], True)} "
-                f"| {_ci(summ['at_rest'], True)} | {_ci(summ['overshoot_pct'], False)} "
-                f"| {summ['overshoot_over_target']} | {_ci(summ['settling_time_s'], False)} "
-                f"| {_ci(summ['energy_j'], False)} |"
-            )
+        arms = {
+            r["label"]: {e["index"] for e in r["episodes"] if e["set"] == set_name} for r in reports
+        }
+        for size in sorted({len(a) for a in arms.values() if a}, reverse=True):
+            group = [r for r in reports if len(arms[r["label"]]) >= size]
+            if len(group) < 2:
+                continue
+            shared = set.intersection(*(arms[r["label"]] for r in group))
+            for r in group:
+                rows = [e for e in r["episodes"] if e["set"] == set_name and e["index"] in shared]
+                if not rows:
+                    continue
+                summ = summarize_rows(rows)
+                lines.append(
+                    f"| {set_name} | {len(shared)} | {r['label']} "
+                    f"| {_ci(summ['reached'], True)} | {_ci(summ['at_rest'], True)} "
+                    f"| {_ci(summ['overshoot_pct'], False)} | {summ['overshoot_over_target']} "
+                    f"| {_ci(summ['settling_time_s'], False)} | {_ci(summ['energy_j'], False)} |"
+                )
     lines.append(end_marker(COMPARISON))
     return "\n".join(lines)
 
@@ -635,7 +638,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run controllers over the uncertainty envelope (policy/envelope.py): one "
         "episode (sensor noise on, scaled per arm) on each feasible corner and/or N random "
         "arms; write per-episode results and print reached, at rest, overshoot, settling "
-        "and energy with 95 %% bootstrap intervals, the worst arms and failures by factor.",
+        "and energy with 95 % bootstrap intervals, the worst arms and failures by factor.",
         epilog="The envelope and the results: docs/robustness.md.",
     )
     p.add_argument("--controller", nargs="+", metavar="NAME", help="ddpg ddpg-pure mpc pid ...")
