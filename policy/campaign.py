@@ -128,3 +128,71 @@ def evaluate_parallel(
     pairs = run_on_ray(run_job, jobs, workers, address, done)
     stats = {"engine": "ray", "workers": workers, "address": address or "local"}
     return Evaluation(controller_name, config, [r for _, r in pairs], stats)
+
+
+# --- training seed sweeps on Ray Tune (tools/sweep.py) ----------------------------------------
+
+
+def import_tune() -> ModuleType:
+    """Ray Tune, or `RayUnavailable` saying what is missing (Tune needs pandas and pyarrow
+    beside Ray core: the extra ``ray[tune]``)."""
+    import_ray()
+    try:
+        from ray import tune
+    except ImportError as exc:
+        raise RayUnavailable(
+            f"seed sweeps need Ray Tune ({exc}): pip install 'ray[tune]' (or {INSTALL_HINT})"
+        ) from exc
+    return tune
+
+
+def run_trial(config: dict[str, Any], report: Callable[[dict[str, Any]], None]) -> None:
+    """One training run of a sweep: ``config["ddpg"]`` (a `DDPGConfig.to_dict()`) with seed
+    ``config["seed"]``, in ``config["root"]/seed-N``, for its ``total_steps``; ``report`` gets
+    each checkpoint evaluation as it is made (the trainer's score, the nominal set's reached
+    fraction, overshoot and energy) and the last one is the run's final evaluation."""
+    from pathlib import Path
+
+    from policy.ddpg_config import DDPGConfig
+    from policy.trainer import Trainer, make_expert
+
+    data = dict(config["ddpg"])
+    data["seed"] = int(config["seed"])
+    ddpg = DDPGConfig.from_dict(data)
+    run_dir = Path(config["root"]) / f"seed-{ddpg.seed}"
+    if (run_dir / "checkpoint.pt").exists():
+        raise ValueError(f"{run_dir} already holds a run; choose another --out")
+    trainer = Trainer(ddpg, run_dir, expert=make_expert(ddpg), log=lambda _msg: None)
+    (run_dir / "config.json").write_text(json.dumps(ddpg.to_dict(), indent=1))
+    sent = [0]
+
+    def flush() -> None:
+        for record in trainer.state.history[sent[0] :]:
+            nominal = record["nominal"]
+            report(
+                {
+                    "seed": ddpg.seed,
+                    "env_steps": record["env_steps"],
+                    "score": record["score"],
+                    "best_score": trainer.state.best_score,
+                    "reached": nominal.get("reached_fraction"),
+                    "overshoot_pct": nominal.get("overshoot_pct"),
+                    "energy_j": nominal.get("energy_j"),
+                    "run_dir": str(run_dir),
+                }
+            )
+        sent[0] = len(trainer.state.history)
+
+    trainer.run(until_steps=ddpg.total_steps, progress=lambda _s, _l: flush())
+    history = trainer.state.history
+    if not history or history[-1]["env_steps"] != trainer.state.env_steps:
+        trainer.evaluate_and_keep_best()
+    trainer.save()
+    flush()
+
+
+def tune_trial(config: dict[str, Any]) -> None:
+    """`run_trial` as a Ray Tune function trainable, reporting with ``ray.tune.report``
+    (the function API of Ray >= 2.41; older Ray had ``ray.train.report``)."""
+    tune = import_tune()
+    run_trial(config, tune.report)

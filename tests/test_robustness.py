@@ -1,0 +1,219 @@
+"""tools/robustness.py: controllers over the uncertainty envelope (policy/envelope.py).
+
+Infeasible corners are left out and counted, each arm's episode depends on its own seed only,
+serial and Ray runs agree episode for episode, the summary's intervals hold their means, and
+--write-docs replaces a label's block in docs/robustness.md (or adds it at the marker)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+import pytest
+
+from policy.envelope import corners
+
+ROOT = Path(__file__).resolve().parents[1]
+SEED = 3
+SECONDS = 3.0
+
+
+def _tool() -> ModuleType:
+    spec = importlib.util.spec_from_file_location(
+        "robustness_tool", ROOT / "tools" / "robustness.py"
+    )
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+rb = _tool()
+
+
+@pytest.fixture(scope="module")
+def corner_selection() -> Any:
+    return corners()
+
+
+def test_infeasible_corners_are_left_out_and_counted(corner_selection: Any) -> None:
+    p = rb.plan(SEED, True, None, corner_selection=corner_selection)
+    n_in, n_out = len(p.arms), len(p.infeasible["corners"])
+    assert n_in + n_out == 1280
+    assert p.available["corners"] == n_in and n_out > 0
+    left_out = {v.name for v, _ in p.infeasible["corners"]}
+    assert left_out.isdisjoint(a.variant.name for a in p.arms)
+    for v, why in p.infeasible["corners"]:
+        assert "stall" in why  # the motor model's number
+        assert v.factors["weak_joint"] >= 0  # only a weak joint makes an arm infeasible here
+
+
+def test_an_arms_episode_and_noise_depend_on_its_own_seed(corner_selection: Any) -> None:
+    small = rb.subsample(896, 5, SEED)
+    large = rb.subsample(896, 50, SEED)
+    assert set(small) <= set(large) and len(set(large)) == 50
+    assert rb.subsample(896, None, SEED) == list(range(896))
+    a = rb.arm_episode(SEED, "corners", 7)
+    b = rb.arm_episode(SEED, "corners", 7)
+    np.testing.assert_array_equal(a.start, b.start)
+    assert not np.array_equal(a.start, rb.arm_episode(SEED, "draws", 7).start)
+    p = rb.plan(SEED, True, 4, max_corners=3, corner_selection=corner_selection)
+    jobs = rb.make_jobs("pid", {}, p.arms, SEED, SECONDS)
+    for arm, job in zip(p.arms, jobs, strict=True):
+        np.testing.assert_array_equal(job.episode.torque_scale, arm.variant.torque_scale)
+        assert job.config.latency_periods == arm.variant.latency_periods
+        assert job.config.noise is not None
+        assert job.config.noise.position_std == pytest.approx(0.002 * arm.variant.noise_scale)
+        assert job.index == arm.index
+
+
+def _small_plan(corner_selection: Any) -> Any:
+    return rb.plan(SEED, True, 2, max_corners=2, corner_selection=corner_selection)
+
+
+def test_serial_and_ray_give_the_same_results(corner_selection: Any) -> None:
+    pytest.importorskip("ray")
+    jobs = rb.make_jobs("pid", {}, _small_plan(corner_selection).arms, SEED, SECONDS)
+    serial = rb.run_jobs(jobs, None, None)
+    seen: list[int] = []
+    ray = rb.run_jobs(jobs, 1, None, lambda pair: seen.append(pair[0]))
+    assert sorted(seen) == sorted(j.index for j in jobs)
+    for a, b in zip(serial, ray, strict=True):
+        assert a.metrics == b.metrics
+        np.testing.assert_array_equal(a.trace.q, b.trace.q)
+
+
+def test_the_summary_holds_its_means_and_names_the_failures() -> None:
+    rng = np.random.default_rng(0)
+    rows = []
+    for i in range(40):
+        latency = [0.0, 2.0][i % 2]
+        missed = latency > 1 and i % 4 == 1
+        factors = dict.fromkeys(rb.FACTOR_ORDER, 1.0)
+        factors.update(weak_joint=-1.0, latency_periods=latency, coulomb_edc=6.6 * (i % 3 == 0))
+        rows.append(
+            {
+                "set": "corners",
+                "name": f"arm {i}",
+                "factors": factors,
+                "metrics": {
+                    "reached": not missed,
+                    "at_rest": True,
+                    "overshoot_pct": float(rng.uniform(0, 5)),
+                    "settling_time_s": float(rng.uniform(1, 6)),
+                    "energy_j": float(rng.uniform(5, 20)),
+                },
+            }
+        )
+    s = rb.summarize_rows(rows)
+    for key, _, _ in rb.METRICS:
+        assert s[key]["low"] <= s[key]["mean"] <= s[key]["high"]
+    assert s["missed"] == 10 and s["reached"]["mean"] == pytest.approx(0.75)
+    assert s["worst"][0]["overshoot_pct"] == max(r["metrics"]["overshoot_pct"] for r in rows)
+    latency = {c["level"]: c for c in s["by_factor"] if c["factor"] == "latency_periods"}
+    assert latency["high"]["missed"] == 10 and latency["low"]["missed"] == 0
+    assert s["shared"][0].startswith("latency_periods high: 50 % missed (10/20)")
+    assert {c["latency_periods"] for c in s["worst_pair"]} == {"low", "high"}
+    assert sum(c["missed"] for c in s["worst_pair"]) == 10
+
+
+def test_a_run_writes_rows_a_summary_and_the_docs_block(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    doc = tmp_path / "robustness.md"
+    doc.write_text(f"# head\n\n{rb.NEW_BLOCKS}\n\ntail\n", encoding="utf-8")
+    argv = ["--controller", "pid", "--corners", "--max-corners", "2", "--draws", "2"]
+    argv += ["--seed", str(SEED), "--seconds", str(SECONDS), "--out", str(tmp_path)]
+    assert rb.main([*argv, "--quiet", "--write-docs", "--doc", str(doc)]) == 0
+    report = json.loads((tmp_path / "pid.json").read_text())
+    assert [r["set"] for r in report["episodes"]] == ["corners"] * 2 + ["draws"] * 2
+    assert report["infeasible"]["corners"] == 384 and report["available"]["corners"] == 896
+    row = report["episodes"][0]
+    assert set(rb.FACTOR_ORDER) <= set(row["factors"]) and "at_rest" in row["metrics"]
+    text = doc.read_text()
+    assert text.count(rb.begin_marker("pid")) == 1 and text.endswith("tail\n")
+    assert "| corners | 2 of 896 |" in text
+    assert "reached" in capsys.readouterr().out
+    # regenerated from the saved results: the block is replaced, not added again
+    report["summary"] = {}
+    report["label"] = "pid"
+    (tmp_path / "pid.json").write_text(json.dumps(report))
+    regenerate = ["--from", str(tmp_path / "pid.json"), "--write-docs", "--doc", str(doc)]
+    assert rb.main(regenerate) == 0
+    again = doc.read_text()
+    assert again.count(rb.begin_marker("pid")) == 1 and "| draws | 2 |" in again
+    # a run with other settings does not replace the block without --force
+    report["settings"]["draws"] = 1000
+    (tmp_path / "pid.json").write_text(json.dumps(report))
+    capsys.readouterr()
+    assert rb.main(regenerate) == 2
+    assert "--force" in capsys.readouterr().err and doc.read_text() == again
+    assert rb.main([*regenerate, "--force"]) == 0
+    assert '"draws": 1000' in doc.read_text()
+
+
+def test_the_shipped_doc_has_the_markers_the_tool_writes() -> None:
+    text = (ROOT / "docs" / "robustness.md").read_text(encoding="utf-8")
+    assert rb.NEW_BLOCKS in text
+    for label in ("ddpg", "ddpg-pure", "pid", "mpc", rb.COMPARISON):
+        assert text.count(rb.begin_marker(label)) == 1, label
+        assert text.count(rb.end_marker(label)) == 1, label
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--controller", "pid"], "nothing to run"),
+        (["--corners"], "--controller"),
+        (["--controller", "nope", "--draws", "1"], "nope"),
+        (["--controller", "pid", "ddpg", "--label", "x", "--draws", "1"], "--label"),
+        (["--controller", "pid", "--max-corners", "3", "--draws", "1"], "--corners"),
+        (["--controller", "pid", "--draws", "1", "--workers", "0"], "--workers"),
+    ],
+)
+def test_bad_arguments_are_clear_errors(
+    argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert rb.main([*argv, "--out", str(tmp_path), "--quiet"]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_the_comparison_uses_only_the_arms_every_run_shares() -> None:
+    def report(label: str, indices: list[int], reached: bool) -> dict[str, Any]:
+        factors = dict.fromkeys(rb.FACTOR_ORDER, 1.0)
+        factors["weak_joint"] = -1.0
+        metrics = {"reached": reached, "at_rest": True, "overshoot_pct": 1.0}
+        metrics.update(settling_time_s=2.0, energy_j=10.0)
+        rows = [
+            {"set": "draws", "index": i, "name": f"d{i}", "factors": factors, "metrics": metrics}
+            for i in indices
+        ]
+        return {"label": label, "episodes": rows}
+
+    runs = [report("a", [0, 1, 2, 3], True), report("b", [1, 3, 5], False)]
+    block = rb.comparison_block([*runs, report("c", [1], True)])
+    assert "| draws | 2 | a | 100.0 % [100.0, 100.0] |" in block
+    assert "| draws | 2 | b | 0.0 % [0.0, 0.0] |" in block
+    assert "| draws | 1 | c |" in block and "| draws | 1 | b |" in block
+    assert "| draws | 4 |" not in block  # a alone is no comparison
+    assert "corners" not in block
+
+
+def test_an_actor_file_runs_under_its_own_label(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    weights = ROOT / "policy" / "weights" / "ddpg_actor.npz"
+    argv = ["--controller", "ddpg", "--label", "robust", "--param", f"weights={weights}"]
+    argv += ["--draws", "1", "--seconds", "2", "--out", str(tmp_path), "--quiet"]
+    assert rb.main(argv) == 0
+    report = json.loads((tmp_path / "robust.json").read_text())
+    assert report["label"] == "robust" and report["params"] == {"weights": str(weights)}
+    missing = ["--param", f"weights={tmp_path / 'none.npz'}"]
+    assert rb.main([*argv[:4], *missing, *argv[6:]]) == 2
+    assert "none.npz" in capsys.readouterr().err

@@ -1,0 +1,108 @@
+"""tools/sweep.py: training seed sweeps on Ray Tune, each trial the trainer's Python API.
+
+The trial itself (`policy.campaign.run_trial`) is checked without Tune: a tiny run reports each
+checkpoint evaluation and leaves its run directory. The sweep on Tune (two seeds, both trials
+reporting) needs Ray Tune, whose requirements (pandas) the extra ``ray[tune]`` brings."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import pytest
+
+from policy import campaign
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = [
+    "eval_every=150",
+    "eval_episodes=2",
+    "learning_starts=100",
+    "batch_size=32",
+    "buffer_size=2000",
+    "env.episode_s=5",
+]
+
+
+def _tool() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("sweep_tool", ROOT / "tools" / "sweep.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+sweep = _tool()
+
+
+def _tune_available() -> bool:
+    try:
+        campaign.import_tune()
+    except campaign.RayUnavailable:
+        return False
+    return True
+
+
+def test_a_trial_trains_and_reports_every_evaluation(tmp_path: Path) -> None:
+    config = sweep.sweep_config("paper", 300, TINY)
+    reports: list[dict[str, Any]] = []
+    campaign.run_trial({"seed": 5, "ddpg": config.to_dict(), "root": str(tmp_path)}, reports.append)
+    assert [r["env_steps"] for r in reports] == [150, 300]
+    assert all(r["seed"] == 5 for r in reports)
+    assert reports[-1]["best_score"] == max(r["score"] for r in reports)
+    run_dir = tmp_path / "seed-5"
+    assert (run_dir / "best_actor.npz").exists() and (run_dir / "checkpoint.pt").exists()
+    assert json.loads((run_dir / "config.json").read_text())["seed"] == 5
+    with pytest.raises(ValueError, match="already holds a run"):
+        campaign.run_trial({"seed": 5, "ddpg": config.to_dict(), "root": str(tmp_path)}, print)
+
+
+def test_bad_settings_are_clear_errors(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    base = ["--seeds", "0", "1", "--out", str(tmp_path)]
+    assert sweep.main([*base, "--steps", "0"]) == 2
+    assert "--steps" in capsys.readouterr().err
+    assert sweep.main([*base, "--steps", "10", "--set", "no_such_key=1"]) == 2
+    assert "no_such_key" in capsys.readouterr().err
+    assert sweep.main(["--seeds", "1", "1", "--steps", "10", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "distinct" in err or "Ray Tune" in err
+
+
+@pytest.mark.skipif(_tune_available(), reason="Ray Tune is installed")
+def test_without_tune_the_message_names_the_extra(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    argv = [
+        "--seeds",
+        "0",
+        "1",
+        "--steps",
+        "300",
+        "--out",
+        str(tmp_path),
+        *sum((["--set", s] for s in TINY), []),
+    ]
+    assert sweep.main(argv) == 2
+    assert "ray[tune]" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not _tune_available(), reason="needs Ray Tune: pip install 'ray[tune]'")
+def test_a_two_seed_sweep_on_tune_reports_both_trials(tmp_path: Path) -> None:
+    argv = ["--config", "paper", "--seeds", "0", "1", "--steps", "300", "--workers", "1"]
+    argv += ["--out", str(tmp_path), "--quiet", *sum((["--set", s] for s in TINY), [])]
+    assert sweep.main(argv) == 0
+    result = json.loads((tmp_path / "sweep.json").read_text())
+    trials = result["trials"]
+    assert [t["seed"] for t in trials] == [0, 1]
+    for t in trials:
+        assert t["error"] is None
+        assert [r["env_steps"] for r in t["reports"]] == [150, 300]
+        assert t["final"]["seed"] == t["seed"]
+        assert (tmp_path / f"seed-{t['seed']}" / "best_actor.npz").exists()
+    assert trials[0]["final"]["score"] != trials[1]["final"]["score"]  # two seeds, two runs
