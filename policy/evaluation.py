@@ -8,6 +8,7 @@ simulator's true angles, so the numbers in docs/results.md compare like with lik
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
@@ -73,6 +74,21 @@ def evaluate(
     return Evaluation(name, config, results, stats)
 
 
+def parse_controller_params(items: Sequence[str]) -> dict[str, Any]:
+    """`--param KEY=VALUE` options of the tools: each value JSON if it parses, else a string
+    (`weights=runs/x/best_actor.npz`, `horizon=15`)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--param expects KEY=VALUE, got {item!r}")
+        try:
+            out[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            out[key] = raw
+    return out
+
+
 __all__ = [
     "DEFAULT_RATE_HZ",
     "DEFAULT_SECONDS",
@@ -90,6 +106,7 @@ __all__ = [
     "evaluate",
     "load_controller",
     "load_episodes",
+    "parse_controller_params",
     "random_episodes",
     "run_episode",
 ]

@@ -30,25 +30,13 @@ from policy.evaluation import (
     evaluate,
     load_controller,
     load_episodes,
+    parse_controller_params,
     random_episodes,
 )
 from reach_driver.errors import DriverError
 from reach_driver.metrics import ALL_METRIC_KEYS, metric_label
 from reach_sim_bridge.faults import SensorNoise
 from reach_sim_bridge.params import load_arm_params
-
-
-def _parse_kv(items: list[str]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, raw = item.partition("=")
-        if not sep or not key:
-            raise ValueError(f"--param expects KEY=VALUE, got {item!r}")
-        try:
-            out[key] = json.loads(raw)
-        except json.JSONDecodeError:
-            out[key] = raw
-    return out
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -255,7 +243,7 @@ def run(args: argparse.Namespace, console: Console) -> Evaluation:
         param_spread=args.perturb,
         params=None if args.params is None else load_arm_params(args.params),
     )
-    params = _parse_kv(args.param)
+    params = parse_controller_params(args.param)
     parallel = args.workers is not None or args.address is not None
     if parallel and args.via_driver:
         raise ValueError("--workers/--address run the direct backend; drop --via-driver")

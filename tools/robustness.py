@@ -40,6 +40,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from policy.campaign import Job, RayUnavailable, run_job, run_on_ray
 from policy.envelope import Envelope, Selection, Variant, corners, draws
+from policy.evaluation import parse_controller_params
 from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from policy.rollout import Episode, EpisodeResult, RunConfig
 from policy.stats import bootstrap_ci
@@ -553,19 +554,6 @@ def print_summary(report: dict[str, Any], console: Console) -> None:
 # --- running ------------------------------------------------------------------------------------
 
 
-def parse_kv(items: Sequence[str]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, raw = item.partition("=")
-        if not sep or not key:
-            raise ValueError(f"--param expects KEY=VALUE, got {item!r}")
-        try:
-            out[key] = json.loads(raw)
-        except json.JSONDecodeError:
-            out[key] = raw
-    return out
-
-
 def campaign(
     controller: str,
     label: str,
@@ -763,7 +751,7 @@ def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list
         raise ValueError(f"--draws must be at least 1, got {args.draws}")
     if args.max_corners is not None and not args.corners:
         raise ValueError("--max-corners needs --corners")
-    params = parse_kv(args.param)
+    params = parse_controller_params(args.param)
     the_plan = plan(args.seed, args.corners, args.draws, args.max_corners)
     settings = {
         "seed": args.seed,
