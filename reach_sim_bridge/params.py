@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from protocol.alpha5 import JOINT_LETTERS
 from reach_sim_bridge.motor import (
     ALPHA5_MOTORS,
     DEFAULT_CURRENT_LIMITS_MA,
@@ -274,7 +275,7 @@ def _parse_field(key: str, raw: Any, nominal: Any, what: str) -> Any:
         except ValueError as exc:
             raise ParamsFileError(f"{what}: {exc}") from exc
     if key in _VEC4_FIELDS:
-        return _numbers(raw, 4, what, "E D C B")
+        return _numbers(raw, 4, what, " ".join(JOINT_LETTERS))
     if key == "gravity":
         return _numbers(raw, 3, what, "x y z in the base frame, m/s^2")
     return _number(raw, what)
@@ -282,12 +283,12 @@ def _parse_field(key: str, raw: Any, nominal: Any, what: str) -> Any:
 
 def _check_physical(p: ArmParams, where: str) -> None:
     """What `ArmParams` itself allows but no arm has (a file states a real arm)."""
-    for joint, scale in zip("EDCB", p.torque_scale, strict=True):
+    for joint, scale in zip(JOINT_LETTERS, p.torque_scale, strict=True):
         if not 0.0 < scale <= 1.0:
             raise ParamsFileError(
                 f"{where}: torque_scale of {joint} must be in (0, 1], got {scale:g}"
             )
-    for joint, limit in zip("EDCB", p.current_limits_mA, strict=True):
+    for joint, limit in zip(JOINT_LETTERS, p.current_limits_mA, strict=True):
         if limit <= 0.0:
             raise ParamsFileError(
                 f"{where}: current_limits_mA of {joint} must be > 0 mA, got {limit:g}"

@@ -51,15 +51,19 @@ def test_stream_pacing_counts_arm_time_in_heartbeats(arm_and_sim) -> None:
     t0 = sim.sim_time
     summary = loop.run(q0, 1.0)
     assert summary.ok, summary.error
-    assert summary.steps == len(records) == 25
+    t = summary.timing
+    # 25 heartbeats of arm time; a host pause (the arm runs at 4x) may let the loop take a
+    # newer state and skip one, which is counted, never a step at the wrong arm time.
+    assert summary.steps == len(records) == t.steps
+    assert 23 <= summary.steps <= 25 and summary.steps + t.skipped_states >= 25
     assert controller.resets == 1
-    assert [r.step for r in records] == list(range(25))
-    np.testing.assert_allclose([r.t for r in records], np.arange(25) * 0.04, atol=1e-12)
+    assert [r.step for r in records] == list(range(summary.steps))
+    ticks = np.array([r.t for r in records]) / 0.04
+    np.testing.assert_allclose(ticks, np.round(ticks), atol=1e-9)  # on the heartbeat grid
+    assert ticks[0] == 0 and np.all(np.diff(np.round(ticks)) >= 1) and ticks[-1] <= 24
     assert [s.t for s in controller.states] == [r.t for r in records]
     assert summary.loop_seconds == pytest.approx(1.0)
     assert sim.sim_time - t0 >= 1.0  # the arm really lived through that second
-    t = summary.timing
-    assert t.steps == 25 and t.skipped_states == 0
     assert 0 <= t.latency_p50_s <= t.latency_p99_s <= t.latency_max_s
     assert 0 <= t.state_age_p50_s <= t.state_age_max_s
     assert all(r.latency_s >= 0 and r.state_age_s >= 0 for r in records)

@@ -121,6 +121,7 @@ class _StateStream:
     """`monitor --viewer`, `move --viewer`: the arm's state to the viewer, at most 20 Hz."""
 
     PERIOD_S = 0.05
+    FIRST_FULL_S = 1.0
 
     def __init__(
         self, client: ArmClient, recorder: CliRecorder, target: np.ndarray | None = None
@@ -136,8 +137,9 @@ class _StateStream:
             return
         self._last = now
         state = self.client.state
-        if not np.any(np.isfinite(state.q)):
-            return  # nothing has arrived yet
+        seen = np.isfinite(state.q)
+        if not np.any(seen) or (not np.all(seen) and now - self.t0 < self.FIRST_FULL_S):
+            return  # wait for every joint's first angle (a joint that never answers: 1 s)
         self.recorder.on_state(
             now - self.t0, self.step, state.q, state.qdot, state.current, self.target
         )
