@@ -222,8 +222,10 @@ def test_link_lost_when_the_sim_restarts_is_reported_and_reopened(sim, link) -> 
         time.sleep(0.3)
         sim.start()  # the pty comes back under the same link, UDP on the same port
         assert wait_until(lambda: arm.link_state is LinkState.UP, timeout=10.0)
-        kinds = [e.kind for e in events]
-        assert EventKind.LINK_DOWN in kinds and EventKind.LINK_UP in kinds
+        # the link is UP before the reader thread has re-sent the stream set-up and emitted
+        # LINK_UP: wait for the event rather than race it
+        assert wait_until(lambda: EventKind.LINK_UP in [e.kind for e in events], timeout=5.0)
+        assert EventKind.LINK_DOWN in [e.kind for e in events]
         assert arm.stats.reconnects == 1
         assert arm.request(DeviceID.D, [PacketID.MODE])[PacketID.MODE].as_u8() == Mode.STANDBY
         # Streaming set up before the restart was re-applied to the fresh arm.
