@@ -36,6 +36,7 @@ import serial
 from protocol import DeviceID, PacketDecoder, PacketID, commands
 from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA
 from reach_sim_bridge.arm import Alpha5Arm, ArmParams
+from reach_sim_bridge.server import INPUT_UNITS_PER_S
 
 CONTROL_HZ = 20.0
 EPISODE_S = 20.0
@@ -266,16 +267,25 @@ def _stop(proc: subprocess.Popen[str]) -> None:
         proc.wait()
 
 
-def _round_trips(exchange: Callable[[], None], seconds: float, limit: int = 20000) -> np.ndarray:
-    """Seconds per exchange, back to back, for `seconds` of wall time (after a warm-up)."""
+def _round_trips(
+    exchange: Callable[[], None], seconds: float, limit: int = 20000, spacing_s: float = 0.0
+) -> np.ndarray:
+    """Seconds per exchange for `seconds` of wall time (after a warm-up), each started at
+    least `spacing_s` after the one before (back to back with 0)."""
     for _ in range(20):
         exchange()
+        time.sleep(spacing_s)
     samples: list[float] = []
     end = time.perf_counter() + seconds
-    while time.perf_counter() < end and len(samples) < limit:
+    next_t = time.perf_counter()
+    while next_t < end and len(samples) < limit:
+        wait = next_t - time.perf_counter()
+        if wait > 0:
+            time.sleep(wait)
         t0 = time.perf_counter()
         exchange()
         samples.append(time.perf_counter() - t0)
+        next_t = t0 + spacing_s
     return np.array(samples)
 
 
@@ -357,7 +367,11 @@ def pty_section(args: argparse.Namespace) -> list[BenchResult]:
         try:
             opener = _serial_exchange if kind == "pty" else _udp_exchange
             exchange, close = opener(at[kind], request, replies)
-            samples = _round_trips(exchange, window)
+            # reach-sim's flood budget (INPUT_UNITS_PER_S: a frame read or a reply made is a
+            # unit) drops what comes faster; back to back, a request and its reply every
+            # 26 us would exceed it, so exchanges are spaced to use half of it
+            spacing = 2 * (1 + replies) / INPUT_UNITS_PER_S
+            samples = _round_trips(exchange, window, spacing_s=spacing)
             close()
         finally:
             _stop(sim)
