@@ -224,7 +224,7 @@ def test_identify_a_hidden_virtual_arm_end_to_end(tmp_path: Path) -> None:
             "--params",
             str(hidden_path),
             "--speed",
-            "1.5",  # a host pause of 30 ms is 45 ms of arm time: faster, stalls blur the data
+            "1.0",  # real time: a host pause is no longer in arm time; faster, stalls blur the data
             "--link",
             str(link),
             "--stats-interval",
