@@ -1,0 +1,238 @@
+"""A per-joint settle supervisor around the DDPG actor: engineered, not learned.
+
+The actor is stateless and has one near-goal gain for every arm. On an arm with 1-2 periods of
+control latency and little Coulomb friction that gain drives a joint into a limit cycle around
+its goal; on an arm with a weak joint and several N m of friction the actor's small final
+command stops the joint short (docs/robustness.md). This layer watches every joint near its
+goal and hands *that joint* to a conservative settle law when it sees either signature, until
+the target changes. The approach, and every joint that settles normally, stay the actor's.
+
+Watching (per joint, within `band` of the goal, on the actor's own commands):
+
+- **cycling**: the actor's command reverses sign at `reversal_fraction` of the joint's
+  current limit or more, `reversals` times with no gap over `max_gap_s` between them and over
+  at least `min_span_s` (an arrival that brakes reverses 2-4 times in 0.1-0.15 s, docs/metrics.md
+  "Rest"; a limit cycle of period ~0.4 s reverses twice per period);
+- **stuck short**: the low-passed error stays above `stuck_error` and the low-passed speed
+  below `stuck_speed` for `stuck_s`.
+
+The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
+
+- ``u_I`` starts at the low-passed actor command (about what holds the joint against gravity)
+  and integrates ``ki e`` (slow: the loop keeps 30 degrees of phase margin with 150 ms of
+  delay on a frictionless joint of 0.1-0.3 kg m^2, see `DEFAULT_*` below);
+- while the joint is stuck outside `stuck_error` it also ramps at `ramp` (fraction of the
+  current limit per second) towards the goal, so that 6.6 N m of Coulomb friction (330 mA on
+  E D C) is overcome in a few seconds; once the joint breaks away, half the ramp added since it
+  stuck is taken back (the excess over breakaway would otherwise carry it through the goal);
+- inside `freeze` (low-passed error) nothing integrates: a joint held by friction inside the
+  tolerance is left alone instead of hunting.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from protocol.alpha5 import N_JOINTS
+
+
+def _four(value: Any) -> tuple[float, float, float, float]:
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0:
+        arr = np.full(N_JOINTS, float(arr))
+    if arr.shape != (N_JOINTS,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        raise ValueError(f"settle gains need one value or 4 (E D C B), finite, >= 0: {value!r}")
+    a, b, c, d = (float(x) for x in arr)
+    return (a, b, c, d)
+
+
+# Linear gains: the worst phase margin over joint inertia 0.1-0.3 kg m^2, viscous friction
+# 0.4-3.6 N m s/rad and 25-150 ms of loop delay (20.2 N m/A) is ~30 degrees for E D C; B
+# (7.1 N m/A, 0.005-0.02 kg m^2, 0.18-0.54 N m s/rad) likewise. Higher kd or kp loses it.
+DEFAULT_KP = (100.0, 100.0, 100.0, 150.0)  # mA/rad
+DEFAULT_KD = (30.0, 30.0, 30.0, 10.0)  # mA/(rad/s)
+DEFAULT_KI = (40.0, 40.0, 40.0, 50.0)  # mA/(rad s)
+
+
+@dataclass(frozen=True)
+class SettleLaw:
+    """Thresholds of the watch and gains of the settle law (module docstring)."""
+
+    band: float = 0.06  # rad: only joints this close to their goal are watched
+    reversal_fraction: float = 0.25  # of the current limit
+    reversals: int = 4
+    max_gap_s: float = 0.3
+    min_span_s: float = 0.4
+    stuck_error: float = 0.013  # rad, low-passed
+    stuck_speed: float = 0.03  # rad/s, low-passed
+    stuck_s: float = 1.0
+    filter_s: float = 0.25  # time constant of the low-passed error, speed and command
+    kp: tuple[float, float, float, float] = DEFAULT_KP
+    kd: tuple[float, float, float, float] = DEFAULT_KD
+    ki: tuple[float, float, float, float] = DEFAULT_KI
+    ramp: float = 0.25  # fraction of the current limit per second, while stuck
+    backoff: float = 0.5  # of the ramp added since the joint stuck, taken back at breakaway
+    freeze: float = 0.008  # rad, low-passed: no integration inside
+    default_dt: float = 0.05
+    cycles: bool = True  # watch for cycling
+    stuck: bool = True  # watch for stuck short
+
+    def __post_init__(self) -> None:
+        for name in ("kp", "kd", "ki"):
+            object.__setattr__(self, name, _four(getattr(self, name)))
+        positive = ("band", "max_gap_s", "stuck_error", "stuck_speed", "filter_s", "default_dt")
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"settle {name} must be positive, got {value}")
+        for name in ("reversal_fraction", "backoff"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"settle {name} must be in [0, 1], got {getattr(self, name)}")
+        if self.reversals < 2 or self.min_span_s < 0 or self.stuck_s < 0 or self.ramp < 0:
+            raise ValueError(f"settle thresholds out of range: {self}")
+        if self.freeze < 0:
+            raise ValueError(f"settle freeze must be >= 0, got {self.freeze}")
+
+    @classmethod
+    def from_param(cls, value: Any) -> SettleLaw | None:
+        """`settle` as a factory parameter: false/0/None off, true/1 the defaults, a dict of
+        field overrides (JSON through `--param settle={...}`)."""
+        if value is None or value is False or value == 0:
+            return None
+        if value is True or value == 1:
+            return cls()
+        if isinstance(value, SettleLaw):
+            return value
+        if isinstance(value, dict):
+            names = {f.name for f in fields(cls)}
+            unknown = set(value) - names
+            if unknown:
+                raise ValueError(f"unknown settle fields: {', '.join(sorted(unknown))}")
+            return cls(**value)
+        raise ValueError(f"settle must be a bool, 0/1 or a dict of SettleLaw fields: {value!r}")
+
+
+@dataclass
+class SettleSupervisor:
+    """The per-joint state machine: `update` each control step with the actor's command."""
+
+    law: SettleLaw
+    limits_mA: np.ndarray
+    engaged: np.ndarray = field(init=False)
+    reasons: list[str] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.limits_mA = np.asarray(self.limits_mA, dtype=float)
+        self.reset()
+
+    def reset(self) -> None:
+        n = N_JOINTS
+        self.engaged = np.zeros(n, dtype=bool)
+        self.reasons = [""] * n
+        self.engaged_at = np.full(n, math.nan)
+        self._target: np.ndarray | None = None
+        self._t: float | None = None
+        self._fresh = np.ones(n, dtype=bool)
+        self.e_f = np.zeros(n)
+        self.v_f = np.zeros(n)
+        self.u_f = np.zeros(n)
+        self.u_i = np.zeros(n)
+        self._sign = np.zeros(n)
+        self._rev_start = np.full(n, math.nan)
+        self._rev_last = np.full(n, math.nan)
+        self._rev_count = np.zeros(n, dtype=int)
+        self._stuck_for = np.zeros(n)
+        self._ramped = np.zeros(n)
+        self._was_stuck = np.zeros(n, dtype=bool)
+
+    def _new_target(self, target: np.ndarray) -> None:
+        self.reset()
+        self._target = target.copy()
+
+    def update(
+        self, t: float | None, q: np.ndarray, qdot: np.ndarray, target: np.ndarray, u: np.ndarray
+    ) -> np.ndarray:
+        """The currents to send: `u` (the actor's) on joints not engaged, the settle law's on
+        the others."""
+        law = self.law
+        if self._target is None or np.any(target != self._target):
+            self._new_target(target)
+        dt = law.default_dt
+        if t is not None and self._t is not None and 0 < t - self._t <= 4 * law.default_dt:
+            dt = float(t) - self._t
+        self._t = None if t is None else float(t)
+        now = self._t if self._t is not None else 0.0
+        e = target - q
+        a = min(1.0, dt / law.filter_s)
+        self.e_f = np.where(self._fresh, e, self.e_f + a * (e - self.e_f))
+        self.v_f = np.where(self._fresh, qdot, self.v_f + a * (qdot - self.v_f))
+        self.u_f = np.where(self._fresh, u, self.u_f + a * (u - self.u_f))
+        self._fresh[:] = False
+        near = np.abs(e) < law.band
+        out = np.asarray(u, dtype=float).copy()
+        for j in range(N_JOINTS):
+            if not self.engaged[j]:
+                self._watch(j, now, dt, near[j], e[j], u[j])
+            if self.engaged[j]:
+                out[j] = self._settle(j, dt, e[j], qdot[j])
+        return out
+
+    def _watch(self, j: int, now: float, dt: float, near: bool, e: float, u: float) -> None:
+        law = self.law
+        if not near:
+            self._sign[j] = 0.0
+            self._rev_count[j] = 0
+            self._stuck_for[j] = 0.0
+            return
+        if law.cycles and abs(u) >= law.reversal_fraction * self.limits_mA[j]:
+            sign = math.copysign(1.0, u)
+            if self._sign[j] != 0.0 and sign != self._sign[j]:
+                if not now - self._rev_last[j] <= law.max_gap_s:
+                    self._rev_start[j], self._rev_count[j] = now, 0
+                self._rev_last[j] = now
+                self._rev_count[j] += 1
+                span = now - self._rev_start[j]
+                if self._rev_count[j] >= law.reversals and span >= law.min_span_s - 1e-9:
+                    self._engage(j, now, "cycling")
+                    return
+            self._sign[j] = sign
+        if law.stuck:
+            still = abs(self.e_f[j]) > law.stuck_error and abs(self.v_f[j]) < law.stuck_speed
+            self._stuck_for[j] = self._stuck_for[j] + dt if still else 0.0
+            if self._stuck_for[j] >= law.stuck_s - 1e-9:
+                self._engage(j, now, "stuck")
+
+    def _engage(self, j: int, now: float, why: str) -> None:
+        self.engaged[j] = True
+        self.reasons[j] = why
+        self.engaged_at[j] = now
+        self.u_i[j] = self.u_f[j]
+        self._ramped[j] = 0.0
+        self._was_stuck[j] = False
+
+    def _settle(self, j: int, dt: float, e: float, qdot: float) -> float:
+        law = self.law
+        limit = self.limits_mA[j]
+        ef = self.e_f[j]
+        if abs(ef) > law.freeze:
+            self.u_i[j] += law.ki[j] * e * dt
+        stuck = abs(ef) > law.stuck_error and abs(self.v_f[j]) < law.stuck_speed
+        if stuck:
+            step = math.copysign(law.ramp * limit * dt, ef)
+            self.u_i[j] += step
+            self._ramped[j] += step
+            self._was_stuck[j] = True
+        elif self._was_stuck[j] and abs(self.v_f[j]) >= law.stuck_speed:
+            self.u_i[j] -= law.backoff * self._ramped[j]
+            self._ramped[j] = 0.0
+            self._was_stuck[j] = False
+        if abs(ef) <= law.freeze:
+            self._ramped[j] = 0.0
+            self._was_stuck[j] = False
+        self.u_i[j] = float(np.clip(self.u_i[j], -limit, limit))
+        cmd = self.u_i[j] + law.kp[j] * e - law.kd[j] * qdot
+        return float(np.clip(cmd, -limit, limit))
