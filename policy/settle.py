@@ -62,14 +62,15 @@ DEFAULT_KI = (40.0, 40.0, 40.0, 50.0)  # mA/(rad s)
 class SettleLaw:
     """Thresholds of the watch and gains of the settle law (module docstring)."""
 
-    band: float = 0.06  # rad: only joints this close to their goal are watched
-    reversal_fraction: float = 0.25  # of the current limit
+    band: float = 0.15  # rad: only joints this close to their goal are watched
+    release: float = 0.12  # rad: an engaged joint this far from its goal goes back to the actor
+    reversal_fraction: float = 0.1  # of the current limit
     reversals: int = 4
     max_gap_s: float = 0.3
     min_span_s: float = 0.4
-    stuck_error: float = 0.013  # rad, low-passed
+    stuck_error: float = 0.017  # rad, low-passed
     stuck_speed: float = 0.03  # rad/s, low-passed
-    stuck_s: float = 1.0
+    stuck_s: float = 1.5
     filter_s: float = 0.25  # time constant of the low-passed error, speed and command
     kp: tuple[float, float, float, float] = DEFAULT_KP
     kd: tuple[float, float, float, float] = DEFAULT_KD
@@ -79,12 +80,20 @@ class SettleLaw:
     freeze: float = 0.008  # rad, low-passed: no integration inside
     default_dt: float = 0.05
     cycles: bool = True  # watch for cycling
-    stuck: bool = True  # watch for stuck short
+    stuck: bool = True  # watch for stuck short, and ramp while stuck
 
     def __post_init__(self) -> None:
         for name in ("kp", "kd", "ki"):
             object.__setattr__(self, name, _four(getattr(self, name)))
-        positive = ("band", "max_gap_s", "stuck_error", "stuck_speed", "filter_s", "default_dt")
+        positive = (
+            "band",
+            "release",
+            "max_gap_s",
+            "stuck_error",
+            "stuck_speed",
+            "filter_s",
+            "default_dt",
+        )
         for name in positive:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -134,6 +143,7 @@ class SettleSupervisor:
         self.engaged = np.zeros(n, dtype=bool)
         self.reasons = [""] * n
         self.engaged_at = np.full(n, math.nan)
+        self.releases = np.zeros(n, dtype=int)
         self._target: np.ndarray | None = None
         self._t: float | None = None
         self._fresh = np.ones(n, dtype=bool)
@@ -175,6 +185,8 @@ class SettleSupervisor:
         near = np.abs(e) < law.band
         out = np.asarray(u, dtype=float).copy()
         for j in range(N_JOINTS):
+            if self.engaged[j] and abs(e[j]) > law.release:
+                self._release(j)
             if not self.engaged[j]:
                 self._watch(j, now, dt, near[j], e[j], u[j])
             if self.engaged[j]:
@@ -214,13 +226,21 @@ class SettleSupervisor:
         self._ramped[j] = 0.0
         self._was_stuck[j] = False
 
+    def _release(self, j: int) -> None:
+        self.engaged[j] = False
+        self.releases[j] += 1
+        self._sign[j] = 0.0
+        self._rev_count[j] = 0
+        self._rev_last[j] = math.nan
+        self._stuck_for[j] = 0.0
+
     def _settle(self, j: int, dt: float, e: float, qdot: float) -> float:
         law = self.law
         limit = self.limits_mA[j]
         ef = self.e_f[j]
         if abs(ef) > law.freeze:
             self.u_i[j] += law.ki[j] * e * dt
-        stuck = abs(ef) > law.stuck_error and abs(self.v_f[j]) < law.stuck_speed
+        stuck = law.stuck and abs(ef) > law.stuck_error and abs(self.v_f[j]) < law.stuck_speed
         if stuck:
             step = math.copysign(law.ramp * limit * dt, ef)
             self.u_i[j] += step
