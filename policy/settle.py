@@ -53,9 +53,9 @@ def _four(value: Any) -> tuple[float, float, float, float]:
 # Linear gains: the worst phase margin over joint inertia 0.1-0.3 kg m^2, viscous friction
 # 0.4-3.6 N m s/rad and 25-150 ms of loop delay (20.2 N m/A) is ~30 degrees for E D C; B
 # (7.1 N m/A, 0.005-0.02 kg m^2, 0.18-0.54 N m s/rad) likewise. Higher kd or kp loses it.
-DEFAULT_KP = (100.0, 100.0, 100.0, 150.0)  # mA/rad
-DEFAULT_KD = (30.0, 30.0, 30.0, 10.0)  # mA/(rad/s)
-DEFAULT_KI = (40.0, 40.0, 40.0, 50.0)  # mA/(rad s)
+DEFAULT_KP = (200.0, 200.0, 100.0, 100.0)  # mA/rad
+DEFAULT_KD = (20.0, 20.0, 20.0, 10.0)  # mA/(rad/s)
+DEFAULT_KI = (60.0, 60.0, 30.0, 30.0)  # mA/(rad s)
 
 
 @dataclass(frozen=True)
@@ -71,7 +71,8 @@ class SettleLaw:
     stuck_error: float = 0.017  # rad, low-passed
     stuck_speed: float = 0.03  # rad/s, low-passed
     stuck_s: float = 1.5
-    filter_s: float = 0.25  # time constant of the low-passed error, speed and command
+    filter_s: float = 0.25  # time constant of the low-passed error and speed
+    hold_filter_s: float = 0.5  # ... and of the low-passed actor command u_I starts from
     kp: tuple[float, float, float, float] = DEFAULT_KP
     kd: tuple[float, float, float, float] = DEFAULT_KD
     ki: tuple[float, float, float, float] = DEFAULT_KI
@@ -80,7 +81,10 @@ class SettleLaw:
     freeze: float = 0.008  # rad, low-passed: no integration inside
     default_dt: float = 0.05
     cycles: bool = True  # watch for cycling
-    stuck: bool = True  # watch for stuck short, and ramp while stuck
+    stuck: bool = False  # watch for stuck short (engage), and ramp while stuck
+    ramp_engaged: bool = True  # ramp while stuck on a joint engaged for cycling too
+    hold_s: float = 0.0  # > 0: engage a joint settled inside hold_error for this long
+    hold_error: float = 0.015  # rad, low-passed
 
     def __post_init__(self) -> None:
         for name in ("kp", "kd", "ki"):
@@ -156,6 +160,7 @@ class SettleSupervisor:
         self._rev_last = np.full(n, math.nan)
         self._rev_count = np.zeros(n, dtype=int)
         self._stuck_for = np.zeros(n)
+        self._held_for = np.zeros(n)
         self._ramped = np.zeros(n)
         self._was_stuck = np.zeros(n, dtype=bool)
 
@@ -180,7 +185,8 @@ class SettleSupervisor:
         a = min(1.0, dt / law.filter_s)
         self.e_f = np.where(self._fresh, e, self.e_f + a * (e - self.e_f))
         self.v_f = np.where(self._fresh, qdot, self.v_f + a * (qdot - self.v_f))
-        self.u_f = np.where(self._fresh, u, self.u_f + a * (u - self.u_f))
+        b = min(1.0, dt / law.hold_filter_s)
+        self.u_f = np.where(self._fresh, u, self.u_f + b * (u - self.u_f))
         self._fresh[:] = False
         near = np.abs(e) < law.band
         out = np.asarray(u, dtype=float).copy()
@@ -199,6 +205,7 @@ class SettleSupervisor:
             self._sign[j] = 0.0
             self._rev_count[j] = 0
             self._stuck_for[j] = 0.0
+            self._held_for[j] = 0.0
             return
         if law.cycles and abs(u) >= law.reversal_fraction * self.limits_mA[j]:
             sign = math.copysign(1.0, u)
@@ -212,6 +219,12 @@ class SettleSupervisor:
                     self._engage(j, now, "cycling")
                     return
             self._sign[j] = sign
+        if law.hold_s > 0:
+            settled = abs(self.e_f[j]) < law.hold_error
+            self._held_for[j] = self._held_for[j] + dt if settled else 0.0
+            if self._held_for[j] >= law.hold_s - 1e-9:
+                self._engage(j, now, "hold")
+                return
         if law.stuck:
             still = abs(self.e_f[j]) > law.stuck_error and abs(self.v_f[j]) < law.stuck_speed
             self._stuck_for[j] = self._stuck_for[j] + dt if still else 0.0
@@ -240,7 +253,8 @@ class SettleSupervisor:
         ef = self.e_f[j]
         if abs(ef) > law.freeze:
             self.u_i[j] += law.ki[j] * e * dt
-        stuck = law.stuck and abs(ef) > law.stuck_error and abs(self.v_f[j]) < law.stuck_speed
+        may_ramp = law.stuck if self.reasons[j] == "stuck" else law.ramp_engaged
+        stuck = may_ramp and abs(ef) > law.stuck_error and abs(self.v_f[j]) < law.stuck_speed
         if stuck:
             step = math.copysign(law.ramp * limit * dt, ef)
             self.u_i[j] += step
