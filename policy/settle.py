@@ -2,29 +2,36 @@
 
 The actor is stateless and has one near-goal gain for every arm. On an arm with 1-2 periods of
 control latency and little Coulomb friction that gain drives a joint into a limit cycle around
-its goal; on an arm with a weak joint and several N m of friction the actor's small final
-command stops the joint short (docs/robustness.md). This layer watches every joint near its
-goal and hands *that joint* to a conservative settle law when it sees either signature, until
-the target changes. The approach, and every joint that settles normally, stay the actor's.
+its goal, and on a light joint (B) or under 2-3x sensor noise it jitters at the goal
+(docs/robustness.md). This layer watches every joint near its goal and hands *that joint* to a
+conservative settle law when it sees the signature, until the target changes or the joint
+leaves `release` of its goal (then it is the actor's again, and watched again). The approach,
+and every joint that settles normally, stay the actor's: on Table I's episodes it never
+engages. `ddpg --param settle=1` turns it on (docs/robustness.md, "The settle supervisor").
 
-Watching (per joint, within `band` of the goal, on the actor's own commands):
+Watching (per joint, within `band` of the goal):
 
 - **cycling**: the actor's command reverses sign at `reversal_fraction` of the joint's
   current limit or more, `reversals` times with no gap over `max_gap_s` between them and over
   at least `min_span_s` (an arrival that brakes reverses 2-4 times in 0.1-0.15 s, docs/metrics.md
   "Rest"; a limit cycle of period ~0.4 s reverses twice per period);
-- **stuck short**: the low-passed error stays above `stuck_error` and the low-passed speed
-  below `stuck_speed` for `stuck_s`.
+- **jitter** (`jitter_speed` > 0): after `jitter_s` within `jitter_band`, the RMS of the
+  measured speed over the last `jitter_window_s` exceeds `jitter_speed` (the sensor noise
+  alone gives 0.02-0.06 rad/s);
+- **stuck short** (`stuck`, off by default: measured to lose more arms than it saves): the
+  low-passed error stays above `stuck_error` and the low-passed speed below `stuck_speed`
+  for `stuck_s`.
 
 The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
 
-- ``u_I`` starts at the low-passed actor command (about what holds the joint against gravity)
-  and integrates ``ki e`` (slow: the loop keeps 30 degrees of phase margin with 150 ms of
-  delay on a frictionless joint of 0.1-0.3 kg m^2, see `DEFAULT_*` below);
+- ``u_I`` starts at the actor's command low-passed over `hold_filter_s` (about what holds the
+  joint against gravity) and integrates ``ki e``; the gains keep 35 degrees of phase margin
+  and a gain margin of 2 over the envelope's joints with 25-130 ms of loop delay
+  (`DEFAULT_*` below), which makes them soft: 2-4 N m/rad;
 - while the joint is stuck outside `stuck_error` it also ramps at `ramp` (fraction of the
-  current limit per second) towards the goal, so that 6.6 N m of Coulomb friction (330 mA on
-  E D C) is overcome in a few seconds; once the joint breaks away, half the ramp added since it
-  stuck is taken back (the excess over breakaway would otherwise carry it through the goal);
+  current limit per second) towards the goal, so that Coulomb friction (6.6 N m is 330 mA on
+  E D C) is overcome in a few seconds; once the joint breaks away, `backoff` of the ramp added
+  since it stuck is taken back (the excess over breakaway would otherwise carry it through);
 - inside `freeze` (low-passed error) nothing integrates: a joint held by friction inside the
   tolerance is left alone instead of hunting.
 """
@@ -50,12 +57,19 @@ def _four(value: Any) -> tuple[float, float, float, float]:
     return (a, b, c, d)
 
 
-# Linear gains: the worst phase margin over joint inertia 0.1-0.3 kg m^2, viscous friction
-# 0.4-3.6 N m s/rad and 25-150 ms of loop delay (20.2 N m/A) is ~30 degrees for E D C; B
-# (7.1 N m/A, 0.005-0.02 kg m^2, 0.18-0.54 N m s/rad) likewise. Higher kd or kp loses it.
+# Linear gains, from the loop kt (kp + kd s + ki / s) e^(-s tau) / (J s^2 + b s) on a grid of
+# the envelope's joints (J: the MuJoCo mass matrix's diagonal over the workspace, 0.12-0.16
+# kg m^2 on E D C and 0.007 on B, times armature x0.5-1.5; b: the model's damping x0.5-1.5)
+# and tau 25-130 ms (half a period of hold plus 0-2 periods of latency): the largest kp with
+# a phase margin of at least 35 degrees and a gain margin of at least 2 everywhere. C (low
+# viscous friction) and B (tiny inertia) get half of E and D's kp. Friction only adds margin.
 DEFAULT_KP = (200.0, 200.0, 100.0, 100.0)  # mA/rad
 DEFAULT_KD = (20.0, 20.0, 20.0, 10.0)  # mA/(rad/s)
 DEFAULT_KI = (60.0, 60.0, 30.0, 30.0)  # mA/(rad s)
+# The ramp while stuck, as a fraction of the current limit per second: 150 mA/s on E D C
+# (6.6 N m of Coulomb friction is 330 mA); 15 mA/s on B, whose 0.16 N m is 22 mA and whose
+# 0.004-0.011 kg m^2 a fast ramp sets hunting (measured on draw 156 of seed 1).
+DEFAULT_RAMP = (0.25, 0.25, 0.25, 0.05)
 
 
 @dataclass(frozen=True)
@@ -76,18 +90,23 @@ class SettleLaw:
     kp: tuple[float, float, float, float] = DEFAULT_KP
     kd: tuple[float, float, float, float] = DEFAULT_KD
     ki: tuple[float, float, float, float] = DEFAULT_KI
-    ramp: float = 0.25  # fraction of the current limit per second, while stuck
+    ramp: tuple[float, float, float, float] = DEFAULT_RAMP  # of the limit per second, stuck
     backoff: float = 0.5  # of the ramp added since the joint stuck, taken back at breakaway
     freeze: float = 0.008  # rad, low-passed: no integration inside
     default_dt: float = 0.05
     cycles: bool = True  # watch for cycling
     stuck: bool = False  # watch for stuck short (engage), and ramp while stuck
     ramp_engaged: bool = True  # ramp while stuck on a joint engaged for cycling too
+    jitter_speed: float = 0.0  # > 0: engage a joint whose measured speed RMS over the last
+    # jitter_window_s exceeds this after jitter_s inside jitter_band (noise-driven jitter)
+    jitter_band: float = 0.03  # rad
+    jitter_s: float = 1.5
+    jitter_window_s: float = 1.0
     hold_s: float = 0.0  # > 0: engage a joint settled inside hold_error for this long
     hold_error: float = 0.015  # rad, low-passed
 
     def __post_init__(self) -> None:
-        for name in ("kp", "kd", "ki"):
+        for name in ("kp", "kd", "ki", "ramp"):
             object.__setattr__(self, name, _four(getattr(self, name)))
         positive = (
             "band",
@@ -105,7 +124,7 @@ class SettleLaw:
         for name in ("reversal_fraction", "backoff"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"settle {name} must be in [0, 1], got {getattr(self, name)}")
-        if self.reversals < 2 or self.min_span_s < 0 or self.stuck_s < 0 or self.ramp < 0:
+        if self.reversals < 2 or self.min_span_s < 0 or self.stuck_s < 0:
             raise ValueError(f"settle thresholds out of range: {self}")
         if self.freeze < 0:
             raise ValueError(f"settle freeze must be >= 0, got {self.freeze}")
@@ -161,6 +180,10 @@ class SettleSupervisor:
         self._rev_count = np.zeros(n, dtype=int)
         self._stuck_for = np.zeros(n)
         self._held_for = np.zeros(n)
+        self._in_band_for = np.zeros(n)
+        window = max(1, int(round(self.law.jitter_window_s / self.law.default_dt)))
+        self._v2 = np.zeros((window, n))
+        self._v2_n = 0
         self._ramped = np.zeros(n)
         self._was_stuck = np.zeros(n, dtype=bool)
 
@@ -189,6 +212,8 @@ class SettleSupervisor:
         self.u_f = np.where(self._fresh, u, self.u_f + b * (u - self.u_f))
         self._fresh[:] = False
         near = np.abs(e) < law.band
+        self._v2[self._v2_n % self._v2.shape[0]] = qdot**2
+        self._v2_n += 1
         out = np.asarray(u, dtype=float).copy()
         for j in range(N_JOINTS):
             if self.engaged[j] and abs(e[j]) > law.release:
@@ -206,6 +231,7 @@ class SettleSupervisor:
             self._rev_count[j] = 0
             self._stuck_for[j] = 0.0
             self._held_for[j] = 0.0
+            self._in_band_for[j] = 0.0
             return
         if law.cycles and abs(u) >= law.reversal_fraction * self.limits_mA[j]:
             sign = math.copysign(1.0, u)
@@ -219,6 +245,14 @@ class SettleSupervisor:
                     self._engage(j, now, "cycling")
                     return
             self._sign[j] = sign
+        if law.jitter_speed > 0:
+            inside = abs(self.e_f[j]) < law.jitter_band
+            self._in_band_for[j] = self._in_band_for[j] + dt if inside else 0.0
+            if self._in_band_for[j] >= law.jitter_s - 1e-9 and self._v2_n >= self._v2.shape[0]:
+                rms = math.sqrt(float(np.mean(self._v2[:, j])))
+                if rms > law.jitter_speed:
+                    self._engage(j, now, "jitter")
+                    return
         if law.hold_s > 0:
             settled = abs(self.e_f[j]) < law.hold_error
             self._held_for[j] = self._held_for[j] + dt if settled else 0.0
@@ -256,7 +290,7 @@ class SettleSupervisor:
         may_ramp = law.stuck if self.reasons[j] == "stuck" else law.ramp_engaged
         stuck = may_ramp and abs(ef) > law.stuck_error and abs(self.v_f[j]) < law.stuck_speed
         if stuck:
-            step = math.copysign(law.ramp * limit * dt, ef)
+            step = math.copysign(law.ramp[j] * limit * dt, ef)
             self.u_i[j] += step
             self._ramped[j] += step
             self._was_stuck[j] = True
