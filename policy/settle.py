@@ -97,7 +97,7 @@ class SettleLaw:
     cycles: bool = True  # watch for cycling
     stuck: bool = False  # watch for stuck short (engage), and ramp while stuck
     ramp_engaged: bool = True  # ramp while stuck on a joint engaged for cycling too
-    jitter_speed: float = 0.0  # > 0: engage a joint whose measured speed RMS over the last
+    jitter_speed: float = 0.08  # > 0: engage a joint whose measured speed RMS over the last
     # jitter_window_s exceeds this after jitter_s inside jitter_band (noise-driven jitter)
     jitter_band: float = 0.03  # rad
     jitter_s: float = 1.5
