@@ -59,3 +59,32 @@ def test_settle_changes_nothing_on_a_nominal_episode() -> None:
     assert ctrl.settle is not None and not ctrl.settle.engaged.any()
     np.testing.assert_array_equal(plain.trace.q, settled.trace.q)
     assert plain.metrics.reached and settled.metrics.reached
+
+
+def test_supervisor_engages_one_cycling_joint_within_a_second_and_releases_it() -> None:
+    from policy.settle import SettleSupervisor
+
+    sup = SettleSupervisor(SettleLaw(jitter_speed=0.0), np.array([600.0, 600.0, 600.0, 300.0]))
+    target = np.array([1.0, 1.0, 1.0, 1.0])
+    engaged_at = None
+    for k in range(40):  # C bang-bangs +-0.03 rad around its goal, period 0.4 s
+        t = 0.05 * k
+        phase = 1.0 if (k // 4) % 2 == 0 else -1.0
+        q = target.copy()
+        q[2] += 0.03 * phase
+        qdot = np.array([0.0, 0.0, -phase, 0.0])
+        u = np.array([10.0, 10.0, 400.0 * phase, 5.0])
+        out = sup.update(t, q, qdot, target, u)
+        if sup.engaged[2] and engaged_at is None:
+            engaged_at = t
+            assert abs(out[2]) < 200  # the settle law's command, not the actor's 400 mA
+    assert engaged_at is not None and engaged_at <= 1.0
+    assert sup.engaged.tolist() == [False, False, True, False]
+    assert sup.reasons[2] == "cycling"
+    np.testing.assert_array_equal(out[[0, 1, 3]], [10.0, 10.0, 5.0])  # the others: the actor's
+    far = target.copy()
+    far[2] += 0.2  # beyond `release`: back to the actor
+    out = sup.update(2.0, far, np.zeros(4), target, np.array([10.0, 10.0, -500.0, 5.0]))
+    assert not sup.engaged[2] and out[2] == -500.0
+    sup.update(2.05, far, np.zeros(4), target + 0.1, np.zeros(4))  # a new target forgets all
+    assert sup.releases.tolist() == [0, 0, 0, 0]
