@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from policy.observation import build_observation
+from policy.settle import SettleLaw, SettleSupervisor
 from policy.weights import DEFAULT_WEIGHTS, ActorWeights
 from protocol.alpha5 import N_JOINTS
 from reach_driver.controllers import ControlState
@@ -61,6 +62,7 @@ class DDPGController:
         weights: ActorWeights,
         current_limits_mA: Any = None,
         integral: ReferenceIntegral | None = None,
+        settle: SettleLaw | None = None,
     ) -> None:
         self.weights = weights
         limits = weights.current_limits_mA if current_limits_mA is None else current_limits_mA
@@ -68,6 +70,7 @@ class DDPGController:
         if self.current_limits_mA.shape != (N_JOINTS,) or np.any(self.current_limits_mA < 0):
             raise ValueError(f"current_limits_mA needs 4 values >= 0, got {limits!r}")
         self.integral = integral or ReferenceIntegral(gain=0.0)
+        self.settle = None if settle is None else SettleSupervisor(settle, self.current_limits_mA)
         self.reset()
 
     def reset(self) -> None:
@@ -75,6 +78,8 @@ class DDPGController:
         self.offset = np.zeros(N_JOINTS)
         self._target: np.ndarray | None = None
         self._t: float | None = None
+        if self.settle is not None:
+            self.settle.reset()
 
     def observation(self, state: ControlState, target: np.ndarray) -> np.ndarray:
         """The network's input for `state` and `target` as given (no reference integral)."""
@@ -120,9 +125,12 @@ class DDPGController:
 
     def act(self, state: ControlState, target: np.ndarray) -> np.ndarray:
         q, qdot, goal = self._checked(state, target)
-        shown = self._shift(q, getattr(state, "t", None), goal)
+        t = getattr(state, "t", None)
+        shown = self._shift(q, t, goal)
         action = self.weights.forward(build_observation(q, qdot, shown, self.weights.observation))
         out: np.ndarray = action * self.current_limits_mA
+        if self.settle is not None:
+            out = self.settle.update(None if t is None else float(t), q, qdot, goal, out)
         return out
 
 
@@ -132,12 +140,18 @@ def make_controller(
     integral_gain: float = ReferenceIntegral.gain,
     integral_band: float = ReferenceIntegral.band,
     integral_cap: float = ReferenceIntegral.cap,
+    settle: Any = False,
 ) -> DDPGController:
     """The shipped controller: the DDPG actor (shipped weights, or those at `weights`) with its
-    reference integral (`integral_gain` 0 for the pure policy)."""
+    reference integral (`integral_gain` 0 for the pure policy). `settle` (off by default):
+    true for the settle supervisor of `policy.settle` with its defaults, or a dict of
+    `SettleLaw` fields."""
     integral = ReferenceIntegral(gain=integral_gain, band=integral_band, cap=integral_cap)
     return DDPGController(
-        ActorWeights.load(weights or DEFAULT_WEIGHTS), current_limits_mA, integral
+        ActorWeights.load(weights or DEFAULT_WEIGHTS),
+        current_limits_mA,
+        integral,
+        SettleLaw.from_param(settle),
     )
 
 

@@ -1,0 +1,306 @@
+"""A per-joint settle supervisor around the DDPG actor: engineered, not learned.
+
+The actor is stateless and has one near-goal gain for every arm. On an arm with 1-2 periods of
+control latency and little Coulomb friction that gain drives a joint into a limit cycle around
+its goal, and on a light joint (B) or under 2-3x sensor noise it jitters at the goal
+(docs/robustness.md). This layer watches every joint near its goal and hands *that joint* to a
+conservative settle law when it sees the signature, until the target changes or the joint
+leaves `release` of its goal (then it is the actor's again, and watched again). The approach,
+and every joint that settles normally, stay the actor's: on Table I's episodes it never
+engages. `ddpg --param settle=1` turns it on (docs/robustness.md, "The settle supervisor").
+
+Watching (per joint, within `band` of the goal):
+
+- **cycling**: the actor's command reverses sign at `reversal_fraction` of the joint's
+  current limit or more, `reversals` times with no gap over `max_gap_s` between them and over
+  at least `min_span_s` (an arrival that brakes reverses 2-4 times in 0.1-0.15 s, docs/metrics.md
+  "Rest"; a limit cycle of period ~0.4 s reverses twice per period);
+- **jitter** (`jitter_speed` > 0): after `jitter_s` within `jitter_band`, the RMS of the
+  measured speed over the last `jitter_window_s` exceeds `jitter_speed` (the sensor noise
+  alone gives 0.02-0.06 rad/s);
+- **stuck short** (`stuck`, off by default: measured to lose more arms than it saves): the
+  low-passed error stays above `stuck_error` and the low-passed speed below `stuck_speed`
+  for `stuck_s`.
+
+The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
+
+- ``u_I`` starts at the actor's command low-passed over `hold_filter_s` (about what holds the
+  joint against gravity) and integrates ``ki e``; the gains keep 35 degrees of phase margin
+  and a gain margin of 2 over the envelope's joints with 25-130 ms of loop delay
+  (`DEFAULT_*` below), which makes them soft: 2-4 N m/rad;
+- while the joint is stuck outside `stuck_error` it also ramps at `ramp` (fraction of the
+  current limit per second) towards the goal, so that Coulomb friction (6.6 N m is 330 mA on
+  E D C) is overcome in a few seconds; once the joint breaks away, `backoff` of the ramp added
+  since it stuck is taken back (the excess over breakaway would otherwise carry it through);
+- inside `freeze` (low-passed error) nothing integrates: a joint held by friction inside the
+  tolerance is left alone instead of hunting.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from protocol.alpha5 import N_JOINTS
+
+
+def _four(value: Any) -> tuple[float, float, float, float]:
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0:
+        arr = np.full(N_JOINTS, float(arr))
+    if arr.shape != (N_JOINTS,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        raise ValueError(f"settle gains need one value or 4 (E D C B), finite, >= 0: {value!r}")
+    a, b, c, d = (float(x) for x in arr)
+    return (a, b, c, d)
+
+
+# Linear gains, from the loop kt (kp + kd s + ki / s) e^(-s tau) / (J s^2 + b s) on a grid of
+# the envelope's joints (J: the MuJoCo mass matrix's diagonal over the workspace, 0.12-0.16
+# kg m^2 on E D C and 0.007 on B, times armature x0.5-1.5; b: the model's damping x0.5-1.5)
+# and tau 25-130 ms (half a period of hold plus 0-2 periods of latency): the largest kp with
+# a phase margin of at least 35 degrees and a gain margin of at least 2 everywhere. C (low
+# viscous friction) and B (tiny inertia) get half of E and D's kp. Friction only adds margin.
+DEFAULT_KP = (200.0, 200.0, 100.0, 100.0)  # mA/rad
+DEFAULT_KD = (20.0, 20.0, 20.0, 10.0)  # mA/(rad/s)
+DEFAULT_KI = (60.0, 60.0, 30.0, 30.0)  # mA/(rad s)
+# The ramp while stuck, as a fraction of the current limit per second: 150 mA/s on E D C
+# (6.6 N m of Coulomb friction is 330 mA); 15 mA/s on B, whose 0.16 N m is 22 mA and whose
+# 0.004-0.011 kg m^2 a fast ramp sets hunting (measured on draw 156 of seed 1).
+DEFAULT_RAMP = (0.25, 0.25, 0.25, 0.05)
+
+
+@dataclass(frozen=True)
+class SettleLaw:
+    """Thresholds of the watch and gains of the settle law (module docstring)."""
+
+    band: float = 0.15  # rad: only joints this close to their goal are watched
+    release: float = 0.12  # rad: an engaged joint this far from its goal goes back to the actor
+    reversal_fraction: float = 0.1  # of the current limit
+    reversals: int = 4
+    max_gap_s: float = 0.3
+    min_span_s: float = 0.4
+    stuck_error: float = 0.017  # rad, low-passed
+    stuck_speed: float = 0.03  # rad/s, low-passed
+    stuck_s: float = 1.5
+    filter_s: float = 0.25  # time constant of the low-passed error and speed
+    hold_filter_s: float = 0.5  # ... and of the low-passed actor command u_I starts from
+    kp: tuple[float, float, float, float] = DEFAULT_KP
+    kd: tuple[float, float, float, float] = DEFAULT_KD
+    ki: tuple[float, float, float, float] = DEFAULT_KI
+    ramp: tuple[float, float, float, float] = DEFAULT_RAMP  # of the limit per second, stuck
+    backoff: float = 0.5  # of the ramp added since the joint stuck, taken back at breakaway
+    freeze: float = 0.008  # rad, low-passed: no integration inside
+    default_dt: float = 0.05
+    cycles: bool = True  # watch for cycling
+    stuck: bool = False  # watch for stuck short (engage), and ramp while stuck
+    ramp_engaged: bool = True  # ramp while stuck on a joint engaged for cycling too
+    jitter_speed: float = 0.08  # > 0: engage a joint whose measured speed RMS over the last
+    # jitter_window_s exceeds this after jitter_s inside jitter_band (noise-driven jitter)
+    jitter_band: float = 0.03  # rad
+    jitter_s: float = 1.5
+    jitter_window_s: float = 1.0
+    hold_s: float = 0.0  # > 0: engage a joint settled inside hold_error for this long
+    hold_error: float = 0.015  # rad, low-passed
+
+    def __post_init__(self) -> None:
+        for name in ("kp", "kd", "ki", "ramp"):
+            object.__setattr__(self, name, _four(getattr(self, name)))
+        positive = (
+            "band",
+            "release",
+            "max_gap_s",
+            "stuck_error",
+            "stuck_speed",
+            "filter_s",
+            "default_dt",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"settle {name} must be positive, got {value}")
+        for name in ("reversal_fraction", "backoff"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"settle {name} must be in [0, 1], got {getattr(self, name)}")
+        if self.reversals < 2 or self.min_span_s < 0 or self.stuck_s < 0:
+            raise ValueError(f"settle thresholds out of range: {self}")
+        if self.freeze < 0:
+            raise ValueError(f"settle freeze must be >= 0, got {self.freeze}")
+
+    @classmethod
+    def from_param(cls, value: Any) -> SettleLaw | None:
+        """`settle` as a factory parameter: false/0/None off, true/1 the defaults, a dict of
+        field overrides (JSON through `--param settle={...}`)."""
+        if value is None or value is False or value == 0:
+            return None
+        if value is True or value == 1:
+            return cls()
+        if isinstance(value, SettleLaw):
+            return value
+        if isinstance(value, dict):
+            names = {f.name for f in fields(cls)}
+            unknown = set(value) - names
+            if unknown:
+                raise ValueError(f"unknown settle fields: {', '.join(sorted(unknown))}")
+            return cls(**value)
+        raise ValueError(f"settle must be a bool, 0/1 or a dict of SettleLaw fields: {value!r}")
+
+
+@dataclass
+class SettleSupervisor:
+    """The per-joint state machine: `update` each control step with the actor's command."""
+
+    law: SettleLaw
+    limits_mA: np.ndarray
+    engaged: np.ndarray = field(init=False)
+    reasons: list[str] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.limits_mA = np.asarray(self.limits_mA, dtype=float)
+        self.reset()
+
+    def reset(self) -> None:
+        n = N_JOINTS
+        self.engaged = np.zeros(n, dtype=bool)
+        self.reasons = [""] * n
+        self.engaged_at = np.full(n, math.nan)
+        self.releases = np.zeros(n, dtype=int)
+        self._target: np.ndarray | None = None
+        self._t: float | None = None
+        self._fresh = np.ones(n, dtype=bool)
+        self.e_f = np.zeros(n)
+        self.v_f = np.zeros(n)
+        self.u_f = np.zeros(n)
+        self.u_i = np.zeros(n)
+        self._sign = np.zeros(n)
+        self._rev_start = np.full(n, math.nan)
+        self._rev_last = np.full(n, math.nan)
+        self._rev_count = np.zeros(n, dtype=int)
+        self._stuck_for = np.zeros(n)
+        self._held_for = np.zeros(n)
+        self._in_band_for = np.zeros(n)
+        window = max(1, int(round(self.law.jitter_window_s / self.law.default_dt)))
+        self._v2 = np.zeros((window, n))
+        self._v2_n = 0
+        self._ramped = np.zeros(n)
+        self._was_stuck = np.zeros(n, dtype=bool)
+
+    def _new_target(self, target: np.ndarray) -> None:
+        self.reset()
+        self._target = target.copy()
+
+    def update(
+        self, t: float | None, q: np.ndarray, qdot: np.ndarray, target: np.ndarray, u: np.ndarray
+    ) -> np.ndarray:
+        """The currents to send: `u` (the actor's) on joints not engaged, the settle law's on
+        the others."""
+        law = self.law
+        if self._target is None or np.any(target != self._target):
+            self._new_target(target)
+        dt = law.default_dt
+        if t is not None and self._t is not None and 0 < t - self._t <= 4 * law.default_dt:
+            dt = float(t) - self._t
+        self._t = None if t is None else float(t)
+        now = self._t if self._t is not None else 0.0
+        e = target - q
+        a = min(1.0, dt / law.filter_s)
+        self.e_f = np.where(self._fresh, e, self.e_f + a * (e - self.e_f))
+        self.v_f = np.where(self._fresh, qdot, self.v_f + a * (qdot - self.v_f))
+        b = min(1.0, dt / law.hold_filter_s)
+        self.u_f = np.where(self._fresh, u, self.u_f + b * (u - self.u_f))
+        self._fresh[:] = False
+        near = np.abs(e) < law.band
+        self._v2[self._v2_n % self._v2.shape[0]] = qdot**2
+        self._v2_n += 1
+        out = np.asarray(u, dtype=float).copy()
+        for j in range(N_JOINTS):
+            if self.engaged[j] and abs(e[j]) > law.release:
+                self._release(j)
+            if not self.engaged[j]:
+                self._watch(j, now, dt, near[j], e[j], u[j])
+            if self.engaged[j]:
+                out[j] = self._settle(j, dt, e[j], qdot[j])
+        return out
+
+    def _watch(self, j: int, now: float, dt: float, near: bool, e: float, u: float) -> None:
+        law = self.law
+        if not near:
+            self._sign[j] = 0.0
+            self._rev_count[j] = 0
+            self._stuck_for[j] = 0.0
+            self._held_for[j] = 0.0
+            self._in_band_for[j] = 0.0
+            return
+        if law.cycles and abs(u) >= law.reversal_fraction * self.limits_mA[j]:
+            sign = math.copysign(1.0, u)
+            if self._sign[j] != 0.0 and sign != self._sign[j]:
+                if not now - self._rev_last[j] <= law.max_gap_s:
+                    self._rev_start[j], self._rev_count[j] = now, 0
+                self._rev_last[j] = now
+                self._rev_count[j] += 1
+                span = now - self._rev_start[j]
+                if self._rev_count[j] >= law.reversals and span >= law.min_span_s - 1e-9:
+                    self._engage(j, now, "cycling")
+                    return
+            self._sign[j] = sign
+        if law.jitter_speed > 0:
+            inside = abs(self.e_f[j]) < law.jitter_band
+            self._in_band_for[j] = self._in_band_for[j] + dt if inside else 0.0
+            if self._in_band_for[j] >= law.jitter_s - 1e-9 and self._v2_n >= self._v2.shape[0]:
+                rms = math.sqrt(float(np.mean(self._v2[:, j])))
+                if rms > law.jitter_speed:
+                    self._engage(j, now, "jitter")
+                    return
+        if law.hold_s > 0:
+            settled = abs(self.e_f[j]) < law.hold_error
+            self._held_for[j] = self._held_for[j] + dt if settled else 0.0
+            if self._held_for[j] >= law.hold_s - 1e-9:
+                self._engage(j, now, "hold")
+                return
+        if law.stuck:
+            still = abs(self.e_f[j]) > law.stuck_error and abs(self.v_f[j]) < law.stuck_speed
+            self._stuck_for[j] = self._stuck_for[j] + dt if still else 0.0
+            if self._stuck_for[j] >= law.stuck_s - 1e-9:
+                self._engage(j, now, "stuck")
+
+    def _engage(self, j: int, now: float, why: str) -> None:
+        self.engaged[j] = True
+        self.reasons[j] = why
+        self.engaged_at[j] = now
+        self.u_i[j] = self.u_f[j]
+        self._ramped[j] = 0.0
+        self._was_stuck[j] = False
+
+    def _release(self, j: int) -> None:
+        self.engaged[j] = False
+        self.releases[j] += 1
+        self._sign[j] = 0.0
+        self._rev_count[j] = 0
+        self._rev_last[j] = math.nan
+        self._stuck_for[j] = 0.0
+
+    def _settle(self, j: int, dt: float, e: float, qdot: float) -> float:
+        law = self.law
+        limit = self.limits_mA[j]
+        ef = self.e_f[j]
+        if abs(ef) > law.freeze:
+            self.u_i[j] += law.ki[j] * e * dt
+        may_ramp = law.stuck if self.reasons[j] == "stuck" else law.ramp_engaged
+        stuck = may_ramp and abs(ef) > law.stuck_error and abs(self.v_f[j]) < law.stuck_speed
+        if stuck:
+            step = math.copysign(law.ramp[j] * limit * dt, ef)
+            self.u_i[j] += step
+            self._ramped[j] += step
+            self._was_stuck[j] = True
+        elif self._was_stuck[j] and abs(self.v_f[j]) >= law.stuck_speed:
+            self.u_i[j] -= law.backoff * self._ramped[j]
+            self._ramped[j] = 0.0
+            self._was_stuck[j] = False
+        if abs(ef) <= law.freeze:
+            self._ramped[j] = 0.0
+            self._was_stuck[j] = False
+        self.u_i[j] = float(np.clip(self.u_i[j], -limit, limit))
+        cmd = self.u_i[j] + law.kp[j] * e - law.kd[j] * qdot
+        return float(np.clip(cmd, -limit, limit))

@@ -1,0 +1,90 @@
+"""The settle supervisor around the DDPG actor (policy/settle.py): it stops a limit cycle the
+plain actor keeps up on a latent arm, and leaves a nominal episode to the actor."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from policy.ddpg_controller import make_controller
+from policy.direct import DirectArm
+from policy.envelope import draws
+from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
+from policy.rollout import Episode, RunConfig
+from policy.settle import SettleLaw
+from reach_sim_bridge.faults import SensorNoise
+
+
+def test_settle_parameter_is_off_by_default_and_validated() -> None:
+    assert make_controller().settle is None
+    assert SettleLaw.from_param(0) is None and SettleLaw.from_param(False) is None
+    assert SettleLaw.from_param(1) == SettleLaw()
+    assert SettleLaw.from_param({"band": 0.1}).band == 0.1  # type: ignore[union-attr]
+    with pytest.raises(ValueError):
+        SettleLaw.from_param({"nonsense": 1})
+    with pytest.raises(ValueError):
+        SettleLaw(kp=-1.0)
+
+
+@pytest.mark.slow
+def test_settle_turns_a_latent_arms_limit_cycle_into_rest() -> None:
+    # Draw 10 of tools/robustness.py --draws N --seed 1 (its episode and noise seed): 2.7 N m
+    # of Coulomb friction, 1.59 periods of latency; the plain actor keeps B in a limit cycle
+    # (+-0.1 rad at 1.2 rad/s) to the end.
+    variant = draws(11, 1).variants[10]
+    rng = np.random.default_rng([1, 1, 10])
+    episode = variant.episode(
+        Episode(
+            start=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
+            target=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
+        )
+    )
+    config = variant.run_config(RunConfig(seconds=20.0, noise=SensorNoise(), seed=100_001))
+    plain = DirectArm().run(make_controller(), episode, config, 100_011)
+    assert not plain.metrics.at_rest and not plain.metrics.reached
+    ctrl = make_controller(settle=True)
+    settled = DirectArm().run(ctrl, episode, config, 100_011)
+    assert settled.metrics.at_rest and settled.metrics.reached
+    assert ctrl.settle is not None and ctrl.settle.engaged[3]  # B was handed over
+    assert ctrl.settle.reasons[3] == "cycling"
+
+
+@pytest.mark.slow
+def test_settle_changes_nothing_on_a_nominal_episode() -> None:
+    episode = Episode(start=np.array([0.5, 1.2, 1.0, 0.5]), target=np.array([1.5, 1.8, 0.6, 1.5]))
+    config = RunConfig(seconds=10.0, noise=SensorNoise(), seed=3)
+    plain = DirectArm().run(make_controller(), episode, config, 3)
+    ctrl = make_controller(settle=True)
+    settled = DirectArm().run(ctrl, episode, config, 3)
+    assert ctrl.settle is not None and not ctrl.settle.engaged.any()
+    np.testing.assert_array_equal(plain.trace.q, settled.trace.q)
+    assert plain.metrics.reached and settled.metrics.reached
+
+
+def test_supervisor_engages_one_cycling_joint_within_a_second_and_releases_it() -> None:
+    from policy.settle import SettleSupervisor
+
+    sup = SettleSupervisor(SettleLaw(jitter_speed=0.0), np.array([600.0, 600.0, 600.0, 300.0]))
+    target = np.array([1.0, 1.0, 1.0, 1.0])
+    engaged_at = None
+    for k in range(40):  # C bang-bangs +-0.03 rad around its goal, period 0.4 s
+        t = 0.05 * k
+        phase = 1.0 if (k // 4) % 2 == 0 else -1.0
+        q = target.copy()
+        q[2] += 0.03 * phase
+        qdot = np.array([0.0, 0.0, -phase, 0.0])
+        u = np.array([10.0, 10.0, 400.0 * phase, 5.0])
+        out = sup.update(t, q, qdot, target, u)
+        if sup.engaged[2] and engaged_at is None:
+            engaged_at = t
+            assert abs(out[2]) < 200  # the settle law's command, not the actor's 400 mA
+    assert engaged_at is not None and engaged_at <= 1.0
+    assert sup.engaged.tolist() == [False, False, True, False]
+    assert sup.reasons[2] == "cycling"
+    np.testing.assert_array_equal(out[[0, 1, 3]], [10.0, 10.0, 5.0])  # the others: the actor's
+    far = target.copy()
+    far[2] += 0.2  # beyond `release`: back to the actor
+    out = sup.update(2.0, far, np.zeros(4), target, np.array([10.0, 10.0, -500.0, 5.0]))
+    assert not sup.engaged[2] and out[2] == -500.0
+    sup.update(2.05, far, np.zeros(4), target + 0.1, np.zeros(4))  # a new target forgets all
+    assert sup.releases.tolist() == [0, 0, 0, 0]
