@@ -252,7 +252,7 @@ def test_ddpg_reaches_scenario_1_through_reach_driver_and_prints_its_metrics(
     recorded = summary["recorded_summary"]
     # every control step (160 at 20 Hz, fewer if a tick was lost) and the state that ended it
     assert summary["steps"] == recorded["steps"] + 1 and recorded["steps"] >= 150
-    assert summary["duration_s"] == pytest.approx(8.0, abs=0.051)  # or one tick on, if late
+    assert 8.0 - 1e-9 <= summary["duration_s"] <= 8.1 + 1e-9  # or a tick or two on, if late
     assert recorded["metrics"]["reached"] is True, (recorded["metrics"], out)
     # `reach-driver inspect` scores the recording like the run printed it, energy included
     # exactly when no tick was lost (the printed trace interpolates a lost one, and energy,
@@ -485,9 +485,12 @@ def test_evaluate_via_driver_writes_metrics_and_loop_timing(tmp_path: Path) -> N
 def test_demo_runs_ddpg_through_the_cli_and_writes_a_recording(tmp_path: Path, capfd: Any) -> None:
     demo = _load_tool("demo")
     record = tmp_path / "demo.rrd"
-    code = demo.main(["--speed", "8", "--seconds", "4", "--record", str(record)])
+    code = demo.main(["--speed", "4", "--seconds", "4", "--record", str(record)])
     out = capfd.readouterr().out
     assert code == 0, out
     assert "scenario 1" in out and "RMSE" in out and f"rerun {record}" in out
     assert "reach-driver inspect" in out
-    assert summarize_recording(record)["duration_s"] == pytest.approx(4.0, abs=0.051)
+    # the run ends on the first state taken at or after 4 s: a host pause (50 ms of wall time
+    # is 200 ms of arm time at 4x) may skip the heartbeats around it, each counted
+    duration = summarize_recording(record)["duration_s"]
+    assert 4.0 - 1e-9 <= duration <= 4.0 + 0.2 + 1e-9
