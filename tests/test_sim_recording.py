@@ -97,7 +97,9 @@ def test_an_idle_arm_is_recorded_at_the_idle_rate_and_a_move_at_full_rate(tmp_pa
     idle_rate = idle.sum() / (t_move - 0.1 - 3.0)
     assert 1.0 <= idle_rate <= 3.5, idle_rate
     moving = (run.t > t_move + 0.1) & (run.t < t_move + 0.6)
-    assert moving.sum() >= 20  # 50 Hz while D moves
+    # 50 Hz while D moves (25 samples; the idle rate would give 1): the recorder's thread
+    # samples sim time as it finds it, and a loaded host at 4x can make it miss a few
+    assert moving.sum() >= 15
     # The quiet state just before the move is there, so the plot does not ramp over the gap.
     before = run.t[run.t < t_move + 0.05]
     after = run.t[run.t >= t_move + 0.05]
