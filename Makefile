@@ -38,8 +38,8 @@ typecheck: install
 
 # pytest exits 5 when it collects nothing: say so plainly and fail (an empty run proves nothing).
 # Many tests run the virtual arm in (accelerated) real time on a 2-core machine, where a host
-# pause now and then skips a heartbeat; a failing test is run up to twice more, and every
-# rerun is listed in the summary (RERUN lines). A test that fails three times fails the run.
+# pause now and then skips a heartbeat; a failing test is run up to twice more, and the reruns
+# are counted in pytest's closing line ("N rerun"). A test that fails three times fails the run.
 PYTEST_RERUNS ?= 2
 pytest: install
 	@$(VENV)/bin/pytest -q --reruns $(PYTEST_RERUNS) --reruns-delay 1; rc=$$?; \
