@@ -78,6 +78,8 @@ class DDPGController:
         self.offset = np.zeros(N_JOINTS)
         self._target: np.ndarray | None = None
         self._t: float | None = None
+        self._hold_goal: np.ndarray | None = None
+        self._hold = np.zeros(N_JOINTS)
         if self.settle is not None:
             self.settle.reset()
 
@@ -123,6 +125,14 @@ class DDPGController:
         out: np.ndarray = target + self.offset
         return out
 
+    def _hold_at(self, goal: np.ndarray) -> np.ndarray:
+        """The actor's command at rest on the goal: its learned hold current there."""
+        if self._hold_goal is None or np.any(goal != self._hold_goal):
+            obs = build_observation(goal, np.zeros(N_JOINTS), goal, self.weights.observation)
+            self._hold = self.weights.forward(obs) * self.current_limits_mA
+            self._hold_goal = goal.copy()
+        return self._hold
+
     def act(self, state: ControlState, target: np.ndarray) -> np.ndarray:
         q, qdot, goal = self._checked(state, target)
         t = getattr(state, "t", None)
@@ -130,7 +140,8 @@ class DDPGController:
         action = self.weights.forward(build_observation(q, qdot, shown, self.weights.observation))
         out: np.ndarray = action * self.current_limits_mA
         if self.settle is not None:
-            out = self.settle.update(None if t is None else float(t), q, qdot, goal, out)
+            t_ = None if t is None else float(t)
+            out = self.settle.update(t_, q, qdot, goal, out, self._hold_at(goal))
         return out
 
 

@@ -24,16 +24,23 @@ Watching (per joint, within `band` of the goal):
 
 The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
 
-- ``u_I`` starts at the actor's command low-passed over `hold_filter_s` (about what holds the
-  joint against gravity) and integrates ``ki e``; the gains keep 35 degrees of phase margin
-  and a gain margin of 2 over the envelope's joints with 25-130 ms of loop delay
-  (`DEFAULT_*` below), which makes them soft: 2-4 N m/rad;
+- ``u_I`` starts at the actor's own command at rest on the goal (`hold_init` "goal": what the
+  network learned holds the joint there against gravity and buoyancy; the mean of a cycling
+  command, the old start, is arbitrary and drove engaged joints away) and integrates ``ki e``;
+  the gains keep 35 degrees of phase margin and a gain margin of 2 over the envelope's joints
+  with 25-130 ms of loop delay (`DEFAULT_*` below), which makes them soft: 2-4 N m/rad. An
+  engaged joint mid-swing may coast well past its goal under them, so it is released only
+  beyond `release` (0.5 rad): handing it back to the actor restarted the cycle;
 - while the joint is stuck outside `stuck_error` it also ramps at `ramp` (fraction of the
   current limit per second) towards the goal, so that Coulomb friction (6.6 N m is 330 mA on
-  E D C) is overcome in a few seconds; once the joint breaks away, `backoff` of the ramp added
-  since it stuck is taken back (the excess over breakaway would otherwise carry it through);
-- inside `freeze` (low-passed error) nothing integrates: a joint held by friction inside the
-  tolerance is left alone instead of hunting.
+  E D C) is overcome in a few seconds; at breakaway, `backoff` of the ramp added since it
+  stuck is taken back (the excess over breakaway would otherwise carry it through). Breakaway
+  is the low-passed speed reaching `stuck_speed` or the low-passed error shrinking by
+  `progress` since the ramp began: a joint creeping in at 0.01 rad/s is below what the noisy
+  speed can show, and ramping on drove a slow stick-slip cycle across the goal;
+- inside `freeze` (low-passed error) a joint at rest does not integrate: one held by friction
+  inside the tolerance is left alone instead of hunting (one still drifting through the band
+  integrates on, or a stale u_I carries it out the other side).
 """
 
 from __future__ import annotations
@@ -77,7 +84,7 @@ class SettleLaw:
     """Thresholds of the watch and gains of the settle law (module docstring)."""
 
     band: float = 0.15  # rad: only joints this close to their goal are watched
-    release: float = 0.12  # rad: an engaged joint this far from its goal goes back to the actor
+    release: float = 0.5  # rad: an engaged joint this far from its goal goes back to the actor
     reversal_fraction: float = 0.1  # of the current limit
     reversals: int = 4
     max_gap_s: float = 0.3
@@ -91,8 +98,12 @@ class SettleLaw:
     kd: tuple[float, float, float, float] = DEFAULT_KD
     ki: tuple[float, float, float, float] = DEFAULT_KI
     ramp: tuple[float, float, float, float] = DEFAULT_RAMP  # of the limit per second, stuck
-    backoff: float = 0.5  # of the ramp added since the joint stuck, taken back at breakaway
+    backoff: float = 0.8  # of the ramp added since the joint stuck, taken back at breakaway
     freeze: float = 0.008  # rad, low-passed: no integration inside
+    progress: float = 0.004  # rad, > 0: breakaway also when the low-passed error has shrunk
+    # this much since the stuck ramp began (creep slower than stuck_speed)
+    freeze_at_rest: bool = True  # freeze only a joint also at rest (low-passed speed under
+    # stuck_speed): one drifting through the band on a stale u_I keeps integrating
     default_dt: float = 0.05
     cycles: bool = True  # watch for cycling
     stuck: bool = False  # watch for stuck short (engage), and ramp while stuck
@@ -104,6 +115,8 @@ class SettleLaw:
     jitter_window_s: float = 1.0
     hold_s: float = 0.0  # > 0: engage a joint settled inside hold_error for this long
     hold_error: float = 0.015  # rad, low-passed
+    hold_init: str = "goal"  # u_I starts at: "filter" the low-passed actor command, "goal"
+    # the actor's command at the goal at rest (its learned hold), "zero"
 
     def __post_init__(self) -> None:
         for name in ("kp", "kd", "ki", "ramp"):
@@ -126,6 +139,8 @@ class SettleLaw:
                 raise ValueError(f"settle {name} must be in [0, 1], got {getattr(self, name)}")
         if self.reversals < 2 or self.min_span_s < 0 or self.stuck_s < 0:
             raise ValueError(f"settle thresholds out of range: {self}")
+        if self.hold_init not in ("filter", "goal", "zero"):
+            raise ValueError(f"settle hold_init must be filter, goal or zero: {self.hold_init!r}")
         if self.freeze < 0:
             raise ValueError(f"settle freeze must be >= 0, got {self.freeze}")
 
@@ -169,6 +184,7 @@ class SettleSupervisor:
         self.releases = np.zeros(n, dtype=int)
         self._target: np.ndarray | None = None
         self._t: float | None = None
+        self._u_goal: np.ndarray | None = None
         self._fresh = np.ones(n, dtype=bool)
         self.e_f = np.zeros(n)
         self.v_f = np.zeros(n)
@@ -186,13 +202,20 @@ class SettleSupervisor:
         self._v2_n = 0
         self._ramped = np.zeros(n)
         self._was_stuck = np.zeros(n, dtype=bool)
+        self._stuck_from = np.zeros(n)
 
     def _new_target(self, target: np.ndarray) -> None:
         self.reset()
         self._target = target.copy()
 
     def update(
-        self, t: float | None, q: np.ndarray, qdot: np.ndarray, target: np.ndarray, u: np.ndarray
+        self,
+        t: float | None,
+        q: np.ndarray,
+        qdot: np.ndarray,
+        target: np.ndarray,
+        u: np.ndarray,
+        u_goal: np.ndarray | None = None,
     ) -> np.ndarray:
         """The currents to send: `u` (the actor's) on joints not engaged, the settle law's on
         the others."""
@@ -214,6 +237,7 @@ class SettleSupervisor:
         near = np.abs(e) < law.band
         self._v2[self._v2_n % self._v2.shape[0]] = qdot**2
         self._v2_n += 1
+        self._u_goal = u_goal
         out = np.asarray(u, dtype=float).copy()
         for j in range(N_JOINTS):
             if self.engaged[j] and abs(e[j]) > law.release:
@@ -269,7 +293,12 @@ class SettleSupervisor:
         self.engaged[j] = True
         self.reasons[j] = why
         self.engaged_at[j] = now
-        self.u_i[j] = self.u_f[j]
+        if self.law.hold_init == "goal" and self._u_goal is not None:
+            self.u_i[j] = float(self._u_goal[j])
+        elif self.law.hold_init == "zero":
+            self.u_i[j] = 0.0
+        else:
+            self.u_i[j] = self.u_f[j]
         self._ramped[j] = 0.0
         self._was_stuck[j] = False
 
@@ -285,19 +314,28 @@ class SettleSupervisor:
         law = self.law
         limit = self.limits_mA[j]
         ef = self.e_f[j]
-        if abs(ef) > law.freeze:
+        frozen = abs(ef) <= law.freeze
+        if law.freeze_at_rest:
+            frozen = frozen and abs(self.v_f[j]) < law.stuck_speed
+        if not frozen:
             self.u_i[j] += law.ki[j] * e * dt
         may_ramp = law.stuck if self.reasons[j] == "stuck" else law.ramp_engaged
-        stuck = may_ramp and abs(ef) > law.stuck_error and abs(self.v_f[j]) < law.stuck_speed
-        if stuck:
+        slow = abs(self.v_f[j]) < law.stuck_speed
+        # Breakaway: the low-passed speed, or (`progress` > 0) the low-passed error having
+        # shrunk by `progress` since the ramp began; a joint creeping in slower than the noisy
+        # speed can show has broken away too, and ramping on would carry it through its goal.
+        moved = law.progress > 0 and abs(ef) < self._stuck_from[j] - law.progress
+        if self._was_stuck[j] and (not slow or moved):
+            self.u_i[j] -= law.backoff * self._ramped[j]
+            self._ramped[j] = 0.0
+            self._was_stuck[j] = False
+        elif may_ramp and abs(ef) > law.stuck_error and slow:
+            if not self._was_stuck[j]:
+                self._stuck_from[j] = abs(ef)
             step = math.copysign(law.ramp[j] * limit * dt, ef)
             self.u_i[j] += step
             self._ramped[j] += step
             self._was_stuck[j] = True
-        elif self._was_stuck[j] and abs(self.v_f[j]) >= law.stuck_speed:
-            self.u_i[j] -= law.backoff * self._ramped[j]
-            self._ramped[j] = 0.0
-            self._was_stuck[j] = False
         if abs(ef) <= law.freeze:
             self._ramped[j] = 0.0
             self._was_stuck[j] = False

@@ -82,9 +82,38 @@ def test_supervisor_engages_one_cycling_joint_within_a_second_and_releases_it() 
     assert sup.engaged.tolist() == [False, False, True, False]
     assert sup.reasons[2] == "cycling"
     np.testing.assert_array_equal(out[[0, 1, 3]], [10.0, 10.0, 5.0])  # the others: the actor's
+    near = target.copy()
+    near[2] += 0.2  # swung out, inside `release`: still the settle law's
     far = target.copy()
-    far[2] += 0.2  # beyond `release`: back to the actor
+    out = sup.update(1.95, near, np.zeros(4), target, np.array([10.0, 10.0, -500.0, 5.0]))
+    assert sup.engaged[2] and abs(out[2]) < 200
+    far[2] += SettleLaw().release + 0.05  # beyond `release`: back to the actor
     out = sup.update(2.0, far, np.zeros(4), target, np.array([10.0, 10.0, -500.0, 5.0]))
     assert not sup.engaged[2] and out[2] == -500.0
     sup.update(2.05, far, np.zeros(4), target + 0.1, np.zeros(4))  # a new target forgets all
     assert sup.releases.tolist() == [0, 0, 0, 0]
+
+
+def test_an_engaged_joint_starts_from_the_actors_hold_at_the_goal() -> None:
+    """The integrator starts at the actor's command at rest on the goal (its learned hold
+    against gravity), not at the mean of a cycling command, which is arbitrary."""
+    from policy.settle import SettleSupervisor
+
+    law = SettleLaw(jitter_speed=0.0, kp=0.0, kd=0.0, ki=0.0, ramp_engaged=False)
+    sup = SettleSupervisor(law, np.array([600.0, 600.0, 600.0, 300.0]))
+    target = np.ones(4)
+    hold = np.array([0.0, 55.0, -30.0, 2.0])
+    for k in range(40):
+        phase = 1.0 if (k // 4) % 2 == 0 else -1.0
+        u = np.array([0.0, 0.0, 400.0 * phase + 150.0, 0.0])  # biased: its mean is not a hold
+        q = target.copy()
+        q[2] += 0.03 * phase
+        out = sup.update(0.05 * k, q, np.zeros(4), target, u, hold)
+        if sup.engaged[2]:
+            assert out[2] == hold[2]  # gains zeroed: the command is u_I alone
+            break
+    assert sup.engaged[2]
+    filtered = SettleSupervisor(SettleLaw(jitter_speed=0.0, hold_init="filter"), np.full(4, 600.0))
+    with pytest.raises(ValueError):
+        SettleLaw(hold_init="mean")
+    assert filtered.law.hold_init == "filter" and SettleLaw().hold_init == "goal"
