@@ -15,6 +15,12 @@ Watching (per joint, within `band` of the goal):
   current limit or more, `reversals` times with no gap over `max_gap_s` between them and over
   at least `min_span_s` (an arrival that brakes reverses 2-4 times in 0.1-0.15 s, docs/metrics.md
   "Rest"; a limit cycle of period ~0.4 s reverses twice per period);
+- **crossing** (`crossing_speed` > 0): the joint crosses its goal at `crossing_speed` or
+  faster (0.8 rad/s, two thirds of the no-load speed). The actor brakes its arrivals before the
+  goal; with 1-2 periods of latency it brakes on a state already that old, crosses at full
+  speed and starts the cycle that the reversal watch sees only one or two swings later, each
+  swing 2-3 J spent after the joint counts as settled. Table I's episodes never cross this
+  fast;
 - **jitter** (`jitter_speed` > 0): after `jitter_s` within `jitter_band`, the RMS of the
   measured speed over the last `jitter_window_s` exceeds `jitter_speed` (the sensor noise
   alone gives 0.02-0.06 rad/s);
@@ -37,7 +43,11 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
   stuck is taken back (the excess over breakaway would otherwise carry it through). Breakaway
   is the low-passed speed reaching `stuck_speed` or the low-passed error shrinking by
   `progress` since the ramp began: a joint creeping in at 0.01 rad/s is below what the noisy
-  speed can show, and ramping on drove a slow stick-slip cycle across the goal;
+  speed can show, and ramping on drove a slow stick-slip cycle across the goal. A ramp fast
+  enough for 6.6 N m breaks a joint with 0.2 N m away with several times its friction, and
+  with latency it sticks again on the other side: each time that happens the joint's ramp
+  rate is multiplied by `ramp_decay` (0.7, down to `ramp_floor`, 0.3 of it), so the hunting
+  dies out while a high-friction joint still breaks away in seconds;
 - inside `freeze` (low-passed error) a joint at rest does not integrate: one held by friction
   inside the tolerance is left alone instead of hunting (one still drifting through the band
   integrates on, or a stale u_I carries it out the other side).
@@ -100,8 +110,13 @@ class SettleLaw:
     ramp: tuple[float, float, float, float] = DEFAULT_RAMP  # of the limit per second, stuck
     backoff: float = 0.8  # of the ramp added since the joint stuck, taken back at breakaway
     freeze: float = 0.008  # rad, low-passed: no integration inside
+    ramp_decay: float = 0.7  # the ramp's rate is multiplied by this each time a joint sticks
+    # on the other side of its goal from where it last ramped (stick-slip hunting)
+    ramp_floor: float = 0.3  # ... but not below this fraction of `ramp`
     progress: float = 0.004  # rad, > 0: breakaway also when the low-passed error has shrunk
     # this much since the stuck ramp began (creep slower than stuck_speed)
+    crossing_speed: float = 0.8  # rad/s, > 0: engage a joint that crosses its goal this fast
+    crossings: int = 1  # ... this many times
     freeze_at_rest: bool = True  # freeze only a joint also at rest (low-passed speed under
     # stuck_speed): one drifting through the band on a stale u_I keeps integrating
     default_dt: float = 0.05
@@ -139,6 +154,12 @@ class SettleLaw:
                 raise ValueError(f"settle {name} must be in [0, 1], got {getattr(self, name)}")
         if self.reversals < 2 or self.min_span_s < 0 or self.stuck_s < 0:
             raise ValueError(f"settle thresholds out of range: {self}")
+        if not (0 < self.ramp_decay <= 1 and 0 <= self.ramp_floor <= 1):
+            raise ValueError(
+                f"settle ramp_decay must be in (0, 1] and ramp_floor in [0, 1]: {self}"
+            )
+        if self.progress < 0 or self.crossing_speed < 0 or self.crossings < 1:
+            raise ValueError(f"settle progress, crossing_speed >= 0 and crossings >= 1: {self}")
         if self.hold_init not in ("filter", "goal", "zero"):
             raise ValueError(f"settle hold_init must be filter, goal or zero: {self.hold_init!r}")
         if self.freeze < 0:
@@ -203,6 +224,10 @@ class SettleSupervisor:
         self._ramped = np.zeros(n)
         self._was_stuck = np.zeros(n, dtype=bool)
         self._stuck_from = np.zeros(n)
+        self._ramp_side = np.zeros(n)
+        self._ramp_scale = np.ones(n)
+        self._e_prev = np.zeros(n)
+        self._crossings = np.zeros(n, dtype=int)
 
     def _new_target(self, target: np.ndarray) -> None:
         self.reset()
@@ -244,6 +269,13 @@ class SettleSupervisor:
                 self._release(j)
             if not self.engaged[j]:
                 self._watch(j, now, dt, near[j], e[j], u[j])
+            if not self.engaged[j] and law.crossing_speed > 0:
+                crossed = self._e_prev[j] * e[j] < 0
+                if crossed and abs(qdot[j]) >= law.crossing_speed:
+                    self._crossings[j] += 1
+                    if self._crossings[j] >= law.crossings:
+                        self._engage(j, now, "crossing")
+            self._e_prev[j] = e[j]
             if self.engaged[j]:
                 out[j] = self._settle(j, dt, e[j], qdot[j])
         return out
@@ -332,7 +364,11 @@ class SettleSupervisor:
         elif may_ramp and abs(ef) > law.stuck_error and slow:
             if not self._was_stuck[j]:
                 self._stuck_from[j] = abs(ef)
-            step = math.copysign(law.ramp[j] * limit * dt, ef)
+                side = math.copysign(1.0, ef)
+                if self._ramp_side[j] == -side:  # the last breakaway carried it through
+                    self._ramp_scale[j] = max(law.ramp_floor, law.ramp_decay * self._ramp_scale[j])
+                self._ramp_side[j] = side
+            step = math.copysign(law.ramp[j] * self._ramp_scale[j] * limit * dt, ef)
             self.u_i[j] += step
             self._ramped[j] += step
             self._was_stuck[j] = True

@@ -14,6 +14,8 @@ from policy.rollout import Episode, RunConfig
 from policy.settle import SettleLaw
 from reach_sim_bridge.faults import SensorNoise
 
+ZERO4 = (0.0, 0.0, 0.0, 0.0)
+
 
 def test_settle_parameter_is_off_by_default_and_validated() -> None:
     assert make_controller().settle is None
@@ -22,8 +24,9 @@ def test_settle_parameter_is_off_by_default_and_validated() -> None:
     assert SettleLaw.from_param({"band": 0.1}).band == 0.1  # type: ignore[union-attr]
     with pytest.raises(ValueError):
         SettleLaw.from_param({"nonsense": 1})
-    with pytest.raises(ValueError):
-        SettleLaw(kp=-1.0)
+    for bad in ({"kp": -1.0}, {"ramp_decay": 0.0}, {"crossings": 0}, {"progress": -0.1}):
+        with pytest.raises(ValueError):
+            SettleLaw(**bad)  # type: ignore[arg-type]
 
 
 @pytest.mark.slow
@@ -64,7 +67,8 @@ def test_settle_changes_nothing_on_a_nominal_episode() -> None:
 def test_supervisor_engages_one_cycling_joint_within_a_second_and_releases_it() -> None:
     from policy.settle import SettleSupervisor
 
-    sup = SettleSupervisor(SettleLaw(jitter_speed=0.0), np.array([600.0, 600.0, 600.0, 300.0]))
+    law = SettleLaw(jitter_speed=0.0, crossing_speed=0.0)
+    sup = SettleSupervisor(law, np.array([600.0, 600.0, 600.0, 300.0]))
     target = np.array([1.0, 1.0, 1.0, 1.0])
     engaged_at = None
     for k in range(40):  # C bang-bangs +-0.03 rad around its goal, period 0.4 s
@@ -99,7 +103,9 @@ def test_an_engaged_joint_starts_from_the_actors_hold_at_the_goal() -> None:
     against gravity), not at the mean of a cycling command, which is arbitrary."""
     from policy.settle import SettleSupervisor
 
-    law = SettleLaw(jitter_speed=0.0, kp=0.0, kd=0.0, ki=0.0, ramp_engaged=False)
+    law = SettleLaw(
+        jitter_speed=0.0, crossing_speed=0.0, kp=ZERO4, kd=ZERO4, ki=ZERO4, ramp_engaged=False
+    )
     sup = SettleSupervisor(law, np.array([600.0, 600.0, 600.0, 300.0]))
     target = np.ones(4)
     hold = np.array([0.0, 55.0, -30.0, 2.0])
@@ -117,3 +123,55 @@ def test_an_engaged_joint_starts_from_the_actors_hold_at_the_goal() -> None:
     with pytest.raises(ValueError):
         SettleLaw(hold_init="mean")
     assert filtered.law.hold_init == "filter" and SettleLaw().hold_init == "goal"
+
+
+def test_a_joint_crossing_its_goal_at_speed_is_engaged_a_braked_one_is_not() -> None:
+    """An arrival the actor did not brake (latency: it brakes on a state already 1-2 periods
+    old) crosses the goal near the no-load speed; a braked one creeps over it, if at all."""
+    from policy.settle import SettleSupervisor
+
+    law = SettleLaw()
+    assert 0 < law.crossing_speed < 1.0
+    target = np.ones(4)
+    sup = SettleSupervisor(law, np.array([600.0, 600.0, 600.0, 300.0]))
+    speeds = np.array([0.3, 1.1, 0.0, 0.0])  # E braked, D not
+    for k in range(6):  # both cross their goal between steps 2 and 3
+        q = target - 0.05 + 0.02 * k
+        q[2:] = target[2:]
+        sup.update(0.05 * k, q, speeds, target, np.array([100.0, 600.0, 0.0, 0.0]))
+    assert sup.engaged.tolist() == [False, True, False, False]
+    assert sup.reasons[1] == "crossing"
+
+
+def test_the_stuck_ramp_slows_each_time_a_breakaway_carries_the_joint_through() -> None:
+    """Stick-slip hunting: a ramp sized for 6.6 N m of friction breaks a low-friction joint away
+    with too much current and it sticks on the other side; the ramp halves each time."""
+    from policy.settle import SettleSupervisor
+
+    law = SettleLaw(kp=ZERO4, kd=ZERO4, ki=ZERO4, jitter_speed=0.0)
+    sup = SettleSupervisor(law, np.full(4, 600.0))
+    target = np.ones(4)
+    zero = np.zeros(4)
+    t = 0.0
+
+    def step(e_c: float, v_c: float, n: int) -> list[float]:
+        nonlocal t
+        out = []
+        for _ in range(n):
+            q = target.copy()
+            q[2] -= e_c
+            sup.update(t, q, np.array([0.0, 0.0, v_c, 0.0]), target, zero, zero)
+            out.append(float(sup.u_i[2]))
+            t += 0.05
+        return out
+
+    step(-0.05, 0.0, 1)
+    step(0.05, -1.0, 1)  # C crosses its goal at 1 rad/s: engaged
+    assert sup.engaged[2] and sup.reasons[2] == "crossing"
+    first = step(0.03, 0.0, 30)  # stuck short on the + side: ramps up
+    slope_1 = (first[-1] - first[-11]) / 10
+    assert slope_1 == pytest.approx(law.ramp[2] * 600.0 * 0.05)
+    step(0.03, 0.2, 20)  # breaks away (the backoff), then sticks on the - side
+    second = step(-0.03, 0.0, 30)
+    slope_2 = (second[-1] - second[-11]) / 10
+    assert slope_2 == pytest.approx(-law.ramp_decay * slope_1)
