@@ -175,3 +175,54 @@ def test_the_stuck_ramp_slows_each_time_a_breakaway_carries_the_joint_through() 
     second = step(-0.03, 0.0, 30)
     slope_2 = (second[-1] - second[-11]) / 10
     assert slope_2 == pytest.approx(-law.ramp_decay * slope_1)
+
+
+@pytest.mark.parametrize("late, expected", [(0, 0), (1, 1), (2, 2)])
+def test_the_loop_latency_is_timed_from_the_first_command_of_a_target(
+    late: int, expected: int
+) -> None:
+    """The drives reach speed within a period: a joint commanded hard moves by the next sample
+    on a loop without latency, `late` samples later with it; the earliest joint counts (a weak
+    one answers late) and the actor then sees q + qdot x latency."""
+    from policy.settle import SettleSupervisor
+
+    law = SettleLaw(predict=True)
+    sup = SettleSupervisor(law, np.full(4, 600.0))
+    target = np.full(4, 2.0)
+    q = np.full(4, 1.0)
+    u = np.array([600.0, 600.0, 100.0, 0.0])  # E and D hard, C and B not
+    for k in range(5):
+        moving = k >= 1 + late
+        qdot = np.array([1.1 if moving else 0.0, 1.1 if k >= 2 + late else 0.0, 0.0, 0.0])
+        sup.update(0.05 * k, q, qdot, target, u)
+    assert sup.latency_periods == expected
+    assert sup.lead_s == pytest.approx(0.05 * expected)
+    sup.update(1.0, q, np.zeros(4), target + 0.1, u)  # a new target is timed afresh
+    assert sup.latency_periods is None and sup.lead_s == 0.0
+
+
+def test_the_actor_sees_the_state_one_latency_ahead() -> None:
+    from reach_driver.controllers import ControlState
+
+    target = np.array([2.5, 2.0, 0.2, 1.5])
+    q, qdot = np.array([0.5, 1.2, 1.0, 0.5]), np.array([1.1, 1.1, -1.1, 1.1])
+    ctrl = make_controller(settle={"predict": True})
+    ctrl.act(ControlState(q=q, qdot=qdot, t=0.0), target)
+    assert ctrl.settle is not None
+    ctrl.settle.latency_periods, ctrl.settle.lead_s = 2, 0.1  # as if timed
+    led = ctrl.act(ControlState(q=q, qdot=qdot, t=0.05), target)
+    ahead = make_controller().act(ControlState(q=q + 0.1 * qdot, qdot=qdot, t=0.05), target)
+    now = make_controller().act(ControlState(q=q, qdot=qdot, t=0.05), target)
+    np.testing.assert_array_equal(led, ahead)
+    assert not np.array_equal(led, now)
+
+
+def test_without_predict_the_latency_is_not_timed() -> None:
+    from policy.settle import SettleSupervisor
+
+    sup = SettleSupervisor(SettleLaw(), np.full(4, 600.0))
+    assert not sup.law.predict
+    for k in range(6):
+        qdot = np.full(4, 1.1 if k >= 3 else 0.0)
+        sup.update(0.05 * k, np.ones(4), qdot, np.full(4, 2.0), np.full(4, 600.0))
+    assert sup.latency_periods is None and sup.lead_s == 0.0
