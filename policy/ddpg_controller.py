@@ -137,11 +137,7 @@ class DDPGController:
         q, qdot, goal = self._checked(state, target)
         t = getattr(state, "t", None)
         shown = self._shift(q, t, goal)
-        lead = 0.0 if self.settle is None else self.settle.lead_s
-        q_seen = q + qdot * lead
-        action = self.weights.forward(
-            build_observation(q_seen, qdot, shown, self.weights.observation)
-        )
+        action = self.weights.forward(build_observation(q, qdot, shown, self.weights.observation))
         out: np.ndarray = action * self.current_limits_mA
         if self.settle is not None:
             t_ = None if t is None else float(t)

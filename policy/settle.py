@@ -28,25 +28,11 @@ Watching (per joint, within `band` of the goal):
   low-passed error stays above `stuck_error` and the low-passed speed below `stuck_speed`
   for `stuck_s`.
 
-Latency (`predict`): the actor brakes on the state it is shown, and with latency that state
-is already old when its command takes effect, so an arm with 1-2 periods of latency arrives
-at full speed and swings through its goal. At each new target the supervisor times the loop:
-the first command of a target drives the joints with a far goal hard, and the arm's drives
-reach their speed within one period, so without latency they move by the next sample; the
-number of whole periods they take beyond that (the earliest joint's: a weak one answers late,
-the link does not) is the latency, and from then on the actor is shown q + qdot x latency,
-the state its command will meet (a Smith predictor with the drives as pure speed sources). On
-a loop without latency nothing changes (Table I's episodes, bit for bit). It is off by default:
-on the 1000 envelope draws of docs/robustness.md it brought 6 missed arms in (E arriving
-unbraked) and lost 9 others (98.5 % reached against 98.8 %), though it cut the mean overshoot
-from 12.5 % to 10.5 %; whole periods are all 20 Hz samples can time, and a lead of one period
-on an arm with 1.2-2 is both too little for some joints and too much for others.
-
 The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
 
-- ``u_I`` starts at the actor's own command at rest on the goal (`hold_init` "goal": what the
-  network learned holds the joint there against gravity and buoyancy; the mean of a cycling
-  command, the old start, is arbitrary and drove engaged joints away) and integrates ``ki e``;
+- ``u_I`` starts at the actor's own command at rest on the goal (what the network learned holds
+  the joint there against gravity and buoyancy; the mean of a cycling command, the old start,
+  is arbitrary and drove engaged joints away) and integrates ``ki e``;
   the gains keep 35 degrees of phase margin and a gain margin of 2 over the envelope's joints
   with 25-130 ms of loop delay (`DEFAULT_*` below), which makes them soft: 2-4 N m/rad. An
   engaged joint mid-swing may coast well past its goal under them, so it is released only
@@ -123,22 +109,13 @@ class SettleLaw:
     ki: tuple[float, float, float, float] = DEFAULT_KI
     ramp: tuple[float, float, float, float] = DEFAULT_RAMP  # of the limit per second, stuck
     backoff: float = 0.8  # of the ramp added since the joint stuck, taken back at breakaway
-    freeze: float = 0.008  # rad, low-passed: no integration inside
+    freeze: float = 0.008  # rad, low-passed: no integration for a joint at rest inside
     ramp_decay: float = 0.7  # the ramp's rate is multiplied by this each time a joint sticks
     # on the other side of its goal from where it last ramped (stick-slip hunting)
     ramp_floor: float = 0.3  # ... but not below this fraction of `ramp`
     progress: float = 0.004  # rad, > 0: breakaway also when the low-passed error has shrunk
     # this much since the stuck ramp began (creep slower than stuck_speed)
     crossing_speed: float = 0.8  # rad/s, > 0: engage a joint that crosses its goal this fast
-    crossings: int = 1  # ... this many times
-    predict: bool = False  # measure the loop's latency at each new target and show the actor
-    # q + qdot x latency (module docstring, "Latency": off, it lost as many arms as it saved)
-    onset_fraction: float = 0.5  # of the current limit: a joint commanded this hard at the
-    # first step of a target times the latency
-    onset_speed: float = 0.3  # rad/s: ... by the first sample it moves at this speed
-    onset_steps: int = 4  # give up (no lead) after this many steps without an answer
-    freeze_at_rest: bool = True  # freeze only a joint also at rest (low-passed speed under
-    # stuck_speed): one drifting through the band on a stale u_I keeps integrating
     default_dt: float = 0.05
     cycles: bool = True  # watch for cycling
     stuck: bool = False  # watch for stuck short (engage), and ramp while stuck
@@ -150,8 +127,6 @@ class SettleLaw:
     jitter_window_s: float = 1.0
     hold_s: float = 0.0  # > 0: engage a joint settled inside hold_error for this long
     hold_error: float = 0.015  # rad, low-passed
-    hold_init: str = "goal"  # u_I starts at: "filter" the low-passed actor command, "goal"
-    # the actor's command at the goal at rest (its learned hold), "zero"
 
     def __post_init__(self) -> None:
         for name in ("kp", "kd", "ki", "ramp"):
@@ -178,10 +153,8 @@ class SettleLaw:
             raise ValueError(
                 f"settle ramp_decay must be in (0, 1] and ramp_floor in [0, 1]: {self}"
             )
-        if self.progress < 0 or self.crossing_speed < 0 or self.crossings < 1:
-            raise ValueError(f"settle progress, crossing_speed >= 0 and crossings >= 1: {self}")
-        if self.hold_init not in ("filter", "goal", "zero"):
-            raise ValueError(f"settle hold_init must be filter, goal or zero: {self.hold_init!r}")
+        if self.progress < 0 or self.crossing_speed < 0:
+            raise ValueError(f"settle progress and crossing_speed must be >= 0: {self}")
         if self.freeze < 0:
             raise ValueError(f"settle freeze must be >= 0, got {self.freeze}")
 
@@ -247,13 +220,6 @@ class SettleSupervisor:
         self._ramp_side = np.zeros(n)
         self._ramp_scale = np.ones(n)
         self._e_prev = np.zeros(n)
-        self._step = 0
-        self._onset_u = np.zeros(n)
-        self._onset_dt = self.law.default_dt
-        self._answer = np.full(n, -1)
-        self.lead_s = 0.0
-        self.latency_periods: int | None = None
-        self._crossings = np.zeros(n, dtype=int)
 
     def _new_target(self, target: np.ndarray) -> None:
         self.reset()
@@ -289,8 +255,6 @@ class SettleSupervisor:
         self._v2[self._v2_n % self._v2.shape[0]] = qdot**2
         self._v2_n += 1
         self._u_goal = u_goal
-        if law.predict and self.latency_periods is None:
-            self._time_latency(dt, qdot, u)
         out = np.asarray(u, dtype=float).copy()
         for j in range(N_JOINTS):
             if self.engaged[j] and abs(e[j]) > law.release:
@@ -300,37 +264,11 @@ class SettleSupervisor:
             if not self.engaged[j] and law.crossing_speed > 0:
                 crossed = self._e_prev[j] * e[j] < 0
                 if crossed and abs(qdot[j]) >= law.crossing_speed:
-                    self._crossings[j] += 1
-                    if self._crossings[j] >= law.crossings:
-                        self._engage(j, now, "crossing")
+                    self._engage(j, now, "crossing")
             self._e_prev[j] = e[j]
             if self.engaged[j]:
                 out[j] = self._settle(j, dt, e[j], qdot[j])
         return out
-
-    def _time_latency(self, dt: float, qdot: np.ndarray, u: np.ndarray) -> None:
-        """Whole control periods between the first command of a target and the first sample
-        that shows it: the arm's drives reach their speed within one period, so on a loop
-        without latency every joint commanded hard moves by the next sample."""
-        law = self.law
-        if self._step == 0:
-            self._onset_u = np.asarray(u, dtype=float).copy()
-        else:
-            if self._step == 1:
-                self._onset_dt = dt
-            hard = np.abs(self._onset_u) >= law.onset_fraction * self.limits_mA
-            moving = np.sign(self._onset_u) * qdot >= law.onset_speed
-            fresh = hard & moving & (self._answer < 0)
-            self._answer[fresh] = self._step
-            answered = self._answer[hard]
-            if answered.size == 0:
-                self.latency_periods = 0
-            elif np.all(answered >= 0) or self._step >= law.onset_steps:
-                # the earliest joint: a weak or stuck one answers late, the link does not
-                first = answered[answered >= 0]
-                self.latency_periods = int(first.min()) - 1 if first.size else 0
-                self.lead_s = self.latency_periods * self._onset_dt
-        self._step += 1
 
     def _watch(self, j: int, now: float, dt: float, near: bool, e: float, u: float) -> None:
         law = self.law
@@ -377,12 +315,9 @@ class SettleSupervisor:
         self.engaged[j] = True
         self.reasons[j] = why
         self.engaged_at[j] = now
-        if self.law.hold_init == "goal" and self._u_goal is not None:
-            self.u_i[j] = float(self._u_goal[j])
-        elif self.law.hold_init == "zero":
-            self.u_i[j] = 0.0
-        else:
-            self.u_i[j] = self.u_f[j]
+        # the actor's hold on the goal; a supervisor used without an actor (u_goal not given)
+        # starts from the low-passed command
+        self.u_i[j] = self.u_f[j] if self._u_goal is None else float(self._u_goal[j])
         self._ramped[j] = 0.0
         self._was_stuck[j] = False
 
@@ -398,10 +333,7 @@ class SettleSupervisor:
         law = self.law
         limit = self.limits_mA[j]
         ef = self.e_f[j]
-        frozen = abs(ef) <= law.freeze
-        if law.freeze_at_rest:
-            frozen = frozen and abs(self.v_f[j]) < law.stuck_speed
-        if not frozen:
+        if abs(ef) > law.freeze or abs(self.v_f[j]) >= law.stuck_speed:
             self.u_i[j] += law.ki[j] * e * dt
         may_ramp = law.stuck if self.reasons[j] == "stuck" else law.ramp_engaged
         slow = abs(self.v_f[j]) < law.stuck_speed
