@@ -175,3 +175,63 @@ def test_the_stuck_ramp_slows_each_time_a_breakaway_carries_the_joint_through() 
     second = step(-0.03, 0.0, 30)
     slope_2 = (second[-1] - second[-11]) / 10
     assert slope_2 == pytest.approx(-law.ramp_decay * slope_1)
+
+
+def _timed(periods: float, sag: float = 0.0, speed: float = 1.1) -> float | None:
+    """The supervisor's latency for E and D driven hard from rest: they start `periods` after
+    the first command and are at `speed` at once (a drive is at speed within ~10 ms); D sags
+    `sag` rad per period under gravity, in the commanded direction, from the start."""
+    from policy.settle import SettleSupervisor
+
+    sup = SettleSupervisor(SettleLaw(), np.array([600.0, 600.0, 600.0, 300.0]))
+    target = np.array([2.0, 2.0, 1.0, 1.0])
+    for k in range(SettleLaw().onset_steps + 1):
+        t = k * 0.05
+        moving = max(0.0, t - periods * 0.05)
+        v = speed if moving > 0 else 0.0
+        q = np.array([0.5 + speed * moving, 0.5 + speed * moving + sag * k, 1.0, 1.0])
+        qdot = np.array([v, v + sag / 0.05, 0.0, 0.0])
+        sup.update(t, q, qdot, target, np.array([600.0, 600.0, 0.0, 0.0]))
+    return sup.latency_periods
+
+
+@pytest.mark.parametrize("periods", [0.0, 0.3, 1.0, 1.5, 1.9])
+def test_the_loops_latency_is_timed_to_a_fraction_of_a_period(periods: float) -> None:
+    # counting whole periods would give 0, 0, 1, 1, 1
+    assert _timed(periods) == pytest.approx(periods, abs=1e-9)
+    if periods >= 1.0:  # sag before the command arrives is not the loop's start
+        assert _timed(periods, sag=0.004) == pytest.approx(periods, abs=0.1)
+
+
+@pytest.mark.slow
+def test_on_the_virtual_arm_the_latency_is_timed_within_a_fifth_of_a_period() -> None:
+    """Through the simulated drives (acceleration, friction, sensor noise), not the ideal
+    speed source above."""
+    for periods in (0.0, 0.6, 1.4, 1.9):
+        episode = Episode(
+            start=np.array([0.6, 1.0, 1.0, 0.6]), target=np.array([4.0, 2.5, 2.0, 2.6])
+        )
+        config = RunConfig(seconds=0.6, noise=SensorNoise(), seed=7, latency_periods=periods)
+        ctrl = make_controller(settle=True)
+        DirectArm().run(ctrl, episode, config, 1)
+        assert ctrl.settle is not None and ctrl.settle.latency_periods is not None
+        assert ctrl.settle.latency_periods == pytest.approx(periods, abs=0.2)
+
+
+def test_on_a_latent_loop_a_slow_crossing_is_engaged() -> None:
+    """The crossing watch's 0.8 rad/s leaves an overshoot of the actor's to the actor on a loop
+    without latency; on a latent one any crossing faster than 0.15 rad/s is engaged."""
+    from policy.settle import SettleSupervisor
+
+    def engaged(latency: float) -> bool:
+        sup = SettleSupervisor(SettleLaw(), np.full(4, 600.0))
+        sup.latency_periods, sup._timed = latency, True
+        target = np.ones(4)
+        for k in range(4):  # C crosses its goal at 0.3 rad/s between steps 1 and 2
+            q = target.copy()
+            q[2] += -0.02 + 0.015 * k
+            sup.update(0.05 * k, q, np.array([0.0, 0.0, 0.3, 0.0]), target, np.zeros(4))
+        return bool(sup.engaged[2])
+
+    assert not engaged(0.0) and not engaged(0.3)
+    assert engaged(0.5) and engaged(1.8)
