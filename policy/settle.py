@@ -20,8 +20,7 @@ Watching (per joint, within `band` of the goal):
   goal; with 1-2 periods of latency it brakes on a state already that old, crosses at full
   speed and starts the cycle that the reversal watch sees only one or two swings later, each
   swing 2-3 J spent after the joint counts as settled. Table I's episodes never cross this
-  fast;
-  On a loop whose latency is timed at `latent_periods` (0.4) or more, a joint crossing at
+  fast. On a loop whose latency is timed at `latent_periods` (0.4) or more, a joint crossing at
   `latent_crossing_speed` (0.15 rad/s) is engaged: there a crossing at any speed is the first
   swing of the cycle, and E arriving unbraked at 1-2 periods spent 0.6-1.1 J in that swing
   before it reached 0.8 rad/s. Not on a loop without latency: a slight overshoot of the actor's
@@ -131,8 +130,8 @@ class SettleLaw:
     progress: float = 0.004  # rad, > 0: breakaway also when the low-passed error has shrunk
     # this much since the stuck ramp began (creep slower than stuck_speed)
     crossing_speed: float = 0.8  # rad/s, > 0: engage a joint that crosses its goal this fast
-    latent_crossing_speed: float = 0.15  # rad/s, > 0: ... this fast on a loop timed at
-    # `latent_periods` of latency or more (module docstring, "Latency")
+    latent_crossing_speed: float = 0.15  # rad/s, > 0 (and crossing_speed > 0): ... this fast
+    # on a loop timed at `latent_periods` of latency or more (module docstring, "Latency")
     latent_periods: float = 0.4
     onset_fraction: float = 0.5  # of the current limit: a joint commanded this hard ...
     onset_error: float = 0.4  # rad: ... this far from its goal at a target's first step
@@ -294,11 +293,12 @@ class SettleSupervisor:
         self._v2[self._v2_n % self._v2.shape[0]] = qdot**2
         self._v2_n += 1
         self._u_goal = u_goal
-        if law.latent_crossing_speed > 0 and self.latency_periods is None:
+        latent = law.latent_crossing_speed > 0 and law.crossing_speed > 0
+        if latent and self.latency_periods is None:
             self._time_latency(dt, q, qdot, e, u)
         crossing_speed = law.crossing_speed
-        if self.latency_periods is not None and self.latency_periods >= law.latent_periods:
-            crossing_speed = law.latent_crossing_speed or crossing_speed
+        if latent and (self.latency_periods or 0.0) >= law.latent_periods:
+            crossing_speed = law.latent_crossing_speed
         out = np.asarray(u, dtype=float).copy()
         for j in range(N_JOINTS):
             if self.engaged[j] and abs(e[j]) > law.release:
