@@ -233,5 +233,5 @@ def test_on_a_latent_loop_a_slow_crossing_is_engaged() -> None:
             sup.update(0.05 * k, q, np.array([0.0, 0.0, 0.3, 0.0]), target, np.zeros(4))
         return bool(sup.engaged[2])
 
-    assert not engaged(0.0) and not engaged(0.3)
-    assert engaged(0.5) and engaged(1.8)
+    assert not engaged(0.0) and not engaged(0.1)
+    assert engaged(0.3) and engaged(1.8)
