@@ -83,6 +83,23 @@ class DDPGController:
         if self.settle is not None:
             self.settle.reset()
 
+    def report(self) -> dict[str, Any]:
+        """For the driver's run summary: the settle supervisor's report (and a line saying it),
+        if it is on."""
+        if self.settle is None:
+            return {}
+        settle = self.settle.report()
+        latency = settle["latency_periods"]
+        timed = "not timed" if latency is None else f"timed at {latency:.2f} periods"
+        engaged = ", ".join(
+            f"{joint} ({e['reason']} at {e['at_s']:.2f} s"
+            + (f", released {e['releases']}x" if e["releases"] else "")
+            + ")"
+            for joint, e in settle["engaged"].items()
+        )
+        summary = f"settle supervisor: loop latency {timed}; engaged {engaged or 'no joint'}"
+        return {"summary": summary, "settle": settle}
+
     def observation(self, state: ControlState, target: np.ndarray) -> np.ndarray:
         """The network's input for `state` and `target` as given (no reference integral)."""
         q, qdot, goal = self._checked(state, target)

@@ -46,7 +46,9 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
 
 - ``u_I`` starts at the actor's own command at rest on the goal (what the network learned holds
   the joint there against gravity and buoyancy; the mean of a cycling command, the old start,
-  is arbitrary and drove engaged joints away) and integrates ``ki e``;
+  is arbitrary and drove engaged joints away) and integrates ``ki e``; a joint engaged because
+  it is stuck short starts instead from the actor's low-passed command, which was holding it
+  at rest there (D at 30 % torque starting from the nominal hold fell back 0.13 rad);
   the gains keep 35 degrees of phase margin and a gain margin of 2 over the envelope's joints
   with 25-130 ms of loop delay (`DEFAULT_*` below), which makes them soft: 2-4 N m/rad. An
   engaged joint mid-swing may coast well past its goal under them, so it is released only
@@ -75,7 +77,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol.alpha5 import N_JOINTS
+from protocol.alpha5 import JOINT_LETTERS, N_JOINTS
 
 
 def _four(value: Any) -> tuple[float, float, float, float]:
@@ -255,6 +257,22 @@ class SettleSupervisor:
         self.latency_periods: float | None = None
         self._timed = False
 
+    def report(self) -> dict[str, Any]:
+        """What the supervisor did on the current target: the latency it timed (periods, None
+        before it has) and each joint it engaged, why, when (the controller's clock, s) and
+        how often it was released back to the actor."""
+        engaged = {
+            JOINT_LETTERS[j]: {
+                "reason": self.reasons[j],
+                "at_s": float(self.engaged_at[j]),
+                "releases": int(self.releases[j]),
+            }
+            for j in range(N_JOINTS)
+            if self.engaged[j] or self.releases[j] > 0
+        }
+        latency = None if self.latency_periods is None else float(self.latency_periods)
+        return {"latency_periods": latency, "engaged": engaged}
+
     def _new_target(self, target: np.ndarray) -> None:
         # the latency is the loop's, not the target's: once timed from motion it stays
         periods, timed = self.latency_periods, self._timed
@@ -401,7 +419,12 @@ class SettleSupervisor:
         self.engaged_at[j] = now
         # the actor's hold on the goal; a supervisor used without an actor (u_goal not given)
         # starts from the low-passed command
-        self.u_i[j] = self.u_f[j] if self._u_goal is None else float(self._u_goal[j])
+        # A joint stuck short is at rest under the actor's steady command, which holds it there
+        # (on a weak joint, several times the nominal hold): it starts from that command.
+        if self._u_goal is None or why == "stuck":
+            self.u_i[j] = self.u_f[j]
+        else:
+            self.u_i[j] = float(self._u_goal[j])
         self._ramped[j] = 0.0
         self._was_stuck[j] = False
 

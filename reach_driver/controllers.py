@@ -34,12 +34,27 @@ class ControlState:
 class Controller(Protocol):
     """Currents (mA, E D C B) from the state and the target angles; `reset()` between runs.
 
-    A controller trained at a fixed rate may also expose `period_s` (or `control_hz`).
+    A controller trained at a fixed rate may also expose `period_s` (or `control_hz`), and
+    one with something to say about a run (what a supervisor inside it did) `report()`, a
+    JSON-able dict the driver prints and records after the run (`controller_report`).
     """
 
     def reset(self) -> None: ...
 
     def act(self, state: ControlState, target: np.ndarray) -> np.ndarray: ...
+
+
+def controller_report(controller: object) -> dict[str, Any]:
+    """The controller's `report()` after a run, {} if it has none; a report that fails says so
+    instead of failing the run it describes."""
+    report = getattr(controller, "report", None)
+    if not callable(report):
+        return {}
+    try:
+        out = report()
+    except Exception as exc:  # the run is over: its summary must still be printed
+        return {"report_error": f"{type(exc).__name__}: {exc}"}
+    return dict(out) if isinstance(out, dict) else {"report": out}
 
 
 def _entry_points() -> dict[str, EntryPoint]:

@@ -547,3 +547,26 @@ def test_fluid_drag_is_small_against_joint_damping() -> None:
         speeds[drag] = arm.qdot
     assert np.all(speeds[True][[0, 3]] < speeds[False][[0, 3]])  # drag does slow it
     np.testing.assert_allclose(speeds[True], speeds[False], rtol=0.005, atol=1e-4)
+
+
+def test_the_twins_coulomb_friction_creeps_below_breakaway_and_noslip_makes_it_hold() -> None:
+    """A documented property of the twin (docs/robustness.md, "The twin's friction creeps";
+    tools/creep.py): MuJoCo's frictionloss is a soft constraint, so a joint pushed below its
+    friction slides at push / ~120 N m s/rad instead of holding; its no-slip solver makes the
+    friction hold and leaves the slip above breakaway as it was."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "tools" / "creep.py"
+    spec = importlib.util.spec_from_file_location("tool_creep", path)
+    assert spec is not None and spec.loader is not None
+    creep = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = creep
+    spec.loader.exec_module(creep)
+    half = creep.creep_speed(6.6, 0, 0.5)  # E pushed at 3.3 N m against 6.6
+    assert 3.3 / half == pytest.approx(120, rel=0.1)
+    assert abs(creep.creep_speed(6.6, 0, 0.5, noslip=10)) < 1e-6
+    assert creep.creep_speed(1.9, 0, 1.5, noslip=10) == pytest.approx(
+        creep.creep_speed(1.9, 0, 1.5), rel=0.01
+    )

@@ -125,6 +125,29 @@ def test_an_engaged_joint_starts_from_the_actors_hold_at_the_goal() -> None:
     assert engaged_command(alone, None) == alone.u_f[2]
 
 
+def test_a_joint_stuck_short_starts_from_the_command_that_holds_it() -> None:
+    """A weak joint held short by the actor's steady 150 mA (the nominal hold at the goal is
+    40 mA) keeps 150 mA when the stuck watch engages it, instead of dropping to 40 and falling
+    back under gravity."""
+    from policy.settle import SettleSupervisor
+
+    law = SettleLaw(
+        jitter_speed=0.0, crossing_speed=0.0, stuck=True, stuck_s=1.0, kp=ZERO4, kd=ZERO4, ki=ZERO4
+    )
+    sup = SettleSupervisor(law, np.full(4, 600.0))
+    target = np.zeros(4)
+    q = np.array([0.0, -0.03, 0.0, 0.0])  # D 0.03 rad short, at rest
+    u = np.array([0.0, 150.0, 0.0, 0.0])
+    hold = np.array([0.0, 40.0, 0.0, 0.0])
+    for k in range(60):
+        out = sup.update(0.05 * k, q, np.zeros(4), target, u, hold)
+        if sup.engaged[1]:
+            break
+    assert sup.engaged[1] and sup.reasons[1] == "stuck"
+    assert not sup.engaged[[0, 2, 3]].any()
+    assert 149.0 < out[1] < 151.0 + law.ramp[1] * 600.0 * 0.05  # its own command (+ one ramp step)
+
+
 def test_a_joint_crossing_its_goal_at_speed_is_engaged_a_braked_one_is_not() -> None:
     """An arrival the actor did not brake (latency: it brakes on a state already 1-2 periods
     old) crosses the goal near the no-load speed; a braked one creeps over it, if at all."""
@@ -235,3 +258,40 @@ def test_on_a_latent_loop_a_slow_crossing_is_engaged() -> None:
 
     assert not engaged(0.0) and not engaged(0.1)
     assert engaged(0.3) and engaged(1.8)
+
+
+def test_the_controller_reports_what_its_supervisor_did() -> None:
+    """`report()` (printed and recorded by `reach-driver run`) names the latency timed and each
+    joint engaged, why and when; without the supervisor there is nothing to report."""
+    from policy.settle import SettleSupervisor
+    from reach_driver.controllers import controller_report
+
+    assert controller_report(make_controller()) == {}
+    ctrl = make_controller(settle=True)
+    assert ctrl.report()["settle"] == {"latency_periods": None, "engaged": {}}
+    assert "latency not timed; engaged no joint" in ctrl.report()["summary"]
+    sup = ctrl.settle
+    assert isinstance(sup, SettleSupervisor)
+    sup.latency_periods, sup._timed = 1.5, True
+    target = np.ones(4)
+    for k in range(4):  # C crosses its goal at 0.3 rad/s: engaged on a latent loop
+        q = target.copy()
+        q[2] += -0.02 + 0.015 * k
+        sup.update(0.05 * k, q, np.array([0.0, 0.0, 0.3, 0.0]), target, np.zeros(4))
+    report = controller_report(ctrl)
+    assert report["settle"] == {
+        "latency_periods": 1.5,
+        "engaged": {"C": {"reason": "crossing", "at_s": pytest.approx(0.1), "releases": 0}},
+    }
+    assert report["summary"].endswith("timed at 1.50 periods; engaged C (crossing at 0.10 s)")
+
+
+def test_a_failing_report_does_not_fail_the_run_it_describes() -> None:
+    from reach_driver.controllers import controller_report
+
+    class Broken:
+        def report(self) -> dict[str, object]:
+            raise RuntimeError("no")
+
+    assert controller_report(Broken()) == {"report_error": "RuntimeError: no"}
+    assert controller_report(object()) == {}

@@ -36,7 +36,7 @@ from reach_driver.cli.render import (
 from reach_driver.cli.report import summary_dict
 from reach_driver.client import ArmClient
 from reach_driver.control import ControlLoop, Pacing, control_period
-from reach_driver.controllers import available_controllers, load_controller
+from reach_driver.controllers import available_controllers, controller_report, load_controller
 from reach_driver.errors import ArmFaultError, DriverError
 from reach_driver.kinematics import tool_position
 from reach_driver.link import EventKind, LinkState
@@ -402,12 +402,14 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             error = "interrupted"
             raise
         error = summary.error
+        report = controller_report(controller)
         if recorder is not None:
             try:
                 client.read_diagnostics()  # how the devices ended the run, for the recording
             except DriverError:
                 pass  # a lost link is the summary's to report; the readings keep their last
-            recorder.finish(summary, error)  # before the last lines, which say how it went
+            # before the last lines, which say how it went
+            recorder.finish(summary, error, report)
         left_in = left_in_for_operator(summary.left_in, args.port)
         if summary.error:
             code = Exit.FAILED
@@ -420,6 +422,7 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             out.update(
                 exit=int(code),
                 controller=args.controller,
+                controller_report=report,
                 target=summary.target,
                 error=None if summary.error is None else for_operator(summary.error),
                 left_in=left_in,
@@ -432,6 +435,10 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             return code
         print_summary(console, summary)
         print_metrics(console, summary)
+        if report:
+            said = report.get("summary")
+            text = said if isinstance(said, str) else json.dumps(jsonable(report))
+            console.print(f"controller {escape(args.controller)}: {escape(text)}", soft_wrap=True)
         console.print(f"arm left in {escape(left_in)}", soft_wrap=True)
         if recorder is not None and recorder.failed:
             console.print(

@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from rich.console import Console
@@ -175,7 +175,12 @@ class CliRecorder:
         except Exception as exc:
             self._fail(exc, "while closing")
 
-    def finish(self, summary: ControlSummary | None, error: str | None) -> None:
+    def finish(
+        self,
+        summary: ControlSummary | None,
+        error: str | None,
+        controller_report: dict[str, Any] | None = None,
+    ) -> None:
         rec = self._rec
         if rec is None:
             return
@@ -202,7 +207,13 @@ class CliRecorder:
             if summary is not None:
                 if summary.left_in:
                     rec.log_event(f"arm left in {summary.left_in}")
-                rec.log_summary(summary_dict(summary))
+                recorded = summary_dict(summary)
+                if controller_report:
+                    recorded["controller_report"] = controller_report
+                    said = controller_report.get("summary")
+                    if isinstance(said, str):
+                        rec.log_event(said)
+                rec.log_summary(recorded)
             rec.log_event("stop")
             rec.close()
             self._rec = None
