@@ -31,7 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from protocol.alpha5 import JOINT_LETTERS as JOINTS
 from reach_sim_bridge.motor import MotorModel
-from reach_sim_bridge.params import LINK_BODIES, ArmParams
+from reach_sim_bridge.params import LINK_BODIES, NOSLIP_ITERATIONS, ArmParams
 
 __all__ = ["MODEL_PATH", "Alpha5Arm", "ArmParams", "JOINTS"]
 
@@ -135,6 +135,7 @@ class Alpha5Arm:
         m.opt.density = params.water_density if drag else 0.0
         m.opt.viscosity = params.fluid_viscosity if drag else 0.0
         m.opt.gravity[:] = params.gravity
+        m.opt.noslip_iterations = NOSLIP_ITERATIONS if params.friction_holds else 0
         m.jnt_limited[self._wrist_joint] = 0 if params.wrist_continuous else 1
         collide = 1 if params.self_collision else 0
         m.geom_contype[self._collision_geoms] = collide

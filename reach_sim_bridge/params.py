@@ -29,6 +29,7 @@ from reach_sim_bridge.motor import (
 )
 
 LINK_BODIES = ("m2_1_1", "m2", "m2_1_3", "m1")  # the body each of E D C B moves
+NOSLIP_ITERATIONS = 10  # MuJoCo no-slip solver iterations when `friction_holds`
 
 Vec4 = tuple[float, float, float, float]
 
@@ -76,6 +77,11 @@ class ArmParams:
     # Contacts between the links and the base. Off by default: the link cylinders are
     # sized by displaced volume, fatter than the real links (see model/README.md).
     self_collision: bool = False
+    # Coulomb friction that holds: MuJoCo's frictionloss is a soft constraint, and below
+    # breakaway a joint slides at push / ~120 N m s/rad (tools/creep.py) where a gearbox holds.
+    # True runs MuJoCo's no-slip solver (NOSLIP_ITERATIONS), which holds it and leaves the slip
+    # above breakaway as it was. Off by default: every published figure was measured without.
+    friction_holds: bool = False
 
     def __post_init__(self) -> None:
         for name in _VEC4_FIELDS:
@@ -206,7 +212,7 @@ _MOTOR_FIELDS = (
     "efficiency",
 )
 _FILE_FIELDS = tuple(f.name for f in fields(ArmParams))
-_BOOL_FIELDS = ("fluid_drag", "wrist_continuous", "self_collision")
+_BOOL_FIELDS = ("fluid_drag", "wrist_continuous", "self_collision", "friction_holds")
 
 
 def _kind(value: Any) -> str:

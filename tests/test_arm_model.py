@@ -549,11 +549,11 @@ def test_fluid_drag_is_small_against_joint_damping() -> None:
     np.testing.assert_allclose(speeds[True], speeds[False], rtol=0.005, atol=1e-4)
 
 
-def test_the_twins_coulomb_friction_creeps_below_breakaway_and_noslip_makes_it_hold() -> None:
+def test_the_twins_coulomb_friction_creeps_below_breakaway_unless_it_is_made_to_hold() -> None:
     """A documented property of the twin (docs/robustness.md, "The twin's friction creeps";
     tools/creep.py): MuJoCo's frictionloss is a soft constraint, so a joint pushed below its
-    friction slides at push / ~120 N m s/rad instead of holding; its no-slip solver makes the
-    friction hold and leaves the slip above breakaway as it was."""
+    friction slides at push / ~120 N m s/rad instead of holding; `friction_holds` (its no-slip
+    solver) makes the friction hold and leaves the slip above breakaway as it was."""
     import importlib.util
     import sys
     from pathlib import Path
@@ -566,7 +566,12 @@ def test_the_twins_coulomb_friction_creeps_below_breakaway_and_noslip_makes_it_h
     spec.loader.exec_module(creep)
     half = creep.creep_speed(6.6, 0, 0.5)  # E pushed at 3.3 N m against 6.6
     assert 3.3 / half == pytest.approx(120, rel=0.1)
-    assert abs(creep.creep_speed(6.6, 0, 0.5, noslip=10)) < 1e-6
-    assert creep.creep_speed(1.9, 0, 1.5, noslip=10) == pytest.approx(
+    assert abs(creep.creep_speed(6.6, 0, 0.5, holds=True)) < 1e-6
+    assert creep.creep_speed(1.9, 0, 1.5, holds=True) == pytest.approx(
         creep.creep_speed(1.9, 0, 1.5), rel=0.01
     )
+    arm = Alpha5Arm(ArmParams(friction_holds=True))
+    assert arm.model.opt.noslip_iterations > 0
+    arm.set_params(ArmParams())
+    assert arm.model.opt.noslip_iterations == 0
+    assert ArmParams.from_json_dict({"friction_holds": True}).friction_holds

@@ -217,3 +217,27 @@ def test_an_actor_file_runs_under_its_own_label(
     missing = ["--param", f"weights={tmp_path / 'none.npz'}"]
     assert rb.main([*argv[:4], *missing, *argv[6:]]) == 2
     assert "none.npz" in capsys.readouterr().err
+
+
+def test_params_move_the_whole_envelope_and_are_recorded(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--params FILE.json` is the arm the envelope spreads around (here friction that holds):
+    every arm carries it, the results record what differs from the nominal arm, and a bad file
+    is a clear error."""
+    from reach_sim_bridge.params import ArmParams
+
+    holds = ArmParams(friction_holds=True)
+    p = rb.plan(SEED, False, 3, base=holds)
+    assert all(a.variant.params.friction_holds for a in p.arms)
+    assert not any(a.variant.params.friction_holds for a in rb.plan(SEED, False, 3).arms)
+    params = tmp_path / "holds.json"
+    params.write_text('{"friction_holds": true}')
+    argv = ["--controller", "pid", "--draws", "1", "--seed", str(SEED), "--seconds", "1"]
+    assert rb.main([*argv, "--params", str(params), "--out", str(tmp_path), "--quiet"]) == 0
+    report = json.loads((tmp_path / "pid.json").read_text())
+    assert report["settings"]["params"] == {"friction_holds": True}
+    params.write_text('{"friction_hold": true}')
+    capsys.readouterr()
+    assert rb.main([*argv, "--params", str(params), "--out", str(tmp_path), "--quiet"]) == 2
+    assert "did you mean 'friction_holds'" in capsys.readouterr().err

@@ -10,7 +10,7 @@ creeps", uses the figures.
 
     .venv/bin/python tools/creep.py                # E D C at 0.7, 1.9 and 6.6 N m
     .venv/bin/python tools/creep.py --friction 3.3 --fractions 0.5
-    .venv/bin/python tools/creep.py --noslip 10    # MuJoCo's no-slip solver: it holds
+    .venv/bin/python tools/creep.py --holds        # ArmParams(friction_holds=True): it holds
 """
 
 from __future__ import annotations
@@ -29,14 +29,13 @@ SETTLE_S = 1.0
 MEASURE_S = 4.0
 
 
-def creep_speed(friction: float, joint: int, fraction: float, noslip: int = 0) -> float:
-    """Mean speed (rad/s) of `joint` pushed at `fraction` of `friction` (N m) beyond its hold;
-    `noslip` > 0 runs MuJoCo's no-slip solver for that many iterations (friction that holds)."""
+def creep_speed(friction: float, joint: int, fraction: float, holds: bool = False) -> float:
+    """Mean speed (rad/s) of `joint` pushed at `fraction` of `friction` (N m) beyond its hold,
+    on the twin as shipped or (`holds`) with `ArmParams.friction_holds`."""
     base = ArmParams()
     fl = list(base.frictionloss)
     fl[:3] = [friction] * 3
-    arm = Alpha5Arm(replace(base, frictionloss=(fl[0], fl[1], fl[2], fl[3])))
-    arm.model.opt.noslip_iterations = noslip
+    arm = Alpha5Arm(replace(base, frictionloss=(fl[0], fl[1], fl[2], fl[3]), friction_holds=holds))
     q0 = np.asarray(POSE, dtype=float)
     arm.reset(q=q0.copy())
     tau = -arm.gravity_torque(q0)
@@ -67,23 +66,20 @@ def main(argv: list[str] | None = None) -> int:
         help="the push, as fractions of the friction (below 1: a real joint holds)",
     )
     parser.add_argument(
-        "--noslip",
-        type=int,
-        default=0,
-        help="MuJoCo no-slip iterations (0, the twin as shipped; 10 makes friction hold)",
+        "--holds",
+        action="store_true",
+        help="with ArmParams.friction_holds (MuJoCo's no-slip solver): the friction holds",
     )
     args = parser.parse_args(argv)
     if any(f <= 0 for f in args.friction) or any(not 0 < x < 1 for x in args.fractions):
         parser.error("friction must be > 0 and fractions in (0, 1)")
-    if args.noslip < 0:
-        parser.error("--noslip must be >= 0")
     print("joint  friction [N m]  push [N m]  creep [mrad/s]  push/speed [N m s/rad]")
     for joint in range(3):
         for friction in args.friction:
             for fraction in args.fractions:
                 push = fraction * friction
-                v = creep_speed(friction, joint, fraction, args.noslip)
-                damping = push / v if abs(v) > 1e-9 else float("inf")
+                v = creep_speed(friction, joint, fraction, args.holds)
+                damping = push / v if abs(v) > 1e-6 else float("inf")
                 print(
                     f"{JOINT_LETTERS[joint]:>5}  {friction:14.2f}  {push:10.2f}  "
                     f"{v * 1000:14.2f}  {damping:22.0f}"

@@ -48,6 +48,7 @@ from protocol.alpha5 import JOINT_LETTERS
 from reach_driver.controllers import load_controller
 from reach_driver.errors import DriverError
 from reach_sim_bridge.faults import SensorNoise
+from reach_sim_bridge.params import ArmParams, load_arm_params
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "robustness.md"
 SETS = ("corners", "draws")
@@ -115,6 +116,7 @@ def plan(
     max_corners: int | None = None,
     envelope: Envelope = ENVELOPE,
     corner_selection: Selection | None = None,
+    base: ArmParams | None = None,
 ) -> Plan:
     if not use_corners and not n_draws:
         raise ValueError("nothing to run: give --corners and/or --draws N")
@@ -122,13 +124,13 @@ def plan(
     infeasible: dict[str, list[tuple[Variant, str]]] = {}
     available: dict[str, int] = {}
     if use_corners:
-        sel = corner_selection or corners(envelope)
+        sel = corner_selection or corners(envelope, base)
         infeasible["corners"] = sel.infeasible
         available["corners"] = len(sel.variants)
         for i in subsample(len(sel.variants), max_corners, seed):
             arms.append(Arm("corners", i, sel.variants[i]))
     if n_draws:
-        sel = draws(n_draws, seed, envelope)
+        sel = draws(n_draws, seed, envelope, base)
         infeasible["draws"] = sel.infeasible
         available["draws"] = len(sel.variants)
         arms.extend(Arm("draws", i, v) for i, v in enumerate(sel.variants))
@@ -651,6 +653,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="only K corners, chosen by a permutation seeded by --seed (for slow controllers)",
     )
     p.add_argument("--draws", type=int, metavar="N", help="run N feasible random arms")
+    p.add_argument(
+        "--params",
+        metavar="FILE.json",
+        help="the arm the envelope spreads around: ArmParams fields, the rest nominal (as in "
+        'tools/evaluate.py), e.g. {"friction_holds": true} for friction that holds',
+    )
     p.add_argument("--seed", type=int, default=1, help="seed of the draws and episodes (1)")
     p.add_argument("--seconds", type=float, default=20.0, help="episode length (20 s)")
     p.add_argument("--rate", type=float, default=20.0, metavar="HZ", help="control rate (20)")
@@ -752,8 +760,9 @@ def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list
     if args.max_corners is not None and not args.corners:
         raise ValueError("--max-corners needs --corners")
     params = parse_controller_params(args.param)
-    the_plan = plan(args.seed, args.corners, args.draws, args.max_corners)
-    settings = {
+    base = None if args.params is None else load_arm_params(args.params)
+    the_plan = plan(args.seed, args.corners, args.draws, args.max_corners, base=base)
+    settings: dict[str, Any] = {
         "seed": args.seed,
         "corners": args.corners,
         "max_corners": args.max_corners,
@@ -761,6 +770,9 @@ def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list
         "seconds": args.seconds,
         "rate_hz": args.rate,
     }
+    if base is not None:  # only what differs from the nominal arm, so old blocks still match
+        nominal = ArmParams().to_json_dict()
+        settings["params"] = {k: v for k, v in base.to_json_dict().items() if v != nominal[k]}
     reports = []
     for name in args.controller:
         label = args.label or name
