@@ -417,10 +417,10 @@ class SettleSupervisor:
         self.engaged[j] = True
         self.reasons[j] = why
         self.engaged_at[j] = now
-        # the actor's hold on the goal; a supervisor used without an actor (u_goal not given)
-        # starts from the low-passed command
-        # A joint stuck short is at rest under the actor's steady command, which holds it there
-        # (on a weak joint, several times the nominal hold): it starts from that command.
+        # The actor's hold on the goal; but a joint stuck short is at rest under the actor's
+        # steady command, which holds it there (on a weak joint, several times the nominal
+        # hold), so it starts from that low-passed command, as does a supervisor used without
+        # an actor (u_goal not given).
         if self._u_goal is None or why == "stuck":
             self.u_i[j] = self.u_f[j]
         else:

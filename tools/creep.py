@@ -33,17 +33,15 @@ def creep_speed(friction: float, joint: int, fraction: float, holds: bool = Fals
     """Mean speed (rad/s) of `joint` pushed at `fraction` of `friction` (N m) beyond its hold,
     on the twin as shipped or (`holds`) with `ArmParams.friction_holds`."""
     base = ArmParams()
-    fl = list(base.frictionloss)
-    fl[:3] = [friction] * 3
-    arm = Alpha5Arm(replace(base, frictionloss=(fl[0], fl[1], fl[2], fl[3]), friction_holds=holds))
+    on_edc = (friction, friction, friction, base.frictionloss[3])
+    arm = Alpha5Arm(replace(base, frictionloss=on_edc, friction_holds=holds))
     q0 = np.asarray(POSE, dtype=float)
     arm.reset(q=q0.copy())
     tau = -arm.gravity_torque(q0)
     tau[joint] += fraction * friction
     per_amp = np.asarray(arm.motor.torque_per_amp) * np.asarray(arm.motor.torque_scale)
     currents_mA = tau / per_amp * 1000.0
-    steps = int(round(SETTLE_S / arm.dt))
-    arm.step(currents_mA, n=steps)
+    arm.step(currents_mA, n=int(round(SETTLE_S / arm.dt)))
     start = float(arm.q[joint])
     arm.step(currents_mA, n=int(round(MEASURE_S / arm.dt)))
     return (float(arm.q[joint]) - start) / MEASURE_S
