@@ -149,6 +149,17 @@ class SettleLaw:
     jitter_window_s: float = 1.0
     hold_s: float = 0.0  # > 0: engage a joint settled inside hold_error for this long
     hold_error: float = 0.015  # rad, low-passed
+    noise_sigmas: float = 3.0  # >= 0: a breakaway is a move this many standard deviations of
+    # its own noise (the sensors' noise, estimated while the joint is slow) or more
+    memory_margin: float = 0.05  # of the limit (< 0: no memory): a
+    # joint stuck again on the side it broke away from restarts its ramp this far below the
+    # command it broke away at
+    memory_rate: float = 0.3  # of the ramp's rate, (0, 1]: ... and ramps this much slower
+    # from there (the push past breakaway, and so the step it makes, grows with the rate)
+    arrive: float = 0.05  # of the limit, >= 0: an engaged joint creeping into `stuck_error`
+    # of its goal on the command it is left at has that much taken off it, once per arrival:
+    # on a command just past breakaway it would creep on through the goal and stick beyond
+    stuck_band: float = 0.5  # rad: the stuck watch looks at joints this close to their goal
 
     def __post_init__(self) -> None:
         for name in ("kp", "kd", "ki", "ramp"):
@@ -177,6 +188,10 @@ class SettleLaw:
             )
         if self.progress < 0 or self.crossing_speed < 0:
             raise ValueError(f"settle progress and crossing_speed must be >= 0: {self}")
+        if not 0 < self.memory_rate <= 1:
+            raise ValueError(f"settle memory_rate must be in (0, 1], got {self.memory_rate}")
+        if self.stuck_band <= 0 or self.noise_sigmas < 0 or self.arrive < 0:
+            raise ValueError(f"settle stuck_band must be > 0, noise_sigmas and arrive >= 0: {self}")
         if self.freeze < 0:
             raise ValueError(f"settle freeze must be >= 0, got {self.freeze}")
         if (
@@ -250,6 +265,13 @@ class SettleSupervisor:
         self._ramp_side = np.zeros(n)
         self._ramp_scale = np.ones(n)
         self._e_prev = np.zeros(n)
+        self._arriving = np.zeros(n, dtype=bool)
+        self._rate = np.ones(n)  # the ramp's rate: 1, or memory_rate when restarted from memory
+        self._break_u = np.full((n, 2), math.nan)  # per side: the command it last broke away at
+        self._q_var = np.zeros(n)  # the sensors' noise, from successive samples while slow
+        self._v_var = np.zeros(n)
+        self._q_hist = np.full((2, n), math.nan)
+        self._v_prev = np.full(n, math.nan)
         self._step = 0
         self._clock = 0.0
         self._onset: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -307,6 +329,7 @@ class SettleSupervisor:
         b = min(1.0, dt / law.hold_filter_s)
         self.u_f = np.where(self._fresh, u, self.u_f + b * (u - self.u_f))
         self._fresh[:] = False
+        self._estimate_noise(dt, e, qdot)
         near = np.abs(e) < law.band
         self._v2[self._v2_n % self._v2.shape[0]] = qdot**2
         self._v2_n += 1
@@ -331,6 +354,21 @@ class SettleSupervisor:
             if self.engaged[j]:
                 out[j] = self._settle(j, dt, e[j], qdot[j])
         return out
+
+    def _estimate_noise(self, dt: float, e: np.ndarray, qdot: np.ndarray) -> None:
+        """Position and speed noise per joint from second (position) and first (speed)
+        differences of successive samples while the joint is slow, where noise dominates
+        them: var(e_k - 2 e_k-1 + e_k-2) = 6 var(e), var(v_k - v_k-1) = 2 var(v)."""
+        slow = np.abs(self.v_f) < self.law.stuck_speed
+        a = min(1.0, dt / 1.0)
+        dd = e - 2 * self._q_hist[1] + self._q_hist[0]
+        ok = slow & np.isfinite(dd)
+        self._q_var = np.where(ok, self._q_var + a * (dd**2 / 6 - self._q_var), self._q_var)
+        dv = qdot - self._v_prev
+        ok = slow & np.isfinite(dv)
+        self._v_var = np.where(ok, self._v_var + a * (dv**2 / 2 - self._v_var), self._v_var)
+        self._q_hist = np.stack([self._q_hist[1], e.astype(float)])
+        self._v_prev = np.asarray(qdot, dtype=float).copy()
 
     def _time_latency(
         self, dt: float, q: np.ndarray, qdot: np.ndarray, e: np.ndarray, u: np.ndarray
@@ -374,6 +412,9 @@ class SettleSupervisor:
 
     def _watch(self, j: int, now: float, dt: float, near: bool, e: float, u: float) -> None:
         law = self.law
+        if law.stuck and not near and abs(e) < law.stuck_band:
+            self._watch_stuck(j, now, dt)
+            return
         if not near:
             self._sign[j] = 0.0
             self._rev_count[j] = 0
@@ -408,10 +449,25 @@ class SettleSupervisor:
                 self._engage(j, now, "hold")
                 return
         if law.stuck:
-            still = abs(self.e_f[j]) > law.stuck_error and abs(self.v_f[j]) < law.stuck_speed
-            self._stuck_for[j] = self._stuck_for[j] + dt if still else 0.0
-            if self._stuck_for[j] >= law.stuck_s - 1e-9:
-                self._engage(j, now, "stuck")
+            self._watch_stuck(j, now, dt)
+
+    def _noise_floors(self, j: int, dt: float) -> tuple[float, float]:
+        """What the sensors' noise can explain, `noise_sigmas` of it: of the low-passed speed
+        and of a change in the low-passed error (an EMA of gain a keeps a / (2 - a) of its
+        samples' variance; a difference of two of them, twice that)."""
+        a = min(1.0, dt / self.law.filter_s)
+        shrink = a / (2 - a)
+        speed = self.law.noise_sigmas * math.sqrt(shrink * self._v_var[j])
+        moved = self.law.noise_sigmas * math.sqrt(2 * shrink * self._q_var[j])
+        return speed, moved
+
+    def _watch_stuck(self, j: int, now: float, dt: float) -> None:
+        law = self.law
+        slow = abs(self.v_f[j]) < max(law.stuck_speed, self._noise_floors(j, dt)[0])
+        still = abs(self.e_f[j]) > law.stuck_error and slow
+        self._stuck_for[j] = self._stuck_for[j] + dt if still else 0.0
+        if self._stuck_for[j] >= law.stuck_s - 1e-9:
+            self._engage(j, now, "stuck")
 
     def _engage(self, j: int, now: float, why: str) -> None:
         self.engaged[j] = True
@@ -443,12 +499,16 @@ class SettleSupervisor:
         if abs(ef) > law.freeze or abs(self.v_f[j]) >= law.stuck_speed:
             self.u_i[j] += law.ki[j] * e * dt
         may_ramp = law.stuck if self.reasons[j] == "stuck" else law.ramp_engaged
-        slow = abs(self.v_f[j]) < law.stuck_speed
+        speed_floor, moved_floor = self._noise_floors(j, dt)
+        slow = abs(self.v_f[j]) < max(law.stuck_speed, speed_floor)
         # Breakaway: the low-passed speed, or (`progress` > 0) the low-passed error having
         # shrunk by `progress` since the ramp began; a joint creeping in slower than the noisy
         # speed can show has broken away too, and ramping on would carry it through its goal.
-        moved = law.progress > 0 and abs(ef) < self._stuck_from[j] - law.progress
+        progress = max(law.progress, moved_floor)
+        moved = law.progress > 0 and abs(ef) < self._stuck_from[j] - progress
         if self._was_stuck[j] and (not slow or moved):
+            k = 0 if self._ramp_side[j] > 0 else 1
+            self._break_u[j, k] = self.u_i[j]
             self.u_i[j] -= law.backoff * self._ramped[j]
             self._ramped[j] = 0.0
             self._was_stuck[j] = False
@@ -459,13 +519,35 @@ class SettleSupervisor:
                 if self._ramp_side[j] == -side:  # the last breakaway carried it through
                     self._ramp_scale[j] = max(law.ramp_floor, law.ramp_decay * self._ramp_scale[j])
                 self._ramp_side[j] = side
-            step = math.copysign(law.ramp[j] * self._ramp_scale[j] * limit * dt, ef)
+                brk = self._break_u[j, 0 if side > 0 else 1]
+                self._rate[j] = 1.0
+                if law.memory_margin >= 0 and math.isfinite(brk):
+                    # it broke away at `brk` last time: the ramp need not climb from below
+                    jump = brk - side * law.memory_margin * limit - self.u_i[j]
+                    if side * jump > 0:
+                        self.u_i[j] += jump
+                        self._ramped[j] += jump
+                        self._rate[j] = law.memory_rate
+            rate = law.ramp[j] * self._ramp_scale[j] * self._rate[j]
+            step = math.copysign(rate * limit * dt, ef)
             self.u_i[j] += step
             self._ramped[j] += step
             self._was_stuck[j] = True
         if abs(ef) <= law.freeze:
             self._ramped[j] = 0.0
             self._was_stuck[j] = False
+        # An arrival is armed outside twice `stuck_error` and spent once the joint is inside
+        # `stuck_error`: taken off if it creeps in, or left alone if it comes to rest there.
+        # Only on a joint engaged because it was stuck: friction holds it, not its command.
+        if law.arrive > 0 and self.reasons[j] == "stuck" and abs(ef) > 2 * law.stuck_error:
+            self._arriving[j] = True
+        elif self._arriving[j] and abs(ef) < law.stuck_error:
+            toward = math.copysign(1.0, ef) * self.v_f[j]
+            if toward > max(0.5 * law.stuck_speed, speed_floor):
+                self.u_i[j] -= math.copysign(law.arrive * limit, ef)
+                self._arriving[j] = False
+            elif slow:
+                self._arriving[j] = False
         self.u_i[j] = float(np.clip(self.u_i[j], -limit, limit))
         cmd = self.u_i[j] + law.kp[j] * e - law.kd[j] * qdot
         return float(np.clip(cmd, -limit, limit))

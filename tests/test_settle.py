@@ -295,3 +295,114 @@ def test_a_failing_report_does_not_fail_the_run_it_describes() -> None:
 
     assert controller_report(Broken()) == {"report_error": "RuntimeError: no"}
     assert controller_report(object()) == {}
+
+
+def _stuck_supervisor(**overrides: object) -> tuple[object, np.ndarray]:
+    from policy.settle import SettleSupervisor
+
+    law = SettleLaw(
+        jitter_speed=0.0,
+        crossing_speed=0.0,
+        stuck=True,
+        stuck_s=1.0,
+        kp=ZERO4,
+        kd=ZERO4,
+        ki=ZERO4,
+        **overrides,  # type: ignore[arg-type]
+    )
+    return SettleSupervisor(law, np.full(4, 600.0)), np.zeros(4)
+
+
+def test_the_stuck_watch_looks_beyond_the_band_of_the_other_watches() -> None:
+    """With friction that holds, the actor leaves a weak joint 0.15-0.25 rad short (outside
+    the 0.15 rad `band` the limit-cycle watches use): the stuck watch engages it up to
+    `stuck_band`, and not beyond."""
+    from policy.settle import SettleSupervisor
+
+    def engaged(short: float) -> bool:
+        sup, target = _stuck_supervisor()
+        assert isinstance(sup, SettleSupervisor)
+        q = np.array([0.0, -short, 0.0, 0.0])
+        for k in range(40):
+            sup.update(0.05 * k, q, np.zeros(4), target, np.array([0.0, 300.0, 0.0, 0.0]))
+        return bool(sup.engaged[1])
+
+    assert SettleLaw().band < 0.2 < SettleLaw().stuck_band < 0.6
+    assert engaged(0.2) and not engaged(0.6)
+
+
+def test_the_noise_is_estimated_from_a_resting_joints_samples() -> None:
+    from policy.settle import SettleSupervisor
+
+    sup, target = _stuck_supervisor()
+    assert isinstance(sup, SettleSupervisor)
+    rng = np.random.default_rng(0)
+    for k in range(400):  # 20 s at rest: position noise 6 mrad, speed noise 0.06 rad/s on D
+        q = np.array([0.0, 0.006, 0.0, 0.0]) * rng.standard_normal(4)
+        v = np.array([0.0, 0.06, 0.0, 0.0]) * rng.standard_normal(4)
+        sup.update(0.05 * k, q, v, target, np.zeros(4))
+    assert np.sqrt(sup._q_var[1]) == pytest.approx(0.006, rel=0.25)
+    assert np.sqrt(sup._v_var[1]) == pytest.approx(0.06, rel=0.25)
+    assert sup._q_var[0] == 0.0 and sup._v_var[0] == 0.0
+
+
+def test_a_joint_stuck_again_restarts_its_ramp_below_where_it_broke_away() -> None:
+    """Breakaway memory: after one breakaway the ramp need not climb the whole friction band
+    again; it restarts `memory_margin` of the limit below the command it broke away at."""
+    from policy.settle import SettleSupervisor
+
+    sup, target = _stuck_supervisor()
+    assert isinstance(sup, SettleSupervisor)
+    law = sup.law
+    t = 0.0
+
+    def step(e: float, v: float, n: int) -> float:
+        nonlocal t
+        for _ in range(n):
+            sup.update(
+                t,
+                target - np.array([0, e, 0, 0]),
+                np.array([0, v, 0, 0]),
+                target,
+                np.zeros(4),
+                np.zeros(4),
+            )
+            t += 0.05
+        return float(sup.u_i[1])
+
+    step(0.1, 0.0, 21)  # stuck 0.1 rad short: engaged, then ramps
+    assert sup.engaged[1] and sup.reasons[1] == "stuck"
+    broke_at = step(0.1, 0.0, 40)  # 2 s of ramp
+    assert broke_at == pytest.approx(2.0 * law.ramp[1] * 600.0, rel=0.05)
+    after = step(0.06, 0.5, 1)  # breaks away: the backoff takes back 80 % of the ramp
+    assert after == pytest.approx(broke_at * (1 - law.backoff), rel=0.05)
+    restart = step(0.06, 0.0, 12)  # stuck again, short on the same side
+    assert restart == pytest.approx(broke_at - law.memory_margin * 600.0, abs=20.0)
+    assert restart > after + 0.5 * (broke_at - after)  # not from where the backoff left it
+
+
+def test_a_joint_creeping_into_its_goal_has_some_command_taken_off_once() -> None:
+    """A weak joint left on a command just past breakaway creeps on through its goal and sticks
+    on the far side; as it creeps into `stuck_error` the arrival takes `arrive` of the limit
+    off its command, once."""
+    from policy.settle import SettleSupervisor
+
+    sup, target = _stuck_supervisor(ramp=0.0)  # no ramp: only the arrival moves u_I
+    assert isinstance(sup, SettleSupervisor)
+    law = sup.law
+    u = np.array([0.0, 400.0, 0.0, 0.0])
+    t = 0.0
+    for _ in range(30):  # at rest 0.05 rad short under 400 mA: engaged as stuck
+        sup.update(t, np.array([0, -0.05, 0, 0]), np.zeros(4), target, u, u)
+        t += 0.05
+    assert sup.engaged[1]
+    held = float(sup.u_i[1])
+    e, out = 0.03, []
+    while e > -0.01:  # creeps in at 0.04 rad/s
+        sup.update(t, np.array([0, -e, 0, 0]), np.array([0, 0.04, 0, 0]), target, u, u)
+        out.append(float(sup.u_i[1]))
+        t += 0.05
+        e -= 0.002
+    assert held == pytest.approx(400.0)
+    assert min(out) == pytest.approx(held - law.arrive * 600.0)
+    assert sum(np.diff(out) < 0) == 1  # once
