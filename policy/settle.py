@@ -135,6 +135,9 @@ class SettleLaw:
     latent_crossing_speed: float = 0.15  # rad/s, > 0 (and crossing_speed > 0): ... this fast
     # on a loop timed at `latent_periods` of latency or more (module docstring, "Latency")
     latent_periods: float = 0.2  # a loop without latency times at 0.06 +- 0.05 (max 0.23 in 100)
+    crossing_on_prompt_loop: bool = False  # watch crossings at `crossing_speed` on a loop timed
+    # below `latent_periods` too (off: there the actor's own overshoot is its to finish; B on
+    # Table I's seed 2120 crosses at 1.15 rad/s and settles in 0.9 s, 1.7 s when engaged)
     onset_fraction: float = 0.5  # of the current limit: a joint commanded this hard ...
     onset_error: float = 0.4  # rad: ... this far from its goal at a target's first step
     onset_steps: int = 8  # ... times the latency from the samples of this many steps
@@ -266,6 +269,8 @@ class SettleSupervisor:
         self._ramp_scale = np.ones(n)
         self._e_prev = np.zeros(n)
         self._arriving = np.zeros(n, dtype=bool)
+        self._side = np.zeros(n)  # the side of the goal the low-passed error was last on,
+        # outside `freeze`
         self._rate = np.ones(n)  # the ramp's rate: 1, or memory_rate when restarted from memory
         self._break_u = np.full((n, 2), math.nan)  # per side: the command it last broke away at
         self._q_var = np.zeros(n)  # the sensors' noise, from successive samples while slow
@@ -340,6 +345,8 @@ class SettleSupervisor:
         crossing_speed = law.crossing_speed
         if latent and (self.latency_periods or 0.0) >= law.latent_periods:
             crossing_speed = law.latent_crossing_speed
+        elif latent and self._timed and not law.crossing_on_prompt_loop:
+            crossing_speed = 0.0  # timed without latency: an overshoot is the actor's own
         out = np.asarray(u, dtype=float).copy()
         for j in range(N_JOINTS):
             if self.engaged[j] and abs(e[j]) > law.release:
@@ -506,7 +513,9 @@ class SettleSupervisor:
         # speed can show has broken away too, and ramping on would carry it through its goal.
         progress = max(law.progress, moved_floor)
         moved = law.progress > 0 and abs(ef) < self._stuck_from[j] - progress
-        if self._was_stuck[j] and (not slow or moved):
+        toward = math.copysign(1.0, ef) * self.v_f[j]  # > 0: moving towards the goal
+        broke = toward >= max(law.stuck_speed, speed_floor) or moved
+        if self._was_stuck[j] and broke:
             k = 0 if self._ramp_side[j] > 0 else 1
             self._break_u[j, k] = self.u_i[j]
             self.u_i[j] -= law.backoff * self._ramped[j]
@@ -542,12 +551,17 @@ class SettleSupervisor:
         if law.arrive > 0 and self.reasons[j] == "stuck" and abs(ef) > 2 * law.stuck_error:
             self._arriving[j] = True
         elif self._arriving[j] and abs(ef) < law.stuck_error:
-            toward = math.copysign(1.0, ef) * self.v_f[j]
             if toward > max(0.5 * law.stuck_speed, speed_floor):
                 self.u_i[j] -= math.copysign(law.arrive * limit, ef)
                 self._arriving[j] = False
             elif slow:
                 self._arriving[j] = False
+        if abs(ef) > law.freeze:
+            side = math.copysign(1.0, ef)
+            if self._side[j] == -side and law.arrive > 0 and self.reasons[j] == "stuck":
+                # crept across the goal (not ramping: a ramp's breakaway has its backoff)
+                self.u_i[j] += side * law.arrive * limit
+            self._side[j] = side
         self.u_i[j] = float(np.clip(self.u_i[j], -limit, limit))
         cmd = self.u_i[j] + law.kp[j] * e - law.kd[j] * qdot
         return float(np.clip(cmd, -limit, limit))
