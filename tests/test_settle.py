@@ -406,3 +406,31 @@ def test_a_joint_creeping_into_its_goal_has_some_command_taken_off_once() -> Non
     assert held == pytest.approx(400.0)
     assert min(out) == pytest.approx(held - law.arrive * 600.0)
     assert sum(np.diff(out) < 0) == 1  # once
+
+
+@pytest.mark.slow
+def test_on_a_twin_whose_friction_holds_the_stuck_watch_finishes_a_weak_joint() -> None:
+    """Draw 108 of tools/robustness.py --draws N --seed 1 around an arm whose friction holds
+    (`--params` {"friction_holds": true}): D at 50 % torque with 3.7 N m of Coulomb friction.
+    The limit-cycle watches alone leave D at rest 0.1 rad short; the stuck watch engages it,
+    ramps it free, and crossing its goal on a creep is taken back: D ends inside the
+    tolerance, at rest."""
+    from reach_sim_bridge.params import ArmParams
+
+    variant = draws(109, 1, base=ArmParams(friction_holds=True)).variants[108]
+    rng = np.random.default_rng([1, 1, 108])
+    episode = variant.episode(
+        Episode(
+            start=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
+            target=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
+        )
+    )
+    config = variant.run_config(RunConfig(seconds=20.0, noise=SensorNoise(), seed=100_001))
+    plain = DirectArm().run(make_controller(settle={"stuck": False}), episode, config, 100_109)
+    assert plain.metrics.at_rest and not plain.metrics.reached
+    assert abs(plain.final_error[1]) > 0.05
+    ctrl = make_controller(settle=True)  # the defaults: the stuck watch on
+    settled = DirectArm().run(ctrl, episode, config, 100_109)
+    assert settled.metrics.reached and settled.metrics.at_rest
+    assert np.all(np.abs(settled.final_error) < 0.02)
+    assert ctrl.settle is not None and ctrl.settle.reasons[1] == "stuck"
