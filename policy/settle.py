@@ -23,9 +23,9 @@ Watching (per joint, within `band` of the goal):
   `latent_periods` (0.2) or more, a joint crossing at `latent_crossing_speed` (0.15 rad/s) is
   engaged: there a crossing at any speed is the first swing of the cycle, and E arriving
   unbraked at 1-2 periods spent 0.6-1.1 J in that swing before it reached 0.8 rad/s. On a
-  loop timed below that, not at all: an overshoot of the actor's is its own to finish (the
-  soft law would finish it seconds later; B on one of Table I's seed-2120 episodes crosses at
-  1.15 rad/s), so Table I is unchanged;
+  loop timed below that, `crossing_on_prompt_loop` (on) keeps the 0.8 rad/s watch: it catches
+  frictionless heavy rotors early, but it also takes B on one of Table I's seed-2120 episodes
+  (crossing at 1.15 rad/s), which the soft law settles 0.8 s later than the actor would;
 - **jitter** (`jitter_speed` > 0): after `jitter_s` within `jitter_band`, the RMS of the
   measured speed over the last `jitter_window_s` exceeds `jitter_speed` (the sensor noise
   alone gives 0.02-0.06 rad/s);
@@ -160,9 +160,10 @@ class SettleLaw:
     latent_crossing_speed: float = 0.15  # rad/s, > 0 (and crossing_speed > 0): ... this fast
     # on a loop timed at `latent_periods` of latency or more (module docstring, "Latency")
     latent_periods: float = 0.2  # a loop without latency times at 0.06 +- 0.05 (max 0.23 in 100)
-    crossing_on_prompt_loop: bool = False  # watch crossings at `crossing_speed` on a loop timed
-    # below `latent_periods` too (off: there the actor's own overshoot is its to finish; B on
-    # Table I's seed 2120 crosses at 1.15 rad/s and settles in 0.9 s, 1.7 s when engaged)
+    crossing_on_prompt_loop: bool = True  # watch crossings at `crossing_speed` on a loop timed
+    # below `latent_periods` too. Off, the actor's own overshoot there is its to finish: B on
+    # Table I's seed 2120 crosses at 1.15 rad/s and settles in 0.9 s (1.7 s when engaged), but
+    # 8 more of the 896 corners miss (frictionless heavy rotors the actor's gain cycles)
     onset_fraction: float = 0.5  # of the current limit: a joint commanded this hard ...
     onset_error: float = 0.4  # rad: ... this far from its goal at a target's first step
     onset_steps: int = 8  # ... times the latency from the samples of this many steps
