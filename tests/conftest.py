@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import signal
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -38,3 +39,10 @@ def wait_until(
             return True
         time.sleep(poll_s)
     return bool(predicate())
+
+
+def default_sigint() -> None:
+    """`preexec_fn` for a child that a test interrupts with SIGINT: Ctrl-C's default action,
+    as a shell in the foreground gives it. A non-interactive shell's background jobs (CI run
+    with `&`) start with SIGINT ignored, and Python then never raises KeyboardInterrupt."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

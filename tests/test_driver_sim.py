@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import wait_until
+from conftest import default_sigint, wait_until
 
 from protocol import DeviceID, Mode, PacketID
 from reach_driver import (
@@ -269,7 +269,9 @@ def test_ctrl_c_during_run_leaves_the_arm_safe_and_exits_130(sim) -> None:
     target = sim.snapshot().q + np.array([0.2, 0.2, 0.2, 0.2])
     cmd = [sys.executable, "-m", "reach_driver.cli", "--port", ports(sim)["udp"], "run"]
     cmd += ["--controller", "pid", "--target", *map(str, target), "--seconds", "600"]
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=default_sigint
+    )
     try:
         assert wait_until(lambda: sim.firmware.mode(5) == Mode.CURRENT, timeout=30.0)
         proc.send_signal(signal.SIGINT)
