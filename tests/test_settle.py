@@ -13,8 +13,24 @@ from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from policy.rollout import Episode, RunConfig
 from policy.settle import SettleLaw
 from reach_sim_bridge.faults import SensorNoise
+from reach_sim_bridge.params import ArmParams
 
 ZERO4 = (0.0, 0.0, 0.0, 0.0)
+
+
+def _robustness_draw(index: int, base: ArmParams | None = None) -> tuple[Episode, RunConfig, int]:
+    """Draw `index` of tools/robustness.py --draws N --seed 1 [--params around `base`]: its
+    arm's episode, run configuration and episode seed, as the campaign runs it."""
+    variant = draws(index + 1, 1, base=base).variants[index]
+    rng = np.random.default_rng([1, 1, index])
+    episode = variant.episode(
+        Episode(
+            start=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
+            target=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
+        )
+    )
+    config = variant.run_config(RunConfig(seconds=20.0, noise=SensorNoise(), seed=100_001))
+    return episode, config, config.seed + index
 
 
 def test_settle_parameter_is_off_by_default_and_validated() -> None:
@@ -34,19 +50,11 @@ def test_settle_turns_a_latent_arms_limit_cycle_into_rest() -> None:
     # Draw 10 of tools/robustness.py --draws N --seed 1 (its episode and noise seed): 2.7 N m
     # of Coulomb friction, 1.59 periods of latency; the plain actor keeps B in a limit cycle
     # (+-0.1 rad at 1.2 rad/s) to the end.
-    variant = draws(11, 1).variants[10]
-    rng = np.random.default_rng([1, 1, 10])
-    episode = variant.episode(
-        Episode(
-            start=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
-            target=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
-        )
-    )
-    config = variant.run_config(RunConfig(seconds=20.0, noise=SensorNoise(), seed=100_001))
-    plain = DirectArm().run(make_controller(), episode, config, 100_011)
+    episode, config, seed = _robustness_draw(10)
+    plain = DirectArm().run(make_controller(), episode, config, seed)
     assert not plain.metrics.at_rest and not plain.metrics.reached
     ctrl = make_controller(settle=True)
-    settled = DirectArm().run(ctrl, episode, config, 100_011)
+    settled = DirectArm().run(ctrl, episode, config, seed)
     assert settled.metrics.at_rest and settled.metrics.reached
     assert ctrl.settle is not None and ctrl.settle.engaged[3]  # B was handed over
     assert ctrl.settle.reasons[3] == "crossing"  # at full speed, before the cycle began
@@ -415,22 +423,12 @@ def test_on_a_twin_whose_friction_holds_the_stuck_watch_finishes_a_weak_joint() 
     The limit-cycle watches alone leave D at rest 0.1 rad short; the stuck watch engages it,
     ramps it free, and crossing its goal on a creep is taken back: D ends inside the
     tolerance, at rest."""
-    from reach_sim_bridge.params import ArmParams
-
-    variant = draws(109, 1, base=ArmParams(friction_holds=True)).variants[108]
-    rng = np.random.default_rng([1, 1, 108])
-    episode = variant.episode(
-        Episode(
-            start=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
-            target=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
-        )
-    )
-    config = variant.run_config(RunConfig(seconds=20.0, noise=SensorNoise(), seed=100_001))
-    plain = DirectArm().run(make_controller(settle={"stuck": False}), episode, config, 100_109)
+    episode, config, seed = _robustness_draw(108, ArmParams(friction_holds=True))
+    plain = DirectArm().run(make_controller(settle={"stuck": False}), episode, config, seed)
     assert plain.metrics.at_rest and not plain.metrics.reached
     assert abs(plain.final_error[1]) > 0.05
     ctrl = make_controller(settle=True)  # the defaults: the stuck watch on
-    settled = DirectArm().run(ctrl, episode, config, 100_109)
+    settled = DirectArm().run(ctrl, episode, config, seed)
     assert settled.metrics.reached and settled.metrics.at_rest
     assert np.all(np.abs(settled.final_error) < 0.02)
     assert ctrl.settle is not None and ctrl.settle.reasons[1] == "stuck"
