@@ -26,6 +26,10 @@ Watching (per joint, within `band` of the goal):
   loop timed below that, `crossing_on_prompt_loop` (on) keeps the 0.8 rad/s watch: it catches
   frictionless heavy rotors early, but it also takes B on one of Table I's seed-2120 episodes
   (crossing at 1.15 rad/s), which the soft law settles 0.8 s later than the actor would;
+  on a latent loop a joint is also engaged *before* it crosses, once it will cross at that
+  speed within the latency plus `latent_ahead` (1) periods: the commands already in flight
+  carry it that far, and a crossing seen only once it has happened was a full-speed swing
+  through the settling band (0.6-1.0 J spent after the joint counted as settled);
 - **jitter** (`jitter_speed` > 0): after `jitter_s` within `jitter_band`, the RMS of the
   measured speed over the last `jitter_window_s` exceeds `jitter_speed` (the sensor noise
   alone gives 0.02-0.06 rad/s);
@@ -72,12 +76,25 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
   rate is multiplied by `ramp_decay` (0.7, down to `ramp_floor`, 0.3 of it), so the hunting
   dies out while a high-friction joint still breaks away in seconds. Breakaway counts only
   towards the goal (a joint slipping away from it under gravity has not broken free of the
-  ramp);
+  ramp). With `raw_breakaway` a single sample of measured speed towards the goal beyond what
+  the noise explains is a breakaway too, and stops the stuck watch engaging a joint that has
+  just begun to slip (engaged on the actor's low-passed command, one slid 0.12 rad, past its
+  goal): the low-passed speed sees a slip 2-3 periods late, and with 1-2 periods of latency
+  the ramp's command swung a 6 N m joint 0.05 rad, from one side of its goal to the
+  other, each time: a hunt across the tolerance at 0.1-0.3 J a swing;
 - breakaway memory: where friction holds, the backoff leaves the joint well inside its
   friction band and a re-ramp climbed the whole band again (7 s on a weak D). A joint that
   sticks again on the side it broke away from restarts `memory_margin` (5 % of the limit)
   below the command it broke away at, and ramps at `memory_rate` (0.3) of the rate from there:
   the push past breakaway grows with the rate, and with it the step the joint makes;
+- reversing: a joint whose breakaway carried it through its goal sticks on the far side
+  still commanded the first way, a whole friction band (2 x 300 mA at 6 N m) from pushing
+  back; its ramp starts from the actor's hold at the goal instead (D engaged on the actor's
+  330 mA, broken away before the backoff had anything to take back, took the rest of the
+  episode to ramp down from +306 mA), where the joint broke away the first way
+  `reverse_to_hold` (a quarter of the limit, 3 N m on E D C) or more from that hold: the
+  hold is the actor's, learned on the model, and on a joint with little friction the jump to
+  it was a kick (done everywhere, 81.7 % of the corners reached instead of 90.8 %);
 - arrival: a joint engaged because it was stuck rests on a command near breakaway; on one just
   past it, it creeps on through its goal and sticks beyond, a whole friction band away from
   coming back. Creeping into `stuck_error` of the goal (armed outside twice that), `arrive`
@@ -190,6 +207,16 @@ class SettleLaw:
     # of its goal on the command it is left at has that much taken off it, once per arrival:
     # on a command just past breakaway it would creep on through the goal and stick beyond
     stuck_band: float = 0.5  # rad: the stuck watch looks at joints this close to their goal
+    latent_ahead: float = 1.0  # periods (< 0: off): on a loop timed at `latent_periods` or
+    # more, engage a joint that will cross its goal at `latent_crossing_speed` or faster within
+    # its latency plus this many periods (the commands in flight carry it that far)
+    reverse_to_hold: float = 0.25  # of the limit (0: off): a ramp that must push the other
+    # way starts from the actor's hold, not from the far side of the friction band (2 x 300 mA
+    # at 6 N m), where the joint broke away the first way this far from the hold or more (on
+    # a joint with little friction the actor's hold, learned on the model, is a kick)
+    raw_breakaway: bool = True  # a breakaway is also one sample's measured speed towards the
+    # goal of `noise_sigmas` of its noise (and twice `stuck_speed`) or more: the low-passed
+    # speed sees a slip 2-3 periods late, and on a latent loop the slip carries through the goal
 
     def __post_init__(self) -> None:
         for name in ("kp", "kd", "ki", "ramp"):
@@ -207,7 +234,7 @@ class SettleLaw:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"settle {name} must be positive, got {value}")
-        for name in ("reversal_fraction", "backoff"):
+        for name in ("reversal_fraction", "backoff", "reverse_to_hold"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"settle {name} must be in [0, 1], got {getattr(self, name)}")
         if self.reversals < 2 or self.min_span_s < 0 or self.stuck_s < 0:
@@ -305,12 +332,14 @@ class SettleSupervisor:
         self._v_var = np.zeros(n)
         self._q_hist = np.full((2, n), math.nan)
         self._v_prev = np.full(n, math.nan)
+        self._qdot = np.zeros(n)
         self._step = 0
         self._clock = 0.0
         self._onset: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._samples: list[tuple[float, np.ndarray, np.ndarray]] = []
         self.latency_periods: float | None = None
         self._timed = False
+        self._period = self.law.default_dt
 
     def report(self) -> dict[str, Any]:
         """What the supervisor did on the current target: the latency it timed (periods, None
@@ -330,10 +359,10 @@ class SettleSupervisor:
 
     def _new_target(self, target: np.ndarray) -> None:
         # the latency is the loop's, not the target's: once timed from motion it stays
-        periods, timed = self.latency_periods, self._timed
+        periods, timed, period = self.latency_periods, self._timed, self._period
         self.reset()
         if timed:
-            self.latency_periods, self._timed = periods, True
+            self.latency_periods, self._timed, self._period = periods, True, period
         self._target = target.copy()
 
     def update(
@@ -363,6 +392,7 @@ class SettleSupervisor:
         self.u_f = np.where(self._fresh, u, self.u_f + b * (u - self.u_f))
         self._fresh[:] = False
         self._estimate_noise(dt, e, qdot)
+        self._qdot = np.asarray(qdot, dtype=float)
         near = np.abs(e) < law.band
         self._v2[self._v2_n % self._v2.shape[0]] = qdot**2
         self._v2_n += 1
@@ -371,8 +401,11 @@ class SettleSupervisor:
         if latent and self.latency_periods is None:
             self._time_latency(dt, q, qdot, e, u)
         crossing_speed = law.crossing_speed
+        ahead = -1.0
         if latent and (self.latency_periods or 0.0) >= law.latent_periods:
             crossing_speed = law.latent_crossing_speed
+            if law.latent_ahead >= 0:
+                ahead = ((self.latency_periods or 0.0) + law.latent_ahead) * self._period
         elif latent and self._timed and not law.crossing_on_prompt_loop:
             crossing_speed = 0.0  # timed without latency: an overshoot is the actor's own
         out = np.asarray(u, dtype=float).copy()
@@ -385,6 +418,9 @@ class SettleSupervisor:
                 crossed = self._e_prev[j] * e[j] < 0
                 if crossed and abs(qdot[j]) >= crossing_speed:
                     self._engage(j, now, "crossing")
+                elif ahead >= 0 and near[j] and abs(qdot[j]) >= crossing_speed:
+                    if (e[j] - qdot[j] * ahead) * e[j] < 0:
+                        self._engage(j, now, "crossing ahead")
             self._e_prev[j] = e[j]
             if self.engaged[j]:
                 out[j] = self._settle(j, dt, e[j], qdot[j])
@@ -442,6 +478,7 @@ class SettleSupervisor:
             else:
                 starts.append(float(times[k] - moved[k] / speed[k]))
         period = float(times[-1]) / len(times)
+        self._period = period
         self.latency_periods = max(0.0, min(starts)) / period if starts else 0.0
         self._timed = bool(starts)
 
@@ -496,9 +533,17 @@ class SettleSupervisor:
         moved = self.law.noise_sigmas * math.sqrt(2 * shrink * self._q_var[j])
         return speed, moved
 
+    def _slipping(self, j: int, e: float, qdot: float) -> bool:
+        """One sample's measured speed towards the goal beyond what the noise explains."""
+        law = self.law
+        floor = max(2 * law.stuck_speed, law.noise_sigmas * math.sqrt(self._v_var[j]))
+        return math.copysign(1.0, e) * qdot >= floor
+
     def _watch_stuck(self, j: int, now: float, dt: float) -> None:
         law = self.law
         slow = abs(self.v_f[j]) < max(law.stuck_speed, self._noise_floors(j, dt)[0])
+        if slow and law.raw_breakaway:  # not a joint that has just begun to slip
+            slow = not self._slipping(j, self.e_f[j], self._qdot[j])
         still = abs(self.e_f[j]) > law.stuck_error and slow
         self._stuck_for[j] = self._stuck_for[j] + dt if still else 0.0
         if self._stuck_for[j] >= law.stuck_s - 1e-9:
@@ -543,6 +588,8 @@ class SettleSupervisor:
         moved = law.progress > 0 and abs(ef) < self._stuck_from[j] - progress
         toward = math.copysign(1.0, ef) * self.v_f[j]  # > 0: moving towards the goal
         broke = toward >= max(law.stuck_speed, speed_floor) or moved
+        if law.raw_breakaway and not broke:
+            broke = self._slipping(j, ef, qdot)
         self._since_break[j] += dt
         if self._was_stuck[j] and broke:
             self._since_break[j] = 0.0
@@ -565,6 +612,17 @@ class SettleSupervisor:
                 self._ramp_side[j] = side
                 brk = self._break_u[j, 0 if side > 0 else 1]
                 self._rate[j] = 1.0
+                hold = None if self._u_goal is None else float(self._u_goal[j])
+                other = self._break_u[j, 1 if side > 0 else 0]  # broke away the other way at
+                if (
+                    law.reverse_to_hold > 0
+                    and hold is not None
+                    and side * (hold - self.u_i[j]) > 0
+                    and abs(other - hold) >= law.reverse_to_hold * limit
+                ):
+                    # still pushing the other way across a wide friction band (carried through
+                    # its goal): start from the hold (not ramp: the backoff leaves it alone)
+                    self.u_i[j] = hold
                 if law.memory_margin >= 0 and math.isfinite(brk):
                     # it broke away at `brk` last time: the ramp need not climb from below
                     jump = brk - side * law.memory_margin * limit - self.u_i[j]

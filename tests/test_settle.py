@@ -268,6 +268,30 @@ def test_on_a_latent_loop_a_slow_crossing_is_engaged() -> None:
     assert engaged(0.3) and engaged(1.8)
 
 
+def test_on_a_latent_loop_a_joint_is_engaged_before_its_commands_carry_it_across() -> None:
+    """With `latent_ahead`, a joint that will cross its goal within the loop's latency plus
+    that many periods is handed over before it crosses; on a loop without latency it is not."""
+    from policy.settle import SettleSupervisor
+
+    def first_engaged(latency: float, ahead: float) -> tuple[int | None, str]:
+        sup = SettleSupervisor(SettleLaw(latent_ahead=ahead), np.full(4, 600.0))
+        sup.latency_periods, sup._timed = latency, True
+        target = np.ones(4)
+        for k in range(6):  # C comes in at 1 rad/s from 0.12 rad: it crosses after step 2
+            q = target.copy()
+            q[2] -= 0.12 - 0.05 * k
+            sup.update(0.05 * k, q, np.array([0.0, 0.0, 1.0, 0.0]), target, np.zeros(4))
+            if sup.engaged[2]:
+                return k, sup.reasons[2]
+        return None, ""
+
+    # 1.5 periods + 1 ahead at 1 rad/s is 0.125 rad: engaged at once, 0.12 rad out
+    assert first_engaged(1.5, 1.0) == (0, "crossing ahead")
+    assert first_engaged(1.5, 0.0) == (1, "crossing ahead")  # 0.075 rad ahead: from 0.07 rad
+    assert first_engaged(1.5, -1.0) == (3, "crossing")  # off: only once it has crossed
+    assert first_engaged(0.0, 1.0) == (3, "crossing")  # no latency: the 0.8 rad/s watch alone
+
+
 def test_the_controller_reports_what_its_supervisor_did() -> None:
     """`report()` (printed and recorded by `reach-driver run`) names the latency timed and each
     joint engaged, why and when; without the supervisor there is nothing to report."""
@@ -282,16 +306,14 @@ def test_the_controller_reports_what_its_supervisor_did() -> None:
     assert isinstance(sup, SettleSupervisor)
     sup.latency_periods, sup._timed = 1.5, True
     target = np.ones(4)
-    for k in range(4):  # C crosses its goal at 0.3 rad/s: engaged on a latent loop
+    for k in range(4):  # C will cross its goal at 0.3 rad/s: engaged on a latent loop
         q = target.copy()
-        q[2] += -0.02 + 0.015 * k
+        q[2] += -0.04 + 0.015 * k
         sup.update(0.05 * k, q, np.array([0.0, 0.0, 0.3, 0.0]), target, np.zeros(4))
     report = controller_report(ctrl)
-    assert report["settle"] == {
-        "latency_periods": 1.5,
-        "engaged": {"C": {"reason": "crossing", "at_s": pytest.approx(0.1), "releases": 0}},
-    }
-    assert report["summary"].endswith("timed at 1.50 periods; engaged C (crossing at 0.10 s)")
+    engaged = {"reason": "crossing ahead", "at_s": pytest.approx(0.05), "releases": 0}
+    assert report["settle"] == {"latency_periods": 1.5, "engaged": {"C": engaged}}
+    assert report["summary"].endswith("timed at 1.50 periods; engaged C (crossing ahead at 0.05 s)")
 
 
 def test_a_failing_report_does_not_fail_the_run_it_describes() -> None:
@@ -387,6 +409,75 @@ def test_a_joint_stuck_again_restarts_its_ramp_below_where_it_broke_away() -> No
     restart = step(0.06, 0.0, 12)  # stuck again, short on the same side
     assert restart == pytest.approx(broke_at - law.memory_margin * 600.0, abs=20.0)
     assert restart > after + 0.5 * (broke_at - after)  # not from where the backoff left it
+
+
+@pytest.mark.parametrize("raw", [False, True])
+def test_a_slip_is_seen_in_one_sample_of_measured_speed(raw: bool) -> None:
+    """`raw_breakaway`: one sample at 0.1 rad/s towards the goal (twice `stuck_speed`, and over
+    3 sigma of the noise) is a breakaway; the low-passed speed (0.02 rad/s after it) is not,
+    and with the ramp's command still on a slip on a latent loop carries through the goal.
+    Likewise the stuck watch does not engage a joint as it begins to slip."""
+    from policy.settle import SettleSupervisor
+
+    sup, target = _stuck_supervisor(raw_breakaway=raw)
+    assert isinstance(sup, SettleSupervisor)
+    t = 0.0
+
+    def step(v: float, n: int) -> float:
+        nonlocal t
+        for _ in range(n):
+            q = target - np.array([0, 0.1, 0, 0])
+            sup.update(t, q, np.array([0, v, 0, 0]), target, np.zeros(4), np.zeros(4))
+            t += 0.05
+        return float(sup.u_i[1])
+
+    step(0.0, 19)  # 0.95 s stuck 0.1 rad short: not yet engaged (stuck_s 1 s)
+    step(0.1, 1)  # it starts to slip
+    assert sup.engaged[1] == (not raw)
+    step(0.0, 21)  # stuck again: engaged, ramps
+    assert sup.engaged[1] and sup.reasons[1] == "stuck"
+    ramped = step(0.0, 20)
+    slipped = step(0.1, 1)
+    if raw:  # the backoff at once: 80 % of the ramp taken back
+        assert slipped == pytest.approx(ramped * (1 - sup.law.backoff), rel=0.05)
+    else:  # still ramping on
+        assert slipped > ramped
+
+
+@pytest.mark.parametrize("reverse", [0.0, 0.25, 0.6])
+def test_a_joint_carried_through_its_goal_ramps_back_from_the_hold(reverse: float) -> None:
+    """`reverse_to_hold`: a joint whose breakaway carried it through its goal, stuck on the
+    other side with its command still pushing the first way, restarts its ramp from the
+    actor's hold instead of climbing back across the whole friction band; only where it broke
+    away `reverse_to_hold` of the limit or more from the hold (here 300 mA: 0.5 of it)."""
+    from policy.settle import SettleSupervisor
+
+    sup, target = _stuck_supervisor(reverse_to_hold=reverse, raw_breakaway=False)
+    assert isinstance(sup, SettleSupervisor)
+    hold = np.array([0.0, 50.0, 0.0, 0.0])
+    t = 0.0
+
+    def step(e: float, v: float, n: int, actor: float = 0.0) -> float:
+        nonlocal t
+        for _ in range(n):
+            q = target - np.array([0, e, 0, 0])
+            u = np.array([0, actor, 0, 0])
+            sup.update(t, q, np.array([0, v, 0, 0]), target, u, hold)
+            t += 0.05
+        return float(sup.u_i[1])
+
+    # stuck 0.1 rad short under the actor's 330 mA: engaged on that command, which the
+    # breakaway two periods into the ramp hardly backs off
+    engaged_on = step(0.1, 0.0, 21, actor=330.0)
+    assert sup.engaged[1] and engaged_on == pytest.approx(330.0, abs=20.0)
+    step(-0.03, 0.5, 1)  # breaks away and is carried 0.03 rad through its goal
+    left = step(-0.03, 0.0, 1)
+    assert left > 300.0  # still pushing the first way
+    restarted = step(-0.03, 0.0, 12)  # stuck past the goal: the ramp starts after 0.5 s
+    if 0 < reverse <= 0.5:  # from the hold, then a few periods of ramp the other way
+        assert restarted < hold[1]
+    else:  # from across the friction band: 2 s more at 105 mA/s to reach the hold
+        assert restarted > 250.0
 
 
 def test_a_joint_creeping_into_its_goal_has_some_command_taken_off_once() -> None:
