@@ -29,7 +29,7 @@ Watching (per joint, within `band` of the goal):
   on a latent loop a joint is also engaged *before* it crosses, once it will cross at that
   speed within the latency plus `latent_ahead` (1) periods: the commands already in flight
   carry it that far, and a crossing seen only once it has happened was a full-speed swing
-  through the settling band (0.6-1.0 J spent after the joint counted as settled);
+  through the settling band (0.4-0.7 J spent after the joint counted as settled);
 - **jitter** (`jitter_speed` > 0): after `jitter_s` within `jitter_band`, the RMS of the
   measured speed over the last `jitter_window_s` exceeds `jitter_speed` (the sensor noise
   alone gives 0.02-0.06 rad/s);
@@ -332,7 +332,6 @@ class SettleSupervisor:
         self._v_var = np.zeros(n)
         self._q_hist = np.full((2, n), math.nan)
         self._v_prev = np.full(n, math.nan)
-        self._qdot = np.zeros(n)
         self._step = 0
         self._clock = 0.0
         self._onset: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -392,7 +391,6 @@ class SettleSupervisor:
         self.u_f = np.where(self._fresh, u, self.u_f + b * (u - self.u_f))
         self._fresh[:] = False
         self._estimate_noise(dt, e, qdot)
-        self._qdot = np.asarray(qdot, dtype=float)
         near = np.abs(e) < law.band
         self._v2[self._v2_n % self._v2.shape[0]] = qdot**2
         self._v2_n += 1
@@ -413,7 +411,7 @@ class SettleSupervisor:
             if self.engaged[j] and abs(e[j]) > law.release:
                 self._release(j)
             if not self.engaged[j]:
-                self._watch(j, now, dt, near[j], e[j], u[j])
+                self._watch(j, now, dt, near[j], e[j], u[j], qdot[j])
             if not self.engaged[j] and crossing_speed > 0:
                 crossed = self._e_prev[j] * e[j] < 0
                 if crossed and abs(qdot[j]) >= crossing_speed:
@@ -482,10 +480,12 @@ class SettleSupervisor:
         self.latency_periods = max(0.0, min(starts)) / period if starts else 0.0
         self._timed = bool(starts)
 
-    def _watch(self, j: int, now: float, dt: float, near: bool, e: float, u: float) -> None:
+    def _watch(
+        self, j: int, now: float, dt: float, near: bool, e: float, u: float, qdot: float
+    ) -> None:
         law = self.law
         if law.stuck and not near and abs(e) < law.stuck_band:
-            self._watch_stuck(j, now, dt)
+            self._watch_stuck(j, now, dt, qdot)
             return
         if not near:
             self._sign[j] = 0.0
@@ -521,7 +521,7 @@ class SettleSupervisor:
                 self._engage(j, now, "hold")
                 return
         if law.stuck:
-            self._watch_stuck(j, now, dt)
+            self._watch_stuck(j, now, dt, qdot)
 
     def _noise_floors(self, j: int, dt: float) -> tuple[float, float]:
         """What the sensors' noise can explain, `noise_sigmas` of it: of the low-passed speed
@@ -539,11 +539,11 @@ class SettleSupervisor:
         floor = max(2 * law.stuck_speed, law.noise_sigmas * math.sqrt(self._v_var[j]))
         return math.copysign(1.0, e) * qdot >= floor
 
-    def _watch_stuck(self, j: int, now: float, dt: float) -> None:
+    def _watch_stuck(self, j: int, now: float, dt: float, qdot: float) -> None:
         law = self.law
         slow = abs(self.v_f[j]) < max(law.stuck_speed, self._noise_floors(j, dt)[0])
         if slow and law.raw_breakaway:  # not a joint that has just begun to slip
-            slow = not self._slipping(j, self.e_f[j], self._qdot[j])
+            slow = not self._slipping(j, self.e_f[j], qdot)
         still = abs(self.e_f[j]) > law.stuck_error and slow
         self._stuck_for[j] = self._stuck_for[j] + dt if still else 0.0
         if self._stuck_for[j] >= law.stuck_s - 1e-9:
