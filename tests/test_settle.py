@@ -414,9 +414,9 @@ def test_a_joint_stuck_again_restarts_its_ramp_below_where_it_broke_away() -> No
 @pytest.mark.parametrize("raw", [False, True])
 def test_a_slip_is_seen_in_one_sample_of_measured_speed(raw: bool) -> None:
     """`raw_breakaway`: one sample at 0.1 rad/s towards the goal (twice `stuck_speed`, and over
-    3 sigma of the noise) is a breakaway; the low-passed speed (0.02 rad/s after it) is not,
-    and with the ramp's command still on a slip on a latent loop carries through the goal.
-    Likewise the stuck watch does not engage a joint as it begins to slip."""
+    3 sigma of the noise) is a breakaway, so the backoff goes out at once; the low-passed speed
+    (0.02 rad/s after it) is not, and the ramp's command stays on while the joint slips (on a
+    latent loop, through its goal). Likewise the stuck watch does not engage a slipping joint."""
     from policy.settle import SettleSupervisor
 
     sup, target = _stuck_supervisor(raw_breakaway=raw)
