@@ -7,7 +7,8 @@ configuration saved beside the weights, so the driver feeds the network what tra
 The weights and their format: `policy.weights`.
 
     from policy.ddpg_controller import make_controller
-    ctrl = make_controller()                 # shipped weights, policy/weights/ddpg_actor.npz
+    ctrl = make_controller()                 # shipped weights, policy/weights/ddpg_actor.npz,
+                                             # reference integral and settle supervisor
     ctrl.reset(); currents_mA = ctrl.act(state, target)   # state has .q .qdot .t (E D C B)
 """
 
@@ -168,12 +169,13 @@ def make_controller(
     integral_gain: float = ReferenceIntegral.gain,
     integral_band: float = ReferenceIntegral.band,
     integral_cap: float = ReferenceIntegral.cap,
-    settle: Any = False,
+    settle: Any = True,
 ) -> DDPGController:
-    """The shipped controller: the DDPG actor (shipped weights, or those at `weights`) with its
-    reference integral (`integral_gain` 0 for the pure policy). `settle` (off by default):
-    true for the settle supervisor of `policy.settle` with its defaults, or a dict of
-    `SettleLaw` fields."""
+    """The shipped controller (entry point `ddpg`): the DDPG actor (shipped weights, or those
+    at `weights`) with its reference integral (`integral_gain` 0 turns it off) and the settle
+    supervisor of `policy.settle` (docs/robustness.md). `settle`: true for its defaults, a dict
+    of `SettleLaw` fields, or false for the actor and integral alone, the controller that
+    chatters on a few per cent of degraded arms (docs/chatter.md)."""
     integral = ReferenceIntegral(gain=integral_gain, band=integral_band, cap=integral_cap)
     return DDPGController(
         ActorWeights.load(weights or DEFAULT_WEIGHTS),
@@ -186,5 +188,6 @@ def make_controller(
 def make_pure_controller(
     weights: str | Path | None = None, current_limits_mA: Any = None
 ) -> DDPGController:
-    """The DDPG actor alone, stateless, as trained: no reference integral."""
-    return make_controller(weights, current_limits_mA, integral_gain=0.0)
+    """The DDPG actor alone, stateless, as trained (entry point `ddpg-pure`): no reference
+    integral, no settle supervisor."""
+    return make_controller(weights, current_limits_mA, integral_gain=0.0, settle=False)

@@ -8,6 +8,7 @@ simulator's true angles, so the numbers in docs/results.md compare like with lik
 
 from __future__ import annotations
 
+import argparse
 import json
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
@@ -74,6 +75,18 @@ def evaluate(
     return Evaluation(name, config, results, stats)
 
 
+def add_param_option(parser: argparse.ArgumentParser, example: str) -> None:
+    """The tools' repeatable `--param KEY=VALUE` (read with `parse_controller_params`)."""
+    parser.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="keyword argument for the controller factory, JSON value (repeatable), e.g. "
+        + example,
+    )
+
+
 def parse_controller_params(items: Sequence[str]) -> dict[str, Any]:
     """`--param KEY=VALUE` options of the tools: each value JSON if it parses, else a string
     (`weights=runs/x/best_actor.npz`, `horizon=15`)."""
@@ -106,6 +119,7 @@ __all__ = [
     "evaluate",
     "load_controller",
     "load_episodes",
+    "add_param_option",
     "parse_controller_params",
     "random_episodes",
     "run_episode",

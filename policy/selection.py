@@ -31,7 +31,8 @@ from reach_driver.metrics import Metrics, Trace
 #: screen episode i is reset with `seed * SCREEN_SEED_STRIDE + i`
 SCREEN_SEED_STRIDE = 1_000
 SCREENED = "ddpg"
-"""The screen runs the actor as shipped (with its reference integral), built by this name."""
+"""The screen runs the actor with its reference integral, built by this name, and without the
+settle supervisor: it screens what was learned, which the supervisor would cover."""
 
 ControllerFactory = Callable[[Path], Any]
 
@@ -45,7 +46,7 @@ def weights_of(candidate: Path) -> Path:
 
 
 def _shipped(path: Path) -> Any:
-    return load_controller(SCREENED, weights=str(path))
+    return load_controller(SCREENED, weights=str(path), settle=False)
 
 
 def _screen(

@@ -6,8 +6,9 @@ its goal, and on a light joint (B) or under 2-3x sensor noise it jitters at the 
 (docs/robustness.md). This layer watches every joint near its goal and hands *that joint* to a
 conservative settle law when it sees the signature, until the target changes or the joint
 leaves `release` of its goal (then it is the actor's again, and watched again). The approach,
-and every joint that settles normally, stay the actor's: on Table I's episodes it never
-engages. `ddpg --param settle=1` turns it on (docs/robustness.md, "The settle supervisor").
+and every joint that settles normally, stay the actor's: on Table I's standard episodes (seed
+2020) it never engages. It ships in `ddpg`; `ddpg --param settle=0` turns it off and
+`ddpg-pure` has none (docs/robustness.md, "The settle supervisor").
 
 Watching (per joint, within `band` of the goal):
 
@@ -23,9 +24,10 @@ Watching (per joint, within `band` of the goal):
   `latent_periods` (0.2) or more, a joint crossing at `latent_crossing_speed` (0.15 rad/s) is
   engaged: there a crossing at any speed is the first swing of the cycle, and E arriving
   unbraked at 1-2 periods spent 0.6-1.1 J in that swing before it reached 0.8 rad/s. On a
-  loop timed below that, `crossing_on_prompt_loop` (on) keeps the 0.8 rad/s watch: it catches
-  frictionless heavy rotors early, but it also takes B on one of Table I's seed-2120 episodes
-  (crossing at 1.15 rad/s), which the soft law settles 0.8 s later than the actor would;
+  loop timed below that, `crossing_on_prompt_loop` (on) keeps the 0.8 rad/s watch on E, D
+  and C (`prompt_joints`): it catches frictionless heavy rotors early. Not on B: there it took
+  B on one of Table I's seed-2120 episodes (crossing at 1.15 rad/s), which the soft law
+  settled 0.8 s later than the actor would;
   on a latent loop a joint is also engaged *before* it crosses, once it will cross at that
   speed within the latency plus `latent_ahead` (1) periods: the commands already in flight
   carry it that far, and a crossing seen only once it has happened was a full-speed swing
@@ -178,9 +180,11 @@ class SettleLaw:
     # on a loop timed at `latent_periods` of latency or more (module docstring, "Latency")
     latent_periods: float = 0.2  # a loop without latency times at 0.06 +- 0.05 (max 0.23 in 100)
     crossing_on_prompt_loop: bool = True  # watch crossings at `crossing_speed` on a loop timed
-    # below `latent_periods` too. Off, the actor's own overshoot there is its to finish: B on
-    # Table I's seed 2120 crosses at 1.15 rad/s and settles in 0.9 s (1.7 s when engaged), but
-    # 8 more of the 896 corners miss (frictionless heavy rotors the actor's gain cycles)
+    # below `latent_periods` too, on the joints of `prompt_joints`. Off, the actor's own
+    # overshoot there is its to finish, but 8 more of the 896 corners miss (frictionless heavy
+    # rotors the actor's gain cycles)
+    prompt_joints: str = "EDC"  # letters: the joints that watch on a prompt loop. Not B: B on
+    # Table I's seed 2120 crosses at 1.15 rad/s and settles in 0.9 s alone, 1.7 s when engaged
     onset_fraction: float = 0.5  # of the current limit: a joint commanded this hard ...
     onset_error: float = 0.4  # rad: ... this far from its goal at a target's first step
     onset_steps: int = 8  # ... times the latency from the samples of this many steps
@@ -251,6 +255,11 @@ class SettleLaw:
             raise ValueError(f"settle stuck_band must be > 0, noise_sigmas and arrive >= 0: {self}")
         if self.freeze < 0:
             raise ValueError(f"settle freeze must be >= 0, got {self.freeze}")
+        if not set(self.prompt_joints) <= set(JOINT_LETTERS):
+            raise ValueError(
+                f"settle prompt_joints must be letters of {''.join(JOINT_LETTERS)}, "
+                f"got {self.prompt_joints!r}"
+            )
         if (
             self.latent_crossing_speed < 0
             or self.latent_periods < 0
@@ -398,25 +407,27 @@ class SettleSupervisor:
         latent = law.latent_crossing_speed > 0 and law.crossing_speed > 0
         if latent and self.latency_periods is None:
             self._time_latency(dt, q, qdot, e, u)
-        crossing_speed = law.crossing_speed
+        crossing_speed = np.full(N_JOINTS, law.crossing_speed)
         ahead = -1.0
         if latent and (self.latency_periods or 0.0) >= law.latent_periods:
-            crossing_speed = law.latent_crossing_speed
+            crossing_speed[:] = law.latent_crossing_speed
             if law.latent_ahead >= 0:
                 ahead = ((self.latency_periods or 0.0) + law.latent_ahead) * self._period
-        elif latent and self._timed and not law.crossing_on_prompt_loop:
-            crossing_speed = 0.0  # timed without latency: an overshoot is the actor's own
+        elif latent and self._timed:
+            # timed without latency: an overshoot is the actor's own, but on those joints
+            watched = law.prompt_joints if law.crossing_on_prompt_loop else ""
+            crossing_speed[[letter not in watched for letter in JOINT_LETTERS]] = 0.0
         out = np.asarray(u, dtype=float).copy()
         for j in range(N_JOINTS):
             if self.engaged[j] and abs(e[j]) > law.release:
                 self._release(j)
             if not self.engaged[j]:
                 self._watch(j, now, dt, near[j], e[j], u[j], qdot[j])
-            if not self.engaged[j] and crossing_speed > 0:
+            if not self.engaged[j] and crossing_speed[j] > 0:
                 crossed = self._e_prev[j] * e[j] < 0
-                if crossed and abs(qdot[j]) >= crossing_speed:
+                if crossed and abs(qdot[j]) >= crossing_speed[j]:
                     self._engage(j, now, "crossing")
-                elif ahead >= 0 and near[j] and abs(qdot[j]) >= crossing_speed:
+                elif ahead >= 0 and near[j] and abs(qdot[j]) >= crossing_speed[j]:
                     if (e[j] - qdot[j] * ahead) * e[j] < 0:
                         self._engage(j, now, "crossing ahead")
             self._e_prev[j] = e[j]

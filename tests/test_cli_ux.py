@@ -345,13 +345,13 @@ def test_run_json_is_one_object_with_the_summary_and_metrics(sim, capsys) -> Non
 
 
 def test_run_says_and_records_what_the_controllers_supervisor_did(sim, tmp_path, capsys) -> None:
-    """A controller's `report()` (here ddpg's settle supervisor) is printed after the metrics,
-    is in the JSON, and is kept in the recording's summary."""
+    """A controller's `report()` (here the shipped ddpg's settle supervisor) is printed after
+    the metrics, is in the JSON, and is kept in the recording's summary."""
     from reach_driver.rrd_summary import summarize_recording
 
     target = sim.snapshot().q + np.array([0.6, -0.5, 0.5, 0.6])  # far enough to time latency
     record = tmp_path / "settle.rrd"
-    argv = ["--port", str(sim.link), "run", "--controller", "ddpg", "--param", "settle=1"]
+    argv = ["--port", str(sim.link), "run", "--controller", "ddpg"]
     argv += ["--target", *map(str, target), "--seconds", "1.5", "-q"]
     assert main([*argv, "--record", str(record)]) == Exit.OK
     out = capsys.readouterr().out
@@ -362,8 +362,8 @@ def test_run_says_and_records_what_the_controllers_supervisor_did(sim, tmp_path,
     report = json.loads(capsys.readouterr().out)["controller_report"]
     assert set(report) == {"summary", "settle"}
     assert set(report["settle"]["engaged"]) <= {"E", "D", "C", "B"}
-    argv[argv.index("--param") : argv.index("--param") + 2] = []  # plain ddpg: nothing to say
-    assert main([*argv, "--json"]) == Exit.OK
+    # without its supervisor the actor has nothing to say
+    assert main([*argv, "--param", "settle=0", "--json"]) == Exit.OK
     assert json.loads(capsys.readouterr().out)["controller_report"] == {}
 
 

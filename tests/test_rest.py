@@ -125,11 +125,12 @@ CHATTERING = 33  # docs/metrics.md, "Rest": 63.7 J where its neighbours spend ab
 
 @pytest.mark.slow
 def test_the_degraded_arm_ddpg_chatter_is_flagged_and_its_neighbours_are_not() -> None:
-    """`tools/evaluate.py --controller ddpg --random 60 --seed 12000 --noise --perturb 0.2`,
-    episodes 32-34, through the direct backend (about 0.5 s each)."""
+    """`tools/evaluate.py --controller ddpg --param settle=0 --random 60 --seed 12000 --noise
+    --perturb 0.2`, episodes 32-34, through the direct backend (about 0.5 s each): the actor
+    with its reference integral, without the settle supervisor that now ships around it."""
     episodes = random_episodes(60, SEED_12000)
     config = RunConfig(noise=SensorNoise(), seed=SEED_12000, param_spread=0.2)
-    controller = load_controller("ddpg")
+    controller = load_controller("ddpg", settle=False)
     backend = DirectArm()
     metrics = {
         i: backend.run(controller, episodes[i], config, SEED_12000 + i).metrics

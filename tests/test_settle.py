@@ -33,8 +33,12 @@ def _robustness_draw(index: int, base: ArmParams | None = None) -> tuple[Episode
     return episode, config, config.seed + index
 
 
-def test_settle_parameter_is_off_by_default_and_validated() -> None:
-    assert make_controller().settle is None
+def test_settle_is_on_in_the_shipped_controller_off_in_the_pure_one_and_validated() -> None:
+    from policy.ddpg_controller import make_pure_controller
+
+    shipped = make_controller()
+    assert shipped.settle is not None and shipped.settle.law == SettleLaw()
+    assert make_pure_controller().settle is None and make_controller(settle=False).settle is None
     assert SettleLaw.from_param(0) is None and SettleLaw.from_param(False) is None
     assert SettleLaw.from_param(1) == SettleLaw()
     assert SettleLaw.from_param({"band": 0.1}).band == 0.1  # type: ignore[union-attr]
@@ -51,7 +55,7 @@ def test_settle_turns_a_latent_arms_limit_cycle_into_rest() -> None:
     # of Coulomb friction, 1.59 periods of latency; the plain actor keeps B in a limit cycle
     # (+-0.1 rad at 1.2 rad/s) to the end.
     episode, config, seed = _robustness_draw(10)
-    plain = DirectArm().run(make_controller(), episode, config, seed)
+    plain = DirectArm().run(make_controller(settle=False), episode, config, seed)
     assert not plain.metrics.at_rest and not plain.metrics.reached
     ctrl = make_controller(settle=True)
     settled = DirectArm().run(ctrl, episode, config, seed)
@@ -64,7 +68,7 @@ def test_settle_turns_a_latent_arms_limit_cycle_into_rest() -> None:
 def test_settle_changes_nothing_on_a_nominal_episode() -> None:
     episode = Episode(start=np.array([0.5, 1.2, 1.0, 0.5]), target=np.array([1.5, 1.8, 0.6, 1.5]))
     config = RunConfig(seconds=10.0, noise=SensorNoise(), seed=3)
-    plain = DirectArm().run(make_controller(), episode, config, 3)
+    plain = DirectArm().run(make_controller(settle=False), episode, config, 3)
     ctrl = make_controller(settle=True)
     settled = DirectArm().run(ctrl, episode, config, 3)
     assert ctrl.settle is not None and not ctrl.settle.engaged.any()
@@ -268,6 +272,30 @@ def test_on_a_latent_loop_a_slow_crossing_is_engaged() -> None:
     assert engaged(0.3) and engaged(1.8)
 
 
+def test_on_a_prompt_loop_the_fast_crossing_watch_leaves_b_to_the_actor() -> None:
+    """On a loop timed without latency a fast crossing of E, D or C is engaged (frictionless
+    heavy rotors cycle), one of B is the actor's to finish (`prompt_joints`); before the loop is
+    timed every joint is watched, and `crossing_on_prompt_loop` off leaves all four alone."""
+    from policy.settle import SettleSupervisor
+
+    def engaged(timed: bool, **law: object) -> list[bool]:
+        sup = SettleSupervisor(SettleLaw(**law), np.array([600.0, 600.0, 600.0, 300.0]))
+        if timed:
+            sup.latency_periods, sup._timed = 0.05, True
+        target = np.ones(4)
+        for k in range(4):  # every joint crosses its goal at 1.1 rad/s between steps 1 and 2
+            sup.update(0.05 * k, target - 0.08 + 0.055 * k, np.full(4, 1.1), target, np.zeros(4))
+        return sup.engaged.tolist()
+
+    assert engaged(True) == [True, True, True, False]
+    assert engaged(True, prompt_joints="EDCB") == [True] * 4
+    assert engaged(True, prompt_joints="") == [False] * 4
+    assert engaged(True, crossing_on_prompt_loop=False) == [False] * 4
+    assert engaged(False) == [True] * 4  # nothing to time it by: no command at the start
+    with pytest.raises(ValueError, match="prompt_joints"):
+        SettleLaw(prompt_joints="EX")
+
+
 def test_on_a_latent_loop_a_joint_is_engaged_before_its_commands_carry_it_across() -> None:
     """With `latent_ahead`, a joint that will cross its goal within the loop's latency plus
     that many periods is handed over before it crosses; on a loop without latency it is not."""
@@ -298,7 +326,7 @@ def test_the_controller_reports_what_its_supervisor_did() -> None:
     from policy.settle import SettleSupervisor
     from reach_driver.controllers import controller_report
 
-    assert controller_report(make_controller()) == {}
+    assert controller_report(make_controller(settle=False)) == {}
     ctrl = make_controller(settle=True)
     assert ctrl.report()["settle"] == {"latency_periods": None, "engaged": {}}
     assert "latency not timed; engaged no joint" in ctrl.report()["summary"]

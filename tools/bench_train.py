@@ -100,7 +100,8 @@ def bench_sb3(
 
 
 def bench_inference(n: int) -> None:
-    """Latency of one control-loop action: numpy controller vs the torch actor, same weights."""
+    """Latency of one control-loop action: the shipped numpy controller (actor, reference
+    integral, settle supervisor), the same without the supervisor, and the torch actor."""
     from types import SimpleNamespace
 
     from policy.ddpg_controller import make_controller
@@ -108,18 +109,22 @@ def bench_inference(n: int) -> None:
     from policy.weights import DEFAULT_WEIGHTS, load_actor_npz
 
     ctrl = make_controller()
+    bare = make_controller(settle=False)
     w = ctrl.weights
     actor = Actor(w.weights[0].shape[1], 4, (w.weights[0].shape[0], w.weights[1].shape[0]))
     load_actor_npz(actor, DEFAULT_WEIGHTS)
     rng = np.random.default_rng(0)
     states = [
-        SimpleNamespace(q=rng.uniform(0.5, 2.8, 4), qdot=rng.normal(0, 0.5, 4), t=0.0)
-        for _ in range(n)
+        SimpleNamespace(q=rng.uniform(0.5, 2.8, 4), qdot=rng.normal(0, 0.5, 4), t=0.05 * k)
+        for k in range(n)
     ]
     target = np.array([3.0, 1.7, 1.7, 1.6])
 
     def numpy_act(s: SimpleNamespace) -> np.ndarray:
         return ctrl.act(s, target)
+
+    def bare_act(s: SimpleNamespace) -> np.ndarray:
+        return bare.act(s, target)
 
     def torch_act(s: SimpleNamespace) -> np.ndarray:
         obs = torch.from_numpy(ctrl.observation(s, target))
@@ -128,7 +133,12 @@ def bench_inference(n: int) -> None:
         return out
 
     print(f"\n{'inference':<22} {'p50 us':>8} {'p99 us':>8} {'max us':>8}")
-    for name, fn in (("numpy controller.act", numpy_act), ("torch actor + obs", torch_act)):
+    contenders = (
+        ("ddpg act (shipped)", numpy_act),
+        ("ddpg act, settle=0", bare_act),
+        ("torch actor + obs", torch_act),
+    )
+    for name, fn in contenders:
         for s in states[:200]:
             fn(s)
         times = np.empty(n)
@@ -153,8 +163,8 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         default=0,
         metavar="N",
-        help="only time N single actions of the shipped controller (numpy) "
-        "against the torch actor with the same weights, then exit",
+        help="only time N single actions of the shipped controller (numpy), the same "
+        "without its settle supervisor and the torch actor with the same weights, then exit",
     )
     args = p.parse_args(argv)
     if args.inference:

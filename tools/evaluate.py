@@ -27,6 +27,7 @@ from policy.evaluation import (
     EpisodeResult,
     Evaluation,
     RunConfig,
+    add_param_option,
     evaluate,
     load_controller,
     load_episodes,
@@ -55,14 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
         required=True,
         help="controller entry-point name in reach_stack.controllers (ddpg, mpc, pid)",
     )
-    p.add_argument(
-        "--param",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="keyword argument for the controller factory, JSON value "
-        "(repeatable), e.g. --param horizon=15",
-    )
+    add_param_option(p, "--param horizon=15")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument(
         "--targets",

@@ -40,7 +40,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from policy.campaign import Job, RayUnavailable, run_job, run_on_ray
 from policy.envelope import Envelope, Selection, Variant, corners, draws
-from policy.evaluation import parse_controller_params
+from policy.evaluation import add_param_option, parse_controller_params
 from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from policy.rollout import Episode, EpisodeResult, RunConfig
 from policy.stats import bootstrap_ci
@@ -637,14 +637,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="name for the results and the docs block (default: the controller's name; "
         "one controller only), e.g. robust for --param weights=FILE",
     )
-    p.add_argument(
-        "--param",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="keyword argument for every controller's factory, JSON value (repeatable), "
-        "e.g. --param weights=runs/robust/actor.npz",
-    )
+    add_param_option(p, "--param weights=runs/robust/actor.npz (every controller's)")
     p.add_argument("--corners", action="store_true", help="run the envelope's feasible corners")
     p.add_argument(
         "--max-corners",

@@ -32,7 +32,14 @@ from typing import Any
 
 import numpy as np
 
-from policy.evaluation import RunConfig, evaluate, load_controller, random_episodes
+from policy.evaluation import (
+    RunConfig,
+    add_param_option,
+    evaluate,
+    load_controller,
+    parse_controller_params,
+    random_episodes,
+)
 from policy.rollout import EpisodeResult
 from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA
 from reach_driver.chatter import ChatterConfig, ChatterDetector, Verdict
@@ -136,7 +143,8 @@ def screen_chunk(name: str, start: int, count: int, args: argparse.Namespace) ->
         seed=args.seed + start,
         param_spread=args.perturb,
     )
-    evaluation = evaluate(load_controller(name), episodes, config, name=name)
+    controller = load_controller(name, **parse_controller_params(args.param))
+    evaluation = evaluate(controller, episodes, config, name=name)
     return [
         screen_episode(name, start + i, args.seed + start + i, r, args)
         for i, r in enumerate(evaluation.results)
@@ -207,6 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="640,200,200",
         help="episodes per controller, one number for all or one per controller",
     )
+    add_param_option(p, "--param settle=0 (every controller's): no settle supervisor")
     p.add_argument("--seed", type=int, default=20000, help="episode set and noise (as evaluate)")
     p.add_argument("--perturb", type=float, default=0.2, help="arm degradation spread (0.2)")
     p.add_argument(
@@ -232,6 +241,11 @@ def main(argv: list[str] | None = None) -> int:
     if len(counts) != len(names) or min(counts) < 1:
         print("error: --episodes needs one positive count or one per controller", file=sys.stderr)
         return 2
+    try:
+        params = parse_controller_params(args.param)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     jobs = [
         (name, start, min(CHUNK, n - start))
         for name, n in zip(names, counts, strict=True)
@@ -243,6 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     report: dict[str, Any] = {
         "settings": {
             "controllers": names,
+            "params": params,
             "episodes": counts,
             "seed": args.seed,
             "perturb": args.perturb,

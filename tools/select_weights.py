@@ -2,7 +2,8 @@
 """Pick which trained actor to ship, by a rule fixed before looking at Table I's episodes.
 
 Candidates are run directories (their `best_actor.npz`) or `.npz` files. Each one is run as
-the `ddpg` controller ships (the actor with its reference integral) on
+the `ddpg` controller without its settle supervisor (the actor with its reference integral:
+the rule judges what was learned, which the supervisor would cover) on
 - the paper's four scenarios (policy/scenarios.py: nominal arm, no noise), which it must all reach;
 - a selection set that is NOT the comparison's: ``random_episodes(--episodes, --seed)`` with
   sensor noise and +-20 % degraded parameters, the conditions of Table I. The default seed (11)
@@ -110,13 +111,13 @@ def main(argv: list[str] | None = None) -> int:
     for candidate, path in zip(args.candidates, paths, strict=True):
         console.print(f"{candidate}: scenarios and {args.episodes} episodes")
         sc = evaluate(
-            load_controller("ddpg", weights=path),
+            load_controller("ddpg", weights=path, settle=False),
             [s.episode() for s in SCENARIOS],
             RunConfig(),
             name="ddpg",
         )
         summary = evaluate(
-            load_controller("ddpg", weights=path), episodes, config, name="ddpg"
+            load_controller("ddpg", weights=path, settle=False), episodes, config, name="ddpg"
         ).summary()
         try:
             screened = (
