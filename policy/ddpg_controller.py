@@ -1,9 +1,10 @@
 """The trained DDPG actor as a controller for the control loop: a numpy forward pass.
 
-A whole `act()` (observation + three float32 matrix products) measured p50 29 us, p99 under
-50 us against 52 / 80 us for the torch actor (tools/bench_train.py --inference; 0.5 ms
-budget). The inputs are built by `policy.observation.build_observation` with the
-configuration saved beside the weights, so the driver feeds the network what training did.
+A whole `act()` measured p50 82 us, p99 180 us with the settle supervisor, 39 / 92 us for the
+actor and integral alone (observation + three float32 matrix products) and 56 / 110 us for
+the torch actor (tools/bench_train.py --inference, idle 2-core machine; 0.5 ms budget). The
+inputs are built by `policy.observation.build_observation` with the configuration saved
+beside the weights, so the driver feeds the network what training did.
 The weights and their format: `policy.weights`.
 
     from policy.ddpg_controller import make_controller
