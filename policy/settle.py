@@ -299,6 +299,8 @@ class SettleSupervisor:
 
     def __post_init__(self) -> None:
         self.limits_mA = np.asarray(self.limits_mA, dtype=float)
+        watched = self.law.prompt_joints if self.law.crossing_on_prompt_loop else ""
+        self._prompt_watch = np.array([letter in watched for letter in JOINT_LETTERS])
         self.reset()
 
     def reset(self) -> None:
@@ -415,8 +417,7 @@ class SettleSupervisor:
                 ahead = ((self.latency_periods or 0.0) + law.latent_ahead) * self._period
         elif latent and self._timed:
             # timed without latency: an overshoot is the actor's own, but on those joints
-            watched = law.prompt_joints if law.crossing_on_prompt_loop else ""
-            crossing_speed[[letter not in watched for letter in JOINT_LETTERS]] = 0.0
+            crossing_speed[~self._prompt_watch] = 0.0
         out = np.asarray(u, dtype=float).copy()
         for j in range(N_JOINTS):
             if self.engaged[j] and abs(e[j]) > law.release:
