@@ -409,9 +409,13 @@ def test_the_torque_limited_scenario_through_the_driver() -> None:
     via = run_episode_via_driver(ddpg, SCENARIO_3, config, DriverConfig(speed=4.0))
     weak = run_episode(ddpg, SCENARIO_3, config)
     strong = run_episode(ddpg, Episode(SCENARIO_3.start, SCENARIO_3.target), config)
-    e_after_1s = via.result.trace.q[20, 0] - SCENARIO_3.start[0]
-    assert abs(e_after_1s - (weak.trace.q[20, 0] - SCENARIO_3.start[0])) < 0.05
+    # E at 1 s through the driver is where the weak arm's E is within 2 periods of 1 s (at 4x
+    # real time a loaded machine slips the served clock by a period or so: E then moves 0.048
+    # rad a period), and far short of where the full-torque arm's is (0.25 rad further)
+    e_via = via.result.trace.q[20, 0]
+    assert weak.trace.q[18, 0] - 0.01 <= e_via <= weak.trace.q[22, 0] + 0.01
     assert strong.trace.q[20, 0] - weak.trace.q[20, 0] > 0.15  # the scale really matters
+    assert strong.trace.q[20, 0] - e_via > 0.1
     assert via.result.metrics.reached
     d, v = weak.metrics, via.result.metrics
     assert abs(v.rmse - d.rmse) <= AGREEMENT.rmse_rel * d.rmse
