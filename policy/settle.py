@@ -32,12 +32,18 @@ Watching (per joint, within `band` of the goal):
   speed within the latency plus `latent_ahead` (1) periods: the commands already in flight
   carry it that far, and a crossing seen only once it has happened was a full-speed swing
   through the settling band (0.4-0.7 J spent after the joint counted as settled);
-- **jitter** (`jitter_speed` > 0): after `jitter_s` within `jitter_band`, the RMS of the
-  measured speed over the last `jitter_window_s` exceeds `jitter_speed` (the sensor noise
-  alone gives 0.02-0.06 rad/s);
+- **jitter** (`jitter_speed` > 0): after `jitter_s` (1 s) within `jitter_band`, the RMS of
+  the measured speed over the last `jitter_window_s` (0.5 s, so that an arrival's last swing
+  inside the band falls before it) exceeds `jitter_speed` (the sensor noise alone gives
+  0.02-0.06 rad/s). At 1.5 s and 1 s an actor kicking a joint at its goal on a noisy arm
+  spent over 0.5 J before it was taken;
 - **stuck short** (`stuck`; out to `stuck_band`, 0.5 rad, since a weak joint held by
   friction stops 0.15-0.25 rad short): the low-passed error stays above `stuck_error` and the
-  low-passed speed below `stuck_speed` (or what the noise can explain, below) for `stuck_s`.
+  low-passed speed below `stuck_speed` (or what the noise can explain, below) for `stuck_s`,
+  and the low-passed error has not shrunk by more than the noise explains since the watch
+  began, at a rate that would bring it in within `creep_arrive_s` (4 s): a joint creeping in
+  slower than its noisy speed can show is not stuck, and engaged on the actor's command that
+  moved it, it slid on through its goal; a creep that slow takes the rest of the episode.
 
 Noise: each joint's position and speed noise is estimated from successive samples while it is
 slow (second and first differences). A breakaway, and a joint that is not slow, is a move of
@@ -108,7 +114,10 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
   a joint in at 0.08 rad/s 20 mrad through its goal;
 - inside `freeze` (low-passed error) a joint at rest does not integrate: one held by friction
   inside the tolerance is left alone instead of hunting (one still drifting through the band
-  integrates on, or a stale u_I carries it out the other side).
+  integrates on, or a stale u_I carries it out the other side). A ramping joint that reaches
+  `freeze` has broken away (`freeze_breakaway`): on a noisy sensor `progress` may need as much
+  movement as lies between `stuck_error` and `freeze`, and forgetting the ramp there left its
+  excess pushing the joint through its goal.
 """
 
 from __future__ import annotations
@@ -195,8 +204,8 @@ class SettleLaw:
     jitter_speed: float = 0.08  # > 0: engage a joint whose measured speed RMS over the last
     # jitter_window_s exceeds this after jitter_s inside jitter_band (noise-driven jitter)
     jitter_band: float = 0.03  # rad
-    jitter_s: float = 1.5
-    jitter_window_s: float = 1.0
+    jitter_s: float = 1.0
+    jitter_window_s: float = 0.5
     hold_s: float = 0.0  # > 0: engage a joint settled inside hold_error for this long
     hold_error: float = 0.015  # rad, low-passed
     noise_sigmas: float = 3.0  # >= 0: a breakaway is a move this many standard deviations of
@@ -218,6 +227,11 @@ class SettleLaw:
     # way starts from the actor's hold, not from the far side of the friction band (2 x 300 mA
     # at 6 N m), where the joint broke away the first way this far from the hold or more (on
     # a joint with little friction the actor's hold, learned on the model, is a kick)
+    creep_arrive_s: float = 4.0  # > 0: the stuck watch restarts when the low-passed error has
+    # shrunk by more than the noise explains since it began, at a rate that brings the joint
+    # in within this time (creeping in, not stuck); 0: off
+    freeze_breakaway: bool = True  # a ramping joint reaching `freeze` has broken away (its
+    # backoff is taken) even where noise keeps `progress` from saying so yet
     raw_breakaway: bool = True  # a breakaway is also one sample's measured speed towards the
     # goal of `noise_sigmas` of its noise (and twice `stuck_speed`) or more: the low-passed
     # speed sees a slip 2-3 periods late, and on a latent loop the slip carries through the goal
@@ -322,6 +336,7 @@ class SettleSupervisor:
         self._rev_last = np.full(n, math.nan)
         self._rev_count = np.zeros(n, dtype=int)
         self._stuck_for = np.zeros(n)
+        self._stuck_e0 = np.zeros(n)  # abs(e_f) when the stuck watch's timer began
         self._held_for = np.zeros(n)
         self._in_band_for = np.zeros(n)
         window = max(1, int(round(self.law.jitter_window_s / self.law.default_dt)))
@@ -557,6 +572,17 @@ class SettleSupervisor:
         if slow and law.raw_breakaway:  # not a joint that has just begun to slip
             slow = not self._slipping(j, self.e_f[j], qdot)
         still = abs(self.e_f[j]) > law.stuck_error and slow
+        if still and self._stuck_for[j] > 0 and law.creep_arrive_s > 0:
+            # creeping in slower than the noisy speed can show: the low-passed error has
+            # shrunk since the watch began by more than the noise explains, fast enough to
+            # arrive within `creep_arrive_s` (a slower creep is as good as stuck)
+            shrunk = self._stuck_e0[j] - abs(self.e_f[j])
+            moved = max(law.progress, self._noise_floors(j, dt)[1])
+            soon = abs(self.e_f[j]) * self._stuck_for[j] / law.creep_arrive_s
+            if shrunk > moved and shrunk >= soon:
+                still = False
+        if still and self._stuck_for[j] == 0:
+            self._stuck_e0[j] = abs(self.e_f[j])
         self._stuck_for[j] = self._stuck_for[j] + dt if still else 0.0
         if self._stuck_for[j] >= law.stuck_s - 1e-9:
             self._engage(j, now, "stuck")
@@ -648,6 +674,10 @@ class SettleSupervisor:
             self._ramped[j] += step
             self._was_stuck[j] = True
         if abs(ef) <= law.freeze:
+            if self._was_stuck[j] and law.freeze_breakaway:
+                # ramped in from outside `stuck_error` to inside `freeze`: it broke away,
+                # though on a noisy sensor `progress` may not have said so yet
+                self.u_i[j] -= law.backoff * self._ramped[j]
             self._ramped[j] = 0.0
             self._was_stuck[j] = False
         # An arrival is armed outside twice `stuck_error` and spent once the joint is inside
