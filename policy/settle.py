@@ -261,8 +261,10 @@ class SettleLaw:
             raise ValueError(
                 f"settle ramp_decay must be in (0, 1] and ramp_floor in [0, 1]: {self}"
             )
-        if self.progress < 0 or self.crossing_speed < 0:
-            raise ValueError(f"settle progress and crossing_speed must be >= 0: {self}")
+        if self.progress < 0 or self.crossing_speed < 0 or self.creep_arrive_s < 0:
+            raise ValueError(
+                f"settle progress, crossing_speed and creep_arrive_s must be >= 0: {self}"
+            )
         if not 0 < self.memory_rate <= 1:
             raise ValueError(f"settle memory_rate must be in (0, 1], got {self.memory_rate}")
         if self.stuck_band <= 0 or self.noise_sigmas < 0 or self.arrive < 0:

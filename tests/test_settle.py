@@ -46,7 +46,8 @@ def test_settle_is_on_in_the_shipped_controller_off_in_the_pure_one_and_validate
     assert SettleLaw.from_param({"band": 0.1}).band == 0.1  # type: ignore[union-attr]
     with pytest.raises(ValueError):
         SettleLaw.from_param({"nonsense": 1})
-    for bad in ({"kp": -1.0}, {"ramp_decay": 0.0}, {"crossing_speed": -1.0}, {"progress": -0.1}):
+    bad_laws = ({"kp": -1.0}, {"ramp_decay": 0.0}, {"crossing_speed": -1.0}, {"progress": -0.1})
+    for bad in (*bad_laws, {"creep_arrive_s": -1.0}):
         with pytest.raises(ValueError):
             SettleLaw(**bad)  # type: ignore[arg-type]
 
