@@ -7,14 +7,23 @@ arm, parameter draw and sensor noise depend on that seed alone, and the controll
 before every episode), whichever worker runs it and in whatever order. Controllers are built
 inside the workers by name (`load_controller`), never pickled, once per worker process.
 A cluster's nodes need this repository installed (``pip install -e '.[scale]'``).
+
+Every task first checks that its worker imported the same code as the process that started
+the campaign (`code_fingerprint`) and fails with `CodeMismatch` otherwise: Ray puts the
+directory a campaign is started in first on its workers' path, so a campaign started inside
+one checkout with another on ``PYTHONPATH`` would silently run the first one's code.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import importlib
 import json
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 from types import ModuleType
 from typing import Any, TypeVar
 
@@ -27,8 +36,51 @@ J = TypeVar("J")
 R = TypeVar("R")
 
 
-class RayUnavailable(RuntimeError):
+PACKAGES = ("protocol", "reach_driver", "reach_sim_bridge", "policy")
+"""The packages whose files a worker must share with the campaign's driver."""
+
+
+class CampaignError(RuntimeError):
+    """A campaign cannot run on the Ray it was given; the message says why."""
+
+
+class RayUnavailable(CampaignError):
     """Ray is not installed; the message says how to install it."""
+
+
+class CodeMismatch(CampaignError):
+    """A worker imported different code (or weights) from the campaign's driver."""
+
+
+def fingerprint(roots: Sequence[Path]) -> str:
+    """SHA-256 over every file under ``roots`` (names and contents, caches left out)."""
+    digest = hashlib.sha256()
+    for root in roots:
+        for path in sorted(root.rglob("*")):
+            if path.is_file() and "__pycache__" not in path.parts:
+                digest.update(f"{path.relative_to(root.parent)}\0".encode())
+                digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+@functools.cache
+def code_fingerprint() -> tuple[str, str]:
+    """This process's `PACKAGES` as imported: (their `fingerprint`, where `policy` came from)."""
+    roots = [Path(importlib.import_module(name).__file__ or "").parent for name in PACKAGES]
+    return fingerprint(roots), str(roots[-1])
+
+
+def checked_call(fn: Callable[[J], R], code: str, job: J) -> R:
+    """``fn(job)``, once this worker's `code_fingerprint` is the driver's ``code``."""
+    mine, where = code_fingerprint()
+    if mine != code:
+        raise CodeMismatch(
+            f"this Ray worker imported other code than the campaign's driver (policy from "
+            f"{where}). Start the campaign from the checkout it should run (Ray puts the "
+            f"starting directory first on its workers' path), and on a cluster install the "
+            f"same version on every node."
+        )
+    return fn(job)
 
 
 def import_ray() -> ModuleType:
@@ -96,16 +148,21 @@ def run_on_ray(
     on_result: Callable[[R], None] | None = None,
 ) -> list[R]:
     """``[fn(job) for job in jobs]``, one Ray task (one CPU) per job. ``fn`` must be a
-    module-level function (workers import it by name); ``on_result`` sees results as they
-    finish, the list comes back in job order."""
+    module-level function (workers import it by name, and check they run the driver's code:
+    `checked_call`); ``on_result`` sees results as they finish, the list comes back in job
+    order."""
+    code, _ = code_fingerprint()
     with ray_session(workers, address) as ray:
-        remote = ray.remote(num_cpus=1)(fn)
-        index = {remote.remote(job): i for i, job in enumerate(jobs)}
+        remote = ray.remote(num_cpus=1)(checked_call)
+        index = {remote.remote(fn, code, job): i for i, job in enumerate(jobs)}
         results: dict[int, R] = {}
         pending = list(index)
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
-            results[index[done[0]]] = ray.get(done[0])
+            try:
+                results[index[done[0]]] = ray.get(done[0])
+            except CodeMismatch as exc:  # Ray's RayTaskError(CodeMismatch): its cause, plainly
+                raise CodeMismatch(*getattr(exc, "cause", exc).args) from None
             if on_result is not None:
                 on_result(results[index[done[0]]])
     return [results[i] for i in range(len(jobs))]

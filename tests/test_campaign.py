@@ -101,3 +101,31 @@ def test_the_stability_screen_on_ray_gives_the_serial_metrics(ray_local: Any) ->
     assert all(m.at_rest for m in serial)
     with pytest.raises(ValueError, match="factory"):
         screen(shipped, 1, seed=3, perturb=0.2, factory=lambda _p: None, workers=2)
+
+
+def test_the_code_fingerprint_follows_every_file_but_caches(tmp_path: Path) -> None:
+    """`code_fingerprint` hashes names and contents of the packages' files (weights too),
+    not Python's byte-code caches."""
+    pkg = tmp_path / "pkg"
+    (pkg / "__pycache__").mkdir(parents=True)
+    (pkg / "a.py").write_text("x = 1\n")
+    (pkg / "w.npz").write_bytes(b"\x00\x01")
+    first = campaign.fingerprint([pkg])
+    (pkg / "__pycache__" / "a.cpython-311.pyc").write_bytes(b"cache")
+    assert campaign.fingerprint([pkg]) == first
+    (pkg / "w.npz").write_bytes(b"\x00\x02")
+    assert campaign.fingerprint([pkg]) != first
+    (pkg / "w.npz").write_bytes(b"\x00\x01")
+    (pkg / "a.py").rename(pkg / "b.py")
+    assert campaign.fingerprint([pkg]) != first
+
+
+def test_a_worker_with_other_code_refuses_the_job() -> None:
+    """A worker whose packages differ from the driver's (a campaign started inside one
+    checkout with another on PYTHONPATH: Ray puts the starting directory first on its
+    workers' path) fails the job with `CodeMismatch`, naming where it imported `policy` from;
+    with the driver's fingerprint it runs the job."""
+    code, where = campaign.code_fingerprint()
+    assert campaign.checked_call(str, code, 7) == "7"
+    with pytest.raises(campaign.CodeMismatch, match=f"policy from {where}"):
+        campaign.checked_call(str, "0" * 64, 7)

@@ -19,7 +19,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from policy.campaign import RayUnavailable, evaluate_parallel
+from policy.campaign import CampaignError, evaluate_parallel
 from policy.evaluation import (
     DEFAULT_RATE_HZ,
     DEFAULT_SECONDS,
@@ -294,7 +294,7 @@ def main(argv: list[str] | None = None) -> int:
     console = Console(stderr=True)
     try:
         evaluation = run(args, console)
-    except (ValueError, DriverError, RayUnavailable) as exc:
+    except (ValueError, DriverError, CampaignError) as exc:
         console.print(f"[red]error:[/red] {escape(str(exc))}")
         return 2
     args.out.parent.mkdir(parents=True, exist_ok=True)

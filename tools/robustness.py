@@ -38,7 +38,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from policy.campaign import Job, RayUnavailable, run_job, run_on_ray
+from policy.campaign import CampaignError, Job, run_job, run_on_ray
 from policy.envelope import Envelope, Selection, Variant, corners, draws
 from policy.evaluation import add_param_option, parse_controller_params
 from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
@@ -810,7 +810,7 @@ def main(argv: list[str] | None = None) -> int:
                 text = update_doc(text, comparison_block(reports), COMPARISON)
             args.doc.write_text(text, encoding="utf-8")
             console.print(f"wrote {args.doc}")
-    except (ValueError, DriverError, RayUnavailable, OSError) as exc:
+    except (ValueError, DriverError, CampaignError, OSError) as exc:
         console.print(f"[red]error:[/red] {escape(str(exc))}")
         return 2
     return 0

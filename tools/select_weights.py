@@ -42,7 +42,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from policy.campaign import RayUnavailable
+from policy.campaign import CampaignError
 from policy.evaluation import RunConfig, evaluate, load_controller, random_episodes
 from policy.scenarios import SCENARIOS, TABLE_KEYS, wins
 from policy.selection import choose, screen, weights_of
@@ -132,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
                 if args.screen > 0
                 else []
             )
-        except (RayUnavailable, ValueError) as exc:
+        except (CampaignError, ValueError) as exc:
             console.print(f"[red]error:[/red] {escape(str(exc))}")
             return 2
         restless = [i for i, m in enumerate(screened) if not m.at_rest]

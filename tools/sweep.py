@@ -28,7 +28,7 @@ import numpy as np
 from rich.console import Console
 from rich.markup import escape
 
-from policy.campaign import RayUnavailable, import_tune, ray_session, tune_trial
+from policy.campaign import CampaignError, import_tune, ray_session, tune_trial
 from policy.ddpg_config import DDPGConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         trials = run_sweep(
             config, args.seeds, args.out, args.workers, args.address, 0 if args.quiet else 1
         )
-    except (ValueError, RayUnavailable) as exc:
+    except (ValueError, CampaignError) as exc:
         console.print(f"[red]error:[/red] {escape(str(exc))}")
         return 2
     summary = {
