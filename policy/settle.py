@@ -117,7 +117,14 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
   integrates on, or a stale u_I carries it out the other side). A ramping joint that reaches
   `freeze` has broken away (`freeze_breakaway`): on a noisy sensor `progress` may need as much
   movement as lies between `stuck_error` and `freeze`, and forgetting the ramp there left its
-  excess pushing the joint through its goal.
+  excess pushing the joint through its goal;
+- creeping across: a joint that creeps across its goal, slow, on about the actor's hold
+  (`creep_hold`, 5 % of the limit) is one friction does not hold (the twin's soft friction
+  lets a 0.3-0.7 N m joint drift 1-2 mrad/s for 15 s on a command within 17 mA of its
+  hold). Its stuck ramp then runs at `creep_rate` (half): at the full rate, seen breaking
+  away periods late on a noisy sensor, it kicked such joints 40 mrad back through their goal
+  in the last second. Pushed across by what is left of a ramp (70-110 mA past the hold) a
+  joint says nothing of its friction, and ramps back at the full rate.
 """
 
 from __future__ import annotations
@@ -230,6 +237,13 @@ class SettleLaw:
     creep_arrive_s: float = 4.0  # > 0: the stuck watch restarts when the low-passed error has
     # shrunk by more than the noise explains since it began, at a rate that brings the joint
     # in within this time (creeping in, not stuck); 0: off
+    creep_rate: float = 0.5  # (0, 1]: the stuck ramp's rate on a joint that crept across its
+    # goal, slow, on about the actor's hold: friction does not hold it, and at the full rate
+    # the ramp, seen breaking away periods late on a noisy sensor, kicked such a joint 40 mrad
+    # back through its goal
+    creep_hold: float = 0.05  # of the limit, >= 0: "about the hold". Pushed across by a
+    # ramp's residue (70-110 mA past the hold) a joint says nothing of its friction, and at
+    # half the rate draw 174 of seed 1 was left short
     freeze_breakaway: bool = True  # a ramping joint reaching `freeze` has broken away (its
     # backoff is taken) even where noise keeps `progress` from saying so yet
     raw_breakaway: bool = True  # a breakaway is also one sample's measured speed towards the
@@ -265,8 +279,11 @@ class SettleLaw:
             raise ValueError(
                 f"settle progress, crossing_speed and creep_arrive_s must be >= 0: {self}"
             )
-        if not 0 < self.memory_rate <= 1:
-            raise ValueError(f"settle memory_rate must be in (0, 1], got {self.memory_rate}")
+        for name in ("memory_rate", "creep_rate"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"settle {name} must be in (0, 1], got {getattr(self, name)}")
+        if self.creep_hold < 0:
+            raise ValueError(f"settle creep_hold must be >= 0, got {self.creep_hold}")
         if self.stuck_band <= 0 or self.noise_sigmas < 0 or self.arrive < 0:
             raise ValueError(f"settle stuck_band must be > 0, noise_sigmas and arrive >= 0: {self}")
         if self.freeze < 0:
@@ -354,6 +371,7 @@ class SettleSupervisor:
         self._side = np.zeros(n)  # the side of the goal the low-passed error was last on,
         # outside `freeze`
         self._since_break = np.full(n, math.inf)
+        self._crept = np.zeros(n, dtype=bool)  # crept across its goal on the hold (`creep_rate`)
         self._rate = np.ones(n)  # the ramp's rate: 1, or memory_rate when restarted from memory
         self._break_u = np.full((n, 2), math.nan)  # per side: the command it last broke away at
         self._q_var = np.zeros(n)  # the sensors' noise, from successive samples while slow
@@ -603,6 +621,7 @@ class SettleSupervisor:
             self.u_i[j] = float(self._u_goal[j])
         self._ramped[j] = 0.0
         self._was_stuck[j] = False
+        self._crept[j] = False
 
     def _release(self, j: int) -> None:
         self.engaged[j] = False
@@ -651,7 +670,7 @@ class SettleSupervisor:
                     self._ramp_scale[j] = max(law.ramp_floor, law.ramp_decay * self._ramp_scale[j])
                 self._ramp_side[j] = side
                 brk = self._break_u[j, 0 if side > 0 else 1]
-                self._rate[j] = 1.0
+                self._rate[j] = law.creep_rate if self._crept[j] else 1.0
                 hold = None if self._u_goal is None else float(self._u_goal[j])
                 other = self._break_u[j, 1 if side > 0 else 0]  # broke away the other way at
                 if (
@@ -695,6 +714,10 @@ class SettleSupervisor:
                 self._arriving[j] = False
         if abs(ef) > law.freeze:
             side = math.copysign(1.0, ef)
+            if self._side[j] == -side and slow and self._u_goal is not None:
+                # crept across on about the actor's hold, no ramp pushing it: friction is weak
+                if abs(self.u_i[j] - self._u_goal[j]) < law.creep_hold * limit:
+                    self._crept[j] = True
             if self._side[j] == -side and law.arrive > 0 and self.reasons[j] == "stuck":
                 # crept across the goal (not ramping: a ramp's breakaway has its backoff)
                 self.u_i[j] += side * law.arrive * limit
