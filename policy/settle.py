@@ -714,13 +714,14 @@ class SettleSupervisor:
                 self._arriving[j] = False
         if abs(ef) > law.freeze:
             side = math.copysign(1.0, ef)
-            if self._side[j] == -side and slow and self._u_goal is not None:
-                # crept across on about the actor's hold, no ramp pushing it: friction is weak
-                if abs(self.u_i[j] - self._u_goal[j]) < law.creep_hold * limit:
+            if self._side[j] == -side:  # crossed its goal since it was last outside `freeze`
+                hold = None if self._u_goal is None else float(self._u_goal[j])
+                if slow and hold is not None and abs(self.u_i[j] - hold) < law.creep_hold * limit:
+                    # crept across on about the actor's hold, no ramp pushing it: friction is weak
                     self._crept[j] = True
-            if self._side[j] == -side and law.arrive > 0 and self.reasons[j] == "stuck":
-                # crept across the goal (not ramping: a ramp's breakaway has its backoff)
-                self.u_i[j] += side * law.arrive * limit
+                if law.arrive > 0 and self.reasons[j] == "stuck":
+                    # crept across the goal (not ramping: a ramp's breakaway has its backoff)
+                    self.u_i[j] += side * law.arrive * limit
             self._side[j] = side
         self.u_i[j] = float(np.clip(self.u_i[j], -limit, limit))
         cmd = self.u_i[j] + law.kp[j] * e - law.kd[j] * qdot

@@ -104,8 +104,8 @@ def test_the_stability_screen_on_ray_gives_the_serial_metrics(ray_local: Any) ->
 
 
 def test_the_code_fingerprint_follows_every_file_but_caches(tmp_path: Path) -> None:
-    """`code_fingerprint` hashes names and contents of the packages' files (weights too),
-    not Python's byte-code caches."""
+    """`fingerprint` (what `code_fingerprint` takes of the packages) hashes the names and
+    contents of their files, weights too, but not Python's byte-code caches."""
     pkg = tmp_path / "pkg"
     (pkg / "__pycache__").mkdir(parents=True)
     (pkg / "a.py").write_text("x = 1\n")
