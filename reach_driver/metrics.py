@@ -209,6 +209,49 @@ def overshoot_pct(q: np.ndarray, target: np.ndarray) -> float:
     return worst * 100.0
 
 
+#: a joint crossing its goal this fast or faster was carried through by its approach (an
+#: arrival); slower, it crept or was pushed across near the goal (docs/metrics.md, "Overshoot")
+ARRIVAL_SPEED_RAD_S = 0.1
+
+
+@dataclass(frozen=True)
+class OvershootAnatomy:
+    """How the worst joint's overshoot (the one `overshoot_pct` reports) came about."""
+
+    joint: int  # arm order E D C B
+    pct: float  # as overshoot_pct
+    past_rad: float  # how far past its goal it went
+    peak_s: float  # when
+    crossing_speed: float  # |qdot| at the first sample past the goal (rad/s)
+
+    @property
+    def arrival(self) -> bool:
+        """Carried through by the approach, not crept across near the goal."""
+        return self.crossing_speed >= ARRIVAL_SPEED_RAD_S
+
+
+def overshoot_anatomy(
+    q: np.ndarray, qdot: np.ndarray, target: np.ndarray, dt: float
+) -> OvershootAnatomy | None:
+    """The worst joint's overshoot in radians, its time and the speed it first crossed its goal
+    at; None when no joint with a step of OVERSHOOT_MIN_STEP_RAD or more went past its goal."""
+    q = np.asarray(q, dtype=float)
+    qdot = np.asarray(qdot, dtype=float)
+    step = np.asarray(target, dtype=float) - q[0]
+    worst: OvershootAnatomy | None = None
+    for j in np.flatnonzero(np.abs(step) >= OVERSHOOT_MIN_STEP_RAD):
+        past = (q[:, j] - float(target[j])) * np.sign(step[j])
+        k = int(np.argmax(past))
+        if past[k] <= 0:
+            continue
+        pct = float(past[k]) / abs(float(step[j])) * 100.0
+        if worst is None or pct > worst.pct:
+            first = int(np.argmax(past > 0))
+            speed = abs(float(qdot[first, j]))
+            worst = OvershootAnatomy(int(j), pct, float(past[k]), k * dt, speed)
+    return worst
+
+
 def settling_band(step: np.ndarray) -> np.ndarray:
     """Per-joint band: max(2 % of |step|, 0.01 rad)."""
     return np.maximum(SETTLING_BAND_FRACTION * np.abs(step), SETTLING_BAND_MIN_RAD)

@@ -18,6 +18,7 @@ from reach_driver.metrics import (
     ideal_trajectory,
     mean_integral_error,
     mean_steady_state_error,
+    overshoot_anatomy,
     overshoot_pct,
     reached,
     rmse,
@@ -95,6 +96,33 @@ def test_overshoot_ignores_small_steps_and_wrong_way_motion() -> None:
     assert overshoot_pct(q, target) == 0.0
     q[3, 1] = -0.3  # now 30 % past the target
     assert overshoot_pct(q, target) == pytest.approx(30.0)
+
+
+def test_the_overshoot_anatomy_tells_an_arrival_from_a_creep() -> None:
+    """The worst joint as overshoot_pct picks it, how far past its goal it went (rad), when,
+    and how fast it first crossed: an arrival carried through at speed, or a creep."""
+    dt = 0.05
+    t = np.arange(0, 10.0 + dt / 2, dt)
+    q = np.zeros((t.size, 4))
+    qdot = np.zeros_like(q)
+    # E: 0 -> 1 rad at 1 rad/s, 30 mrad through and back by t = 1.1 s (3 %)
+    q[:, 0] = np.minimum(t, 1.03)
+    q[t > 1.1, 0] = 1.0
+    qdot[:, 0] = np.where(t < 1.06, 1.0, 0.0)  # still at speed at the first sample past
+    # D: 0 -> -0.2 rad, stops 5 mrad short, creeps through at 2 mrad/s to 10 mrad past (5 %)
+    q[:, 1] = -np.minimum(t, 0.195) - np.clip(t - 2.0, 0.0, 7.5) * 0.002
+    qdot[:, 1] = np.where(t < 0.195, -1.0, np.where((t > 2.0) & (t < 9.5), -0.002, 0.0))
+    target = np.array([1.0, -0.2, 0.0, 0.0])
+    a = overshoot_anatomy(q, qdot, target, dt)
+    assert a is not None and a.joint == 1 and a.pct == pytest.approx(overshoot_pct(q, target))
+    assert a.past_rad == pytest.approx(0.010, abs=1e-9) and not a.arrival
+    assert a.crossing_speed == pytest.approx(0.002) and a.peak_s == pytest.approx(9.5)
+    q[:, 1] = -np.minimum(t, 0.2)  # D now stops on its goal: E's arrival is the worst
+    a = overshoot_anatomy(q, qdot, target, dt)
+    assert a is not None and a.joint == 0 and a.arrival and a.crossing_speed == 1.0
+    assert a.past_rad == pytest.approx(0.03) and a.pct == pytest.approx(3.0)
+    q[:, 0] = np.minimum(t, 1.0)  # nothing past its goal
+    assert overshoot_anatomy(q, qdot, target, dt) is None
 
 
 def test_settling_time_is_the_last_entry_into_the_band() -> None:

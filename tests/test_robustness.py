@@ -123,6 +123,40 @@ def test_the_summary_holds_its_means_and_names_the_failures() -> None:
     assert sum(c["missed"] for c in s["worst_pair"]) == 10
 
 
+def test_the_summary_says_how_the_overshoots_came_about() -> None:
+    """Arms over 2 %, split by their worst joint's crossing speed (an arrival carried through,
+    or slowly across near the goal), with the median distance past and how many stayed
+    within 3 sigma of their position noise; omitted for rows written before it existed."""
+    factors = dict.fromkeys(rb.FACTOR_ORDER, 1.0)
+
+    def row(pct: float, joint: str, past: float, speed: float, noise: float = 1.0) -> dict:
+        return {
+            "name": "arm",
+            "factors": {**factors, "noise": noise, "weak_joint": -1.0},
+            "metrics": {"overshoot_pct": pct},
+            "overshoot": {"joint": joint, "past_rad": past, "peak_s": 1.0, "crossing_speed": speed},
+        }
+
+    rows = [
+        row(5.0, "B", 0.030, 1.1),
+        row(3.0, "B", 0.050, 0.9),
+        row(4.0, "C", 0.020, 0.01),
+        row(6.0, "D", 0.005, 0.002, noise=1.0),  # 5 mrad: within 3 x 2 mrad
+        row(1.0, "E", 0.040, 1.0),  # under 2 %: not counted
+        {**row(0.0, "E", 0.0, 0.0), "overshoot": None},  # nothing past its goal
+    ]
+    a = rb.overshoot_summary(rows)
+    assert a is not None and a["over"] == 4
+    assert a["arrival"]["arms"] == 2 and a["arrival"]["by_joint"]["B"] == 2
+    assert a["arrival"]["median_past_mrad"] == pytest.approx(40.0)
+    assert a["near_goal"]["arms"] == 2 and a["near_goal"]["within_noise"] == 1
+    assert a["near_goal"]["by_joint"] == {"E": 0, "D": 1, "C": 1, "B": 0}
+    line = rb.anatomy_line(a)
+    assert "(4 arms)" in line and "median 40 mrad past; B 2;" in line
+    old = [{k: v for k, v in r.items() if k != "overshoot"} for r in rows]
+    assert rb.overshoot_summary(old) is None
+
+
 def test_a_run_writes_rows_a_summary_and_the_docs_block(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -136,6 +170,7 @@ def test_a_run_writes_rows_a_summary_and_the_docs_block(
     assert report["infeasible"]["corners"] == 384 and report["available"]["corners"] == 896
     row = report["episodes"][0]
     assert set(rb.FACTOR_ORDER) <= set(row["factors"]) and "at_rest" in row["metrics"]
+    assert all("overshoot" in r for r in report["episodes"])
     text = doc.read_text()
     assert text.count(rb.begin_marker("pid")) == 1 and text.endswith("tail\n")
     assert "| corners | 2 of 896 |" in text

@@ -47,6 +47,7 @@ from policy.stats import bootstrap_ci
 from protocol.alpha5 import JOINT_LETTERS
 from reach_driver.controllers import load_controller
 from reach_driver.errors import DriverError
+from reach_driver.metrics import ARRIVAL_SPEED_RAD_S, overshoot_anatomy
 from reach_sim_bridge.faults import SensorNoise
 from reach_sim_bridge.params import ArmParams, load_arm_params
 
@@ -200,6 +201,21 @@ def episode_row(arm: Arm, result: EpisodeResult) -> dict[str, Any]:
         "final_error": result.final_error.tolist(),
         "metrics": result.metrics.as_dict(),
         "rmse_floor": result.rmse_floor,
+        "overshoot": overshoot_row(result),
+    }
+
+
+def overshoot_row(result: EpisodeResult) -> dict[str, Any] | None:
+    """The worst joint's overshoot as it came about (`reach_driver.metrics.overshoot_anatomy`)."""
+    tr = result.trace
+    a = overshoot_anatomy(tr.q, tr.qdot, tr.target, tr.dt)
+    if a is None:
+        return None
+    return {
+        "joint": JOINT_LETTERS[a.joint],
+        "past_rad": a.past_rad,
+        "peak_s": a.peak_s,
+        "crossing_speed": a.crossing_speed,
     }
 
 
@@ -300,9 +316,60 @@ def summarize_rows(rows: Sequence[dict[str, Any]], envelope: Envelope = ENVELOPE
             levels.items(), key=lambda kv: (FACTOR_ORDER.index(kv[0][0]), kv[0][1])
         )
     ]
+    out["overshoot_anatomy"] = overshoot_summary(rows)
     out["shared"] = shared_by_failures(out["by_factor"], out["missed"])
     out["worst_pair"] = worst_pair(rows, envelope)
     return out
+
+
+def overshoot_summary(rows: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
+    """The arms overshooting OVERSHOOT_TARGET_PCT or more, by how their worst joint did it:
+    carried through by its approach (crossing its goal at ARRIVAL_SPEED_RAD_S or faster) or
+    across slowly near the goal, with the median distance past the goal, and how many went
+    no further past than 3 standard deviations of the arm's position noise. None for results
+    written before rows carried it."""
+    if not rows or any("overshoot" not in r for r in rows):
+        return None
+    over = [
+        r
+        for r in rows
+        if float(r["metrics"]["overshoot_pct"]) >= OVERSHOOT_TARGET_PCT and r["overshoot"]
+    ]
+    sigma = SensorNoise().position_std
+    out: dict[str, Any] = {"over": len(over)}
+    for name, keep in (("arrival", True), ("near_goal", False)):
+        sel = [r for r in over if (r["overshoot"]["crossing_speed"] >= ARRIVAL_SPEED_RAD_S) == keep]
+        past = [1000.0 * float(r["overshoot"]["past_rad"]) for r in sel]
+        out[name] = {
+            "arms": len(sel),
+            "median_past_mrad": float(np.median(past)) if past else 0.0,
+            "by_joint": {
+                letter: sum(r["overshoot"]["joint"] == letter for r in sel)
+                for letter in JOINT_LETTERS
+            },
+            "within_noise": sum(
+                float(r["overshoot"]["past_rad"]) < 3.0 * sigma * float(r["factors"]["noise"])
+                for r in sel
+            ),
+        }
+    return out
+
+
+def anatomy_line(a: dict[str, Any]) -> str:
+    """One sentence of `overshoot_summary`."""
+
+    def part(c: dict[str, Any]) -> str:
+        joints = ", ".join(f"{k} {v}" for k, v in c["by_joint"].items() if v)
+        return (
+            f"{c['arms']} (median {c['median_past_mrad']:.3g} mrad past; {joints or 'none'}; "
+            f"{c['within_noise']} within 3 sigma of the position noise)"
+        )
+
+    return (
+        f"Overshoot >= {OVERSHOOT_TARGET_PCT:g} % ({a['over']} arms), by the worst joint: "
+        f"carried through by its approach (crossing at {ARRIVAL_SPEED_RAD_S:g} rad/s or "
+        f"faster) {part(a['arrival'])}; across slowly near the goal {part(a['near_goal'])}."
+    )
 
 
 def shared_by_failures(by_factor: list[dict[str, Any]], missed: int) -> list[str]:
@@ -454,6 +521,8 @@ def markdown_block(report: dict[str, Any]) -> str:
                     + ", ".join(f"{c['level']} {c['over']}" for c in cells)
                     + " |"
                 )
+        if summ.get("overshoot_anatomy") and summ["overshoot_anatomy"]["over"]:
+            lines += ["", anatomy_line(summ["overshoot_anatomy"])]
         lines += ["", f"Worst {set_name} by overshoot:", ""]
         for w in summ["worst"][:5]:
             mark = "" if w["reached"] else ", NOT reached"
@@ -549,6 +618,8 @@ def print_summary(report: dict[str, Any], console: Console) -> None:
         if summ["shared"]:
             for text in summ["shared"]:
                 console.print("    " + escape(text))
+        if summ.get("overshoot_anatomy") and summ["overshoot_anatomy"]["over"]:
+            console.print("    " + escape(anatomy_line(summ["overshoot_anatomy"])))
         for w in summ["worst"][:3]:
             console.print(f"    worst: {escape(w['name'])} {w['overshoot_pct']:.3g} %")
 
