@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, TORQUE_PER_AMP_NM
+from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, JOINT_LETTERS, TORQUE_PER_AMP_NM
 
 OVERSHOOT_MIN_STEP_RAD = 0.05
 """Joints whose step is smaller than this are left out of the overshoot (ratio is noise)."""
@@ -228,6 +228,17 @@ class OvershootAnatomy:
     def arrival(self) -> bool:
         """Carried through by the approach, not crept across near the goal."""
         return self.crossing_speed >= ARRIVAL_SPEED_RAD_S
+
+    def as_dict(self) -> dict[str, object]:
+        """For summaries and JSON: the joint by its letter, and `arrival`."""
+        return {
+            "joint": JOINT_LETTERS[self.joint],
+            "pct": self.pct,
+            "past_rad": self.past_rad,
+            "peak_s": self.peak_s,
+            "crossing_speed": self.crossing_speed,
+            "arrival": self.arrival,
+        }
 
 
 def overshoot_anatomy(

@@ -24,7 +24,7 @@ from rerun.chunk import RrdReader
 
 from protocol import HardwareStatus
 from protocol.alpha5 import JOINT_LETTERS
-from reach_driver.metrics import Trace, compute_metrics
+from reach_driver.metrics import Trace, compute_metrics, overshoot_anatomy
 from reach_driver.recording import (
     DIAGNOSTIC_LETTERS,
     STATUS_ENTITY,
@@ -497,6 +497,8 @@ def summarize_recording(path: str | Path) -> dict[str, object]:
         )
         out["control_period_s"] = dt
         out["metrics"] = compute_metrics(trace).as_dict()
+        anatomy = overshoot_anatomy(trace.q, trace.qdot, trace.target, dt)
+        out["overshoot"] = None if anatomy is None else anatomy.as_dict()
     diagnostics = diagnostics_summary(run)
     if diagnostics is not None:
         out["diagnostics"] = diagnostics

@@ -342,6 +342,13 @@ def test_run_json_is_one_object_with_the_summary_and_metrics(sim, capsys) -> Non
     assert set(result["metrics"]) == set(ALL_METRIC_KEYS)
     assert isinstance(result["metrics"]["reached"], bool)
     assert result["steps"] >= 15 and len(result["final_error"]) == 4
+    # how the overshoot came about, the same worst joint and value as the metric's
+    over = result["overshoot"]
+    if result["metrics"]["overshoot_pct"] > 0:
+        assert over["pct"] == pytest.approx(result["metrics"]["overshoot_pct"])
+        assert over["joint"] in "EDCB" and over["arrival"] == (over["crossing_speed"] >= 0.1)
+    else:
+        assert over is None
 
 
 def test_run_says_and_records_what_the_controllers_supervisor_did(sim, tmp_path, capsys) -> None:

@@ -79,6 +79,32 @@ def test_round_trip_series_and_metrics(tmp_path: Path) -> None:
     np.testing.assert_allclose(summary["final_error"], target - q[-1])  # type: ignore[arg-type]
 
 
+def test_inspect_says_how_a_recorded_overshoot_came_about(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """C crosses its goal at speed and swings 0.1 rad past: an arrival, named with its size."""
+    from reach_driver.cli import main
+
+    q, qdot, target = _synthetic_run(100)
+    t = np.arange(100) * DT
+    swing = 0.1 * np.sin(np.pi * np.clip(t - 1.0, 0.0, 1.0))  # past C's goal over 1-2 s
+    q[:, 2] = np.where(t < 1.0, q[:, 2], target[2]) - swing  # C steps down: past is below
+    qdot[:, 2] = np.gradient(q[:, 2], DT)
+    path = tmp_path / "swing.rrd"
+    with RunRecorder(path) as rec:
+        for k in range(100):
+            rec.log_step(StepSample(k * DT, k, q[k], qdot[k], target, np.zeros(4)))
+    assert main(["inspect", "--json", str(path)]) == 0
+    over = json.loads(capsys.readouterr().out)["overshoot"]
+    assert (
+        over["joint"] == "C"
+        and over["arrival"]
+        and over["past_rad"] == pytest.approx(0.1, abs=2e-3)
+    )
+    assert main(["inspect", str(path)]) == 0
+    assert "overshoot: C went 100.0 mrad" in capsys.readouterr().out
+
+
 def test_exception_in_run_is_recorded(tmp_path: Path) -> None:
     path = tmp_path / "crash.rrd"
     q, qdot, target = _synthetic_run(5)
@@ -158,8 +184,10 @@ def test_inspect_cli_prints_the_summary(tmp_path: Path, capsys: pytest.CaptureFi
     out = capsys.readouterr().out
     assert "100 steps" in out and "final state" in out and "settling_time_s" in out
     assert f"{target[0] - q[-1, 0]:+.4f}" in out
+    assert "overshoot: no joint went past its goal" in out  # a first-order approach
     assert main(["inspect", "--json", str(path)]) == 0
     data = json.loads(capsys.readouterr().out)
     assert data["steps"] == 100 and data["metrics"]["reached"] in (True, False)
+    assert data["overshoot"] is None
     assert main(["inspect", str(tmp_path / "missing.rrd")]) != 0
     assert "no such recording" in capsys.readouterr().out

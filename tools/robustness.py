@@ -209,14 +209,7 @@ def overshoot_row(result: EpisodeResult) -> dict[str, Any] | None:
     """The worst joint's overshoot as it came about (`reach_driver.metrics.overshoot_anatomy`)."""
     tr = result.trace
     a = overshoot_anatomy(tr.q, tr.qdot, tr.target, tr.dt)
-    if a is None:
-        return None
-    return {
-        "joint": JOINT_LETTERS[a.joint],
-        "past_rad": a.past_rad,
-        "peak_s": a.peak_s,
-        "crossing_speed": a.crossing_speed,
-    }
+    return None if a is None else a.as_dict()
 
 
 # --- the summary ----------------------------------------------------------------------------

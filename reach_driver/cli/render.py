@@ -13,7 +13,7 @@ from rich.table import Table
 from protocol import DeviceID, HardwareStatus, Mode, PacketID
 from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS, TORQUE_PER_AMP_NM
 from reach_driver.cli.exits import for_operator
-from reach_driver.cli.report import run_metrics
+from reach_driver.cli.report import run_metrics, run_overshoot
 from reach_driver.client import ArmClient
 from reach_driver.faults import blocking_flags, flag_labels, status_bytes
 from reach_driver.metrics import METRIC_KEYS, metric_label
@@ -312,6 +312,23 @@ def metrics_table(title: str, values: dict[str, Any]) -> Table:
     return table
 
 
+def overshoot_line(overshoot: dict[str, Any] | None) -> str:
+    """How the worst joint's overshoot came about (docs/metrics.md, "Overshoot")."""
+    if not overshoot:
+        return "overshoot: no joint went past its goal"
+    how = (
+        "carried through by its approach"
+        if overshoot["arrival"]
+        else "across slowly, near its goal"
+    )
+    return (
+        f"overshoot: {overshoot['joint']} went {1000 * float(overshoot['past_rad']):.1f} mrad "
+        f"({float(overshoot['pct']):.2f} % of its step) past its goal at "
+        f"{float(overshoot['peak_s']):.2f} s, crossing it at "
+        f"{float(overshoot['crossing_speed']):.3f} rad/s: {how}"
+    )
+
+
 def print_metrics(console: Console, s: ControlSummary) -> None:
     metrics = run_metrics(s)
     if metrics is None:
@@ -320,6 +337,8 @@ def print_metrics(console: Console, s: ControlSummary) -> None:
     console.print(
         metrics_table("metrics (docs/metrics.md; from the reported angles)", metrics.as_dict())
     )
+    anatomy = run_overshoot(s)
+    console.print(escape(overshoot_line(None if anatomy is None else anatomy.as_dict())))
     tr = s.trace
     assert tr is not None
     measured = int(np.isfinite(tr.current_mA[1:]).all(axis=1).sum())
@@ -408,6 +427,7 @@ def print_recording(console: Console, summary: dict[str, Any]) -> None:
     metrics = summary.get("metrics")
     if isinstance(metrics, dict):
         console.print(metrics_table("metrics (docs/metrics.md)", metrics))
+        console.print(escape(overshoot_line(summary.get("overshoot"))))
     diagnostics = summary.get("diagnostics")
     if isinstance(diagnostics, dict):
         console.print(recorded_diagnostics_table(diagnostics))

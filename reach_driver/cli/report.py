@@ -6,7 +6,13 @@ import dataclasses
 
 import numpy as np
 
-from reach_driver.metrics import Metrics, Trace, compute_metrics
+from reach_driver.metrics import (
+    Metrics,
+    OvershootAnatomy,
+    Trace,
+    compute_metrics,
+    overshoot_anatomy,
+)
 from reach_driver.records import ControlSummary, LoopTrace
 
 
@@ -18,6 +24,14 @@ def run_metrics(summary: ControlSummary) -> Metrics | None:
     return compute_metrics(trace_for_metrics(tr, summary.target))
 
 
+def run_overshoot(summary: ControlSummary) -> OvershootAnatomy | None:
+    """How the run's overshoot came about (docs/metrics.md, "Overshoot"); None without one."""
+    tr = summary.trace
+    if tr is None or tr.samples < 2:
+        return None
+    return overshoot_anatomy(tr.q, tr.qdot, summary.target, tr.dt)
+
+
 def trace_for_metrics(tr: LoopTrace, target: np.ndarray) -> Trace:
     return Trace(dt=tr.dt, q=tr.q, qdot=tr.qdot, tau=tr.torque_Nm, target=target)
 
@@ -25,6 +39,7 @@ def trace_for_metrics(tr: LoopTrace, target: np.ndarray) -> Trace:
 def summary_dict(s: ControlSummary) -> dict[str, object]:
     t = s.timing
     metrics = run_metrics(s)
+    overshoot = run_overshoot(s)
     return {
         "ok": s.ok,
         "stopped_by": s.stopped_by,
@@ -48,4 +63,5 @@ def summary_dict(s: ControlSummary) -> dict[str, object]:
         "incomplete_ticks": t.incomplete_ticks,
         "left_in": s.left_in,
         "metrics": None if metrics is None else metrics.as_dict(),
+        "overshoot": None if overshoot is None else overshoot.as_dict(),
     }
