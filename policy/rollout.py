@@ -22,7 +22,15 @@ from policy.arm import PHYSICS_DT
 from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from protocol.alpha5 import JOINT_LETTERS, N_JOINTS
 from reach_driver.controllers import Controller, ControlState
-from reach_driver.metrics import Metrics, Trace, compute_metrics, rmse_floor, summarize
+from reach_driver.metrics import (
+    Metrics,
+    OvershootAnatomy,
+    Trace,
+    compute_metrics,
+    overshoot_anatomy,
+    rmse_floor,
+    summarize,
+)
 from reach_sim_bridge.faults import SensorNoise
 from reach_sim_bridge.motor import no_load_speed
 from reach_sim_bridge.params import ArmParams
@@ -201,12 +209,20 @@ class EpisodeResult:
     def final_error(self) -> np.ndarray:
         return self.trace.errors[-1]
 
+    @property
+    def overshoot(self) -> OvershootAnatomy | None:
+        """How the overshoot came about (docs/metrics.md, "Overshoot"); None without one."""
+        tr = self.trace
+        return overshoot_anatomy(tr.q, tr.qdot, tr.target, tr.dt)
+
     def to_dict(self) -> dict[str, Any]:
         out = self.episode.to_dict()
+        overshoot = self.overshoot
         out.update(
             reached=self.metrics.reached,
             final_error=self.final_error.tolist(),
             metrics=self.metrics.as_dict(),
+            overshoot=None if overshoot is None else overshoot.as_dict(),
             rmse_floor=self.rmse_floor,
         )
         return out

@@ -189,6 +189,9 @@ def test_evaluation_json_has_exactly_the_metric_keys() -> None:
         assert set(episode["metrics"]) == set(ALL_METRIC_KEYS)
         assert episode["reached"] is False  # an idle controller never gets there
         assert len(episode["final_error"]) == 4
+        over = episode["overshoot"]  # how it came about, or None when nothing went past
+        pct = episode["metrics"]["overshoot_pct"]
+        assert (over is None and pct == 0.0) or over["pct"] == pytest.approx(pct)
     assert set(out["summary"]) == set(ALL_METRIC_KEYS) | {"rmse_floor"}
     assert out["summary"]["reached"] == 0.0
 

@@ -47,7 +47,7 @@ from policy.stats import bootstrap_ci
 from protocol.alpha5 import JOINT_LETTERS
 from reach_driver.controllers import load_controller
 from reach_driver.errors import DriverError
-from reach_driver.metrics import ARRIVAL_SPEED_RAD_S, overshoot_anatomy
+from reach_driver.metrics import ARRIVAL_SPEED_RAD_S
 from reach_sim_bridge.faults import SensorNoise
 from reach_sim_bridge.params import ArmParams, load_arm_params
 
@@ -207,8 +207,7 @@ def episode_row(arm: Arm, result: EpisodeResult) -> dict[str, Any]:
 
 def overshoot_row(result: EpisodeResult) -> dict[str, Any] | None:
     """The worst joint's overshoot as it came about (`reach_driver.metrics.overshoot_anatomy`)."""
-    tr = result.trace
-    a = overshoot_anatomy(tr.q, tr.qdot, tr.target, tr.dt)
+    a = result.overshoot
     return None if a is None else a.as_dict()
 
 
