@@ -115,9 +115,10 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
 - inside `freeze` (low-passed error) a joint at rest does not integrate: one held by friction
   inside the tolerance is left alone instead of hunting (one still drifting through the band
   integrates on, or a stale u_I carries it out the other side). A ramping joint that reaches
-  `freeze` has broken away (`freeze_breakaway`): on a noisy sensor `progress` may need as much
-  movement as lies between `stuck_error` and `freeze`, and forgetting the ramp there left its
-  excess pushing the joint through its goal;
+  `freeze` has broken away (`freeze_breakaway`), like any other breakaway (the backoff, the
+  command it broke away at for the memory, the wait of `restick_s`): on a noisy sensor
+  `progress` may need as much movement as lies between `stuck_error` and `freeze`, and
+  forgetting the ramp there left its excess pushing the joint through its goal;
 - creeping across: a joint that creeps across its goal, slow, on about the actor's hold
   (`creep_hold`, 5 % of the limit) is one friction does not hold (the twin's soft friction
   lets a 0.3-0.7 N m joint drift 1-2 mrad/s for 15 s on a command within 17 mA of its
@@ -245,7 +246,7 @@ class SettleLaw:
     # ramp's residue (70-110 mA past the hold) a joint says nothing of its friction, and at
     # half the rate draw 174 of seed 1 was left short
     freeze_breakaway: bool = True  # a ramping joint reaching `freeze` has broken away (its
-    # backoff is taken) even where noise keeps `progress` from saying so yet
+    # backoff taken, the command remembered) even where noise keeps `progress` from saying so
     raw_breakaway: bool = True  # a breakaway is also one sample's measured speed towards the
     # goal of `noise_sigmas` of its noise (and twice `stuck_speed`) or more: the low-passed
     # speed sees a slip 2-3 periods late, and on a latent loop the slip carries through the goal
@@ -649,6 +650,10 @@ class SettleSupervisor:
         broke = toward >= max(law.stuck_speed, speed_floor) or moved
         if law.raw_breakaway and not broke:
             broke = self._slipping(j, ef, qdot)
+        if law.freeze_breakaway and abs(ef) <= law.freeze:
+            # ramped in from outside `stuck_error` to inside `freeze`: it broke away, though
+            # on a noisy sensor `progress` may not have said so yet
+            broke = True
         self._since_break[j] += dt
         if self._was_stuck[j] and broke:
             self._since_break[j] = 0.0
@@ -695,10 +700,6 @@ class SettleSupervisor:
             self._ramped[j] += step
             self._was_stuck[j] = True
         if abs(ef) <= law.freeze:
-            if self._was_stuck[j] and law.freeze_breakaway:
-                # ramped in from outside `stuck_error` to inside `freeze`: it broke away,
-                # though on a noisy sensor `progress` may not have said so yet
-                self.u_i[j] -= law.backoff * self._ramped[j]
             self._ramped[j] = 0.0
             self._was_stuck[j] = False
         # An arrival is armed outside twice `stuck_error` and spent once the joint is inside

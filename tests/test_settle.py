@@ -618,6 +618,8 @@ def test_a_ramping_joint_that_reaches_freeze_has_its_ramp_backed_off(
     left = float(sup.u_i[1])
     if freeze_breakaway:  # 80 % of the ramp taken back (it ramped on while e_f lagged)
         assert 0 < left < 1.5 * ramped * (1 - sup.law.backoff)
+        # ... as any breakaway: the command it broke away at remembered, the re-stick wait on
+        assert sup._break_u[1, 0] >= ramped and sup._since_break[1] < sup.law.restick_s
     else:  # the whole ramp left pushing
         assert left >= ramped
 
