@@ -12,6 +12,7 @@ driver may not import `policy`; evaluation and training import it from here.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -200,13 +201,20 @@ def overshoot_pct(q: np.ndarray, target: np.ndarray) -> float:
     step is at least OVERSHOOT_MIN_STEP_RAD. The ratio is signed by the step direction, so a
     joint that first moves the wrong way does not count as overshoot.
     """
-    q = np.asarray(q, dtype=float)
-    step = np.asarray(target, dtype=float) - q[0]
     worst = 0.0
-    for j in np.flatnonzero(np.abs(step) >= OVERSHOOT_MIN_STEP_RAD):
-        progress = (q[:, j] - q[0, j]) / step[j]
-        worst = max(worst, float(progress.max()) - 1.0)
+    for _, past, step in _past_goal(q, target):
+        worst = max(worst, float(past.max()) / step)
     return worst * 100.0
+
+
+def _past_goal(q: np.ndarray, target: np.ndarray) -> Iterator[tuple[int, np.ndarray, float]]:
+    """Per joint with a step of OVERSHOOT_MIN_STEP_RAD or more: its index, how far past its
+    goal it is at each sample (rad, signed by the step's direction) and abs(step)."""
+    q = np.asarray(q, dtype=float)
+    target = np.asarray(target, dtype=float)
+    step = target - q[0]
+    for j in np.flatnonzero(np.abs(step) >= OVERSHOOT_MIN_STEP_RAD):
+        yield int(j), (q[:, j] - target[j]) * np.sign(step[j]), abs(float(step[j]))
 
 
 #: a joint crossing its goal this fast or faster was carried through by its approach (an
@@ -246,20 +254,17 @@ def overshoot_anatomy(
 ) -> OvershootAnatomy | None:
     """The worst joint's overshoot in radians, its time and the speed it first crossed its goal
     at; None when no joint with a step of OVERSHOOT_MIN_STEP_RAD or more went past its goal."""
-    q = np.asarray(q, dtype=float)
     qdot = np.asarray(qdot, dtype=float)
-    step = np.asarray(target, dtype=float) - q[0]
     worst: OvershootAnatomy | None = None
-    for j in np.flatnonzero(np.abs(step) >= OVERSHOOT_MIN_STEP_RAD):
-        past = (q[:, j] - float(target[j])) * np.sign(step[j])
+    for j, past, step in _past_goal(q, target):
         k = int(np.argmax(past))
         if past[k] <= 0:
             continue
-        pct = float(past[k]) / abs(float(step[j])) * 100.0
+        pct = float(past[k]) / step * 100.0
         if worst is None or pct > worst.pct:
             first = int(np.argmax(past > 0))
             speed = abs(float(qdot[first, j]))
-            worst = OvershootAnatomy(int(j), pct, float(past[k]), k * dt, speed)
+            worst = OvershootAnatomy(j, pct, float(past[k]), k * dt, speed)
     return worst
 
 

@@ -201,14 +201,8 @@ def episode_row(arm: Arm, result: EpisodeResult) -> dict[str, Any]:
         "final_error": result.final_error.tolist(),
         "metrics": result.metrics.as_dict(),
         "rmse_floor": result.rmse_floor,
-        "overshoot": overshoot_row(result),
+        "overshoot": None if (how := result.overshoot) is None else how.as_dict(),
     }
-
-
-def overshoot_row(result: EpisodeResult) -> dict[str, Any] | None:
-    """The worst joint's overshoot as it came about (`reach_driver.metrics.overshoot_anatomy`)."""
-    a = result.overshoot
-    return None if a is None else a.as_dict()
 
 
 # --- the summary ----------------------------------------------------------------------------
