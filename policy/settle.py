@@ -107,11 +107,13 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
   past it, it creeps on through its goal and sticks beyond, a whole friction band away from
   coming back. Creeping into `stuck_error` of the goal (armed outside twice that), `arrive`
   (5 % of the limit) is taken off its command once; creeping across the goal, the same is
-  pushed back towards it. Only on joints engaged as stuck: on a joint with little friction
-  the same 5 % is a kick (measured: 93.8 % instead of 97.9 % when it applied to every joint
-  that had ramped). And after a breakaway the ramp waits `restick_s` before it may start
-  again: the low-passed error lags a creeping joint, and a ramp restarted on that lag pushed
-  a joint in at 0.08 rad/s 20 mrad through its goal;
+  pushed back towards it, each push `arrive_decay` (half) of the one before (a weak D on
+  a frictionless arm, pushed 30 mA each time it crept across, hunted about its goal to
+  the end: 5 more corners reached, one lost). Only on joints engaged as stuck: on a joint
+  with little friction the same 5 % is a kick (measured: 93.8 % instead of 97.9 % when it
+  applied to every joint that had ramped). And after a breakaway the ramp waits `restick_s`
+  before it may start again: the low-passed error lags a creeping joint, and a ramp
+  restarted on that lag pushed a joint in at 0.08 rad/s 20 mrad through its goal;
 - inside `freeze` (low-passed error) a joint at rest does not integrate: one held by friction
   inside the tolerance is left alone instead of hunting (one still drifting through the band
   integrates on, or a stale u_I carries it out the other side). A ramping joint that reaches
@@ -119,6 +121,15 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
   command it broke away at for the memory, the wait of `restick_s`): on a noisy sensor
   `progress` may need as much movement as lies between `stuck_error` and `freeze`, and
   forgetting the ramp there left its excess pushing the joint through its goal;
+- checking the hold: the actor's hold is learned on the model; on a weak joint (25 % torque)
+  carrying 20 % more mass it is a fraction of what holds the joint (C: -16 mA where -60
+  did), and a joint moved onto it falls (D at 25 % dropped 0.4 rad, 2 s before the end, and
+  was missed). So a joint moved to the hold from a command that held it (the jump of
+  `reverse_to_hold`, or an engagement for jitter, which starts from the hold instead of the
+  low-passed actor command) is watched for its latency plus four periods: if it moves the way
+  of that change, low-passed and measured speed both beyond the noise (`hold_check`), the
+  change is undone and the joint's hold is not used again on that target (12 of the 896
+  corners reached that were missed, none lost; draws and Table I unchanged);
 - creeping across: a joint that creeps across its goal, slow, on about the actor's hold
   (`creep_hold`, 5 % of the limit) is one friction does not hold (the twin's soft friction
   lets a 0.3-0.7 N m joint drift 1-2 mrad/s for 15 s on a command within 17 mA of its
@@ -227,6 +238,9 @@ class SettleLaw:
     arrive: float = 0.05  # of the limit, >= 0: an engaged joint creeping into `stuck_error`
     # of its goal on the command it is left at has that much taken off it, once per arrival:
     # on a command just past breakaway it would creep on through the goal and stick beyond
+    arrive_decay: float = 0.5  # (0, 1]: each push back across the goal is this much smaller
+    # than the last on this target: on a frictionless weak joint the 5 % is itself a kick,
+    # and the pushes kept a joint hunting 30 mrad about its goal with a period of 3 s
     stuck_band: float = 0.5  # rad: the stuck watch looks at joints this close to their goal
     latent_ahead: float = 1.0  # periods (< 0: off): on a loop timed at `latent_periods` or
     # more, engage a joint that will cross its goal at `latent_crossing_speed` or faster within
@@ -247,6 +261,10 @@ class SettleLaw:
     # half the rate draw 174 of seed 1 was left short
     freeze_breakaway: bool = True  # a ramping joint reaching `freeze` has broken away (its
     # backoff taken, the command remembered) even where noise keeps `progress` from saying so
+    hold_check: bool = True  # a joint moved to the actor's hold (`reverse_to_hold`, or
+    # engaged for jitter) that then moves the way of that change within its latency plus four
+    # periods was not held by it (a weak or heavy joint): the change is undone and that
+    # joint's hold is not used again on this target
     raw_breakaway: bool = True  # a breakaway is also one sample's measured speed towards the
     # goal of `noise_sigmas` of its noise (and twice `stuck_speed`) or more: the low-passed
     # speed sees a slip 2-3 periods late, and on a latent loop the slip carries through the goal
@@ -280,7 +298,7 @@ class SettleLaw:
             raise ValueError(
                 f"settle progress, crossing_speed and creep_arrive_s must be >= 0: {self}"
             )
-        for name in ("memory_rate", "creep_rate"):
+        for name in ("memory_rate", "creep_rate", "arrive_decay"):
             if not 0 < getattr(self, name) <= 1:
                 raise ValueError(f"settle {name} must be in (0, 1], got {getattr(self, name)}")
         if self.creep_hold < 0:
@@ -372,6 +390,11 @@ class SettleSupervisor:
         self._side = np.zeros(n)  # the side of the goal the low-passed error was last on,
         # outside `freeze`
         self._since_break = np.full(n, math.inf)
+        self._jump_from = np.full(n, math.nan)  # u_i before a jump to the hold, while checked
+        self._jump_age = np.zeros(n)
+        self._jump_to = np.zeros(n)
+        self._hold_bad = np.zeros(n, dtype=bool)
+        self._arrive_scale = np.ones(n)  # of `arrive`: shrinks by `arrive_decay` per push
         self._crept = np.zeros(n, dtype=bool)  # crept across its goal on the hold (`creep_rate`)
         self._rate = np.ones(n)  # the ramp's rate: 1, or memory_rate when restarted from memory
         self._break_u = np.full((n, 2), math.nan)  # per side: the command it last broke away at
@@ -618,11 +641,25 @@ class SettleSupervisor:
         # an actor (u_goal not given).
         if self._u_goal is None or why == "stuck":
             self.u_i[j] = self.u_f[j]
+        elif why == "jitter":
+            self._to_hold(j, float(self._u_goal[j]), self.u_f[j])
         else:
             self.u_i[j] = float(self._u_goal[j])
         self._ramped[j] = 0.0
         self._was_stuck[j] = False
         self._crept[j] = False
+
+    def _to_hold(self, j: int, hold: float, alt: float) -> None:
+        """u_i to the actor's hold, checked (`hold_check`) against `alt`, what held it so far."""
+        if self._hold_bad[j]:
+            self.u_i[j] = alt
+            return
+        self.u_i[j] = hold
+        if abs(hold - alt) < self.law.creep_hold * self.limits_mA[j]:
+            return  # about the same: nothing to check
+        self._jump_from[j] = alt
+        self._jump_to[j] = hold
+        self._jump_age[j] = 0.0
 
     def _release(self, j: int) -> None:
         self.engaged[j] = False
@@ -655,6 +692,17 @@ class SettleSupervisor:
             # on a noisy sensor `progress` may not have said so yet
             broke = True
         self._since_break[j] += dt
+        if law.hold_check and math.isfinite(self._jump_from[j]):
+            self._jump_age[j] += dt
+            window = ((self.latency_periods or 0.0) + 4.0) * self._period
+            d = math.copysign(1.0, self._jump_to[j] - self._jump_from[j])
+            floor = max(law.stuck_speed, speed_floor)
+            if d * self.v_f[j] >= floor and d * qdot >= floor:
+                self.u_i[j] += self._jump_from[j] - self._jump_to[j]
+                self._hold_bad[j] = True
+                self._jump_from[j] = math.nan
+            elif self._jump_age[j] > window + 1e-9:
+                self._jump_from[j] = math.nan
         if self._was_stuck[j] and broke:
             self._since_break[j] = 0.0
             k = 0 if self._ramp_side[j] > 0 else 1
@@ -686,7 +734,7 @@ class SettleSupervisor:
                 ):
                     # still pushing the other way across a wide friction band (carried through
                     # its goal): start from the hold (not ramp: the backoff leaves it alone)
-                    self.u_i[j] = hold
+                    self._to_hold(j, hold, self.u_i[j])
                 if law.memory_margin >= 0 and math.isfinite(brk):
                     # it broke away at `brk` last time: the ramp need not climb from below
                     jump = brk - side * law.memory_margin * limit - self.u_i[j]
@@ -709,7 +757,7 @@ class SettleSupervisor:
             self._arriving[j] = True
         elif self._arriving[j] and abs(ef) < law.stuck_error:
             if toward > max(0.5 * law.stuck_speed, speed_floor):
-                self.u_i[j] -= math.copysign(law.arrive * limit, ef)
+                self.u_i[j] -= math.copysign(law.arrive * limit * self._arrive_scale[j], ef)
                 self._arriving[j] = False
             elif slow:
                 self._arriving[j] = False
@@ -722,7 +770,8 @@ class SettleSupervisor:
                     self._crept[j] = True
                 if law.arrive > 0 and self.reasons[j] == "stuck":
                     # crept across the goal (not ramping: a ramp's breakaway has its backoff)
-                    self.u_i[j] += side * law.arrive * limit
+                    self.u_i[j] += side * law.arrive * limit * self._arrive_scale[j]
+                    self._arrive_scale[j] *= law.arrive_decay
             self._side[j] = side
         self.u_i[j] = float(np.clip(self.u_i[j], -limit, limit))
         cmd = self.u_i[j] + law.kp[j] * e - law.kd[j] * qdot

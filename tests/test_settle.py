@@ -8,7 +8,7 @@ import pytest
 
 from policy.ddpg_controller import make_controller
 from policy.direct import DirectArm
-from policy.envelope import draws
+from policy.envelope import corners, draws
 from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from policy.rollout import Episode, RunConfig
 from policy.settle import SettleLaw
@@ -729,6 +729,44 @@ def test_fresh_draws_the_supervisor_used_to_miss_are_reached(
     (never missed) is what `creep_hold` keeps: a joint a ramp pushed across ramps back at
     the full rate."""
     episode, config, ep_seed = _robustness_draw(index, seed=seed)
+    shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
+    assert shipped.reached and shipped.at_rest
+    before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
+    assert not before.reached
+
+
+def _robustness_corner(index: int, seed: int = 1) -> tuple[Episode, RunConfig, int]:
+    """Corner `index` of tools/robustness.py --corners --seed SEED: its arm's episode, run
+    configuration and episode seed, as the campaign runs it."""
+    variant = corners().variants[index]
+    rng = np.random.default_rng([seed, 0, index])
+    episode = variant.episode(
+        Episode(
+            start=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
+            target=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
+        )
+    )
+    config = variant.run_config(RunConfig(seconds=20.0, noise=SensorNoise(), seed=seed))
+    return episode, config, config.seed + index
+
+
+@pytest.mark.parametrize(
+    ("index", "off"),
+    [
+        (612, {"hold_check": False}),  # D at 25 %, heavy: the reversal's jump to the hold
+        (63, {"hold_check": False}),  # C at 25 %, heavy: engaged for jitter on the hold
+        (132, {"arrive_decay": 1.0}),  # D at 25 %, heavy: pushed back across its goal alike
+    ],
+)
+def test_weak_heavy_corners_the_supervisor_used_to_miss_are_reached(
+    index: int, off: dict[str, object]
+) -> None:
+    """Frictionless corners with one joint at 25 % torque and 20 % more mass
+    (docs/robustness.md, "Twelfth round"). The actor's learned hold is a fraction of what
+    holds such a joint: moved onto it, the joint fell and was missed, and `hold_check` sees
+    the fall begin and undoes the move. And the `arrive` push back across the goal is a kick
+    there, each one alike, so the joint hunted to the end; `arrive_decay` halves each."""
+    episode, config, ep_seed = _robustness_corner(index)
     shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
     assert shipped.reached and shipped.at_rest
     before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
