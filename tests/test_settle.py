@@ -18,20 +18,26 @@ from reach_sim_bridge.params import ArmParams
 ZERO4 = (0.0, 0.0, 0.0, 0.0)
 
 
-def _robustness_draw(
-    index: int, base: ArmParams | None = None, seed: int = 1
+def _robustness_arm(
+    set_name: str, index: int, base: ArmParams | None = None, seed: int = 1
 ) -> tuple[Episode, RunConfig, int]:
-    """Draw `index` of tools/robustness.py --draws N --seed SEED [--params around `base`]: its
-    arm's episode, run configuration and episode seed, as the campaign runs it."""
-    variant = draws(index + 1, seed, base=base).variants[index]
-    rng = np.random.default_rng([seed, 1, index])
+    """Arm `index` of tools/robustness.py's `set_name` ("corners" or "draws") with --seed SEED
+    [--params around `base`]: its episode, run configuration and episode seed, as the
+    campaign runs it (each set seeds its arms by its position in the tool's SETS)."""
+    set_index = ("corners", "draws").index(set_name)
+    if set_name == "corners":
+        variant = corners(base=base).variants[index]
+    else:
+        variant = draws(index + 1, seed, base=base).variants[index]
+    rng = np.random.default_rng([seed, set_index, index])
     episode = variant.episode(
         Episode(
             start=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
             target=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
         )
     )
-    config = variant.run_config(RunConfig(seconds=20.0, noise=SensorNoise(), seed=100_000 + seed))
+    run = RunConfig(seconds=20.0, noise=SensorNoise(), seed=seed + 100_000 * set_index)
+    config = variant.run_config(run)
     return episode, config, config.seed + index
 
 
@@ -63,7 +69,7 @@ def test_settle_turns_a_latent_arms_limit_cycle_into_rest() -> None:
     # Draw 10 of tools/robustness.py --draws N --seed 1 (its episode and noise seed): 2.7 N m
     # of Coulomb friction, 1.59 periods of latency; the plain actor keeps B in a limit cycle
     # (+-0.1 rad at 1.2 rad/s) to the end.
-    episode, config, seed = _robustness_draw(10)
+    episode, config, seed = _robustness_arm("draws", 10)
     plain = DirectArm().run(make_controller(settle=False), episode, config, seed)
     assert not plain.metrics.at_rest and not plain.metrics.reached
     ctrl = make_controller(settle=True)
@@ -551,7 +557,7 @@ def test_on_a_twin_whose_friction_holds_the_stuck_watch_finishes_a_weak_joint() 
     The limit-cycle watches alone leave D at rest 0.1 rad short; the stuck watch engages it,
     ramps it free, and crossing its goal on a creep is taken back: D ends inside the
     tolerance, at rest."""
-    episode, config, seed = _robustness_draw(108, ArmParams(friction_holds=True))
+    episode, config, seed = _robustness_arm("draws", 108, ArmParams(friction_holds=True))
     plain = DirectArm().run(make_controller(settle={"stuck": False}), episode, config, seed)
     assert plain.metrics.at_rest and not plain.metrics.reached
     assert abs(plain.final_error[1]) > 0.05
@@ -728,26 +734,11 @@ def test_fresh_draws_the_supervisor_used_to_miss_are_reached(
     joint that crept through its goal kicked back by a full-rate ramp. Draw 174 of seed 1
     (never missed) is what `creep_hold` keeps: a joint a ramp pushed across ramps back at
     the full rate."""
-    episode, config, ep_seed = _robustness_draw(index, seed=seed)
+    episode, config, ep_seed = _robustness_arm("draws", index, seed=seed)
     shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
     assert shipped.reached and shipped.at_rest
     before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
     assert not before.reached
-
-
-def _robustness_corner(index: int, seed: int = 1) -> tuple[Episode, RunConfig, int]:
-    """Corner `index` of tools/robustness.py --corners --seed SEED: its arm's episode, run
-    configuration and episode seed, as the campaign runs it."""
-    variant = corners().variants[index]
-    rng = np.random.default_rng([seed, 0, index])
-    episode = variant.episode(
-        Episode(
-            start=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
-            target=rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH),
-        )
-    )
-    config = variant.run_config(RunConfig(seconds=20.0, noise=SensorNoise(), seed=seed))
-    return episode, config, config.seed + index
 
 
 @pytest.mark.parametrize(
@@ -766,7 +757,7 @@ def test_weak_heavy_corners_the_supervisor_used_to_miss_are_reached(
     holds such a joint: moved onto it, the joint fell and was missed, and `hold_check` sees
     the fall begin and undoes the move. And the `arrive` push back across the goal is a kick
     there, each one alike, so the joint hunted to the end; `arrive_decay` halves each."""
-    episode, config, ep_seed = _robustness_corner(index)
+    episode, config, ep_seed = _robustness_arm("corners", index)
     shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
     assert shipped.reached and shipped.at_rest
     before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
