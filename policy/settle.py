@@ -130,6 +130,24 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
   of that change, low-passed and measured speed both beyond the noise (`hold_check`), the
   change is undone and the joint's hold is not used again on that target (12 of the 896
   corners reached that were missed, none lost; draws and Table I unchanged);
+- falling: a joint engaged on the actor's hold as it crosses its goal is already moving when
+  the hold takes over, so the hold check cannot see it fall; a weak one does (C at 25 %
+  torque, engaged at 1 rad/s on the actor's hold, 68 mA short of what holds it, fell 0.5 rad,
+  was released to the actor, driven back through its goal and engaged again, six times). An
+  engaged joint outside `band` moving away from its goal at the fastest it has since it began
+  to (within the noise: a coast through the goal slows from its crossing speed at once, a fall
+  does not) ramps towards the goal at `fall_ramp` of the stuck ramp's rate, and its hold is
+  not used again on that target; engaged again after a release it keeps the u_i it had
+  (`fall_memory`). The ramp runs on for the latency and the filter's lag and may carry it
+  through: each fall on the other side of the goal from the last one ramps at `fall_decay` of
+  the rate before. Calling a joint falling whenever its low-passed speed away had not dropped
+  since the last sample ramped coasting joints on their noise (3 corners lost);
+- a take-off that held: on a frictionless weak joint the arrival's `arrive` take-off is what
+  held it up (a weak D taken 30 mA off as it crept in fell back 0.1 rad, crept in again
+  over 4 s and was taken off again, to the end). A joint that backs out of twice
+  `stuck_error` on the side it arrived from, not across, gets the take-off back, and no more
+  are taken on that target (`arrive_check`: 3 of the 896 corners reached that were missed,
+  none lost);
 - creeping across: a joint that creeps across its goal, slow, on about the actor's hold
   (`creep_hold`, 5 % of the limit) is one friction does not hold (the twin's soft friction
   lets a 0.3-0.7 N m joint drift 1-2 mrad/s for 15 s on a command within 17 mA of its
@@ -265,6 +283,18 @@ class SettleLaw:
     # engaged for jitter) that then moves the way of that change within its latency plus four
     # periods was not held by it (a weak or heavy joint): the change is undone and that
     # joint's hold is not used again on this target
+    fall_ramp: float = 1.0  # >= 0, of `ramp` (0: off): an engaged joint outside `band` moving
+    # away from its goal and not slowing is falling (a weak or heavy joint whose command does
+    # not hold it: C at 25 % torque, on a hold 68 mA short, fell 0.5 rad); its u_i ramps towards
+    # the goal at this fraction of the stuck ramp's rate while it falls, and its hold is not
+    # used again on this target
+    fall_decay: float = 0.5  # (0, 1]: ... each time it falls on the other side of its goal from
+    # the last fall (the ramp ran on for the latency and carried it through), the rate shrinks
+    fall_memory: bool = True  # a joint that fell, released and engaged again on the same
+    # target, keeps the u_i it had (the actor's hold let it fall, every time: C six times)
+    arrive_check: bool = True  # an arrival's take-off (`arrive`) after which the joint backs out
+    # of `2 stuck_error` on the side it arrived from is given back, and no more are taken on
+    # this target: on a frictionless weak joint it was what held the joint up
     raw_breakaway: bool = True  # a breakaway is also one sample's measured speed towards the
     # goal of `noise_sigmas` of its noise (and twice `stuck_speed`) or more: the low-passed
     # speed sees a slip 2-3 periods late, and on a latent loop the slip carries through the goal
@@ -298,9 +328,11 @@ class SettleLaw:
             raise ValueError(
                 f"settle progress, crossing_speed and creep_arrive_s must be >= 0: {self}"
             )
-        for name in ("memory_rate", "creep_rate", "arrive_decay"):
+        for name in ("memory_rate", "creep_rate", "arrive_decay", "fall_decay"):
             if not 0 < getattr(self, name) <= 1:
                 raise ValueError(f"settle {name} must be in (0, 1], got {getattr(self, name)}")
+        if not (math.isfinite(self.fall_ramp) and self.fall_ramp >= 0):
+            raise ValueError(f"settle fall_ramp must be >= 0, got {self.fall_ramp}")
         if self.creep_hold < 0:
             raise ValueError(f"settle creep_hold must be >= 0, got {self.creep_hold}")
         if self.stuck_band <= 0 or self.noise_sigmas < 0 or self.arrive < 0:
@@ -395,6 +427,11 @@ class SettleSupervisor:
         self._jump_to = np.zeros(n)
         self._hold_bad = np.zeros(n, dtype=bool)
         self._arrive_scale = np.ones(n)  # of `arrive`: shrinks by `arrive_decay` per push
+        self._away_peak = np.zeros(n)  # fastest low-passed speed away from the goal, this move
+        self._fall_side = np.zeros(n)  # the side of the goal the joint last fell on
+        self._fall_scale = np.ones(n)  # of `fall_ramp`: shrinks by `fall_decay` per side
+        self._took = np.zeros(n)  # what the last arrival took off, until the joint crosses
+        self._arrive_off = np.zeros(n, dtype=bool)  # an arrival's take-off did not hold it
         self._crept = np.zeros(n, dtype=bool)  # crept across its goal on the hold (`creep_rate`)
         self._rate = np.ones(n)  # the ramp's rate: 1, or memory_rate when restarted from memory
         self._break_u = np.full((n, 2), math.nan)  # per side: the command it last broke away at
@@ -643,7 +680,7 @@ class SettleSupervisor:
             self.u_i[j] = self.u_f[j]
         elif why == "jitter":
             self._to_hold(j, float(self._u_goal[j]), self.u_f[j])
-        else:
+        elif not (self.law.fall_memory and self._hold_bad[j]):
             self.u_i[j] = float(self._u_goal[j])
         self._ramped[j] = 0.0
         self._was_stuck[j] = False
@@ -668,6 +705,23 @@ class SettleSupervisor:
         self._rev_count[j] = 0
         self._rev_last[j] = math.nan
         self._stuck_for[j] = 0.0
+
+    def _fall(self, j: int, dt: float, ef: float, floor: float) -> None:
+        """`fall_ramp`: a joint outside `band` moving away from its goal at the fastest it has
+        since it began to (within `floor`), not slowing as a coast through the goal does, is
+        falling: what it is on does not hold it."""
+        law = self.law
+        away = -math.copysign(1.0, ef) * self.v_f[j]
+        self._away_peak[j] = 0.0 if away < floor else max(self._away_peak[j], away)
+        if abs(ef) <= law.band or away < floor or away < self._away_peak[j] - floor:
+            return
+        side = math.copysign(1.0, ef)
+        if self._fall_side[j] == -side:  # the last fall's ramp carried it through its goal
+            self._fall_scale[j] *= law.fall_decay
+        self._fall_side[j] = side
+        self._hold_bad[j] = True
+        rate = law.fall_ramp * self._fall_scale[j] * law.ramp[j] * self.limits_mA[j]
+        self.u_i[j] += side * rate * dt
 
     def _settle(self, j: int, dt: float, e: float, qdot: float) -> float:
         law = self.law
@@ -703,6 +757,8 @@ class SettleSupervisor:
                 self._jump_from[j] = math.nan
             elif self._jump_age[j] > window + 1e-9:
                 self._jump_from[j] = math.nan
+        if law.fall_ramp > 0:
+            self._fall(j, dt, ef, max(law.stuck_speed, speed_floor))
         if self._was_stuck[j] and broke:
             self._since_break[j] = 0.0
             k = 0 if self._ramp_side[j] > 0 else 1
@@ -754,16 +810,24 @@ class SettleSupervisor:
         # `stuck_error`: taken off if it creeps in, or left alone if it comes to rest there.
         # Only on a joint engaged because it was stuck: friction holds it, not its command.
         if law.arrive > 0 and self.reasons[j] == "stuck" and abs(ef) > 2 * law.stuck_error:
-            self._arriving[j] = True
+            if law.arrive_check and self._took[j] != 0 and self._took[j] * ef > 0:
+                # back out on the side it arrived from, not across: what was taken off held it
+                self.u_i[j] += self._took[j]
+                self._took[j] = 0.0
+                self._arrive_off[j] = True
+            self._arriving[j] = not self._arrive_off[j]
         elif self._arriving[j] and abs(ef) < law.stuck_error:
             if toward > max(0.5 * law.stuck_speed, speed_floor):
-                self.u_i[j] -= math.copysign(law.arrive * limit * self._arrive_scale[j], ef)
+                took = math.copysign(law.arrive * limit * self._arrive_scale[j], ef)
+                self.u_i[j] -= took
+                self._took[j] = took
                 self._arriving[j] = False
             elif slow:
                 self._arriving[j] = False
         if abs(ef) > law.freeze:
             side = math.copysign(1.0, ef)
             if self._side[j] == -side:  # crossed its goal since it was last outside `freeze`
+                self._took[j] = 0.0
                 hold = None if self._u_goal is None else float(self._u_goal[j])
                 if slow and hold is not None and abs(self.u_i[j] - hold) < law.creep_hold * limit:
                     # crept across on about the actor's hold, no ramp pushing it: friction is weak

@@ -11,7 +11,7 @@ from policy.direct import DirectArm
 from policy.envelope import corners, draws
 from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from policy.rollout import Episode, RunConfig
-from policy.settle import SettleLaw
+from policy.settle import SettleLaw, SettleSupervisor
 from reach_sim_bridge.faults import SensorNoise
 from reach_sim_bridge.params import ArmParams
 
@@ -92,8 +92,6 @@ def test_settle_changes_nothing_on_a_nominal_episode() -> None:
 
 
 def test_supervisor_engages_one_cycling_joint_within_a_second_and_releases_it() -> None:
-    from policy.settle import SettleSupervisor
-
     law = SettleLaw(jitter_speed=0.0, crossing_speed=0.0)
     sup = SettleSupervisor(law, np.array([600.0, 600.0, 600.0, 300.0]))
     target = np.array([1.0, 1.0, 1.0, 1.0])
@@ -128,8 +126,6 @@ def test_supervisor_engages_one_cycling_joint_within_a_second_and_releases_it() 
 def test_an_engaged_joint_starts_from_the_actors_hold_at_the_goal() -> None:
     """The integrator starts at the actor's command at rest on the goal (its learned hold
     against gravity), not at the mean of a cycling command, which is arbitrary."""
-    from policy.settle import SettleSupervisor
-
     law = SettleLaw(
         jitter_speed=0.0, crossing_speed=0.0, kp=ZERO4, kd=ZERO4, ki=ZERO4, ramp_engaged=False
     )
@@ -156,8 +152,6 @@ def test_a_joint_stuck_short_starts_from_the_command_that_holds_it() -> None:
     """A weak joint held short by the actor's steady 150 mA (the nominal hold at the goal is
     40 mA) keeps 150 mA when the stuck watch engages it, instead of dropping to 40 and falling
     back under gravity."""
-    from policy.settle import SettleSupervisor
-
     law = SettleLaw(
         jitter_speed=0.0, crossing_speed=0.0, stuck=True, stuck_s=1.0, kp=ZERO4, kd=ZERO4, ki=ZERO4
     )
@@ -178,8 +172,6 @@ def test_a_joint_stuck_short_starts_from_the_command_that_holds_it() -> None:
 def test_a_joint_crossing_its_goal_at_speed_is_engaged_a_braked_one_is_not() -> None:
     """An arrival the actor did not brake (latency: it brakes on a state already 1-2 periods
     old) crosses the goal near the no-load speed; a braked one creeps over it, if at all."""
-    from policy.settle import SettleSupervisor
-
     law = SettleLaw()
     assert 0 < law.crossing_speed < 1.0
     target = np.ones(4)
@@ -196,8 +188,6 @@ def test_a_joint_crossing_its_goal_at_speed_is_engaged_a_braked_one_is_not() -> 
 def test_the_stuck_ramp_slows_each_time_a_breakaway_carries_the_joint_through() -> None:
     """Stick-slip hunting: a ramp sized for 6.6 N m of friction breaks a low-friction joint away
     with too much current and it sticks on the other side; the ramp halves each time."""
-    from policy.settle import SettleSupervisor
-
     law = SettleLaw(kp=ZERO4, kd=ZERO4, ki=ZERO4, jitter_speed=0.0)
     sup = SettleSupervisor(law, np.full(4, 600.0))
     target = np.ones(4)
@@ -231,8 +221,6 @@ def _timed(periods: float, sag: float = 0.0, speed: float = 1.1) -> float | None
     """The supervisor's latency for E and D driven hard from rest: they start `periods` after
     the first command and are at `speed` at once (a drive is at speed within ~10 ms); D sags
     `sag` rad per period under gravity, in the commanded direction, from the start."""
-    from policy.settle import SettleSupervisor
-
     sup = SettleSupervisor(SettleLaw(), np.array([600.0, 600.0, 600.0, 300.0]))
     target = np.array([2.0, 2.0, 1.0, 1.0])
     for k in range(SettleLaw().onset_steps + 1):
@@ -271,7 +259,6 @@ def test_on_the_virtual_arm_the_latency_is_timed_within_a_fifth_of_a_period() ->
 def test_on_a_latent_loop_a_slow_crossing_is_engaged() -> None:
     """The crossing watch's 0.8 rad/s leaves an overshoot of the actor's to the actor on a loop
     without latency; on a latent one any crossing faster than 0.15 rad/s is engaged."""
-    from policy.settle import SettleSupervisor
 
     def engaged(latency: float) -> bool:
         sup = SettleSupervisor(SettleLaw(), np.full(4, 600.0))
@@ -291,10 +278,10 @@ def test_on_a_prompt_loop_the_fast_crossing_watch_leaves_b_to_the_actor() -> Non
     """On a loop timed without latency a fast crossing of E, D or C is engaged (frictionless
     heavy rotors cycle), one of B is the actor's to finish (`prompt_joints`); before the loop is
     timed every joint is watched, and `crossing_on_prompt_loop` off leaves all four alone."""
-    from policy.settle import SettleSupervisor
 
     def engaged(timed: bool, **law: object) -> list[bool]:
-        sup = SettleSupervisor(SettleLaw(**law), np.array([600.0, 600.0, 600.0, 300.0]))
+        law_ = SettleLaw(**law)  # type: ignore[arg-type]
+        sup = SettleSupervisor(law_, np.array([600.0, 600.0, 600.0, 300.0]))
         if timed:
             sup.latency_periods, sup._timed = 0.05, True
         target = np.ones(4)
@@ -314,7 +301,6 @@ def test_on_a_prompt_loop_the_fast_crossing_watch_leaves_b_to_the_actor() -> Non
 def test_on_a_latent_loop_a_joint_is_engaged_before_its_commands_carry_it_across() -> None:
     """With `latent_ahead`, a joint that will cross its goal within the loop's latency plus
     that many periods is handed over before it crosses; on a loop without latency it is not."""
-    from policy.settle import SettleSupervisor
 
     def first_engaged(latency: float, ahead: float) -> tuple[int | None, str]:
         sup = SettleSupervisor(SettleLaw(latent_ahead=ahead), np.full(4, 600.0))
@@ -338,7 +324,6 @@ def test_on_a_latent_loop_a_joint_is_engaged_before_its_commands_carry_it_across
 def test_the_controller_reports_what_its_supervisor_did() -> None:
     """`report()` (printed and recorded by `reach-driver run`) names the latency timed and each
     joint engaged, why and when; without the supervisor there is nothing to report."""
-    from policy.settle import SettleSupervisor
     from reach_driver.controllers import controller_report
 
     assert controller_report(make_controller(settle=False)) == {}
@@ -371,8 +356,6 @@ def test_a_failing_report_does_not_fail_the_run_it_describes() -> None:
 
 
 def _stuck_supervisor(**overrides: object) -> tuple[object, np.ndarray]:
-    from policy.settle import SettleSupervisor
-
     law = SettleLaw(
         jitter_speed=0.0,
         crossing_speed=0.0,
@@ -390,7 +373,6 @@ def test_the_stuck_watch_looks_beyond_the_band_of_the_other_watches() -> None:
     """With friction that holds, the actor leaves a weak joint 0.15-0.25 rad short (outside
     the 0.15 rad `band` the limit-cycle watches use): the stuck watch engages it up to
     `stuck_band`, and not beyond."""
-    from policy.settle import SettleSupervisor
 
     def engaged(short: float) -> bool:
         sup, target = _stuck_supervisor()
@@ -405,8 +387,6 @@ def test_the_stuck_watch_looks_beyond_the_band_of_the_other_watches() -> None:
 
 
 def test_the_noise_is_estimated_from_a_resting_joints_samples() -> None:
-    from policy.settle import SettleSupervisor
-
     sup, target = _stuck_supervisor()
     assert isinstance(sup, SettleSupervisor)
     rng = np.random.default_rng(0)
@@ -422,8 +402,6 @@ def test_the_noise_is_estimated_from_a_resting_joints_samples() -> None:
 def test_a_joint_stuck_again_restarts_its_ramp_below_where_it_broke_away() -> None:
     """Breakaway memory: after one breakaway the ramp need not climb the whole friction band
     again; it restarts `memory_margin` of the limit below the command it broke away at."""
-    from policy.settle import SettleSupervisor
-
     sup, target = _stuck_supervisor()
     assert isinstance(sup, SettleSupervisor)
     law = sup.law
@@ -460,8 +438,6 @@ def test_a_slip_is_seen_in_one_sample_of_measured_speed(raw: bool) -> None:
     3 sigma of the noise) is a breakaway, so the backoff goes out at once; the low-passed speed
     (0.02 rad/s after it) is not, and the ramp's command stays on while the joint slips (on a
     latent loop, through its goal). Likewise the stuck watch does not engage a slipping joint."""
-    from policy.settle import SettleSupervisor
-
     sup, target = _stuck_supervisor(raw_breakaway=raw)
     assert isinstance(sup, SettleSupervisor)
     t = 0.0
@@ -493,8 +469,6 @@ def test_a_joint_carried_through_its_goal_ramps_back_from_the_hold(reverse: floa
     other side with its command still pushing the first way, restarts its ramp from the
     actor's hold instead of climbing back across the whole friction band; only where it broke
     away `reverse_to_hold` of the limit or more from the hold (here 300 mA: 0.5 of it)."""
-    from policy.settle import SettleSupervisor
-
     sup, target = _stuck_supervisor(reverse_to_hold=reverse, raw_breakaway=False)
     assert isinstance(sup, SettleSupervisor)
     hold = np.array([0.0, 50.0, 0.0, 0.0])
@@ -527,8 +501,6 @@ def test_a_joint_creeping_into_its_goal_has_some_command_taken_off_once() -> Non
     """A weak joint left on a command just past breakaway creeps on through its goal and sticks
     on the far side; as it creeps into `stuck_error` the arrival takes `arrive` of the limit
     off its command, once."""
-    from policy.settle import SettleSupervisor
-
     sup, target = _stuck_supervisor(ramp=0.0)  # no ramp: only the arrival moves u_I
     assert isinstance(sup, SettleSupervisor)
     law = sup.law
@@ -568,13 +540,94 @@ def test_on_a_twin_whose_friction_holds_the_stuck_watch_finishes_a_weak_joint() 
     assert ctrl.settle is not None and ctrl.settle.reasons[1] == "stuck"
 
 
+@pytest.mark.parametrize("check", [True, False])
+def test_a_take_off_the_joint_backs_out_from_is_given_back(check: bool) -> None:
+    """`arrive_check`: on a frictionless weak joint the arrival's take-off is what held it
+    up; it backs out of twice `stuck_error` on the side it arrived from (not across), gets
+    the take-off back, and no more are taken on that target."""
+    sup, target = _stuck_supervisor(ramp=0.0, arrive_check=check)
+    assert isinstance(sup, SettleSupervisor)
+    u = np.array([0.0, 400.0, 0.0, 0.0])
+    t = 0.0
+
+    def at(e: float, v: float) -> float:
+        nonlocal t
+        sup.update(t, np.array([0, -e, 0, 0]), np.array([0, v, 0, 0]), target, u, u)
+        t += 0.05
+        return float(sup.u_i[1])
+
+    for _ in range(30):  # at rest 0.05 rad short under 400 mA: engaged as stuck
+        at(0.05, 0.0)
+    assert sup.engaged[1]
+    took = sup.law.arrive * 600.0
+    e = 0.03
+    while e > 0.005:  # creeps in at 0.04 rad/s: the take-off
+        held = at(e, 0.04)
+        e -= 0.002
+    assert held == pytest.approx(400.0 - took)
+    while e < 0.05:  # falls back out the way it came
+        held = at(e, -0.04)
+        e += 0.002
+    assert held == pytest.approx(400.0 if check else 400.0 - took)
+    while e > 0.005:  # and creeps in again
+        held = at(e, 0.04)
+        e -= 0.002
+    assert held == pytest.approx(400.0 if check else 400.0 - 2 * took)
+
+
+def _leave_goal(fall_ramp: float, v: float, dv: float) -> tuple[np.ndarray, bool]:
+    """C engaged (bang-banging about its goal), at rest on it, then leaving it upwards at `v`
+    rad/s, `dv` more each period (inside `release`): u_I each period, and whether the
+    joint's hold is marked bad."""
+    law = SettleLaw(jitter_speed=0.0, crossing_speed=0.0, stuck=False, fall_ramp=fall_ramp)
+    sup = SettleSupervisor(law, np.array([600.0, 600.0, 600.0, 300.0]))
+    target = np.ones(4)
+    t = 0.0
+    for k in range(60):
+        phase = 1.0 if (k // 4) % 2 == 0 else -1.0
+        q, qdot = target.copy(), np.zeros(4)
+        if k < 40:
+            q[2] += 0.03 * phase
+            qdot[2] = -phase
+        sup.update(t, q, qdot, target, np.array([10.0, 10.0, 400.0 * phase, 5.0]), np.zeros(4))
+        t += 0.05
+    assert sup.engaged[2]
+    x, u_i = 0.0, []
+    for _ in range(30):
+        q = target.copy()
+        q[2] += x
+        sup.update(t, q, np.array([0.0, 0.0, v, 0.0]), target, np.zeros(4), np.zeros(4))
+        u_i.append(float(sup.u_i[2]))
+        x, t, v = x + 0.05 * v, t + 0.05, float(np.clip(v + dv, 0.0, 0.3 if dv > 0 else 1.0))
+    assert sup.engaged[2]
+    return np.array(u_i), bool(sup._hold_bad[2])
+
+
+def test_a_falling_engaged_joint_ramps_towards_its_goal_a_coasting_one_does_not() -> None:
+    """`fall_ramp`: an engaged joint outside `band` moving away from its goal ever faster (a
+    weak joint its command does not hold) ramps u_I towards its goal at `fall_ramp` of the
+    stuck ramp's rate, and its hold is marked bad; one that left its goal fast and slows (a
+    coast through it) is left to the gains."""
+    fell, bad = _leave_goal(1.0, 0.0, 0.06)  # 0 to 0.3 rad/s, out to 0.4 rad
+    fell_off, bad_off = _leave_goal(0.0, 0.0, 0.06)
+    ramp = fell - fell_off
+    outside = ramp != 0
+    assert outside.sum() >= 10  # its last 0.25 rad, beyond `band`
+    per_period = SettleLaw().ramp[2] * 600.0 * 0.05
+    np.testing.assert_allclose(np.diff(ramp[outside]), -per_period)  # down: towards the goal
+    assert bad and not bad_off
+    coast, bad = _leave_goal(1.0, 0.6, -0.04)  # leaves at 0.6 rad/s and slows: out to 0.24 rad
+    coast_off, _ = _leave_goal(0.0, 0.6, -0.04)
+    np.testing.assert_array_equal(coast, coast_off)
+    assert not bad
+
+
 def test_a_joint_creeping_in_slower_than_its_speed_shows_is_not_stuck() -> None:
     """`creep_arrive_s`: a joint creeping in at 0.025 rad/s reads as slow (the speed floor is
     `stuck_speed`, higher still under noise), but its low-passed error shrinks by more than
     `progress`, fast enough to arrive within 4 s: it is not engaged (engaged on the actor's
     command that moved it, draw 421 of seed 3 slid 24 mrad through its goal). Once it stops it
     is, and so is a creep too slow to arrive in time (5 mrad/s from 0.2 rad)."""
-    from policy.settle import SettleSupervisor
 
     def run(creep_arrive_s: float, e: float, speed: float) -> tuple[bool, bool]:
         sup, target = _stuck_supervisor(creep_arrive_s=creep_arrive_s)
@@ -604,8 +657,6 @@ def test_a_ramping_joint_that_reaches_freeze_has_its_ramp_backed_off(
     between `stuck_error` and `freeze`, and arriving inside `freeze` used to forget the ramp
     instead: the joint went on under it, through its goal (draw 520 of seed 2: C, 21 mrad
     past). Here `progress` stands for the noise floor."""
-    from policy.settle import SettleSupervisor
-
     sup, target = _stuck_supervisor(progress=0.015, freeze_breakaway=freeze_breakaway)
     assert isinstance(sup, SettleSupervisor)
     t, e = 0.0, 0.02
@@ -635,8 +686,6 @@ def test_the_jitter_watch_takes_a_dithering_joint_within_a_second_not_an_arrival
     `jitter_s` (1 s) after it entered `jitter_band`; an arrival's last 0.4 s at 0.3 rad/s
     inside the band falls before the RMS window (`jitter_window_s`, 0.5 s) and is not.
     Draw 577 of seed 2 spent 0.5 J after settling in the 1.5 s the watch used to wait."""
-    from policy.settle import SettleSupervisor
-
     law = SettleLaw(crossing_speed=0.0, stuck=False, cycles=False)
 
     def first_engaged(speeds: list[float]) -> float | None:
@@ -670,8 +719,6 @@ def test_a_joint_that_crept_across_its_goal_on_its_hold_is_ramped_at_the_creep_r
     rate it kicked such joints 40 mrad back through: draws 524 of seed 2, 216 and 999 of seed
     5, 401 of seed 6). A joint stuck on the side it stopped on, or pushed across by what is
     left of a long ramp (`creep_hold`), ramps at the full rate."""
-    from policy.settle import SettleSupervisor
-
     hold = np.zeros(4)
 
     def ramp_per_s(creep_rate: float, cross: bool, push_s: float = 1.25) -> float:
@@ -682,7 +729,7 @@ def test_a_joint_that_crept_across_its_goal_on_its_hold_is_ramped_at_the_creep_r
         def step(e: float, speed: float) -> None:
             nonlocal t
             q = target - np.array([0, e, 0, 0])
-            sup.update(t, q, np.array([0, speed, 0, 0]), target, ZERO4, hold)
+            sup.update(t, q, np.array([0, speed, 0, 0]), target, np.zeros(4), hold)
             t += 0.05
 
         for _ in range(round(push_s / 0.05)):  # stuck 20 mrad short: engaged, and ramping
@@ -744,9 +791,13 @@ def test_fresh_draws_the_supervisor_used_to_miss_are_reached(
 @pytest.mark.parametrize(
     ("index", "off"),
     [
-        (612, {"hold_check": False}),  # D at 25 %, heavy: the reversal's jump to the hold
+        # D at 25 %, heavy: the reversal's jump to the hold (a fall, too: either reaches it)
+        (612, {"hold_check": False, "fall_ramp": 0.0}),
         (63, {"hold_check": False}),  # C at 25 %, heavy: engaged for jitter on the hold
         (132, {"arrive_decay": 1.0}),  # D at 25 %, heavy: pushed back across its goal alike
+        (448, {"fall_ramp": 0.0}),  # C at 25 %, heavy, latent: falls from the hold, 6 times
+        (457, {"fall_memory": False}),  # D at 25 %, heavy, latent: engaged again on the hold
+        (442, {"arrive_check": False}),  # D at 25 %, heavy: the take-off was its hold
     ],
 )
 def test_weak_heavy_corners_the_supervisor_used_to_miss_are_reached(
@@ -756,7 +807,10 @@ def test_weak_heavy_corners_the_supervisor_used_to_miss_are_reached(
     (docs/robustness.md, "Twelfth round"). The actor's learned hold is a fraction of what
     holds such a joint: moved onto it, the joint fell and was missed, and `hold_check` sees
     the fall begin and undoes the move. And the `arrive` push back across the goal is a kick
-    there, each one alike, so the joint hunted to the end; `arrive_decay` halves each."""
+    there, each one alike, so the joint hunted to the end; `arrive_decay` halves each.
+    Engaged on the hold as it crossed its goal (thirteenth round), a weak joint fell where the
+    hold check could not see it; `fall_ramp` ramps it back, `fall_memory` keeps what it ramped
+    when it is engaged again, and `arrive_check` gives back a take-off it fell from."""
     episode, config, ep_seed = _robustness_arm("corners", index)
     shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
     assert shipped.reached and shipped.at_rest
