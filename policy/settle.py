@@ -141,7 +141,11 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
   (`fall_memory`). The ramp runs on for the latency and the filter's lag and may carry it
   through: each fall on the other side of the goal from the last one ramps at `fall_decay` of
   the rate before. Calling a joint falling whenever its low-passed speed away had not dropped
-  since the last sample ramped coasting joints on their noise (3 corners lost);
+  since the last sample ramped coasting joints on their noise (3 corners lost). Such a joint
+  is weak or heavy, and at 25 % torque the soft gains act as a quarter of themselves: they
+  swung a weak C about its goal with a period of 8 s (0.34, 0.28, 0.16, 0.08 rad out); on a
+  joint whose hold is marked bad they are `fall_gain` (2) times as stiff (9 more of the
+  corners reached, none lost; 3 or 4 times reached none of the rest);
 - a take-off that held: on a frictionless weak joint the arrival's `arrive` take-off is what
   held it up (a weak D taken 30 mA off as it crept in fell back 0.1 rad, crept in again
   over 4 s and was taken off again, to the end). A joint that backs out of twice
@@ -295,6 +299,11 @@ class SettleLaw:
     arrive_check: bool = True  # an arrival's take-off (`arrive`) after which the joint backs out
     # of `2 stuck_error` on the side it arrived from is given back, and no more are taken on
     # this target: on a frictionless weak joint it was what held the joint up
+    fall_gain: float = 2.0  # >= 1: times the gains (kp, kd, ki) on a joint whose hold is marked
+    # bad, a weak or heavy one: at 25 % torque the soft gains act as a quarter, and swung a C
+    # through its goal with a period of 8 s. Doubled, they use up their gain margin of 2 only
+    # on the envelope's lightest, strongest joint at its longest delay, which is not one the
+    # actor's hold fails (measured on the corners: 9 reached that were missed, none lost)
     raw_breakaway: bool = True  # a breakaway is also one sample's measured speed towards the
     # goal of `noise_sigmas` of its noise (and twice `stuck_speed`) or more: the low-passed
     # speed sees a slip 2-3 periods late, and on a latent loop the slip carries through the goal
@@ -333,6 +342,8 @@ class SettleLaw:
                 raise ValueError(f"settle {name} must be in (0, 1], got {getattr(self, name)}")
         if not (math.isfinite(self.fall_ramp) and self.fall_ramp >= 0):
             raise ValueError(f"settle fall_ramp must be >= 0, got {self.fall_ramp}")
+        if not (math.isfinite(self.fall_gain) and self.fall_gain >= 1):
+            raise ValueError(f"settle fall_gain must be >= 1, got {self.fall_gain}")
         if self.creep_hold < 0:
             raise ValueError(f"settle creep_hold must be >= 0, got {self.creep_hold}")
         if self.stuck_band <= 0 or self.noise_sigmas < 0 or self.arrive < 0:
@@ -728,7 +739,8 @@ class SettleSupervisor:
         limit = self.limits_mA[j]
         ef = self.e_f[j]
         if abs(ef) > law.freeze or abs(self.v_f[j]) >= law.stuck_speed:
-            self.u_i[j] += law.ki[j] * e * dt
+            gain = law.fall_gain if self._hold_bad[j] else 1.0
+            self.u_i[j] += gain * law.ki[j] * e * dt
         may_ramp = law.stuck if self.reasons[j] == "stuck" else law.ramp_engaged
         speed_floor, moved_floor = self._noise_floors(j, dt)
         slow = abs(self.v_f[j]) < max(law.stuck_speed, speed_floor)
@@ -838,5 +850,6 @@ class SettleSupervisor:
                     self._arrive_scale[j] *= law.arrive_decay
             self._side[j] = side
         self.u_i[j] = float(np.clip(self.u_i[j], -limit, limit))
-        cmd = self.u_i[j] + law.kp[j] * e - law.kd[j] * qdot
+        gain = law.fall_gain if self._hold_bad[j] else 1.0
+        cmd = self.u_i[j] + gain * (law.kp[j] * e - law.kd[j] * qdot)
         return float(np.clip(cmd, -limit, limit))

@@ -575,11 +575,15 @@ def test_a_take_off_the_joint_backs_out_from_is_given_back(check: bool) -> None:
     assert held == pytest.approx(400.0 if check else 400.0 - 2 * took)
 
 
-def _leave_goal(fall_ramp: float, v: float, dv: float) -> tuple[np.ndarray, bool]:
+def _leave_goal(
+    fall_ramp: float, v: float, dv: float, fall_gain: float = 1.0
+) -> tuple[np.ndarray, np.ndarray, bool]:
     """C engaged (bang-banging about its goal), at rest on it, then leaving it upwards at `v`
-    rad/s, `dv` more each period (inside `release`): u_I each period, and whether the
-    joint's hold is marked bad."""
-    law = SettleLaw(jitter_speed=0.0, crossing_speed=0.0, stuck=False, fall_ramp=fall_ramp)
+    rad/s, `dv` more each period (inside `release`): u_I and the command sent each period,
+    and whether the joint's hold is marked bad."""
+    law = SettleLaw(
+        jitter_speed=0.0, crossing_speed=0.0, stuck=False, fall_ramp=fall_ramp, fall_gain=fall_gain
+    )
     sup = SettleSupervisor(law, np.array([600.0, 600.0, 600.0, 300.0]))
     target = np.ones(4)
     t = 0.0
@@ -592,15 +596,16 @@ def _leave_goal(fall_ramp: float, v: float, dv: float) -> tuple[np.ndarray, bool
         sup.update(t, q, qdot, target, np.array([10.0, 10.0, 400.0 * phase, 5.0]), np.zeros(4))
         t += 0.05
     assert sup.engaged[2]
-    x, u_i = 0.0, []
+    x, u_i, out = 0.0, [], []
     for _ in range(30):
         q = target.copy()
         q[2] += x
-        sup.update(t, q, np.array([0.0, 0.0, v, 0.0]), target, np.zeros(4), np.zeros(4))
+        sent = sup.update(t, q, np.array([0.0, 0.0, v, 0.0]), target, np.zeros(4), np.zeros(4))
         u_i.append(float(sup.u_i[2]))
+        out.append(float(sent[2]) - u_i[-1])  # what the gains add
         x, t, v = x + 0.05 * v, t + 0.05, float(np.clip(v + dv, 0.0, 0.3 if dv > 0 else 1.0))
     assert sup.engaged[2]
-    return np.array(u_i), bool(sup._hold_bad[2])
+    return np.array(u_i), np.array(out), bool(sup._hold_bad[2])
 
 
 def test_a_falling_engaged_joint_ramps_towards_its_goal_a_coasting_one_does_not() -> None:
@@ -608,18 +613,33 @@ def test_a_falling_engaged_joint_ramps_towards_its_goal_a_coasting_one_does_not(
     weak joint its command does not hold) ramps u_I towards its goal at `fall_ramp` of the
     stuck ramp's rate, and its hold is marked bad; one that left its goal fast and slows (a
     coast through it) is left to the gains."""
-    fell, bad = _leave_goal(1.0, 0.0, 0.06)  # 0 to 0.3 rad/s, out to 0.4 rad
-    fell_off, bad_off = _leave_goal(0.0, 0.0, 0.06)
+    fell, _, bad = _leave_goal(1.0, 0.0, 0.06)  # 0 to 0.3 rad/s, out to 0.4 rad
+    fell_off, _, bad_off = _leave_goal(0.0, 0.0, 0.06)
     ramp = fell - fell_off
     outside = ramp != 0
     assert outside.sum() >= 10  # its last 0.25 rad, beyond `band`
     per_period = SettleLaw().ramp[2] * 600.0 * 0.05
     np.testing.assert_allclose(np.diff(ramp[outside]), -per_period)  # down: towards the goal
     assert bad and not bad_off
-    coast, bad = _leave_goal(1.0, 0.6, -0.04)  # leaves at 0.6 rad/s and slows: out to 0.24 rad
-    coast_off, _ = _leave_goal(0.0, 0.6, -0.04)
+    coast, _, bad = _leave_goal(1.0, 0.6, -0.04)  # leaves at 0.6 rad/s and slows: out to 0.24 rad
+    coast_off, _, _ = _leave_goal(0.0, 0.6, -0.04)
     np.testing.assert_array_equal(coast, coast_off)
     assert not bad
+
+
+def test_a_joint_whose_hold_failed_gets_fall_gain_times_the_gains() -> None:
+    """`fall_gain`: once a joint is seen falling (its hold marked bad) its proportional and
+    damping terms are `fall_gain` times the law's; before, and on a coasting joint, not."""
+    _, gains1, _ = _leave_goal(1.0, 0.0, 0.06)
+    _, gains2, bad = _leave_goal(1.0, 0.0, 0.06, fall_gain=2.0)
+    assert bad
+    doubled = np.isclose(gains2, 2 * gains1) & (np.abs(gains1) > 1.0)
+    same = np.isclose(gains2, gains1)
+    first = int(np.argmax(~same))  # the first period the hold is bad: from there on, doubled
+    assert first > 0 and same[:first].all() and doubled[first:].all()
+    _, coast1, _ = _leave_goal(1.0, 0.6, -0.04)
+    _, coast2, _ = _leave_goal(1.0, 0.6, -0.04, fall_gain=2.0)
+    np.testing.assert_array_equal(coast1, coast2)
 
 
 def test_a_joint_creeping_in_slower_than_its_speed_shows_is_not_stuck() -> None:
@@ -791,13 +811,21 @@ def test_fresh_draws_the_supervisor_used_to_miss_are_reached(
 @pytest.mark.parametrize(
     ("index", "off"),
     [
-        # D at 25 %, heavy: the reversal's jump to the hold (a fall, too: either reaches it)
+        # Each arm's mechanism is turned off with whatever else now reaches it too.
+        # D at 25 %, heavy: the reversal's jump to the hold (a fall too)
         (612, {"hold_check": False, "fall_ramp": 0.0}),
-        (63, {"hold_check": False}),  # C at 25 %, heavy: engaged for jitter on the hold
-        (132, {"arrive_decay": 1.0}),  # D at 25 %, heavy: pushed back across its goal alike
-        (448, {"fall_ramp": 0.0}),  # C at 25 %, heavy, latent: falls from the hold, 6 times
-        (457, {"fall_memory": False}),  # D at 25 %, heavy, latent: engaged again on the hold
-        (442, {"arrive_check": False}),  # D at 25 %, heavy: the take-off was its hold
+        # C at 25 %, heavy: engaged for jitter on the hold
+        (63, {"hold_check": False, "fall_gain": 1.0}),
+        # D at 25 %, heavy: pushed back across its goal alike
+        (132, {"arrive_decay": 1.0, "fall_gain": 1.0}),
+        # C at 25 %, heavy, latent: falls from the hold, six times
+        (448, {"fall_ramp": 0.0}),
+        # D at 25 %, heavy, latent: engaged again on the hold
+        (457, {"fall_memory": False, "fall_gain": 1.0}),
+        # D at 25 %, heavy: the take-off was its hold
+        (442, {"arrive_check": False}),
+        # C at 25 %, heavy, latent: swung through its goal by the soft gains for 20 s
+        (128, {"fall_gain": 1.0}),
     ],
 )
 def test_weak_heavy_corners_the_supervisor_used_to_miss_are_reached(
@@ -810,7 +838,8 @@ def test_weak_heavy_corners_the_supervisor_used_to_miss_are_reached(
     there, each one alike, so the joint hunted to the end; `arrive_decay` halves each.
     Engaged on the hold as it crossed its goal (thirteenth round), a weak joint fell where the
     hold check could not see it; `fall_ramp` ramps it back, `fall_memory` keeps what it ramped
-    when it is engaged again, and `arrive_check` gives back a take-off it fell from."""
+    when it is engaged again, `arrive_check` gives back a take-off it fell from, and
+    `fall_gain` doubles the soft gains, a quarter of what they should be on such a joint."""
     episode, config, ep_seed = _robustness_arm("corners", index)
     shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
     assert shipped.reached and shipped.at_rest
