@@ -355,7 +355,7 @@ def test_a_failing_report_does_not_fail_the_run_it_describes() -> None:
     assert controller_report(object()) == {}
 
 
-def _stuck_supervisor(**overrides: object) -> tuple[object, np.ndarray]:
+def _stuck_supervisor(**overrides: object) -> tuple[SettleSupervisor, np.ndarray]:
     law = SettleLaw(
         jitter_speed=0.0,
         crossing_speed=0.0,
@@ -376,7 +376,6 @@ def test_the_stuck_watch_looks_beyond_the_band_of_the_other_watches() -> None:
 
     def engaged(short: float) -> bool:
         sup, target = _stuck_supervisor()
-        assert isinstance(sup, SettleSupervisor)
         q = np.array([0.0, -short, 0.0, 0.0])
         for k in range(40):
             sup.update(0.05 * k, q, np.zeros(4), target, np.array([0.0, 300.0, 0.0, 0.0]))
@@ -388,7 +387,6 @@ def test_the_stuck_watch_looks_beyond_the_band_of_the_other_watches() -> None:
 
 def test_the_noise_is_estimated_from_a_resting_joints_samples() -> None:
     sup, target = _stuck_supervisor()
-    assert isinstance(sup, SettleSupervisor)
     rng = np.random.default_rng(0)
     for k in range(400):  # 20 s at rest: position noise 6 mrad, speed noise 0.06 rad/s on D
         q = np.array([0.0, 0.006, 0.0, 0.0]) * rng.standard_normal(4)
@@ -403,7 +401,6 @@ def test_a_joint_stuck_again_restarts_its_ramp_below_where_it_broke_away() -> No
     """Breakaway memory: after one breakaway the ramp need not climb the whole friction band
     again; it restarts `memory_margin` of the limit below the command it broke away at."""
     sup, target = _stuck_supervisor()
-    assert isinstance(sup, SettleSupervisor)
     law = sup.law
     t = 0.0
 
@@ -439,7 +436,6 @@ def test_a_slip_is_seen_in_one_sample_of_measured_speed(raw: bool) -> None:
     (0.02 rad/s after it) is not, and the ramp's command stays on while the joint slips (on a
     latent loop, through its goal). Likewise the stuck watch does not engage a slipping joint."""
     sup, target = _stuck_supervisor(raw_breakaway=raw)
-    assert isinstance(sup, SettleSupervisor)
     t = 0.0
 
     def step(v: float, n: int) -> float:
@@ -470,7 +466,6 @@ def test_a_joint_carried_through_its_goal_ramps_back_from_the_hold(reverse: floa
     actor's hold instead of climbing back across the whole friction band; only where it broke
     away `reverse_to_hold` of the limit or more from the hold (here 300 mA: 0.5 of it)."""
     sup, target = _stuck_supervisor(reverse_to_hold=reverse, raw_breakaway=False)
-    assert isinstance(sup, SettleSupervisor)
     hold = np.array([0.0, 50.0, 0.0, 0.0])
     t = 0.0
 
@@ -502,7 +497,6 @@ def test_a_joint_creeping_into_its_goal_has_some_command_taken_off_once() -> Non
     on the far side; as it creeps into `stuck_error` the arrival takes `arrive` of the limit
     off its command, once."""
     sup, target = _stuck_supervisor(ramp=0.0)  # no ramp: only the arrival moves u_I
-    assert isinstance(sup, SettleSupervisor)
     law = sup.law
     u = np.array([0.0, 400.0, 0.0, 0.0])
     t = 0.0
@@ -546,7 +540,6 @@ def test_a_take_off_the_joint_backs_out_from_is_given_back(check: bool) -> None:
     up; it backs out of twice `stuck_error` on the side it arrived from (not across), gets
     the take-off back, and no more are taken on that target."""
     sup, target = _stuck_supervisor(ramp=0.0, arrive_check=check)
-    assert isinstance(sup, SettleSupervisor)
     u = np.array([0.0, 400.0, 0.0, 0.0])
     t = 0.0
 
@@ -651,7 +644,6 @@ def test_a_joint_creeping_in_slower_than_its_speed_shows_is_not_stuck() -> None:
 
     def run(creep_arrive_s: float, e: float, speed: float) -> tuple[bool, bool]:
         sup, target = _stuck_supervisor(creep_arrive_s=creep_arrive_s)
-        assert isinstance(sup, SettleSupervisor)
         t = 0.0
         for _ in range(32):  # 1.6 s creeping in, longer than `stuck_s`
             q = target - np.array([0, e, 0, 0])
@@ -678,7 +670,6 @@ def test_a_ramping_joint_that_reaches_freeze_has_its_ramp_backed_off(
     instead: the joint went on under it, through its goal (draw 520 of seed 2: C, 21 mrad
     past). Here `progress` stands for the noise floor."""
     sup, target = _stuck_supervisor(progress=0.015, freeze_breakaway=freeze_breakaway)
-    assert isinstance(sup, SettleSupervisor)
     t, e = 0.0, 0.02
     for _ in range(41):  # stuck 20 mrad short: engaged after 1 s, then a second of ramp
         sup.update(t, target - np.array([0, e, 0, 0]), np.zeros(4), target, np.zeros(4))
@@ -743,7 +734,6 @@ def test_a_joint_that_crept_across_its_goal_on_its_hold_is_ramped_at_the_creep_r
 
     def ramp_per_s(creep_rate: float, cross: bool, push_s: float = 1.25) -> float:
         sup, target = _stuck_supervisor(creep_rate=creep_rate)
-        assert isinstance(sup, SettleSupervisor)
         t, e = 0.0, 0.02
 
         def step(e: float, speed: float) -> None:
