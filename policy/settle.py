@@ -32,6 +32,12 @@ Watching (per joint, within `band` of the goal):
   speed within the latency plus `latent_ahead` (1) periods: the commands already in flight
   carry it that far, and a crossing seen only once it has happened was a full-speed swing
   through the settling band (0.4-0.7 J spent after the joint counted as settled);
+- **reversing** (`reversing_speed` > 0, E D C: `prompt_joints`): the measured speed reverses
+  between two samples, `reversing_speed` (0.5 rad/s) or faster both ways. On a prompt loop
+  the actor bang-bangs a strong frictionless joint at its goal at the no-load speed each way
+  (+1.17, -0.75, +1.17, -1.17 rad/s on E), within its band and short of its goal, so the
+  crossing watch sees it only once it crosses, 0.5 J later; noise does not reverse that fast,
+  and a braked arrival does not reverse at all;
 - **jitter** (`jitter_speed` > 0): after `jitter_s` (1 s) within `jitter_band`, the RMS of
   the measured speed over the last `jitter_window_s` (0.5 s, so that an arrival's last swing
   inside the band falls before it) exceeds `jitter_speed` (the sensor noise alone gives
@@ -304,6 +310,10 @@ class SettleLaw:
     # through its goal with a period of 8 s. Doubled, they use up their gain margin of 2 only
     # on the envelope's lightest, strongest joint at its longest delay, which is not one the
     # actor's hold fails (measured on the corners: 9 reached that were missed, none lost)
+    reversing_speed: float = 0.5  # rad/s, >= 0 (0: off): engage a joint of `prompt_joints`
+    # inside `band` whose measured speed reverses between two samples, this fast both ways (a
+    # strong frictionless joint the actor bang-bangs about its goal, full speed each way; 0.25
+    # also took arrivals on Table I's arms, and the soft law parked them 3 mrad out)
     raw_breakaway: bool = True  # a breakaway is also one sample's measured speed towards the
     # goal of `noise_sigmas` of its noise (and twice `stuck_speed`) or more: the low-passed
     # speed sees a slip 2-3 periods late, and on a latent loop the slip carries through the goal
@@ -342,6 +352,8 @@ class SettleLaw:
                 raise ValueError(f"settle {name} must be in (0, 1], got {getattr(self, name)}")
         if not (math.isfinite(self.fall_ramp) and self.fall_ramp >= 0):
             raise ValueError(f"settle fall_ramp must be >= 0, got {self.fall_ramp}")
+        if not (math.isfinite(self.reversing_speed) and self.reversing_speed >= 0):
+            raise ValueError(f"settle reversing_speed must be >= 0, got {self.reversing_speed}")
         if not (math.isfinite(self.fall_gain) and self.fall_gain >= 1):
             raise ValueError(f"settle fall_gain must be >= 1, got {self.fall_gain}")
         if self.creep_hold < 0:
@@ -396,6 +408,7 @@ class SettleSupervisor:
         self.limits_mA = np.asarray(self.limits_mA, dtype=float)
         watched = self.law.prompt_joints if self.law.crossing_on_prompt_loop else ""
         self._prompt_watch = np.array([letter in watched for letter in JOINT_LETTERS])
+        self._reverse_watch = np.array([x in self.law.prompt_joints for x in JOINT_LETTERS])
         self.reset()
 
     def reset(self) -> None:
@@ -508,6 +521,7 @@ class SettleSupervisor:
         b = min(1.0, dt / law.hold_filter_s)
         self.u_f = np.where(self._fresh, u, self.u_f + b * (u - self.u_f))
         self._fresh[:] = False
+        v_last = self._v_prev.copy()
         self._estimate_noise(dt, e, qdot)
         near = np.abs(e) < law.band
         self._v2[self._v2_n % self._v2.shape[0]] = qdot**2
@@ -531,6 +545,10 @@ class SettleSupervisor:
                 self._release(j)
             if not self.engaged[j]:
                 self._watch(j, now, dt, near[j], e[j], u[j], qdot[j])
+            if not self.engaged[j] and near[j] and law.reversing_speed > 0:
+                if self._reverse_watch[j] and qdot[j] * v_last[j] < 0:
+                    if min(abs(qdot[j]), abs(v_last[j])) >= law.reversing_speed:
+                        self._engage(j, now, "reversing")
             if not self.engaged[j] and crossing_speed[j] > 0:
                 crossed = self._e_prev[j] * e[j] < 0
                 if crossed and abs(qdot[j]) >= crossing_speed[j]:

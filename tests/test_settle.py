@@ -92,7 +92,7 @@ def test_settle_changes_nothing_on_a_nominal_episode() -> None:
 
 
 def test_supervisor_engages_one_cycling_joint_within_a_second_and_releases_it() -> None:
-    law = SettleLaw(jitter_speed=0.0, crossing_speed=0.0)
+    law = SettleLaw(jitter_speed=0.0, crossing_speed=0.0, reversing_speed=0.0)
     sup = SettleSupervisor(law, np.array([600.0, 600.0, 600.0, 300.0]))
     target = np.array([1.0, 1.0, 1.0, 1.0])
     engaged_at = None
@@ -771,7 +771,7 @@ def test_a_joint_that_crept_across_its_goal_on_its_hold_is_ramped_at_the_creep_r
 @pytest.mark.parametrize(
     ("seed", "index", "off"),
     [
-        (2, 577, {"jitter_s": 1.5, "jitter_window_s": 1.0}),
+        (2, 577, {"jitter_s": 1.5, "jitter_window_s": 1.0, "reversing_speed": 0.0}),
         (4, 849, {"jitter_s": 1.5, "jitter_window_s": 1.0}),
         (3, 421, {"creep_arrive_s": 0.0}),
         (2, 520, {"freeze_breakaway": False, "creep_rate": 1.0}),  # either finishes it now
@@ -805,7 +805,7 @@ def test_fresh_draws_the_supervisor_used_to_miss_are_reached(
         # D at 25 %, heavy: the reversal's jump to the hold (a fall too)
         (612, {"hold_check": False, "fall_ramp": 0.0}),
         # C at 25 %, heavy: engaged for jitter on the hold
-        (63, {"hold_check": False, "fall_gain": 1.0}),
+        (63, {"hold_check": False, "fall_gain": 1.0, "reversing_speed": 0.0}),
         # D at 25 %, heavy: pushed back across its goal alike
         (132, {"arrive_decay": 1.0, "fall_gain": 1.0}),
         # C at 25 %, heavy, latent: falls from the hold, six times
@@ -835,3 +835,48 @@ def test_weak_heavy_corners_the_supervisor_used_to_miss_are_reached(
     assert shipped.reached and shipped.at_rest
     before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
     assert not before.reached
+
+
+def test_a_joint_whose_speed_reverses_at_speed_near_its_goal_is_engaged() -> None:
+    """`reversing_speed`: a strong frictionless joint the actor bang-bangs about its goal
+    reverses at full speed from one sample to the next, inside the band and without crossing
+    its goal (the crossing watch does not see it); noise does not reverse that fast, and B,
+    whose arrivals the actor finishes (`prompt_joints`), is left alone."""
+
+    def engaged(speeds: list[float], joint: int = 0, **law: object) -> bool:
+        law_ = SettleLaw(
+            crossing_speed=0.0,
+            jitter_speed=0.0,
+            stuck=False,
+            **law,  # type: ignore[arg-type]
+        )
+        sup = SettleSupervisor(law_, np.array([600.0, 600.0, 600.0, 300.0]))
+        target = np.ones(4)
+        for k, v in enumerate(speeds):
+            q, qdot = target.copy(), np.zeros(4)
+            q[joint] -= 0.04 - 0.01 * (k % 2)  # short of its goal, inside `band`
+            qdot[joint] = v
+            sup.update(0.05 * k, q, qdot, target, np.zeros(4))
+        return bool(sup.engaged[joint]) and sup.reasons[joint] == "reversing"
+
+    swing = [1.17, -0.75, 1.17, -1.17]
+    assert engaged(swing)
+    assert engaged(swing, joint=2)
+    assert not engaged(swing, reversing_speed=0.0)
+    assert not engaged(swing, joint=3)  # B
+    assert not engaged([0.4, -0.4, 0.4, -0.4])  # slower than `reversing_speed` each way
+    assert not engaged([1.17, 0.6, 0.1, 0.0])  # a braked arrival
+
+
+@pytest.mark.parametrize("index", [74, 234])
+def test_corners_whose_e_the_actor_bang_banged_at_its_goal_are_reached(index: int) -> None:
+    """Frictionless corners where the actor bang-bangs E at its goal at the no-load speed
+    each way, inside its settling band (docs/robustness.md, "Fourteenth round"): 0.5 J and
+    more after settling, until the crossing watch took it. `reversing_speed` takes it at the
+    first full-speed reversal."""
+    episode, config, ep_seed = _robustness_arm("corners", index)
+    shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
+    assert shipped.reached and shipped.at_rest
+    off = {"reversing_speed": 0.0}
+    before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
+    assert not before.at_rest and before.energy_after_settling_j > 0.5
