@@ -81,21 +81,24 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
 - while the joint is stuck outside `stuck_error` it also ramps at `ramp` (fraction of the
   current limit per second) towards the goal, so that Coulomb friction (6.6 N m is 330 mA on
   E D C) is overcome in a few seconds; at breakaway, `backoff` of the ramp added since it
-  stuck is taken back (the excess over breakaway would otherwise carry it through). Breakaway
-  is the low-passed speed reaching `stuck_speed` or the low-passed error shrinking by
-  `progress` since the ramp began: a joint creeping in at 0.01 rad/s is below what the noisy
-  speed can show, and ramping on drove a slow stick-slip cycle across the goal. A ramp fast
-  enough for 6.6 N m breaks a joint with 0.2 N m away with several times its friction, and
-  with latency it sticks again on the other side: each time that happens the joint's ramp
-  rate is multiplied by `ramp_decay` (0.7, down to `ramp_floor`, 0.3 of it), so the hunting
-  dies out while a high-friction joint still breaks away in seconds. Breakaway counts only
-  towards the goal (a joint slipping away from it under gravity has not broken free of the
-  ramp). With `raw_breakaway` a single sample of measured speed towards the goal beyond what
-  the noise explains is a breakaway too, and stops the stuck watch engaging a joint that has
-  just begun to slip (engaged on the actor's low-passed command, one slid 0.12 rad, past its
-  goal): the low-passed speed sees a slip 2-3 periods late, and with 1-2 periods of latency
-  the ramp's command swung a 6 N m joint 0.05 rad, from one side of its goal to the
-  other, each time: a hunt across the tolerance at 0.1-0.3 J a swing;
+  stuck is taken back (the excess over breakaway would otherwise carry it through).
+  Breakaway is the low-passed speed reaching `stuck_speed` or the low-passed error shrinking
+  by `progress` since the ramp began: a joint creeping in at 0.01 rad/s is below what the
+  noisy speed can show, and ramping on drove a slow stick-slip cycle across the goal. A ramp
+  fast enough for 6.6 N m breaks a joint with 0.2 N m away with several times its friction,
+  and with latency it sticks again on the other side: each time that happens the joint's
+  ramp rate is multiplied by `ramp_decay` (0.7, down to `ramp_floor`, 0.3 of it), so the
+  hunting dies out while a high-friction joint still breaks away in seconds. On B the rate
+  also grows with what the ramp has climbed without a breakaway (`ramp_grow`: doubled after
+  10 % of the limit, 30 mA): B's ramp is slow, and a weak B's friction is 90 mA of its
+  command. Breakaway counts only towards the goal (a joint slipping away from it under
+  gravity has not broken free of the ramp). With `raw_breakaway` a single sample of measured
+  speed towards the goal beyond what the noise explains is a breakaway too, and stops the
+  stuck watch engaging a joint that has just begun to slip (engaged on the actor's
+  low-passed command, one slid 0.12 rad, past its goal): the low-passed speed sees a slip
+  2-3 periods late, and with 1-2 periods of latency the ramp's command swung a 6 N m joint
+  0.05 rad, from one side of its goal to the other, each time: a hunt across the tolerance
+  at 0.1-0.3 J a swing;
 - breakaway memory: where friction holds, the backoff leaves the joint well inside its
   friction band and a re-ramp climbed the whole band again (7 s on a weak D). A joint that
   sticks again on the side it broke away from restarts `memory_margin` (5 % of the limit)
@@ -224,6 +227,11 @@ class SettleLaw:
     kd: tuple[float, float, float, float] = DEFAULT_KD
     ki: tuple[float, float, float, float] = DEFAULT_KI
     ramp: tuple[float, float, float, float] = DEFAULT_RAMP  # of the limit per second, stuck
+    ramp_grow: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.1)  # of the limit (0:
+    # off): a stuck ramp's rate grows by its base rate for each `ramp_grow` of the limit it
+    # has climbed without breaking away. B's base rate is slow (a fast one set a light B
+    # hunting), and on a weak B (25 % torque) its 0.16 N m of friction is 90 mA of command,
+    # six seconds of it; growing, under three
     backoff: float = 0.8  # of the ramp added since the joint stuck, taken back at breakaway
     freeze: float = 0.008  # rad, low-passed: no integration for a joint at rest inside
     ramp_decay: float = 0.7  # the ramp's rate is multiplied by this each time a joint sticks
@@ -319,7 +327,7 @@ class SettleLaw:
     # speed sees a slip 2-3 periods late, and on a latent loop the slip carries through the goal
 
     def __post_init__(self) -> None:
-        for name in ("kp", "kd", "ki", "ramp"):
+        for name in ("kp", "kd", "ki", "ramp", "ramp_grow"):
             object.__setattr__(self, name, _four(getattr(self, name)))
         positive = (
             "band",
@@ -829,6 +837,8 @@ class SettleSupervisor:
                         self._ramped[j] += jump
                         self._rate[j] = law.memory_rate
             rate = law.ramp[j] * self._ramp_scale[j] * self._rate[j]
+            if law.ramp_grow[j] > 0:
+                rate *= 1.0 + abs(self._ramped[j]) / (law.ramp_grow[j] * limit)
             step = math.copysign(rate * limit * dt, ef)
             self.u_i[j] += step
             self._ramped[j] += step

@@ -880,3 +880,46 @@ def test_corners_whose_e_the_actor_bang_banged_at_its_goal_are_reached(index: in
     off = {"reversing_speed": 0.0}
     before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
     assert not before.at_rest and before.energy_after_settling_j > 0.5
+
+
+def test_a_stuck_ramp_that_climbs_without_breaking_away_grows_on_b() -> None:
+    """`ramp_grow`: B's ramp is slow (a fast one set a light B hunting), and on a weak B
+    (25 % torque) its 0.16 N m of friction is 90 mA of command, six seconds of that ramp. Its
+    rate grows with what it has climbed without breaking away (x2 after `ramp_grow` of the
+    limit), so the weak B breaks free in under three; E, D and C ramp as before."""
+
+    def ramped(grow: float, joint: int) -> np.ndarray:
+        sup, target = _stuck_supervisor(ramp_grow=(grow, grow, grow, grow))
+        t, out = 0.0, []
+        for _ in range(100):  # 0.1 rad short for 5 s: engaged after 1 s, then ramps
+            e = np.zeros(4)
+            e[joint] = 0.1
+            sup.update(t, target - e, np.zeros(4), target, np.zeros(4), np.zeros(4))
+            out.append(float(sup.u_i[joint]))
+            t += 0.05
+        assert sup.engaged[joint] and sup.reasons[joint] == "stuck"
+        return np.array(out)
+
+    law = SettleLaw()
+    assert law.ramp_grow[:3] == (0.0, 0.0, 0.0) and law.ramp_grow[3] > 0
+    plain, grown = ramped(0.0, 3), ramped(law.ramp_grow[3], 3)
+    step = law.ramp[3] * 600.0 * 0.05
+    first = int(np.argmax(plain != 0))
+    assert np.diff(plain[first:]) == pytest.approx(step)  # linear
+    assert grown[first] == pytest.approx(plain[first])  # the same first step
+    expected = step * (1 + grown[first:-1] / (law.ramp_grow[3] * 600.0))
+    assert np.diff(grown[first:]) == pytest.approx(expected)
+    assert grown[-1] > 2 * plain[-1]
+
+
+@pytest.mark.parametrize("index", [464, 805])
+def test_corners_with_a_weak_b_held_by_friction_are_reached(index: int) -> None:
+    """A weak B (25 % torque) with 0.16 N m of friction, 90 mA of its command: at B's slow
+    base ramp it ended 20-22 mrad out, its ramp seconds into the climb (docs/robustness.md,
+    "Fourteenth round"); with `ramp_grow` it breaks free and finishes."""
+    episode, config, ep_seed = _robustness_arm("corners", index)
+    shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
+    assert shipped.reached and shipped.at_rest
+    off = {"ramp_grow": 0.0}
+    before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
+    assert not before.reached
