@@ -89,16 +89,16 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
   and with latency it sticks again on the other side: each time that happens the joint's
   ramp rate is multiplied by `ramp_decay` (0.7, down to `ramp_floor`, 0.3 of it), so the
   hunting dies out while a high-friction joint still breaks away in seconds. On B the rate
-  also grows with what the ramp has climbed without a breakaway (`ramp_grow`: doubled after
-  10 % of the limit, 30 mA): B's ramp is slow, and a weak B's friction is 90 mA of its
-  command. Breakaway counts only towards the goal (a joint slipping away from it under
-  gravity has not broken free of the ramp). With `raw_breakaway` a single sample of measured
-  speed towards the goal beyond what the noise explains is a breakaway too, and stops the
-  stuck watch engaging a joint that has just begun to slip (engaged on the actor's
-  low-passed command, one slid 0.12 rad, past its goal): the low-passed speed sees a slip
-  2-3 periods late, and with 1-2 periods of latency the ramp's command swung a 6 N m joint
-  0.05 rad, from one side of its goal to the other, each time: a hunt across the tolerance
-  at 0.1-0.3 J a swing;
+  also grows with what the ramp has added since the joint stuck (`ramp_grow`: doubled after
+  10 % of the limit, 30 mA; a memory restart's jump counts): B's ramp is slow, and a weak
+  B's friction is 90 mA of its command. Breakaway counts only towards the goal (a joint
+  slipping away from it under gravity has not broken free of the ramp). With `raw_breakaway`
+  a single sample of measured speed towards the goal beyond what the noise explains is a
+  breakaway too, and stops the stuck watch engaging a joint that has just begun to slip
+  (engaged on the actor's low-passed command, one slid 0.12 rad, past its goal): the
+  low-passed speed sees a slip 2-3 periods late, and with 1-2 periods of latency the ramp's
+  command swung a 6 N m joint 0.05 rad, from one side of its goal to the other, each time: a
+  hunt across the tolerance at 0.1-0.3 J a swing;
 - breakaway memory: where friction holds, the backoff leaves the joint well inside its
   friction band and a re-ramp climbed the whole band again (7 s on a weak D). A joint that
   sticks again on the side it broke away from restarts `memory_margin` (5 % of the limit)
@@ -229,9 +229,9 @@ class SettleLaw:
     ramp: tuple[float, float, float, float] = DEFAULT_RAMP  # of the limit per second, stuck
     ramp_grow: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.1)  # of the limit (0:
     # off): a stuck ramp's rate grows by its base rate for each `ramp_grow` of the limit it
-    # has climbed without breaking away. B's base rate is slow (a fast one set a light B
-    # hunting), and on a weak B (25 % torque) its 0.16 N m of friction is 90 mA of command,
-    # six seconds of it; growing, under three
+    # has added since the joint stuck (a breakaway memory's restart jump counts too). B's
+    # base rate is slow (a fast one set a light B hunting), and on a weak B (25 % torque) its
+    # 0.16 N m of friction is 90 mA of command, six seconds of it; growing, under three
     backoff: float = 0.8  # of the ramp added since the joint stuck, taken back at breakaway
     freeze: float = 0.008  # rad, low-passed: no integration for a joint at rest inside
     ramp_decay: float = 0.7  # the ramp's rate is multiplied by this each time a joint sticks
@@ -553,10 +553,10 @@ class SettleSupervisor:
                 self._release(j)
             if not self.engaged[j]:
                 self._watch(j, now, dt, near[j], e[j], u[j], qdot[j])
-            if not self.engaged[j] and near[j] and law.reversing_speed > 0:
-                if self._reverse_watch[j] and qdot[j] * v_last[j] < 0:
-                    if min(abs(qdot[j]), abs(v_last[j])) >= law.reversing_speed:
-                        self._engage(j, now, "reversing")
+            reversed_ = qdot[j] * v_last[j] < 0 and self._reverse_watch[j] and near[j]
+            fast = min(abs(qdot[j]), abs(v_last[j])) >= law.reversing_speed > 0
+            if not self.engaged[j] and reversed_ and fast:
+                self._engage(j, now, "reversing")
             if not self.engaged[j] and crossing_speed[j] > 0:
                 crossed = self._e_prev[j] * e[j] < 0
                 if crossed and abs(qdot[j]) >= crossing_speed[j]:
