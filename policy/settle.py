@@ -155,6 +155,13 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
   swung a weak C about its goal with a period of 8 s (0.34, 0.28, 0.16, 0.08 rad out); on a
   joint whose hold is marked bad they are `fall_gain` (2) times as stiff (9 more of the
   corners reached, none lost; 3 or 4 times reached none of the rest);
+- coasting: a weak joint need not fall to show it. Engaged as it crossed its goal at 1 rad/s,
+  a frictionless C at 25 % torque coasted 0.3-0.45 rad past it under the soft gains, swung
+  back and forth for the rest of the episode and was kicked on by the stuck ramp at each
+  turn (5 corners ended 20-40 mrad out). A joint still moving away from its goal `coast_s`
+  (0.7 s) after it was engaged, beyond `coast_band` (0.2 rad) on the far side, is marked as
+  one whose hold failed, and gets `fall_gain` too: every strong joint engaged near its goal
+  turned within 0.55 s and 0.26 rad;
 - a take-off that held: on a frictionless weak joint the arrival's `arrive` take-off is what
   held it up (a weak D taken 30 mA off as it crept in fell back 0.1 rad, crept in again
   over 4 s and was taken off again, to the end). A joint that backs out of twice
@@ -322,6 +329,14 @@ class SettleLaw:
     # inside `band` whose measured speed reverses between two samples, this fast both ways (a
     # strong frictionless joint the actor bang-bangs about its goal, full speed each way; 0.25
     # also took arrivals on Table I's arms, and the soft law parked them 3 mrad out)
+    coast_s: float = 0.7  # s (0: off): an engaged joint still coasting away from its goal
+    # this long after it was engaged, beyond `coast_band` on the far side of the goal from
+    # where it was engaged, is weak or heavy for the soft gains: they are `fall_gain` times as
+    # stiff on it from then on, as on a joint whose hold failed. On the corners every strong
+    # joint engaged near its goal turned within 0.55 s and 0.26 rad (seed 1, every second
+    # corner); a weak C (25 % torque) coasted 0.28-0.5 rad for 0.75-5 s and then swung about
+    # its goal with a period of 8 s, ramped on by the stuck ramp at each turn
+    coast_band: float = 0.2  # rad: past 0.15 it also took a strong, light D (0.17 rad)
     raw_breakaway: bool = True  # a breakaway is also one sample's measured speed towards the
     # goal of `noise_sigmas` of its noise (and twice `stuck_speed`) or more: the low-passed
     # speed sees a slip 2-3 periods late, and on a latent loop the slip carries through the goal
@@ -362,6 +377,8 @@ class SettleLaw:
             raise ValueError(f"settle fall_ramp must be >= 0, got {self.fall_ramp}")
         if not (math.isfinite(self.reversing_speed) and self.reversing_speed >= 0):
             raise ValueError(f"settle reversing_speed must be >= 0, got {self.reversing_speed}")
+        if not (math.isfinite(self.coast_s) and self.coast_s >= 0 and self.coast_band > 0):
+            raise ValueError(f"settle coast_s must be >= 0 and coast_band > 0: {self}")
         if not (math.isfinite(self.fall_gain) and self.fall_gain >= 1):
             raise ValueError(f"settle fall_gain must be >= 1, got {self.fall_gain}")
         if self.creep_hold < 0:
@@ -464,6 +481,8 @@ class SettleSupervisor:
         self._fall_scale = np.ones(n)  # of `fall_ramp`: shrinks by `fall_decay` per side
         self._took = np.zeros(n)  # what the last arrival took off, until the joint crosses
         self._arrive_off = np.zeros(n, dtype=bool)  # an arrival's take-off did not hold it
+        self._coast_side = np.zeros(n)  # the side of the goal it was engaged on (0: unwatched)
+        self._engaged_for = np.zeros(n)  # s since it was engaged
         self._crept = np.zeros(n, dtype=bool)  # crept across its goal on the hold (`creep_rate`)
         self._rate = np.ones(n)  # the ramp's rate: 1, or memory_rate when restarted from memory
         self._break_u = np.full((n, 2), math.nan)  # per side: the command it last broke away at
@@ -722,6 +741,9 @@ class SettleSupervisor:
         self._ramped[j] = 0.0
         self._was_stuck[j] = False
         self._crept[j] = False
+        # a joint stuck short is at rest, not coasting: only the others are watched (`coast_s`)
+        self._coast_side[j] = 0.0 if why == "stuck" else math.copysign(1.0, self.e_f[j])
+        self._engaged_for[j] = 0.0
 
     def _to_hold(self, j: int, hold: float, alt: float) -> None:
         """u_i to the actor's hold, checked (`hold_check`) against `alt`, what held it so far."""
@@ -760,6 +782,21 @@ class SettleSupervisor:
         rate = law.fall_ramp * self._fall_scale[j] * law.ramp[j] * self.limits_mA[j]
         self.u_i[j] += side * rate * dt
 
+    def _coast(self, j: int, ef: float, floor: float) -> None:
+        """`coast_s`: a joint still moving away from its goal that long after its engagement,
+        that far past it, is one on which the soft gains act as a fraction of themselves. The
+        watch ends there, or once the joint is seen coming back after `coast_s`."""
+        law = self.law
+        if self._engaged_for[j] < law.coast_s - 1e-9:
+            return
+        past = -self._coast_side[j] * ef  # > 0: on the far side of the goal
+        away = -math.copysign(1.0, ef) * self.v_f[j]
+        if past > law.coast_band and away >= floor:
+            self._hold_bad[j] = True
+            self._coast_side[j] = 0.0
+        elif away <= -floor:
+            self._coast_side[j] = 0.0
+
     def _settle(self, j: int, dt: float, e: float, qdot: float) -> float:
         law = self.law
         limit = self.limits_mA[j]
@@ -797,6 +834,9 @@ class SettleSupervisor:
                 self._jump_from[j] = math.nan
         if law.fall_ramp > 0:
             self._fall(j, dt, ef, max(law.stuck_speed, speed_floor))
+        self._engaged_for[j] += dt
+        if law.coast_s > 0 and self._coast_side[j] != 0:
+            self._coast(j, ef, max(law.stuck_speed, speed_floor))
         if self._was_stuck[j] and broke:
             self._since_break[j] = 0.0
             k = 0 if self._ramp_side[j] > 0 else 1

@@ -923,3 +923,55 @@ def test_corners_with_a_weak_b_held_by_friction_are_reached(index: int) -> None:
     off = {"ramp_grow": 0.0}
     before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
     assert not before.reached
+
+
+def _coast_through(tau: float, **law: object) -> tuple[SettleSupervisor, float]:
+    """C crossing its goal at 1 rad/s and coasting on, its speed decaying with time constant
+    `tau` s (out to about `tau` rad past the goal), for 2 s: the supervisor, and what its
+    gains added to the last command over what the law's own gains give."""
+    law_ = SettleLaw(jitter_speed=0.0, stuck=False, **law)  # type: ignore[arg-type]
+    sup = SettleSupervisor(law_, np.array([600.0, 600.0, 600.0, 300.0]))
+    target = np.ones(4)
+    x, v, t, ratio = -0.12, 1.0, 0.0, 0.0
+    for _ in range(40):
+        q, qdot = target.copy(), np.zeros(4)
+        q[2] += x
+        qdot[2] = v
+        sent = sup.update(t, q, qdot, target, np.zeros(4), np.zeros(4))
+        plain = law_.kp[2] * -x - law_.kd[2] * v  # e = -x
+        ratio = (float(sent[2]) - float(sup.u_i[2])) / plain
+        if x > 0:
+            v *= float(np.exp(-0.05 / tau))
+        x, t = x + 0.05 * v, t + 0.05
+    assert sup.engaged[2] and sup.reasons[2] == "crossing"
+    return sup, ratio
+
+
+def test_a_joint_still_coasting_away_after_its_engagement_gets_stiffer_gains() -> None:
+    """`coast_s`: a joint engaged as it crosses its goal and still moving away from it 0.7 s
+    later, over `coast_band` past it, is one the soft gains hold at a fraction of themselves
+    (a weak C at 25 % torque coasted 0.3-0.5 rad past and swung about its goal for the rest
+    of the episode); it gets `fall_gain` times the gains. A joint that stops within
+    `coast_band`, as every strong joint did, keeps them."""
+    weak, ratio = _coast_through(0.4)
+    assert weak._hold_bad[2] and ratio == pytest.approx(SettleLaw().fall_gain)
+    off, ratio = _coast_through(0.4, coast_s=0.0)
+    assert not off._hold_bad[2] and ratio == pytest.approx(1.0)
+    strong, ratio = _coast_through(0.15)  # out to 0.18 rad
+    assert not strong._hold_bad[2] and ratio == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="coast"):
+        SettleLaw(coast_band=0.0)
+
+
+@pytest.mark.parametrize("index", [148, 428])
+def test_corners_whose_weak_c_coasted_through_its_goal_are_reached(index: int) -> None:
+    """Frictionless, heavy, latent corners with C at 25 % torque (docs/robustness.md,
+    "Fifteenth round"): engaged as it crossed its goal at 1 rad/s, C coasted 0.3 rad past it
+    under the soft gains, swung about it with a period of 8 s and was kicked on by the stuck
+    ramp at each turn, 20-40 mrad out at the end. `coast_s` sees the coast and doubles its
+    gains."""
+    episode, config, ep_seed = _robustness_arm("corners", index)
+    shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
+    assert shipped.reached and shipped.at_rest
+    before = DirectArm().run(make_controller(settle={"coast_s": 0.0}), episode, config, ep_seed)
+    assert not before.metrics.reached
