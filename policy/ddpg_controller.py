@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 
 from policy.observation import build_observation
-from policy.settle import SettleLaw, SettleSupervisor
+from policy.settle import SettleSupervisor
+from policy.settle_law import SettleLaw
 from policy.weights import DEFAULT_WEIGHTS, ActorWeights
 from protocol.alpha5 import N_JOINTS
 from reach_driver.controllers import ControlState

@@ -11,7 +11,8 @@ from policy.direct import DirectArm
 from policy.envelope import corners, draws
 from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from policy.rollout import Episode, RunConfig
-from policy.settle import SettleLaw, SettleSupervisor
+from policy.settle import SettleSupervisor
+from policy.settle_law import SettleLaw
 from reach_sim_bridge.faults import SensorNoise
 from reach_sim_bridge.params import ArmParams
 

@@ -8,7 +8,7 @@ damping x0.5-1.5), tau the loop delay (half a 50 ms period of hold plus 0-2 peri
 latency: 25-130 ms). Coulomb friction is left out: it only adds damping. Prints the worst
 phase margin (degrees) and gain margin over a grid of J, b and tau for the given gains.
 
-    tools/settle_margins.py                       # the defaults of policy.settle
+    tools/settle_margins.py                       # the defaults of policy.settle_law
     tools/settle_margins.py --kp 200 200 100 100 --kd 20 20 20 10 --ki 60 60 30 30
 """
 
@@ -19,7 +19,7 @@ import itertools
 
 import numpy as np
 
-from policy.settle import DEFAULT_KD, DEFAULT_KI, DEFAULT_KP
+from policy.settle_law import DEFAULT_KD, DEFAULT_KI, DEFAULT_KP
 from protocol.alpha5 import JOINT_LETTERS, TORQUE_PER_AMP_NM
 
 INERTIA = ((0.06, 0.23), (0.066, 0.23), (0.062, 0.19), (0.0035, 0.0107))  # kg m^2
