@@ -156,12 +156,12 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
   joint whose hold is marked bad they are `fall_gain` (2) times as stiff (9 more of the
   corners reached, none lost; 3 or 4 times reached none of the rest);
 - coasting: a weak joint need not fall to show it. Engaged as it crossed its goal at 1 rad/s,
-  a frictionless C at 25 % torque coasted 0.3-0.45 rad past it under the soft gains, swung
+  a frictionless C at 25 % torque coasted 0.28-0.36 rad past it under the soft gains, swung
   back and forth for the rest of the episode and was kicked on by the stuck ramp at each
   turn (5 corners ended 20-40 mrad out). A joint still moving away from its goal `coast_s`
   (0.7 s) after it was engaged, beyond `coast_band` (0.2 rad) on the far side, is marked as
-  one whose hold failed, and gets `fall_gain` too: every strong joint engaged near its goal
-  turned within 0.55 s and 0.26 rad;
+  one whose hold failed, and gets `fall_gain` too: no strong joint went more than 0.26 rad
+  past, and nearly all turned within 0.55 s;
 - a take-off that held: on a frictionless weak joint the arrival's `arrive` take-off is what
   held it up (a weak D taken 30 mA off as it crept in fell back 0.1 rad, crept in again
   over 4 s and was taken off again, to the end). A joint that backs out of twice

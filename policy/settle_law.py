@@ -158,10 +158,10 @@ class SettleLaw:
     coast_s: float = 0.7  # s (0: off): an engaged joint still coasting away from its goal
     # this long after it was engaged, beyond `coast_band` on the far side of the goal from
     # where it was engaged, is weak or heavy for the soft gains: they are `fall_gain` times as
-    # stiff on it from then on, as on a joint whose hold failed. On the corners every strong
-    # joint engaged near its goal turned within 0.55 s and 0.26 rad (seed 1, every second
-    # corner); a weak C (25 % torque) coasted 0.28-0.5 rad for 0.75-5 s and then swung about
-    # its goal with a period of 8 s, ramped on by the stuck ramp at each turn
+    # stiff on it from then on, as on a joint whose hold failed. On every second corner (seed
+    # 1) no strong joint went more than 0.26 rad past, and 23 of the 25 past 0.15 rad turned
+    # within 0.55 s; a weak C (25 % torque) went up to 0.5 rad past, turning after up to 5 s,
+    # then swung about its goal with a period of 8 s, kicked on by the stuck ramp at each turn
     coast_band: float = 0.2  # rad: past 0.15 it also took a strong, light D (0.17 rad)
     raw_breakaway: bool = True  # a breakaway is also one sample's measured speed towards the
     # goal of `noise_sigmas` of its noise (and twice `stuck_speed`) or more: the low-passed

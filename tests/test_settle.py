@@ -951,7 +951,7 @@ def _coast_through(tau: float, **law: object) -> tuple[SettleSupervisor, float]:
 def test_a_joint_still_coasting_away_after_its_engagement_gets_stiffer_gains() -> None:
     """`coast_s`: a joint engaged as it crosses its goal and still moving away from it 0.7 s
     later, over `coast_band` past it, is one the soft gains hold at a fraction of themselves
-    (a weak C at 25 % torque coasted 0.3-0.5 rad past and swung about its goal for the rest
+    (a weak C at 25 % torque coasted up to 0.5 rad past and swung about its goal for the rest
     of the episode); it gets `fall_gain` times the gains. A joint that stops within
     `coast_band`, as every strong joint did, keeps them."""
     weak, ratio = _coast_through(0.4)
