@@ -188,9 +188,6 @@ import numpy as np
 from policy.settle_law import SettleLaw
 from protocol.alpha5 import JOINT_LETTERS, N_JOINTS
 
-__all__ = ["SettleLaw", "SettleSupervisor"]
-
-
 # Time constant of the noise estimates (s): 20 samples at 20 Hz, a spread known to +-20 %.
 NOISE_FILTER_S = 1.0
 
@@ -581,14 +578,15 @@ class SettleSupervisor:
             self.u_i[j] += gain * law.ki[j] * e * dt
         may_ramp = law.stuck if self.reasons[j] == "stuck" else law.ramp_engaged
         speed_floor, moved_floor = self._noise_floors(j, dt)
-        slow = abs(self.v_f[j]) < max(law.stuck_speed, speed_floor)
+        moving = max(law.stuck_speed, speed_floor)  # a low-passed speed beyond the noise
+        slow = abs(self.v_f[j]) < moving
         # Breakaway: the low-passed speed, or (`progress` > 0) the low-passed error having
         # shrunk by `progress` since the ramp began; a joint creeping in slower than the noisy
         # speed can show has broken away too, and ramping on would carry it through its goal.
         progress = max(law.progress, moved_floor)
         moved = law.progress > 0 and abs(ef) < self._stuck_from[j] - progress
         toward = math.copysign(1.0, ef) * self.v_f[j]  # > 0: moving towards the goal
-        broke = toward >= max(law.stuck_speed, speed_floor) or moved
+        broke = toward >= moving or moved
         if law.raw_breakaway and not broke:
             broke = self._slipping(j, ef, qdot)
         if law.freeze_breakaway and abs(ef) <= law.freeze:
@@ -600,18 +598,17 @@ class SettleSupervisor:
             self._jump_age[j] += dt
             window = ((self.latency_periods or 0.0) + 4.0) * self._period
             d = math.copysign(1.0, self._jump_to[j] - self._jump_from[j])
-            floor = max(law.stuck_speed, speed_floor)
-            if d * self.v_f[j] >= floor and d * qdot >= floor:
+            if d * self.v_f[j] >= moving and d * qdot >= moving:
                 self.u_i[j] += self._jump_from[j] - self._jump_to[j]
                 self._hold_bad[j] = True
                 self._jump_from[j] = math.nan
             elif self._jump_age[j] > window + 1e-9:
                 self._jump_from[j] = math.nan
         if law.fall_ramp > 0:
-            self._fall(j, dt, ef, max(law.stuck_speed, speed_floor))
+            self._fall(j, dt, ef, moving)
         self._engaged_for[j] += dt
         if law.coast_s > 0 and self._coast_side[j] != 0:
-            self._coast(j, ef, max(law.stuck_speed, speed_floor))
+            self._coast(j, ef, moving)
         if self._was_stuck[j] and broke:
             self._since_break[j] = 0.0
             k = 0 if self._ramp_side[j] > 0 else 1
