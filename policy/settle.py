@@ -87,7 +87,7 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
   noisy speed can show, and ramping on drove a slow stick-slip cycle across the goal. A ramp
   fast enough for 6.6 N m breaks a joint with 0.2 N m away with several times its friction,
   and with latency it sticks again on the other side: each time that happens the joint's
-  ramp rate is multiplied by `ramp_decay` (0.7, down to `ramp_floor`, 0.3 of it), so the
+  ramp rate is multiplied by `ramp_decay` (0.7, with no floor: `ramp_floor` 0), so the
   hunting dies out while a high-friction joint still breaks away in seconds. On B the rate
   also grows with what the ramp has added since the joint stuck (`ramp_grow`: doubled after
   10 % of the limit, 30 mA; a memory restart's jump counts): B's ramp is slow, and a weak
@@ -104,6 +104,14 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
   sticks again on the side it broke away from restarts `memory_margin` (5 % of the limit)
   below the command it broke away at, and ramps at `memory_rate` (0.3) of the rate from there:
   the push past breakaway grows with the rate, and with it the step the joint makes;
+- a breakaway confirmed: one sample of speed noise towards the goal (3 sigma, `raw_breakaway`)
+  reads as a breakaway once in about 740 samples of Gaussian noise (37 s at 20 Hz), and its
+  backoff takes 80 % of the ramp back from a joint that never moved. `restick_s` after a
+  breakaway, a joint that is slow and has not moved towards (or through) its goal by what
+  the noise explains since gets the backoff back, its ramp goes on from where it stood and
+  the memory keeps the breakaway before (`confirm_breakaway`: a weak B, ramped back towards
+  its goal 20-23 mrad out, lost its ramp that way twice and ended just outside the
+  tolerance);
 - reversing: a joint whose breakaway carried it through its goal sticks on the far side
   still commanded the first way, a whole friction band (2 x 300 mA at 6 N m) from pushing
   back; its ramp starts from the actor's hold at the goal instead (D engaged on the actor's
@@ -258,6 +266,12 @@ class SettleSupervisor:
         self._crept = np.zeros(n, dtype=bool)  # crept across its goal on the hold (`creep_rate`)
         self._rate = np.ones(n)  # the ramp's rate: 1, or memory_rate when restarted from memory
         self._break_u = np.full((n, 2), math.nan)  # per side: the command it last broke away at
+        # a breakaway until it is confirmed by motion (`confirm_breakaway`): the low-passed
+        # error then, the backoff taken, the ramp it ended and the memory it replaced
+        self._brk_ef = np.full(n, math.nan)
+        self._brk_back = np.zeros(n)
+        self._brk_ramped = np.zeros(n)
+        self._brk_prev = np.full(n, math.nan)
         self._q_var = np.zeros(n)  # the sensors' noise, from successive samples while slow
         self._v_var = np.zeros(n)
         self._q_hist = np.full((2, n), math.nan)
@@ -569,6 +583,19 @@ class SettleSupervisor:
         elif away <= -floor:
             self._coast_side[j] = 0.0
 
+    def _confirm(self, j: int, ef: float, slow: bool, progress: float) -> None:
+        """`restick_s` after a breakaway: a joint that has not moved `progress` towards (or
+        through) its goal since, and is slow, did not break away; one sample of noise said it
+        did. Its backoff is given back and its ramp goes on where it stood."""
+        moved = math.copysign(1.0, self._brk_ef[j]) * (self._brk_ef[j] - ef)
+        if moved < progress and slow and not self._was_stuck[j]:
+            k = 0 if self._ramp_side[j] > 0 else 1
+            self.u_i[j] += self._brk_back[j]
+            self._ramped[j] = self._brk_ramped[j]
+            self._break_u[j, k] = self._brk_prev[j]
+            self._was_stuck[j] = True
+        self._brk_ef[j] = math.nan
+
     def _settle(self, j: int, dt: float, e: float, qdot: float) -> float:
         law = self.law
         limit = self.limits_mA[j]
@@ -609,9 +636,16 @@ class SettleSupervisor:
         self._engaged_for[j] += dt
         if law.coast_s > 0 and self._coast_side[j] != 0:
             self._coast(j, ef, moving)
+        if math.isfinite(self._brk_ef[j]) and self._since_break[j] >= law.restick_s - 1e-9:
+            self._confirm(j, ef, slow, progress)
         if self._was_stuck[j] and broke:
             self._since_break[j] = 0.0
             k = 0 if self._ramp_side[j] > 0 else 1
+            if law.confirm_breakaway and abs(ef) > law.freeze:
+                self._brk_ef[j] = ef
+                self._brk_back[j] = law.backoff * self._ramped[j]
+                self._brk_ramped[j] = self._ramped[j]
+                self._brk_prev[j] = self._break_u[j, k]
             self._break_u[j, k] = self.u_i[j]
             self.u_i[j] -= law.backoff * self._ramped[j]
             self._ramped[j] = 0.0

@@ -69,7 +69,9 @@ class SettleLaw:
     freeze: float = 0.008  # rad, low-passed: no integration for a joint at rest inside
     ramp_decay: float = 0.7  # the ramp's rate is multiplied by this each time a joint sticks
     # on the other side of its goal from where it last ramped (stick-slip hunting)
-    ramp_floor: float = 0.3  # ... but not below this fraction of `ramp`
+    ramp_floor: float = 0.0  # ... but not below this fraction of `ramp` (0.3 until the
+    # sixteenth round: on a frictionless arm at 3x noise the ramp, kept at 0.3, kicked a C
+    # through its goal at every turn to the end; only frictionless corners ever decay below)
     progress: float = 0.004  # rad, > 0: breakaway also when the low-passed error has shrunk
     # this much since the stuck ramp began (creep slower than stuck_speed)
     crossing_speed: float = 0.8  # rad/s, > 0: engage a joint that crosses its goal this fast
@@ -163,6 +165,10 @@ class SettleLaw:
     # within 0.55 s; a weak C (25 % torque) went up to 0.5 rad past, turning after up to 5 s,
     # then swung about its goal with a period of 8 s, kicked on by the stuck ramp at each turn
     coast_band: float = 0.2  # rad: past 0.15 it also took a strong, light D (0.17 rad)
+    confirm_breakaway: bool = True  # a breakaway after which the joint has not moved
+    # towards its goal by what the noise explains within `restick_s`, and is slow, was noise:
+    # its backoff is given back and the ramp goes on (a weak B at 1x noise lost 80 % of its
+    # ramp twice to one sample's 3-sigma speed and was left 20 mrad out)
     raw_breakaway: bool = True  # a breakaway is also one sample's measured speed towards the
     # goal of `noise_sigmas` of its noise (and twice `stuck_speed`) or more: the low-passed
     # speed sees a slip 2-3 periods late, and on a latent loop the slip carries through the goal

@@ -218,6 +218,20 @@ def test_the_stuck_ramp_slows_each_time_a_breakaway_carries_the_joint_through() 
     assert slope_2 == pytest.approx(-law.ramp_decay * slope_1)
 
 
+@pytest.mark.parametrize("index", [98, 119])
+def test_corners_whose_c_the_stuck_ramp_kept_hunting_at_its_floor_are_reached(index: int) -> None:
+    """A frictionless C at three times the sensor noise: each turn of its swing about the goal
+    looks stuck, and the ramp, kept at 0.3 of its rate by the old `ramp_floor`, kicked it
+    through again to the end (ending 18-34 mrad out, or still moving). Decaying on without a
+    floor, the hunt dies out (docs/robustness.md, "Sixteenth round")."""
+    episode, config, ep_seed = _robustness_arm("corners", index)
+    shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
+    assert shipped.reached and shipped.at_rest
+    floored = {"ramp_floor": 0.3}
+    before = DirectArm().run(make_controller(settle=floored), episode, config, ep_seed).metrics
+    assert not before.reached
+
+
 def _timed(periods: float, sag: float = 0.0, speed: float = 1.1) -> float | None:
     """The supervisor's latency for E and D driven hard from rest: they start `periods` after
     the first command and are at `speed` at once (a drive is at speed within ~10 ms); D sags
@@ -458,6 +472,57 @@ def test_a_slip_is_seen_in_one_sample_of_measured_speed(raw: bool) -> None:
         assert slipped == pytest.approx(ramped * (1 - sup.law.backoff), rel=0.05)
     else:  # still ramping on
         assert slipped > ramped
+
+
+@pytest.mark.parametrize("confirm", [False, True])
+def test_a_breakaway_the_joint_does_not_confirm_by_moving_gives_its_backoff_back(
+    confirm: bool,
+) -> None:
+    """`confirm_breakaway`: one sample's speed said the ramping joint broke away, and the
+    backoff took 80 % of the ramp, but the joint stayed where it was. `restick_s` later the
+    backoff is given back and the ramp goes on from where it stood; without the check the
+    command stays backed off until the stuck ramp restarts, from its memory, at its slow rate.
+    A joint that does move towards its goal is not given it back."""
+    sup, target = _stuck_supervisor(confirm_breakaway=confirm)
+    t = 0.0
+
+    def step(e: float, v: float, n: int) -> float:
+        nonlocal t
+        for _ in range(n):
+            q = target - np.array([0, e, 0, 0])
+            sup.update(t, q, np.array([0, v, 0, 0]), target, np.zeros(4), np.zeros(4))
+            t += 0.05
+        return float(sup.u_i[1])
+
+    step(0.1, 0.0, 21)  # stuck 0.1 rad short: engaged
+    ramped = step(0.1, 0.0, 20)
+    backed = step(0.1, 0.1, 1)  # one sample's slip (`raw_breakaway`): the backoff goes out
+    assert backed == pytest.approx(ramped * (1 - sup.law.backoff), rel=0.05)
+    n = int(round(sup.law.restick_s / 0.05))
+    after = step(0.1, 0.0, n + 1)  # it did not move
+    if confirm:  # given back, and ramping on from there
+        assert after > ramped
+        assert after == pytest.approx(ramped + 2 * sup.law.ramp[1] * 600.0 * 0.05, rel=0.05)
+    else:
+        assert after < ramped
+    # a real breakaway: the joint moves 30 mrad towards its goal and sticks again; its ramp
+    # restarts from the memory below the command it broke away at, not from that command
+    ramped = step(0.1, 0.0, 10)
+    step(0.07, 0.5, 1)
+    assert step(0.07, 0.0, n + 1) < ramped
+
+
+@pytest.mark.parametrize("index", [889, 895])
+def test_corners_whose_weak_b_lost_its_ramp_to_a_noise_sample_are_reached(index: int) -> None:
+    """A weak B (25 % torque) at the far end of the friction band, ramped back towards its
+    goal 20-23 mrad out: one sample of speed noise read as a breakaway took 80 % of its ramp
+    back, and it ended 20 mrad out (docs/robustness.md, "Sixteenth round")."""
+    episode, config, ep_seed = _robustness_arm("corners", index)
+    shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
+    assert shipped.reached and shipped.at_rest
+    off = {"confirm_breakaway": False}
+    before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
+    assert not before.reached
 
 
 @pytest.mark.parametrize("reverse", [0.0, 0.25, 0.6])
@@ -772,13 +837,25 @@ def test_a_joint_that_crept_across_its_goal_on_its_hold_is_ramped_at_the_creep_r
 @pytest.mark.parametrize(
     ("seed", "index", "off"),
     [
-        (2, 577, {"jitter_s": 1.5, "jitter_window_s": 1.0, "reversing_speed": 0.0}),
+        # 577: confirming breakaways alone brings it to 0.47 J after settling (0.50 without)
+        (
+            2,
+            577,
+            {
+                "jitter_s": 1.5,
+                "jitter_window_s": 1.0,
+                "reversing_speed": 0.0,
+                "confirm_breakaway": False,
+            },
+        ),
         (4, 849, {"jitter_s": 1.5, "jitter_window_s": 1.0}),
-        (3, 421, {"creep_arrive_s": 0.0}),
-        (2, 520, {"freeze_breakaway": False, "creep_rate": 1.0}),  # either finishes it now
-        (2, 524, {"creep_rate": 1.0}),
+        # with `confirm_breakaway` (sixteenth round) also off: it alone now reaches these too
+        (3, 421, {"creep_arrive_s": 0.0, "confirm_breakaway": False}),
+        (2, 520, {"freeze_breakaway": False, "creep_rate": 1.0, "confirm_breakaway": False}),
+        (2, 524, {"creep_rate": 1.0, "confirm_breakaway": False}),
         (6, 401, {"creep_rate": 1.0}),
-        (1, 174, {"creep_hold": 1.0}),  # pushed across by a ramp: at half the rate, left short
+        # pushed across by a ramp: at half the rate, left short
+        (1, 174, {"creep_hold": 1.0, "confirm_breakaway": False}),
     ],
 )
 def test_fresh_draws_the_supervisor_used_to_miss_are_reached(
@@ -806,7 +883,15 @@ def test_fresh_draws_the_supervisor_used_to_miss_are_reached(
         # D at 25 %, heavy: the reversal's jump to the hold (a fall too)
         (612, {"hold_check": False, "fall_ramp": 0.0}),
         # C at 25 %, heavy: engaged for jitter on the hold
-        (63, {"hold_check": False, "fall_gain": 1.0, "reversing_speed": 0.0}),
+        (
+            63,
+            {
+                "hold_check": False,
+                "fall_gain": 1.0,
+                "reversing_speed": 0.0,
+                "confirm_breakaway": False,
+            },
+        ),
         # D at 25 %, heavy: pushed back across its goal alike
         (132, {"arrive_decay": 1.0, "fall_gain": 1.0}),
         # C at 25 %, heavy, latent: falls from the hold, six times
@@ -921,7 +1006,7 @@ def test_corners_with_a_weak_b_held_by_friction_are_reached(index: int) -> None:
     episode, config, ep_seed = _robustness_arm("corners", index)
     shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
     assert shipped.reached and shipped.at_rest
-    off = {"ramp_grow": 0.0}
+    off = {"ramp_grow": 0.0, "confirm_breakaway": False}  # either finishes it now
     before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
     assert not before.reached
 
@@ -974,5 +1059,6 @@ def test_corners_whose_weak_c_coasted_through_its_goal_are_reached(index: int) -
     episode, config, ep_seed = _robustness_arm("corners", index)
     shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
     assert shipped.reached and shipped.at_rest
-    before = DirectArm().run(make_controller(settle={"coast_s": 0.0}), episode, config, ep_seed)
+    off = {"coast_s": 0.0, "ramp_floor": 0.3}  # either finishes it now
+    before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed)
     assert not before.metrics.reached
