@@ -104,14 +104,17 @@ The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
   sticks again on the side it broke away from restarts `memory_margin` (5 % of the limit)
   below the command it broke away at, and ramps at `memory_rate` (0.3) of the rate from there:
   the push past breakaway grows with the rate, and with it the step the joint makes;
-- a breakaway confirmed: one sample of speed noise towards the goal (3 sigma, `raw_breakaway`)
+- a breakaway refuted: one sample of speed noise towards the goal (3 sigma, `raw_breakaway`)
   reads as a breakaway once in about 740 samples of Gaussian noise (37 s at 20 Hz), and its
-  backoff takes 80 % of the ramp back from a joint that never moved. `restick_s` after a
-  breakaway, a joint that is slow and has not moved towards (or through) its goal by what
-  the noise explains since gets the backoff back, its ramp goes on from where it stood and
-  the memory keeps the breakaway before (`confirm_breakaway`: a weak B, ramped back towards
-  its goal 20-23 mrad out, lost its ramp that way twice and ended just outside the
-  tolerance);
+  backoff takes 80 % of the ramp back. `restick_s` after a breakaway, a joint that is slow
+  and further from its goal than where its ramp began, by more than the noise explains, did
+  not break away: the backoff is given back, its ramp goes on from where it stood and the
+  memory keeps the breakaway before (`confirm_breakaway`: a weak B creeping away from its
+  goal while its ramp caught up lost its ramp that way twice and ended just outside the
+  tolerance). Only further away: a joint merely no nearer is common where friction holds
+  (seen breaking away late, it has made its step and stuck again), and at three times the
+  noise giving such joints their backoff back drove 6.6 N m joints through their goals (9
+  of the corners of the twin whose friction holds lost, 0.5-1.4 J after settling);
 - reversing: a joint whose breakaway carried it through its goal sticks on the far side
   still commanded the first way, a whole friction band (2 x 300 mA at 6 N m) from pushing
   back; its ramp starts from the actor's hold at the goal instead (D engaged on the actor's
@@ -266,9 +269,9 @@ class SettleSupervisor:
         self._crept = np.zeros(n, dtype=bool)  # crept across its goal on the hold (`creep_rate`)
         self._rate = np.ones(n)  # the ramp's rate: 1, or memory_rate when restarted from memory
         self._break_u = np.full((n, 2), math.nan)  # per side: the command it last broke away at
-        # a breakaway until it is confirmed by motion (`confirm_breakaway`): the low-passed
-        # error then, the backoff taken, the ramp it ended and the memory it replaced
-        self._brk_ef = np.full(n, math.nan)
+        # a breakaway until it is confirmed by motion (`confirm_breakaway`): the backoff it
+        # took, the ramp it ended and the memory it replaced
+        self._brk_pending = np.zeros(n, dtype=bool)
         self._brk_back = np.zeros(n)
         self._brk_ramped = np.zeros(n)
         self._brk_prev = np.full(n, math.nan)
@@ -584,17 +587,18 @@ class SettleSupervisor:
             self._coast_side[j] = 0.0
 
     def _confirm(self, j: int, ef: float, slow: bool, progress: float) -> None:
-        """`restick_s` after a breakaway: a joint that has not moved `progress` towards (or
-        through) its goal since, and is slow, did not break away; one sample of noise said it
-        did. Its backoff is given back and its ramp goes on where it stood."""
-        moved = math.copysign(1.0, self._brk_ef[j]) * (self._brk_ef[j] - ef)
-        if moved < progress and slow and not self._was_stuck[j]:
+        """`restick_s` after a breakaway: a joint that is slow and further from its goal than
+        where its ramp began, by more than the noise explains (`progress`), did not break
+        away; noise said it did. Its backoff is given back and its ramp goes on where it
+        stood."""
+        away = self._ramp_side[j] * ef - self._stuck_from[j]  # < 0: nearer, or through
+        if away > progress and slow and not self._was_stuck[j]:
             k = 0 if self._ramp_side[j] > 0 else 1
             self.u_i[j] += self._brk_back[j]
             self._ramped[j] = self._brk_ramped[j]
             self._break_u[j, k] = self._brk_prev[j]
             self._was_stuck[j] = True
-        self._brk_ef[j] = math.nan
+        self._brk_pending[j] = False
 
     def _settle(self, j: int, dt: float, e: float, qdot: float) -> float:
         law = self.law
@@ -636,13 +640,13 @@ class SettleSupervisor:
         self._engaged_for[j] += dt
         if law.coast_s > 0 and self._coast_side[j] != 0:
             self._coast(j, ef, moving)
-        if math.isfinite(self._brk_ef[j]) and self._since_break[j] >= law.restick_s - 1e-9:
+        if self._brk_pending[j] and self._since_break[j] >= law.restick_s - 1e-9:
             self._confirm(j, ef, slow, progress)
         if self._was_stuck[j] and broke:
             self._since_break[j] = 0.0
             k = 0 if self._ramp_side[j] > 0 else 1
             if law.confirm_breakaway and abs(ef) > law.freeze:
-                self._brk_ef[j] = ef
+                self._brk_pending[j] = True
                 self._brk_back[j] = law.backoff * self._ramped[j]
                 self._brk_ramped[j] = self._ramped[j]
                 self._brk_prev[j] = self._break_u[j, k]

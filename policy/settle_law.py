@@ -165,10 +165,11 @@ class SettleLaw:
     # within 0.55 s; a weak C (25 % torque) went up to 0.5 rad past, turning after up to 5 s,
     # then swung about its goal with a period of 8 s, kicked on by the stuck ramp at each turn
     coast_band: float = 0.2  # rad: past 0.15 it also took a strong, light D (0.17 rad)
-    confirm_breakaway: bool = True  # a breakaway after which the joint has not moved
-    # towards its goal by what the noise explains within `restick_s`, and is slow, was noise:
-    # its backoff is given back and the ramp goes on (a weak B at 1x noise lost 80 % of its
-    # ramp twice to one sample's 3-sigma speed and was left 20 mrad out)
+    confirm_breakaway: bool = True  # a breakaway after which the joint, slow `restick_s`
+    # later, is further from its goal than where its ramp began, by more than the noise
+    # explains, was noise: its backoff is given back and the ramp goes on (a weak B creeping
+    # away from its goal while its ramp caught up lost 80 % of that ramp to one sample's
+    # 3-sigma speed, and was left 20 mrad out)
     raw_breakaway: bool = True  # a breakaway is also one sample's measured speed towards the
     # goal of `noise_sigmas` of its noise (and twice `stuck_speed`) or more: the low-passed
     # speed sees a slip 2-3 periods late, and on a latent loop the slip carries through the goal
