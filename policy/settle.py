@@ -269,10 +269,9 @@ class SettleSupervisor:
         self._crept = np.zeros(n, dtype=bool)  # crept across its goal on the hold (`creep_rate`)
         self._rate = np.ones(n)  # the ramp's rate: 1, or memory_rate when restarted from memory
         self._break_u = np.full((n, 2), math.nan)  # per side: the command it last broke away at
-        # a breakaway until it is confirmed by motion (`confirm_breakaway`): the backoff it
-        # took, the ramp it ended and the memory it replaced
+        # a breakaway until `restick_s` later (`confirm_breakaway`): the ramp it ended (its
+        # backoff was `backoff` of that) and the memory it replaced
         self._brk_pending = np.zeros(n, dtype=bool)
-        self._brk_back = np.zeros(n)
         self._brk_ramped = np.zeros(n)
         self._brk_prev = np.full(n, math.nan)
         self._q_var = np.zeros(n)  # the sensors' noise, from successive samples while slow
@@ -529,6 +528,7 @@ class SettleSupervisor:
             self.u_i[j] = float(self._u_goal[j])
         self._ramped[j] = 0.0
         self._was_stuck[j] = False
+        self._brk_pending[j] = False  # a breakaway before a release is not this engagement's
         self._crept[j] = False
         # a joint stuck short is at rest, not coasting: only the others are watched (`coast_s`)
         self._coast_side[j] = 0.0 if why == "stuck" else math.copysign(1.0, self.e_f[j])
@@ -594,7 +594,7 @@ class SettleSupervisor:
         away = self._ramp_side[j] * ef - self._stuck_from[j]  # < 0: nearer, or through
         if away > progress and slow and not self._was_stuck[j]:
             k = 0 if self._ramp_side[j] > 0 else 1
-            self.u_i[j] += self._brk_back[j]
+            self.u_i[j] += self.law.backoff * self._brk_ramped[j]
             self._ramped[j] = self._brk_ramped[j]
             self._break_u[j, k] = self._brk_prev[j]
             self._was_stuck[j] = True
@@ -647,7 +647,6 @@ class SettleSupervisor:
             k = 0 if self._ramp_side[j] > 0 else 1
             if law.confirm_breakaway and abs(ef) > law.freeze:
                 self._brk_pending[j] = True
-                self._brk_back[j] = law.backoff * self._ramped[j]
                 self._brk_ramped[j] = self._ramped[j]
                 self._brk_prev[j] = self._break_u[j, k]
             self._break_u[j, k] = self.u_i[j]
