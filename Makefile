@@ -33,8 +33,11 @@ lint: install
 	$(VENV)/bin/ruff check protocol reach_driver reach_sim_bridge policy tests tools
 	$(VENV)/bin/ruff format --check protocol reach_driver reach_sim_bridge policy tests tools
 
+# The packages (pyproject's [tool.mypy] list), then the tests and tools: not packages (no
+# __init__.py), each file a top-level module as pytest and the tools' own sys.path see them.
 typecheck: install
 	$(VENV)/bin/mypy
+	$(VENV)/bin/mypy tests tools
 
 # pytest exits 5 when it collects nothing: say so plainly and fail (an empty run proves nothing).
 # Many tests run the virtual arm in (accelerated) real time on a 2-core machine, where a host

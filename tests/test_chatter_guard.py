@@ -48,6 +48,7 @@ def feed(
     errors: np.ndarray,
     speeds: np.ndarray,
     currents: np.ndarray,
+    *,
     joint: int = 2,
     target: np.ndarray = TARGET,
 ) -> Verdict | None:
@@ -63,7 +64,9 @@ def feed(
     return verdict
 
 
-def chatter(n: int, error: float = 0.008, speed: float = 1.17, mA: float = 270.0):
+def chatter(
+    n: int, error: float = 0.008, speed: float = 1.17, mA: float = 270.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What the shipped DDPG does on a few degraded arms (docs/results.md): the sign of the
     error, the speed and the command flip every step."""
     signs = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)

@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -307,7 +308,8 @@ def test_run_shows_progress_while_it_goes_and_still_records(sim, tmp_path, capsy
     assert "| error [rad]" not in captured.out  # stdout keeps the results only
     from reach_driver.rrd_summary import summarize_recording
 
-    assert summarize_recording(record)["steps"] >= 30  # the recorder's hook ran too
+    summary: dict[str, Any] = summarize_recording(record)
+    assert summary["steps"] >= 30  # the recorder's hook ran too
     argv[argv.index("--record") : argv.index("--record") + 2] = ["-q"]
     assert main(argv) == Exit.OK
     assert "| error [rad]" not in capsys.readouterr().err
@@ -363,7 +365,8 @@ def test_run_says_and_records_what_the_controllers_supervisor_did(sim, tmp_path,
     assert main([*argv, "--record", str(record)]) == Exit.OK
     out = capsys.readouterr().out
     assert "controller ddpg: settle supervisor: loop latency timed at " in out, out
-    recorded = summarize_recording(record)["recorded_summary"]["controller_report"]
+    summary: dict[str, Any] = summarize_recording(record)
+    recorded = summary["recorded_summary"]["controller_report"]
     assert recorded["settle"]["latency_periods"] >= 0.0
     assert main([*argv, "--json"]) == Exit.OK
     report = json.loads(capsys.readouterr().out)["controller_report"]
@@ -413,7 +416,12 @@ def test_info_fits_80_columns_with_units_on_every_column(sim, capsys) -> None:
     console.print(info_table(str(sim.link), joints))
     text = console.export_text()
     assert max(len(line) for line in text.splitlines()) <= 80
-    cells = ("E (0x05)", "0.0175 .. 6.143 rad", "0.0175 .. 3.4034 rad", "0 .. 6.28319 rad")
+    cells: tuple[str, ...] = (
+        "E (0x05)",
+        "0.0175 .. 6.143 rad",
+        "0.0175 .. 3.4034 rad",
+        "0 .. 6.28319 rad",
+    )
     cells += ("±0.5236 rad/s", "±600 mA", "±3 mm/s", "5.0000 mm", "0.1.0", "4104", "ok")
     for cell in cells:
         assert cell in text, text  # each on one line, not broken over two

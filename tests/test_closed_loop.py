@@ -178,7 +178,9 @@ def test_the_served_arm_gets_the_episodes_start_torque_scale_and_parameter_draw(
     from reach_sim_bridge.arm import Alpha5Arm
 
     episode = Episode(
-        start=[3.0, 1.6, 1.6, 3.0], target=[3.2, 1.5, 1.7, 3.1], torque_scale=[0.25, 1.0, 0.5, 1.0]
+        start=np.array([3.0, 1.6, 1.6, 3.0]),
+        target=np.array([3.2, 1.5, 1.7, 3.1]),
+        torque_scale=np.array([0.25, 1.0, 0.5, 1.0]),
     )
     seen: dict[str, Any] = {}
 
@@ -209,7 +211,9 @@ def test_the_served_arm_gets_the_episodes_start_torque_scale_and_parameter_draw(
     np.testing.assert_allclose(seen["scale"], [0.25, 1.0, 0.5, 1.0])
     np.testing.assert_allclose(seen["q"], episode.start, atol=0.01)  # held in standby
     with pytest.raises(ValueError, match="outside the arm's joint limits on B"):
-        run_episode_via_driver(load_controller("pid"), Episode(episode.start, [3, 1.5, 1.7, 7]))
+        run_episode_via_driver(
+            load_controller("pid"), Episode(episode.start, np.array([3, 1.5, 1.7, 7]))
+        )
 
 
 # ------------------------------------------------------------------- the CLI, the real path
@@ -248,7 +252,7 @@ def test_ddpg_reaches_scenario_1_through_reach_driver_and_prints_its_metrics(
         assert word in out
     assert "arm left in zero_velocity" in out and f"rerun {record}" in out
     assert wait_until(lambda: modes(sim) == [Mode.ZERO_VELOCITY] * 4, timeout=10.0)
-    summary = summarize_recording(record)
+    summary: dict[str, Any] = summarize_recording(record)
     recorded = summary["recorded_summary"]
     # every control step (160 at 20 Hz, fewer if a tick was lost) and the state that ended it
     assert summary["steps"] == recorded["steps"] + 1 and recorded["steps"] >= 150
@@ -443,7 +447,7 @@ def test_one_percent_corrupted_bytes_are_survived() -> None:
     [("pid", 4.0), ("mpc", 1.0)],  # MPC solves take ~15-25 ms here: real time
 )
 def test_pid_and_mpc_reach_a_target_through_the_driver(name: str, speed: float) -> None:
-    episode = Episode(start=[3.0, 1.6, 1.6, 3.0], target=[3.6, 1.3, 2.0, 3.6])
+    episode = Episode(start=np.array([3.0, 1.6, 1.6, 3.0]), target=np.array([3.6, 1.3, 2.0, 3.6]))
     via = run_episode_via_driver(
         load_controller(name), episode, RunConfig(seconds=4.0), DriverConfig(speed=speed)
     )
@@ -496,5 +500,6 @@ def test_demo_runs_ddpg_through_the_cli_and_writes_a_recording(tmp_path: Path, c
     assert "reach-driver inspect" in out
     # the run ends on the first state taken at or after 4 s: a host pause (50 ms of wall time
     # is 200 ms of arm time at 4x) may skip the heartbeats around it, each counted
-    duration = summarize_recording(record)["duration_s"]
+    summary: dict[str, Any] = summarize_recording(record)
+    duration = summary["duration_s"]
     assert 4.0 - 1e-9 <= duration <= 4.0 + 0.2 + 1e-9

@@ -7,7 +7,6 @@ import json
 import subprocess
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -29,6 +28,7 @@ from policy.weights import (
     load_actor_npz,
     save_actor_npz,
 )
+from reach_driver.controllers import ControlState
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -116,18 +116,16 @@ def test_controller_outputs_currents_and_rejects_bad_input(tmp_path: Path) -> No
     cfg = DDPGConfig.ours()
     actor = Actor(cfg.env.observation.size, 4, cfg.hidden)
     with torch.no_grad():
-        actor.net[4].bias.fill_(10.0)  # saturate: every output +1
+        actor.linears()[-1].bias.fill_(10.0)  # saturate: every output +1
     save_actor_npz(tmp_path / "a.npz", actor, cfg)
     ctrl = make_controller(tmp_path / "a.npz")
     ctrl.reset()
-    state = SimpleNamespace(q=np.full(4, 1.5), qdot=np.zeros(4), t=0.0)
+    state = ControlState(q=np.full(4, 1.5), qdot=np.zeros(4), t=0.0)
     np.testing.assert_allclose(ctrl.act(state, np.full(4, 1.6)), [600, 600, 600, 300], rtol=1e-6)
     with pytest.raises(ValueError, match="target"):
         ctrl.act(state, np.array([1.0, 2.0]))
     with pytest.raises(ValueError, match="finite"):
-        ctrl.act(
-            SimpleNamespace(q=np.array([np.nan, 1, 1, 1]), qdot=np.zeros(4), t=0.0), np.ones(4)
-        )
+        ctrl.act(ControlState(q=np.array([np.nan, 1, 1, 1]), qdot=np.zeros(4), t=0.0), np.ones(4))
     with pytest.raises(FileNotFoundError):
         make_controller(tmp_path / "missing.npz")
     (tmp_path / "a.json").write_text(json.dumps({"format": "something else"}))
@@ -141,7 +139,7 @@ def test_shipped_weights_load_with_their_metadata() -> None:
     for key in ("command", "seed", "config", "training_time_s", "eval"):
         assert key in meta, key
     assert DEFAULT_WEIGHTS.stat().st_size < 5_000_000
-    state = SimpleNamespace(q=np.array([1.0, 1.0, 1.0, 1.0]), qdot=np.zeros(4), t=0.0)
+    state = ControlState(q=np.array([1.0, 1.0, 1.0, 1.0]), qdot=np.zeros(4), t=0.0)
     out = ctrl.act(state, np.array([2.0, 2.0, 2.0, 2.0]))
     assert out.shape == (4,) and np.all(np.abs(out) <= ctrl.current_limits_mA + 1e-9)
 
@@ -156,10 +154,9 @@ def test_shipped_weights_drive_the_arm_to_target() -> None:
         ([5.0, 2.5, 1.0, 2.0], [2.0, 0.8, 2.6, 0.7]),
     ]:
         env.reset(seed=0, options={"start": start, "target": target})
-        reading = SimpleNamespace(q=None, qdot=None, t=0.0)
         for k in range(env.config.steps_per_episode):
-            reading.q, reading.qdot = env.last_reading
-            reading.t = k * env.control_dt
+            q, qdot = env.last_reading
+            reading = ControlState(q=q, qdot=qdot, t=k * env.control_dt)
             currents = ctrl.act(reading, env.target)
             env.step(currents / ctrl.current_limits_mA)
         assert np.all(np.abs(env.arm.q - np.array(target)) < 0.02), env.arm.q
@@ -402,9 +399,9 @@ def test_reference_integral_shifts_the_shown_target_near_the_goal_only() -> None
     assert ctrl.integral == ReferenceIntegral()
     target = np.array([3.0, 1.5, 1.5, 1.5])
     error = np.array([0.005, -0.005, 0.05, 0.0])  # C is outside the band
-    state = SimpleNamespace(q=target - error, qdot=np.zeros(4), t=0.0)
+    state = ControlState(q=target - error, qdot=np.zeros(4), t=0.0)
     shown = [
-        ctrl.shown_target(SimpleNamespace(q=state.q, qdot=state.qdot, t=0.05 * k), target)
+        ctrl.shown_target(ControlState(q=state.q, qdot=state.qdot, t=0.05 * k), target)
         for k in range(1, 11)
     ]
     offsets = np.array(shown) - target
@@ -412,7 +409,7 @@ def test_reference_integral_shifts_the_shown_target_near_the_goal_only() -> None
     np.testing.assert_allclose(offsets[:, 1], -offsets[:, 0])
     assert np.all(offsets[:, 2:] == 0.0)  # outside the band, and at zero error: nothing
     for k in range(11, 200):  # held long enough, the shift stops at the cap
-        ctrl.shown_target(SimpleNamespace(q=state.q, qdot=state.qdot, t=0.05 * k), target)
+        ctrl.shown_target(ControlState(q=state.q, qdot=state.qdot, t=0.05 * k), target)
     np.testing.assert_allclose(ctrl.offset[:2], [0.01, -0.01])
     moved = ctrl.shown_target(state, target + 0.1) - (target + 0.1)  # a new goal: start over
     assert np.all(np.abs(moved) <= 0.05 * 0.2) and np.all(np.abs(moved[:2]) < 0.01)
@@ -470,6 +467,7 @@ def test_robust_preset_screens_envelope_arms_and_masks_bc_on_latent_ones(tmp_pat
     assert np.all(np.isnan(trainer._label(env)))
     env.latency_substeps = env.n_substeps
     np.testing.assert_array_equal(trainer._label(env), PDExpert()(env))
+    assert cfg.expert_kp is not None and cfg.expert_kd is not None  # the robust preset's gains
     assert make_expert(cfg) == PDExpert(kp=cfg.expert_kp, kd=cfg.expert_kd, energy_lambda=6.0)
     trainer.run()
     record = trainer.evaluate_and_keep_best()

@@ -97,6 +97,7 @@ def arm(tmp_path_factory):
 def _for_the_virtual_arm(argv: list[str], server: SimServer) -> list[str]:
     """The port pointed at the virtual arm, long runs cut short, monitor bounded."""
     out = list(argv)
+    assert server.udp_address is not None
     host, port = server.udp_address
     if "--port" in out:
         i = out.index("--port") + 1

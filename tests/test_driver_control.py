@@ -106,6 +106,7 @@ def test_soft_barrier_keeps_a_joint_pushed_outward_inside_its_bound(tmp_path) ->
         speed=SPEED, pty=False, udp=("127.0.0.1", 0), start=(3.0, 1.5, hi_c - 0.15, 3.0)
     )
     with SimServer(cfg) as sim:
+        assert sim.udp_address is not None
         host, port = sim.udp_address
         with ArmClient(open_transport(f"udp://{host}:{port}")) as client:
             records: list[StepRecord] = []
@@ -166,6 +167,7 @@ def test_arm_time_pacing_gives_the_same_run_at_any_simulator_speed() -> None:
     finals, sim_seconds = [], []
     for speed in (2.0, 6.0):
         with SimServer(SimConfig(speed=speed, pty=False, udp=("127.0.0.1", 0))) as sim:
+            assert sim.udp_address is not None
             host, port = sim.udp_address
             with ArmClient(open_transport(f"udp://{host}:{port}")) as client:
                 q0 = client.read_joints().q

@@ -97,6 +97,7 @@ def test_the_entry_point_builds_a_pid_and_unknown_names_are_listed() -> None:
 @pytest.mark.slow
 def test_pid_reaches_targets_on_the_virtual_arm_without_large_overshoot() -> None:
     with SimServer(SimConfig(speed=4.0, pty=False, udp=("127.0.0.1", 0))) as sim:
+        assert sim.udp_address is not None
         host, port = sim.udp_address
         with ArmClient(open_transport(f"udp://{host}:{port}")) as client:
             q0 = client.read_joints().q

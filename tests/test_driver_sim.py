@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -44,6 +45,7 @@ def sim(tmp_path):
 
 
 def ports(server: SimServer) -> dict[str, str]:
+    assert server.udp_address is not None
     host, port = server.udp_address
     return {"pty": str(server.link), "udp": f"udp://{host}:{port}"}
 
@@ -129,7 +131,7 @@ def test_run_pid_reaches_the_target_and_leaves_the_arm_safe(sim, link, tmp_path,
     )
     from reach_driver.rrd_summary import summarize_recording
 
-    summary = summarize_recording(record)
+    summary: dict[str, Any] = summarize_recording(record)
     # Every step the loop took, and the state that ended the run. At 20 Hz that is 80 steps
     # plus one, less any state the stream superseded when the host fell behind (a busy core).
     taken = int(re.search(r"run:\s+(\d+)\s+steps", out).group(1))  # type: ignore[union-attr]

@@ -71,13 +71,12 @@ def arm_reports(client: ArmClient, *packets: Packet) -> None:
 
 def feed_position(client: ArmClient, device: int, value: float) -> None:
     arm_reports(client, Packet(device, PacketID.POSITION, f32(value)))
-    assert wait_until(
-        lambda: (
-            client.joint(device).position is not None
-            and client.joint(device).position.value == pytest.approx(value, abs=1e-6)
-        ),
-        timeout=2.0,
-    )
+
+    def reported() -> bool:
+        reading = client.joint(device).position
+        return reading is not None and reading.value == pytest.approx(value, abs=1e-6)
+
+    assert wait_until(reported, timeout=2.0)
 
 
 def answer_requests(client: ArmClient, canned: dict[tuple[int, int], bytes]) -> None:

@@ -54,7 +54,7 @@ def sim(tmp_path) -> Iterator[SimServer]:
 def test_solves_the_forward_kinematics_of_a_pose_back(q: np.ndarray) -> None:
     target = tool_position(q) * 1000.0
     start = np.array([3.1, 1.7, 1.7, 1.0])
-    sol = solve_position(target, start, LIMITS)
+    sol = solve_position(target.tolist(), start, LIMITS)
     assert sol.reachable
     assert np.linalg.norm(tool_position(sol.q) * 1000.0 - target) <= TOLERANCE_MM
     assert np.all(sol.q >= LIMITS[:, 0]) and np.all(sol.q <= LIMITS[:, 1])
@@ -75,9 +75,9 @@ def test_tighter_limits_make_a_target_unreachable() -> None:
     target = tool_position(q) * 1000.0
     tight = LIMITS.copy()
     tight[1] = [1.5, 2.5]  # D may not reach 1.0, and no other branch gets there
-    assert solve_position(target, q, LIMITS).reachable
+    assert solve_position(target.tolist(), q, LIMITS).reachable
     with pytest.raises(UnreachableError):
-        solve_or_refuse(target, q, tight)
+        solve_or_refuse(target.tolist(), q, tight)
 
 
 @pytest.fixture(scope="module")
@@ -90,7 +90,7 @@ def test_the_driver_and_the_simulator_solve_alike(arm: Alpha5Arm, q: np.ndarray)
     """From the same start both solvers reach the target, on the same branch."""
     target = tool_position(q) * 1000.0
     start = np.clip(q + np.array([0.3, -0.25, 0.25, 0.0]), LIMITS[:, 0], LIMITS[:, 1])
-    ours = solve_position(target, start, LIMITS)
+    ours = solve_position(target.tolist(), start, LIMITS)
     theirs = sim_ik.solve(arm, (*target, 0.0, 0.0, 0.0), start, LIMITS)
     assert ours.reachable and theirs.reachable
     arm.reset(q=theirs.q)

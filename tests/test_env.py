@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from types import SimpleNamespace
+from typing import TYPE_CHECKING, cast
 
 import gymnasium as gym
 import numpy as np
@@ -30,6 +30,10 @@ from policy.observation import (
     build_observation,
     observation_bounds,
 )
+from reach_driver.controllers import ControlState
+
+if TYPE_CHECKING:
+    from reach_sim_bridge.arm import Alpha5Arm
 
 OURS_OBS = ObservationConfig()
 SHAPED = RewardConfig(
@@ -41,12 +45,20 @@ SHAPED = RewardConfig(
 )
 
 
+def mujoco_arm(env: ReachAlphaEnv) -> Alpha5Arm:
+    """The env's arm as what it is here: the MuJoCo `Alpha5Arm` (the default factory's, or a
+    test's factory's), with its parameters and commanded currents."""
+    return cast("Alpha5Arm", env.arm)
+
+
 @pytest.mark.parametrize("obs_config", [ObservationConfig.paper(), OURS_OBS])
 def test_check_env_passes(obs_config: ObservationConfig) -> None:
     env = ReachAlphaEnv(EnvConfig(observation=obs_config, sensor_noise=True))
     check_env(env, skip_render_check=True)
-    assert np.all(np.isfinite(env.observation_space.low))
-    assert np.all(np.isfinite(env.observation_space.high))
+    space = env.observation_space
+    assert isinstance(space, gym.spaces.Box)
+    assert np.all(np.isfinite(space.low))
+    assert np.all(np.isfinite(space.high))
 
 
 def test_registered_and_makeable() -> None:
@@ -198,7 +210,7 @@ def test_action_scaled_to_current_limits() -> None:
     env.reset(seed=0, options={"start": [3.0, 1.7, 1.7, 1.6], "target": [3.0, 1.7, 1.7, 1.6]})
     env.step(np.array([0.5, -0.25, 0.0, 2.0]))  # B clipped to 1
     np.testing.assert_allclose(env.arm.current_limits_mA, [600, 600, 600, 300])
-    commanded = np.asarray(env.arm._command_mA[:4])  # noqa: SLF001 (what reached the arm)
+    commanded = np.asarray(mujoco_arm(env)._command_mA[:4])  # noqa: SLF001 (what reached the arm)
     np.testing.assert_allclose(commanded, [300.0, -150.0, 0.0, 300.0])
 
 
@@ -242,11 +254,11 @@ def test_torque_scale_and_parameter_perturbation() -> None:
     np.testing.assert_allclose(env.arm.torque_scale, [0.25, 1, 1, 1])
 
     pert = ReachAlphaEnv(EnvConfig(param_perturbation=0.2))
-    nominal = np.array(pert.arm.params.damping)  # type: ignore[attr-defined]
+    nominal = np.array(mujoco_arm(pert).params.damping)
     pert.reset(seed=0)
-    first = np.array(pert.arm.params.damping)  # type: ignore[attr-defined]
+    first = np.array(mujoco_arm(pert).params.damping)
     pert.reset(seed=1)
-    second = np.array(pert.arm.params.damping)  # type: ignore[attr-defined]
+    second = np.array(mujoco_arm(pert).params.damping)
     assert not np.allclose(first, nominal) and not np.allclose(first, second)
     assert np.all(np.abs(first / nominal - 1) <= 0.2 + 1e-9)
 
@@ -284,7 +296,7 @@ def test_controller_sees_the_same_observation_as_the_env(tmp_path) -> None:  # t
     obs, _ = env.reset(seed=4)
     for _ in range(5):
         obs, *_ = env.step(env.action_space.sample())
-        state = SimpleNamespace(q=env.arm.q, qdot=env.arm.qdot, t=0.0)
+        state = ControlState(q=env.arm.q, qdot=env.arm.qdot, t=0.0)
         np.testing.assert_array_equal(ctrl.observation(state, env.target), obs)
 
 
@@ -332,9 +344,11 @@ def _first_motion(config: EnvConfig, start: np.ndarray) -> int:
 
 def test_latency_delays_each_action_as_the_direct_backend_does() -> None:
     start = np.array([3.0, 1.7, 1.7, 1.65])
-    frictionless = dataclasses.replace(ReachAlphaEnv(EnvConfig()).arm.params, frictionloss=(0,) * 4)
+    frictionless = dataclasses.replace(
+        mujoco_arm(ReachAlphaEnv(EnvConfig())).params, frictionloss=(0,) * 4
+    )
 
-    def arm_factory(config: EnvConfig) -> object:
+    def arm_factory(config: EnvConfig) -> Alpha5Arm:
         from reach_sim_bridge.arm import Alpha5Arm
 
         return Alpha5Arm(dt=config.physics_dt, params=frictionless)
@@ -376,7 +390,7 @@ def test_latency_delays_each_action_as_the_direct_backend_does() -> None:
     env.reset(seed=0, options={"start": start, "target": start + 0.1})
     for a in actions:
         env.step(a)
-    backend = DirectArm(lambda seed: env.arm.__class__(dt=0.002))
+    backend = DirectArm(lambda seed: mujoco_arm(env).__class__(dt=0.002))
     result = backend.run(
         Replay(actions, env.current_limits_mA),
         Episode(start, start + 0.1),
@@ -388,14 +402,14 @@ def test_latency_delays_each_action_as_the_direct_backend_does() -> None:
 
 def test_envelope_arms_per_episode() -> None:
     env = ReachAlphaEnv(EnvConfig(envelope_fraction=1.0, sensor_noise=True))
-    nominal = env.arm.params
+    nominal = mujoco_arm(env).params
     seen = []
     for seed in range(4):
         _, info = env.reset(seed=seed)
         v = env.variant
         assert v is not None and info["variant"] == v.name
         for name in ("frictionloss", "damping", "armature", "link_mass_kg", "link_volume_l"):
-            assert getattr(env.arm.params, name) == getattr(v.params, name)
+            assert getattr(mujoco_arm(env).params, name) == getattr(v.params, name)
         assert v.params.frictionloss != nominal.frictionloss
         np.testing.assert_array_equal(env.arm.torque_scale, v.torque_scale)
         assert env.latency_substeps == round(v.latency_periods * env.n_substeps)
@@ -407,7 +421,7 @@ def test_envelope_arms_per_episode() -> None:
     env.config = EnvConfig()
     _, info = env.reset(seed=0)
     assert info["variant"] is None and env.latency_substeps == 0
-    assert env.arm.params.frictionloss == nominal.frictionloss
+    assert mujoco_arm(env).params.frictionloss == nominal.frictionloss
     half = ReachAlphaEnv(EnvConfig(envelope_fraction=0.5))
     share = np.mean([half.reset(seed=s)[1]["variant"] is not None for s in range(40)])
     assert 0.2 < share < 0.8

@@ -97,7 +97,9 @@ def test_sensor_noise_has_the_stated_spread_and_is_seeded() -> None:
 def test_torque_scale_is_applied_per_episode() -> None:
     push = [400.0, 0.0, 0.0, 0.0]
     weak = run_episode(
-        Recorder(push), Episode(START, START, torque_scale=[0.25, 1, 1, 1]), RunConfig(seconds=0.2)
+        Recorder(push),
+        Episode(START, START, torque_scale=np.array([0.25, 1, 1, 1])),
+        RunConfig(seconds=0.2),
     )
     full = run_episode(Recorder(push), Episode(START, START), RunConfig(seconds=0.2))
     moved_weak = weak.trace.q[-1, 0] - START[0]
@@ -131,9 +133,11 @@ def test_bad_controller_output_and_bad_episodes_are_rejected() -> None:
     with pytest.raises(ValueError, match="expected 4 finite currents"):
         run_episode(Recorder([np.nan, 0, 0, 0]), Episode(START, START), RunConfig(seconds=0.1))
     with pytest.raises(ValueError, match="outside the arm's joint limits on D"):
-        run_episode(Recorder(), Episode(START, [3.0, 3.6, 1.5, 1.5]), RunConfig(seconds=0.1))
+        run_episode(
+            Recorder(), Episode(START, np.array([3.0, 3.6, 1.5, 1.5])), RunConfig(seconds=0.1)
+        )
     with pytest.raises(ValueError, match="torque_scale must be in"):
-        Episode(START, START, torque_scale=[2, 1, 1, 1])
+        Episode(START, START, torque_scale=np.array([2, 1, 1, 1]))
     with pytest.raises(ValueError, match="whole number of physics"):
         RunConfig(rate_hz=30.0)
 

@@ -129,7 +129,7 @@ def test_link_delays_follow_the_timestamps() -> None:
     the least transit, which is what the offset is for."""
     rng = np.random.default_rng(3)
     n, speed = 400, 2.5
-    t = np.arange(n) * PERIOD
+    t = np.arange(n, dtype=np.float64) * PERIOD
     host = 10.0 + t / speed + np.where(t > 4.0, 0.03, 0.0)  # when the arm sent tick k
     received = host + 0.0002 + rng.exponential(0.0008, n).clip(0, 0.003)
     received[::50] = host[::50] + 0.0002  # the least transit is seen now and then

@@ -187,7 +187,7 @@ def test_no_viewer_at_the_address_warns_once_and_the_file_is_complete(tmp_path) 
     assert run.step.tolist() == list(range(40)) and run.closed_cleanly
 
 
-def test_a_viewer_that_goes_away_mid_run_never_stops_the_file_or_blocks(tmp_path, receiver):
+def test_a_viewer_that_goes_away_mid_run_never_stops_the_file_or_blocks(tmp_path, receiver) -> None:
     port, _received, proc = receiver
     path = tmp_path / "run.rrd"
     warnings: list[str] = []

@@ -36,7 +36,7 @@ def test_options_are_checked() -> None:
     with pytest.raises(ValueError, match="unknown MPC options"):
         make_controller(horizn=10)
     with pytest.raises(ValueError, match="q_weight needs 4"):
-        MPCConfig(q_weight=(1.0, 2.0))
+        MPCConfig(q_weight=(1.0, 2.0))  # type: ignore[arg-type]  # wrong length on purpose
     with pytest.raises(ValueError, match="solver must be one of"):
         MPCConfig(solver="cplex")
 
@@ -60,8 +60,8 @@ def test_plan_respects_current_limits_and_back_emf_envelope(mpc: MPCController) 
 @pytest.mark.slow
 def test_reaches_targets_near_the_speed_floor(mpc: MPCController) -> None:
     episodes = [
-        Episode([1.0, 2.5, 0.8, 2.0], [4.5, 1.0, 2.2, 0.8]),
-        Episode([5.0, 0.9, 2.6, 0.9], [2.0, 2.6, 0.7, 2.5]),
+        Episode(np.array([1.0, 2.5, 0.8, 2.0]), np.array([4.5, 1.0, 2.2, 0.8])),
+        Episode(np.array([5.0, 0.9, 2.6, 0.9]), np.array([2.0, 2.6, 0.7, 2.5])),
     ]
     ev = evaluate(mpc, episodes, RunConfig(seconds=8.0))
     for r in ev.results:
@@ -80,7 +80,7 @@ def test_offset_free_estimate_learns_an_unmodelled_torque() -> None:
     target = np.array([3.5, 2.0, 1.0, 1.5])
     result = run_episode(
         ctrl,
-        Episode([3.0, 2.5, 0.6, 1.0], target),
+        Episode(np.array([3.0, 2.5, 0.6, 1.0]), target),
         RunConfig(seconds=8.0),
         backend=DirectArm(lambda seed: Alpha5Arm(params=ArmParams().in_air())),
     )

@@ -189,7 +189,7 @@ def test_evaluation_runs_on_the_file_arm(tmp_path: Path) -> None:
         def act(self, state: Any, target: np.ndarray) -> np.ndarray:
             return np.array([80.0, 0.0, 0.0, 0.0])
 
-    episode = Episode(start=[3.0, 1.5, 1.5, 1.5], target=[3.5, 1.5, 1.5, 1.5])
+    episode = Episode(start=np.array([3.0, 1.5, 1.5, 1.5]), target=np.array([3.5, 1.5, 1.5, 1.5]))
     sticky = ArmParams(frictionloss=(1.5, 0.7, 0.7, 0.075))
     free = run_episode(Push(), episode, RunConfig(seconds=0.5))
     held = run_episode(Push(), episode, RunConfig(seconds=0.5, params=sticky))

@@ -11,6 +11,7 @@ import sys
 import textwrap
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -67,7 +68,7 @@ def test_round_trip_series_and_metrics(tmp_path: Path) -> None:
     assert [e[2] for e in run.events] == ["start"]
     assert run.closed_cleanly
 
-    summary = summarize_recording(path)
+    summary: dict[str, Any] = summarize_recording(path)
     expected = compute_metrics(
         Trace(dt=DT, q=q, qdot=qdot, tau=np.full_like(q, 0.5), target=target)
     ).as_dict()
@@ -76,7 +77,7 @@ def test_round_trip_series_and_metrics(tmp_path: Path) -> None:
     for key, value in expected.items():
         assert metrics[key] == pytest.approx(value, rel=1e-6, abs=1e-9), key
     assert summary["duration_s"] == pytest.approx(199 * DT)
-    np.testing.assert_allclose(summary["final_error"], target - q[-1])  # type: ignore[arg-type]
+    np.testing.assert_allclose(summary["final_error"], target - q[-1])
 
 
 def test_inspect_says_how_a_recorded_overshoot_came_about(

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -64,7 +65,7 @@ def test_a_recorded_run_holds_every_devices_diagnostics(sim: SimServer, tmp_path
         series = run.diagnostics[key]
         assert len(series.t) >= 2 and np.isfinite(series.values).all(), key
         assert series.t[0] <= run.t[0] + 1e-6 and series.t[-1] >= run.t[-1] - 1e-6
-    summary = summarize_recording(record)
+    summary: dict[str, Any] = summarize_recording(record)
     diag = summary["diagnostics"]
     assert isinstance(diag, dict) and diag["devices"] == ["E", "D", "C", "B", "A"]
     assert all(18.0 <= v <= 24.0 for v in diag["voltage_v"]["final"])
@@ -78,7 +79,7 @@ def test_a_recorded_run_holds_every_devices_diagnostics(sim: SimServer, tmp_path
         "B": ["JOINT_SERVICE_DUE"],
         "A": ["ok"],
     }
-    assert any("status B (0x02): JOINT_SERVICE_DUE" in e for e in summary["events"])  # type: ignore[union-attr]
+    assert any("status B (0x02): JOINT_SERVICE_DUE" in e for e in summary["events"])
 
 
 def test_a_recorded_monitor_shows_a_leak_and_inspect_reports_it(

@@ -33,6 +33,7 @@ def sim(tmp_path):
 
 
 def _run_argv(sim: SimServer, record: Path, seconds: float = 2.0) -> list[str]:
+    assert sim.udp_address is not None
     host, port = sim.udp_address
     target = sim.snapshot().q + np.array([0.3, -0.2, 0.2, 0.3])
     # A generous watchdog: these tests are about the recording, not a loaded host's pauses.

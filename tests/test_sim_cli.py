@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import serial
 
-from protocol import DeviceID, PacketDecoder, PacketID, commands
+from protocol import DeviceID, Packet, PacketDecoder, PacketID, commands
 from reach_sim_bridge.cli import build_parser, config_from_args, main
 from reach_sim_bridge.faults import SensorNoise
 
@@ -141,7 +141,8 @@ def test_serves_pty_link_and_udp_then_stops_cleanly(tmp_path: Path, sig: signal.
         request = commands.request(DeviceID.D, [PacketID.SERIAL_NUMBER]).encode()
         with serial.Serial(str(link), 115200, timeout=0.05) as port:
             port.write(request)
-            decoder, got = PacketDecoder(), []
+            decoder = PacketDecoder()
+            got: list[Packet] = []
             deadline = time.monotonic() + WALL_LIMIT_S
             while not got:
                 assert time.monotonic() < deadline

@@ -285,7 +285,7 @@ class _UdpClient:
         self.sock.close()
 
 
-ENDPOINTS = {
+ENDPOINTS: dict[str, tuple[SimConfig, type[_PtyClient] | type[_UdpClient]]] = {
     "pty": (SimConfig(speed=4.0), _PtyClient),
     "udp": (SimConfig(speed=4.0, pty=False, udp=("127.0.0.1", 0)), _UdpClient),
 }
@@ -322,5 +322,6 @@ def test_client_session_over_a_served_endpoint(endpoint: str) -> None:
     assert stats.ignored["unimplemented_mode"] == 24
     assert stats.input_dropped_bytes == 0 and stats.lost_bytes == 0
     if endpoint == "udp":
+        assert isinstance(client, _UdpClient)
         assert stats.datagrams_in == client.datagrams == seconds * POLL_HZ + 1
     assert statuses == [HardwareStatus.NONE] * 5

@@ -28,8 +28,8 @@ from reach_sim_bridge.firmware import ALPHA5_DEVICES, Firmware, FirmwareConfig
 
 A, B, C, D, E = DeviceID.A, DeviceID.B, DeviceID.C, DeviceID.D, DeviceID.E
 BROADCAST = DeviceID.BROADCAST
-INDEX = {E: 0, D: 1, C: 2, B: 3}  # E D C B order of the arm's arrays
-RATE = {E: 0.5236, D: 0.5236, C: 0.5236, B: 0.8727}
+INDEX: dict[int, int] = {E: 0, D: 1, C: 2, B: 3}  # E D C B order of the arm's arrays
+RATE: dict[int, float] = {E: 0.5236, D: 0.5236, C: 0.5236, B: 0.8727}
 
 
 @pytest.fixture

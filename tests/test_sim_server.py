@@ -246,6 +246,7 @@ def test_control_bytes_pass_through_pyserial_unechoed(server: SimServer) -> None
         assert reply.floats() == [hi, lo]
         client.wait_sim(0.2)
         # Nothing else came back: an echo would decode as our own two packets.
+        assert client.port is not None  # a pty client
         assert client.backlog == [] and client.decoder.feed(client.port.read(4096)) == []
         assert client.decoder.stats.bad_total == 0
     finally:
@@ -302,7 +303,8 @@ def test_link_symlink_follows_the_pty_and_is_removed(tmp_path: Path) -> None:
         assert os.readlink(link) == path
         with serial.Serial(str(link), 115200, timeout=0.02) as port:
             port.write(commands.request(B, [PacketID.DEVICE_ID]).encode())
-            dec, got = PacketDecoder(), []
+            dec = PacketDecoder()
+            got: list[Packet] = []
             deadline = time.monotonic() + WALL_LIMIT_S
             while not got:
                 assert time.monotonic() < deadline
@@ -388,6 +390,7 @@ def test_drop_rate_one_loses_every_reply() -> None:
             assert time.monotonic() < stats_wait
             time.sleep(0.01)
         client.wait_sim(0.2)
+        assert client.port is not None  # a pty client
         assert client.decoder.feed(client.port.read(4096)) == []
         assert srv.stats().frames_out == 0
         client.close()
@@ -404,6 +407,7 @@ def test_corrupt_rate_damages_bytes_the_client_detects() -> None:
             assert time.monotonic() < deadline
             time.sleep(0.01)
         client.wait_sim(0.2)
+        assert client.port is not None  # a pty client
         good = client.decoder.feed(client.port.read(65536))
         stats = srv.stats()
         assert stats.corrupted_bytes > 0

@@ -4,6 +4,8 @@ and VELOCITY of four joints (120 B a state) fit 96 Hz, POSITION and VELOCITY (80
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator, Sequence
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -33,18 +35,19 @@ class Zero:
 
 
 @pytest.fixture
-def slow_line(tmp_path):
+def slow_line(tmp_path: Path) -> Iterator[tuple[ArmClient, list[tuple[int, ...]]]]:
     server = SimServer(SimConfig(speed=2.0, link=str(tmp_path / "arm"), baud=115200))
     server.start()
     client = ArmClient(open_transport(str(server.link))).start()
     streamed: list[tuple[int, ...]] = []
     real_stream = client.stream
 
-    def spy(ids, hz, devices):  # what the loop asks the joints to stream
-        streamed.append(tuple(int(i) for i in ids))
+    def spy(ids: Sequence[int], hz: int, devices: Sequence[int]) -> int:
+        streamed.append(tuple(int(i) for i in ids))  # what the loop asks the joints to stream
         return real_stream(ids, hz, devices)
 
-    client.stream = spy  # type: ignore[method-assign]
+    # a spy in the method's place (the loop passes every argument: no defaults needed)
+    client.stream = spy  # type: ignore[method-assign, assignment]
     yield client, streamed
     client.close()
     server.stop()

@@ -177,6 +177,7 @@ def test_arm_client_reaches_the_virtual_arm_through_a_can_gateway() -> None:
 
     ch = channel()
     with SimServer(SimConfig(speed=4.0, pty=False, udp=("127.0.0.1", 0))) as sim:
+        assert sim.udp_address is not None
         host, port = sim.udp_address
         gateway = TransportBridge(
             CanTransport("virtual", ch, CanTunnelConfig().swapped()),

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 from conftest import wait_until
 
-from protocol import DeviceID, PacketDecoder, PacketID, commands
+from protocol import DeviceID, Packet, PacketDecoder, PacketID, commands
 from reach_driver import ArmClient, LinkConfig, TransportError, open_transport
 from reach_driver.errors import PortBusyError
 
@@ -164,7 +164,7 @@ def test_a_request_after_a_stray_partial_frame_is_answered_at_once(sim) -> None:
     try:
         t.write(commands.request(E, [PacketID.POSITION]).encode())  # once: no retry
         decoder = PacketDecoder()
-        got = []
+        got: list[Packet] = []
         end = time.monotonic() + 1.0
         while not got and time.monotonic() < end:
             got = [

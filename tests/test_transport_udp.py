@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import socket
 import time
+from typing import cast
 
 import pytest
 
@@ -33,7 +34,7 @@ def test_url_parsing_defaults_to_port_6789() -> None:
     t = open_transport("udp://192.168.2.3", open_now=False)
     assert isinstance(t, UdpTransport)
     assert (t.host, t.port) == ("192.168.2.3", 6789)
-    t6 = open_transport("udp://[::1]:7000", open_now=False)
+    t6 = cast(UdpTransport, open_transport("udp://[::1]:7000", open_now=False))
     assert (t6.host, t6.port) == ("::1", 7000)
 
 
@@ -60,7 +61,7 @@ def test_serial_options_are_refused_for_udp() -> None:
 
 def test_several_frames_per_datagram_both_ways(arm_socket) -> None:
     host, port = arm_socket.getsockname()
-    t = open_transport(f"udp://{host}:{port}")
+    t = cast(UdpTransport, open_transport(f"udp://{host}:{port}"))
     frames = [commands.request(d, [3, 2]).encode() for d in (5, 4, 3, 2)]
     t.write_frames(frames)
     data, source = arm_socket.recvfrom(65535)
@@ -110,7 +111,7 @@ def test_long_batches_split_on_frame_boundaries(arm_socket) -> None:
     t = open_transport(f"udp://{host}:{port}")
     frames = [commands.current(d % 5 + 1, float(i)).encode() for i, d in enumerate(range(300))]
     t.write_frames(frames)
-    datagrams = []
+    datagrams: list[bytes] = []
     while sum(map(len, datagrams)) < sum(map(len, frames)):
         datagrams.append(arm_socket.recv(65535))
     assert len(datagrams) > 1

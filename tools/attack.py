@@ -152,6 +152,7 @@ def udp_stranger(scale: float, tmp: str) -> Outcome:
     """Garbage datagrams from another local port must not take the UDP heartbeat."""
     count = max(10, int(2000 * scale))
     server = _server(tmp)
+    assert server.udp_address is not None
     host, port = server.udp_address
     peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -197,6 +198,7 @@ def request_flood(scale: float, tmp: str) -> Outcome:
     """Broadcast requests as fast as loopback UDP carries them: the physics keeps real time."""
     seconds = max(1.0, 4.0 * scale)
     server = _server(tmp)
+    assert server.udp_address is not None
     host, port = server.udp_address
     ask = commands.request(DeviceID.BROADCAST, [PacketID.POSITION, PacketID.VELOCITY]).encode()
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

@@ -102,11 +102,10 @@ def bench_sb3(
 def bench_inference(n: int) -> None:
     """Latency of one control-loop action: the shipped numpy controller (actor, reference
     integral, settle supervisor), the same without the supervisor, and the torch actor."""
-    from types import SimpleNamespace
-
     from policy.ddpg_controller import make_controller
     from policy.networks import Actor
     from policy.weights import DEFAULT_WEIGHTS, load_actor_npz
+    from reach_driver.controllers import ControlState
 
     ctrl = make_controller()
     bare = make_controller(settle=False)
@@ -115,18 +114,18 @@ def bench_inference(n: int) -> None:
     load_actor_npz(actor, DEFAULT_WEIGHTS)
     rng = np.random.default_rng(0)
     states = [
-        SimpleNamespace(q=rng.uniform(0.5, 2.8, 4), qdot=rng.normal(0, 0.5, 4), t=0.05 * k)
+        ControlState(q=rng.uniform(0.5, 2.8, 4), qdot=rng.normal(0, 0.5, 4), t=0.05 * k)
         for k in range(n)
     ]
     target = np.array([3.0, 1.7, 1.7, 1.6])
 
-    def numpy_act(s: SimpleNamespace) -> np.ndarray:
+    def numpy_act(s: ControlState) -> np.ndarray:
         return ctrl.act(s, target)
 
-    def bare_act(s: SimpleNamespace) -> np.ndarray:
+    def bare_act(s: ControlState) -> np.ndarray:
         return bare.act(s, target)
 
-    def torch_act(s: SimpleNamespace) -> np.ndarray:
+    def torch_act(s: ControlState) -> np.ndarray:
         obs = torch.from_numpy(ctrl.observation(s, target))
         with torch.no_grad():
             out: np.ndarray = actor(obs).numpy() * ctrl.current_limits_mA

@@ -33,6 +33,7 @@ def _flush(recorder: SimRecorder) -> None:
     if flush is not None:
         flush()
     else:  # the recorder before it had one
+        assert recorder._rec is not None  # it records to a file
         recorder._rec.flush(timeout_sec=5.0)
 
 
