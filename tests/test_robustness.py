@@ -91,7 +91,7 @@ def test_serial_and_ray_give_the_same_results(corner_selection: Any) -> None:
 
 def test_the_summary_holds_its_means_and_names_the_failures() -> None:
     rng = np.random.default_rng(0)
-    rows = []
+    rows: list[dict[str, Any]] = []
     for i in range(40):
         latency = [0.0, 2.0][i % 2]
         missed = latency > 1 and i % 4 == 1
@@ -116,8 +116,8 @@ def test_the_summary_holds_its_means_and_names_the_failures() -> None:
         assert s[key]["low"] <= s[key]["mean"] <= s[key]["high"]
     assert s["missed"] == 10 and s["reached"]["mean"] == pytest.approx(0.75)
     assert s["worst"][0]["overshoot_pct"] == max(r["metrics"]["overshoot_pct"] for r in rows)
-    latency = {c["level"]: c for c in s["by_factor"] if c["factor"] == "latency_periods"}
-    assert latency["high"]["missed"] == 10 and latency["low"]["missed"] == 0
+    by_latency = {c["level"]: c for c in s["by_factor"] if c["factor"] == "latency_periods"}
+    assert by_latency["high"]["missed"] == 10 and by_latency["low"]["missed"] == 0
     assert s["shared"][0].startswith("latency_periods high: 50 % missed (10/20)")
     assert {c["latency_periods"] for c in s["worst_pair"]} == {"low", "high"}
     assert sum(c["missed"] for c in s["worst_pair"]) == 10
@@ -155,6 +155,42 @@ def test_the_summary_says_how_the_overshoots_came_about() -> None:
     assert "(4 arms)" in line and "median 40 mrad past; B 2;" in line
     old = [{k: v for k, v in r.items() if k != "overshoot"} for r in rows]
     assert rb.overshoot_summary(old) is None
+
+
+def test_the_overshoot_is_grouped_by_the_levels_asked_for() -> None:
+    """Per combination of levels: arms, arms over 2 %, those of them past the 20 mrad
+    tolerance and those carried through by their approach, the medians; a factor the
+    envelope does not have is a clear error."""
+    factors = dict.fromkeys(rb.FACTOR_ORDER, 1.0)
+
+    def row(latency: float, coulomb: float, pct: float, past: float, speed: float) -> dict:
+        f = {**factors, "weak_joint": -1.0, "latency_periods": latency, "coulomb_edc": coulomb}
+        anatomy = {"joint": "C", "past_rad": past, "peak_s": 1.0, "crossing_speed": speed}
+        return {"factors": f, "metrics": {"overshoot_pct": pct}, "overshoot": anatomy}
+
+    rows = [
+        row(2.0, 0.0, 40.0, 0.100, 1.1),  # latent, frictionless: carried through, far past
+        row(2.0, 0.0, 3.0, 0.010, 0.05),  # over 2 % but within the tolerance, crept across
+        row(2.0, 0.0, 1.0, 0.004, 0.02),  # under 2 %
+        row(0.0, 6.6, 2.5, 0.030, 0.5),
+        {**row(0.0, 6.6, 0.0, 0.0, 0.0), "overshoot": None},  # never past its goal
+    ]
+    groups = rb.overshoot_by(rows, ["latency_periods", "coulomb_edc"])
+    by = {(g["levels"]["latency_periods"], g["levels"]["coulomb_edc"]): g for g in groups}
+    assert set(by) == {("high", "low"), ("low", "high")}
+    latent = by[("high", "low")]
+    assert (latent["arms"], latent["over"], latent["over_past_tolerance"]) == (3, 2, 1)
+    assert latent["arrivals"] == 1
+    assert latent["median_pct"] == pytest.approx(3.0)
+    assert latent["median_past_mrad"] == pytest.approx(10.0)
+    prompt = by[("low", "high")]
+    assert (prompt["arms"], prompt["over"], prompt["over_past_tolerance"]) == (2, 1, 1)
+    assert prompt["median_past_mrad"] == pytest.approx(15.0)
+    table = rb.overshoot_by_table(groups).splitlines()
+    assert table[0].startswith("| latency_periods | coulomb_edc | arms |")
+    assert table[2] == "| high | low | 3 | 2 | 1 | 1 | 3 | 10 |"
+    with pytest.raises(ValueError, match="latency_periods"):
+        rb.overshoot_by(rows, ["lag"])
 
 
 def test_a_run_writes_rows_a_summary_and_the_docs_block(
@@ -210,6 +246,7 @@ def test_the_shipped_doc_has_the_markers_the_tool_writes() -> None:
         (["--controller", "pid", "ddpg", "--label", "x", "--draws", "1"], "--label"),
         (["--controller", "pid", "--max-corners", "3", "--draws", "1"], "--corners"),
         (["--controller", "pid", "--draws", "1", "--workers", "0"], "--workers"),
+        (["--controller", "pid", "--draws", "1", "--overshoot-by", "lag"], "latency_periods"),
     ],
 )
 def test_bad_arguments_are_clear_errors(
