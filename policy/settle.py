@@ -42,7 +42,11 @@ Watching (per joint, within `band` of the goal):
   the measured speed over the last `jitter_window_s` (0.5 s, so that an arrival's last swing
   inside the band falls before it) exceeds `jitter_speed` (the sensor noise alone gives
   0.02-0.06 rad/s). At 1.5 s and 1 s an actor kicking a joint at its goal on a noisy arm
-  spent over 0.5 J before it was taken;
+  spent over 0.5 J before it was taken. On a quiet arm the threshold is lower: once the
+  sensors' speed noise sigma is estimated (the quietest joint's), it is hypot(
+  `jitter_true_speed`, `jitter_noise_k` sigma) if that is less, 0.054 rad/s at 1x noise:
+  there the actor dithered frictionless joints at 0.05-0.07 rad/s of true speed, more than
+  the rest metric allows, and through the noise that read under 0.08;
 - **stuck short** (`stuck`; out to `stuck_band`, 0.5 rad, since a weak joint held by
   friction stops 0.15-0.25 rad short): the low-passed error stays above `stuck_error` and the
   low-passed speed below `stuck_speed` (or what the noise can explain, below) for `stuck_s`,
@@ -201,6 +205,8 @@ from protocol.alpha5 import JOINT_LETTERS, N_JOINTS
 
 # Time constant of the noise estimates (s): 20 samples at 20 Hz, a spread known to +-20 %.
 NOISE_FILTER_S = 1.0
+# ... and the weight (of 1) an estimate has gathered from its start at 0 before it is trusted
+NOISE_SETTLED = 0.8
 
 
 @dataclass
@@ -276,6 +282,7 @@ class SettleSupervisor:
         self._brk_prev = np.full(n, math.nan)
         self._q_var = np.zeros(n)  # the sensors' noise, from successive samples while slow
         self._v_var = np.zeros(n)
+        self._v_w = np.zeros(n)  # the weight the speed-noise EMA has gathered (from 0 at reset)
         self._q_hist = np.full((2, n), math.nan)
         self._v_prev = np.full(n, math.nan)
         self._step = 0
@@ -388,6 +395,7 @@ class SettleSupervisor:
         dv = qdot - self._v_prev
         ok = slow & np.isfinite(dv)
         self._v_var = np.where(ok, self._v_var + a * (dv**2 / 2 - self._v_var), self._v_var)
+        self._v_w = np.where(ok, self._v_w + a * (1.0 - self._v_w), self._v_w)
         self._q_hist = np.stack([self._q_hist[1], e.astype(float)])
         self._v_prev = np.asarray(qdot, dtype=float).copy()
 
@@ -463,7 +471,7 @@ class SettleSupervisor:
             self._in_band_for[j] = self._in_band_for[j] + dt if inside else 0.0
             if self._in_band_for[j] >= law.jitter_s - 1e-9 and self._v2_n >= self._v2.shape[0]:
                 rms = math.sqrt(float(np.mean(self._v2[:, j])))
-                if rms > law.jitter_speed:
+                if rms > self._jitter_limit():
                     self._engage(j, now, "jitter")
                     return
         if law.hold_s > 0:
@@ -474,6 +482,18 @@ class SettleSupervisor:
                 return
         if law.stuck:
             self._watch_stuck(j, now, dt, qdot)
+
+    def _jitter_limit(self) -> float:
+        """The jitter watch's threshold: `jitter_speed`, or lower on a quiet arm, where true
+        speed of `jitter_true_speed` shows over the noise (`jitter_noise_k` sigma of it). The
+        noise is the arm's sensors', so the quietest joint whose estimate has settled (80 %
+        of its weight: 1.6 s of slow samples) gives it; a dithering joint's own is inflated."""
+        law = self.law
+        settled = self._v_w >= NOISE_SETTLED
+        if law.jitter_true_speed <= 0 or not settled.any():
+            return law.jitter_speed
+        sigma = math.sqrt(float(np.min(self._v_var[settled] / self._v_w[settled])))
+        return min(law.jitter_speed, math.hypot(law.jitter_true_speed, law.jitter_noise_k * sigma))
 
     def _noise_floors(self, j: int, dt: float) -> tuple[float, float]:
         """What the sensors' noise can explain, `noise_sigmas` of it: of the low-passed speed

@@ -93,6 +93,13 @@ class SettleLaw:
     ramp_engaged: bool = True  # ramp while stuck on a joint engaged for cycling too
     jitter_speed: float = 0.08  # > 0: engage a joint whose measured speed RMS over the last
     # jitter_window_s exceeds this after jitter_s inside jitter_band (noise-driven jitter)
+    jitter_true_speed: float = 0.045  # rad/s, >= 0 (0: off): once the arm's speed noise is
+    # estimated, the jitter watch's threshold is hypot(this, jitter_noise_k x that noise) if
+    # lower than `jitter_speed`. At 1x noise (0.02 rad/s) the actor dithered frictionless
+    # joints at 0.05-0.07 rad/s of true speed (the rest metric's limit is 0.05), which read
+    # 0.055-0.065 through the noise, under 0.08: 6 of the 7 corners of seed 1 it missed
+    jitter_noise_k: float = 1.5  # > 0: pure noise over the 10-sample window stays under
+    # 1.5 sigma with a margin; with a low multiple the watch took noisy joints at rest
     jitter_band: float = 0.03  # rad
     jitter_s: float = 1.0
     jitter_window_s: float = 0.5
@@ -218,6 +225,10 @@ class SettleLaw:
             raise ValueError(f"settle creep_hold must be >= 0, got {self.creep_hold}")
         if self.stuck_band <= 0 or self.noise_sigmas < 0 or self.arrive < 0:
             raise ValueError(f"settle stuck_band must be > 0, noise_sigmas and arrive >= 0: {self}")
+        if not (self.jitter_true_speed >= 0 and self.jitter_noise_k > 0):
+            raise ValueError(
+                f"settle jitter_true_speed must be >= 0 and jitter_noise_k > 0: {self}"
+            )
         if self.freeze < 0:
             raise ValueError(f"settle freeze must be >= 0, got {self.freeze}")
         if not set(self.prompt_joints) <= set(JOINT_LETTERS):

@@ -3,6 +3,8 @@ plain actor keeps up on a latent arm, and leaves a nominal episode to the actor.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 import pytest
 
@@ -13,6 +15,7 @@ from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from policy.rollout import Episode, RunConfig
 from policy.settle import SettleSupervisor
 from policy.settle_law import SettleLaw
+from reach_driver.metrics import Metrics
 from reach_sim_bridge.faults import SensorNoise
 from reach_sim_bridge.params import ArmParams
 
@@ -42,6 +45,18 @@ def _robustness_arm(
     return episode, config, config.seed + index
 
 
+def _shipped_and_without(
+    off: Mapping[str, object], set_name: str, index: int, seed: int = 1
+) -> tuple[Metrics, Metrics]:
+    """The metrics of arm `index` of a campaign's `set_name` (`_robustness_arm`) under the
+    shipped settle law, and with the `SettleLaw` fields `off` turned back: a regression test
+    of a mechanism asserts the first reached and the second not."""
+    episode, config, ep_seed = _robustness_arm(set_name, index, seed=seed)
+    shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
+    before = DirectArm().run(make_controller(settle=dict(off)), episode, config, ep_seed).metrics
+    return shipped, before
+
+
 def test_settle_is_on_in_the_shipped_controller_off_in_the_pure_one_and_validated() -> None:
     from policy.ddpg_controller import make_pure_controller
 
@@ -60,7 +75,8 @@ def test_settle_is_on_in_the_shipped_controller_off_in_the_pure_one_and_validate
         {"creep_rate": 1.5},
         {"creep_hold": -0.1},
     )
-    for bad in (*bad_laws, *creep):
+    jitter = ({"jitter_true_speed": -0.01}, {"jitter_noise_k": 0.0})
+    for bad in (*bad_laws, *creep, *jitter):
         with pytest.raises(ValueError):
             SettleLaw(**bad)  # type: ignore[arg-type]
 
@@ -224,11 +240,9 @@ def test_corners_whose_c_the_stuck_ramp_kept_hunting_at_its_floor_are_reached(in
     looks stuck, and the ramp, kept at 0.3 of its rate by the old `ramp_floor`, kicked it
     through again to the end (ending 18-34 mrad out, or still moving). Decaying on without a
     floor, the hunt dies out (docs/robustness.md, "Sixteenth round")."""
-    episode, config, ep_seed = _robustness_arm("corners", index)
-    shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
-    assert shipped.reached and shipped.at_rest
     floored = {"ramp_floor": 0.3}
-    before = DirectArm().run(make_controller(settle=floored), episode, config, ep_seed).metrics
+    shipped, before = _shipped_and_without(floored, "corners", index)
+    assert shipped.reached and shipped.at_rest
     assert not before.reached
 
 
@@ -514,11 +528,9 @@ def test_corners_whose_weak_b_lost_its_ramp_to_a_noise_sample_are_reached(index:
     goal while its ramp back caught up: one sample of speed noise read as a breakaway took
     80 % of that ramp back, and it ended 20 mrad out (docs/robustness.md, "Sixteenth
     round")."""
-    episode, config, ep_seed = _robustness_arm("corners", index)
-    shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
-    assert shipped.reached and shipped.at_rest
     off = {"confirm_breakaway": False}
-    before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
+    shipped, before = _shipped_and_without(off, "corners", index)
+    assert shipped.reached and shipped.at_rest
     assert not before.reached
 
 
@@ -787,6 +799,39 @@ def test_the_jitter_watch_takes_a_dithering_joint_within_a_second_not_an_arrival
     assert first_engaged(arrival) is None and first_engaged(noise) is None
 
 
+@pytest.mark.parametrize("true_speed", [0.0, 0.045])
+def test_on_a_quiet_arm_the_jitter_watch_sees_a_dither_the_noise_would_hide(
+    true_speed: float,
+) -> None:
+    """At 1x sensor noise (0.02 rad/s) a joint dithered at 0.055 rad/s of true speed (over
+    the rest metric's 0.05) reads 0.059 RMS, under `jitter_speed` (0.08). Once the other
+    joints' noise has been estimated (1.6 s of slow samples), the threshold is hypot(
+    `jitter_true_speed`, 1.5 sigma) = 0.054 and the joint is taken; with `jitter_true_speed`
+    0, as before the seventeenth round, it is not. Noise alone, at 1.5x, is never taken."""
+    law = SettleLaw(crossing_speed=0.0, stuck=False, cycles=False, jitter_true_speed=true_speed)
+    rng = np.random.default_rng(5)
+
+    def first_engaged(sigma: float, dither: float) -> float | None:
+        sup = SettleSupervisor(law, np.full(4, 600.0))
+        target = np.zeros(4)
+        for k in range(200):  # 10 s
+            speed = sigma * rng.standard_normal(4)
+            speed[1] += dither * (-1) ** k
+            q = target - 0.005 + 0.002 * rng.standard_normal(4)
+            sup.update(0.05 * k, q, speed, target, np.zeros(4), np.zeros(4))
+            if sup.engaged.any():
+                assert not sup.engaged[[0, 2, 3]].any()
+                return 0.05 * k
+        return None
+
+    engaged_at = first_engaged(0.02, 0.055)
+    if true_speed > 0:
+        assert engaged_at is not None and 1.6 <= engaged_at <= 2.5
+    else:
+        assert engaged_at is None
+    assert first_engaged(0.03, 0.0) is None
+
+
 def test_a_joint_that_crept_across_its_goal_on_its_hold_is_ramped_at_the_creep_rate() -> None:
     """`creep_rate`: an engaged joint that creeps across its goal on about the actor's hold is
     not held by friction, and the stuck ramp that follows runs at half the rate (at the full
@@ -856,10 +901,8 @@ def test_fresh_draws_the_supervisor_used_to_miss_are_reached(
     joint that crept through its goal kicked back by a full-rate ramp. Draw 174 of seed 1
     (never missed) is what `creep_hold` keeps: a joint a ramp pushed across ramps back at
     the full rate."""
-    episode, config, ep_seed = _robustness_arm("draws", index, seed=seed)
-    shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
+    shipped, before = _shipped_and_without(off, "draws", index, seed=seed)
     assert shipped.reached and shipped.at_rest
-    before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
     assert not before.reached
 
 
@@ -871,7 +914,15 @@ def test_fresh_draws_the_supervisor_used_to_miss_are_reached(
         # alone now finishes it too)
         (612, {"hold_check": False, "fall_ramp": 0.0, "confirm_breakaway": False}),
         # C at 25 %, heavy: engaged for jitter on the hold
-        (63, {"hold_check": False, "fall_gain": 1.0, "reversing_speed": 0.0}),
+        (
+            63,
+            {
+                "hold_check": False,
+                "fall_gain": 1.0,
+                "reversing_speed": 0.0,
+                "jitter_true_speed": 0.0,
+            },
+        ),
         # D at 25 %, heavy: pushed back across its goal alike
         (132, {"arrive_decay": 1.0, "fall_gain": 1.0}),
         # C at 25 %, heavy, latent: falls from the hold, six times
@@ -896,10 +947,8 @@ def test_weak_heavy_corners_the_supervisor_used_to_miss_are_reached(
     hold check could not see it; `fall_ramp` ramps it back, `fall_memory` keeps what it ramped
     when it is engaged again, `arrive_check` gives back a take-off it fell from, and
     `fall_gain` doubles the soft gains, a quarter of what they should be on such a joint."""
-    episode, config, ep_seed = _robustness_arm("corners", index)
-    shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
+    shipped, before = _shipped_and_without(off, "corners", index)
     assert shipped.reached and shipped.at_rest
-    before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
     assert not before.reached
 
 
@@ -940,11 +989,9 @@ def test_corners_whose_e_the_actor_bang_banged_at_its_goal_are_reached(index: in
     each way, inside its settling band (docs/robustness.md, "Fourteenth round"): 0.5 J and
     more after settling, until the crossing watch took it. `reversing_speed` takes it at the
     first full-speed reversal."""
-    episode, config, ep_seed = _robustness_arm("corners", index)
-    shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
-    assert shipped.reached and shipped.at_rest
     off = {"reversing_speed": 0.0}
-    before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
+    shipped, before = _shipped_and_without(off, "corners", index)
+    assert shipped.reached and shipped.at_rest
     assert not before.at_rest and before.energy_after_settling_j > 0.5
 
 
@@ -983,11 +1030,10 @@ def test_corners_with_a_weak_b_held_by_friction_are_reached(index: int) -> None:
     """A weak B (25 % torque) with 0.16 N m of friction, 90 mA of its command: at B's slow
     base ramp it ended 20-22 mrad out, its ramp seconds into the climb (docs/robustness.md,
     "Fourteenth round"); with `ramp_grow` it breaks free and finishes."""
-    episode, config, ep_seed = _robustness_arm("corners", index)
-    shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
+    # any one of these finishes it now (464: also the jitter watch on a quiet arm)
+    off = {"ramp_grow": 0.0, "confirm_breakaway": False, "jitter_true_speed": 0.0}
+    shipped, before = _shipped_and_without(off, "corners", index)
     assert shipped.reached and shipped.at_rest
-    off = {"ramp_grow": 0.0, "confirm_breakaway": False}  # either finishes it now
-    before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed).metrics
     assert not before.reached
 
 
@@ -1036,9 +1082,20 @@ def test_corners_whose_weak_c_coasted_through_its_goal_are_reached(index: int) -
     under the soft gains, swung about it with a period of 8 s and was kicked on by the stuck
     ramp at each turn, 20-40 mrad out at the end. `coast_s` sees the coast and doubles its
     gains."""
-    episode, config, ep_seed = _robustness_arm("corners", index)
-    shipped = DirectArm().run(make_controller(settle=True), episode, config, ep_seed).metrics
-    assert shipped.reached and shipped.at_rest
     off = {"coast_s": 0.0, "ramp_floor": 0.3}  # either finishes it now
-    before = DirectArm().run(make_controller(settle=off), episode, config, ep_seed)
-    assert not before.metrics.reached
+    shipped, before = _shipped_and_without(off, "corners", index)
+    assert shipped.reached and shipped.at_rest
+    assert not before.reached
+
+
+@pytest.mark.parametrize("index", [300, 460])
+def test_corners_whose_actor_dithered_under_the_noise_are_reached(index: int) -> None:
+    """Frictionless corners at 1x sensor noise without latency (docs/robustness.md,
+    "Seventeenth round"): the actor kept C moving at its goal at 0.05-0.09 rad/s of true
+    speed, which read 0.055-0.065 rad/s through the noise, under the jitter watch's 0.08, for
+    17 s; engaged that late, C was still swinging at the end. On an arm this quiet the watch
+    now takes such a joint at 0.054 rad/s (`jitter_true_speed`)."""
+    off = {"jitter_true_speed": 0.0}
+    shipped, before = _shipped_and_without(off, "corners", index)
+    assert shipped.reached and shipped.at_rest
+    assert not before.reached
