@@ -341,6 +341,15 @@ def overshoot_summary(rows: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
     return out
 
 
+def check_factors(factors: Sequence[str]) -> None:
+    """A clear error for an `--overshoot-by` list that names no factor or one not in
+    `FACTOR_ORDER`."""
+    if not factors or any(f not in FACTOR_ORDER for f in factors):
+        raise ValueError(
+            f"--overshoot-by takes factors of {', '.join(FACTOR_ORDER)}; got {list(factors)}"
+        )
+
+
 def overshoot_by(
     rows: Sequence[dict[str, Any]], factors: Sequence[str], envelope: Envelope = ENVELOPE
 ) -> list[dict[str, Any]]:
@@ -350,11 +359,7 @@ def overshoot_by(
     rad step is 2 mrad, the noise's size), the median overshoot and distance past, and how
     many of the arms over 2 % were carried through by their approach. Says where the
     overshoot lives, which the failure table by one factor at a time does not."""
-    unknown = [f for f in factors if f not in FACTOR_ORDER]
-    if unknown or not factors:
-        raise ValueError(
-            f"--overshoot-by takes factors of {', '.join(FACTOR_ORDER)}; got {list(factors)}"
-        )
+    check_factors(factors)
     groups: dict[tuple[str, ...], list[dict[str, Any]]] = {}
     for r in rows:
         key = tuple(factor_level(f, r["factors"][f], r["factors"], envelope) for f in factors)
@@ -856,7 +861,7 @@ class ProgressLog:
 
 def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list[dict]:
     if args.overshoot_by:
-        overshoot_by([], args.overshoot_by)  # a misspelt factor fails before a campaign runs
+        check_factors(args.overshoot_by)  # a misspelt factor fails before a campaign runs
     if args.from_files:
         reports = []
         for path in args.from_files:
