@@ -105,6 +105,9 @@ class Job:
     index: int
 
 
+CONTROLLER_CACHE = 8
+"""Controllers a worker keeps (the oldest goes first)."""
+
 _CONTROLLERS: dict[tuple[str, str], Controller] = {}
 """Per worker process: one controller per (name, parameters), reused as `evaluate` reuses one."""
 
@@ -115,6 +118,8 @@ def run_job(job: Job) -> tuple[int, EpisodeResult]:
     controller = _CONTROLLERS.get(key)
     if controller is None:
         controller = load_controller(job.controller, **json.loads(job.params_json))
+        if len(_CONTROLLERS) >= CONTROLLER_CACHE:  # one per arm when each has its own twin
+            _CONTROLLERS.pop(next(iter(_CONTROLLERS)))
         _CONTROLLERS[key] = controller
     result = DirectArm().run(controller, job.episode, job.config, job.config.seed + job.index)
     return job.index, result

@@ -503,3 +503,23 @@ def test_demo_runs_ddpg_through_the_cli_and_writes_a_recording(tmp_path: Path, c
     summary: dict[str, Any] = summarize_recording(record)
     duration = summary["duration_s"]
     assert 4.0 - 1e-9 <= duration <= 4.0 + 0.2 + 1e-9
+
+
+@pytest.mark.slow
+def test_lambda_reaches_scenario_1_through_reach_driver_from_a_twin_file(
+    sim_at_scenario_start: SimServer, tmp_path: Path, capsys: Any
+) -> None:
+    """The model-based controller through the real path, its twin read from an arm file (the
+    emulated arm is the nominal one, so is the twin): reached at rest, no overshoot."""
+    sim = sim_at_scenario_start
+    twin = tmp_path / "arm.json"
+    twin.write_text('{"frictionloss": [0.7, 0.7, 0.7, 0.075]}')
+    argv = ["--port", str(sim.link), "run", "--controller", "lambda", "--param"]
+    argv += [f"params={twin}", "--target", *map(str, SCENARIO_1.target), "--seconds", "6"]
+    code = main([*argv, "--json", "-q"])
+    out = capsys.readouterr().out
+    assert code == Exit.OK, out
+    assert np.max(np.abs(sim.snapshot().q - SCENARIO_1.target)) < 0.01  # the TRUE angles
+    metrics = json.loads(out)["metrics"]
+    assert metrics["reached"] is True and metrics["at_rest"] is True, metrics
+    assert metrics["overshoot_pct"] < 2.0, metrics

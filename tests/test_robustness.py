@@ -73,6 +73,39 @@ def test_an_arms_episode_and_noise_depend_on_its_own_seed(corner_selection: Any)
         assert job.index == arm.index
 
 
+def test_twin_jobs_give_each_arm_its_own_parameters_and_latency(corner_selection: Any) -> None:
+    """`--twin`: each arm's controller is told that arm (weak joint and latency included), as
+    an identification would; `--twin-error` perturbs it reproducibly, within its bounds."""
+    from reach_sim_bridge.params import ArmParams
+
+    p = rb.plan(SEED, True, 2, max_corners=3, corner_selection=corner_selection)
+    jobs = rb.make_jobs("lambda", {"lambda_factor": 4.0}, p.arms, SEED, SECONDS, twin_error=0.0)
+    for arm, job in zip(p.arms, jobs, strict=True):
+        params = json.loads(job.params_json)
+        assert params["lambda_factor"] == 4.0
+        assert params["latency_periods"] == arm.variant.latency_periods
+        twin = ArmParams.from_json_dict(params["params"])
+        assert twin.torque_scale == tuple(arm.variant.torque_scale)
+        assert twin.frictionloss == arm.variant.params.frictionloss
+    off = [rb.arm_twin(a, SEED, 0.05)["params"] for a in p.arms]
+    assert off == [rb.arm_twin(a, SEED, 0.05)["params"] for a in p.arms]  # seeded per arm
+    for arm, twin in zip(p.arms, off, strict=True):
+        ratio = np.asarray(twin["armature"]) / np.asarray(arm.variant.params.armature)
+        assert np.all(np.abs(ratio - 1) <= 0.05) and np.any(ratio != 1)
+        assert twin["torque_scale"] == list(arm.variant.torque_scale)
+    plain = rb.make_jobs("pid", {}, p.arms, SEED, SECONDS)
+    assert {j.params_json for j in plain} == {"{}"}
+
+
+def test_a_twin_campaign_records_how_its_twins_were_made(tmp_path: Path) -> None:
+    argv = ["--controller", "lambda", "--twin", "--twin-error", "0.02", "--draws", "1"]
+    assert rb.main([*argv, "--seconds", "2", "--out", str(tmp_path), "--quiet"]) == 0
+    report = json.loads((tmp_path / "lambda.json").read_text())
+    assert report["settings"]["twin_error"] == 0.02
+    assert report["params"] == {}  # the twins are per arm, not the campaign's parameters
+    assert "--twin-error 0.02" in report["command"]
+
+
 def _small_plan(corner_selection: Any) -> Any:
     return rb.plan(SEED, True, 2, max_corners=2, corner_selection=corner_selection)
 
@@ -247,6 +280,9 @@ def test_the_shipped_doc_has_the_markers_the_tool_writes() -> None:
         (["--controller", "pid", "--max-corners", "3", "--draws", "1"], "--corners"),
         (["--controller", "pid", "--draws", "1", "--workers", "0"], "--workers"),
         (["--controller", "pid", "--draws", "1", "--overshoot-by", "lag"], "latency_periods"),
+        (["--controller", "lambda", "--draws", "1", "--twin-error", "0.1"], "--twin"),
+        (["--controller", "lambda", "--draws", "1", "--twin", "--twin-error", "1"], "[0, 1)"),
+        (["--controller", "pid", "--draws", "1", "--twin"], "latency_periods"),
     ],
 )
 def test_bad_arguments_are_clear_errors(

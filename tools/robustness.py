@@ -29,7 +29,7 @@ import re
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -147,6 +147,19 @@ def base_config(seed: int, set_name: str, seconds: float, rate_hz: float) -> Run
     )
 
 
+def arm_twin(arm: Arm, seed: int, error: float = 0.0) -> dict[str, Any]:
+    """What an identification of `arm` would tell a controller: its parameters (the weak
+    joint's torque scale included) and its loop latency, as controller parameters `params`
+    and `latency_periods`. `error` > 0 scales its friction, damping, armature, masses and
+    volumes by independent factors in 1 +- error (seeded by the arm), an identification's
+    error."""
+    twin = replace(arm.variant.params, torque_scale=arm.variant.torque_scale)
+    if error > 0:
+        rng = np.random.default_rng([seed, SETS.index(arm.set), arm.index, 3])
+        twin = replace(twin.randomized(rng, error), torque_scale=twin.torque_scale)
+    return {"params": twin.to_json_dict(), "latency_periods": arm.variant.latency_periods}
+
+
 def make_jobs(
     controller: str,
     params: dict[str, Any],
@@ -154,14 +167,18 @@ def make_jobs(
     seed: int,
     seconds: float = 20.0,
     rate_hz: float = 20.0,
+    twin_error: float | None = None,
 ) -> list[Job]:
     """One `policy.campaign.Job` per arm: its own RunConfig and Episode; `run_job` runs it
-    with episode seed ``config.seed + index``."""
+    with episode seed ``config.seed + index``. With `twin_error` (0: exact) each arm's
+    controller is also given the arm's twin (`arm_twin`)."""
     params_json = json.dumps(params, sort_keys=True)
     return [
         Job(
             controller,
-            params_json,
+            params_json
+            if twin_error is None
+            else json.dumps({**params, **arm_twin(a, seed, twin_error)}, sort_keys=True),
             a.variant.episode(arm_episode(seed, a.set, a.index)),
             a.variant.run_config(base_config(seed, a.set, seconds, rate_hz)),
             a.index,
@@ -691,10 +708,12 @@ def campaign(
     seconds: float = 20.0,
     rate_hz: float = 20.0,
     progress: Callable[[int, EpisodeResult], None] | None = None,
+    twin_error: float | None = None,
 ) -> dict[str, Any]:
     """Run one controller over the plan's arms; the report (rows, summary) as a dict."""
-    load_controller(controller, **params)  # a bad name or parameter fails before Ray starts
-    jobs = make_jobs(controller, params, the_plan.arms, seed, seconds, rate_hz)
+    jobs = make_jobs(controller, params, the_plan.arms, seed, seconds, rate_hz, twin_error)
+    if jobs:  # a bad name or parameter fails before Ray starts
+        load_controller(controller, **json.loads(jobs[0].params_json))
     done = None if progress is None else (lambda pair: progress(*pair))
     t0 = time.monotonic()
     results = run_jobs(jobs, workers, address, done)
@@ -772,6 +791,21 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.json",
         help="the arm the envelope spreads around: ArmParams fields, the rest nominal (as in "
         'tools/evaluate.py), e.g. {"friction_holds": true} for friction that holds',
+    )
+    p.add_argument(
+        "--twin",
+        action="store_true",
+        help="give the controller each arm's twin, its parameters and loop latency, as an "
+        "identification (tools/identify.py) would: for controllers that take params= and "
+        "latency_periods= (lambda)",
+    )
+    p.add_argument(
+        "--twin-error",
+        type=float,
+        default=0.0,
+        metavar="FRACTION",
+        help="with --twin: scale each twin's friction, damping, armature, masses and volumes "
+        "by independent factors in 1 +- FRACTION, seeded per arm (default 0: exact)",
     )
     p.add_argument("--seed", type=int, default=1, help="seed of the draws and episodes (1)")
     p.add_argument("--seconds", type=float, default=20.0, help="episode length (20 s)")
@@ -882,6 +916,10 @@ def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list
         raise ValueError(f"--draws must be at least 1, got {args.draws}")
     if args.max_corners is not None and not args.corners:
         raise ValueError("--max-corners needs --corners")
+    if args.twin_error and not args.twin:
+        raise ValueError("--twin-error needs --twin")
+    if not 0 <= args.twin_error < 1:
+        raise ValueError(f"--twin-error must be in [0, 1), got {args.twin_error}")
     params = parse_controller_params(args.param)
     base = None if args.params is None else load_arm_params(args.params)
     the_plan = plan(args.seed, args.corners, args.draws, args.max_corners, base=base)
@@ -893,6 +931,8 @@ def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list
         "seconds": args.seconds,
         "rate_hz": args.rate,
     }
+    if args.twin:  # only when given, so old blocks still match
+        settings["twin_error"] = args.twin_error
     if base is not None:  # only what differs from the nominal arm, so old blocks still match
         nominal = ArmParams().to_json_dict()
         settings["params"] = {k: v for k, v in base.to_json_dict().items() if v != nominal[k]}
@@ -913,6 +953,7 @@ def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list
                 seconds=args.seconds,
                 rate_hz=args.rate,
                 progress=progress.done,
+                twin_error=args.twin_error if args.twin else None,
             )
         args.out.mkdir(parents=True, exist_ok=True)
         path = args.out / f"{label}.json"

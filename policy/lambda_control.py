@@ -1,0 +1,238 @@
+"""A model-based controller tuned by the lambda rule: each joint follows a speed reference
+proportional to its error, with the closed loop made slower than the loop's dead time.
+
+Why it exists (docs/robustness.md, "Eighteenth round"): the DDPG actor and the MPC were both
+made for the nominal arm, and on the arms of the uncertainty envelope they overshoot by what
+they do not know: the loop's latency, a joint's inertia and friction. This controller is the
+other way round: it knows nothing but a twin of the arm (`ArmParams`, nominal or fitted by
+`tools/identify.py`) and the loop's latency, and derives every gain from them, so it tells how
+much of the overshoot knowing the arm removes.
+
+Every control period (T = 1 / rate_hz):
+
+1. **Observe.** The twin (its MuJoCo model, motors and friction) is run from the last
+   estimate through the period under the commands that were in force; the estimate takes
+   `observer_q` of the position reading's difference from it and `observer_v` of the speed
+   reading's. The readings' noise reaches the law attenuated, and the estimate carries no lag.
+2. **Predict.** The twin is run on through the commands still in flight, to when the command
+   computed now takes effect (`latency_periods` later): a Smith predictor, so the loop's dead
+   time is only theta = T / 2, the hold's (with `predict` off, theta = (latency + 1/2) T).
+3. **Act,** per joint j, on the predicted angle and speed:
+
+       J_j     the twin's joint-space inertia at that pose (armature + links, diagonal)
+       kv_j    = speed_gain * J_j / theta              speed feedback
+       tau_j   = J_j / (b_j + kv_j)                    the speed loop's time constant
+       K_j     = 1 / (lag_factor tau_j + (1 + lambda_factor) theta)     position gain, 1/s
+       v_ref   = clip(K_j e_j, +-max_speed) + integral  e_j = goal - predicted angle
+       torque  = b_j v_ref + kv_j (v_ref - qdot_j) + c_j tanh(v_ref / friction_speed) g_j - G_j(q)
+
+   with b, c the twin's viscous and Coulomb friction, G its gravity-buoyancy torque and g_j
+   a gate that fades the friction feed-forward out within `friction_band` of the goal (at
+   the goal it only pushed noise through the joint's stiction).
+
+An integrating process (speed to angle) behind a first-order lag tau and a dead time theta
+closes without overshoot when the position loop's time constant 1/K exceeds the lag by a
+factor (`lag_factor`: 2 keeps the lag's damping at 0.7 or more) and the dead time by a margin
+(lambda tuning: `lambda_factor` theta). The speed feedback kv is kept to `speed_gain` of
+J / theta, below where speed fed back through theta rings. A slow integral (`integral_gain`,
+within `integral_band` of the goal, capped at `integral_cap`) adds to v_ref for what the twin
+gets wrong (a static load, friction it underestimates).
+
+The twin is everything: with the arm's own parameters the law is measured to reach every
+corner of the envelope tried, with the nominal arm's it reaches almost none of them
+(docs/robustness.md). A twin comes from `tools/identify.py`.
+
+    from policy.lambda_control import make_controller
+    ctrl = make_controller(params="arm.json", latency_periods=1.0)
+"""
+
+from __future__ import annotations
+
+import json
+from collections import deque
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from protocol.alpha5 import N_JOINTS
+from reach_driver.controllers import ControlState
+from reach_sim_bridge.arm import Alpha5Arm
+from reach_sim_bridge.params import ArmParams, load_arm_params
+
+
+@dataclass(frozen=True)
+class LambdaConfig:
+    """The tuning: every gain is derived from these and the twin (module docstring)."""
+
+    rate_hz: float = 20.0  # control rate the loop runs at
+    latency_periods: float = 0.0  # the loop's latency beyond the hold, in control periods
+    lambda_factor: float = 3.0  # closed-loop margin over the dead time (x theta)
+    lag_factor: float = 2.0  # 1/K >= 2 tau: the speed lag alone barely rings (damping >= 0.7)
+    speed_gain: float = 0.25  # speed feedback, a fraction of J / theta
+    max_speed: float = 1.0  # rad/s, under the motors' 1.18 rad/s no-load speed
+    friction_speed: float = 0.2  # rad/s: width of the Coulomb feed-forward's tanh
+    friction_band: float = 0.01  # rad: the Coulomb feed-forward fades out this near the goal
+    integral_gain: float = 0.5  # 1/s^2: rad/s of reference per rad s of integrated error
+    integral_band: float = 0.05  # rad: integrate only this close to the goal
+    integral_cap: float = 0.05  # rad/s: most speed reference the integral may add
+    observer_q: float = 0.2  # share of the position reading's innovation taken each period
+    observer_v: float = 0.05  # share of the speed reading's innovation taken each period
+    predict: bool = True  # run the twin through the commands in flight (a Smith predictor)
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not np.isfinite(value) or value < 0:
+                raise ValueError(f"LambdaConfig.{f.name} must be finite and >= 0, got {value!r}")
+        if not (0 < self.observer_q <= 1 and 0 < self.observer_v <= 1):
+            raise ValueError("LambdaConfig.observer_q and observer_v must be in (0, 1]")
+        for name in ("rate_hz", "max_speed", "friction_speed", "friction_band", "integral_band"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"LambdaConfig.{name} must be > 0, got {getattr(self, name)!r}")
+
+    @property
+    def dead_time_s(self) -> float:
+        """What the loop cannot see through: the hold's half period, and the latency unless
+        the prediction removes it."""
+        latency = 0.0 if self.predict else self.latency_periods
+        return (latency + 0.5) / self.rate_hz
+
+
+class LambdaController:
+    """Currents (mA, E D C B) from the measured state, the goal and the twin (`ArmParams`)."""
+
+    def __init__(self, params: ArmParams | None = None, config: LambdaConfig | None = None):
+        self.params = params or ArmParams()
+        self.config = config or LambdaConfig()
+        self.twin = Alpha5Arm(params=self.params)
+        self.twin.torque_scale = np.asarray(self.params.torque_scale, dtype=np.float64)
+        self.current_limits_mA = np.asarray(self.twin.current_limits_mA, dtype=np.float64)
+        scale = np.asarray(self.params.torque_scale, dtype=np.float64)
+        #: N m per mA of each joint on the twin (its torque scale included)
+        self.torque_per_mA = self.twin.motor.torque_per_amp * scale / 1000.0
+        self.damping = np.asarray(self.params.damping, dtype=np.float64)
+        self.friction = np.asarray(self.params.frictionloss, dtype=np.float64)
+        self.reset()
+
+    @property
+    def period_s(self) -> float:
+        """The control period the gains and the prediction assume (the driver runs at it)."""
+        return 1.0 / self.config.rate_hz
+
+    def reset(self) -> None:
+        """Forget the estimate, the integral and the commands sent."""
+        self._integral = np.zeros(N_JOINTS)
+        self._goal: np.ndarray | None = None
+        self._q: np.ndarray | None = None  # the observer's estimate, now
+        self._v = np.zeros(N_JOINTS)
+        n = int(np.ceil(self.config.latency_periods)) + 2
+        self._sent: deque[np.ndarray] = deque([np.zeros(N_JOINTS)] * n, maxlen=n)
+
+    def _in_force(self, tau: float) -> np.ndarray:
+        """The command the arm applies at tau (s, relative to now): the one sent
+        latency_periods earlier (index -1: sent a period ago; 0: sent now)."""
+        cfg = self.config
+        m = int(np.floor(tau * cfg.rate_hz - cfg.latency_periods + 1e-9))
+        if m >= 0:
+            raise ValueError("no command sent yet for that time")
+        return self._sent[m] if -m <= len(self._sent) else np.zeros(N_JOINTS)
+
+    def _run_twin(
+        self, q: np.ndarray, v: np.ndarray, t0: float, t1: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The twin's angles and speeds at t1 from (q, v) at t0 (s, relative to now), under
+        the commands in force: the twin's own physics (coupling, motors, friction)."""
+        steps = int(round((t1 - t0) / self.twin.dt))
+        if steps <= 0:
+            return q, v
+        limits = self.twin.position_limits
+        self.twin.reset(q=np.clip(q, limits[:, 0], limits[:, 1]), qdot=v)
+        i = 0
+        while i < steps:
+            command = self._in_force(t0 + (i + 0.5) * self.twin.dt)
+            j = i + 1
+            while j < steps and self._in_force(t0 + (j + 0.5) * self.twin.dt) is command:
+                j += 1
+            self.twin.step(command, n=j - i)
+            i = j
+        return self.twin.q, self.twin.qdot
+
+    def gains(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(K 1/s, kv N m s/rad) per joint at pose q."""
+        cfg = self.config
+        theta = cfg.dead_time_s
+        inertia = np.diag(self.twin.mass_matrix(q))
+        kv = cfg.speed_gain * inertia / theta
+        tau = inertia / (self.damping + kv)
+        k = 1.0 / (cfg.lag_factor * tau + theta + cfg.lambda_factor * theta)
+        return k, kv
+
+    def act(self, state: ControlState, target: np.ndarray) -> np.ndarray:
+        cfg = self.config
+        q = np.asarray(state.q, dtype=np.float64)
+        qdot = np.asarray(state.qdot, dtype=np.float64)
+        goal = np.asarray(target, dtype=np.float64)
+        if q.shape != (N_JOINTS,) or qdot.shape != (N_JOINTS,) or goal.shape != (N_JOINTS,):
+            raise ValueError("state.q, state.qdot and target must each be 4 values (E D C B)")
+        if self._goal is None or np.any(goal != self._goal):
+            self._integral = np.zeros(N_JOINTS)
+            self._goal = goal.copy()
+        period = 1.0 / cfg.rate_hz
+        if self._q is None:
+            self._q, self._v = q.copy(), qdot.copy()
+        else:
+            q_pred, v_pred = self._run_twin(self._q, self._v, -period, 0.0)
+            self._q = q_pred + cfg.observer_q * (q - q_pred)
+            self._v = v_pred + cfg.observer_v * (qdot - v_pred)
+        q, qdot = self._q, self._v
+        if cfg.predict:
+            q, qdot = self._run_twin(q, qdot, 0.0, cfg.latency_periods * period)
+        error = goal - q
+        k, kv = self.gains(q)
+        near = np.abs(error) < cfg.integral_band
+        grown = self._integral + cfg.integral_gain * error / cfg.rate_hz
+        self._integral = np.where(near, np.clip(grown, -cfg.integral_cap, cfg.integral_cap), 0.0)
+        v_ref = np.clip(k * error, -cfg.max_speed, cfg.max_speed) + self._integral
+        torque = (
+            self.damping * v_ref
+            + kv * (v_ref - qdot)
+            + self.friction
+            * np.tanh(v_ref / cfg.friction_speed)
+            * np.clip(np.abs(error) / cfg.friction_band, 0.0, 1.0)
+            - self.twin.gravity_torque(q)
+        )
+        out: np.ndarray = np.clip(
+            torque / self.torque_per_mA, -self.current_limits_mA, self.current_limits_mA
+        )
+        self._sent.append(out.copy())
+        return out
+
+
+def make_controller(
+    params: str | Path | dict[str, Any] | None = None, **kwargs: Any
+) -> LambdaController:
+    """Entry point `lambda`: `params` is the twin (an arm parameter file's path, or a dict of
+    `ArmParams` fields; nominal if omitted); keyword arguments are `LambdaConfig` fields.
+    Without `latency_periods`, a file written by `tools/identify.py` gives it: the command
+    delay it measured (`_fit.delay_s`) times the control rate."""
+    known = {f.name for f in fields(LambdaConfig)}
+    unknown = set(kwargs) - known
+    if unknown:
+        raise ValueError(
+            f"unknown lambda options {sorted(unknown)}; known: {sorted(known)} and params"
+        )
+    config = replace(LambdaConfig(), **kwargs)
+    if params is None:
+        twin = ArmParams()
+    elif isinstance(params, dict):
+        twin = ArmParams.from_json_dict(params)
+    else:
+        twin = load_arm_params(params)
+        if "latency_periods" not in kwargs:
+            delay = json.loads(Path(params).read_text(encoding="utf-8")).get("_fit", {})
+            delay_s = delay.get("delay_s") if isinstance(delay, dict) else None
+            if isinstance(delay_s, (int, float)) and delay_s >= 0:
+                config = replace(config, latency_periods=float(delay_s) * config.rate_hz)
+    return LambdaController(twin, config)

@@ -1,0 +1,105 @@
+"""The lambda controller: a model-based law whose gains come from the arm's twin and latency.
+
+What it must do: predict the arm exactly through the commands in flight when its twin is the
+arm, drive a frictionless arm with two periods of latency to its goal without overshoot where
+the DDPG actor overshoots, refuse bad settings, and take its twin from a file, a dict or a
+campaign (`tools/robustness.py --twin`).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from policy.ddpg_controller import make_controller as make_ddpg
+from policy.direct import DirectArm
+from policy.envelope import corners
+from policy.lambda_control import LambdaConfig, LambdaController, make_controller
+from policy.rollout import Episode, RunConfig
+from reach_driver.controllers import load_controller
+from reach_sim_bridge.arm import Alpha5Arm
+from reach_sim_bridge.params import ArmParams
+
+T = 0.05
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_bad_settings_are_refused() -> None:
+    with pytest.raises(ValueError, match="observer_q"):
+        LambdaConfig(observer_q=0.0)
+    with pytest.raises(ValueError, match="lambda_factor"):
+        LambdaConfig(lambda_factor=-1.0)
+    with pytest.raises(ValueError, match="rate_hz"):
+        LambdaConfig(rate_hz=0.0)
+    with pytest.raises(ValueError, match="unknown lambda options.*lamda"):
+        make_controller(lamda=2.0)
+    with pytest.raises(ValueError, match="frictionlos"):
+        make_controller(params={"frictionlos": [0, 0, 0, 0]})
+
+
+def test_the_twin_comes_from_a_file_a_dict_or_the_registry(tmp_path: Path) -> None:
+    path = tmp_path / "arm.json"
+    path.write_text(json.dumps({"frictionloss": [0.0, 0.1, 0.2, 0.01]}))
+    from_file = make_controller(params=str(path), latency_periods=1.5)
+    np.testing.assert_allclose(from_file.friction, [0.0, 0.1, 0.2, 0.01])
+    assert from_file.config.latency_periods == 1.5
+    from_dict = make_controller(params={"torque_scale": [1.0, 0.5, 1.0, 1.0]})
+    nominal = make_controller()
+    np.testing.assert_allclose(from_dict.torque_per_mA[1], 0.5 * nominal.torque_per_mA[1])
+    assert isinstance(load_controller("lambda", latency_periods=2.0), LambdaController)
+    identified = ROOT / "tests" / "data" / "identified_seed11.json"  # delay 2.5 ms
+    assert make_controller(params=str(identified)).config.latency_periods == pytest.approx(
+        0.0499, abs=1e-4
+    )
+    assert make_controller(params=str(identified), latency_periods=1.0).config.latency_periods == 1
+
+
+def test_the_prediction_through_the_commands_in_flight_is_the_arms_own() -> None:
+    """With the arm as its twin, the state the controller predicts for when its command lands
+    is the state the arm reaches under the commands still in flight (2 periods of latency)."""
+    params = replace(ArmParams(), frictionloss=(0.0, 0.0, 0.0, 0.0))
+    ctrl = LambdaController(params, LambdaConfig(latency_periods=2.0))
+    sent = [np.array([300.0, -200.0, 150.0, 80.0]), np.array([-100.0, 250.0, -50.0, -60.0])]
+    ctrl._sent.extend(sent)  # sent two periods and one period ago
+    q0, v0 = np.array([2.0, 1.5, 1.2, 1.0]), np.array([0.3, -0.2, 0.1, 0.5])
+    q_pred, v_pred = ctrl._run_twin(q0, v0, 0.0, 2 * T)
+    arm = Alpha5Arm(params=params)
+    arm.reset(q=q0, qdot=v0)
+    arm.step(sent[0], n=25)  # the older command is in force for the first period
+    arm.step(sent[1], n=25)
+    np.testing.assert_allclose(q_pred, arm.q, atol=1e-9)
+    np.testing.assert_allclose(v_pred, arm.qdot, atol=1e-9)
+
+
+def _latent_frictionless_corner() -> tuple[ArmParams, tuple[float, float, float, float], float]:
+    for v in corners().variants:
+        f = v.factors
+        if f["coulomb_edc"] == 0 and f["latency_periods"] == 2 and f["weak_joint"] < 0:
+            return v.params, v.torque_scale, v.latency_periods
+    raise AssertionError("the envelope has no frictionless corner at two periods of latency")
+
+
+def test_a_latent_frictionless_arm_is_reached_without_the_overshoot_of_the_actor() -> None:
+    """No Coulomb friction and two periods of latency: the DDPG actor (trained on 0.7 N m and
+    no latency) carries joints well through their goals; the lambda controller, told the
+    arm, arrives without going 2 % past."""
+    params, scale, latency = _latent_frictionless_corner()
+    episode = Episode(
+        start=np.array([1.0, 1.2, 2.4, 0.8]),
+        target=np.array([3.0, 2.2, 1.4, 2.3]),
+        torque_scale=np.asarray(scale),
+    )
+    config = RunConfig(seconds=8.0, params=params, latency_periods=latency)
+    twin = replace(params, torque_scale=scale)
+    lam = DirectArm().run(
+        LambdaController(twin, LambdaConfig(latency_periods=latency)), episode, config, 0
+    )
+    ddpg = DirectArm().run(make_ddpg(), episode, config, 0)
+    assert lam.metrics.reached and lam.metrics.at_rest
+    assert lam.metrics.overshoot_pct < 2.0
+    assert np.all(np.abs(lam.final_error) < 0.005)
+    assert ddpg.metrics.overshoot_pct > 5.0  # what the twin is worth here
