@@ -77,8 +77,8 @@ class LambdaConfig:
     integral_gain: float = 0.5  # 1/s^2: rad/s of reference per rad s of integrated error
     integral_band: float = 0.05  # rad: integrate only this close to the goal
     integral_cap: float = 0.05  # rad/s: most speed reference the integral may add
-    observer_q: float = 0.2  # share of the position reading's innovation taken each period
-    observer_v: float = 0.05  # share of the speed reading's innovation taken each period
+    observer_q: float = 0.3  # share of the position reading's innovation taken each period
+    observer_v: float = 0.1  # share of the speed reading's innovation taken each period
     predict: bool = True  # run the twin through the commands in flight (a Smith predictor)
 
     def __post_init__(self) -> None:
