@@ -130,33 +130,28 @@ class LambdaController:
         n = int(np.ceil(self.config.latency_periods)) + 2
         self._sent: deque[np.ndarray] = deque([np.zeros(N_JOINTS)] * n, maxlen=n)
 
-    def _in_force(self, tau: float) -> np.ndarray:
-        """The command the arm applies at tau (s, relative to now): the one sent
-        latency_periods earlier (index -1: sent a period ago; 0: sent now)."""
-        cfg = self.config
-        m = int(np.floor(tau * cfg.rate_hz - cfg.latency_periods + 1e-9))
-        if m >= 0:
-            raise ValueError("no command sent yet for that time")
-        return self._sent[m] if -m <= len(self._sent) else np.zeros(N_JOINTS)
-
     def _run_twin(
         self, q: np.ndarray, v: np.ndarray, t0: float, t1: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """The twin's angles and speeds at t1 from (q, v) at t0 (s, relative to now), under
         the commands in force: the twin's own physics (coupling, motors, friction)."""
-        steps = int(round((t1 - t0) / self.twin.dt))
+        cfg, dt = self.config, self.twin.dt
+        steps = int(round((t1 - t0) / dt))
         if steps <= 0:
             return q, v
+        # per physics step, which command is in force: the one sent latency_periods before
+        # its middle (index -1: sent a period ago; 0, sent now, lands after t1)
+        mid = t0 + (np.arange(steps) + 0.5) * dt
+        sent = np.floor(mid * cfg.rate_hz - cfg.latency_periods + 1e-9).astype(int)
+        if sent[-1] >= 0:
+            raise ValueError("the twin cannot run past the command being computed")
         limits = self.twin.position_limits
         self.twin.reset(q=np.clip(q, limits[:, 0], limits[:, 1]), qdot=v)
-        i = 0
-        while i < steps:
-            command = self._in_force(t0 + (i + 0.5) * self.twin.dt)
-            j = i + 1
-            while j < steps and self._in_force(t0 + (j + 0.5) * self.twin.dt) is command:
-                j += 1
-            self.twin.step(command, n=j - i)
-            i = j
+        starts = [0, *(np.flatnonzero(np.diff(sent)) + 1).tolist(), steps]
+        for a, b in zip(starts[:-1], starts[1:], strict=True):
+            m = int(sent[a])
+            command = self._sent[m] if -m <= len(self._sent) else np.zeros(N_JOINTS)
+            self.twin.step(command, n=b - a)
         return self.twin.q, self.twin.qdot
 
     def gains(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
