@@ -20,8 +20,11 @@ from reach_driver.metrics import (
     Trace,
     command_reversals,
     compute_metrics,
+    energy_after,
+    energy_clock,
     rest,
     rest_window,
+    settling_time,
 )
 from reach_sim_bridge.faults import SensorNoise
 
@@ -84,6 +87,38 @@ def test_a_burst_of_chatter_after_settling_is_not_rest() -> None:
     r = rest(quiet)
     assert r.speed_rms < REST_SPEED_RMS_MAX and r.reversals == 0
     assert r.energy_after_settling_j > REST_ENERGY_AFTER_SETTLING_MAX_J and not r.at_rest
+
+
+def test_a_long_step_finishing_behind_friction_is_rest() -> None:
+    """E steps 5 rad behind 6.6 N m of Coulomb friction and comes straight to rest, last of
+    the joints. Its settling band is 100 mrad, and finishing the approach inside it costs
+    6.6 x 0.1 = 0.66 J: counted from the settling time, a clean arrival failed the 0.5 J
+    test. The energy clock (`energy_clock`) starts inside 20 mrad instead, where the same
+    approach costs 0.13 J; a chatter burst or a limit cycle (+-8 mrad) still counts in full."""
+    target = np.array([5.4, 1.5, 2.0, 1.5])
+    start = np.array([0.4, 1.5, 2.0, 1.5])
+    speed = np.zeros(N + 1)  # 1 rad/s, then in exponentially (0.2 s) over the last 0.2 rad
+    e_q = np.full(N + 1, start[0])
+    for k in range(N):
+        speed[k] = min(1.0, (target[0] - e_q[k]) / 0.2)
+        e_q[k + 1] = e_q[k] + speed[k] * DT
+    q = np.tile(start, (N + 1, 1))
+    q[:, 0] = e_q
+    qdot = np.zeros_like(q)
+    qdot[1:, 0] = speed[:-1]  # the speed over the period that ends at each sample
+    tau = np.zeros_like(q)
+    tau[:, 0] = np.where(qdot[:, 0] > 1e-3, 6.6, 0.0)
+    command = tau / KT * 1000.0
+    trace = Trace(DT, q, qdot, tau, target, power=np.abs(tau * qdot), command_mA=command)
+    settled = settling_time(q, target, DT)
+    assert abs(q[-1, 0] - target[0]) < 0.01
+    assert energy_after(trace, settled) > REST_ENERGY_AFTER_SETTLING_MAX_J  # the old clock
+    clock = energy_clock(q, target, DT)
+    assert clock > settled
+    m = compute_metrics(trace)
+    assert m.energy_after_settling_j == pytest.approx(energy_after(trace, clock))
+    assert 0.05 < m.energy_after_settling_j < 0.2
+    assert m.at_rest and m.reached
 
 
 def test_small_commands_around_zero_are_not_reversals() -> None:
