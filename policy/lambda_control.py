@@ -11,9 +11,11 @@ much of the overshoot knowing the arm removes.
 Every control period (T = 1 / rate_hz):
 
 1. **Observe.** The twin (its MuJoCo model, motors and friction) is run from the last
-   estimate through the period under the commands that were in force; the estimate takes
-   `observer_q` of the position reading's difference from it and `observer_v` of the speed
-   reading's. The readings' noise reaches the law attenuated, and the estimate carries no lag.
+   estimate through the period under the commands that were in force, and a Kalman filter
+   per joint (angle and speed) weighs that prediction against the readings: the readings'
+   noise (`noise_q`, `noise_v`) against how far the twin may be wrong (`model_accel`, plus
+   `twin_error` of the torques at work, over the joint's inertia). With an exact twin the
+   filter averages the noise away at rest; with a rough one it follows the readings.
 2. **Predict.** The twin is run on through the commands still in flight, to when the command
    computed now takes effect (`latency_periods` later): a Smith predictor, so the loop's dead
    time is only theta = T / 2, the hold's (with `predict` off, theta = (latency + 1/2) T).
@@ -23,12 +25,15 @@ Every control period (T = 1 / rate_hz):
        kv_j    = speed_gain * J_j / theta              speed feedback
        tau_j   = J_j / (b_j + kv_j)                    the speed loop's time constant
        K_j     = 1 / (lag_factor tau_j + (1 + lambda_factor) theta)     position gain, 1/s
-       v_ref   = clip(K_j e_j, +-max_speed) + integral  e_j = goal - predicted angle
-       torque  = b_j v_ref + kv_j (v_ref - qdot_j) + c_j tanh(v_ref / friction_speed) g_j - G_j(q)
+       v_ref   = clip(K_j e_j, +-max_speed) + integral  e_j = aim - predicted angle
+       torque  = b v_ref + M(q) a + c tanh(v_ref / friction_speed) g - G(q)
+       a_j     = kv_j / J_j (v_ref_j - qdot_j)          the speed loop's acceleration
 
-   with b, c the twin's viscous and Coulomb friction, G its gravity-buoyancy torque and g_j
-   a gate that fades the friction feed-forward out within `friction_band` of the goal (at
-   the goal it only pushed noise through the joint's stiction).
+   with M the twin's mass matrix (the speed loops' accelerations through it, so a joint
+   braking does not shove its neighbours through their goals), b, c the twin's viscous and
+   Coulomb friction, G its gravity-buoyancy torque and g_j a gate that fades the friction
+   feed-forward out within `friction_band` of the goal (at the goal it only pushed noise
+   through the joint's stiction). The aim is the goal less the standoff (below).
 
 An integrating process (speed to angle) behind a first-order lag tau and a dead time theta
 closes without overshoot when the position loop's time constant 1/K exceeds the lag by a
@@ -37,6 +42,17 @@ factor (`lag_factor`: 2 keeps the lag's damping at 0.7 or more) and the dead tim
 J / theta, below where speed fed back through theta rings. A slow integral (`integral_gain`,
 within `integral_band` of the goal, capped at `integral_cap`) adds to v_ref for what the twin
 gets wrong (a static load, friction it underestimates).
+
+**Standoff.** A joint at rest wanders with what is left of the readings' noise in the
+estimate, and a goal approached head-on is crossed by that wander (a 2 % overshoot is 1 mrad
+on a 0.05 rad step; the sensor's noise is 2-6 mrad). The law therefore aims short of the goal,
+on the side it came from, by `standoff` times the estimate's standard deviation less what the
+overshoot allowance (`overshoot_allowance` of the step) already covers, and never by more than
+`standoff_band` of the settling band (docs/metrics.md). The standoff keeps its largest value
+since the goal was set: an aim that closed in as the estimate firmed up at rest walked joints
+held by friction across their goals in stick-slip late in the episode. The integral only
+grows while the joint is still (`integral_speed`), so it answers a static load and not the
+approach itself.
 
 The twin is everything: with the arm's own parameters the law is measured to reach every
 corner of the envelope tried, with the nominal arm's it reaches almost none of them
@@ -58,6 +74,7 @@ import numpy as np
 
 from protocol.alpha5 import N_JOINTS
 from reach_driver.controllers import ControlState
+from reach_driver.metrics import settling_band
 from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.params import ArmParams, load_arm_params
 
@@ -77,8 +94,14 @@ class LambdaConfig:
     integral_gain: float = 0.5  # 1/s^2: rad/s of reference per rad s of integrated error
     integral_band: float = 0.05  # rad: integrate only this close to the goal
     integral_cap: float = 0.05  # rad/s: most speed reference the integral may add
-    observer_q: float = 0.3  # share of the position reading's innovation taken each period
-    observer_v: float = 0.1  # share of the speed reading's innovation taken each period
+    integral_speed: float = 0.02  # rad/s: integrate only while the joint is this still
+    noise_q: float = 0.002  # rad: the angle readings' noise (standard deviation)
+    noise_v: float = 0.02  # rad/s: the speed readings' noise
+    model_accel: float = 0.005  # rad/s^2: the twin's error floor, as white acceleration
+    twin_error: float = 0.05  # the twin's relative error in the torques it models
+    standoff: float = 5.0  # aim short of the goal by this many estimate deviations ...
+    overshoot_allowance: float = 0.02  # ... less this fraction of the step ...
+    standoff_band: float = 0.6  # ... and at most this fraction of the settling band
     predict: bool = True  # run the twin through the commands in flight (a Smith predictor)
 
     def __post_init__(self) -> None:
@@ -86,9 +109,16 @@ class LambdaConfig:
             value = getattr(self, f.name)
             if not np.isfinite(value) or value < 0:
                 raise ValueError(f"LambdaConfig.{f.name} must be finite and >= 0, got {value!r}")
-        if not (0 < self.observer_q <= 1 and 0 < self.observer_v <= 1):
-            raise ValueError("LambdaConfig.observer_q and observer_v must be in (0, 1]")
-        for name in ("rate_hz", "max_speed", "friction_speed", "friction_band", "integral_band"):
+        positive = (
+            "rate_hz",
+            "max_speed",
+            "friction_speed",
+            "friction_band",
+            "integral_band",
+            "noise_q",
+            "noise_v",
+        )
+        for name in positive:
             if getattr(self, name) <= 0:
                 raise ValueError(f"LambdaConfig.{name} must be > 0, got {getattr(self, name)!r}")
 
@@ -125,8 +155,16 @@ class LambdaController:
         """Forget the estimate, the integral and the commands sent."""
         self._integral = np.zeros(N_JOINTS)
         self._goal: np.ndarray | None = None
-        self._q: np.ndarray | None = None  # the observer's estimate, now
+        self._q: np.ndarray | None = None  # the filter's estimate, now
         self._v = np.zeros(N_JOINTS)
+        #: the estimate's covariance per joint ((angle, speed) x (angle, speed))
+        self._cov = np.zeros((N_JOINTS, 2, 2))
+        self._cov[:, 0, 0] = self.config.noise_q**2
+        self._cov[:, 1, 1] = self.config.noise_v**2
+        self._model_accel = np.full(N_JOINTS, self.config.model_accel)
+        self._aim_side = np.zeros(N_JOINTS)  # +1 / -1: the side each joint comes from
+        self._standoff = np.zeros(N_JOINTS)  # the largest standoff since the goal was set
+        self._standoff_room = np.zeros((2, N_JOINTS))  # allowance, most standoff (rad)
         n = int(np.ceil(self.config.latency_periods)) + 2
         self._sent: deque[np.ndarray] = deque([np.zeros(N_JOINTS)] * n, maxlen=n)
 
@@ -154,11 +192,37 @@ class LambdaController:
             self.twin.step(command, n=b - a)
         return self.twin.q, self.twin.qdot
 
+    def _filter(
+        self, q_pred: np.ndarray, v_pred: np.ndarray, q_read: np.ndarray, v_read: np.ndarray
+    ) -> None:
+        """One Kalman update per joint: the twin's prediction against the readings. The
+        covariance follows a constant-speed model driven by white acceleration of the twin's
+        expected error (`_model_accel`, per joint)."""
+        cfg = self.config
+        t = 1.0 / cfg.rate_hz
+        f = np.array([[1.0, t], [0.0, 1.0]])
+        g = np.array([t * t / 2.0, t])
+        cov = f @ self._cov @ f.T + (self._model_accel**2)[:, None, None] * np.outer(g, g)
+        innovation = np.stack([q_read - q_pred, v_read - v_pred], axis=1)
+        s = cov + np.diag([cfg.noise_q**2, cfg.noise_v**2])
+        gain = cov @ np.linalg.inv(s)
+        x = np.stack([q_pred, v_pred], axis=1) + np.einsum("jab,jb->ja", gain, innovation)
+        self._q, self._v = x[:, 0].copy(), x[:, 1].copy()
+        cov = (np.eye(2) - gain) @ cov
+        self._cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
+
+    @property
+    def estimate_std(self) -> np.ndarray:
+        """The angle estimate's standard deviation per joint (rad)."""
+        return np.sqrt(self._cov[:, 0, 0])
+
     def gains(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(K 1/s, kv N m s/rad) per joint at pose q."""
+        return self._gains(np.diag(self.twin.mass_matrix(q)))
+
+    def _gains(self, inertia: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         cfg = self.config
         theta = cfg.dead_time_s
-        inertia = np.diag(self.twin.mass_matrix(q))
         kv = cfg.speed_gain * inertia / theta
         tau = inertia / (self.damping + kv)
         k = 1.0 / (cfg.lag_factor * tau + theta + cfg.lambda_factor * theta)
@@ -171,36 +235,58 @@ class LambdaController:
         goal = np.asarray(target, dtype=np.float64)
         if q.shape != (N_JOINTS,) or qdot.shape != (N_JOINTS,) or goal.shape != (N_JOINTS,):
             raise ValueError("state.q, state.qdot and target must each be 4 values (E D C B)")
-        if self._goal is None or np.any(goal != self._goal):
-            self._integral = np.zeros(N_JOINTS)
-            self._goal = goal.copy()
         period = 1.0 / cfg.rate_hz
         if self._q is None:
             self._q, self._v = q.copy(), qdot.copy()
         else:
             q_pred, v_pred = self._run_twin(self._q, self._v, -period, 0.0)
-            self._q = q_pred + cfg.observer_q * (q - q_pred)
-            self._v = v_pred + cfg.observer_v * (qdot - v_pred)
+            self._filter(q_pred, v_pred, q, qdot)
+        if self._goal is None or np.any(goal != self._goal):
+            self._integral = np.zeros(N_JOINTS)
+            self._goal = goal.copy()
+            step = goal - self._q
+            self._aim_side = np.sign(step)
+            self._standoff = np.zeros(N_JOINTS)
+            self._standoff_room = np.stack(
+                [
+                    cfg.overshoot_allowance * np.abs(step),
+                    cfg.standoff_band * settling_band(step),
+                ]
+            )
         q, qdot = self._q, self._v
         if cfg.predict:
             q, qdot = self._run_twin(q, qdot, 0.0, cfg.latency_periods * period)
-        error = goal - q
-        k, kv = self.gains(q)
-        near = np.abs(error) < cfg.integral_band
+        allowance, most = self._standoff_room
+        wanted = np.clip(cfg.standoff * self.estimate_std - allowance, 0.0, most)
+        standoff = self._standoff = np.maximum(self._standoff, wanted)
+        error = goal - self._aim_side * standoff - q
+        mass = self.twin.mass_matrix(q)
+        inertia = np.diag(mass)
+        gravity = self.twin.gravity_torque(q)
+        k, kv = self._gains(inertia)
+        near = (np.abs(error) < cfg.integral_band) & (np.abs(qdot) < cfg.integral_speed)
         grown = self._integral + cfg.integral_gain * error / cfg.rate_hz
         self._integral = np.where(near, np.clip(grown, -cfg.integral_cap, cfg.integral_cap), 0.0)
         v_ref = np.clip(k * error, -cfg.max_speed, cfg.max_speed) + self._integral
         torque = (
             self.damping * v_ref
-            + kv * (v_ref - qdot)
+            + mass @ (kv / inertia * (v_ref - qdot))
             + self.friction
             * np.tanh(v_ref / cfg.friction_speed)
             * np.clip(np.abs(error) / cfg.friction_band, 0.0, 1.0)
-            - self.twin.gravity_torque(q)
+            - gravity
         )
         out: np.ndarray = np.clip(
             torque / self.torque_per_mA, -self.current_limits_mA, self.current_limits_mA
         )
+        # how wrong the twin may be over the next period: twin_error of the torques at work
+        load = (
+            np.abs(out * self.torque_per_mA)
+            + np.abs(gravity)
+            + self.friction
+            + self.damping * np.abs(qdot)
+        )
+        self._model_accel = cfg.model_accel + cfg.twin_error * load / inertia
         self._sent.append(out.copy())
         return out
 

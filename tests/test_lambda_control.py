@@ -29,8 +29,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_bad_settings_are_refused() -> None:
-    with pytest.raises(ValueError, match="observer_q"):
-        LambdaConfig(observer_q=0.0)
+    with pytest.raises(ValueError, match="noise_q"):
+        LambdaConfig(noise_q=0.0)
     with pytest.raises(ValueError, match="lambda_factor"):
         LambdaConfig(lambda_factor=-1.0)
     with pytest.raises(ValueError, match="rate_hz"):

@@ -149,15 +149,23 @@ def base_config(seed: int, set_name: str, seconds: float, rate_hz: float) -> Run
 
 def arm_twin(arm: Arm, seed: int, error: float = 0.0) -> dict[str, Any]:
     """What an identification of `arm` would tell a controller: its parameters (the weak
-    joint's torque scale included) and its loop latency, as controller parameters `params`
-    and `latency_periods`. `error` > 0 scales its friction, damping, armature, masses and
+    joint's torque scale included), its loop latency and its sensor's noise, as controller
+    parameters `params`, `latency_periods`, `noise_q` and `noise_v`, and how far to trust
+    them, `twin_error`. `error` > 0 scales its friction, damping, armature, masses and
     volumes by independent factors in 1 +- error (seeded by the arm), an identification's
     error."""
     twin = replace(arm.variant.params, torque_scale=arm.variant.torque_scale)
     if error > 0:
         rng = np.random.default_rng([seed, SETS.index(arm.set), arm.index, 3])
         twin = replace(twin.randomized(rng, error), torque_scale=twin.torque_scale)
-    return {"params": twin.to_json_dict(), "latency_periods": arm.variant.latency_periods}
+    sensor = SensorNoise()
+    return {
+        "params": twin.to_json_dict(),
+        "latency_periods": arm.variant.latency_periods,
+        "noise_q": sensor.position_std * arm.variant.noise_scale,
+        "noise_v": sensor.velocity_std * arm.variant.noise_scale,
+        "twin_error": error,
+    }
 
 
 def make_jobs(
