@@ -19,9 +19,10 @@ from policy.ddpg_controller import make_controller as make_ddpg
 from policy.direct import DirectArm
 from policy.envelope import corners
 from policy.lambda_control import LambdaConfig, LambdaController, make_controller
-from policy.rollout import Episode, RunConfig
-from reach_driver.controllers import load_controller
+from policy.rollout import Episode, EpisodeResult, RunConfig
+from reach_driver.controllers import ControlState, load_controller
 from reach_sim_bridge.arm import Alpha5Arm
+from reach_sim_bridge.faults import SensorNoise
 from reach_sim_bridge.params import ArmParams
 
 T = 0.05
@@ -103,3 +104,53 @@ def test_a_latent_frictionless_arm_is_reached_without_the_overshoot_of_the_actor
     assert lam.metrics.overshoot_pct < 2.0
     assert np.all(np.abs(lam.final_error) < 0.005)
     assert ddpg.metrics.overshoot_pct > 5.0  # what the twin is worth here
+
+
+def _noisy_small_step(
+    standoff: float, seed: int = 0
+) -> tuple[EpisodeResult, np.ndarray, LambdaController]:
+    """A frictionless arm, its exact twin, three times the sensor's noise (6 mrad, 0.06
+    rad/s) and a 0.06 rad step of C: a 2 % overshoot is 1.2 mrad, a fifth of the noise."""
+    params = replace(ArmParams(), frictionloss=(0.0, 0.0, 0.0, 0.0))
+    start = np.array([2.0, 1.5, 1.5, 1.5])
+    episode = Episode(start=start, target=start + np.array([0.0, 0.0, 0.06, 0.0]))
+    config = RunConfig(seconds=10.0, params=params, noise=SensorNoise(0.006, 0.06))
+    ctrl = LambdaController(
+        params, LambdaConfig(noise_q=0.006, noise_v=0.06, twin_error=0.0, standoff=standoff)
+    )
+    estimates: list[np.ndarray] = []
+    act = ctrl.act
+
+    def recording_act(state: ControlState, target: np.ndarray) -> np.ndarray:
+        out = act(state, target)
+        assert ctrl._q is not None
+        estimates.append(ctrl._q.copy())
+        return out
+
+    ctrl.act = recording_act  # type: ignore[method-assign]
+    result = DirectArm().run(ctrl, episode, config, seed)
+    return result, np.array(estimates), ctrl
+
+
+def test_at_rest_the_filter_averages_the_readings_noise_away() -> None:
+    """With the arm as its twin the Kalman filter trusts the prediction: over the last 5 s
+    its estimate of C is off by under a third of the readings' 6 mrad, and it says so."""
+    result, estimates, ctrl = _noisy_small_step(standoff=5.0)
+    n = min(len(estimates), result.trace.q.shape[0])
+    off = estimates[100:n, 2] - result.trace.q[100:n, 2]
+    assert off.std() < 0.002
+    assert ctrl.estimate_std[2] < 0.002
+
+
+def test_a_small_step_under_heavy_noise_stops_short_instead_of_crossing() -> None:
+    """Aimed at the goal itself, the wander the noise leaves carries C 2 % past a small step;
+    with the standoff (5 estimate deviations less the 2 % allowance, at most 0.6 of the 10
+    mrad settling band) it stays on its own side, reached and settled."""
+    head_on, _, _ = _noisy_small_step(standoff=0.0)
+    short, _, _ = _noisy_small_step(standoff=5.0)
+    assert head_on.metrics.overshoot_pct > 2.0
+    m = short.metrics
+    assert m.overshoot_pct < 2.0 and m.reached and m.at_rest
+    final = short.final_error[2]
+    assert 0.0 < final <= 0.0075  # short of the goal, by at most the standoff and some wander
+    assert m.settling_time_s < 2.0

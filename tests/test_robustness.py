@@ -87,6 +87,12 @@ def test_twin_jobs_give_each_arm_its_own_parameters_and_latency(corner_selection
         twin = ArmParams.from_json_dict(params["params"])
         assert twin.torque_scale == tuple(arm.variant.torque_scale)
         assert twin.frictionloss == arm.variant.params.frictionloss
+        sensor = job.config.noise  # the arm's own noise, as a rest log would show it
+        assert sensor is not None
+        assert params["noise_q"] == pytest.approx(sensor.position_std)
+        assert params["noise_v"] == pytest.approx(sensor.velocity_std)
+        assert params["twin_error"] == 0.0
+    assert rb.arm_twin(p.arms[0], SEED, 0.05)["twin_error"] == 0.05
     off = [rb.arm_twin(a, SEED, 0.05)["params"] for a in p.arms]
     assert off == [rb.arm_twin(a, SEED, 0.05)["params"] for a in p.arms]  # seeded per arm
     for arm, twin in zip(p.arms, off, strict=True):
