@@ -43,9 +43,9 @@ REST_REVERSALS_MAX = 4
 """At rest: at most this many command sign reversals per joint in the rest window (settled: 0,
 chattering: 39 of 40 periods)."""
 REST_ENERGY_AFTER_SETTLING_MAX_J = 0.5
-"""At rest: at most this much energy spent after settling (J; settled <= 0.28, a burst of
-chatter that dies out 1.1-1.4, chatter to the end 20-50). The clock starts when every joint is
-inside its settling band narrowed to REACHED_TOL_RAD (`energy_clock`)."""
+"""At rest: at most this much energy spent after settling (J; settled <= 0.15, a burst of
+chatter that dies out 1.1-1.4, chatter to the end 20-50), a joint still finishing a straight
+approach from outside REACHED_TOL_RAD counted from when it is inside (`energy_clocks`)."""
 
 METRIC_KEYS = (
     "energy_j",
@@ -147,7 +147,7 @@ class Metrics:
     command_reversals: int = 0
     """Worst joint's sign reversals of commands above the current threshold, last window."""
     energy_after_settling_j: float = 0.0
-    """Energy spent after `energy_clock` (J); 0 if the episode never settled inside it."""
+    """Energy spent after settling (J; `energy_clocks`); 0 if the episode never settled."""
 
     def as_dict(self) -> dict[str, float | bool]:
         return asdict(self)
@@ -296,16 +296,54 @@ def settling_time(
     return first * dt
 
 
-def energy_clock(q: np.ndarray, target: np.ndarray, dt: float) -> float:
-    """When `energy_after_settling_j` starts counting (s): the settling time with every band
-    narrowed to REACHED_TOL_RAD.
+APPROACH_TURN_RAD = 0.001
+"""A joint's finishing approach ends when its error grows this much over its smallest since
+the settling time (it turned back; `energy_clocks`)."""
 
-    The settling band grows with the step (2 %), but chatter does not: it is +-8 mrad whatever
-    the step. With the band itself, a long step behind high friction (E, 5 rad, 6.6 N m: a
-    100 mrad band) spends 6.6 x 0.1 = 0.66 J just finishing its approach after "settling", so a
-    controller that comes straight to rest would fail the energy test whenever that joint
-    settles last. Inside 20 mrad the same approach costs at most 0.13 J."""
-    return settling_time(q, target, dt, band_cap=REACHED_TOL_RAD)
+
+def energy_clocks(
+    q: np.ndarray, target: np.ndarray, dt: float, settling_time_s: float
+) -> np.ndarray:
+    """Per joint, when `energy_after_settling_j` starts counting it (s): the settling time,
+    unless the joint is then still finishing a monotone approach from outside
+    REACHED_TOL_RAD, in which case the first sample at which it is inside REACHED_TOL_RAD or
+    turns back (its error APPROACH_TURN_RAD over its smallest since settling).
+
+    The settling band grows with the step (2 %), a chatter's swing does not. Counted from the
+    settling time, a long step behind high friction (E, 5 rad, 6.6 N m: a 100 mrad band)
+    spent 6.6 x 0.1 = 0.66 J just finishing a straight approach, so a controller that came
+    straight to rest failed the 0.5 J test whenever that joint settled last; inside 20 mrad
+    the same approach costs at most 0.13 J. Any back-and-forth after settling, of any
+    amplitude, still counts from its first turn. Never settled: the episode's end (0 J)."""
+    q = np.asarray(q, dtype=float)
+    target = np.asarray(target, dtype=float)
+    n = q.shape[0]
+    start = int(round(settling_time_s / dt))
+    clocks = np.full(q.shape[1], settling_time_s)
+    if start >= n - 1:
+        return clocks
+    error = np.abs(target[None, :] - q[start:])
+    for j in range(q.shape[1]):
+        seg = error[:, j]
+        if seg[0] <= REACHED_TOL_RAD:
+            continue
+        turned = seg > np.minimum.accumulate(seg) + APPROACH_TURN_RAD
+        ends = np.flatnonzero((seg <= REACHED_TOL_RAD) | turned)
+        first = int(ends[0]) if ends.size else n - 1 - start
+        clocks[j] = (start + first) * dt
+    return clocks
+
+
+def energy_after_clocks(trace: Trace, clocks: np.ndarray) -> float:
+    """Energy each joint spent in the periods that end after its own clock (J)."""
+    if trace.power is not None:
+        power = np.abs(np.asarray(trace.power, dtype=float))
+    else:
+        power = np.abs(np.asarray(trace.tau) * np.asarray(trace.qdot))
+    total = 0.0
+    for j, t in enumerate(np.asarray(clocks, dtype=float)):
+        total += float(power[int(round(t / trace.dt)) + 1 :, j].sum())
+    return total * trace.dt
 
 
 def reached(errors: np.ndarray, tol: float = REACHED_TOL_RAD) -> bool:
@@ -378,7 +416,9 @@ def rest(trace: Trace, settling_time_s: float | None = None) -> Rest:
     return Rest(
         speed_rms=rest_speed_rms(trace.qdot, k),
         reversals=command_reversals(command, k),
-        energy_after_settling_j=energy_after(trace, energy_clock(trace.q, trace.target, trace.dt)),
+        energy_after_settling_j=energy_after_clocks(
+            trace, energy_clocks(trace.q, trace.target, trace.dt, settling_time_s)
+        ),
     )
 
 

@@ -21,7 +21,8 @@ from reach_driver.metrics import (
     command_reversals,
     compute_metrics,
     energy_after,
-    energy_clock,
+    energy_after_clocks,
+    energy_clocks,
     rest,
     rest_window,
     settling_time,
@@ -93,8 +94,9 @@ def test_a_long_step_finishing_behind_friction_is_rest() -> None:
     """E steps 5 rad behind 6.6 N m of Coulomb friction and comes straight to rest, last of
     the joints. Its settling band is 100 mrad, and finishing the approach inside it costs
     6.6 x 0.1 = 0.66 J: counted from the settling time, a clean arrival failed the 0.5 J
-    test. The energy clock (`energy_clock`) starts inside 20 mrad instead, where the same
-    approach costs 0.13 J; a chatter burst or a limit cycle (+-8 mrad) still counts in full."""
+    test. A joint still finishing a straight approach is counted from inside 20 mrad instead
+    (`energy_clocks`), where the same approach costs 0.13 J; the same joint turning back
+    once inside its band counts from the turn."""
     target = np.array([5.4, 1.5, 2.0, 1.5])
     start = np.array([0.4, 1.5, 2.0, 1.5])
     speed = np.zeros(N + 1)  # 1 rad/s, then in exponentially (0.2 s) over the last 0.2 rad
@@ -113,12 +115,35 @@ def test_a_long_step_finishing_behind_friction_is_rest() -> None:
     settled = settling_time(q, target, DT)
     assert abs(q[-1, 0] - target[0]) < 0.01
     assert energy_after(trace, settled) > REST_ENERGY_AFTER_SETTLING_MAX_J  # the old clock
-    clock = energy_clock(q, target, DT)
-    assert clock > settled
+    clocks = energy_clocks(q, target, DT, settled)
+    assert clocks[0] > settled and np.all(clocks[1:] == settled)
     m = compute_metrics(trace)
-    assert m.energy_after_settling_j == pytest.approx(energy_after(trace, clock))
+    assert m.energy_after_settling_j == pytest.approx(energy_after_clocks(trace, clocks))
     assert 0.05 < m.energy_after_settling_j < 0.2
     assert m.at_rest and m.reached
+    # the same approach, but E swings back 30 mrad three times from 40 mrad out (inside its
+    # 100 mrad band): all of it after the first turn counts
+    k = int(np.argmax(np.abs(target[0] - q[:, 0]) < 0.04))
+    swing = q.copy()
+    back = 0.03 * np.abs(np.sin(np.linspace(0.0, 3 * np.pi, 30)))
+    swing[k : k + 30, 0] -= back
+    swing_qdot = qdot.copy()
+    swing_qdot[k : k + 30, 0] -= np.gradient(back, DT)
+    swing_tau = tau.copy()
+    swing_tau[k : k + 30, 0] = 6.6 * np.sign(swing_qdot[k : k + 30, 0])
+    swung = Trace(
+        DT,
+        swing,
+        swing_qdot,
+        swing_tau,
+        target,
+        power=np.abs(swing_tau * swing_qdot),
+        command_mA=swing_tau / KT * 1000.0,
+    )
+    r = rest(swung)
+    turn = energy_clocks(swing, target, DT, settling_time(swing, target, DT))[0]
+    assert k * DT < turn < (k + 8) * DT  # as it turns back, 30 mrad out
+    assert r.energy_after_settling_j > REST_ENERGY_AFTER_SETTLING_MAX_J and not r.at_rest
 
 
 def test_small_commands_around_zero_are_not_reversals() -> None:
