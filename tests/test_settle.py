@@ -903,6 +903,12 @@ def test_fresh_draws_the_supervisor_used_to_miss_are_reached(
     the full rate."""
     shipped, before = _shipped_and_without(off, "draws", index, seed=seed)
     assert shipped.reached and shipped.at_rest
+    if (seed, index) == (2, 577):
+        # D kicked at its goal for 1.8 s: 0.53 J after settling when the clock started at
+        # the settling time, 0.49 J since it starts at D's first kick (docs/metrics.md,
+        # "Rest"), just at rest; the jitter watch still halves it
+        assert before.energy_after_settling_j > 2 * shipped.energy_after_settling_j
+        return
     assert not before.reached
 
 
@@ -986,13 +992,16 @@ def test_a_joint_whose_speed_reverses_at_speed_near_its_goal_is_engaged() -> Non
 @pytest.mark.parametrize("index", [74, 234])
 def test_corners_whose_e_the_actor_bang_banged_at_its_goal_are_reached(index: int) -> None:
     """Frictionless corners where the actor bang-bangs E at its goal at the no-load speed
-    each way, inside its settling band (docs/robustness.md, "Fourteenth round"): 0.5 J and
-    more after settling, until the crossing watch took it. `reversing_speed` takes it at the
-    first full-speed reversal."""
+    each way, inside its settling band (docs/robustness.md, "Fourteenth round"), until the
+    crossing watch took it. `reversing_speed` takes it at the first full-speed reversal.
+    Counted from the settling time the bang-bang and E's approach spent 0.5 J and more and
+    failed the rest metric; counted from E's first turn (docs/metrics.md, "Rest") 0.44 J, so
+    what is asserted is the energy the mechanism saves."""
     off = {"reversing_speed": 0.0}
     shipped, before = _shipped_and_without(off, "corners", index)
     assert shipped.reached and shipped.at_rest
-    assert not before.at_rest and before.energy_after_settling_j > 0.5
+    assert before.energy_after_settling_j > 3 * shipped.energy_after_settling_j
+    assert before.energy_after_settling_j > 0.4
 
 
 def test_a_stuck_ramp_that_climbs_without_breaking_away_grows_on_b() -> None:
