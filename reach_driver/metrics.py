@@ -161,11 +161,14 @@ def energy(trace: Trace) -> float:
 def energy_after(trace: Trace, t: float) -> float:
     """Energy spent in the periods that end after time ``t`` (J); 0 from the last sample on."""
     first = int(round(t / trace.dt)) + 1
+    return float(_joint_power(trace)[first:].sum() * trace.dt)
+
+
+def _joint_power(trace: Trace) -> np.ndarray:
+    """|power| per sample and joint (W): the runner's physics-rate figure, else |tau qdot|."""
     if trace.power is not None:
-        power = np.abs(np.asarray(trace.power, dtype=float)[first:])
-    else:
-        power = np.abs(np.asarray(trace.tau)[first:] * np.asarray(trace.qdot)[first:])
-    return float(power.sum() * trace.dt)
+        return np.abs(np.asarray(trace.power, dtype=float))
+    return np.abs(np.asarray(trace.tau, dtype=float) * np.asarray(trace.qdot, dtype=float))
 
 
 def rmse(errors: np.ndarray) -> float:
@@ -274,19 +277,14 @@ def settling_band(step: np.ndarray) -> np.ndarray:
     return np.maximum(SETTLING_BAND_FRACTION * np.abs(step), SETTLING_BAND_MIN_RAD)
 
 
-def settling_time(
-    q: np.ndarray, target: np.ndarray, dt: float, band_cap: float | None = None
-) -> float:
-    """First time after which every joint stays inside its band to the end (s), the band
-    narrowed to ``band_cap`` (rad) where given.
+def settling_time(q: np.ndarray, target: np.ndarray, dt: float) -> float:
+    """First time after which every joint stays inside its band to the end (s).
 
     Returns the episode length if the last sample is outside the band (never settled).
     """
     q = np.asarray(q, dtype=float)
     target = np.asarray(target, dtype=float)
     band = settling_band(target - q[0])
-    if band_cap is not None:
-        band = np.minimum(band, band_cap)
     inside = np.all(np.abs(target[None, :] - q) <= band[None, :], axis=1)
     duration = (q.shape[0] - 1) * dt
     if not inside[-1]:
@@ -336,10 +334,7 @@ def energy_clocks(
 
 def energy_after_clocks(trace: Trace, clocks: np.ndarray) -> float:
     """Energy each joint spent in the periods that end after its own clock (J)."""
-    if trace.power is not None:
-        power = np.abs(np.asarray(trace.power, dtype=float))
-    else:
-        power = np.abs(np.asarray(trace.tau) * np.asarray(trace.qdot))
+    power = _joint_power(trace)
     total = 0.0
     for j, t in enumerate(np.asarray(clocks, dtype=float)):
         total += float(power[int(round(t / trace.dt)) + 1 :, j].sum())
