@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -17,6 +18,7 @@ import numpy as np
 import pytest
 
 from policy.envelope import corners
+from reach_sim_bridge.params import ArmParams
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = 3
@@ -110,6 +112,44 @@ def test_a_twin_campaign_records_how_its_twins_were_made(tmp_path: Path) -> None
     assert report["settings"]["twin_error"] == 0.02
     assert report["params"] == {}  # the twins are per arm, not the campaign's parameters
     assert "--twin-error 0.02" in report["command"]
+
+
+def test_exported_arms_are_the_hidden_arms_and_fitted_twins_replace_them(
+    tmp_path: Path,
+) -> None:
+    """`--export-arms` writes each planned arm (weak joint's torque scale, noise, latency) as a
+    reach-sim parameter file; `--twin-from` gives the controller the fit found beside it and
+    runs only the arms that have one."""
+    from reach_sim_bridge.params import load_arm_params, save_arm_params
+
+    argv = ["--draws", "3", "--seed", str(SEED)]
+    assert rb.main([*argv, "--export-arms", str(tmp_path / "arms")]) == 0
+    p = rb.plan(SEED, False, 3)
+    for arm in p.arms:
+        path = tmp_path / "arms" / f"draws-{arm.index}.json"
+        hidden = load_arm_params(path)
+        assert hidden.torque_scale == tuple(arm.variant.torque_scale)
+        assert hidden.frictionloss == arm.variant.params.frictionloss
+        meta = json.loads(path.read_text())["_envelope"]
+        assert meta["latency_periods"] == arm.variant.latency_periods
+        assert meta["sensor_noise"][0] == pytest.approx(0.002 * arm.variant.noise_scale)
+    fit = replace(load_arm_params(tmp_path / "arms" / "draws-1.json"), damping=(1, 1, 1, 0.1))
+    save_arm_params(fit, tmp_path / "fits" / "draws-1.json", {"_fit": {"note": "ignored"}})
+    jobs = rb.make_jobs(
+        "lambda", {}, p.arms, SEED, SECONDS, twin_error=0.01, fitted={("draws", 1): fit}
+    )
+    told = [ArmParams.from_json_dict(json.loads(j.params_json)["params"]) for j in jobs]
+    assert told[1] == fit  # as fitted, not spread by twin_error as an arm without a fit is
+    assert told[0] == ArmParams.from_json_dict(rb.arm_twin(p.arms[0], SEED, 0.01)["params"])
+    assert json.loads(jobs[1].params_json)["twin_error"] == 0.01  # the trust, not a spread
+    out = tmp_path / "out"
+    run = [*argv, "--controller", "lambda", "--twin", "--seconds", "1", "--quiet"]
+    assert rb.main([*run, "--twin-from", str(tmp_path / "fits"), "--out", str(out)]) == 0
+    report = json.loads((out / "lambda.json").read_text())
+    assert [e["index"] for e in report["episodes"]] == [1]
+    assert report["settings"]["twin_from"] == "fits"
+    assert rb.main([*run, "--twin-from", str(tmp_path / "arms" / "none")]) == 2
+    assert rb.main([*argv, "--controller", "lambda", "--twin-from", str(tmp_path)]) == 2
 
 
 def _small_plan(corner_selection: Any) -> Any:

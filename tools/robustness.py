@@ -49,7 +49,7 @@ from reach_driver.controllers import load_controller
 from reach_driver.errors import DriverError
 from reach_driver.metrics import ARRIVAL_SPEED_RAD_S, REACHED_TOL_RAD
 from reach_sim_bridge.faults import SensorNoise
-from reach_sim_bridge.params import ArmParams, load_arm_params
+from reach_sim_bridge.params import ArmParams, load_arm_params, save_arm_params
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "robustness.md"
 SETS = ("corners", "draws")
@@ -147,15 +147,53 @@ def base_config(seed: int, set_name: str, seconds: float, rate_hz: float) -> Run
     )
 
 
-def arm_twin(arm: Arm, seed: int, error: float = 0.0) -> dict[str, Any]:
+def arm_params(arm: Arm) -> ArmParams:
+    """The arm's parameters with its weak joint's torque scale: the hidden arm itself."""
+    return replace(arm.variant.params, torque_scale=arm.variant.torque_scale)
+
+
+def arm_file(arm: Arm) -> str:
+    """The arm's file name under `--export-arms` and `--twin-from`."""
+    return f"{arm.set}-{arm.index}.json"
+
+
+def export_arms(arms: Sequence[Arm], out: Path, seed: int) -> list[Path]:
+    """Each arm as an arm parameter file (`reach-sim --params`), its sensor noise and
+    latency under ``_envelope`` (metadata the loader ignores): the hidden arms an
+    identification campaign serves (docs/robustness.md, "Twentieth round")."""
+    sensor = SensorNoise()
+    paths = []
+    for a in arms:
+        meta = {
+            "name": a.variant.name,
+            "set": a.set,
+            "index": a.index,
+            "seed": seed,
+            "factors": a.variant.factors,
+            "sensor_noise": [
+                sensor.position_std * a.variant.noise_scale,
+                sensor.velocity_std * a.variant.noise_scale,
+            ],
+            "latency_periods": a.variant.latency_periods,
+        }
+        paths.append(save_arm_params(arm_params(a), out / arm_file(a), {"_envelope": meta}))
+    return paths
+
+
+def arm_twin(
+    arm: Arm, seed: int, error: float = 0.0, fitted: ArmParams | None = None
+) -> dict[str, Any]:
     """What an identification of `arm` would tell a controller: its parameters (the weak
     joint's torque scale included), its loop latency and its sensor's noise, as controller
     parameters `params`, `latency_periods`, `noise_q` and `noise_v`, and how far to trust
     them, `twin_error`. `error` > 0 scales its friction, damping, armature, masses and
     volumes by independent factors in 1 +- error (seeded by the arm), an identification's
-    error."""
-    twin = replace(arm.variant.params, torque_scale=arm.variant.torque_scale)
-    if error > 0:
+    error. `fitted` (an identification's fit of the arm) replaces the parameters; `error`
+    is then only the trust."""
+    twin = arm_params(arm)
+    if fitted is not None:
+        twin = fitted
+    elif error > 0:
         rng = np.random.default_rng([seed, SETS.index(arm.set), arm.index, 3])
         twin = replace(twin.randomized(rng, error), torque_scale=twin.torque_scale)
     sensor = SensorNoise()
@@ -168,6 +206,24 @@ def arm_twin(arm: Arm, seed: int, error: float = 0.0) -> dict[str, Any]:
     }
 
 
+def read_fitted(directory: Path, arms: Sequence[Arm]) -> dict[tuple[str, int], ArmParams]:
+    """The fitted twins in ``directory`` of the planned arms (`arm_file` names; arms without
+    one are left out); an error if there are none."""
+    if not directory.is_dir():
+        raise ValueError(f"--twin-from {directory}: no such directory")
+    out = {
+        (a.set, a.index): load_arm_params(p)
+        for a in arms
+        if (p := directory / arm_file(a)).exists()
+    }
+    if not out:
+        raise ValueError(
+            f"--twin-from {directory}: no fitted twin of a planned arm (names such as "
+            f"{arm_file(arms[0]) if arms else 'corners-0.json'})"
+        )
+    return out
+
+
 def make_jobs(
     controller: str,
     params: dict[str, Any],
@@ -176,17 +232,23 @@ def make_jobs(
     seconds: float = 20.0,
     rate_hz: float = 20.0,
     twin_error: float | None = None,
+    fitted: dict[tuple[str, int], ArmParams] | None = None,
 ) -> list[Job]:
     """One `policy.campaign.Job` per arm: its own RunConfig and Episode; `run_job` runs it
     with episode seed ``config.seed + index``. With `twin_error` (0: exact) each arm's
-    controller is also given the arm's twin (`arm_twin`)."""
+    controller is also given the arm's twin (`arm_twin`), its `fitted` one where given
+    (keyed by set and index)."""
     params_json = json.dumps(params, sort_keys=True)
+    fitted = fitted or {}
     return [
         Job(
             controller,
             params_json
             if twin_error is None
-            else json.dumps({**params, **arm_twin(a, seed, twin_error)}, sort_keys=True),
+            else json.dumps(
+                {**params, **arm_twin(a, seed, twin_error, fitted.get((a.set, a.index)))},
+                sort_keys=True,
+            ),
             a.variant.episode(arm_episode(seed, a.set, a.index)),
             a.variant.run_config(base_config(seed, a.set, seconds, rate_hz)),
             a.index,
@@ -717,9 +779,10 @@ def campaign(
     rate_hz: float = 20.0,
     progress: Callable[[int, EpisodeResult], None] | None = None,
     twin_error: float | None = None,
+    fitted: dict[tuple[str, int], ArmParams] | None = None,
 ) -> dict[str, Any]:
     """Run one controller over the plan's arms; the report (rows, summary) as a dict."""
-    jobs = make_jobs(controller, params, the_plan.arms, seed, seconds, rate_hz, twin_error)
+    jobs = make_jobs(controller, params, the_plan.arms, seed, seconds, rate_hz, twin_error, fitted)
     if jobs:  # a bad name or parameter fails before Ray starts
         load_controller(controller, **json.loads(jobs[0].params_json))
     done = None if progress is None else (lambda pair: progress(*pair))
@@ -814,6 +877,21 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FRACTION",
         help="with --twin: scale each twin's friction, damping, armature, masses and volumes "
         "by independent factors in 1 +- FRACTION, seeded per arm (default 0: exact)",
+    )
+    p.add_argument(
+        "--twin-from",
+        type=Path,
+        metavar="DIR",
+        help="with --twin: each arm's twin from DIR/SET-INDEX.json (an identification's fit, "
+        "tools/identify.py), only the arms that have one; --twin-error is then only how far "
+        "the controller is told to trust it",
+    )
+    p.add_argument(
+        "--export-arms",
+        type=Path,
+        metavar="DIR",
+        help="do not run: write each planned arm as DIR/SET-INDEX.json, a reach-sim --params "
+        "file (its sensor noise and latency under _envelope), to identify it",
     )
     p.add_argument("--seed", type=int, default=1, help="seed of the draws and episodes (1)")
     p.add_argument("--seconds", type=float, default=20.0, help="episode length (20 s)")
@@ -914,6 +992,17 @@ def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list
                 raise ValueError(f"cannot read {path} as a robustness.py result: {exc}") from exc
             reports.append(report)
         return reports
+    if args.export_arms is not None:
+        the_plan = plan(
+            args.seed,
+            args.corners,
+            args.draws,
+            args.max_corners,
+            base=None if args.params is None else load_arm_params(args.params),
+        )
+        paths = export_arms(the_plan.arms, args.export_arms, args.seed)
+        console.print(f"wrote {len(paths)} arm files to {args.export_arms}")
+        return []
     if not args.controller:
         raise ValueError("give --controller NAME ... (or --from FILE.json to report saved runs)")
     if args.label and len(args.controller) > 1:
@@ -928,9 +1017,16 @@ def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list
         raise ValueError("--twin-error needs --twin")
     if not 0 <= args.twin_error < 1:
         raise ValueError(f"--twin-error must be in [0, 1), got {args.twin_error}")
+    if args.twin_from is not None and not args.twin:
+        raise ValueError("--twin-from needs --twin")
     params = parse_controller_params(args.param)
     base = None if args.params is None else load_arm_params(args.params)
     the_plan = plan(args.seed, args.corners, args.draws, args.max_corners, base=base)
+    fitted = None
+    if args.twin_from is not None:
+        fitted = read_fitted(args.twin_from, the_plan.arms)
+        the_plan = replace(the_plan, arms=[a for a in the_plan.arms if (a.set, a.index) in fitted])
+        console.print(f"{len(fitted)} fitted twins in {args.twin_from}")
     settings: dict[str, Any] = {
         "seed": args.seed,
         "corners": args.corners,
@@ -941,6 +1037,8 @@ def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list
     }
     if args.twin:  # only when given, so old blocks still match
         settings["twin_error"] = args.twin_error
+    if fitted is not None:
+        settings["twin_from"] = args.twin_from.name
     if base is not None:  # only what differs from the nominal arm, so old blocks still match
         nominal = ArmParams().to_json_dict()
         settings["params"] = {k: v for k, v in base.to_json_dict().items() if v != nominal[k]}
@@ -962,6 +1060,7 @@ def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list
                 rate_hz=args.rate,
                 progress=progress.done,
                 twin_error=args.twin_error if args.twin else None,
+                fitted=fitted,
             )
         args.out.mkdir(parents=True, exist_ok=True)
         path = args.out / f"{label}.json"
