@@ -27,6 +27,7 @@ optimum, sqrt(diag(sigma^2 (J^T J)^-1)). `fit_joint` can still fit a constant de
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -554,6 +555,11 @@ def default_refs(joint: int, fit_delay: bool = True) -> list[ParamRef]:
 
 
 FRICTION_FLOOR = 1e-4  # N m: log-parameters need a positive start
+MAX_LOG_STEP = 1.0
+"""`fit_joint` moves no log-parameter by more than this per step (a factor of e): a full
+Gauss-Newton step from a start far off (the nominal 0.7 N m of friction on a frictionless
+joint, under 3x sensor noise) once threw a joint's damping to the floor, where its gradient
+vanishes and the fit cannot come back (docs/identification.md, "Arms of the envelope")."""
 
 
 def fit_joint(
@@ -628,6 +634,9 @@ def fit_joint(
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 continue
+            # each on its own: scaling the whole step would let a parameter the data barely
+            # see (friction near zero) shrink the step of the ones they do
+            dx = np.where(is_log, np.clip(dx, -MAX_LOG_STEP, MAX_LOG_STEP), dx)
             x_new = np.clip(x + dx, lower, upper)
             r_new = fun(x_new)
             cost_new = float(r_new @ r_new)
@@ -668,6 +677,46 @@ def fit_joint(
         rollouts=replay.rollouts - rollouts0,
         costs=tuple(costs),
     )
+
+
+#: `coarse_start`'s grid, as multiples of the nominal arm's value of each parameter. Coulomb
+#: friction spans the envelope's 0 - 6.6 N m for E D C (the model's 0.7 x 0 ... 10: the
+#: sources disagree tenfold), the rest its +-50 % (armature, damping) and the net load's
+#: +-20 % of mass and buoyancy (an effective link mass 0.7 - 1.3 x nominal for D).
+COARSE_GRID: dict[str, tuple[float, ...]] = {
+    "armature": (0.5, 1.0, 2.0),
+    "damping": (0.5, 1.0, 2.0),
+    "frictionloss": (0.0, 0.15, 1.0, 3.0, 10.0),
+    "link_mass_kg": (0.7, 1.0, 1.3),
+}
+
+
+def coarse_start(
+    replay: Replay,
+    segments: Sequence[Segment],
+    base: ArmParams,
+    refs: Sequence[ParamRef],
+    velocity_weight: float = VELOCITY_WEIGHT_S,
+) -> ArmParams:
+    """`base` with `refs` set to the best point of `COARSE_GRID` (around the nominal arm's
+    values) by the segments' residual: where Levenberg-Marquardt starts. From the nominal
+    arm alone a frictionless joint under 3x sensor noise was fitted at 7x its damping (and
+    once at 20x its armature): the residual far from the arm is no guide to it."""
+    nominal = ArmParams()
+    axes = []
+    for name, j in refs:
+        if name == DELAY:
+            continue
+        ref_value = getattr(nominal, name)[j]
+        axes.append([((name, j), max(f * ref_value, FRICTION_FLOOR)) for f in COARSE_GRID[name]])
+    best_cost, best = math.inf, base
+    for point in itertools.product(*axes):
+        trial = params_with(base, [r for r, _ in point], [v for _, v in point])
+        r = replay.residuals(trial, 0.0, segments, velocity_weight)
+        cost = float(r @ r)
+        if cost < best_cost:
+            best_cost, best = cost, trial
+    return best
 
 
 JOINT_ORDER = ("E", "B", "C", "D")
@@ -787,6 +836,7 @@ def fit_arm(
             # Offsets start at zero (the timestamps' word): tuned on an arm still far from
             # this one they would soak up its errors, the very trade-off they are to avoid.
             ready = [replace(x, offset_s=0.0) for x in segs]
+            base = coarse_start(replay, ready, base, refs)
             result = fit_joint(replay, ready, base, 0.0, refs, max_iter=max_iter, on_iteration=note)
             ready = tune_offsets(replay, result.params, ready)
             weights = replay.window_weights(result.params, 0.0, ready)

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from types import ModuleType
 
@@ -20,8 +22,11 @@ from reach_sim_bridge.arm import Alpha5Arm
 from reach_sim_bridge.params import ArmParams, load_arm_params, save_arm_params
 from reach_sim_bridge.sysid import (
     DELAY,
+    FRICTION_FLOOR,
+    MAX_LOG_STEP,
     Replay,
     Segment,
+    coarse_start,
     default_refs,
     fit_arm,
     fit_joint,
@@ -120,6 +125,36 @@ def test_the_fit_recovers_friction_armature_and_delay() -> None:
         assert 0 < got[f"{name}[E]"]["sigma"] < 0.1 * true_value
     assert result.delay_s == pytest.approx(0.004, abs=0.001)
     assert result.params.frictionloss[1:] == ArmParams().frictionloss[1:]
+
+
+@pytest.mark.parametrize("friction", [0.0, 6.6])
+def test_the_coarse_start_finds_the_frictions_decade(friction: float) -> None:
+    """Coulomb friction is uncertain tenfold (0 - 6.6 N m against the model's 0.7): the fit
+    starts from the grid point the data prefer, not from the nominal arm."""
+    truth = replace(
+        ArmParams(),
+        frictionloss=(friction, *ArmParams().frictionloss[1:]),
+        armature=(0.18,) * 3 + ArmParams().armature[3:],
+    )
+    segs = [_record(truth, 0, "relay", 3.0)]
+    start = coarse_start(Replay(window_s=1.0), segs, ArmParams(), default_refs(0, False))
+    # the grid's nearest friction (0 -> the floor, 6.6 -> 10 x 0.7) and armature (2 x 0.12)
+    assert start.frictionloss[0] == pytest.approx(max(friction, FRICTION_FLOOR), rel=0.1)
+    assert start.armature[0] == pytest.approx(0.24)
+    assert start.frictionloss[1:] == ArmParams().frictionloss[1:]
+
+
+def test_no_step_moves_a_parameter_by_more_than_a_factor_e() -> None:
+    """A Gauss-Newton step from far off once sent a frictionless joint's damping to the floor,
+    where its gradient vanishes and the fit never came back."""
+    truth = ArmParams()
+    segs = [_record(truth, 0, "relay", 2.0)]
+    far = replace(truth, armature=(1.2, *truth.armature[1:]), damping=(0.2, *truth.damping[1:]))
+    first = fit_joint(Replay(window_s=1.0), segs, far, 0.004, default_refs(0, False), max_iter=1)
+    assert first.costs[-1] < first.costs[0]
+    moved = abs(math.log(first.values[0] / 1.2)), abs(math.log(first.values[1] / 0.2))
+    assert max(moved) <= MAX_LOG_STEP + 1e-9
+    assert max(moved) > 0.5  # it did step (towards 0.12 and 1.2, factors 10 and 6 away)
 
 
 def test_link_delays_follow_the_timestamps() -> None:

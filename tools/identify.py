@@ -796,7 +796,9 @@ def write_report(
                     row += " - | - |"
                 else:
                     tv = getattr(truth, name)[idx]
-                    row += f" {tv:.4g} | {100 * (v - tv) / tv:+.1f} % |"
+                    # a frictionless joint has no relative error: give the difference
+                    err = f"{100 * (v - tv) / tv:+.1f} %" if tv != 0 else f"{v - tv:+.2g} (abs)"
+                    row += f" {tv:.4g} | {err} |"
             lines.append(row)
     lines += [
         "",
