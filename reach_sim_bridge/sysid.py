@@ -590,7 +590,12 @@ def fit_joint(
         ]
     )
     lower = np.where(is_log, math.log(FRICTION_FLOOR), 0.0)
-    upper = np.where(is_log, math.log(1e3), MAX_DELAY_S)
+    upper = np.array(
+        [
+            MAX_DELAY_S if r[0] == DELAY else 0.0 if r[0] == "torque_scale" else math.log(1e3)
+            for r in refs
+        ]
+    )  # a drive delivers at most its full torque
     step = np.where(is_log, 0.01, 0.0005)
     rollouts0 = replay.rollouts
 
@@ -719,6 +724,29 @@ def coarse_start(
     return best
 
 
+WRIST_LOAD: ParamRef = ("link_mass_kg", JOINT_LETTERS.index("B"))
+"""The wrist link's mass: most of C's load, and part of D's."""
+WEAK_RATIO = 0.8
+"""`fit_arm` takes C for a weak drive (its torque scale the ratio) when D carries the wrist at
+less than this share of the weight C's fit gave it (the envelope's heaviest and lightest
+wrists differ by 2.6x in net weight, a drive at 25 % torque by 4x)."""
+
+
+def _with(
+    values: tuple[float, float, float, float], i: int, v: float
+) -> tuple[float, float, float, float]:
+    out = list(values)
+    out[i] = v
+    return (out[0], out[1], out[2], out[3])
+
+
+def wrist_weight(params: ArmParams, mass: float | None = None) -> float:
+    """The wrist link's net weight in water (kg), with `mass` in place of its own."""
+    b = WRIST_LOAD[1]
+    m = params.link_mass_kg[b] if mass is None else mass
+    return m - params.link_volume_l[b] * 1e-3 * params.water_density
+
+
 JOINT_ORDER = ("E", "B", "C", "D")
 """Fitting order: E and B carry no gravity load; C's load (the wrist link) is fitted before
 D, whose load includes it."""
@@ -815,7 +843,8 @@ def fit_arm(
     re-tuned median window error is smallest; a fresh fit if it is not the first tried)."""
     params = start if start is not None else ArmParams()
     results: dict[int, FitResult] = {}
-    tuned: list[Segment] = []
+    by_joint: dict[int, list[Segment]] = {}
+    wrist_c: float | None = None  # the wrist link's mass as C's fit saw it
     quanta = tuple(quanta) or (replay.quantum_s,)
     replay.quantum_s = float(quanta[0])
     first = True
@@ -830,13 +859,18 @@ def fit_arm(
                 on_iteration(j, it, cost)
 
         def one(
-            base: ArmParams, segs: list[Segment] = segs, j: int = j
+            base: ArmParams,
+            segs: list[Segment] = segs,
+            j: int = j,
+            refs: list[ParamRef] | None = None,
+            coarse: bool = True,
         ) -> tuple[FitResult, list[Segment]]:
-            refs = default_refs(j, fit_delay=False)
+            refs = refs or default_refs(j, fit_delay=False)
             # Offsets start at zero (the timestamps' word): tuned on an arm still far from
             # this one they would soak up its errors, the very trade-off they are to avoid.
             ready = [replace(x, offset_s=0.0) for x in segs]
-            base = coarse_start(replay, ready, base, refs)
+            if coarse:
+                base = coarse_start(replay, ready, base, refs)
             result = fit_joint(replay, ready, base, 0.0, refs, max_iter=max_iter, on_iteration=note)
             ready = tune_offsets(replay, result.params, ready)
             weights = replay.window_weights(result.params, 0.0, ready)
@@ -857,7 +891,10 @@ def fit_arm(
                 costs=result.costs + polished.costs,
             ), ready
 
-        result, ready = one(params)
+        refs_j = default_refs(j, fit_delay=False)
+        if letter == "D" and wrist_c is not None:
+            refs_j.append(WRIST_LOAD)  # the wrist's weight as D carries it
+        result, ready = one(params, refs=refs_j)
         if first and len(quanta) > 1:
 
             def plain_cost(p: ArmParams, segs: list[Segment]) -> float:
@@ -870,7 +907,7 @@ def fit_arm(
                 replay.quantum_s = float(q)
                 trial = tune_offsets(replay, result.params, ready)
                 if plain_cost(result.params, trial) < best[0]:
-                    res_q, ready_q = one(params)
+                    res_q, ready_q = one(params, refs=refs_j)
                     cost_q = plain_cost(res_q.params, ready_q)
                     if cost_q < best[0]:
                         best = (cost_q, float(q), res_q, ready_q)
@@ -879,9 +916,38 @@ def fit_arm(
         first = False
         params = result.params
         results[j] = result
-        tuned.extend(ready)
+        by_joint[j] = ready
+        if letter == "C":
+            wrist_c = params.link_mass_kg[WRIST_LOAD[1]]
+        if letter == "D" and wrist_c is not None:
+            # C's drive and the wrist's weight are one unknown to C's fit; D carries the
+            # wrist without C's drive. A C that saw the wrist heavier than D does is weak.
+            scale = wrist_weight(params) / max(wrist_weight(params, wrist_c), 1e-9)
+            c = JOINT_LETTERS.index("C")
+            if 0.0 < scale < WEAK_RATIO:
+                start = replace(
+                    params_with(
+                        params,
+                        default_refs(c, fit_delay=False)[:3],
+                        [v * scale for v in results[c].values[:3]],
+                    ),
+                    torque_scale=_with(params.torque_scale, c, scale),
+                )
+                refit, ready_c = one(
+                    start,
+                    [x for x in segments if x.joint == c and x.role == "fit"],
+                    c,
+                    [*default_refs(c, fit_delay=False)[:3], ("torque_scale", c)],
+                    coarse=False,
+                )
+                params, results[c], by_joint[c] = refit.params, refit, ready_c
+            else:  # C keeps the wrist it saw; D is fitted again with it
+                held = params_with(params, [WRIST_LOAD], [wrist_c])
+                result, ready = one(held, coarse=False)
+                params, results[j], by_joint[j] = result.params, result, ready
         if on_joint is not None:
             on_joint(j, result)
+    tuned = [x for j in sorted(by_joint) for x in by_joint[j]]
     delays = np.concatenate([segment_delays(s) for s in tuned]) if tuned else np.zeros(1)
     return ArmFit(params, results, tuple(tuned), replay.quantum_s, float(np.median(delays)))
 
