@@ -63,6 +63,8 @@ def _record(
     seconds: float,
     delay_steps: int | np.ndarray = 2,
     amplitude_factor: float = 1.0,
+    noise_scale: float = 0.0,
+    cap_mA: float = 250.0,
 ) -> Segment:
     """A segment made by stepping `Alpha5Arm` directly with the tool's excitation, the
     command landing `delay_steps` physics steps after each tick (one number, or one per
@@ -74,13 +76,19 @@ def _record(
     arm.reset(q=center)
     wave = idt.Wave(wave_kind, "P1", seconds, "fit", speed=0.3)
     amp = idt.Amplitudes().start(joint, 0.3) * amplitude_factor
-    cap = 250.0 * amplitude_factor
+    cap = cap_mA * amplitude_factor
+    rng = np.random.default_rng(joint)
+    sd = np.array([0.002, 0.02]) * noise_scale  # the readings', as reach-sim --sensor-noise
     ctl = idt.Excitation(joint, wave, center, PERIOD, amp, cap, twin.gravity_torque)
     n = int(round(seconds / PERIOD))
     q = np.empty((n + 1, 4))
     qd = np.empty((n + 1, 4))
     cmd = np.zeros((n + 1, 4))
-    q[0], qd[0] = arm.q, arm.qdot
+
+    def read() -> tuple[np.ndarray, np.ndarray]:
+        return arm.q + rng.normal(0, sd[0], 4), arm.qdot + rng.normal(0, sd[1], 4)
+
+    q[0], qd[0] = read()
     held = np.zeros(4)
     steps = np.broadcast_to(np.asarray(delay_steps, dtype=int), (n,))
     for k in range(n):
@@ -90,7 +98,7 @@ def _record(
         arm.step(u, n=10 - int(steps[k]))
         held = u
         cmd[k + 1] = u
-        q[k + 1], qd[k + 1] = arm.q, arm.qdot
+        q[k + 1], qd[k + 1] = read()
     return Segment(f"{wave_kind}", joint, "fit", PERIOD, q, qd, cmd)
 
 
@@ -269,6 +277,18 @@ def test_the_excitation_stays_inside_its_window_and_speed() -> None:
             assert np.max(np.abs(seg.qdot[:, joint])) < idt.SPEED_CAP[joint] + 0.15
             others = [i for i in range(4) if i != joint]
             assert np.max(np.abs(seg.q[:, others] - idt.HOME[others])) < 0.05
+
+
+def test_the_relay_finds_the_current_past_friction_through_noisy_readings() -> None:
+    """At 3x the standard sensor noise (0.06 rad/s) the relay once read its noise as motion:
+    a joint behind the datasheet's 6.6 N m stayed stuck at a third of the current it needed.
+    It now judges speed on low-passed readings and a stall on the angle's progress."""
+    idt = _tool()
+    truth = replace(ArmParams(), frictionloss=(6.6, 6.6, 6.6, 0.075))
+    seg = _record(truth, 0, "relay", 8.0, noise_scale=3.0, cap_mA=480.0)
+    needed = 6.6 / idt.K_MA[0]  # mA to break away
+    assert np.max(np.abs(seg.command_mA[:, 0])) > needed
+    assert np.ptp(seg.q[:, 0]) > 0.4  # it swung across its window
 
 
 ERR_TOL = 0.10  # relative, friction, damping and armature: the issue's target

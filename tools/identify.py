@@ -88,6 +88,10 @@ POSE_OFFSETS = {
 WINDOW = np.array([0.35, 0.35, 0.35, 0.6])  # rad each side of the pose, the excited joint
 GUARD = 0.15  # rad beyond the window: the excited joint is servoed back to its pose
 SPEED_CAP = np.array([0.45, 0.45, 0.45, 0.75])  # rad/s, under the factory rate limits
+SPEED_FILTER_S = 0.1  # s: the relay judges its speed on readings low-passed this much
+STALL_CHECK_S = (
+    0.5  # s: a relay that made under 0.3 of its aimed progress in this gets more current
+)
 HOLD_KP = np.array([3000.0, 3000.0, 3000.0, 300.0])  # mA/rad
 HOLD_KD = np.array([200.0, 200.0, 200.0, 20.0])  # mA s/rad
 HOLD_KI = np.array([6000.0, 6000.0, 6000.0, 600.0])  # mA/(rad s)
@@ -194,6 +198,8 @@ class Excitation:
         self.peak = 0.0
         self.pass_t = 0.0
         self.stall_t = 0.0
+        self.stall_x: float | None = None
+        self.speed = 0.0  # the joint's speed readings, low-passed (SPEED_FILTER_S)
         self.step_end = -1.0
         self.step_level = 0.0
         self.flips = 0
@@ -233,20 +239,27 @@ class Excitation:
         return out
 
     def _relay(self, x: float, v: float, t: float) -> float:
+        # Noisy readings (3x the standard noise: 0.06 rad/s) once passed for motion: their
+        # peak read 0.2 rad/s on a joint stuck behind 6.6 N m, so its current never rose.
+        # The peak is taken on low-passed speeds and a stall from the angle's progress.
         j, w = self.joint, self.wave
-        self.peak = max(self.peak, abs(v))
+        self.speed += (v - self.speed) * min(1.0, self.period / SPEED_FILTER_S)
+        self.peak = max(self.peak, abs(self.speed))
         edge = WINDOW[j] * 0.9
+        if self.stall_x is None:
+            self.stall_t, self.stall_x = t, x
         if (self.direction > 0 and x > edge) or (self.direction < 0 and x < -edge):
             self.direction = -self.direction
             self.flips += 1
             self._adapt(w.speed)
             self.peak = 0.0
             self.pass_t = t
-        elif abs(v) < 0.02 and t - self.stall_t > 0.5 and t - self.pass_t > 0.5:
+            self.stall_t, self.stall_x = t, x
+        elif t - self.stall_t >= STALL_CHECK_S:
             # Not moving: friction above what was tried; more current.
-            self.stall_t = t
-            if self.peak < 0.3 * w.speed:
+            if abs(x - self.stall_x) < 0.3 * w.speed * (t - self.stall_t):
                 self.amplitude = min(self.amplitude * 1.3, self.amp_max)
+            self.stall_t, self.stall_x = t, x
         return self.direction * self.amplitude
 
     def _adapt(self, speed: float) -> None:
