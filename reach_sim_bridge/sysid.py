@@ -703,18 +703,19 @@ def coarse_start(
     refs: Sequence[ParamRef],
     velocity_weight: float = VELOCITY_WEIGHT_S,
 ) -> ArmParams:
-    """`base` with `refs` set to the best point of `COARSE_GRID` (around the nominal arm's
-    values) by the segments' residual: where Levenberg-Marquardt starts. From the nominal
-    arm alone a frictionless joint under 3x sensor noise was fitted at 7x its damping (and
-    once at 20x its armature): the residual far from the arm is no guide to it."""
+    """`base`, or `base` with `refs` set to the best point of `COARSE_GRID` (around the
+    nominal arm's values) if one fits the segments better: where Levenberg-Marquardt starts.
+    From the nominal arm alone a frictionless joint under 3x sensor noise was fitted at 7x
+    its damping (and once at 20x its armature): the residual far from the arm is no guide."""
     nominal = ArmParams()
     axes = []
     for name, j in refs:
-        if name == DELAY:
+        if name not in COARSE_GRID:  # the delay, a torque scale: kept as in `base`
             continue
         ref_value = getattr(nominal, name)[j]
         axes.append([((name, j), max(f * ref_value, FRICTION_FLOOR)) for f in COARSE_GRID[name]])
-    best_cost, best = math.inf, base
+    r = replay.residuals(base, 0.0, segments, velocity_weight)
+    best_cost, best = float(r @ r), base  # unless a grid point does better
     for point in itertools.product(*axes):
         trial = params_with(base, [r for r, _ in point], [v for _, v in point])
         r = replay.residuals(trial, 0.0, segments, velocity_weight)
@@ -938,7 +939,6 @@ def fit_arm(
                     [x for x in segments if x.joint == c and x.role == "fit"],
                     c,
                     [*default_refs(c, fit_delay=False)[:3], ("torque_scale", c)],
-                    coarse=False,
                 )
                 params, results[c], by_joint[c] = refit.params, refit, ready_c
             else:  # C keeps the wrist it saw; D is fitted again with it
