@@ -714,14 +714,16 @@ def coarse_start(
             continue
         ref_value = getattr(nominal, name)[j]
         axes.append([((name, j), max(f * ref_value, FRICTION_FLOOR)) for f in COARSE_GRID[name]])
-    r = replay.residuals(base, 0.0, segments, velocity_weight)
-    best_cost, best = float(r @ r), base  # unless a grid point does better
+
+    def cost(p: ArmParams) -> float:
+        res = replay.residuals(p, 0.0, segments, velocity_weight)
+        return float(res @ res)
+
+    best_cost, best = cost(base), base  # unless a grid point does better
     for point in itertools.product(*axes):
-        trial = params_with(base, [r for r, _ in point], [v for _, v in point])
-        r = replay.residuals(trial, 0.0, segments, velocity_weight)
-        cost = float(r @ r)
-        if cost < best_cost:
-            best_cost, best = cost, trial
+        trial = params_with(base, [ref for ref, _ in point], [v for _, v in point])
+        if (c := cost(trial)) < best_cost:
+            best_cost, best = c, trial
     return best
 
 
@@ -731,14 +733,6 @@ WEAK_RATIO = 0.8
 """`fit_arm` takes C for a weak drive (its torque scale the ratio) when D carries the wrist at
 less than this share of the weight C's fit gave it (the envelope's heaviest and lightest
 wrists differ by 2.6x in net weight, a drive at 25 % torque by 4x)."""
-
-
-def _with(
-    values: tuple[float, float, float, float], i: int, v: float
-) -> tuple[float, float, float, float]:
-    out = list(values)
-    out[i] = v
-    return (out[0], out[1], out[2], out[3])
 
 
 def wrist_weight(params: ArmParams, mass: float | None = None) -> float:
@@ -926,19 +920,13 @@ def fit_arm(
             scale = wrist_weight(params) / max(wrist_weight(params, wrist_c), 1e-9)
             c = JOINT_LETTERS.index("C")
             if 0.0 < scale < WEAK_RATIO:
-                start = replace(
-                    params_with(
-                        params,
-                        default_refs(c, fit_delay=False)[:3],
-                        [v * scale for v in results[c].values[:3]],
-                    ),
-                    torque_scale=_with(params.torque_scale, c, scale),
-                )
+                refs_c = [*default_refs(c, fit_delay=False)[:3], ("torque_scale", c)]
+                scaled = [v * scale for v in results[c].values[:3]]
                 refit, ready_c = one(
-                    start,
+                    params_with(params, refs_c, [*scaled, scale]),
                     [x for x in segments if x.joint == c and x.role == "fit"],
                     c,
-                    [*default_refs(c, fit_delay=False)[:3], ("torque_scale", c)],
+                    refs_c,
                 )
                 params, results[c], by_joint[c] = refit.params, refit, ready_c
             else:  # C keeps the wrist it saw; D is fitted again with it

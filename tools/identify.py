@@ -89,9 +89,7 @@ WINDOW = np.array([0.35, 0.35, 0.35, 0.6])  # rad each side of the pose, the exc
 GUARD = 0.15  # rad beyond the window: the excited joint is servoed back to its pose
 SPEED_CAP = np.array([0.45, 0.45, 0.45, 0.75])  # rad/s, under the factory rate limits
 SPEED_FILTER_S = 0.1  # s: the relay judges its speed on readings low-passed this much
-STALL_CHECK_S = (
-    0.5  # s: a relay that made under 0.3 of its aimed progress in this gets more current
-)
+STALL_CHECK_S = 0.5  # s: under 0.3 of the aimed progress in this gets the relay more current
 HOLD_KP = np.array([3000.0, 3000.0, 3000.0, 300.0])  # mA/rad
 HOLD_KD = np.array([200.0, 200.0, 200.0, 20.0])  # mA s/rad
 HOLD_KI = np.array([6000.0, 6000.0, 6000.0, 600.0])  # mA/(rad s)

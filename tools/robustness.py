@@ -152,6 +152,15 @@ def arm_params(arm: Arm) -> ArmParams:
     return replace(arm.variant.params, torque_scale=arm.variant.torque_scale)
 
 
+def arm_noise(arm: Arm) -> tuple[float, float]:
+    """The arm's sensor noise (rad, rad/s): the standard noise times its multiple."""
+    sensor = SensorNoise()
+    return (
+        sensor.position_std * arm.variant.noise_scale,
+        sensor.velocity_std * arm.variant.noise_scale,
+    )
+
+
 def arm_file(arm: Arm) -> str:
     """The arm's file name under `--export-arms` and `--twin-from`."""
     return f"{arm.set}-{arm.index}.json"
@@ -161,7 +170,6 @@ def export_arms(arms: Sequence[Arm], out: Path, seed: int) -> list[Path]:
     """Each arm as an arm parameter file (`reach-sim --params`), its sensor noise and
     latency under ``_envelope`` (metadata the loader ignores): the hidden arms an
     identification campaign serves (docs/robustness.md, "Twentieth round")."""
-    sensor = SensorNoise()
     paths = []
     for a in arms:
         meta = {
@@ -170,10 +178,7 @@ def export_arms(arms: Sequence[Arm], out: Path, seed: int) -> list[Path]:
             "index": a.index,
             "seed": seed,
             "factors": a.variant.factors,
-            "sensor_noise": [
-                sensor.position_std * a.variant.noise_scale,
-                sensor.velocity_std * a.variant.noise_scale,
-            ],
+            "sensor_noise": list(arm_noise(a)),
             "latency_periods": a.variant.latency_periods,
         }
         paths.append(save_arm_params(arm_params(a), out / arm_file(a), {"_envelope": meta}))
@@ -196,12 +201,12 @@ def arm_twin(
     elif error > 0:
         rng = np.random.default_rng([seed, SETS.index(arm.set), arm.index, 3])
         twin = replace(twin.randomized(rng, error), torque_scale=twin.torque_scale)
-    sensor = SensorNoise()
+    noise_q, noise_v = arm_noise(arm)
     return {
         "params": twin.to_json_dict(),
         "latency_periods": arm.variant.latency_periods,
-        "noise_q": sensor.position_std * arm.variant.noise_scale,
-        "noise_v": sensor.velocity_std * arm.variant.noise_scale,
+        "noise_q": noise_q,
+        "noise_v": noise_v,
         "twin_error": error,
     }
 
