@@ -87,6 +87,11 @@ class Segment:
     # The constant added to this segment's delays (s), found by `tune_offsets`: the part of
     # the delay the timestamps cannot see (the least transit, the arm's own step).
     offset_s: float = 0.0
+    # The excited joint's angle (rad) and speed (rad/s) at the start of each replay window,
+    # added to the readings there: nuisances fitted beside the arm (`fit_joint`'s
+    # `fit_starts`), one row per window of the replay that fitted them; None: each window
+    # starts from the readings as they are.
+    start_fix: FloatArray | None = None
 
     def __post_init__(self) -> None:
         for name in ("q", "qdot", "command_mA"):
@@ -108,6 +113,11 @@ class Segment:
                     "finite delay for at least one command"
                 )
             object.__setattr__(self, "link_delay_s", d)
+        if self.start_fix is not None:
+            fix = np.asarray(self.start_fix, dtype=float)
+            if fix.ndim != 2 or fix.shape[1] != 2:
+                raise ValueError(f"segment {self.name}: start_fix must be (windows, 2)")
+            object.__setattr__(self, "start_fix", fix)
 
     @property
     def ticks(self) -> int:
@@ -256,11 +266,10 @@ class Replay:
         self.window_s = window_s
         self.teacher_force = teacher_force
         self.rollouts = 0
-        # (id(segment), delay) -> (segment, schedule): the fit scores many parameter sets at
-        # one delay; the segment is kept so its id cannot be reused while cached.
-        self._plans: dict[
-            tuple[int, float], tuple[Segment, list[list[tuple[FloatArray, int]]]]
-        ] = {}
+        # (commands, delays, offset, period, delay) -> schedule: the fit scores many parameter
+        # sets (and window starts: copies of one segment) at one delay; the arrays are kept
+        # beside it so their ids cannot be reused while cached.
+        self._plans: dict[tuple[int, int, float, float, float], tuple[Any, Any, Schedule]] = {}
 
     def schedule(self, seg: Segment, delay_s: float) -> list[list[tuple[FloatArray, int]]]:
         """The currents the arm held over each tick of `seg`: per tick, runs of (current, physics
@@ -355,6 +364,44 @@ class Replay:
             s = max(r - 1 + int(math.ceil(late / period - 1e-9)) + 1, s + 1)
         return out
 
+    def window_ticks(self, seg: Segment, window_s: float | None = None) -> int:
+        """Ticks per window; ``window_s`` <= 0 or inf: the whole segment."""
+        window = self.window_s if window_s is None else window_s
+        if not (window > 0 and math.isfinite(window)):
+            return seg.ticks
+        return max(1, int(round(window / seg.period)))
+
+    def residual_windows(
+        self, segments: Sequence[Segment], velocity_weight: float = VELOCITY_WEIGHT_S
+    ) -> NDArray[np.int64]:
+        """The window (numbered across `segments` in order) each row of `residuals` belongs
+        to: the fit's Jacobian in the window starts is one column per window, and a window's
+        start moves that window's rows only."""
+        out: list[NDArray[np.int64]] = []
+        base = 0
+        for seg in segments:
+            spans = self.windows(seg, self.window_ticks(seg))
+            rows = np.concatenate(
+                [np.full(end - s, base + w, dtype=np.int64) for w, (s, end) in enumerate(spans)]
+            )
+            out.append(rows)
+            if velocity_weight > 0:
+                out.append(rows)
+            if seg.start_fix is not None:
+                ids = base + np.arange(len(spans), dtype=np.int64)
+                out.extend([ids, ids])
+            base += len(spans)
+        return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
+
+    def with_starts(self, segments: Sequence[Segment]) -> list[Segment]:
+        """`segments`, each with window starts to fit (zero, unless it has its own)."""
+        return [
+            s
+            if s.start_fix is not None
+            else replace(s, start_fix=np.zeros((len(self.windows(s, self.window_ticks(s))), 2)))
+            for s in segments
+        ]
+
     def simulate(
         self, params: ArmParams, delay_s: float, seg: Segment, window_s: float | None = None
     ) -> Rollout:
@@ -363,28 +410,41 @@ class Replay:
         arm = self.arm
         arm.set_params(params)
         self.rollouts += 1
-        period = seg.period
-        window = self.window_s if window_s is None else window_s
-        w_ticks = (
-            seg.ticks
-            if not (window > 0 and math.isfinite(window))
-            else max(1, int(round(window / period)))
+        w_ticks = self.window_ticks(seg, window_s)
+        key = (
+            id(seg.command_mA),
+            id(seg.link_delay_s),
+            seg.offset_s,
+            seg.period,
+            float(delay_s),
         )
-        key = (id(seg), float(delay_s))
         cached = self._plans.get(key)
-        if cached is None or cached[0] is not seg:
+        if cached is None or cached[0] is not seg.command_mA or cached[1] is not seg.link_delay_s:
             if len(self._plans) >= PLAN_CACHE:
                 self._plans.pop(next(iter(self._plans)))
-            cached = self._plans[key] = (seg, self.schedule(seg, delay_s))
-        plan = cached[1]
+            plan_new = self.schedule(seg, delay_s)
+            cached = self._plans[key] = (seg.command_mA, seg.link_delay_s, plan_new)
+        plan = cached[2]
+        spans = self.windows(seg, w_ticks)
+        fix = seg.start_fix
+        if fix is not None and fix.shape[0] != len(spans):
+            raise ValueError(
+                f"segment {seg.name}: start_fix has {fix.shape[0]} rows for {len(spans)} "
+                "windows (fitted on other windows)"
+            )
         q_out = np.full_like(seg.q, np.nan)
         qd_out = np.full_like(seg.qdot, np.nan)
         others = [i for i in range(N_JOINTS) if i != seg.joint]
         data = arm.data
         win = np.full(seg.q.shape[0], -1, dtype=np.int64)
-        for w, (s, end) in enumerate(self.windows(seg, w_ticks)):
+        for w, (s, end) in enumerate(spans):
             win[s + 1 : end + 1] = w
-            arm.reset(q=seg.q[s], qdot=seg.qdot[s])
+            q0, qd0 = seg.q[s], seg.qdot[s]
+            if fix is not None:
+                q0, qd0 = q0.copy(), qd0.copy()
+                q0[seg.joint] += fix[w, 0]
+                qd0[seg.joint] += fix[w, 1]
+            arm.reset(q=q0, qdot=qd0)
             for k in range(s, end):
                 if self.teacher_force and k > s:
                     for i in others:
@@ -404,7 +464,9 @@ class Replay:
         velocity_weight: float = VELOCITY_WEIGHT_S,
         window_s: float | None = None,
     ) -> FloatArray:
-        """Position (rad) and weighted velocity residuals of each segment's excited joint."""
+        """Position (rad) and weighted velocity residuals of each segment's excited joint;
+        where the segment has fitted window starts, each start's departure from its reading
+        too (the reading is one more measurement, weighted as the rest)."""
         parts = []
         for seg in segments:
             r = self.simulate(params, delay_s, seg, window_s)
@@ -413,6 +475,9 @@ class Replay:
             parts.append(r.q[ok, j] - seg.q[ok, j])
             if velocity_weight > 0:
                 parts.append(velocity_weight * (r.qdot[ok, j] - seg.qdot[ok, j]))
+            if seg.start_fix is not None:
+                parts.append(seg.start_fix[:, 0])
+                parts.append(velocity_weight * seg.start_fix[:, 1])
         return np.concatenate(parts) if parts else np.zeros(0)
 
     def window_errors(
@@ -459,11 +524,14 @@ class Replay:
             return np.zeros(0)
         limit = clip * max(float(np.median(rms_all)), 1e-12)
         parts = []
-        for win, rms in per_seg:
+        for seg, (win, rms) in zip(segments, per_seg, strict=True):
             w = np.array([min(1.0, limit / max(rms[int(x)], 1e-15)) for x in win])
             parts.append(w)
             if velocity_weight > 0:
                 parts.append(w)
+            if seg.start_fix is not None:
+                starts = np.array([min(1.0, limit / max(rms[k], 1e-15)) for k in sorted(rms)])
+                parts.extend([starts, starts])
         return np.concatenate(parts)
 
 
@@ -531,6 +599,7 @@ class FitResult:
     iterations: int
     rollouts: int
     costs: tuple[float, ...]
+    segments: tuple[Segment, ...] = ()  # as fitted: with their window starts when fitted
 
     def table(self) -> dict[str, dict[str, float]]:
         return {
@@ -562,6 +631,37 @@ joint, under 3x sensor noise) once threw a joint's damping to the floor, where i
 vanishes and the fit cannot come back (docs/identification.md, "Arms of the envelope")."""
 
 
+MOVED_RAD = 0.05
+"""`friction_ceiling`: a joint whose angle spanned this much in its segments was seen moving."""
+
+
+def friction_ceiling(replay: Replay, params: ArmParams, segments: Sequence[Segment]) -> float:
+    """The most Coulomb friction (N m) the segments allow their joint: seen moving, it was
+    driven past its friction, so the friction is under the largest torque that could have
+    done it (the drive's at the largest current held, at `params`' torque scale, plus the
+    gravity-buoyancy load at the poses held). inf for a joint not seen moving. Why: MuJoCo's
+    friction constraint is soft, and friction the drive can never break acts as damping; a
+    weak B at 3x noise was fitted as 2.25 N m of friction (its drive gave at most 0.86) beside
+    a sixth of its armature, and a controller fed that friction forward chattered."""
+    j = segments[0].joint
+    if max(float(np.ptp(s.q[:, j])) for s in segments) < MOVED_RAD:
+        return math.inf
+    arm = replay.arm
+    arm.set_params(params)
+    peak_mA = max(float(np.max(np.abs(s.command_mA[:, j]))) for s in segments)
+    drive = params.torque_scale[j] * float(arm.motor.torque_per_amp[j]) * peak_mA / 1000.0
+    load = max(
+        abs(float(arm.gravity_torque(q)[j]))
+        for s in segments
+        for q in s.q[:: max(1, len(s.q) // 50)]
+    )
+    return drive + load
+
+
+START_STEP = (1e-3, 1e-2)
+"""`fit_joint`'s difference steps in a window's start angle (rad) and speed (rad/s)."""
+
+
 def fit_joint(
     replay: Replay,
     segments: Sequence[Segment],
@@ -573,56 +673,101 @@ def fit_joint(
     velocity_weight: float = VELOCITY_WEIGHT_S,
     on_iteration: Callable[[int, float], None] | None = None,
     weights: FloatArray | None = None,
+    fit_starts: bool = True,
 ) -> FitResult:
     """Levenberg-Marquardt over `refs` (log of each physical value; the delay in seconds)
-    on the residuals of `segments`, starting from `start` and `delay_s`."""
+    on the residuals of `segments`, starting from `start` and `delay_s`.
+
+    With `fit_starts`, each window's starting angle and speed of the excited joint are fitted
+    too (`Segment.start_fix`, from the segments' own or zero). Why: a window started from a
+    noisy reading carries the reading's error, and a lighter twin forgets it sooner; at 3x
+    sensor noise that biased D's and C's armature 13-19 % low (docs/identification.md). The
+    starts are separable (each moves its own window only), so their Jacobian costs two
+    rollouts whatever their number."""
     refs = tuple(refs)
     if not segments:
         raise ValueError("no segments to fit")
     joint = segments[0].joint
-    is_log = np.array([r[0] != DELAY for r in refs])
+    segs = replay.with_starts(segments) if fit_starts else list(segments)
+    counts = [0 if s.start_fix is None else s.start_fix.shape[0] for s in segs]
+    n_fix = sum(counts) if fit_starts else 0
+    n_par = len(refs)
+    is_log = np.concatenate([[r[0] != DELAY for r in refs], np.zeros(2 * n_fix, dtype=bool)])
     x0 = np.array(
         [
             math.log(max(param_value(start, delay_s, r), FRICTION_FLOOR))
-            if lg
+            if r[0] != DELAY
             else param_value(start, delay_s, r)
-            for r, lg in zip(refs, is_log, strict=True)
-        ]
-    )
-    lower = np.where(is_log, math.log(FRICTION_FLOOR), 0.0)
-    upper = np.array(
-        [
-            MAX_DELAY_S if r[0] == DELAY else 0.0 if r[0] == "torque_scale" else math.log(1e3)
             for r in refs
         ]
-    )  # a drive delivers at most its full torque
-    step = np.where(is_log, 0.01, 0.0005)
+    )
+    if n_fix:
+        fixes = [s.start_fix for s in segs if s.start_fix is not None]
+        x0 = np.concatenate([x0, *[f[:, 0] for f in fixes], *[f[:, 1] for f in fixes]])
+    lower = np.concatenate(
+        [np.where(is_log[:n_par], math.log(FRICTION_FLOOR), 0.0), np.full(2 * n_fix, -np.inf)]
+    )
+    ceiling = friction_ceiling(replay, start, segs)
+
+    def top(ref: ParamRef) -> float:
+        if ref[0] == DELAY:
+            return MAX_DELAY_S
+        if ref[0] == "torque_scale":
+            return 0.0  # a drive delivers at most its full torque
+        if ref == ("frictionloss", joint) and math.isfinite(ceiling):
+            return math.log(max(ceiling, 10 * FRICTION_FLOOR))
+        return math.log(1e3)
+
+    upper = np.concatenate([[top(r) for r in refs], np.full(2 * n_fix, np.inf)])
+    step = np.where(is_log[:n_par], 0.01, 0.0005)
     rollouts0 = replay.rollouts
+    row_window = replay.residual_windows(segs, velocity_weight) if n_fix else None
 
     def unpack(x: FloatArray) -> tuple[ArmParams, float]:
-        physical = np.where(is_log, np.exp(x), x)
+        physical = np.where(is_log[:n_par], np.exp(x[:n_par]), x[:n_par])
         delay = delay_s
         for r, v in zip(refs, physical, strict=True):
             if r[0] == DELAY:
                 delay = float(v)
         return params_with(start, refs, physical.tolist()), delay
 
+    def with_starts(x: FloatArray) -> list[Segment]:
+        if not n_fix:
+            return segs
+        out, i = [], n_par
+        for s, c in zip(segs, counts, strict=True):
+            fix = np.column_stack([x[i : i + c], x[n_fix + i : n_fix + i + c]])
+            out.append(replace(s, start_fix=fix))
+            i += c
+        return out
+
     def fun(x: FloatArray) -> FloatArray:
         p, d = unpack(x)
-        r = replay.residuals(p, d, segments, velocity_weight)
+        r = replay.residuals(p, d, with_starts(x), velocity_weight)
         return r if weights is None else r * weights
 
     def jacobian(x: FloatArray, r0: FloatArray) -> FloatArray:
         cols = []
-        for i in range(x.size):
+        for i in range(n_par):
             h = step[i] if x[i] + step[i] <= upper[i] else -step[i]
             xp = x.copy()
             xp[i] += h
             cols.append((fun(xp) - r0) / h)
-        return np.column_stack(cols)
+        jac = np.column_stack(cols)
+        if not n_fix or row_window is None:
+            return jac
+        # every window's start at once: window w's rows answer its own start only
+        starts = np.zeros((r0.size, 2 * n_fix))
+        for block, h in enumerate(START_STEP):
+            xp = x.copy()
+            xp[n_par + block * n_fix : n_par + (block + 1) * n_fix] += h
+            starts[np.arange(r0.size), block * n_fix + row_window] = (fun(xp) - r0) / h
+        return np.hstack([jac, starts])
 
     x = np.clip(x0, lower, upper)
     r = fun(x)
+    if row_window is not None and row_window.size != r.size:
+        raise RuntimeError(f"{r.size} residuals for {row_window.size} window rows")
     cost = float(r @ r)
     costs = [cost]
     lam = 1e-3
@@ -667,8 +812,8 @@ def fit_joint(
         std_x = np.sqrt(np.maximum(np.diag(cov), 0.0))
     except np.linalg.LinAlgError:
         std_x = np.full(x.size, np.inf)
-    physical = np.where(is_log, np.exp(x), x)
-    std = np.where(is_log, physical * std_x, std_x)
+    physical = np.where(is_log, np.exp(x), x)[:n_par]
+    std = np.where(is_log, np.exp(x) * std_x, std_x)[:n_par]
     params, delay = unpack(x)
     return FitResult(
         joint=joint,
@@ -681,6 +826,7 @@ def fit_joint(
         iterations=it,
         rollouts=replay.rollouts - rollouts0,
         costs=tuple(costs),
+        segments=tuple(with_starts(x)),
     )
 
 
@@ -825,6 +971,7 @@ def fit_arm(
     on_joint: Callable[[int, FitResult], None] | None = None,
     on_iteration: Callable[[int, int, float], None] | None = None,
     quanta: Sequence[float] = QUANTA_S,
+    fit_starts: bool = True,
 ) -> ArmFit:
     """Fit every joint that has "fit" segments, in `JOINT_ORDER`, each from the arm found so
     far, with the delay held out of the physical fit (it trades off against the armature):
@@ -833,6 +980,8 @@ def fit_arm(
        the driver's timestamps measured per command (`link_delays`; offsets zero);
     2. each segment's delay offset is tuned on the fitted joint (`tune_offsets`) and the fit
        polished from there.
+
+    With `fit_starts` the polish fits each window's starting state too (`fit_joint`).
 
     On the first joint the arm's command step is chosen among `quanta` (the one whose
     re-tuned median window error is smallest; a fresh fit if it is not the first tried)."""
@@ -866,8 +1015,21 @@ def fit_arm(
             ready = [replace(x, offset_s=0.0) for x in segs]
             if coarse:
                 base = coarse_start(replay, ready, base, refs)
-            result = fit_joint(replay, ready, base, 0.0, refs, max_iter=max_iter, on_iteration=note)
+            result = fit_joint(
+                replay,
+                ready,
+                base,
+                0.0,
+                refs,
+                max_iter=max_iter,
+                on_iteration=note,
+                # window starts only in the polish: fitted beside an arm still far from this
+                # one they soak up its errors as the offsets would (and mislead the offsets)
+                fit_starts=False,
+            )
             ready = tune_offsets(replay, result.params, ready)
+            if fit_starts:
+                ready = replay.with_starts(ready)
             weights = replay.window_weights(result.params, 0.0, ready)
             polished = fit_joint(
                 replay,
@@ -878,13 +1040,14 @@ def fit_arm(
                 max_iter=max(3, max_iter // 2),
                 on_iteration=note,
                 weights=weights,
+                fit_starts=fit_starts,
             )
             return replace(
                 polished,
                 iterations=result.iterations + polished.iterations,
                 rollouts=result.rollouts + polished.rollouts,
                 costs=result.costs + polished.costs,
-            ), ready
+            ), list(polished.segments)
 
         refs_j = default_refs(j, fit_delay=False)
         if letter == "D" and wrist_c is not None:

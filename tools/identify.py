@@ -659,6 +659,7 @@ class FitOutcome:
     fitted_quality: dict[str, Any]
     fit_seconds: float
     quantum_s: float = 0.0
+    fit_starts: bool = True
     # The segments as each twin was scored ("nominal", "fitted"): with their delay offsets.
     scored: dict[str, list[Segment]] = field(default_factory=dict)
 
@@ -668,6 +669,7 @@ def fit(
     console: Console,
     window_s: float = DEFAULT_WINDOW_S,
     max_iter: int = 12,
+    fit_starts: bool = True,
 ) -> tuple[FitOutcome, Replay]:
     t0 = time.monotonic()
     replay = Replay(window_s=window_s)
@@ -693,6 +695,7 @@ def fit(
         max_iter=max_iter,
         on_joint=on_joint,
         on_iteration=on_iter,
+        fit_starts=fit_starts,
     )
     params = arm_fit.params
     nom_q: dict[str, Any] = {}
@@ -720,6 +723,7 @@ def fit(
         fit_q,
         time.monotonic() - t0,
         quantum_s=arm_fit.quantum_s,
+        fit_starts=fit_starts,
         scored=scored,
     )
     return outcome, replay
@@ -733,7 +737,8 @@ def fit_metadata(
         params_table.update(r.table())
     return {
         "method": "least squares over MuJoCo rollouts (reach_sim_bridge.sysid), multiple "
-        f"shooting over {window_s:g} s windows; docs/identification.md",
+        f"shooting over {window_s:g} s windows"
+        f"{' with fitted starts' if outcome.fit_starts else ''}; docs/identification.md",
         "parameters": params_table,
         "delay_s": outcome.delay_s,
         "delay_note": "median of the delays the replay used (per command: measured from the "
@@ -916,6 +921,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--window", type=float, default=DEFAULT_WINDOW_S, metavar="S")
     p.add_argument("--iterations", type=int, default=12)
     p.add_argument(
+        "--no-fit-starts",
+        action="store_true",
+        help="start each replay window from the readings as they are (default: the windows' "
+        "starting angle and speed are fitted beside the arm; see docs/identification.md)",
+    )
+    p.add_argument(
         "--check-controller",
         metavar="NAMES",
         help="with --truth: run these controllers (comma-separated, e.g. pid,ddpg) on the "
@@ -1033,7 +1044,9 @@ def main(argv: list[str] | None = None) -> int:
         console.print(
             f"arm time {session.arm_seconds:.1f} s excitation + ~{session.move_seconds:.1f} s moves"
         )
-    outcome, replay = fit(segments, console, args.window, args.iterations)
+    outcome, replay = fit(
+        segments, console, args.window, args.iterations, fit_starts=not args.no_fit_starts
+    )
     meta = fit_metadata(outcome, session, args.window, log_path)
     save_arm_params(outcome.params, out, extra={"_fit": meta})
     console.print(f"wrote {out}")
