@@ -488,7 +488,7 @@ def test_the_coarse_start_tells_a_weak_drive(scale: float) -> None:
     torque its fit once put 12.6 N m of Coulomb friction there (validation R^2 0.71). The
     grid is tried at full and at a quarter torque."""
     d = JOINT_LETTERS.index("D")
-    truth = replace(ArmParams(), torque_scale=tuple(scale if j == d else 1.0 for j in range(4)))
+    truth = params_with(ArmParams(), [("torque_scale", d)], [scale])
     segs = [_record(truth, d, "relay", 3.0, amplitude_factor=1.0 / scale)]
     start = coarse_start(Replay(window_s=1.0), segs, ArmParams(), default_refs(d, False))
     assert start.torque_scale[d] == scale
