@@ -848,6 +848,11 @@ envelope's weak joint runs at 25 %): a weak D, whose drive fights its own load, 
 from full torque as 12.6 N m of Coulomb friction (validation R^2 0.71). The scale found is
 kept through the fit (beside the load it is a trade the data hardly see) unless the fit has
 it among its own parameters (a weak C's refit)."""
+DRIVE_MARGIN = 0.5
+"""... and a weaker drive than the first must fit with at most this share of its squared
+residual: for a joint without a load a weak drive and a heavier joint move alike, and a
+healthy E once came out at a quarter torque by a 0.80 ratio (weak joints measured 0.10-0.45,
+a weak B 0.76)."""
 
 
 def coarse_start(
@@ -877,10 +882,17 @@ def coarse_start(
         res = replay.residuals(p, 0.0, segments, velocity_weight)
         return float(res @ res)
 
-    best_cost, best = cost(base), base  # unless a grid point does better
+    by_scale: dict[float, tuple[float, ArmParams]] = {}
     for point in itertools.product(*axes):
         trial = params_with(base, [ref for ref, _ in point], [v for _, v in point])
-        if (c := cost(trial)) < best_cost:
+        c, scale = cost(trial), trial.torque_scale[joint]
+        if scale not in by_scale or c < by_scale[scale][0]:
+            by_scale[scale] = (c, trial)
+    best_cost, best = cost(base), base  # unless a grid point does better
+    for scale in sorted(by_scale, reverse=True):  # the strongest drive first
+        c, trial = by_scale[scale]
+        margin = DRIVE_MARGIN if scale < best.torque_scale[joint] else 1.0
+        if c < margin * best_cost:
             best_cost, best = c, trial
     return best
 
