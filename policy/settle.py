@@ -38,7 +38,8 @@ Watching (per joint, within `band` of the goal):
   (+1.17, -0.75, +1.17, -1.17 rad/s on E), within its band and short of its goal, so the
   crossing watch sees it only once it crosses, 0.5 J later; noise does not reverse that fast,
   and a braked arrival does not reverse at all;
-- **jitter** (`jitter_speed` > 0): after `jitter_s` (1 s) within `jitter_band`, the RMS of
+- **jitter** (`jitter_speed` > 0): after `jitter_s` (1 s) with the reading's error within
+  `jitter_band` (`jitter_raw`: the low-passed error lags a fast arrival), the RMS of
   the measured speed over the last `jitter_window_s` (0.5 s, so that an arrival's last swing
   inside the band falls before it) exceeds `jitter_speed` (the sensor noise alone gives
   0.02-0.06 rad/s). At 1.5 s and 1 s an actor kicking a joint at its goal on a noisy arm
@@ -467,7 +468,7 @@ class SettleSupervisor:
                     return
             self._sign[j] = sign
         if law.jitter_speed > 0:
-            inside = abs(self.e_f[j]) < law.jitter_band
+            inside = abs(e if law.jitter_raw else self.e_f[j]) < law.jitter_band
             self._in_band_for[j] = self._in_band_for[j] + dt if inside else 0.0
             if self._in_band_for[j] >= law.jitter_s - 1e-9 and self._v2_n >= self._v2.shape[0]:
                 rms = math.sqrt(float(np.mean(self._v2[:, j])))

@@ -101,6 +101,10 @@ class SettleLaw:
     jitter_noise_k: float = 1.5  # > 0: pure noise over the 10-sample window stays under
     # 1.5 sigma with a margin; with a low multiple the watch took noisy joints at rest
     jitter_band: float = 0.03  # rad
+    jitter_raw: bool = True  # time `jitter_s` from the reading's error inside `jitter_band`,
+    # not the low-passed one (False: until the twenty-second round), which lags a fast
+    # arrival by about its speed x `filter_s`: E arriving at 1.17 rad/s on corner 370 was
+    # due 0.45 s late, after the actor, dithering it on 3x noise, kicked it 60 mrad through
     jitter_s: float = 1.0
     jitter_window_s: float = 0.5
     hold_s: float = 0.0  # > 0: engage a joint settled inside hold_error for this long

@@ -879,8 +879,19 @@ def test_a_joint_that_crept_across_its_goal_on_its_hold_is_ramped_at_the_creep_r
 @pytest.mark.parametrize(
     ("seed", "index", "off"),
     [
-        (2, 577, {"jitter_s": 1.5, "jitter_window_s": 1.0, "reversing_speed": 0.0}),
-        (4, 849, {"jitter_s": 1.5, "jitter_window_s": 1.0}),
+        # the jitter watch as it was before the ninth round (and timed from the low-passed
+        # error, as until the twenty-second)
+        (
+            2,
+            577,
+            {
+                "jitter_s": 1.5,
+                "jitter_window_s": 1.0,
+                "reversing_speed": 0.0,
+                "jitter_raw": False,
+            },
+        ),
+        (4, 849, {"jitter_s": 1.5, "jitter_window_s": 1.0, "jitter_raw": False}),
         (3, 421, {"creep_arrive_s": 0.0}),
         (2, 520, {"freeze_breakaway": False, "creep_rate": 1.0}),  # either finishes it now
         (2, 524, {"creep_rate": 1.0}),
@@ -918,7 +929,15 @@ def test_fresh_draws_the_supervisor_used_to_miss_are_reached(
         # Each arm's mechanism is turned off with whatever else now reaches it too.
         # D at 25 %, heavy: the reversal's jump to the hold (a fall too; `confirm_breakaway`
         # alone now finishes it too)
-        (612, {"hold_check": False, "fall_ramp": 0.0, "confirm_breakaway": False}),
+        (
+            612,
+            {
+                "hold_check": False,
+                "fall_ramp": 0.0,
+                "confirm_breakaway": False,
+                "jitter_raw": False,
+            },
+        ),
         # C at 25 %, heavy: engaged for jitter on the hold
         (
             63,
@@ -927,6 +946,7 @@ def test_fresh_draws_the_supervisor_used_to_miss_are_reached(
                 "fall_gain": 1.0,
                 "reversing_speed": 0.0,
                 "jitter_true_speed": 0.0,
+                "jitter_raw": False,
             },
         ),
         # D at 25 %, heavy: pushed back across its goal alike
@@ -997,7 +1017,7 @@ def test_corners_whose_e_the_actor_bang_banged_at_its_goal_are_reached(index: in
     Counted from the settling time the bang-bang and E's approach spent 0.5 J and more and
     failed the rest metric; counted from E's first turn (docs/metrics.md, "Rest") 0.44 J, so
     what is asserted is the energy the mechanism saves."""
-    off = {"reversing_speed": 0.0}
+    off = {"reversing_speed": 0.0, "jitter_raw": False}  # the jitter watch now takes it too
     shipped, before = _shipped_and_without(off, "corners", index)
     assert shipped.reached and shipped.at_rest
     assert before.energy_after_settling_j > 3 * shipped.energy_after_settling_j
@@ -1104,7 +1124,21 @@ def test_corners_whose_actor_dithered_under_the_noise_are_reached(index: int) ->
     speed, which read 0.055-0.065 rad/s through the noise, under the jitter watch's 0.08, for
     17 s; engaged that late, C was still swinging at the end. On an arm this quiet the watch
     now takes such a joint at 0.054 rad/s (`jitter_true_speed`)."""
-    off = {"jitter_true_speed": 0.0}
+    # timed from the reading (`jitter_raw`), the watch at 0.08 rad/s takes 300 in time too
+    off = {"jitter_true_speed": 0.0, "jitter_raw": False}
     shipped, before = _shipped_and_without(off, "corners", index)
     assert shipped.reached and shipped.at_rest
     assert not before.reached
+
+
+def test_the_jitter_watch_times_a_fast_arrival_from_the_reading_not_its_low_pass() -> None:
+    """Corner 370 (frictionless, three times the sensor noise, no latency; docs/robustness.md,
+    "Twenty-second round"): E arrives at 1.17 rad/s and the actor, reading 6 mrad of noise,
+    dithers it at its goal at 0.2-0.5 rad/s. Timed from the low-passed error, which lagged
+    the arrival by 0.45 s, the jitter watch was not due before the actor kicked E at full
+    speed 60 mrad through its goal, and E spent 0.55 J after settling (the rest metric allows
+    0.5). Timed from the reading (`jitter_raw`) it takes E 0.1 s before that kick."""
+    shipped, before = _shipped_and_without({"jitter_raw": False}, "corners", 370)
+    assert shipped.reached and shipped.at_rest
+    assert not before.at_rest
+    assert before.energy_after_settling_j > 0.5 > shipped.energy_after_settling_j + 0.1
