@@ -43,6 +43,10 @@ _JAW = "A"
 _TCP_SITE = "tcp"
 _BUOYANCY_SUFFIX = "_buoyancy"
 _WRIST = 3  # index of B in E D C B
+COAST_ARMATURE = 1e6
+"""kg m^2: a joint with this armature (`Alpha5Arm.coast`) gains 2e-9 rad/s per N m per 2 ms
+step (the arm's own: 0.003-0.2). Not more: at 1e9 MuJoCo's solve lost precision, and a replay
+of a noise-free log through the true arm came out 0.3 mrad off instead of 4e-9 rad."""
 
 
 class Alpha5Arm:
@@ -173,6 +177,21 @@ class Alpha5Arm:
         return params
 
     # -- state ------------------------------------------------------------------------------
+    def coast(self, joints: Sequence[int]) -> None:
+        """Until the next `set_params`, `joints` (indices in E D C B) keep their speed through
+        any torque: their armature is made `COAST_ARMATURE`. A replay that puts them on a
+        measured path at every tick wants that path between ticks, not their own dynamics."""
+        for j in joints:
+            if not 0 <= int(j) < 4:
+                raise ValueError(f"joint index must be in 0..3 (E D C B), got {j}")
+            dof = self._dofadr[int(j)]
+            self.model.dof_armature[dof] = COAST_ARMATURE
+            # Nothing to brake: friction and damping would only make their constraint rows
+            # and the solver's work stiff beside the joints that do move.
+            self.model.dof_frictionloss[dof] = 0.0
+            self.model.dof_damping[dof] = 0.0
+            self._base_damping[int(j)] = 0.0
+
     def reset(
         self,
         q: ArrayLike | None = None,

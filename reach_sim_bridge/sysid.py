@@ -261,8 +261,15 @@ class Replay:
         teacher_force: bool = True,
         quantum_s: float = 0.0,
         stall_s: float = STALL_S,
+        coast_others: bool = True,
     ) -> None:
         self.arm = Alpha5Arm(params=base, dt=dt)
+        # With `teacher_force`, the joints not excited coast between the ticks that put them
+        # on their path (`Alpha5Arm.coast`) instead of moving under their logged currents.
+        # Driven, they moved as the twin's values for *them* said: a weak D (25 % torque)
+        # holding the arm on 175-240 mA moved four times too hard under a nominal D between
+        # ticks, and C's fit, made before D's, took the reaction (docs/identification.md).
+        self.coast_others = coast_others
         self.quantum_s = float(quantum_s)
         self.stall_s = float(stall_s)
         self.window_s = window_s
@@ -437,6 +444,8 @@ class Replay:
         q_out = np.full_like(seg.q, np.nan)
         qd_out = np.full_like(seg.qdot, np.nan)
         others = [i for i in range(N_JOINTS) if i != seg.joint]
+        if self.teacher_force and self.coast_others:
+            arm.coast(others)
         data = arm.data
         win = np.full(seg.q.shape[0], -1, dtype=np.int64)
         for w, (s, end) in enumerate(spans):
@@ -675,7 +684,7 @@ def fit_joint(
     velocity_weight: float = VELOCITY_WEIGHT_S,
     on_iteration: Callable[[int, float], None] | None = None,
     weights: FloatArray | None = None,
-    fit_starts: bool = True,
+    fit_starts: bool = False,
 ) -> FitResult:
     """Levenberg-Marquardt over `refs` (log of each physical value; the delay in seconds)
     on the residuals of `segments`, starting from `start` and `delay_s`.
@@ -685,7 +694,8 @@ def fit_joint(
     noisy reading carries the reading's error, and a lighter twin forgets it sooner; at 3x
     sensor noise that biased D's and C's armature 13-19 % low (docs/identification.md). The
     starts are separable (each moves its own window only), so their Jacobian costs two
-    rollouts whatever their number."""
+    rollouts whatever their number. Off by default: beside an arm still far from the data
+    the starts soak up its errors, so `fit_arm` fits them only in its polish."""
     refs = tuple(refs)
     if not segments:
         raise ValueError("no segments to fit")
@@ -733,7 +743,7 @@ def fit_joint(
                 delay = float(v)
         return params_with(start, refs, physical.tolist()), delay
 
-    def with_starts(x: FloatArray) -> list[Segment]:
+    def starts_at(x: FloatArray) -> list[Segment]:
         if not n_fix:
             return segs
         out, i = [], n_par
@@ -745,7 +755,7 @@ def fit_joint(
 
     def fun(x: FloatArray) -> FloatArray:
         p, d = unpack(x)
-        r = replay.residuals(p, d, with_starts(x), velocity_weight)
+        r = replay.residuals(p, d, starts_at(x), velocity_weight)
         return r if weights is None else r * weights
 
     def jacobian(x: FloatArray, r0: FloatArray) -> FloatArray:
@@ -828,7 +838,7 @@ def fit_joint(
         iterations=it,
         rollouts=replay.rollouts - rollouts0,
         costs=tuple(costs),
-        segments=tuple(with_starts(x)),
+        segments=tuple(starts_at(x)),
     )
 
 
