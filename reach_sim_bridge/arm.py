@@ -186,8 +186,7 @@ class Alpha5Arm:
                 raise ValueError(f"joint index must be in 0..3 (E D C B), got {j}")
             dof = self._dofadr[int(j)]
             self.model.dof_armature[dof] = COAST_ARMATURE
-            # Nothing to brake: friction and damping would only make their constraint rows
-            # and the solver's work stiff beside the joints that do move.
+            # coasting: nothing to brake them either (at this armature neither would show)
             self.model.dof_frictionloss[dof] = 0.0
             self.model.dof_damping[dof] = 0.0
             self._base_damping[int(j)] = 0.0
