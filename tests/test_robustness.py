@@ -395,3 +395,69 @@ def test_params_move_the_whole_envelope_and_are_recorded(
     capsys.readouterr()
     assert rb.main([*argv, "--params", str(params), "--out", str(tmp_path), "--quiet"]) == 2
     assert "did you mean 'friction_holds'" in capsys.readouterr().err
+
+
+def test_a_fit_is_scored_against_the_arm_its_currents_show() -> None:
+    """A drive at torque scale s looks, from its currents, like an arm with armature, damping
+    and Coulomb friction divided by s: a fit that finds that is exact, not 4x off."""
+    from policy.identify_campaign import fit_errors
+
+    hidden = ArmParams(torque_scale=(1.0, 0.25, 1.0, 1.0)).to_json_dict()
+    fitted = dict(hidden)
+    fitted["armature"] = [
+        hidden["armature"][0] * 1.1,
+        hidden["armature"][1] * 4,
+        *hidden["armature"][2:],
+    ]
+    fitted["frictionloss"] = [
+        hidden["frictionloss"][0],
+        hidden["frictionloss"][1] * 4 + 0.5,
+        *hidden["frictionloss"][2:],
+    ]
+    fitted["_fit"] = {"quality_fitted": {"validate/D": {"window": {"rms_mrad": 3.0}}}}
+    err = fit_errors(hidden, fitted)
+    assert err["E"]["armature_ratio"] == pytest.approx(1.1)
+    assert err["D"]["armature_ratio"] == pytest.approx(1.0)
+    assert err["D"]["damping_ratio"] == pytest.approx(0.25)  # the fit left it nominal
+    assert err["D"]["coulomb_error_nm"] == pytest.approx(0.5)
+    assert err["D"]["validate_rms_mrad_fitted"] == 3.0
+    assert err["D"]["validate_rms_mrad_nominal"] is None  # not in the fit's metadata
+
+
+@pytest.mark.slow
+def test_an_identification_campaign_fits_its_arms_through_the_driver_and_resumes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--identify DIR` serves each planned arm with reach-sim on a pty and identifies it
+    with tools/identify.py through the driver (here one draw, its wrist B only, quarter-length
+    segments): the fit in DIR predicts B's validation motions better than the nominal twin,
+    a second run skips the fitted arm, and `--twin-from DIR` runs `lambda` on the fit."""
+    from reach_sim_bridge.params import load_arm_params
+
+    fits = tmp_path / "fits"
+    quick = "--max-current 600 --watchdog 1.0 --joints B --scale 0.25 --iterations 4"
+    argv = ["--draws", "1", "--seed", str(SEED), "--identify", str(fits)]
+    assert rb.main([*argv, "--identify-args", quick]) == 0
+    fitted = load_arm_params(fits / "draws-0.json")
+    assert fitted != ArmParams()
+    assert (fits / "draws-0.log.npz").exists()
+    hidden = json.loads((fits / "draws-0.hidden.json").read_text())
+    assert hidden["_envelope"]["index"] == 0
+    (row,) = json.loads((fits / "identify-summary.json").read_text())
+    b = row["joints"]["B"]
+    assert b["validate_rms_mrad_fitted"] < b["validate_rms_mrad_nominal"]
+    assert 0.5 < b["armature_ratio"] < 2.0  # the nominal twin is off by the arm's own spread
+    assert "| draws-0 |" in capsys.readouterr().out
+    assert rb.main([*argv, "--identify-args", quick]) == 0
+    assert "(1 already fitted there, skipped)" in " ".join(capsys.readouterr().err.split())
+    run = ["--draws", "1", "--seed", str(SEED), "--controller", "lambda", "--twin", "--quiet"]
+    assert rb.main([*run, "--twin-from", str(fits), "--seconds", "1", "--out", str(tmp_path)]) == 0
+    assert json.loads((tmp_path / "lambda.json").read_text())["settings"]["twin_from"] == "fits"
+
+
+def test_an_identification_campaign_runs_no_controller(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["--draws", "1", "--identify", str(tmp_path), "--controller", "lambda"]
+    assert rb.main(argv) == 2
+    assert "--twin-from DIR" in capsys.readouterr().err

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import shlex
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -41,6 +42,12 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from policy.campaign import CampaignError, Job, run_job, run_on_ray
 from policy.envelope import Envelope, Selection, Variant, corners, draws
 from policy.evaluation import add_param_option, parse_controller_params
+from policy.identify_campaign import (
+    IdentifyJob,
+    IdentifyResult,
+    run_identify_job,
+    summary_row,
+)
 from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from policy.rollout import Episode, EpisodeResult, RunConfig
 from policy.stats import bootstrap_ci
@@ -170,19 +177,133 @@ def export_arms(arms: Sequence[Arm], out: Path, seed: int) -> list[Path]:
     """Each arm as an arm parameter file (`reach-sim --params`), its sensor noise and
     latency under ``_envelope`` (metadata the loader ignores): the hidden arms an
     identification campaign serves (docs/robustness.md, "Twentieth round")."""
-    paths = []
-    for a in arms:
-        meta = {
-            "name": a.variant.name,
-            "set": a.set,
-            "index": a.index,
+    return [save_arm_params(arm_params(a), out / arm_file(a), envelope_meta(a, seed)) for a in arms]
+
+
+def envelope_meta(arm: Arm, seed: int) -> dict[str, Any]:
+    """An exported arm's metadata: where in the envelope it lies, its noise and latency."""
+    return {
+        "_envelope": {
+            "name": arm.variant.name,
+            "set": arm.set,
+            "index": arm.index,
             "seed": seed,
-            "factors": a.variant.factors,
-            "sensor_noise": list(arm_noise(a)),
-            "latency_periods": a.variant.latency_periods,
+            "factors": arm.variant.factors,
+            "sensor_noise": list(arm_noise(arm)),
+            "latency_periods": arm.variant.latency_periods,
         }
-        paths.append(save_arm_params(arm_params(a), out / arm_file(a), {"_envelope": meta}))
-    return paths
+    }
+
+
+SUMMARY_FILE = "identify-summary.json"
+
+
+def identify_arms(
+    arms: Sequence[Arm],
+    out: Path,
+    seed: int,
+    console: Console,
+    *,
+    speed: float = 1.0,
+    identify_args: Sequence[str] = (),
+    workers: int | None = None,
+    address: str | None = None,
+) -> list[dict[str, Any]]:
+    """Identify each arm through the driver (`policy.identify_campaign`): OUT/SET-INDEX.json,
+    the fit `--twin-from OUT` reads, beside its log (.log.npz) and the hidden arm
+    (.hidden.json); OUT/identify-summary.json has every arm's fit against its truth. Arms
+    already fitted in OUT are skipped, so an interrupted campaign resumes."""
+    out.mkdir(parents=True, exist_ok=True)
+    summary_path = out / SUMMARY_FILE
+    rows: dict[str, dict[str, Any]] = {}
+    if summary_path.exists():
+        rows = {r["arm"]: r for r in json.loads(summary_path.read_text(encoding="utf-8"))}
+    todo: list[IdentifyJob] = []
+    for a in arms:
+        stem = arm_file(a).removesuffix(".json")
+        hidden = save_arm_params(arm_params(a), out / f"{stem}.hidden.json", envelope_meta(a, seed))
+        if (out / arm_file(a)).exists():
+            continue
+        todo.append(
+            IdentifyJob(
+                stem,
+                hidden.read_text(encoding="utf-8"),
+                arm_noise(a),
+                speed=speed,
+                identify_args=tuple(identify_args),
+            )
+        )
+    skipped = len(arms) - len(todo)
+    console.print(
+        f"identifying {len(todo)} arms into {out}"
+        + (f" ({skipped} already fitted there, skipped)" if skipped else "")
+    )
+    t0 = time.monotonic()
+    jobs = {j.name: j for j in todo}
+
+    def keep(result: IdentifyResult) -> None:
+        job = jobs[result.name]
+        if result.ok:
+            assert result.fitted_json is not None
+            (out / f"{result.name}.json").write_text(result.fitted_json, encoding="utf-8")
+        else:
+            (out / f"{result.name}.failed.txt").write_text(
+                "\n".join(result.tail) + "\n", encoding="utf-8"
+            )
+        if result.log_npz is not None:
+            (out / f"{result.name}.log.npz").write_bytes(result.log_npz)
+        rows[result.name] = summary_row(result.name, job.hidden_json, result)
+        summary_path.write_text(json.dumps(list(rows.values()), indent=1), encoding="utf-8")
+        n = sum(1 for name in jobs if name in rows and rows[name].get("wall_s") is not None)
+        elapsed = time.monotonic() - t0
+        state = "fitted" if result.ok else f"FAILED ({result.returncode}), see .failed.txt"
+        console.print(
+            f"{result.name}: {state} in {result.wall_s:.0f} s; {n}/{len(todo)} done, "
+            f"eta {elapsed / max(n, 1) * (len(todo) - n):.0f} s"
+        )
+
+    if todo:
+        if workers is None and address is None:
+            for job in todo:
+                keep(run_identify_job(job))
+        else:
+            run_on_ray(run_identify_job, todo, workers, address, keep)
+    return [
+        rows[arm_file(a).removesuffix(".json")]
+        for a in arms
+        if arm_file(a).removesuffix(".json") in rows
+    ]
+
+
+def identify_table(rows: Sequence[dict[str, Any]]) -> str:
+    """The fits against their hidden arms, one line per arm (markdown)."""
+    lines = [
+        "| arm | wall [s] | fit [s] | armature fitted / effective (E D C B) | damping (E D C B) "
+        "| validation replay RMS, fitted (nominal) [mrad] |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if "joints" not in r:
+            lines.append(f"| {r['arm']} | {r['wall_s']:.0f} | failed | | | |")
+            continue
+        j = r["joints"]
+
+        def cells(key: str, fmt: str, jj: dict[str, Any] = j) -> str:
+            return " ".join(
+                format(jj[x][key], fmt) if jj[x][key] is not None else "-" for x in "EDCB"
+            )
+
+        rms = " ".join(
+            f"{j[x]['validate_rms_mrad_fitted']:.1f} ({j[x]['validate_rms_mrad_nominal']:.0f})"
+            if j[x]["validate_rms_mrad_fitted"] is not None
+            else "-"
+            for x in "EDCB"
+        )
+        lines.append(
+            f"| {r['arm']} | {r['wall_s']:.0f} | {r.get('fit_s') or 0:.0f} "
+            f"| {cells('armature_ratio', '.2f')} | {cells('damping_ratio', '.2f')} | {rms} |"
+        )
+    return "\n".join(lines)
 
 
 def arm_twin(
@@ -898,6 +1019,30 @@ def build_parser() -> argparse.ArgumentParser:
         help="do not run: write each planned arm as DIR/SET-INDEX.json, a reach-sim --params "
         "file (its sensor noise and latency under _envelope), to identify it",
     )
+    p.add_argument(
+        "--identify",
+        type=Path,
+        metavar="DIR",
+        help="do not run controllers: identify each planned arm through the driver (reach-sim "
+        "serving it on a pty, tools/identify.py exciting and fitting it; about 12 min of one "
+        "CPU each) into DIR/SET-INDEX.json, the fits --twin-from DIR reads; --workers and "
+        "--address run arms in parallel; arms already in DIR are skipped",
+    )
+    p.add_argument(
+        "--identify-args",
+        default="--max-current 600 --watchdog 1.0",
+        metavar="ARGS",
+        help="with --identify: options for tools/identify.py (default: '--max-current 600 "
+        "--watchdog 1.0', the envelope's weak drives need the current, a loaded host the "
+        "watchdog's slack)",
+    )
+    p.add_argument(
+        "--sim-speed",
+        type=float,
+        default=1.0,
+        metavar="X",
+        help="with --identify: reach-sim --speed (default 1: host stalls stay out of the data)",
+    )
     p.add_argument("--seed", type=int, default=1, help="seed of the draws and episodes (1)")
     p.add_argument("--seconds", type=float, default=20.0, help="episode length (20 s)")
     p.add_argument("--rate", type=float, default=20.0, metavar="HZ", help="control rate (20)")
@@ -984,6 +1129,11 @@ class ProgressLog:
             )
 
 
+def _plan_of(args: argparse.Namespace) -> Plan:
+    base = None if args.params is None else load_arm_params(args.params)
+    return plan(args.seed, args.corners, args.draws, args.max_corners, base=base)
+
+
 def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list[dict]:
     if args.overshoot_by:
         check_factors(args.overshoot_by)  # a misspelt factor fails before a campaign runs
@@ -998,15 +1148,35 @@ def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list
             reports.append(report)
         return reports
     if args.export_arms is not None:
-        the_plan = plan(
-            args.seed,
-            args.corners,
-            args.draws,
-            args.max_corners,
-            base=None if args.params is None else load_arm_params(args.params),
-        )
+        the_plan = _plan_of(args)
         paths = export_arms(the_plan.arms, args.export_arms, args.seed)
         console.print(f"wrote {len(paths)} arm files to {args.export_arms}")
+        return []
+    if args.identify is not None:
+        if args.controller:
+            raise ValueError(
+                "--identify runs no controller: identify first, then run --controller "
+                "lambda --twin --twin-from DIR on the same arms"
+            )
+        if args.workers is not None and args.workers < 1:
+            raise ValueError(f"--workers must be at least 1, got {args.workers}")
+        if args.sim_speed <= 0:
+            raise ValueError(f"--sim-speed must be positive, got {args.sim_speed}")
+        the_plan = _plan_of(args)
+        rows = identify_arms(
+            the_plan.arms,
+            args.identify,
+            args.seed,
+            console,
+            speed=args.sim_speed,
+            identify_args=shlex.split(args.identify_args),
+            workers=args.workers,
+            address=args.address,
+        )
+        Console().print(escape(identify_table(rows)), soft_wrap=True)
+        failed = [r["arm"] for r in rows if "joints" not in r]
+        if failed:
+            raise ValueError(f"{len(failed)} arms not identified: {', '.join(failed)}")
         return []
     if not args.controller:
         raise ValueError("give --controller NAME ... (or --from FILE.json to report saved runs)")
