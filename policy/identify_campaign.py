@@ -17,7 +17,6 @@ identification takes 4-5 min of arm time and 6-10 min of fitting on one core.
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -175,19 +174,29 @@ def run_identify_job(job: IdentifyJob) -> IdentifyResult:
 def fit_errors(hidden: dict, fitted: dict, joints: Sequence[int] = (0, 1, 2, 3)) -> dict:
     """Per joint, the fit against the hidden arm as the fit can see it: a drive at torque
     scale s turns a current into s times the torque, so from currents the arm looks like one
-    with armature, damping and Coulomb friction divided by s. Ratios fitted / effective for
-    the armature and damping, the difference in N m for the Coulomb friction, and the
-    replay's RMS on the validation motions (fitted and nominal twin, mrad)."""
-    scale = hidden.get("torque_scale", [1.0] * 4)
+    with armature, damping and Coulomb friction divided by s (the fit may find a weak drive
+    either way: as its scale or as that heavier joint). Ratios of those effective values,
+    fitted / true, for the armature and damping, the difference in N m for the Coulomb
+    friction, the fitted scale, and the replay's RMS on the validation motions (fitted and
+    nominal twin, mrad)."""
+    true_scale = hidden.get("torque_scale", [1.0] * 4)
+    fit_scale = fitted.get("torque_scale", [1.0] * 4)
     quality = fitted.get("_fit", {})
     out: dict[str, dict] = {}
     for j in joints:
         letter = "EDCB"[j]
-        s = float(scale[j])
-        row = {
-            "armature_ratio": fitted["armature"][j] / (hidden["armature"][j] / s),
-            "damping_ratio": fitted["damping"][j] / (hidden["damping"][j] / s),
-            "coulomb_error_nm": fitted["frictionloss"][j] - hidden["frictionloss"][j] / s,
+        s, f = float(true_scale[j]), float(fit_scale[j])
+
+        def effective(arm: dict, key: str, scale: float, j: int = j) -> float:
+            return float(arm[key][j]) / scale
+
+        row: dict[str, float | None] = {
+            "torque_scale": f,
+            "armature_ratio": effective(fitted, "armature", f) / effective(hidden, "armature", s),
+            "damping_ratio": effective(fitted, "damping", f) / effective(hidden, "damping", s),
+            "true_torque_scale": s,
+            "coulomb_error_nm": effective(fitted, "frictionloss", f)
+            - effective(hidden, "frictionloss", s),
         }
         for twin, key in (("fitted", "quality_fitted"), ("nominal", "quality_nominal")):
             q = quality.get(key, {}).get(f"validate/{letter}", {}).get("window")
@@ -196,15 +205,20 @@ def fit_errors(hidden: dict, fitted: dict, joints: Sequence[int] = (0, 1, 2, 3))
     return out
 
 
-def summary_row(name: str, hidden_json: str, result: IdentifyResult) -> dict:
-    """One arm's line in the campaign's summary (JSON-ready)."""
-    row: dict = {"arm": name, "returncode": result.returncode, "wall_s": result.wall_s}
-    if result.fitted_json is None:
+def run_row(result: IdentifyResult) -> dict:
+    """How one job ran (JSON-ready): its exit code, wall time and, if it failed, its tail."""
+    row: dict = {"arm": result.name, "returncode": result.returncode, "wall_s": result.wall_s}
+    if not result.ok:
         row["tail"] = result.tail
-        return row
-    fitted = json.loads(result.fitted_json)
+    return row
+
+
+def fit_row(name: str, hidden: dict, fitted: dict, run: dict | None = None) -> dict:
+    """One arm's line in the campaign's table: the fit against its hidden arm (`fit_errors`),
+    its fit and arm time, and how the job ran when that is known."""
     meta = fitted.get("_fit", {})
+    row: dict = {"arm": name, **(run or {})}
     row["fit_s"] = meta.get("fit_seconds")
     row["arm_s"] = meta.get("arm_seconds")
-    row["joints"] = fit_errors(json.loads(hidden_json), fitted)
+    row["joints"] = fit_errors(hidden, fitted)
     return row

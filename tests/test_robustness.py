@@ -403,7 +403,7 @@ def test_a_fit_is_scored_against_the_arm_its_currents_show() -> None:
     from policy.identify_campaign import fit_errors
 
     hidden = ArmParams(torque_scale=(1.0, 0.25, 1.0, 1.0)).to_json_dict()
-    fitted = dict(hidden)
+    fitted = dict(hidden, torque_scale=[1.0] * 4)  # the weak drive found as a heavier joint
     fitted["armature"] = [
         hidden["armature"][0] * 1.1,
         hidden["armature"][1] * 4,
@@ -422,6 +422,9 @@ def test_a_fit_is_scored_against_the_arm_its_currents_show() -> None:
     assert err["D"]["coulomb_error_nm"] == pytest.approx(0.5)
     assert err["D"]["validate_rms_mrad_fitted"] == 3.0
     assert err["D"]["validate_rms_mrad_nominal"] is None  # not in the fit's metadata
+    as_scale = dict(hidden, _fit={})  # the weak drive found as its scale: the same arm
+    assert fit_errors(hidden, as_scale)["D"]["armature_ratio"] == pytest.approx(1.0)
+    assert fit_errors(hidden, as_scale)["D"]["torque_scale"] == 0.25
 
 
 @pytest.mark.slow
@@ -443,7 +446,9 @@ def test_an_identification_campaign_fits_its_arms_through_the_driver_and_resumes
     assert (fits / "draws-0.log.npz").exists()
     hidden = json.loads((fits / "draws-0.hidden.json").read_text())
     assert hidden["_envelope"]["index"] == 0
-    (row,) = json.loads((fits / "identify-summary.json").read_text())
+    (run,) = json.loads((fits / "identify-summary.json").read_text())
+    assert run["arm"] == "draws-0" and run["returncode"] == 0 and run["wall_s"] > 10
+    (row,) = rb.identify_rows(rb.plan(SEED, False, 1).arms, fits, {})
     b = row["joints"]["B"]
     assert b["validate_rms_mrad_fitted"] < b["validate_rms_mrad_nominal"]
     assert 0.5 < b["armature_ratio"] < 2.0  # the nominal twin is off by the arm's own spread

@@ -45,8 +45,9 @@ from policy.evaluation import add_param_option, parse_controller_params
 from policy.identify_campaign import (
     IdentifyJob,
     IdentifyResult,
+    fit_row,
     run_identify_job,
-    summary_row,
+    run_row,
 )
 from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from policy.rollout import Episode, EpisodeResult, RunConfig
@@ -215,9 +216,9 @@ def identify_arms(
     already fitted in OUT are skipped, so an interrupted campaign resumes."""
     out.mkdir(parents=True, exist_ok=True)
     summary_path = out / SUMMARY_FILE
-    rows: dict[str, dict[str, Any]] = {}
+    runs: dict[str, dict[str, Any]] = {}
     if summary_path.exists():
-        rows = {r["arm"]: r for r in json.loads(summary_path.read_text(encoding="utf-8"))}
+        runs = {r["arm"]: r for r in json.loads(summary_path.read_text(encoding="utf-8"))}
     todo: list[IdentifyJob] = []
     for a in arms:
         stem = arm_file(a).removesuffix(".json")
@@ -242,7 +243,6 @@ def identify_arms(
     jobs = {j.name: j for j in todo}
 
     def keep(result: IdentifyResult) -> None:
-        job = jobs[result.name]
         if result.ok:
             assert result.fitted_json is not None
             (out / f"{result.name}.json").write_text(result.fitted_json, encoding="utf-8")
@@ -252,9 +252,9 @@ def identify_arms(
             )
         if result.log_npz is not None:
             (out / f"{result.name}.log.npz").write_bytes(result.log_npz)
-        rows[result.name] = summary_row(result.name, job.hidden_json, result)
-        summary_path.write_text(json.dumps(list(rows.values()), indent=1), encoding="utf-8")
-        n = sum(1 for name in jobs if name in rows and rows[name].get("wall_s") is not None)
+        runs[result.name] = run_row(result)
+        summary_path.write_text(json.dumps(list(runs.values()), indent=1), encoding="utf-8")
+        n = sum(1 for name in jobs if name in runs)
         elapsed = time.monotonic() - t0
         state = "fitted" if result.ok else f"FAILED ({result.returncode}), see .failed.txt"
         console.print(
@@ -268,40 +268,61 @@ def identify_arms(
                 keep(run_identify_job(job))
         else:
             run_on_ray(run_identify_job, todo, workers, address, keep)
-    return [
-        rows[arm_file(a).removesuffix(".json")]
-        for a in arms
-        if arm_file(a).removesuffix(".json") in rows
-    ]
+    return identify_rows(arms, out, runs)
+
+
+def identify_rows(
+    arms: Sequence[Arm], out: Path, runs: dict[str, dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """Each arm's fit in ``out`` against its hidden arm (recomputed from the files), or how
+    its identification failed."""
+    rows = []
+    for a in arms:
+        stem = arm_file(a).removesuffix(".json")
+        fit, hidden = out / f"{stem}.json", out / f"{stem}.hidden.json"
+        if fit.exists():
+            truth, fitted = (json.loads(f.read_text(encoding="utf-8")) for f in (hidden, fit))
+            rows.append(fit_row(stem, truth, fitted, runs.get(stem)))
+        elif stem in runs:
+            rows.append(runs[stem])
+    return rows
 
 
 def identify_table(rows: Sequence[dict[str, Any]]) -> str:
-    """The fits against their hidden arms, one line per arm (markdown)."""
+    """The fits against their hidden arms, one line per arm (markdown): each joint's
+    armature and damping as fitted over true (effective values: over the torque scale),
+    the torque scales the fit found (and the true ones) where either is not 1, and the
+    validation motions' replay RMS through the fitted (and the nominal) twin."""
     lines = [
-        "| arm | wall [s] | fit [s] | armature fitted / effective (E D C B) | damping (E D C B) "
-        "| validation replay RMS, fitted (nominal) [mrad] |",
-        "|---|---|---|---|---|---|",
+        "| arm | wall [s] | fit [s] | armature fitted / true, E D C B | damping fitted / true "
+        "| torque scale fitted (true) | validation RMS fitted (nominal) [mrad] |",
+        "|---|---|---|---|---|---|---|",
     ]
+
+    def num(value: Any, fmt: str) -> str:
+        return "-" if value is None else format(value, fmt)
+
     for r in rows:
+        wall = num(r.get("wall_s"), ".0f")
         if "joints" not in r:
-            lines.append(f"| {r['arm']} | {r['wall_s']:.0f} | failed | | | |")
+            lines.append(f"| {r['arm']} | {wall} | failed ({r.get('returncode')}) | | | | |")
             continue
-        j = r["joints"]
-
-        def cells(key: str, fmt: str, jj: dict[str, Any] = j) -> str:
-            return " ".join(
-                format(jj[x][key], fmt) if jj[x][key] is not None else "-" for x in "EDCB"
-            )
-
-        rms = " ".join(
-            f"{j[x]['validate_rms_mrad_fitted']:.1f} ({j[x]['validate_rms_mrad_nominal']:.0f})"
-            if j[x]["validate_rms_mrad_fitted"] is not None
-            else "-"
-            for x in "EDCB"
+        j = [r["joints"][x] for x in JOINT_LETTERS]
+        arm = " / ".join(num(q["armature_ratio"], ".2f") for q in j)
+        damp = " / ".join(num(q["damping_ratio"], ".2f") for q in j)
+        weak = ", ".join(
+            f"{x} {q['torque_scale']:.2f} ({q['true_torque_scale']:.2f})"
+            for x, q in zip(JOINT_LETTERS, j, strict=True)
+            if q["torque_scale"] != 1 or q["true_torque_scale"] != 1
+        )
+        rms = ", ".join(
+            f"{x} {num(q['validate_rms_mrad_fitted'], '.1f')} "
+            f"({num(q['validate_rms_mrad_nominal'], '.0f')})"
+            for x, q in zip(JOINT_LETTERS, j, strict=True)
         )
         lines.append(
-            f"| {r['arm']} | {r['wall_s']:.0f} | {r.get('fit_s') or 0:.0f} "
-            f"| {cells('armature_ratio', '.2f')} | {cells('damping_ratio', '.2f')} | {rms} |"
+            f"| {r['arm']} | {wall} | {num(r.get('fit_s'), '.0f')} | {arm} | {damp} "
+            f"| {weak or 'none'} | {rms} |"
         )
     return "\n".join(lines)
 
