@@ -32,8 +32,10 @@ LINK_TIMEOUT_S = 30.0
 TAIL_LINES = 30
 
 
-class IdentifyFailed(RuntimeError):
-    """A job's simulator or identification did not finish; the message has their output."""
+SIM_FAILED = -2
+"""`IdentifyResult.returncode` when reach-sim did not come up (-1: the identification timed
+out; otherwise tools/identify.py's exit code). A failed arm is reported, not raised, so one
+bad arm does not stop a campaign."""
 
 
 @dataclass(frozen=True)
@@ -115,16 +117,19 @@ def run_identify_job(job: IdentifyJob) -> IdentifyResult:
             env=_env(),
             cwd=REPO,
         )
+        out = root / f"{job.name}.json"
         try:
             deadline = time.monotonic() + LINK_TIMEOUT_S
-            while not link.exists():
-                if sim.poll() is not None or time.monotonic() > deadline:
-                    sim_log.seek(0)
-                    raise IdentifyFailed(
-                        f"{job.name}: reach-sim did not serve the arm: {sim_log.read()[-2000:]}"
-                    )
+            while not link.exists() and sim.poll() is None and time.monotonic() < deadline:
                 time.sleep(0.1)
-            out = root / f"{job.name}.json"
+            if not link.exists():
+                sim_log.seek(0)
+                return IdentifyResult(
+                    job.name,
+                    SIM_FAILED,
+                    time.monotonic() - t0,
+                    tail=["reach-sim did not serve the arm:", *_tail(sim_log.read())],
+                )
             cmd = [
                 sys.executable,
                 str(IDENTIFY_TOOL),

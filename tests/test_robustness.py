@@ -466,3 +466,14 @@ def test_an_identification_campaign_runs_no_controller(
     argv = ["--draws", "1", "--identify", str(tmp_path), "--controller", "lambda"]
     assert rb.main(argv) == 2
     assert "--twin-from DIR" in capsys.readouterr().err
+
+
+def test_an_arm_the_simulator_refuses_is_reported_not_raised() -> None:
+    """One bad arm file must not stop a campaign of hundreds: the job comes back failed,
+    with reach-sim's own error in its tail."""
+    from policy.identify_campaign import SIM_FAILED, IdentifyJob, run_identify_job
+
+    result = run_identify_job(IdentifyJob("bad", '{"armature": [0.1]}', (0.002, 0.02)))
+    assert not result.ok and result.returncode == SIM_FAILED
+    assert result.fitted_json is None
+    assert "armature" in " ".join(result.tail)
