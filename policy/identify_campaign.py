@@ -22,9 +22,12 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import numpy as np
+
+from protocol.alpha5 import JOINT_LETTERS, N_JOINTS
 
 REPO = Path(__file__).resolve().parents[1]
 IDENTIFY_TOOL = REPO / "tools" / "identify.py"
@@ -176,32 +179,32 @@ def run_identify_job(job: IdentifyJob) -> IdentifyResult:
         )
 
 
-def fit_errors(hidden: dict, fitted: dict, joints: Sequence[int] = (0, 1, 2, 3)) -> dict:
+def _effective(arm: dict, key: str) -> np.ndarray:
+    """``arm[key]`` per joint over its torque scale: what a current-mode identification sees."""
+    scale = np.asarray(arm.get("torque_scale", [1.0] * N_JOINTS), dtype=float)
+    return np.asarray(arm[key], dtype=float) / scale
+
+
+def fit_errors(hidden: dict, fitted: dict) -> dict:
     """Per joint, the fit against the hidden arm as the fit can see it: a drive at torque
     scale s turns a current into s times the torque, so from currents the arm looks like one
     with armature, damping and Coulomb friction divided by s (the fit may find a weak drive
     either way: as its scale or as that heavier joint). Ratios of those effective values,
     fitted / true, for the armature and damping, the difference in N m for the Coulomb
-    friction, the fitted scale, and the replay's RMS on the validation motions (fitted and
+    friction, both scales, and the replay's RMS on the validation motions (fitted and
     nominal twin, mrad)."""
-    true_scale = hidden.get("torque_scale", [1.0] * 4)
-    fit_scale = fitted.get("torque_scale", [1.0] * 4)
+    armature = _effective(fitted, "armature") / _effective(hidden, "armature")
+    damping = _effective(fitted, "damping") / _effective(hidden, "damping")
+    coulomb = _effective(fitted, "frictionloss") - _effective(hidden, "frictionloss")
     quality = fitted.get("_fit", {})
     out: dict[str, dict] = {}
-    for j in joints:
-        letter = "EDCB"[j]
-        s, f = float(true_scale[j]), float(fit_scale[j])
-
-        def effective(arm: dict, key: str, scale: float, j: int = j) -> float:
-            return float(arm[key][j]) / scale
-
+    for j, letter in enumerate(JOINT_LETTERS):
         row: dict[str, float | None] = {
-            "torque_scale": f,
-            "armature_ratio": effective(fitted, "armature", f) / effective(hidden, "armature", s),
-            "damping_ratio": effective(fitted, "damping", f) / effective(hidden, "damping", s),
-            "true_torque_scale": s,
-            "coulomb_error_nm": effective(fitted, "frictionloss", f)
-            - effective(hidden, "frictionloss", s),
+            "torque_scale": float(fitted.get("torque_scale", [1.0] * N_JOINTS)[j]),
+            "true_torque_scale": float(hidden.get("torque_scale", [1.0] * N_JOINTS)[j]),
+            "armature_ratio": float(armature[j]),
+            "damping_ratio": float(damping[j]),
+            "coulomb_error_nm": float(coulomb[j]),
         }
         for twin, key in (("fitted", "quality_fitted"), ("nominal", "quality_nominal")):
             q = quality.get(key, {}).get(f"validate/{letter}", {}).get("window")

@@ -240,12 +240,15 @@ def identify_arms(
         + (f" ({skipped} already fitted there, skipped)" if skipped else "")
     )
     t0 = time.monotonic()
-    jobs = {j.name: j for j in todo}
+    finished = 0
 
     def keep(result: IdentifyResult) -> None:
+        nonlocal finished
+        finished += 1
         if result.ok:
             assert result.fitted_json is not None
             (out / f"{result.name}.json").write_text(result.fitted_json, encoding="utf-8")
+            (out / f"{result.name}.failed.txt").unlink(missing_ok=True)  # an earlier attempt's
         else:
             (out / f"{result.name}.failed.txt").write_text(
                 "\n".join(result.tail) + "\n", encoding="utf-8"
@@ -254,12 +257,11 @@ def identify_arms(
             (out / f"{result.name}.log.npz").write_bytes(result.log_npz)
         runs[result.name] = run_row(result)
         summary_path.write_text(json.dumps(list(runs.values()), indent=1), encoding="utf-8")
-        n = sum(1 for name in jobs if name in runs)
         elapsed = time.monotonic() - t0
         state = "fitted" if result.ok else f"FAILED ({result.returncode}), see .failed.txt"
         console.print(
-            f"{result.name}: {state} in {result.wall_s:.0f} s; {n}/{len(todo)} done, "
-            f"eta {elapsed / max(n, 1) * (len(todo) - n):.0f} s"
+            f"{result.name}: {state} in {result.wall_s:.0f} s; {finished}/{len(todo)} done, "
+            f"eta {elapsed / finished * (len(todo) - finished):.0f} s"
         )
 
     if todo:
@@ -1156,6 +1158,8 @@ def _plan_of(args: argparse.Namespace) -> Plan:
 
 
 def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list[dict]:
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers must be at least 1, got {args.workers}")
     if args.overshoot_by:
         check_factors(args.overshoot_by)  # a misspelt factor fails before a campaign runs
     if args.from_files:
@@ -1179,8 +1183,6 @@ def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list
                 "--identify runs no controller: identify first, then run --controller "
                 "lambda --twin --twin-from DIR on the same arms"
             )
-        if args.workers is not None and args.workers < 1:
-            raise ValueError(f"--workers must be at least 1, got {args.workers}")
         if args.sim_speed <= 0:
             raise ValueError(f"--sim-speed must be positive, got {args.sim_speed}")
         the_plan = _plan_of(args)
@@ -1203,8 +1205,6 @@ def run(args: argparse.Namespace, argv: Sequence[str], console: Console) -> list
         raise ValueError("give --controller NAME ... (or --from FILE.json to report saved runs)")
     if args.label and len(args.controller) > 1:
         raise ValueError("--label names one controller's results; give one --controller")
-    if args.workers is not None and args.workers < 1:
-        raise ValueError(f"--workers must be at least 1, got {args.workers}")
     if args.draws is not None and args.draws < 1:
         raise ValueError(f"--draws must be at least 1, got {args.draws}")
     if args.max_corners is not None and not args.corners:
