@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import mujoco
@@ -47,6 +47,64 @@ COAST_ARMATURE = 1e6
 """kg m^2: a joint with this armature (`Alpha5Arm.coast`) gains 2e-9 rad/s per N m per 2 ms
 step (the arm's own: 0.003-0.2). Not more: at 1e9 MuJoCo's solve lost precision, and a replay
 of a noise-free log through the true arm came out 0.3 mrad off instead of 4e-9 rad."""
+
+
+@dataclass(frozen=True)
+class _StepConstants:
+    """Per-actuator constants (E D C B A) that `Alpha5Arm.step` needs every call, derived once
+    per setting of the motors: rebuilding them took most of a short call's time (a replay
+    steps a few physics steps per call, tools/bench_sim.py)."""
+
+    motors: tuple[MotorModel, MotorModel]
+    key: tuple[object, ...]
+    limit: FloatArray
+    neg_limit: FloatArray
+    drive: FloatArray  # N m per A at the output, torque scale included
+    torque: FloatArray  # the same for the reported torque (the jaw's without a scale)
+    backemf: FloatArray
+    resistance: FloatArray
+    supply: FloatArray
+    v: float  # the supply the step's regimes use (the arm's motors')
+    limit_f: list[float]
+    drive_f: list[float]
+    backemf_f: list[float]
+    resistance_f: list[float]
+    f_volt: list[float]
+    base: list[float]
+    d_volt: list[float]
+
+    @classmethod
+    def of(
+        cls,
+        motors: tuple[MotorModel, MotorModel],
+        base_damping: FloatArray,
+        key: tuple[object, ...],
+    ) -> _StepConstants:
+        arm, jaw = motors
+        limit = np.concatenate([mm.current_limits_mA for mm in motors])
+        drive = np.concatenate([mm.torque_scale * mm.torque_per_amp for mm in motors])
+        backemf = np.concatenate([mm.backemf_per_speed for mm in motors])
+        resistance = np.concatenate([mm.resistance for mm in motors])
+        v = arm.supply_voltage
+        return cls(
+            motors=motors,
+            key=key,
+            limit=limit,
+            neg_limit=-limit,
+            drive=drive,
+            torque=np.concatenate([arm.torque_scale * arm.torque_per_amp, jaw.torque_per_amp]),
+            backemf=backemf,
+            resistance=resistance,
+            supply=np.array([v] * 4 + [jaw.supply_voltage]),
+            v=v,
+            limit_f=limit.tolist(),
+            drive_f=drive.tolist(),
+            backemf_f=backemf.tolist(),
+            resistance_f=resistance.tolist(),
+            f_volt=(drive * v / resistance).tolist(),
+            base=base_damping.tolist(),
+            d_volt=(base_damping + drive * backemf / resistance).tolist(),
+        )
 
 
 class Alpha5Arm:
@@ -93,6 +151,8 @@ class Alpha5Arm:
         self._params = p
         self.nominal_params = p  # what randomize() perturbs around
         self._command_mA = np.zeros(5)
+        self._step_constants: _StepConstants | None = None
+        self._outputs_pending: tuple[_StepConstants, FloatArray] | None = None
         self._current_mA = np.zeros(5)
         self._tau = np.zeros(5)
         self.set_params(p)
@@ -236,20 +296,19 @@ class Alpha5Arm:
         self._command_mA[:4] = cmd
         self._command_mA[4] = jaw
 
-        # Per-motor constants for this control period (5 actuators: E D C B A).
-        motors = (self.motor, self.jaw_motor)
-        lim = np.concatenate([mm.current_limits_mA for mm in motors])
-        k = np.concatenate([mm.torque_scale * mm.torque_per_amp for mm in motors])
-        ke = np.concatenate([mm.backemf_per_speed for mm in motors])
-        r = np.concatenate([mm.resistance for mm in motors])
-        v = self.motor.supply_voltage
-        amps = np.clip(self._command_mA, -lim, lim) / 1000.0
-        thr_hi = ((v - r * amps) / ke).tolist()  # above this speed the supply limits
-        thr_lo = ((-v - r * amps) / ke).tolist()  # below this speed (reverse drive) too
-        f_cur = (k * amps).tolist()
-        f_volt = (k * v / r).tolist()
-        base = self._base_damping.tolist()
-        d_volt = (self._base_damping + k * ke / r).tolist()
+        c = self._constants()
+        # Five actuators: plain floats (IEEE doubles, the same arithmetic as numpy's) are
+        # faster than arrays at this size.
+        v = c.v
+        amps = [
+            min(max(x, -lim), lim) / 1000.0
+            for x, lim in zip(self._command_mA.tolist(), c.limit_f, strict=True)
+        ]
+        ra = [r * a for r, a in zip(c.resistance_f, amps, strict=True)]
+        thr_hi = [(v - x) / ke for x, ke in zip(ra, c.backemf_f, strict=True)]  # supply limits
+        thr_lo = [(-v - x) / ke for x, ke in zip(ra, c.backemf_f, strict=True)]  # reverse too
+        f_cur = [k * a for k, a in zip(c.drive_f, amps, strict=True)]
+        f_volt, base, d_volt = c.f_volt, c.base, c.d_volt
 
         m, d = self.model, self.data
         qvel, ctrl, damping = self._qvel, self._ctrl, self._damping
@@ -270,17 +329,42 @@ class Alpha5Arm:
                         damping[j] = d_volt[j]
             mj_step(m, d)
         damping[:5] = self._base_damping  # the model between calls is the nominal one
-        self._update_outputs()
+        # The currents and torques are worked out when read (a replay never reads them), from
+        # the speeds and settings at this moment.
+        self._outputs_pending = (c, self.data.qvel[:5].copy())
 
-    def _update_outputs(self) -> None:
+    def _constants(self) -> _StepConstants:
+        """The motors' constants for `step`, rebuilt only when a setting changed (checked by
+        value: the limits and the torque scale may be edited in place)."""
+        motors = (self.motor, self.jaw_motor)
+        key = (*(mm.state_key() for mm in motors), self._base_damping.tobytes())
+        c = self._step_constants
+        if (
+            c is None
+            or c.motors[0] is not motors[0]
+            or c.motors[1] is not motors[1]
+            or c.key != key
+        ):
+            c = self._step_constants = _StepConstants.of(motors, self._base_damping, key)
+        return c
+
+    def _outputs(self) -> None:
+        pending = self._outputs_pending
+        if pending is not None:
+            self._outputs_pending = None
+            self._update_outputs(*pending)
+
+    def _update_outputs(self, c: _StepConstants | None = None, w: FloatArray | None = None) -> None:
         """Current drawn and torque delivered, from the motor model at the final speeds."""
-        w = self.data.qvel
-        self._current_mA[:4] = self.motor.current_mA(self._command_mA[:4], w[:4])
-        self._current_mA[4:] = self.jaw_motor.current_mA(self._command_mA[4:], w[4:5])
-        self._tau[:4] = (
-            self.motor.torque_scale * self.motor.torque_per_amp * self._current_mA[:4] / 1000.0
-        )
-        self._tau[4] = self.jaw_motor.torque_per_amp[0] * self._current_mA[4] / 1000.0
+        self._outputs_pending = None
+        c = self._constants() if c is None else c
+        emf = c.backemf * (self.data.qvel[:5] if w is None else w)
+        hi = np.minimum(c.limit, 1000.0 * (c.supply - emf) / c.resistance)
+        lo = np.maximum(c.neg_limit, 1000.0 * (-c.supply - emf) / c.resistance)
+        # Past the no-load speed lo > hi; the back-EMF bound wins (the motor brakes).
+        current = np.minimum(np.maximum(self._command_mA, lo), hi)
+        self._current_mA[:] = current
+        self._tau[:] = c.torque * current / 1000.0
 
     @staticmethod
     def _vector(values: ArrayLike, name: str) -> FloatArray:
@@ -308,20 +392,24 @@ class Alpha5Arm:
     @property
     def tau(self) -> FloatArray:
         """Torque the motors delivered at the end of the last step (N m), E D C B."""
+        self._outputs()
         return self._tau[:4].copy()
 
     @property
     def current_mA(self) -> FloatArray:
         """Current drawn after the limit and back-EMF clamp (mA), E D C B."""
+        self._outputs()
         return self._current_mA[:4].copy()
 
     @property
     def jaw_current_mA(self) -> float:
+        self._outputs()
         return float(self._current_mA[4])
 
     @property
     def jaw_force(self) -> float:
         """Force the jaw motor delivered along its slide (N)."""
+        self._outputs()
         return float(self._tau[4])
 
     @property

@@ -183,6 +183,11 @@ class MotorModel:
             raise ValueError(f"torque scale must be in [0, 1] per joint, got {array.tolist()}")
         self._scale[:] = array
 
+    def state_key(self) -> tuple[float, bytes, bytes]:
+        """What the run-time settings are now (supply, limits, scale), cheap to compare: a
+        stepper caches constants derived from them, and the arrays may be edited in place."""
+        return (self._supply, self._limits_mA.tobytes(), self._scale.tobytes())
+
     def _checked(self, values: Sequence[float] | ArrayLike, what: str) -> FloatArray:
         array = np.asarray(values, dtype=np.float64)
         if array.shape != (self.count,):

@@ -401,6 +401,29 @@ def test_torque_scale_via_params_and_validation() -> None:
         ArmParams(torque_scale=(1.0, 1.0, 1.0))  # type: ignore[arg-type]
 
 
+def test_step_follows_settings_changed_in_place_and_reports_what_it_stepped() -> None:
+    """`step` caches the motors' constants: an in-place edit of the torque scale or the limits
+    must still take effect at the next step, and currents read after a later change of
+    settings report the ones the step ran with."""
+    arm = Alpha5Arm(zero_g_air())
+    arm.reset(q=[3.0, 1.7, 1.7, 3.0])
+    arm.step([500, 0, 0, 0], n=1)
+    assert arm.tau[0] == pytest.approx(K_EDC * 0.5)
+    arm.torque_scale[0] = 0.25  # in place, not through the setter
+    arm.step([500, 0, 0, 0], n=1)
+    assert arm.tau[0] == pytest.approx(0.25 * K_EDC * 0.5)
+    arm.current_limits_mA[0] = 100.0
+    arm.step([500, 0, 0, 0], n=1)
+    assert arm.current_mA[0] == pytest.approx(100.0)
+    arm.step([500, 0, 0, 0], n=1)
+    arm.current_limits_mA = [600, 600, 600, 300]  # after the step, before the read
+    arm.torque_scale = [1.0, 1.0, 1.0, 1.0]
+    assert arm.current_mA[0] == pytest.approx(100.0)
+    assert arm.tau[0] == pytest.approx(0.25 * K_EDC * 0.1)
+    arm.step([500, 0, 0, 0], n=1)
+    assert arm.tau[0] == pytest.approx(K_EDC * 0.5)
+
+
 def test_current_limit_clamps_drawn_current_and_torque() -> None:
     arm = Alpha5Arm(zero_g_air())
     arm.reset(q=[3.0, 1.7, 1.7, 3.0])
