@@ -59,14 +59,13 @@ class _StepConstants:
     key: tuple[object, ...]
     limit: FloatArray
     neg_limit: FloatArray
-    drive: FloatArray  # N m per A at the output, torque scale included
-    torque: FloatArray  # the same for the reported torque (the jaw's without a scale)
+    torque: FloatArray  # N m per A at the output for the reported torque (the jaw's unscaled)
     backemf: FloatArray
     resistance: FloatArray
     supply: FloatArray
     v: float  # the supply the step's regimes use (the arm's motors')
     limit_f: list[float]
-    drive_f: list[float]
+    drive_f: list[float]  # N m per A at the output, torque scale included
     backemf_f: list[float]
     resistance_f: list[float]
     f_volt: list[float]
@@ -91,7 +90,6 @@ class _StepConstants:
             key=key,
             limit=limit,
             neg_limit=-limit,
-            drive=drive,
             torque=np.concatenate([arm.torque_scale * arm.torque_per_amp, jaw.torque_per_amp]),
             backemf=backemf,
             resistance=resistance,
