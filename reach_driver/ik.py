@@ -3,7 +3,7 @@
 The driver never sends KM_END_POS: it solves for joint angles here and sends them as joint
 POSITION commands through the same gate as any other (limits, faults, the watchdog), so an
 end-effector move is checked exactly like a joint move. The virtual arm solves KM_END_POS
-with the same method (reach_sim_bridge/ik.py); tests/test_driver_xyz.py checks they agree.
+with the same method (reach_sim_bridge/model/ik.py); tests/test_driver_xyz.py checks they agree.
 
 What a 4-joint Alpha 5 can follow: the tool centre point's position uses E, D and C (base
 yaw, shoulder, elbow); B (wrist roll) turns the tool about its own axis and does not move the

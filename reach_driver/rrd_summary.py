@@ -33,7 +33,7 @@ from reach_driver.recording import (
 )
 from reach_driver.state import MONITOR_READINGS
 
-#: `run/metadata`'s "source" in a simulator recording (reach_sim_bridge.recording).
+#: `run/metadata`'s "source" in a simulator recording (reach_sim_bridge.emulator.recording).
 SIM_SOURCE = "reach-sim"
 
 

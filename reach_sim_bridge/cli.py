@@ -15,16 +15,15 @@ from types import FrameType
 from typing import Any
 
 from protocol.alpha5 import SERIAL_BAUD
-from reach_sim_bridge.faults import (
+from reach_sim_bridge.emulator.faults import FaultConfig, torque_scales
+from reach_sim_bridge.emulator.server import TURNAROUND_BYTES, SimConfig, SimServer, serve_forever
+from reach_sim_bridge.emulator.udp import DEFAULT_UDP_HOST, DEFAULT_UDP_PORT, parse_udp_address
+from reach_sim_bridge.model.params import ArmParams, load_arm_params
+from reach_sim_bridge.model.sensors import (
     DEFAULT_POSITION_NOISE,
     DEFAULT_VELOCITY_NOISE,
-    FaultConfig,
     SensorNoise,
-    torque_scales,
 )
-from reach_sim_bridge.params import ArmParams, load_arm_params
-from reach_sim_bridge.server import TURNAROUND_BYTES, SimConfig, SimServer, serve_forever
-from reach_sim_bridge.udp import DEFAULT_UDP_HOST, DEFAULT_UDP_PORT, parse_udp_address
 
 DESCRIPTION = """\
 Serve a simulated Reach Alpha 5 (MuJoCo physics + emulated joint firmware) speaking the
@@ -127,7 +126,7 @@ class _ViewerAction(argparse.Action):
         values: Any,
         option_string: str | None = None,
     ) -> None:
-        from reach_sim_bridge.recording import parse_viewer
+        from reach_sim_bridge.emulator.recording import parse_viewer
 
         try:
             spec = parse_viewer(list(values))
@@ -372,7 +371,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.stats_interval is None:  # quiet unless asked: a server runs for hours
         args.stats_interval = 10.0 if args.verbose else 0.0
     if args.stats_interval > 0.0:
-        logging.getLogger("reach_sim_bridge.server").setLevel(min(level, logging.INFO))
+        logging.getLogger("reach_sim_bridge.emulator.server").setLevel(min(level, logging.INFO))
     try:
         config = config_from_args(args)
         server = SimServer(config)
@@ -394,7 +393,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     recorder = None
     viewer = getattr(args, "viewer", None)
     if args.record is not None or viewer is not None:
-        from reach_sim_bridge.recording import SimRecorder
+        from reach_sim_bridge.emulator.recording import SimRecorder
 
         recorder = SimRecorder(
             server,
@@ -425,7 +424,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.record is not None:
                 print(f"recording {args.record} ({recorder.samples} samples)")
         s = server.stats()
-        logging.getLogger("reach_sim_bridge.server").info(
+        logging.getLogger("reach_sim_bridge.emulator.server").info(
             "stopped at t=%.1f s: frames in %d out %d, bad %s, errors %s",
             s.sim_time,
             s.frames_in,

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import pytest
 
 if TYPE_CHECKING:
-    from reach_sim_bridge.server import SimServer
+    from reach_sim_bridge.emulator.server import SimServer
 
 
 @pytest.fixture
@@ -20,7 +20,7 @@ def sim(tmp_path: Path) -> Iterator[SimServer]:
     """The virtual arm at 4x real time behind a pty linked at `tmp_path / "arm"`; its loop
     must not have failed by the end of the test. (Imported here, not at the top: the codec's
     tests need no simulator.)"""
-    from reach_sim_bridge.server import SimConfig, SimServer
+    from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
     server = SimServer(SimConfig(speed=4.0, link=str(tmp_path / "arm")))
     server.start()

@@ -15,8 +15,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from reach_sim_bridge.arm import MODEL_PATH, Alpha5Arm, ArmParams
-from reach_sim_bridge.motor import MotorModel, MotorParams, no_load_speed
+from reach_sim_bridge.model.arm import MODEL_PATH, Alpha5Arm, ArmParams
+from reach_sim_bridge.model.motor import MotorModel, MotorParams, no_load_speed
 
 G = 9.81
 V = 24.0

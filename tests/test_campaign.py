@@ -1,5 +1,5 @@
-"""Campaigns on Ray (policy/campaign.py, tools/evaluate.py --workers): the serial run's results,
-episode for episode, and a clear message when Ray is not installed."""
+"""Campaigns on Ray (policy/campaigns/parallel.py, tools/evaluate.py --workers): the serial run's
+results, episode for episode, and a clear message when Ray is not installed."""
 
 from __future__ import annotations
 
@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from policy import campaign
-from policy.evaluation import RunConfig, evaluate, load_controller, random_episodes
-from reach_sim_bridge.faults import SensorNoise
+from policy.campaigns import parallel as campaign
+from policy.campaigns.evaluation import RunConfig, evaluate, load_controller, random_episodes
+from reach_sim_bridge.model.sensors import SensorNoise
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = 31
@@ -93,7 +93,7 @@ def test_workers_with_via_driver_or_below_one_are_refused(tmp_path: Path, capsys
 
 
 def test_the_stability_screen_on_ray_gives_the_serial_metrics(ray_local: Any) -> None:
-    from policy.selection import screen
+    from policy.campaigns.selection import screen
 
     shipped = ROOT / "policy" / "weights" / "ddpg_actor.npz"
     serial = screen(shipped, 2, seed=3, perturb=0.2)

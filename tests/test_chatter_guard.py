@@ -16,15 +16,15 @@ import numpy as np
 import pytest
 from conftest import wait_until
 
-from policy.evaluation import evaluate
-from policy.rollout import NoisyReadings, RunConfig, random_episodes
-from policy.scenarios import SCENARIOS
+from policy.campaigns.evaluation import evaluate
+from policy.tasks.episodes import NoisyReadings, RunConfig, random_episodes
+from policy.tasks.scenarios import SCENARIOS
 from protocol import Mode
 from reach_driver import ArmClient, ControlLoop, SafetyConfig, open_transport
 from reach_driver.chatter import ChatterConfig, ChatterDetector, HoldMode, Verdict
 from reach_driver.controllers import ControlState, load_controller
-from reach_sim_bridge.faults import SensorNoise
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
+from reach_sim_bridge.model.sensors import SensorNoise
 
 LIMITS = np.array([600.0, 600.0, 600.0, 300.0])
 JOINT_IDS = (5, 4, 3, 2)  # E D C B
@@ -318,7 +318,7 @@ def test_the_shipped_ddpg_comes_to_rest_on_the_arm_where_its_actor_chatters() ->
 
 
 def run_on_the_bad_arm(tmp_path: Path, name: str, seconds: float = 8.0, **params: Any) -> Any:
-    """The same episode through the driver (the served arm set up as policy/via_driver.py
+    """The same episode through the driver (the served arm set up as policy/campaigns/via_driver.py
     does), with the guard on."""
     episode = bad_episode()
     seed = BAD_SEED + BAD_EPISODE

@@ -14,7 +14,7 @@ from conftest import wait_until
 
 from protocol import Mode
 from reach_driver.cli import Exit, main
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 
 @pytest.fixture

@@ -22,7 +22,7 @@ from reach_driver.cli import Exit, main
 from reach_driver.cli.parser import build_parser
 from reach_driver.metrics import ALL_METRIC_KEYS, METRIC_KEYS
 from reach_driver.records import StepRecord
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 ROOT = Path(__file__).resolve().parents[1]
 SPEED = 4.0

@@ -17,14 +17,14 @@ import numpy as np
 import pytest
 from conftest import wait_until
 
-from policy.evaluation import Episode, RunConfig, run_episode
-from policy.scenarios import SCENARIOS
-from policy.via_driver import (
+from policy.campaigns.evaluation import Episode, RunConfig, run_episode
+from policy.campaigns.via_driver import (
     AGREEMENT,
     DriverConfig,
     run_episode_via_driver,
     tick_origin,
 )
+from policy.tasks.scenarios import SCENARIOS
 from protocol import HardwareStatus, Mode, Packet, PacketID
 from protocol.payload import pack_floats
 from reach_driver import ArmClient, ControlLoop, SafetyConfig, open_transport
@@ -33,7 +33,7 @@ from reach_driver.cli import Exit, main
 from reach_driver.control import control_period
 from reach_driver.controllers import load_controller
 from reach_driver.rrd_summary import summarize_recording
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 ROOT = Path(__file__).resolve().parents[1]
 JOINT_IDS = (5, 4, 3, 2)  # E D C B
@@ -147,9 +147,9 @@ def test_tick_origin_is_found_from_exact_float32_matches() -> None:
 
 
 def test_driver_side_noise_is_the_direct_runners_realisation() -> None:
-    from policy.rollout import NoisyReadings
+    from policy.tasks.episodes import NoisyReadings
     from reach_driver.controllers import ControlState
-    from reach_sim_bridge.faults import SensorNoise
+    from reach_sim_bridge.model.sensors import SensorNoise
 
     class Seen:
         def __init__(self) -> None:
@@ -175,7 +175,7 @@ def test_driver_side_noise_is_the_direct_runners_realisation() -> None:
 
 
 def test_the_served_arm_gets_the_episodes_start_torque_scale_and_parameter_draw() -> None:
-    from reach_sim_bridge.arm import Alpha5Arm
+    from reach_sim_bridge.model.arm import Alpha5Arm
 
     episode = Episode(
         start=np.array([3.0, 1.6, 1.6, 3.0]),

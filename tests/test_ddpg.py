@@ -12,22 +12,17 @@ import numpy as np
 import pytest
 import torch
 
-from policy.batched import evaluate_batched as evaluate
-from policy.ddpg_config import DDPGConfig
-from policy.ddpg_controller import make_controller
-from policy.env import EnvConfig, ReachAlphaEnv
-from policy.expert import PDExpert
-from policy.exploration import OUNoise
-from policy.networks import Actor
-from policy.replay import ReplayBuffer
-from policy.trainer import Trainer, make_expert
-from policy.weights import (
-    DEFAULT_WEIGHTS,
-    ActorWeights,
-    actor_arrays,
-    load_actor_npz,
-    save_actor_npz,
-)
+from policy.controllers.ddpg import make_controller
+from policy.controllers.weights import DEFAULT_WEIGHTS, ActorWeights
+from policy.rl.batched import evaluate_batched as evaluate
+from policy.rl.checkpoint import actor_arrays, load_actor_npz, save_actor_npz
+from policy.rl.config import DDPGConfig
+from policy.rl.env import EnvConfig, ReachAlphaEnv
+from policy.rl.expert import PDExpert
+from policy.rl.exploration import OUNoise
+from policy.rl.networks import Actor
+from policy.rl.replay import ReplayBuffer
+from policy.rl.trainer import Trainer, make_expert
 from reach_driver.controllers import ControlState
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -78,8 +73,8 @@ def test_numpy_forward_equals_torch_actor(tmp_path: Path) -> None:
 
 
 def test_saved_weights_round_trip_bit_for_bit(tmp_path: Path) -> None:
-    """policy.weights is the one owner of the format: what training saves, the controller
-    and the trainer's `init_actor` load exactly."""
+    """policy.controllers.weights is the one owner of the format: what training saves, the
+    controller and the trainer's `init_actor` load exactly."""
     torch.manual_seed(5)
     cfg = DDPGConfig.ours()
     actor = Actor(cfg.env.observation.size, 4, cfg.hidden)
@@ -374,8 +369,8 @@ def test_score_counts_energy_only_when_asked() -> None:
 
 
 def test_a_wider_training_workspace_keeps_the_evaluation_episodes(tmp_path: Path) -> None:
-    from policy.batched import eval_envs
-    from policy.observation import WORKSPACE_HIGH
+    from policy.controllers.observation import WORKSPACE_HIGH
+    from policy.rl.batched import eval_envs
 
     wide_env = EnvConfig(episode_s=1.0, workspace_high=(5.8, 2.9, 2.9, 5.8))
     narrow = eval_envs(wide_env, 2)
@@ -393,7 +388,7 @@ def test_a_wider_training_workspace_keeps_the_evaluation_episodes(tmp_path: Path
 
 
 def test_reference_integral_shifts_the_shown_target_near_the_goal_only() -> None:
-    from policy.ddpg_controller import ReferenceIntegral, make_pure_controller
+    from policy.controllers.ddpg import ReferenceIntegral, make_pure_controller
 
     ctrl = make_controller()  # shipped: actor + reference integral (gain 1/s, band 0.02 rad)
     assert ctrl.integral == ReferenceIntegral()
@@ -426,9 +421,9 @@ def test_reference_integral_shifts_the_shown_target_near_the_goal_only() -> None
 
 
 def test_reference_integral_removes_the_steady_error_friction_leaves() -> None:
-    from policy.ddpg_controller import make_pure_controller
-    from policy.evaluation import RunConfig, evaluate, random_episodes
-    from reach_sim_bridge.faults import SensorNoise
+    from policy.campaigns.evaluation import RunConfig, evaluate, random_episodes
+    from policy.controllers.ddpg import make_pure_controller
+    from reach_sim_bridge.model.sensors import SensorNoise
 
     episodes = random_episodes(3, seed=7)
     config = RunConfig(noise=SensorNoise(), seed=7, param_spread=0.2)
@@ -443,7 +438,7 @@ def test_reference_integral_removes_the_steady_error_friction_leaves() -> None:
 def test_robust_preset_screens_envelope_arms_and_masks_bc_on_latent_ones(tmp_path: Path) -> None:
     cfg = DDPGConfig.robust()
     assert cfg.env.envelope_fraction == 0.5 and cfg.env.reward.sign_flip_weight > 0
-    assert cfg.init_actor == "policy/weights/ddpg_actor.npz"
+    assert cfg.init_actor == "policy/controllers/weights/ddpg_actor.npz"
     assert DDPGConfig.from_dict(cfg.to_dict()) == cfg
     small = tiny(
         cfg,
@@ -475,7 +470,7 @@ def test_robust_preset_screens_envelope_arms_and_masks_bc_on_latent_ones(tmp_pat
 
 
 def test_bc_ignores_unlabelled_rows() -> None:
-    from policy.agent import Agent
+    from policy.rl.agent import Agent
 
     cfg = dataclasses.replace(DDPGConfig.ours(), policy_delay=1, batch_size=4)
     rng = np.random.default_rng(0)
@@ -500,8 +495,8 @@ def test_bc_ignores_unlabelled_rows() -> None:
 
 
 def test_envelope_evaluation_runs_the_shipped_controller_on_envelope_arms() -> None:
-    from policy.envelope import draws
-    from policy.selection import envelope_results, envelope_summary
+    from policy.campaigns.selection import envelope_results, envelope_summary
+    from policy.tasks.envelope import draws
 
     results = envelope_results(make_controller(), 2, seed=1, episode_seed=5)
     assert [v.name for v, _ in results] == [v.name for v in draws(2, 1).variants]

@@ -21,7 +21,7 @@ import pytest
 
 from reach_driver.cli import Exit, main
 from reach_driver.cli.parser import build_parser
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ("README.md", "docs/hil.md")

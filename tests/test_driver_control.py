@@ -9,7 +9,7 @@ from conftest import wait_until
 
 from protocol import Mode
 from reach_driver import ArmClient, ControlLoop, ControlState, Pacing, StepRecord, open_transport
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 SPEED = 4.0
 
@@ -162,7 +162,7 @@ def test_bad_arguments_are_refused_before_anything_is_sent(arm_and_sim) -> None:
 
 @pytest.mark.slow
 def test_arm_time_pacing_gives_the_same_run_at_any_simulator_speed() -> None:
-    from policy.pid import make_controller
+    from policy.controllers.pid import make_controller
 
     finals, sim_seconds = [], []
     for speed in (2.0, 6.0):

@@ -23,10 +23,10 @@ from reach_driver.faults import (
     blocking_flags,
     status_bytes,
 )
-from reach_sim_bridge.faults import Leak
-from reach_sim_bridge.firmware import FirmwareConfig
-from reach_sim_bridge.monitor import MONITOR_FLAGS, MonitorConfig
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.faults import Leak
+from reach_sim_bridge.emulator.firmware import FirmwareConfig
+from reach_sim_bridge.emulator.monitor import MONITOR_FLAGS, MonitorConfig
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 SPEED = 4.0
 NAMED = [f for f in HardwareStatus if f.value and f.name]

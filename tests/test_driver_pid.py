@@ -1,12 +1,12 @@
-"""The PID baseline (policy/pid.py): its rules on a toy plant, its entry point, and reaching
-targets on the virtual arm in current mode without large overshoot."""
+"""The PID baseline (policy/controllers/pid.py): its rules on a toy plant, its entry point, and
+reaching targets on the virtual arm in current mode without large overshoot."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from policy.pid import PIDController, PIDGains, make_controller
+from policy.controllers.pid import PIDController, PIDGains, make_controller
 from reach_driver import (
     ArmClient,
     ControlLoop,
@@ -16,7 +16,7 @@ from reach_driver import (
     load_controller,
     open_transport,
 )
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 LIMITS = np.array([600.0, 600.0, 600.0, 300.0])
 

@@ -28,8 +28,8 @@ from reach_driver import (
     open_transport,
 )
 from reach_driver.cli import Exit, main
-from reach_sim_bridge.faults import FaultConfig
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.faults import FaultConfig
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 SPEED = 4.0
 ROOT = Path(__file__).resolve().parents[1]

@@ -34,8 +34,8 @@ from reach_driver import errors as driver_errors
 from reach_driver.link import ClientStats
 from reach_driver.requests import Requester, Waiters
 from reach_driver.watchdog import Watchdog
-from reach_sim_bridge.firmware import ALPHA5_DEVICES, FirmwareConfig
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.firmware import ALPHA5_DEVICES, FirmwareConfig
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 E, D, C, B, A = DeviceID.E, DeviceID.D, DeviceID.C, DeviceID.B, DeviceID.A
 BROADCAST = DeviceID.BROADCAST

@@ -23,9 +23,9 @@ from reach_driver.ik import (
     solve_position,
 )
 from reach_driver.kinematics import tool_position
-from reach_sim_bridge import ik as sim_ik
-from reach_sim_bridge.arm import Alpha5Arm
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
+from reach_sim_bridge.model import ik as sim_ik
+from reach_sim_bridge.model.arm import Alpha5Arm
 
 SPEED = 8.0
 LIMITS = factory_limits()

@@ -10,7 +10,14 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from policy.env import (
+from policy.controllers.observation import (
+    WORKSPACE_HIGH,
+    WORKSPACE_LOW,
+    ObservationConfig,
+    build_observation,
+    observation_bounds,
+)
+from policy.rl.env import (
     ENV_ID,
     NO_LOAD_SPEEDS,
     REWARD_TERMS,
@@ -22,18 +29,11 @@ from policy.env import (
     reward_terms,
     time_limited,
 )
-from policy.expert import PDExpert
-from policy.observation import (
-    WORKSPACE_HIGH,
-    WORKSPACE_LOW,
-    ObservationConfig,
-    build_observation,
-    observation_bounds,
-)
+from policy.rl.expert import PDExpert
 from reach_driver.controllers import ControlState
 
 if TYPE_CHECKING:
-    from reach_sim_bridge.arm import Alpha5Arm
+    from reach_sim_bridge.model.arm import Alpha5Arm
 
 OURS_OBS = ObservationConfig()
 SHAPED = RewardConfig(
@@ -65,7 +65,7 @@ def test_registered_and_makeable() -> None:
     env = gym.make(ENV_ID)
     obs, _ = env.reset(seed=1)
     assert obs.shape == (12,)
-    env2 = gym.make("policy.env:ReachAlpha-v0", config=EnvConfig(observation=OURS_OBS))
+    env2 = gym.make("policy.rl.env:ReachAlpha-v0", config=EnvConfig(observation=OURS_OBS))
     assert env2.reset(seed=1)[0].shape == (20,)
 
 
@@ -282,10 +282,10 @@ def test_observation_features_and_bounds() -> None:
 def test_controller_sees_the_same_observation_as_the_env(tmp_path) -> None:  # type: ignore[no-untyped-def]
     import torch
 
-    from policy.ddpg_config import DDPGConfig
-    from policy.ddpg_controller import make_controller
-    from policy.networks import Actor
-    from policy.weights import save_actor_npz
+    from policy.controllers.ddpg import make_controller
+    from policy.rl.checkpoint import save_actor_npz
+    from policy.rl.config import DDPGConfig
+    from policy.rl.networks import Actor
 
     config = DDPGConfig.ours()
     actor = Actor(OURS_OBS.size, 4, (16, 8))
@@ -349,7 +349,7 @@ def test_latency_delays_each_action_as_the_direct_backend_does() -> None:
     )
 
     def arm_factory(config: EnvConfig) -> Alpha5Arm:
-        from reach_sim_bridge.arm import Alpha5Arm
+        from reach_sim_bridge.model.arm import Alpha5Arm
 
         return Alpha5Arm(dt=config.physics_dt, params=frictionless)
 
@@ -367,9 +367,9 @@ def test_latency_delays_each_action_as_the_direct_backend_does() -> None:
             if env.arm.q[0] - q0[0] > 1e-4 and name not in moved:
                 moved[name] = k
     assert moved == {"0": 1, "2": 3}
-    # a half-period latency: the command switches mid-period, same trace as policy.direct
-    from policy.direct import DirectArm
-    from policy.rollout import Episode, RunConfig
+    # a half-period latency: the command switches mid-period, same trace as policy.campaigns.direct
+    from policy.campaigns.direct import DirectArm
+    from policy.tasks.episodes import Episode, RunConfig
 
     class Replay:
         def __init__(self, actions: np.ndarray, limits: np.ndarray) -> None:

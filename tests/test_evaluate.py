@@ -12,8 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from policy import scenarios
-from policy.evaluation import (
+from policy.campaigns.evaluation import (
     Episode,
     RunConfig,
     evaluate,
@@ -22,11 +21,12 @@ from policy.evaluation import (
     random_episodes,
     run_episode,
 )
-from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
+from policy.controllers.observation import WORKSPACE_HIGH, WORKSPACE_LOW
+from policy.tasks import scenarios
 from reach_driver.errors import DriverError
 from reach_driver.metrics import ALL_METRIC_KEYS
-from reach_sim_bridge.arm import Alpha5Arm
-from reach_sim_bridge.faults import SensorNoise
+from reach_sim_bridge.model.arm import Alpha5Arm
+from reach_sim_bridge.model.sensors import SensorNoise
 
 ROOT = Path(__file__).resolve().parents[1]
 START = np.array([3.0, 1.5, 1.5, 1.5])
@@ -342,9 +342,9 @@ def test_paper_counts_ddpg_wins_over_mpc_across_seeds() -> None:
 
 def _select() -> ModuleType:
     """The selection rule tools/select_weights.py runs."""
-    import policy.selection
+    import policy.campaigns.selection
 
-    return policy.selection
+    return policy.campaigns.selection
 
 
 def test_select_weights_rule_reaches_first_then_counts_wins() -> None:

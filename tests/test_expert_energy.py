@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from policy.env import NO_LOAD_SPEEDS, EnvConfig, ReachAlphaEnv
-from policy.expert import PDExpert
+from policy.rl.env import NO_LOAD_SPEEDS, EnvConfig, ReachAlphaEnv
+from policy.rl.expert import PDExpert
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import tune_expert  # noqa: E402

@@ -18,9 +18,7 @@ import pytest
 
 from protocol.alpha5 import JOINT_LETTERS
 from reach_driver.controllers import ControlState
-from reach_sim_bridge.arm import Alpha5Arm
-from reach_sim_bridge.params import ArmParams, load_arm_params, save_arm_params
-from reach_sim_bridge.sysid import (
+from reach_sim_bridge.fit.sysid import (
     DELAY,
     FRICTION_FLOOR,
     MAX_LOG_STEP,
@@ -40,6 +38,8 @@ from reach_sim_bridge.sysid import (
     tune_offsets,
     wrist_weight,
 )
+from reach_sim_bridge.model.arm import Alpha5Arm
+from reach_sim_bridge.model.params import ArmParams, load_arm_params, save_arm_params
 
 ROOT = Path(__file__).resolve().parents[1]
 PERIOD = 0.02
@@ -399,7 +399,7 @@ def _twin_gap() -> ModuleType:
 
 def test_twin_gap_pairs_the_same_episodes_on_three_arms() -> None:
     """The arm against itself: no gap; against the nominal twin: some. Same episodes."""
-    from policy.evaluation import RunConfig, random_episodes
+    from policy.campaigns.evaluation import RunConfig, random_episodes
 
     gap = _twin_gap()
     hidden = ArmParams().randomized(11)
@@ -419,7 +419,7 @@ def test_the_fitted_twin_predicts_controller_metrics() -> None:
     """The issue's target for the gap a twin closes: pid and ddpg on the fitted twin spend
     within 5 % of the energy they spend on the hidden arm and settle within 0.1 s of it, on
     every episode, and closer than on the nominal twin (measured: docs/identification.md)."""
-    from policy.evaluation import RunConfig, random_episodes
+    from policy.campaigns.evaluation import RunConfig, random_episodes
 
     gap = _twin_gap()
     hidden = ArmParams().randomized(11)

@@ -12,7 +12,7 @@ import pytest
 
 from protocol.alpha5 import FACTORY_POSITION_LIMITS, JOINTS
 from reach_driver.kinematics import link_poses, tool_jacobian, tool_position
-from reach_sim_bridge.arm import Alpha5Arm
+from reach_sim_bridge.model.arm import Alpha5Arm
 
 LINKS = ("m2_1_1", "m2", "m2_1_3", "m1")
 

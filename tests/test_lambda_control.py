@@ -15,15 +15,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from policy.ddpg_controller import make_controller as make_ddpg
-from policy.direct import DirectArm
-from policy.envelope import corners
-from policy.lambda_control import LambdaConfig, LambdaController, make_controller
-from policy.rollout import Episode, EpisodeResult, RunConfig
+from policy.campaigns.direct import DirectArm
+from policy.controllers.ddpg import make_controller as make_ddpg
+from policy.controllers.lambda_control import LambdaConfig, LambdaController, make_controller
+from policy.tasks.envelope import corners
+from policy.tasks.episodes import Episode, EpisodeResult, RunConfig
 from reach_driver.controllers import ControlState, load_controller
-from reach_sim_bridge.arm import Alpha5Arm
-from reach_sim_bridge.faults import SensorNoise
-from reach_sim_bridge.params import ArmParams
+from reach_sim_bridge.model.arm import Alpha5Arm
+from reach_sim_bridge.model.params import ArmParams
+from reach_sim_bridge.model.sensors import SensorNoise
 
 T = 0.05
 ROOT = Path(__file__).resolve().parents[1]

@@ -27,7 +27,7 @@ from conftest import wait_until
 from reach_driver.cli import Exit, main
 from reach_driver.recording import RunRecorder, StepSample, ViewerSpec, parse_viewer
 from reach_driver.rrd_summary import read_recording
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 RERUN = os.path.join(os.path.dirname(rerun_cli.__file__), "rerun")  # the binary, not a wrapper
 DT = 0.05
@@ -348,7 +348,7 @@ def test_move_streams_the_arm_and_its_target_to_a_viewer(sim, receiver, capsys) 
 
 
 def test_the_simulator_reads_viewer_words_as_the_driver_does() -> None:
-    from reach_sim_bridge import recording as sim_recording
+    from reach_sim_bridge.emulator import recording as sim_recording
 
     for words in (["spawn"], ["connect"], ["connect", "9000"], ["serve", "9100", "9101"]):
         driver, sim_spec = parse_viewer(words), sim_recording.parse_viewer(words)
@@ -363,8 +363,8 @@ def test_the_simulator_reads_viewer_words_as_the_driver_does() -> None:
 
 
 def test_sim_recorder_streams_its_samples_and_still_writes_the_file(tmp_path, receiver) -> None:
-    from reach_sim_bridge.recording import SimRecorder
-    from reach_sim_bridge.recording import parse_viewer as sim_viewer
+    from reach_sim_bridge.emulator.recording import SimRecorder
+    from reach_sim_bridge.emulator.recording import parse_viewer as sim_viewer
 
     port, received, proc = receiver
     path = tmp_path / "sim.rrd"

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from policy.evaluation import DirectArm, Episode, RunConfig, evaluate, run_episode
-from policy.mpc import MPCConfig, MPCController, make_controller, zoh_coefficients
+from policy.campaigns.evaluation import DirectArm, Episode, RunConfig, evaluate, run_episode
+from policy.controllers.mpc import MPCConfig, MPCController, make_controller, zoh_coefficients
 from reach_driver.controllers import ControlState
-from reach_sim_bridge.arm import Alpha5Arm, ArmParams
-from reach_sim_bridge.motor import MotorModel
+from reach_sim_bridge.model.arm import Alpha5Arm, ArmParams
+from reach_sim_bridge.model.motor import MotorModel
 
 
 @pytest.fixture(scope="module")

@@ -13,15 +13,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-from policy.evaluation import Episode, RunConfig, run_episode
+from policy.campaigns.evaluation import Episode, RunConfig, run_episode
 from reach_sim_bridge.cli import build_parser, config_from_args, main
-from reach_sim_bridge.params import (
+from reach_sim_bridge.emulator.server import SimServer
+from reach_sim_bridge.model.params import (
     ArmParams,
     ParamsFileError,
     load_arm_params,
     save_arm_params,
 )
-from reach_sim_bridge.server import SimServer
 
 ROOT = Path(__file__).resolve().parents[1]
 

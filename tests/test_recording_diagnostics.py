@@ -16,8 +16,8 @@ from reach_driver.cli import Exit, main
 from reach_driver.recording import DIAGNOSTIC_LETTERS, RunRecorder
 from reach_driver.rrd_summary import STATUS_KEY, read_recording, summarize_recording
 from reach_driver.state import MONITOR_READINGS, JointState, Reading
-from reach_sim_bridge.faults import Leak
-from reach_sim_bridge.server import SimServer
+from reach_sim_bridge.emulator.faults import Leak
+from reach_sim_bridge.emulator.server import SimServer
 
 KEYS = [m.key for m in MONITOR_READINGS]
 

@@ -18,7 +18,7 @@ import pytest
 from reach_driver import recording
 from reach_driver.cli import Exit, main
 from reach_driver.rrd_summary import read_recording
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -25,7 +25,7 @@ from reach_driver.recording import (
     StepSample,
 )
 from reach_driver.rrd_summary import read_blueprint, read_recording
-from reach_sim_bridge.arm import MODEL_PATH, Alpha5Arm
+from reach_sim_bridge.model.arm import MODEL_PATH, Alpha5Arm
 
 ROOT = Path(__file__).resolve().parents[1]
 DT = 0.05

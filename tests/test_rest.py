@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from policy.direct import DirectArm
-from policy.evaluation import RunConfig, load_controller, random_episodes
+from policy.campaigns.direct import DirectArm
+from policy.campaigns.evaluation import RunConfig, load_controller, random_episodes
 from protocol.alpha5 import TORQUE_PER_AMP_NM
 from reach_driver.metrics import (
     REST_ENERGY_AFTER_SETTLING_MAX_J,
@@ -27,7 +27,7 @@ from reach_driver.metrics import (
     rest_window,
     settling_time,
 )
-from reach_sim_bridge.faults import SensorNoise
+from reach_sim_bridge.model.sensors import SensorNoise
 
 DT = 0.05
 N = 400  # 20 s at 20 Hz
@@ -209,7 +209,7 @@ def test_the_degraded_arm_ddpg_chatter_is_flagged_and_its_neighbours_are_not() -
 def test_a_real_burst_on_the_stability_screen_is_flagged() -> None:
     """Screen seed 12 (tools/select_weights.py's), episode 43: C bang-bangs for about 0.8 s
     after settling and stops; episode 44 settles cleanly."""
-    from policy.selection import _screen, _shipped
+    from policy.campaigns.selection import _screen, _shipped
 
     shipped = Path(__file__).resolve().parents[1] / "policy" / "weights" / "ddpg_actor.npz"
     burst, clean = (r.metrics for r in _screen(shipped, [43, 44], 12, 0.2, _shipped))

@@ -1,4 +1,4 @@
-"""tools/robustness.py: controllers over the uncertainty envelope (policy/envelope.py).
+"""tools/robustness.py: controllers over the uncertainty envelope (policy/tasks/envelope.py).
 
 Infeasible corners are left out and counted, each arm's episode depends on its own seed only,
 serial and Ray runs agree episode for episode, the summary's intervals hold their means, and
@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from policy.envelope import corners
-from reach_sim_bridge.params import ArmParams
+from policy.tasks.envelope import corners
+from reach_sim_bridge.model.params import ArmParams
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = 3
@@ -78,7 +78,7 @@ def test_an_arms_episode_and_noise_depend_on_its_own_seed(corner_selection: Any)
 def test_twin_jobs_give_each_arm_its_own_parameters_and_latency(corner_selection: Any) -> None:
     """`--twin`: each arm's controller is told that arm (weak joint and latency included), as
     an identification would; `--twin-error` perturbs it reproducibly, within its bounds."""
-    from reach_sim_bridge.params import ArmParams
+    from reach_sim_bridge.model.params import ArmParams
 
     p = rb.plan(SEED, True, 2, max_corners=3, corner_selection=corner_selection)
     jobs = rb.make_jobs("lambda", {"lambda_factor": 4.0}, p.arms, SEED, SECONDS, twin_error=0.0)
@@ -120,7 +120,7 @@ def test_exported_arms_are_the_hidden_arms_and_fitted_twins_replace_them(
     """`--export-arms` writes each planned arm (weak joint's torque scale, noise, latency) as a
     reach-sim parameter file; `--twin-from` gives the controller the fit found beside it and
     runs only the arms that have one."""
-    from reach_sim_bridge.params import load_arm_params, save_arm_params
+    from reach_sim_bridge.model.params import load_arm_params, save_arm_params
 
     argv = ["--draws", "3", "--seed", str(SEED)]
     assert rb.main([*argv, "--export-arms", str(tmp_path / "arms")]) == 0
@@ -379,7 +379,7 @@ def test_params_move_the_whole_envelope_and_are_recorded(
     """`--params FILE.json` is the arm the envelope spreads around (here friction that holds):
     every arm carries it, the results record what differs from the nominal arm, and a bad file
     is a clear error."""
-    from reach_sim_bridge.params import ArmParams
+    from reach_sim_bridge.model.params import ArmParams
 
     holds = ArmParams(friction_holds=True)
     p = rb.plan(SEED, False, 3, base=holds)
@@ -400,7 +400,7 @@ def test_params_move_the_whole_envelope_and_are_recorded(
 def test_a_fit_is_scored_against_the_arm_its_currents_show() -> None:
     """A drive at torque scale s looks, from its currents, like an arm with armature, damping
     and Coulomb friction divided by s: a fit that finds that is exact, not 4x off."""
-    from policy.identify_campaign import fit_errors
+    from policy.campaigns.identify import fit_errors
 
     hidden = ArmParams(torque_scale=(1.0, 0.25, 1.0, 1.0)).to_json_dict()
     fitted = dict(hidden, torque_scale=[1.0] * 4)  # the weak drive found as a heavier joint
@@ -435,7 +435,7 @@ def test_an_identification_campaign_fits_its_arms_through_the_driver_and_resumes
     with tools/identify.py through the driver (here one draw, its wrist B only, quarter-length
     segments): the fit in DIR predicts B's validation motions better than the nominal twin,
     a second run skips the fitted arm, and `--twin-from DIR` runs `lambda` on the fit."""
-    from reach_sim_bridge.params import load_arm_params
+    from reach_sim_bridge.model.params import load_arm_params
 
     fits = tmp_path / "fits"
     quick = "--max-current 600 --watchdog 1.0 --joints B --scale 0.25 --iterations 4"
@@ -471,7 +471,7 @@ def test_an_identification_campaign_runs_no_controller(
 def test_an_arm_the_simulator_refuses_is_reported_not_raised() -> None:
     """One bad arm file must not stop a campaign of hundreds: the job comes back failed,
     with reach-sim's own error in its tail."""
-    from policy.identify_campaign import SIM_FAILED, IdentifyJob, run_identify_job
+    from policy.campaigns.identify import SIM_FAILED, IdentifyJob, run_identify_job
 
     result = run_identify_job(IdentifyJob("bad", '{"armature": [0.1]}', (0.002, 0.02)))
     assert not result.ok and result.returncode == SIM_FAILED

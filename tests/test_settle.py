@@ -1,5 +1,5 @@
-"""The settle supervisor around the DDPG actor (policy/settle.py): it stops a limit cycle the
-plain actor keeps up on a latent arm, and leaves a nominal episode to the actor."""
+"""The settle supervisor around the DDPG actor (policy/controllers/settle.py): it stops a limit
+cycle the plain actor keeps up on a latent arm, and leaves a nominal episode to the actor."""
 
 from __future__ import annotations
 
@@ -8,16 +8,16 @@ from collections.abc import Mapping
 import numpy as np
 import pytest
 
-from policy.ddpg_controller import make_controller
-from policy.direct import DirectArm
-from policy.envelope import corners, draws
-from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
-from policy.rollout import Episode, RunConfig
-from policy.settle import SettleSupervisor
-from policy.settle_law import SettleLaw
+from policy.campaigns.direct import DirectArm
+from policy.controllers.ddpg import make_controller
+from policy.controllers.observation import WORKSPACE_HIGH, WORKSPACE_LOW
+from policy.controllers.settle import SettleSupervisor
+from policy.controllers.settle_law import SettleLaw
+from policy.tasks.envelope import corners, draws
+from policy.tasks.episodes import Episode, RunConfig
 from reach_driver.metrics import Metrics
-from reach_sim_bridge.faults import SensorNoise
-from reach_sim_bridge.params import ArmParams
+from reach_sim_bridge.model.params import ArmParams
+from reach_sim_bridge.model.sensors import SensorNoise
 
 ZERO4 = (0.0, 0.0, 0.0, 0.0)
 
@@ -58,7 +58,7 @@ def _shipped_and_without(
 
 
 def test_settle_is_on_in_the_shipped_controller_off_in_the_pure_one_and_validated() -> None:
-    from policy.ddpg_controller import make_pure_controller
+    from policy.controllers.ddpg import make_pure_controller
 
     shipped = make_controller()
     assert shipped.settle is not None and shipped.settle.law == SettleLaw()

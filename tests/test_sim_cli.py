@@ -15,7 +15,7 @@ import serial
 
 from protocol import DeviceID, Packet, PacketDecoder, PacketID, commands
 from reach_sim_bridge.cli import build_parser, config_from_args, main
-from reach_sim_bridge.faults import SensorNoise
+from reach_sim_bridge.model.sensors import SensorNoise
 
 WALL_LIMIT_S = 30.0
 CLI = [sys.executable, "-m", "reach_sim_bridge.cli"]

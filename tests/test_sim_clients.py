@@ -22,9 +22,9 @@ from protocol import (
     PacketID,
     encode_packet,
 )
-from reach_sim_bridge.arm import Alpha5Arm
-from reach_sim_bridge.firmware import Firmware
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.firmware import Firmware
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
+from reach_sim_bridge.model.arm import Alpha5Arm
 
 A, B, C, D, E = DeviceID.A, DeviceID.B, DeviceID.C, DeviceID.D, DeviceID.E
 JOINTS = (E, D, C, B)

@@ -7,13 +7,18 @@ import logging
 import pytest
 
 from protocol import Packet, PacketDecoder, PacketID, commands
-from reach_sim_bridge.arm import Alpha5Arm
-from reach_sim_bridge.events import EventLog
-from reach_sim_bridge.faults import FaultConfig, LinkFaults, parse_torque_scale, torque_scales
-from reach_sim_bridge.firmware import Firmware
-from reach_sim_bridge.params import ArmParams
-from reach_sim_bridge.server import SimConfig, SimServer
-from reach_sim_bridge.udp import is_loopback, parse_udp_address
+from reach_sim_bridge.emulator.events import EventLog
+from reach_sim_bridge.emulator.faults import (
+    FaultConfig,
+    LinkFaults,
+    parse_torque_scale,
+    torque_scales,
+)
+from reach_sim_bridge.emulator.firmware import Firmware
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.udp import is_loopback, parse_udp_address
+from reach_sim_bridge.model.arm import Alpha5Arm
+from reach_sim_bridge.model.params import ArmParams
 
 FRAME = commands.position(5, 1.25).encode()
 
@@ -117,7 +122,7 @@ def test_event_log_counts_everything_and_logs_each_reason_once_per_interval(
 
 def test_firmware_errors_are_logged(caplog: pytest.LogCaptureFixture) -> None:
     fw = Firmware(Alpha5Arm())
-    with caplog.at_level(logging.WARNING, logger="reach_sim_bridge.firmware"):
+    with caplog.at_level(logging.WARNING, logger="reach_sim_bridge.emulator.firmware"):
         fw.handle(Packet(5, PacketID.MODE, b""))
     assert any(
         "bad_payload" in r.getMessage() and "empty MODE" in r.getMessage() for r in caplog.records

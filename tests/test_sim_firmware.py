@@ -22,9 +22,9 @@ from protocol import (
     commands,
 )
 from protocol.payload import pack_floats
-from reach_sim_bridge.arm import Alpha5Arm
-from reach_sim_bridge.faults import SensorNoise
-from reach_sim_bridge.firmware import ALPHA5_DEVICES, Firmware, FirmwareConfig
+from reach_sim_bridge.emulator.firmware import ALPHA5_DEVICES, Firmware, FirmwareConfig
+from reach_sim_bridge.model.arm import Alpha5Arm
+from reach_sim_bridge.model.sensors import SensorNoise
 
 A, B, C, D, E = DeviceID.A, DeviceID.B, DeviceID.C, DeviceID.D, DeviceID.E
 BROADCAST = DeviceID.BROADCAST
@@ -390,7 +390,7 @@ def statuses(out: list[Packet], device: int) -> list[HardwareStatus]:
 
 
 def test_temperature_follows_the_motor_heat_and_raises_over_temperature() -> None:
-    from reach_sim_bridge.monitor import MonitorConfig
+    from reach_sim_bridge.emulator.monitor import MonitorConfig
 
     monitor = MonitorConfig(thermal_time_constant_s=2.0, over_temperature_c=30.0)
     fw = Firmware(Alpha5Arm(), FirmwareConfig(monitor=monitor))
@@ -413,7 +413,7 @@ def test_temperature_follows_the_motor_heat_and_raises_over_temperature() -> Non
 
 
 def test_voltage_sags_with_current_and_raises_low_supply_voltage() -> None:
-    from reach_sim_bridge.monitor import MonitorConfig
+    from reach_sim_bridge.emulator.monitor import MonitorConfig
 
     fw = Firmware(Alpha5Arm(), FirmwareConfig(monitor=MonitorConfig(source_resistance_ohm=10.0)))
     fw.tick(0.5)
@@ -435,7 +435,7 @@ def test_voltage_sags_with_current_and_raises_low_supply_voltage() -> None:
 
 
 def test_a_leak_raises_humidity_and_pressure_of_that_device_only() -> None:
-    from reach_sim_bridge.faults import Leak
+    from reach_sim_bridge.emulator.faults import Leak
 
     fw = Firmware(Alpha5Arm(), FirmwareConfig(leaks=(Leak(D, time_constant_s=4.0, depth_m=10),)))
     out = fw.tick(12.0)  # three time constants
@@ -456,7 +456,7 @@ def test_a_leak_raises_humidity_and_pressure_of_that_device_only() -> None:
 
 
 def test_a_leak_can_be_injected_at_run_time(fw: Firmware) -> None:
-    from reach_sim_bridge.faults import Leak
+    from reach_sim_bridge.emulator.faults import Leak
 
     fw.tick(1.0)
     assert fw.status(B) == HardwareStatus.NONE
@@ -470,7 +470,7 @@ def test_a_leak_can_be_injected_at_run_time(fw: Firmware) -> None:
 
 
 def test_pressure_follows_temperature_in_a_sealed_housing() -> None:
-    from reach_sim_bridge.monitor import Monitor, MonitorConfig
+    from reach_sim_bridge.emulator.monitor import Monitor, MonitorConfig
 
     monitor = Monitor(MonitorConfig(thermal_time_constant_s=1.0), [3.22], 20.0, 24.0)
     for _ in range(1000):

@@ -1,7 +1,7 @@
 """reach-sim's half duplex (`SimConfig(half_duplex=True)`, `--half-duplex`): the pty as one
 RS-485 wire. The arm waits for the host's bytes to land and a turnaround before it talks;
 host bytes sent while it talks collide and both frames are lost, counted (docs/protocol.md
-section 9; the model is in reach_sim_bridge/server.py's docstring)."""
+section 9; the model is in reach_sim_bridge/emulator/server.py's docstring)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import serial
 from protocol import DeviceID, Packet, PacketDecoder, PacketID, commands
 from reach_driver import ArmClient, open_transport
 from reach_sim_bridge.cli import build_parser, config_from_args
-from reach_sim_bridge.server import TURNAROUND_BYTES, SimConfig, SimServer
+from reach_sim_bridge.emulator.server import TURNAROUND_BYTES, SimConfig, SimServer
 
 E, D = DeviceID.E, DeviceID.D
 #: Ten ids E answers in one go: ten frames back to back on the wire.

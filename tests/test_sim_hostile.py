@@ -20,7 +20,7 @@ from collections.abc import Iterator
 import pytest
 
 from protocol import DeviceID, Packet, PacketDecoder, PacketID, commands
-from reach_sim_bridge.server import SimConfig, SimServer, out_queue_limit
+from reach_sim_bridge.emulator.server import SimConfig, SimServer, out_queue_limit
 
 A, B, C, D, E = DeviceID.A, DeviceID.B, DeviceID.C, DeviceID.D, DeviceID.E
 BROADCAST = DeviceID.BROADCAST

@@ -14,8 +14,8 @@ from conftest import wait_until
 
 from protocol import DeviceID, commands
 from reach_driver.rrd_summary import read_recording
-from reach_sim_bridge.recording import SimRecorder
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.recording import SimRecorder
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 SPEED = 5.0
 

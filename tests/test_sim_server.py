@@ -28,8 +28,8 @@ from protocol import (
     commands,
     encode_packet,
 )
-from reach_sim_bridge.faults import FaultConfig
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.faults import FaultConfig
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 A, B, C, D, E = DeviceID.A, DeviceID.B, DeviceID.C, DeviceID.D, DeviceID.E
 BROADCAST = DeviceID.BROADCAST

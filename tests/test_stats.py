@@ -1,11 +1,11 @@
-"""policy/stats.py: percentile-bootstrap intervals, numpy only."""
+"""policy/campaigns/stats.py: percentile-bootstrap intervals, numpy only."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from policy.stats import bootstrap_ci, bootstrap_distribution, paired_difference_ci
+from policy.campaigns.stats import bootstrap_ci, bootstrap_distribution, paired_difference_ci
 
 
 def test_coverage_on_a_known_normal_sample() -> None:

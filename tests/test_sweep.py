@@ -1,8 +1,8 @@
 """tools/sweep.py: training seed sweeps on Ray Tune, each trial the trainer's Python API.
 
-The trial itself (`policy.campaign.run_trial`) is checked without Tune: a tiny run reports each
-checkpoint evaluation and leaves its run directory. The sweep on Tune (two seeds, both trials
-reporting) needs Ray Tune, whose requirements (pandas) the extra ``ray[tune]`` brings."""
+The trial itself (`policy.campaigns.parallel.run_trial`) is checked without Tune: a tiny run
+reports each checkpoint evaluation and leaves its run directory. The sweep on Tune (two seeds, both
+trials reporting) needs Ray Tune, whose requirements (pandas) the extra ``ray[tune]`` brings."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from policy import campaign
+from policy.campaigns import parallel as campaign
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [

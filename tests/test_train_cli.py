@@ -138,7 +138,7 @@ def test_resume_refuses_what_cannot_change_naming_the_field(
 def test_resume_with_an_unchanged_fixed_field_is_fine(tiny_run, tmp_path) -> None:
     import importlib.util
 
-    from policy.ddpg_config import DDPGConfig
+    from policy.rl.config import DDPGConfig
 
     spec = importlib.util.spec_from_file_location("train_tool", TRAIN)
     assert spec is not None and spec.loader is not None

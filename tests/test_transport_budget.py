@@ -13,7 +13,7 @@ import pytest
 from protocol import PacketID
 from reach_driver import ArmClient, ControlLoop, ControlState, open_transport
 from reach_driver.control import TELEMETRY, TELEMETRY_WITH_CURRENT, telemetry_fits
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 LINE = 115200 / 10  # bytes/s, 8N1
 

@@ -173,7 +173,7 @@ def test_arm_client_reaches_the_virtual_arm_through_a_can_gateway() -> None:
     from protocol import DeviceID, PacketID
     from reach_driver import ArmClient, LimitKind
     from reach_driver.bridge import TransportBridge
-    from reach_sim_bridge.server import SimConfig, SimServer
+    from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
     ch = channel()
     with SimServer(SimConfig(speed=4.0, pty=False, udp=("127.0.0.1", 0))) as sim:

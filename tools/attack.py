@@ -31,7 +31,7 @@ from pathlib import Path
 from protocol import DeviceID, Mode, Packet, PacketDecoder, PacketID, commands, encode_packet
 from protocol.payload import pack_floats
 from reach_driver import ArmClient, DriverError, LimitKind, SafetyConfig, open_transport
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 E, D, C, B = DeviceID.E, DeviceID.D, DeviceID.C, DeviceID.B
 

@@ -1,9 +1,9 @@
 #!/usr/bin/env python3
-"""Speed-up of an evaluation campaign on Ray (policy/campaign.py) over the serial runner.
+"""Speed-up of an evaluation campaign on Ray (policy/campaigns/parallel.py) over the serial runner.
 
 The same episodes (seed 2020's, sensor noise, +-20 % degraded arms), serially with
-`policy.evaluation.evaluate` and on a local Ray with 2 workers, in this process; the results
-must be identical. Ray's start-up and the workers' first imports are left out (a warm-up
+`policy.campaigns.evaluation.evaluate` and on a local Ray with 2 workers, in this process; the
+results must be identical. Ray's start-up and the workers' first imports are left out (a warm-up
 campaign runs first): a campaign long enough to be worth parallelising amortises them. Best
 of ``--repeats`` for each side, since other jobs may share the cores. Aim: >= 1.8x on 2 cores;
 exits 1 if missed (and 2 if the results differ).
@@ -16,9 +16,9 @@ import os
 import sys
 import time
 
-from policy.campaign import evaluate_parallel, import_ray
-from policy.evaluation import RunConfig, evaluate, load_controller, random_episodes
-from reach_sim_bridge.faults import SensorNoise
+from policy.campaigns.evaluation import RunConfig, evaluate, load_controller, random_episodes
+from policy.campaigns.parallel import evaluate_parallel, import_ray
+from reach_sim_bridge.model.sensors import SensorNoise
 
 AIM = 1.8
 WORKERS = 2

@@ -35,8 +35,8 @@ import serial
 
 from protocol import DeviceID, PacketDecoder, PacketID, commands
 from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA
-from reach_sim_bridge.arm import Alpha5Arm, ArmParams
-from reach_sim_bridge.server import INPUT_UNITS_PER_S
+from reach_sim_bridge.emulator.server import INPUT_UNITS_PER_S
+from reach_sim_bridge.model.arm import Alpha5Arm, ArmParams
 
 CONTROL_HZ = 20.0
 EPISODE_S = 20.0
@@ -221,7 +221,8 @@ def physics_section(args: argparse.Namespace) -> list[BenchResult]:
     return results
 
 
-# -- pty round trip (reach_sim_bridge.server) -------------------------------------------------
+# -- pty round trip (reach_sim_bridge.emulator.server)
+# -------------------------------------------------
 # The simulator runs as `reach-sim` in its own process, as users run it; the baseline is a
 # bare echo server on a raw pty (and on UDP) in its own process, so the ratio is the cost of
 # decoding, the firmware and the paced physics loop on top of the OS round trip.

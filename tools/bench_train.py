@@ -28,9 +28,9 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from policy.ddpg_config import DDPGConfig
-from policy.env import EnvConfig, ReachAlphaEnv, time_limited
-from policy.trainer import Trainer
+from policy.rl.config import DDPGConfig
+from policy.rl.env import EnvConfig, ReachAlphaEnv, time_limited
+from policy.rl.trainer import Trainer
 
 
 def bench_ours(
@@ -102,9 +102,10 @@ def bench_sb3(
 def bench_inference(n: int) -> None:
     """Latency of one control-loop action: the shipped numpy controller (actor, reference
     integral, settle supervisor), the same without the supervisor, and the torch actor."""
-    from policy.ddpg_controller import make_controller
-    from policy.networks import Actor
-    from policy.weights import DEFAULT_WEIGHTS, load_actor_npz
+    from policy.controllers.ddpg import make_controller
+    from policy.controllers.weights import DEFAULT_WEIGHTS
+    from policy.rl.checkpoint import load_actor_npz
+    from policy.rl.networks import Actor
     from reach_driver.controllers import ControlState
 
     ctrl = make_controller()

@@ -21,8 +21,8 @@ from dataclasses import replace
 import numpy as np
 
 from protocol.alpha5 import JOINT_LETTERS
-from reach_sim_bridge.arm import Alpha5Arm
-from reach_sim_bridge.params import ArmParams
+from reach_sim_bridge.model.arm import Alpha5Arm
+from reach_sim_bridge.model.params import ArmParams
 
 POSE = (3.0, 1.5, 1.5, 1.5)  # rad, E D C B: mid-range, forearm out, gravity on D and C
 SETTLE_S = 1.0

@@ -22,8 +22,8 @@ from types import ModuleType
 
 import numpy as np
 
-from reach_sim_bridge.faults import FaultConfig
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.faults import FaultConfig
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 TOOLS = Path(__file__).resolve().parent
 

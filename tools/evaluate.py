@@ -19,8 +19,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from policy.campaign import CampaignError, evaluate_parallel
-from policy.evaluation import (
+from policy.campaigns.evaluation import (
     DEFAULT_RATE_HZ,
     DEFAULT_SECONDS,
     Episode,
@@ -34,10 +33,11 @@ from policy.evaluation import (
     parse_controller_params,
     random_episodes,
 )
+from policy.campaigns.parallel import CampaignError, evaluate_parallel
 from reach_driver.errors import DriverError
 from reach_driver.metrics import ALL_METRIC_KEYS, metric_label
-from reach_sim_bridge.faults import SensorNoise
-from reach_sim_bridge.params import load_arm_params
+from reach_sim_bridge.model.params import load_arm_params
+from reach_sim_bridge.model.sensors import SensorNoise
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -126,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="run through the serial protocol (reach_driver -> virtual arm on a pty) "
         "instead of stepping the simulator directly; metrics still use the "
-        "simulator's true angles (policy/via_driver.py)",
+        "simulator's true angles (policy/campaigns/via_driver.py)",
     )
     p.add_argument(
         "--sim-speed",
@@ -223,7 +223,7 @@ def _fmt(v: Any) -> str:
 
 def run(args: argparse.Namespace, console: Console) -> Evaluation:
     if args.via_driver:
-        from policy.via_driver import DriverConfig, evaluate_via_driver
+        from policy.campaigns.via_driver import DriverConfig, evaluate_via_driver
     episodes: list[Episode] = (
         load_episodes(args.targets)
         if args.targets is not None

@@ -14,11 +14,11 @@ validation motions), each inside a window around its pose (the excitation backs 
 window edges and above a speed limit), with a position-mode move to the segment's pose
 before each. Ctrl-C leaves the arm in the driver's safe mode (zero velocity).
 
-Two records of the excitation: PARAMS.log.npz (`reach_sim_bridge.sysid.save_segments`: per
+Two records of the excitation: PARAMS.log.npz (`reach_sim_bridge.fit.sysid.save_segments`: per
 segment the loop's q, qdot, commands and measured currents on its tick grid, and each
 command's transport delay measured from the driver's timestamps) and PARAMS.rrd (`--record`,
 a Rerun recording through `reach_driver.recording`; `--fit-only` reads either). The fit is by
-simulation (`reach_sim_bridge.sysid`, docs/identification.md), with the delay measured, not
+simulation (`reach_sim_bridge.fit.sysid`, docs/identification.md), with the delay measured, not
 fitted (it trades off against the armature). Outputs: PARAMS.json in the `--params` format
 with the fit under "_fit" (the loader ignores keys starting with _): per parameter its value
 and 1-sigma uncertainty, the delays, R^2 and residual RMS; and a report
@@ -54,9 +54,7 @@ from reach_driver.controllers import ControlState
 from reach_driver.errors import NoResponseError, RequestTimeoutError
 from reach_driver.interfaces import DEFAULT_BAUD
 from reach_driver.records import StepRecord
-from reach_sim_bridge.arm import Alpha5Arm
-from reach_sim_bridge.params import ArmParams, load_arm_params, save_arm_params
-from reach_sim_bridge.sysid import (
+from reach_sim_bridge.fit.sysid import (
     DEFAULT_WINDOW_S,
     FitResult,
     LinkTiming,
@@ -72,6 +70,8 @@ from reach_sim_bridge.sysid import (
     segment_from_index,
     tune_offsets,
 )
+from reach_sim_bridge.model.arm import Alpha5Arm
+from reach_sim_bridge.model.params import ArmParams, load_arm_params, save_arm_params
 
 K_MA = np.asarray(TORQUE_PER_AMP_NM) / 1000.0  # N m per mA, E D C B
 #: The middle of the factory envelope: the pose every identification starts and ends at.
@@ -736,7 +736,7 @@ def fit_metadata(
     for r in outcome.results.values():
         params_table.update(r.table())
     return {
-        "method": "least squares over MuJoCo rollouts (reach_sim_bridge.sysid), multiple "
+        "method": "least squares over MuJoCo rollouts (reach_sim_bridge.fit.sysid), multiple "
         f"shooting over {window_s:g} s windows"
         f"{' with fitted starts' if outcome.fit_starts else ''}; docs/identification.md",
         "parameters": params_table,
@@ -1089,7 +1089,7 @@ def check_controllers(
     gap = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = gap
     spec.loader.exec_module(gap)
-    from policy.evaluation import random_episodes
+    from policy.campaigns.evaluation import random_episodes
 
     gaps = gap.measure_gap(
         [n.strip() for n in names if n.strip()], truth, fitted, random_episodes(episodes, 0)

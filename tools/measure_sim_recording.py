@@ -19,8 +19,8 @@ from pathlib import Path
 import serial
 
 from protocol import DeviceID, commands
-from reach_sim_bridge.recording import SimRecorder
-from reach_sim_bridge.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.recording import SimRecorder
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 
 def _bytes_on_disk(path: Path) -> int:

@@ -1,11 +1,11 @@
 #!/usr/bin/env python3
 """Controllers over the uncertainty envelope: its feasible corners and random draws.
 
-One episode per arm of the envelope (policy/envelope.py): the arm's parameters, weak joint,
+One episode per arm of the envelope (policy/tasks/envelope.py): the arm's parameters, weak joint,
 sensor-noise multiple and latency (`Variant.run_config`, `Variant.episode`), sensor noise on,
 a start and a target drawn from the arm's own seed. Per-episode results (the arm's factors
 and the metrics of docs/metrics.md) go to OUT/LABEL.json; the summary gives reached, at rest,
-overshoot, settling and energy with 95 % bootstrap intervals (policy/stats.py), the worst
+overshoot, settling and energy with 95 % bootstrap intervals (policy/campaigns/stats.py), the worst
 arms by overshoot and the failure rate by factor level. docs/robustness.md explains it all.
 
 Seeds: arm i of a set (corners or draws) starts and aims at two points drawn uniformly in the
@@ -39,25 +39,25 @@ from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from policy.campaign import CampaignError, Job, run_job, run_on_ray
-from policy.envelope import Envelope, Selection, Variant, corners, draws
-from policy.evaluation import add_param_option, parse_controller_params
-from policy.identify_campaign import (
+from policy.campaigns.evaluation import add_param_option, parse_controller_params
+from policy.campaigns.identify import (
     IdentifyJob,
     IdentifyResult,
     fit_row,
     run_identify_job,
     run_row,
 )
-from policy.observation import WORKSPACE_HIGH, WORKSPACE_LOW
-from policy.rollout import Episode, EpisodeResult, RunConfig
-from policy.stats import bootstrap_ci
+from policy.campaigns.parallel import CampaignError, Job, run_job, run_on_ray
+from policy.campaigns.stats import bootstrap_ci
+from policy.controllers.observation import WORKSPACE_HIGH, WORKSPACE_LOW
+from policy.tasks.envelope import Envelope, Selection, Variant, corners, draws
+from policy.tasks.episodes import Episode, EpisodeResult, RunConfig
 from protocol.alpha5 import JOINT_LETTERS
 from reach_driver.controllers import load_controller
 from reach_driver.errors import DriverError
 from reach_driver.metrics import ARRIVAL_SPEED_RAD_S, REACHED_TOL_RAD
-from reach_sim_bridge.faults import SensorNoise
-from reach_sim_bridge.params import ArmParams, load_arm_params, save_arm_params
+from reach_sim_bridge.model.params import ArmParams, load_arm_params, save_arm_params
+from reach_sim_bridge.model.sensors import SensorNoise
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "robustness.md"
 SETS = ("corners", "draws")
@@ -210,7 +210,7 @@ def identify_arms(
     workers: int | None = None,
     address: str | None = None,
 ) -> list[dict[str, Any]]:
-    """Identify each arm through the driver (`policy.identify_campaign`): OUT/SET-INDEX.json,
+    """Identify each arm through the driver (`policy.campaigns.identify`): OUT/SET-INDEX.json,
     the fit `--twin-from OUT` reads, beside its log (.log.npz) and the hidden arm
     (.hidden.json); OUT/identify-summary.json has every arm's fit against its truth. Arms
     already fitted in OUT are skipped, so an interrupted campaign resumes."""
@@ -383,7 +383,7 @@ def make_jobs(
     twin_error: float | None = None,
     fitted: dict[tuple[str, int], ArmParams] | None = None,
 ) -> list[Job]:
-    """One `policy.campaign.Job` per arm: its own RunConfig and Episode; `run_job` runs it
+    """One `policy.campaigns.parallel.Job` per arm: its own RunConfig and Episode; `run_job` runs it
     with episode seed ``config.seed + index``. With `twin_error` (0: exact) each arm's
     controller is also given the arm's twin (`arm_twin`), its `fitted` one where given
     (keyed by set and index)."""
@@ -985,7 +985,7 @@ def build_report(
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="robustness.py",
-        description="Run controllers over the uncertainty envelope (policy/envelope.py): one "
+        description="Run controllers over the uncertainty envelope (policy/tasks/envelope.py): one "
         "episode (sensor noise on, scaled per arm) on each feasible corner and/or N random "
         "arms; write per-episode results and print reached, at rest, overshoot, settling "
         "and energy with 95 % bootstrap intervals, the worst arms and failures by factor.",

@@ -2,9 +2,9 @@
 """Screen controllers for chatter offline: the driver's chatter guard (reach_driver/chatter.py)
 replayed over direct-backend episodes, checked against an independent definition.
 
-Each episode runs on the direct backend (`policy.evaluation`, degraded arms with --perturb,
-noisy readings with --noise) and its trace, at the control rate, is replayed through the same
-`ChatterDetector` the control loop runs: step k gives it the state at sample k and the command
+Each episode runs on the direct backend (`policy.campaigns.evaluation`, degraded arms with
+--perturb, noisy readings with --noise) and its trace, at the control rate, is replayed through the
+same `ChatterDetector` the control loop runs: step k gives it the state at sample k and the command
 computed from it (the current held over the period ending at sample k+1). It is replayed twice:
 on the simulator's true angles (what the driver sees from the virtual arm) and on readings
 with the sensor noise of `SensorNoise` added (a noisier arm).
@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from policy.evaluation import (
+from policy.campaigns.evaluation import (
     RunConfig,
     add_param_option,
     evaluate,
@@ -40,10 +40,10 @@ from policy.evaluation import (
     parse_controller_params,
     random_episodes,
 )
-from policy.rollout import EpisodeResult
+from policy.tasks.episodes import EpisodeResult
 from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA
 from reach_driver.chatter import ChatterConfig, ChatterDetector, Verdict
-from reach_sim_bridge.faults import SensorNoise
+from reach_sim_bridge.model.sensors import SensorNoise
 
 CHUNK = 40
 LATE_ENERGY_J = 1.0

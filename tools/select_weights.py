@@ -4,7 +4,8 @@
 Candidates are run directories (their `best_actor.npz`) or `.npz` files. Each one is run as
 the `ddpg` controller without its settle supervisor (the actor with its reference integral:
 the rule judges what was learned, which the supervisor would cover) on
-- the paper's four scenarios (policy/scenarios.py: nominal arm, no noise), which it must all reach;
+- the paper's four scenarios (policy/tasks/scenarios.py: nominal arm, no noise), which it must all
+reach;
 - a selection set that is NOT the comparison's: ``random_episodes(--episodes, --seed)`` with
   sensor noise and +-20 % degraded parameters, the conditions of Table I. The default seed (11)
   is the set the MPC's horizon and weights were tuned on (tools/tune_mpc.py) and the
@@ -15,11 +16,11 @@ the rule judges what was learned, which the supervisor would cover) on
   +-20 % degraded parameters, on the training environment; an episode is
   restless when it does not come to rest (`Metrics.at_rest`, docs/metrics.md "Rest": RMS speed,
   command reversals and energy after settling). ``--workers N`` / ``--address ADDR`` run the
-  screen on Ray (policy/campaign.py) with the same results. A policy that chatters on some
+  screen on Ray (policy/campaigns/parallel.py) with the same results. A policy that chatters on some
   arm (seen: one joint bang-banging at the no-load speed, +-8 mrad around its target, 60 J
   instead of 4 J) is not shipped.
 
-Rule (policy/selection.py): among the candidates that reach every scenario and every
+Rule (policy/campaigns/selection.py): among the candidates that reach every scenario and every
 selection episode and have no restless episode, the one better than the reference
 controller (the MPC) on the most of Table I's six metrics; ties go to the
 lowest mean ratio candidate / reference over the six.
@@ -42,12 +43,12 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from policy.campaign import CampaignError
-from policy.evaluation import RunConfig, evaluate, load_controller, random_episodes
-from policy.scenarios import SCENARIOS, TABLE_KEYS, wins
-from policy.selection import choose, screen, weights_of
+from policy.campaigns.evaluation import RunConfig, evaluate, load_controller, random_episodes
+from policy.campaigns.parallel import CampaignError
+from policy.campaigns.selection import choose, screen, weights_of
+from policy.tasks.scenarios import SCENARIOS, TABLE_KEYS, wins
 from reach_driver.metrics import REST_KEYS
-from reach_sim_bridge.faults import SensorNoise
+from reach_sim_bridge.model.sensors import SensorNoise
 
 
 def build_parser() -> argparse.ArgumentParser:

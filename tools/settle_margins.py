@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Stability margins of the settle law's linear part (policy/settle.py) over the envelope.
+"""Stability margins of the settle law's linear part (policy/controllers/settle.py) over the
+envelope.
 
 The loop per joint: kt (kp + kd s + ki / s) e^(-s tau) / (J s^2 + b s), kt the torque per
 amp, J the joint's inertia (the MuJoCo mass matrix's diagonal, 0.12-0.16 kg m^2 on E D C and
@@ -8,7 +9,7 @@ damping x0.5-1.5), tau the loop delay (half a 50 ms period of hold plus 0-2 peri
 latency: 25-130 ms). Coulomb friction is left out: it only adds damping. Prints the worst
 phase margin (degrees) and gain margin over a grid of J, b and tau for the given gains.
 
-    tools/settle_margins.py                       # the defaults of policy.settle_law
+    tools/settle_margins.py                       # the defaults of policy.controllers.settle_law
     tools/settle_margins.py --kp 200 200 100 100 --kd 20 20 20 10 --ki 60 60 30 30
 """
 
@@ -19,7 +20,7 @@ import itertools
 
 import numpy as np
 
-from policy.settle_law import DEFAULT_KD, DEFAULT_KI, DEFAULT_KP
+from policy.controllers.settle_law import DEFAULT_KD, DEFAULT_KI, DEFAULT_KP
 from protocol.alpha5 import JOINT_LETTERS, TORQUE_PER_AMP_NM
 
 INERTIA = ((0.06, 0.23), (0.066, 0.23), (0.062, 0.19), (0.0035, 0.0107))  # kg m^2

@@ -1,10 +1,10 @@
 #!/usr/bin/env python3
 """Training seed sweeps on Ray Tune: the same training run for several seeds, one trial each.
 
-Each trial is `policy.campaign.tune_trial`: the trainer's Python API (`policy.trainer.Trainer`,
-as tools/train.py drives it) for ``--steps`` env steps in OUT/seed-N, reporting every
-checkpoint evaluation to Tune (`ray.tune.report`): the trainer's selection score, the nominal
-set's reached fraction, overshoot and energy. Locally by default (``ray.init`` with
+Each trial is `policy.campaigns.parallel.tune_trial`: the trainer's Python API
+(`policy.rl.trainer.Trainer`, as tools/train.py drives it) for ``--steps`` env steps in OUT/seed-N,
+reporting every checkpoint evaluation to Tune (`ray.tune.report`): the trainer's selection score,
+the nominal set's reached fraction, overshoot and energy. Locally by default (``ray.init`` with
 ``--workers`` CPUs, one trial per CPU), on a cluster with ``--address``. The summary prints
 each seed's final and best score and their spread; OUT/sweep.json keeps them.
 
@@ -28,8 +28,8 @@ import numpy as np
 from rich.console import Console
 from rich.markup import escape
 
-from policy.campaign import CampaignError, import_tune, ray_session, tune_trial
-from policy.ddpg_config import DDPGConfig
+from policy.campaigns.parallel import CampaignError, import_tune, ray_session, tune_trial
+from policy.rl.config import DDPGConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -6,8 +6,8 @@
 
 Writes to the run directory: config.json, train.csv (one row per finished episode: return and
 losses), eval.jsonl (periodic deterministic evaluation), best_actor.npz/.json (best evaluated
-actor, the format policy/weights/ ships), checkpoint.pt + buffer.npz (everything to resume),
-commands.txt (every command given), train.log (what was printed).
+actor, the format policy/controllers/weights/ ships), checkpoint.pt + buffer.npz (everything to
+resume), commands.txt (every command given), train.log (what was printed).
 
 `--resume --set KEY=VALUE` applies the fields a resumed run can change (learning rates, batch
 size, exploration, the BC schedule, evaluation cadence: `RESUMABLE`) and refuses, naming the
@@ -39,17 +39,17 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from policy.batched import evaluate_batched
-from policy.ddpg_config import WEAK_EVAL_SEED_OFFSET, WEAK_EVAL_TORQUE_SCALE, DDPGConfig
-from policy.env import EnvConfig
-from policy.expert import PDExpert
-from policy.selection import envelope_results, envelope_summary
-from policy.trainer import Trainer, TrainState, make_expert
-from policy.weights import DEFAULT_WEIGHTS, ActorWeights
+from policy.campaigns.selection import envelope_results, envelope_summary
+from policy.controllers.weights import DEFAULT_WEIGHTS, ActorWeights
+from policy.rl.batched import evaluate_batched
+from policy.rl.config import WEAK_EVAL_SEED_OFFSET, WEAK_EVAL_TORQUE_SCALE, DDPGConfig
+from policy.rl.env import EnvConfig
+from policy.rl.expert import PDExpert
+from policy.rl.trainer import Trainer, TrainState, make_expert
 from reach_driver.controllers import load_controller
 from reach_driver.errors import DriverError
-from reach_sim_bridge.arm import Alpha5Arm
-from reach_sim_bridge.params import load_arm_params
+from reach_sim_bridge.model.arm import Alpha5Arm
+from reach_sim_bridge.model.params import load_arm_params
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -60,7 +60,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--config",
         default="ours",
         choices=["ours", "paper", "robust"],
-        help="hyperparameter preset (policy.ddpg_config.DDPGConfig.ours / .paper / .robust)",
+        help="hyperparameter preset (policy.rl.config.DDPGConfig.ours / .paper / .robust)",
     )
     p.add_argument("--run", type=Path, help="run directory (checkpoints, logs)")
     p.add_argument("--seed", type=int, default=0)
@@ -120,7 +120,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         metavar="N",
         help="with --evaluate WEIGHTS|shipped: run the `ddpg` controller as shipped (actor + "
         "reference integral; --pure: the actor alone) on N arms drawn from the uncertainty "
-        "envelope (policy.envelope.draws(N, --envelope-seed)), one episode each "
+        "envelope (policy.tasks.envelope.draws(N, --envelope-seed)), one episode each "
         "(random_episodes(N, --episode-seed)), sensor noise on; print reached / at rest / "
         "overshoot as JSON",
     )
@@ -141,12 +141,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default=None,
         metavar="FILE.npz",
         help="with --ship: write the actor (+ .json) here instead of the shipped weights, "
-        "e.g. a candidate that does not meet the bar (policy/weights/ddpg_robust_actor.npz)",
+        "e.g. a candidate that does not meet the bar "
+        "(policy/controllers/weights/ddpg_robust_actor.npz)",
     )
     p.add_argument(
         "--ship",
         action="store_true",
-        help="copy RUN's best actor to policy/weights/ddpg_actor.npz (+ .json with "
+        help="copy RUN's best actor to policy/controllers/weights/ddpg_actor.npz (+ .json with "
         "the commands, seed, config, training time and evaluation), then exit",
     )
     return p.parse_args(argv)
@@ -243,7 +244,7 @@ def evaluate_envelope(args: argparse.Namespace) -> dict[str, Any]:
     return {
         "controller": name,
         "weights": str(path),
-        "draws": f"policy.envelope.draws({args.envelope}, {args.envelope_seed})",
+        "draws": f"policy.tasks.envelope.draws({args.envelope}, {args.envelope_seed})",
         "episodes": f"random_episodes({args.envelope}, {args.episode_seed})",
         "wall_s": round(time.monotonic() - t0, 1),
         **envelope_summary(results),

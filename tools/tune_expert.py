@@ -27,10 +27,10 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from policy.arm import ArmLike, nominal_arm
-from policy.evaluation import DirectArm, RunConfig, evaluate, random_episodes
-from policy.expert import PDExpert
-from reach_sim_bridge.faults import SensorNoise
+from policy.campaigns.evaluation import DirectArm, RunConfig, evaluate, random_episodes
+from policy.rl.expert import PDExpert
+from policy.tasks.arm import ArmLike, nominal_arm
+from reach_sim_bridge.model.sensors import SensorNoise
 
 DEFAULT_SEED = 11
 DEFAULT_LAMBDAS = [2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 12.0]

@@ -28,9 +28,9 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from policy.evaluation import RunConfig, evaluate, random_episodes
-from policy.mpc import MPCConfig, MPCController
-from reach_sim_bridge.faults import SensorNoise
+from policy.campaigns.evaluation import RunConfig, evaluate, random_episodes
+from policy.controllers.mpc import MPCConfig, MPCController
+from reach_sim_bridge.model.sensors import SensorNoise
 
 DEFAULT_SEED = 11
 

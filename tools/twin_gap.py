@@ -9,7 +9,7 @@ the nominal twin, on the same episodes.
 Why: a twin is for predicting what a controller does on the arm. The issue's target is that a
 controller's energy on the fitted twin is within 5 % of its energy on the arm, and its
 settling time within 0.1 s; parameter errors and trajectory RMS say nothing about that
-directly. Each controller runs every episode on each arm through `policy.evaluation`'s
+directly. Each controller runs every episode on each arm through `policy.campaigns.evaluation`'s
 `DirectArm` backend (the physics the training environment and `tools/evaluate.py` use, no
 link delay), scored by `reach_driver.metrics`. A virtual arm only: the "hidden" arm is an arm
 parameter file (the one `reach-sim --params` served to the identification).
@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from policy.evaluation import (
+from policy.campaigns.evaluation import (
     DirectArm,
     Episode,
     RunConfig,
@@ -36,7 +36,7 @@ from policy.evaluation import (
     load_controller,
     random_episodes,
 )
-from reach_sim_bridge.params import ArmParams, load_arm_params
+from reach_sim_bridge.model.params import ArmParams, load_arm_params
 
 ENERGY_TOL = 0.05
 """The issue's target: fitted-twin energy within this fraction of the hidden arm's."""

@@ -1,0 +1,2 @@
+"""Experiments over many episodes and arms: rollout backends, Ray campaigns, selection,
+statistics."""

@@ -1,0 +1,232 @@
+"""Identification campaigns: many hidden virtual arms identified through the driver, on Ray.
+
+`lambda` meets the overshoot target only on an arm it knows (docs/robustness.md, "Eighteenth
+round" on), so what it is worth is measured arm by arm: serve the hidden arm, identify it the
+way a real arm is identified, give the fit to the controller. One `IdentifyJob` does the first
+two on one arm, exactly as a person would on a workstation:
+
+- ``reach-sim --params HIDDEN.json --sensor-noise Q,V --speed S --link LINK`` in a
+  subprocess (its own process, so its physics keeps the wall clock while the driver works);
+- ``tools/identify.py --port LINK --out FIT.json --truth HIDDEN.json`` in another (the
+  excitation through `reach_driver`, then the fit, docs/identification.md).
+
+The job returns the fitted file and the excitation log as bytes, so a Ray cluster's nodes
+need no shared disk; `run_on_ray` (`policy.campaigns.parallel`) schedules one job per CPU. An
+identification takes 4-5 min of arm time and 6-10 min of fitting on one core.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from protocol.alpha5 import JOINT_LETTERS, N_JOINTS
+
+REPO = Path(__file__).resolve().parents[1]
+IDENTIFY_TOOL = REPO / "tools" / "identify.py"
+LINK_TIMEOUT_S = 30.0
+TAIL_LINES = 30
+
+
+SIM_FAILED = -2
+"""`IdentifyResult.returncode` when reach-sim did not come up (-1: the identification timed
+out; otherwise tools/identify.py's exit code). A failed arm is reported, not raised, so one
+bad arm does not stop a campaign."""
+
+
+@dataclass(frozen=True)
+class IdentifyJob:
+    """One hidden arm to identify (small and picklable)."""
+
+    name: str  # the fit's file stem, SET-INDEX
+    hidden_json: str  # the arm, a reach-sim --params file's text
+    sensor_noise: tuple[float, float]  # rad, rad/s: what the arm's sensors add
+    speed: float = 1.0  # reach-sim --speed: 1 keeps host stalls out of the data
+    identify_args: tuple[str, ...] = ()  # more tools/identify.py options (--joints, --scale...)
+    timeout_s: float = 3600.0  # the identification's wall-clock budget
+
+
+@dataclass
+class IdentifyResult:
+    """What a job brings back: the fit's file and log (bytes), or why there is none."""
+
+    name: str
+    returncode: int
+    wall_s: float
+    fitted_json: str | None = None
+    log_npz: bytes | None = None
+    tail: list[str] = field(default_factory=list)  # the tool's last lines, bars left out
+
+    @property
+    def ok(self) -> bool:
+        return self.returncode == 0 and self.fitted_json is not None
+
+
+def _env() -> dict[str, str]:
+    """This checkout first on the subprocesses' path: they run the code the worker checked."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
+    env["COLUMNS"] = "100"
+    return env
+
+
+def _text(data: str | bytes | None) -> str:
+    """A subprocess's output as text (a timeout's comes back as bytes even with text=True)."""
+    if data is None:
+        return ""
+    return data if isinstance(data, str) else data.decode(errors="replace")
+
+
+def _tail(text: str, n: int = TAIL_LINES) -> list[str]:
+    lines = [ln.rstrip() for ln in text.splitlines() if ln.strip() and "━" not in ln]
+    return lines[-n:]
+
+
+def run_identify_job(job: IdentifyJob) -> IdentifyResult:
+    """Serve ``job``'s arm on a pty, identify it through the driver, return the fit."""
+    t0 = time.monotonic()
+    with tempfile.TemporaryDirectory(prefix="identify-") as tmp:
+        root = Path(tmp)
+        hidden = root / "hidden.json"
+        hidden.write_text(job.hidden_json, encoding="utf-8")
+        link = root / "alpha5"
+        sim_log = (root / "sim.log").open("w+", encoding="utf-8")
+        noise = ",".join(f"{v:.6g}" for v in job.sensor_noise)
+        sim = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "reach_sim_bridge.cli",
+                "--params",
+                str(hidden),
+                "--sensor-noise",
+                noise,
+                "--speed",
+                f"{job.speed:g}",
+                "--link",
+                str(link),
+                "--stats-interval",
+                "0",
+            ],
+            stdout=sim_log,
+            stderr=subprocess.STDOUT,
+            env=_env(),
+            cwd=REPO,
+        )
+        out = root / f"{job.name}.json"
+        try:
+            deadline = time.monotonic() + LINK_TIMEOUT_S
+            while not link.exists() and sim.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.1)
+            if not link.exists():
+                sim_log.seek(0)
+                return IdentifyResult(
+                    job.name,
+                    SIM_FAILED,
+                    time.monotonic() - t0,
+                    tail=["reach-sim did not serve the arm:", *_tail(sim_log.read())],
+                )
+            cmd = [
+                sys.executable,
+                str(IDENTIFY_TOOL),
+                "--port",
+                str(link),
+                "--out",
+                str(out),
+                "--truth",
+                str(hidden),
+                "--no-record",
+                "--no-report",
+                *job.identify_args,
+            ]
+            try:
+                done = subprocess.run(
+                    cmd,
+                    capture_output=True,
+                    text=True,
+                    env=_env(),
+                    cwd=REPO,
+                    timeout=job.timeout_s,
+                )
+                code, text = done.returncode, done.stdout + done.stderr
+            except subprocess.TimeoutExpired as exc:
+                code = -1
+                text = "".join(_text(x) for x in (exc.stdout, exc.stderr))
+                text += f"\ntimed out after {job.timeout_s:g} s"
+        finally:
+            sim.terminate()
+            try:
+                sim.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                sim.kill()
+                sim.wait()
+            sim_log.close()
+        log = out.with_suffix(".log.npz")
+        return IdentifyResult(
+            job.name,
+            code,
+            time.monotonic() - t0,
+            out.read_text(encoding="utf-8") if code == 0 and out.exists() else None,
+            log.read_bytes() if log.exists() else None,
+            _tail(text),
+        )
+
+
+def _effective(arm: dict, key: str) -> np.ndarray:
+    """``arm[key]`` per joint over its torque scale: what a current-mode identification sees."""
+    scale = np.asarray(arm.get("torque_scale", [1.0] * N_JOINTS), dtype=float)
+    return np.asarray(arm[key], dtype=float) / scale
+
+
+def fit_errors(hidden: dict, fitted: dict) -> dict:
+    """Per joint, the fit against the hidden arm as the fit can see it: a drive at torque
+    scale s turns a current into s times the torque, so from currents the arm looks like one
+    with armature, damping and Coulomb friction divided by s (the fit may find a weak drive
+    either way: as its scale or as that heavier joint). Ratios of those effective values,
+    fitted / true, for the armature and damping, the difference in N m for the Coulomb
+    friction, both scales, and the replay's RMS on the validation motions (fitted and
+    nominal twin, mrad)."""
+    armature = _effective(fitted, "armature") / _effective(hidden, "armature")
+    damping = _effective(fitted, "damping") / _effective(hidden, "damping")
+    coulomb = _effective(fitted, "frictionloss") - _effective(hidden, "frictionloss")
+    quality = fitted.get("_fit", {})
+    out: dict[str, dict] = {}
+    for j, letter in enumerate(JOINT_LETTERS):
+        row: dict[str, float | None] = {
+            "torque_scale": float(fitted.get("torque_scale", [1.0] * N_JOINTS)[j]),
+            "true_torque_scale": float(hidden.get("torque_scale", [1.0] * N_JOINTS)[j]),
+            "armature_ratio": float(armature[j]),
+            "damping_ratio": float(damping[j]),
+            "coulomb_error_nm": float(coulomb[j]),
+        }
+        for twin, key in (("fitted", "quality_fitted"), ("nominal", "quality_nominal")):
+            q = quality.get(key, {}).get(f"validate/{letter}", {}).get("window")
+            row[f"validate_rms_mrad_{twin}"] = None if q is None else q["rms_mrad"]
+        out[letter] = row
+    return out
+
+
+def run_row(result: IdentifyResult) -> dict:
+    """How one job ran (JSON-ready): its exit code, wall time and, if it failed, its tail."""
+    row: dict = {"arm": result.name, "returncode": result.returncode, "wall_s": result.wall_s}
+    if not result.ok:
+        row["tail"] = result.tail
+    return row
+
+
+def fit_row(name: str, hidden: dict, fitted: dict, run: dict | None = None) -> dict:
+    """One arm's line in the campaign's table: the fit against its hidden arm (`fit_errors`),
+    its fit and arm time, and how the job ran when that is known."""
+    meta = fitted.get("_fit", {})
+    row: dict = {"arm": name, **(run or {})}
+    row["fit_s"] = meta.get("fit_seconds")
+    row["arm_s"] = meta.get("arm_seconds")
+    row["joints"] = fit_errors(hidden, fitted)
+    return row

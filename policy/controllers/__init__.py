@@ -1,0 +1,6 @@
+"""Controllers the `reach_stack.controllers` entry points name, each with its observation and
+weights.
+
+They depend on the driver's `Controller` interface and, where they need a twin of the arm, on
+`reach_sim_bridge.model`; never on the emulator, the training code or the campaigns.
+"""

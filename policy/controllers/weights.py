@@ -1,0 +1,101 @@
+"""The actor weights format, saved by training and loaded by the controller: one owner.
+
+A pair of files: `NAME.npz` holds the dense layers as float64 arrays W0 b0 W1 b1 W2 b2 (W: out x
+in, torch's layout), `NAME.json` beside it what the controller needs to rebuild the inputs and
+outputs (observation config, current limits, activation) plus the run's config and provenance.
+
+The shipped pair is `policy/controllers/weights/ddpg_actor.npz` (the data folder beside this
+module; it has no `__init__.py`, so `policy.controllers.weights` is this module). The controller
+side (`ActorWeights`) is numpy only: the control loop never imports torch. The training side writes
+and reads the same format in `policy.rl.checkpoint`.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from policy.controllers.observation import ObservationConfig
+from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, N_JOINTS
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "ddpg_actor.npz"
+FORMAT = "reach-stack ddpg actor v1"
+LAYERS = ["linear", "leaky_relu", "linear", "leaky_relu", "linear", "tanh"]
+#: torch's default slope, what `policy.rl.networks` builds and the json records
+LEAKY_RELU_SLOPE = 0.01
+
+
+@dataclass(frozen=True)
+class ActorWeights:
+    """Dense layers (W: out x in, b) with LeakyReLU between them and tanh at the end."""
+
+    weights: tuple[np.ndarray, ...]
+    biases: tuple[np.ndarray, ...]
+    leaky_slope: float
+    observation: ObservationConfig
+    current_limits_mA: np.ndarray
+    metadata: dict[str, Any]
+
+    @classmethod
+    def load(cls, path: str | Path) -> ActorWeights:
+        """Read `path` (.npz) and the .json beside it; errors say which file is wrong."""
+        path = Path(path)
+        meta_path = path.with_suffix(".json")
+        if not path.is_file():
+            raise FileNotFoundError(f"no actor weights at {path}")
+        if not meta_path.is_file():
+            raise FileNotFoundError(f"no metadata {meta_path} beside the weights {path}")
+        try:
+            meta = json.loads(meta_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{meta_path} is not valid JSON: {exc}") from exc
+        if meta.get("format") != FORMAT:
+            raise ValueError(f"{meta_path}: unknown weights format {meta.get('format')!r}")
+        with np.load(path) as data:
+            n = sum(1 for key in data.files if key.startswith("W"))
+            if n == 0 or any(
+                f"W{i}" not in data.files or f"b{i}" not in data.files for i in range(n)
+            ):
+                raise ValueError(f"{path}: expected arrays W0 b0 .. W{n - 1} b{n - 1}")
+            weights = tuple(np.asarray(data[f"W{i}"], np.float64) for i in range(n))
+            biases = tuple(np.asarray(data[f"b{i}"], np.float64) for i in range(n))
+        observation = ObservationConfig.from_dict(meta["observation"])
+        if weights[0].shape[1] != observation.size or weights[-1].shape[0] != N_JOINTS:
+            raise ValueError(
+                f"{path}: network maps {weights[0].shape[1]} -> {weights[-1].shape[0]}, "
+                f"the observation config needs {observation.size} -> {N_JOINTS}"
+            )
+        for i, (w, b) in enumerate(zip(weights, biases, strict=True)):
+            if b.shape != (w.shape[0],) or (i and w.shape[1] != weights[i - 1].shape[0]):
+                raise ValueError(f"{path}: layer {i} shapes do not chain")
+        limits = np.asarray(meta.get("current_limits_mA", DEFAULT_CURRENT_LIMITS_MA), float)
+        slope = float(meta.get("leaky_relu_slope", LEAKY_RELU_SLOPE))
+        return cls(weights, biases, slope, observation, limits, meta)
+
+    def __post_init__(self) -> None:
+        # float32, transposed and contiguous: what torch computed, at matmul speed
+        object.__setattr__(
+            self, "_wt", tuple(np.ascontiguousarray(w.T, dtype=np.float32) for w in self.weights)
+        )
+        object.__setattr__(self, "_b32", tuple(b.astype(np.float32) for b in self.biases))
+        if not 0.0 <= self.leaky_slope < 1.0:
+            raise ValueError(f"leaky_relu_slope must be in [0, 1), got {self.leaky_slope}")
+
+    def forward(self, obs: np.ndarray) -> np.ndarray:
+        """Actions in [-1, 1] for one observation (n,) or a batch (B, n)."""
+        x = np.asarray(obs, dtype=np.float32)
+        wt: tuple[np.ndarray, ...] = self._wt  # type: ignore[attr-defined]
+        b32: tuple[np.ndarray, ...] = self._b32  # type: ignore[attr-defined]
+        last = len(wt) - 1
+        for i in range(last + 1):
+            x = x @ wt[i]
+            x += b32[i]
+            if i < last:
+                x = np.maximum(x, self.leaky_slope * x)  # LeakyReLU for slope < 1
+        out: np.ndarray = np.tanh(x)
+        return out

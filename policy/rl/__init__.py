@@ -1,0 +1,1 @@
+"""Reinforcement learning: the environment, networks, agent, replay, trainer and its config."""

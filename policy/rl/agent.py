@@ -1,0 +1,159 @@
+"""The DDPG agent: networks, target networks, optimisers and one gradient update.
+
+`Agent.update` reads top to bottom like CleanRL's `ddpg_continuous_action.py`: the critic
+loss against the target networks' bootstrap, then (every `policy_delay` updates) the actor
+loss and the soft update of the targets. The TD3 and TD3+BC options (docs/training.md) are
+branches inside those steps, each off in `DDPGConfig.paper()`.
+
+Speed (tools/bench_train.py): fused Adam, gradients of the actor loss for the actor only, and a
+foreach lerp for the target networks.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from policy.rl.checkpoint import load_actor_npz
+from policy.rl.config import DDPGConfig
+from policy.rl.networks import Actor, Critic
+from protocol.alpha5 import N_JOINTS
+
+
+def _adam(params: Any, lr: float) -> torch.optim.Adam:
+    try:
+        return torch.optim.Adam(params, lr=lr, fused=True)
+    except (RuntimeError, TypeError):
+        return torch.optim.Adam(params, lr=lr)
+
+
+class Agent:
+    def __init__(self, config: DDPGConfig, obs_dim: int, act_dim: int = N_JOINTS) -> None:
+        self.config = config
+        torch.manual_seed(config.seed)
+        self.actor = Actor(obs_dim, act_dim, config.hidden)
+        n_critics = 2 if config.twin_critics else 1
+        self.critics = nn.ModuleList(
+            Critic(obs_dim, act_dim, config.hidden) for _ in range(n_critics)
+        )
+        self.actor_target = copy.deepcopy(self.actor)
+        self.critics_target = copy.deepcopy(self.critics)
+        for p in [*self.actor_target.parameters(), *self.critics_target.parameters()]:
+            p.requires_grad_(False)
+        self.actor_opt = _adam(self.actor.parameters(), config.actor_lr)
+        self.critic_opt = _adam(self.critics.parameters(), config.critic_lr)
+        self.updates = 0
+        #: the target policy noise's own generator: it does not shift torch's global stream
+        self.gen = torch.Generator().manual_seed(config.seed + 1)
+
+    def load_actor_npz(self, path: str | Path) -> None:
+        """Actor and target actor from shipped-format weights (policy.controllers.weights)."""
+        load_actor_npz(self.actor, path)
+        self.actor_target.load_state_dict(self.actor.state_dict())
+
+    def set_learning_rates(self, env_steps: int) -> None:
+        decay = self.config.lr_decay ** (env_steps // self.config.lr_decay_every)
+        for group in self.actor_opt.param_groups:
+            group["lr"] = self.config.actor_lr * decay
+        for group in self.critic_opt.param_groups:
+            group["lr"] = self.config.critic_lr * decay
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        out: np.ndarray = self.actor(torch.from_numpy(obs)).numpy()
+        return out
+
+    def update(self, batch: dict[str, np.ndarray], bc_weight: float) -> dict[str, float]:
+        """One gradient update from `batch` (policy.rl.replay fields); returns the losses."""
+        cfg = self.config
+        obs = torch.from_numpy(batch["obs"])
+        act = torch.from_numpy(batch["act"])
+        rew = torch.from_numpy(batch["rew"])
+        next_obs = torch.from_numpy(batch["next_obs"])
+        term = torch.from_numpy(batch["term"])
+
+        # 1. the TD target: r + gamma Q'(s', pi'(s')), cut only where the episode terminated
+        with torch.no_grad():
+            next_act = self.actor_target(next_obs)
+            if cfg.target_noise > 0:  # TD3 target policy smoothing
+                noise = torch.randn(next_act.shape, generator=self.gen) * cfg.target_noise
+                noise = noise.clamp(-cfg.target_noise_clip, cfg.target_noise_clip)
+                next_act = (next_act + noise).clamp(-1.0, 1.0)
+            q_next = torch.min(  # one critic: itself; TD3's twin critics: the smaller
+                torch.stack([c(next_obs, next_act) for c in self.critics_target]), dim=0
+            ).values
+            target = rew + cfg.gamma * (1.0 - term) * q_next
+
+        # 2. the critic loss: mean squared TD error, summed over the critics
+        qs = [c(obs, act) for c in self.critics]
+        critic_loss = sum(((q - target) ** 2).mean() for q in qs)
+        assert isinstance(critic_loss, torch.Tensor)
+        self.critic_opt.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self.critic_opt.step()
+        self.updates += 1
+        info = {"critic_loss": float(critic_loss.detach()), "q": float(qs[0].detach().mean())}
+        if self.updates % cfg.policy_delay != 0:  # TD3: the actor and targets wait
+            return info
+
+        # 3. the actor loss: -Q(s, pi(s)), plus TD3+BC's pull towards the expert's action
+        pi = self.actor(obs)
+        q_pi = self.critics[0](obs, pi)
+        if bc_weight > 0:
+            # the Q term is made scale-free so bc_weight means the same all run
+            lam = cfg.q_weight / q_pi.abs().mean().detach().clamp(min=1e-6)
+            expert = torch.from_numpy(batch["expert"])
+            # rows without a label (NaN: the demonstrator is no teacher there) add no BC
+            labelled = ~torch.isnan(expert).any(dim=1, keepdim=True)
+            expert = torch.nan_to_num(expert)
+            diff = pi - expert
+            if cfg.bc_relative > 0:
+                diff = diff / (expert.abs() + cfg.bc_relative)
+            diff = diff * labelled
+            bc = (diff**2).sum() / (labelled.sum().clamp(min=1) * diff.shape[1])
+            actor_loss = -lam * q_pi.mean() + bc_weight * bc
+            info["bc_loss"] = float(bc.detach())
+        else:
+            actor_loss = -q_pi.mean()
+        self.actor_opt.zero_grad(set_to_none=True)
+        # gradients for the actor only: the critic weights need none here (saves ~1/3 of the
+        # critic backward pass)
+        actor_loss.backward(inputs=list(self.actor.parameters()))
+        self.actor_opt.step()
+        info["actor_loss"] = float(actor_loss.detach())
+
+        # 4. soft update of the targets: theta' <- theta' + tau (theta - theta')
+        with torch.no_grad():
+            for net, target_net in (
+                (self.actor, self.actor_target),
+                (self.critics, self.critics_target),
+            ):
+                torch._foreach_lerp_(list(target_net.parameters()), list(net.parameters()), cfg.tau)
+        return info
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "actor": self.actor.state_dict(),
+            "critics": self.critics.state_dict(),
+            "actor_target": self.actor_target.state_dict(),
+            "critics_target": self.critics_target.state_dict(),
+            "actor_opt": self.actor_opt.state_dict(),
+            "critic_opt": self.critic_opt.state_dict(),
+            "updates": self.updates,
+            "gen": self.gen.get_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.actor.load_state_dict(state["actor"])
+        self.critics.load_state_dict(state["critics"])
+        self.actor_target.load_state_dict(state["actor_target"])
+        self.critics_target.load_state_dict(state["critics_target"])
+        self.actor_opt.load_state_dict(state["actor_opt"])
+        self.critic_opt.load_state_dict(state["critic_opt"])
+        self.updates = int(state["updates"])
+        self.gen.set_state(state["gen"])

@@ -1,0 +1,535 @@
+"""Gymnasium environment `ReachAlpha-v0`: the four joints E D C B of the MuJoCo Alpha 5.
+
+The env steps `reach_sim_bridge.model.arm.Alpha5Arm` directly (the same arm and motor model the
+virtual arm serves on the wire), so a policy trained here meets the same physics in the loop.
+`ReachAlphaEnv`'s docstring describes the spaces, rewards and episodes.
+
+Gymnasium 1.x has no plugin entry points any more, so importing this module registers the env;
+`gym.make("policy.rl.env:ReachAlpha-v0")` imports and registers in one go. As for Gymnasium's own
+envs, the time limit is the `TimeLimit` wrapper that `gym.make` adds (`max_episode_steps`), not
+the env: `time_limited(env)` wraps an env built directly the same way.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.wrappers import TimeLimit
+
+from policy.controllers.observation import (
+    WORKSPACE_HALF_RANGE,
+    WORKSPACE_HIGH,
+    WORKSPACE_LOW,
+    ObservationConfig,
+    build_observation,
+    observation_bounds,
+)
+from policy.tasks.arm import ArmLike
+from policy.tasks.envelope import Envelope, Variant, draws
+from protocol.alpha5 import N_JOINTS
+from reach_sim_bridge.model.motor import no_load_speed
+from reach_sim_bridge.model.sensors import SensorNoise
+
+ENV_ID = "ReachAlpha-v0"
+#: rad/s per joint at 24 V (reach_sim_bridge/model/README.md): scales the shaped reward's speed
+NO_LOAD_SPEEDS = np.asarray(no_load_speed(), dtype=np.float64)
+#: what `EnvConfig.sensor_noise` switches on (the sim's one noise, Table I's sigmas)
+SENSOR_NOISE = SensorNoise()
+
+
+class RewardMode(str, Enum):
+    PAPER = "paper"  # -1 + exp(-0.5 (|q - q_req| / sigma)^2), -10 per step out of bounds
+    SHAPED = "shaped"  # per-joint paper terms + distance, and calm-arrival penalties
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Reward terms. `PAPER` uses only `sigma` and `out_of_bounds`.
+
+    The paper's -10 is paid for EVERY step spent outside the bounds and the episode goes on:
+    a one-off terminal -10 would make crashing out cheaper than ~-100 for staying inside
+    (Carlucho et al., OCEANS 2020, read with care).
+    """
+
+    mode: RewardMode = RewardMode.PAPER
+    sigma: float = 0.018  # rad
+    out_of_bounds: float = -10.0
+    distance_weight: float = 1.0  # x mean |e| / half-range: a gradient far from the target
+    near_scale: float = 0.05  # rad: width of the gate that switches on the penalties below
+    velocity_weight: float = 0.0  # x mean gate * |qdot| / no-load speed
+    action_change_weight: float = 0.0  # x mean gate * |a - a_prev|
+    #: x mean gate * [the command reversed its sign, both it and the previous one above
+    #: `sign_flip_threshold`]: the bang-bang of a limit cycle at the goal (docs/chatter.md),
+    #: counted as the rest metric counts `command_reversals` (docs/metrics.md)
+    sign_flip_weight: float = 0.0
+    #: fraction of the current limit both commands must exceed for a reversal to count
+    #: (the rest metric's 10 %)
+    sign_flip_threshold: float = 0.1
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Everything that defines an episode; serialisable so it can ship beside the weights.
+
+    control_hz: 20 Hz by default: the paper does not state its rate, but its mean integral
+    error (58.27 over 20 random 20 s episodes) is the size of |e| summed per step at ~20 Hz.
+    """
+
+    control_hz: float = 20.0
+    episode_s: float = 20.0
+    physics_dt: float = 0.002
+    observation: ObservationConfig = field(default_factory=ObservationConfig.paper)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    bounds_margin: float = 0.3  # rad outside the workspace before a step counts as out of bounds
+    sensor_noise: bool = False  # sigma 0.002 rad on q, 0.02 rad/s on qdot
+    torque_scale: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+    #: if set, each episode draws each joint's torque scale uniformly in [low, torque_scale]
+    torque_scale_low: tuple[float, float, float, float] | None = None
+    #: relative perturbation of the model parameters per episode (0.1 = +-10 %), 0 disables
+    param_perturbation: float = 0.0
+    #: starts and goals at most this far apart per joint (rad); None = whole workspace
+    max_step: float | None = None
+    #: draw starts and goals (and put the bounds around) this range instead of the evaluation
+    #: workspace, e.g. B over most of its turn for the paper's scenarios (B up to 5.65 rad)
+    workspace_low: tuple[float, float, float, float] | None = None
+    workspace_high: tuple[float, float, float, float] | None = None
+    #: control latency in control periods: the action computed from the state at t takes
+    #: effect at t + latency, rounded to physics steps (the previous one stays in force until
+    #: then), as `policy.campaigns.direct` emulates `RunConfig.latency_periods`
+    latency_periods: float = 0.0
+    #: multiple of the sensor noise's sigmas (with `sensor_noise`)
+    noise_scale: float = 1.0
+    #: share of episodes whose arm is drawn from the uncertainty envelope
+    #: (`policy.tasks.envelope.draws`, its default ranges around the nominal arm): parameters, weak
+    #: joint's torque scale, noise multiple and latency all come from the draw and replace
+    #: `param_perturbation`, `torque_scale(_low)`, `noise_scale` and `latency_periods` for
+    #: that episode; 0 disables, 1 trains on envelope arms only
+    envelope_fraction: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.envelope_fraction <= 1.0:
+            raise ValueError(f"envelope_fraction must be in [0, 1], got {self.envelope_fraction}")
+        if not 0.0 <= self.latency_periods <= 10.0:
+            raise ValueError(f"latency_periods must be in [0, 10], got {self.latency_periods}")
+        if not self.noise_scale >= 0.0:
+            raise ValueError(f"noise_scale must be >= 0, got {self.noise_scale}")
+
+    def workspace(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) of the episodes' starts and goals, rad, E D C B."""
+        low = WORKSPACE_LOW if self.workspace_low is None else np.asarray(self.workspace_low)
+        high = WORKSPACE_HIGH if self.workspace_high is None else np.asarray(self.workspace_high)
+        if low.shape != (N_JOINTS,) or high.shape != (N_JOINTS,) or np.any(low >= high):
+            raise ValueError(f"workspace must be 4 ranges low < high, got {low} .. {high}")
+        return low.astype(np.float64), high.astype(np.float64)
+
+    @property
+    def steps_per_episode(self) -> int:
+        return int(round(self.episode_s * self.control_hz))
+
+    def to_dict(self) -> dict[str, Any]:
+        data = dataclasses.asdict(self)
+        data["reward"]["mode"] = self.reward.mode.value
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> EnvConfig:
+        data = dict(data)
+        unknown = set(data) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"unknown env config keys: {sorted(unknown)}")
+        if "observation" in data:
+            data["observation"] = ObservationConfig.from_dict(data["observation"])
+        if "reward" in data:
+            reward = dict(data["reward"])
+            reward["mode"] = RewardMode(reward.get("mode", "paper"))
+            data["reward"] = RewardConfig(**reward)
+        for key in ("torque_scale", "torque_scale_low", "workspace_low", "workspace_high"):
+            if data.get(key) is not None:
+                data[key] = tuple(float(x) for x in data[key])
+        return cls(**data)
+
+
+#: the terms of `reward_terms`, in the order they are summed
+REWARD_TERMS = (
+    "precision",
+    "distance",
+    "velocity",
+    "action_change",
+    "sign_flip",
+    "out_of_bounds",
+)
+
+
+def sign_flips(action: np.ndarray, prev_action: np.ndarray, threshold: float) -> np.ndarray:
+    """Per joint 1.0 where the command reversed its sign with both it and the previous one
+    above `threshold` (fraction of the current limit), else 0.0."""
+    big = (np.abs(action) > threshold) & (np.abs(prev_action) > threshold)
+    out: np.ndarray = (big & (np.sign(action) != np.sign(prev_action))).astype(np.float64)
+    return out
+
+
+def reward_terms(
+    q: np.ndarray,
+    qdot: np.ndarray,
+    q_req: np.ndarray,
+    action: np.ndarray,
+    prev_action: np.ndarray,
+    in_bounds: bool,
+    config: RewardConfig,
+) -> dict[str, float]:
+    """One step's reward, term by term (signed; inactive terms 0), from the TRUE state (never
+    the noisy readings). Their sum in `REWARD_TERMS` order is the reward, exactly."""
+    terms = dict.fromkeys(REWARD_TERMS, 0.0)
+    if not in_bounds:
+        terms["out_of_bounds"] = float(config.out_of_bounds)
+        return terms
+    error = q_req - q
+    if config.mode is RewardMode.PAPER:
+        terms["precision"] = float(
+            -1.0 + np.exp(-0.5 * (np.linalg.norm(error) / config.sigma) ** 2)
+        )
+        return terms
+    gate = np.exp(-0.5 * (error / config.near_scale) ** 2)
+    terms["precision"] = float(-1.0 + np.mean(np.exp(-0.5 * (error / config.sigma) ** 2)))
+    terms["distance"] = -float(
+        config.distance_weight * np.mean(np.abs(error) / WORKSPACE_HALF_RANGE)
+    )
+    terms["velocity"] = -float(
+        config.velocity_weight * np.mean(gate * np.abs(qdot) / NO_LOAD_SPEEDS)
+    )
+    terms["action_change"] = -float(
+        config.action_change_weight * np.mean(gate * np.abs(action - prev_action))
+    )
+    if config.sign_flip_weight:
+        flips = sign_flips(action, prev_action, config.sign_flip_threshold)
+        terms["sign_flip"] = -float(config.sign_flip_weight * np.mean(gate * flips))
+    return terms
+
+
+def compute_reward(
+    q: np.ndarray,
+    qdot: np.ndarray,
+    q_req: np.ndarray,
+    action: np.ndarray,
+    prev_action: np.ndarray,
+    in_bounds: bool,
+    config: RewardConfig,
+) -> float:
+    """One step's reward: the sum of `reward_terms`."""
+    terms = reward_terms(q, qdot, q_req, action, prev_action, in_bounds, config)
+    return float(sum(terms.values()))
+
+
+def default_arm_factory(config: EnvConfig) -> ArmLike:
+    """The MuJoCo arm at its nominal parameters."""
+    from reach_sim_bridge.model.arm import Alpha5Arm
+
+    arm: ArmLike = Alpha5Arm(dt=config.physics_dt)
+    return arm
+
+
+class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
+    """Reach a random goal from a random start with the four joints E D C B.
+
+    ## Action space
+
+    `Box(-1, 1, (4,), float32)`: each joint's current as a fraction of its current limit,
+    clipped to [-1, 1] and held for the control period (`n_substeps` physics steps of 2 ms).
+
+    | Num | Action            | Min | Max | Unit                     |
+    |-----|-------------------|-----|-----|--------------------------|
+    | 0   | current, joint E  | -1  | 1   | x 600 mA                 |
+    | 1   | current, joint D  | -1  | 1   | x 600 mA                 |
+    | 2   | current, joint C  | -1  | 1   | x 600 mA                 |
+    | 3   | current, joint B  | -1  | 1   | x 300 mA                 |
+
+    ## Observation space
+
+    `Box(low, high, (n,), float32)` with finite bounds (`observation_bounds`), built by
+    `policy.controllers.observation.build_observation`, the function the deployed controller calls.
+    Each group is 4 entries, E D C B. Readings are clipped to [-0.5, 2 pi + 0.5] rad and +-5 rad/s
+    first; with `sensor_noise`, q and qdot are as a sensor reports them (sigma 0.002 rad,
+    0.02 rad/s), q_req exact.
+
+    | Index | Observation          | `ObservationConfig.paper()` (12) | default (20)              |
+    |-------|----------------------|----------------------------------|---------------------------|
+    | 0-3   | joint angles q       | rad                              | (q - centre) / half-range |
+    | 4-7   | joint speeds qdot    | rad/s                            | qdot / 1.2 rad/s          |
+    | 8-11  | goal q_req           | rad                              | (q_req - centre) / h.-r.  |
+    | 12-15 | error e = q_req - q  | -                                | e / half-range            |
+    | 16-19 | fine error           | -                                | tanh(e / 0.05 rad)        |
+
+    centre and half-range are the evaluation workspace's (`policy.controllers.observation`).
+
+    ## Rewards
+
+    From the TRUE state (never the noisy readings), `RewardConfig`. `info["reward_terms"]`
+    holds each term, signed (inactive ones 0); they sum to the reward.
+
+    | Term            | `paper` mode                         | `shaped` mode                       |
+    |-----------------|--------------------------------------|-------------------------------------|
+    | `precision`     | -1 + exp(-0.5 (norm(e) / sigma)^2)   | -1 + mean_j exp(-0.5 (e_j/sigma)^2) |
+    | `distance`      | 0                                    | -w_d mean_j abs(e_j) / half-range_j |
+    | `velocity`      | 0                                    | -w_v mean_j g_j abs(qdot_j) / v0_j  |
+    | `action_change` | 0                                    | -w_a mean_j g_j abs(a_j - a_prev_j) |
+    | `sign_flip`     | 0                                    | -w_f mean_j g_j flip_j              |
+    | `out_of_bounds` | -10, alone, on a step ending with a joint outside the bounds (both)       |
+
+    sigma 0.018 rad; gate g_j = exp(-0.5 (e_j / near_scale)^2) (calm arrival is asked for
+    near the goal only); v0_j the joint's no-load speed; flip_j 1 when the command a_j
+    reversed the sign of a_prev_j with both above `sign_flip_threshold` (10 % of the limit,
+    as the rest metric counts reversals), else 0; bounds: the workspace widened by
+    `bounds_margin` (0.3 rad), within the joint limits.
+
+    ## Latency
+
+    With `latency_periods` L (or an envelope arm's), the action computed from the
+    observation at t is applied from t + L (rounded to physics steps of 2 ms) and the
+    previous one stays in force until then, exactly as `policy.campaigns.direct` runs
+    `RunConfig.latency_periods`: the observation is the state the action was computed from.
+
+    ## Starting state
+
+    At rest at a start q0 drawn uniformly in the workspace (E [0.4, 5.8], D [0.5, 2.9],
+    C [0.5, 2.9], B [0.5, 2.8] rad, or `workspace_low` / `workspace_high`), the goal drawn in
+    the same range (or within `max_step` of q0). Per episode, if configured: each joint's
+    torque scale uniform in [`torque_scale_low`, `torque_scale`], the arm's parameters scaled
+    by U(1 +- `param_perturbation`). With `envelope_fraction` > 0, that share of episodes
+    runs on an arm drawn from `policy.tasks.envelope` instead (`draws(1, seed)` with a seed from
+    the env's generator: friction, armature, masses, buoyancy, one weak joint, noise multiple,
+    latency; infeasible arms are redrawn); `info["variant"]` names it. `reset(options=...)`
+    may fix "start", "target", "torque_scale", and "variant" (a `policy.tasks.envelope.Variant`).
+
+    ## Episode end
+
+    | Ends by     | When                                                                     |
+    |-------------|--------------------------------------------------------------------------|
+    | termination | never: leaving the bounds costs -10 per step and the episode goes on     |
+    | truncation  | `EnvConfig.steps_per_episode` steps (400: 20 s at 20 Hz), by `TimeLimit` |
+
+    The env itself never truncates: `gym.make("ReachAlpha-v0")` wraps it in `TimeLimit` with
+    the default 400 steps (pass `max_episode_steps=config.steps_per_episode` with a config of
+    another length), `time_limited(env)` wraps an env built directly.
+
+    ## Info
+
+    `q`, `qdot` (true, rad, rad/s), `target` (rad), `time` (s since reset), `in_bounds`,
+    `variant` (the envelope arm's name, or None);
+    from `step` also `reward_terms`, and `power` (W per joint) when `measure_power` is set.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(
+        self,
+        config: EnvConfig | None = None,
+        arm_factory: Callable[[EnvConfig], ArmLike] | None = None,
+        **overrides: Any,
+    ) -> None:
+        config = config or EnvConfig()
+        if overrides:
+            config = dataclasses.replace(config, **overrides)
+        if config.control_hz <= 0 or config.episode_s <= 0:
+            raise ValueError("control_hz and episode_s must be positive")
+        self.config = config
+        #: put each step's mean |tau qdot| over the period in info["power"] (W, per joint);
+        #: evaluation switches it on, training leaves the faster whole-period step
+        self.measure_power = False
+        self._arm_factory = arm_factory or default_arm_factory
+        self.n_substeps = max(1, int(round(1.0 / (config.control_hz * config.physics_dt))))
+        self.control_dt = self.n_substeps * config.physics_dt
+        low, high = observation_bounds(config.observation)
+        self.observation_space = gym.spaces.Box(low, high, dtype=np.float32)
+        self._obs_low, self._obs_high = low, high
+        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(N_JOINTS,), dtype=np.float32)
+        self.arm: ArmLike = self._arm_factory(config)
+        self._nominal_params = getattr(self.arm, "params", None)
+        limits = np.asarray(self.arm.position_limits, dtype=np.float64)
+        self.workspace_low, self.workspace_high = config.workspace()
+        self.bounds_low = np.maximum(self.workspace_low - config.bounds_margin, limits[:, 0])
+        self.bounds_high = np.minimum(self.workspace_high + config.bounds_margin, limits[:, 1])
+        self.current_limits_mA = np.asarray(self.arm.current_limits_mA, dtype=np.float64).copy()
+        self.target = self.workspace_low.copy()
+        self.start = self.workspace_low.copy()
+        self.prev_action = np.zeros(N_JOINTS)
+        self.steps = 0
+        self.last_reading = (self.start.copy(), np.zeros(N_JOINTS))
+        #: this episode's envelope arm (None: the configured arm) and what it sets
+        self.variant: Variant | None = None
+        self.latency_substeps = self._latency(config.latency_periods)
+        self.noise = self._noise(config.noise_scale)
+        #: commands in flight: (physics step they take effect at, currents mA)
+        self._pending: deque[tuple[int, np.ndarray]] = deque()
+        self._applied = np.zeros(N_JOINTS)
+
+    # -- gymnasium API -------------------------------------------------------------------
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Random start and goal; `options` may fix them: {"start": q0, "target": q_req}."""
+        super().reset(seed=seed)
+        options = options or {}
+        cfg = self.config
+        variant: Variant | None = options.get("variant")
+        if variant is None and cfg.envelope_fraction > 0:
+            if self.np_random.uniform() < cfg.envelope_fraction:
+                variant = self.draw_variant()
+        if variant is not None:
+            if self._nominal_params is None:
+                raise ValueError("envelope arms need an arm with params / set_params")
+            self.arm.set_params(variant.params)  # type: ignore[attr-defined]
+        elif cfg.param_perturbation > 0:
+            if self._nominal_params is None:
+                raise ValueError("param_perturbation needs an arm with params / set_params")
+            perturbed = self._nominal_params.randomized(self.np_random, cfg.param_perturbation)
+            self.arm.set_params(perturbed)  # type: ignore[attr-defined]
+        elif self.variant is not None:  # back to the nominal arm after an envelope one
+            self.arm.set_params(self._nominal_params)  # type: ignore[attr-defined]
+        low, high = self.workspace_low, self.workspace_high
+        start = self.np_random.uniform(low, high)
+        target = self.np_random.uniform(low, high)
+        if cfg.max_step is not None:
+            step = self.np_random.uniform(-cfg.max_step, cfg.max_step, size=N_JOINTS)
+            target = np.clip(start + step, low, high)
+        scale = np.asarray(cfg.torque_scale, dtype=np.float64)
+        if cfg.torque_scale_low is not None:
+            scale = self.np_random.uniform(np.asarray(cfg.torque_scale_low), scale)
+        if "start" in options:
+            start = self._joint_vector(options["start"], "start")
+        if "target" in options:
+            target = self._joint_vector(options["target"], "target")
+        if variant is not None:
+            scale = np.asarray(variant.torque_scale, dtype=np.float64)
+        if "torque_scale" in options:
+            scale = self._joint_vector(options["torque_scale"], "torque_scale")
+        self.variant = variant
+        latency = cfg.latency_periods if variant is None else variant.latency_periods
+        noise_scale = cfg.noise_scale if variant is None else variant.noise_scale
+        self.latency_substeps = self._latency(latency)
+        self.noise = self._noise(noise_scale)
+        self.start, self.target = start, target
+        self.arm.torque_scale = scale.copy()
+        self.arm.reset(q=start.copy())
+        self.prev_action = np.zeros(N_JOINTS)
+        self._pending.clear()
+        self._applied = np.zeros(N_JOINTS)
+        self.steps = 0
+        return self._observe(), self._info(in_bounds=True)
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != (N_JOINTS,):
+            raise ValueError(f"action must have shape (4,), got {action.shape}")
+        if not np.all(np.isfinite(action)):
+            raise ValueError(f"action must be finite, got {action}")
+        action = np.clip(action, -1.0, 1.0)
+        currents = action * self.current_limits_mA
+        power = self._advance(currents)
+        self.steps += 1
+        q, qdot = np.asarray(self.arm.q), np.asarray(self.arm.qdot)
+        in_bounds = bool(np.all((q > self.bounds_low) & (q < self.bounds_high)))
+        terms = reward_terms(
+            q, qdot, self.target, action, self.prev_action, in_bounds, self.config.reward
+        )
+        self.prev_action = action
+        info = self._info(in_bounds)
+        info["reward_terms"] = terms
+        if power is not None:
+            info["power"] = power
+        # never terminated, never truncated: the time limit is TimeLimit's (`time_limited`)
+        return self._observe(), float(sum(terms.values())), False, False, info
+
+    # -- helpers -------------------------------------------------------------------------
+    def draw_variant(self) -> Variant:
+        """A feasible arm of the envelope around the nominal one, from the env's generator."""
+        seed = int(self.np_random.integers(0, 2**31 - 1))
+        return draws(1, seed, Envelope(), self._nominal_params).variants[0]
+
+    def _latency(self, periods: float) -> int:
+        return int(round(periods * self.n_substeps))
+
+    @staticmethod
+    def _noise(scale: float) -> SensorNoise:
+        return SensorNoise(SENSOR_NOISE.position_std * scale, SENSOR_NOISE.velocity_std * scale)
+
+    def _advance(self, currents: np.ndarray) -> np.ndarray | None:
+        """One control period of physics: `currents` join the commands in flight and each
+        takes effect `latency_substeps` physics steps after the state it was computed from
+        (as `policy.campaigns.direct`). Returns the period's mean |tau qdot| with
+        `measure_power`."""
+        n = self.n_substeps
+        k0 = self.steps * n
+        self._pending.append((k0 + self.latency_substeps, currents))
+        work = np.zeros(N_JOINTS) if self.measure_power else None
+        i = 0
+        while i < n:
+            while self._pending and self._pending[0][0] <= k0 + i:
+                self._applied = self._pending.popleft()[1]
+            # hold the applied command up to the next switch (at most one per period)
+            until = n if not self._pending else min(n, self._pending[0][0] - k0)
+            if work is not None:
+                # one physics step at a time, |tau qdot| at the physics rate (as `direct`)
+                for _ in range(until - i):
+                    self.arm.step(self._applied, n=1)
+                    work += np.abs(self.arm.tau * self.arm.qdot)
+            else:
+                self.arm.step(self._applied, n=until - i)
+            i = until
+        return None if work is None else work / n
+
+    def readings(self) -> tuple[np.ndarray, np.ndarray]:
+        """Joint angles and speeds as a sensor reports them (with noise if configured, times
+        the episode's noise multiple)."""
+        q = np.array(self.arm.q, dtype=np.float64)
+        qdot = np.array(self.arm.qdot, dtype=np.float64)
+        if self.config.sensor_noise:
+            q, qdot = self.noise.apply(q, qdot, self.np_random)
+        return q, qdot
+
+    def _observe(self) -> np.ndarray:
+        q, qdot = self.readings()
+        self.last_reading = (q, qdot)
+        obs = build_observation(q, qdot, self.target, self.config.observation)
+        return np.clip(obs, self._obs_low, self._obs_high)
+
+    def _info(self, in_bounds: bool) -> dict[str, Any]:
+        return {
+            "q": np.array(self.arm.q, dtype=np.float64),
+            "qdot": np.array(self.arm.qdot, dtype=np.float64),
+            "target": self.target.copy(),
+            "time": self.steps * self.control_dt,
+            "in_bounds": in_bounds,
+            "variant": None if self.variant is None else self.variant.name,
+        }
+
+    @staticmethod
+    def _joint_vector(value: Any, name: str) -> np.ndarray:
+        arr = np.asarray(value, dtype=np.float64)
+        if arr.shape != (N_JOINTS,) or not np.all(np.isfinite(arr)):
+            raise ValueError(f"option {name!r} must be 4 finite numbers (E D C B), got {value!r}")
+        return arr
+
+
+def time_limited(env: ReachAlphaEnv) -> TimeLimit[np.ndarray, np.ndarray]:
+    """`env` behind gymnasium's TimeLimit at its own episode length, as `gym.make` wraps it."""
+    return TimeLimit(env, max_episode_steps=max(1, env.config.steps_per_episode))
+
+
+def register_envs() -> None:
+    """Register `ReachAlpha-v0` (idempotent), time-limited at the default episode length."""
+    if ENV_ID not in gym.registry:
+        gym.register(
+            id=ENV_ID,
+            entry_point="policy.rl.env:ReachAlphaEnv",
+            max_episode_steps=EnvConfig().steps_per_episode,
+        )
+
+
+register_envs()

@@ -1,0 +1,1 @@
+"""The virtual arm's firmware, its serial (pty) and UDP servers, faults and recording."""

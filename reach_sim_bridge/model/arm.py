@@ -1,0 +1,524 @@
+"""The simulated Alpha 5: MuJoCo physics of model/alpha5.xml driven by motor currents.
+
+The firmware emulation, the RL environment and MPC all step this one class, so the arm they
+see is the same. Commands are currents (mA); the motor model (reach_sim_bridge.model.motor) turns
+them into torque with the current limit and the back-EMF speed-torque envelope re-evaluated
+every physics step.
+
+How the back-EMF clamp is integrated (why this shape): at the supply voltage the motor's
+torque falls along ``tau = k (V - Ke w) / R``, a damping of ~128 N m s/rad on E/D/C against an
+armature of 0.12 kg m^2, i.e. a ~1 ms time constant. Applied explicitly at dt = 2 ms that
+chatters (tools/bench_sim.py measures it). So each physics step picks each motor's regime from
+its joint speed: current-limited (input torque ``k i``) or voltage-limited (input torque
+``+-k V / R`` plus ``k Ke / R`` added to the joint's damping). MuJoCo's Euler integrator
+integrates joint damping implicitly, so the back-EMF slope is integrated implicitly too.
+(implicitfast would also do that through an affine actuator bias, but it differentiates the
+fluid drag every step as well, which halves the speed for a force under 0.5 % of the
+damping.) The regime test compares the speed with two thresholds fixed for the control
+period, with plain floats, and model arrays are written only when a regime changes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import mujoco
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from protocol.alpha5 import JOINT_LETTERS as JOINTS
+from reach_sim_bridge.model.motor import MotorModel
+from reach_sim_bridge.model.params import LINK_BODIES, NOSLIP_ITERATIONS, ArmParams
+
+__all__ = ["MODEL_PATH", "Alpha5Arm", "ArmParams", "JOINTS"]
+
+MODEL_PATH = Path(__file__).resolve().parent / "alpha5.xml"
+
+FloatArray = NDArray[np.float64]
+
+_JAW = "A"
+_TCP_SITE = "tcp"
+_BUOYANCY_SUFFIX = "_buoyancy"
+_WRIST = 3  # index of B in E D C B
+COAST_ARMATURE = 1e6
+"""kg m^2: a joint with this armature (`Alpha5Arm.coast`) gains 2e-9 rad/s per N m per 2 ms
+step (the arm's own: 0.003-0.2). Not more: at 1e9 MuJoCo's solve lost precision, and a replay
+of a noise-free log through the true arm came out 0.3 mrad off instead of 4e-9 rad."""
+
+
+@dataclass(frozen=True)
+class _StepConstants:
+    """Per-actuator constants (E D C B A) that `Alpha5Arm.step` needs every call, derived once
+    per setting of the motors: rebuilding them took most of a short call's time (a replay
+    steps a few physics steps per call, tools/bench_sim.py)."""
+
+    motors: tuple[MotorModel, MotorModel]
+    key: tuple[object, ...]
+    limit: FloatArray
+    neg_limit: FloatArray
+    torque: FloatArray  # N m per A at the output for the reported torque (the jaw's unscaled)
+    backemf: FloatArray
+    resistance: FloatArray
+    supply: FloatArray
+    v: float  # the supply the step's regimes use (the arm's motors')
+    limit_f: list[float]
+    drive_f: list[float]  # N m per A at the output, torque scale included
+    backemf_f: list[float]
+    resistance_f: list[float]
+    f_volt: list[float]
+    base: list[float]
+    d_volt: list[float]
+
+    @classmethod
+    def of(
+        cls,
+        motors: tuple[MotorModel, MotorModel],
+        base_damping: FloatArray,
+        key: tuple[object, ...],
+    ) -> _StepConstants:
+        arm, jaw = motors
+        limit = np.concatenate([mm.current_limits_mA for mm in motors])
+        drive = np.concatenate([mm.torque_scale * mm.torque_per_amp for mm in motors])
+        backemf = np.concatenate([mm.backemf_per_speed for mm in motors])
+        resistance = np.concatenate([mm.resistance for mm in motors])
+        v = arm.supply_voltage
+        return cls(
+            motors=motors,
+            key=key,
+            limit=limit,
+            neg_limit=-limit,
+            torque=np.concatenate([arm.torque_scale * arm.torque_per_amp, jaw.torque_per_amp]),
+            backemf=backemf,
+            resistance=resistance,
+            supply=np.array([v] * 4 + [jaw.supply_voltage]),
+            v=v,
+            limit_f=limit.tolist(),
+            drive_f=drive.tolist(),
+            backemf_f=backemf.tolist(),
+            resistance_f=resistance.tolist(),
+            f_volt=(drive * v / resistance).tolist(),
+            base=base_damping.tolist(),
+            d_volt=(base_damping + drive * backemf / resistance).tolist(),
+        )
+
+
+class Alpha5Arm:
+    """Four joints (E D C B) and the jaw, stepped with currents; state in the arm's units."""
+
+    def __init__(
+        self, params: ArmParams | None = None, dt: float = 0.002, seed: int | None = None
+    ) -> None:
+        if not (math.isfinite(dt) and 0.0 < dt <= 0.01):
+            raise ValueError(f"physics dt must be in (0, 0.01] s, got {dt}")
+        self.model = mujoco.MjModel.from_xml_path(str(MODEL_PATH))
+        self.model.opt.timestep = dt
+        self.data = mujoco.MjData(self.model)
+        self._scratch = mujoco.MjData(self.model)
+        self._rng = np.random.default_rng(seed)
+
+        m = self.model
+        joint_ids = [m.joint(name).id for name in (*JOINTS, _JAW)]
+        self._qadr = np.array([m.jnt_qposadr[j] for j in joint_ids])
+        self._dofadr = np.array([m.jnt_dofadr[j] for j in joint_ids])
+        if self._qadr.tolist() != list(range(5)) or self._dofadr.tolist() != list(range(5)):
+            raise RuntimeError(f"{MODEL_PATH} must order its joints E D C B A")
+        self._wrist_joint = joint_ids[_WRIST]
+        self._link_ids = np.array([m.body(name).id for name in LINK_BODIES])
+        self._buoy_ids = np.array([m.body(name + _BUOYANCY_SUFFIX).id for name in LINK_BODIES])
+        self._buoy_gravcomp = m.body_gravcomp[self._buoy_ids].copy()
+        if np.any(self._buoy_gravcomp <= 1.0):
+            raise RuntimeError("buoyancy bodies need gravcomp > 1 (net upward force)")
+        self._nominal_mass = m.body_mass[self._link_ids].copy()
+        self._nominal_inertia = m.body_inertia[self._link_ids].copy()
+        self._tcp = m.site(_TCP_SITE).id
+        self._collision_geoms = np.array([m.geom(name).id for name in ("m3_inline", *LINK_BODIES)])
+        self._jaw_range_m = m.jnt_range[joint_ids[4]].copy()
+
+        # Live views into MuJoCo's buffers, used in the stepping loop.
+        self._qvel = self.data.qvel
+        self._ctrl = self.data.ctrl
+        self._damping = m.dof_damping
+        self._base_damping = np.zeros(5)
+
+        p = params if params is not None else ArmParams()
+        self.motor = MotorModel(p.motors, p.supply_voltage, p.current_limits_mA, p.torque_scale)
+        self.jaw_motor = MotorModel(p.jaw_motor, p.supply_voltage, (p.jaw_current_limit_mA,))
+        self._params = p
+        self.nominal_params = p  # what randomize() perturbs around
+        self._command_mA = np.zeros(5)
+        self._step_constants: _StepConstants | None = None
+        self._outputs_pending: tuple[_StepConstants, FloatArray] | None = None
+        self._current_mA = np.zeros(5)
+        self._tau = np.zeros(5)
+        self.set_params(p)
+        self.reset()
+
+    # -- parameters -------------------------------------------------------------------------
+    @property
+    def params(self) -> ArmParams:
+        """The parameters in force, including run-time changes to limits and torque scale."""
+        lim = self.motor.current_limits_mA
+        scale = self.motor.torque_scale
+        return replace(
+            self._params,
+            supply_voltage=self.motor.supply_voltage,
+            current_limits_mA=(float(lim[0]), float(lim[1]), float(lim[2]), float(lim[3])),
+            torque_scale=(float(scale[0]), float(scale[1]), float(scale[2]), float(scale[3])),
+            jaw_current_limit_mA=float(self.jaw_motor.current_limits_mA[0]),
+        )
+
+    def set_params(self, params: ArmParams) -> None:
+        """Apply parameters to the compiled model in place (no recompilation; state kept)."""
+        if params.motors != self.motor.params or params.jaw_motor != self.jaw_motor.params:
+            self.motor = MotorModel(params.motors)
+            self.jaw_motor = MotorModel(params.jaw_motor)
+        m = self.model
+        dof = self._dofadr
+        m.dof_armature[dof[:4]] = params.armature
+        m.dof_damping[dof[:4]] = params.damping
+        m.dof_frictionloss[dof[:4]] = params.frictionloss
+        m.dof_armature[dof[4]] = params.jaw_armature
+        m.dof_damping[dof[4]] = params.jaw_damping
+        self._base_damping[:4] = params.damping
+        self._base_damping[4] = params.jaw_damping
+        m.dof_frictionloss[dof[4]] = params.jaw_frictionloss
+
+        mass = np.asarray(params.link_mass_kg)
+        m.body_mass[self._link_ids] = mass
+        ratio = mass / self._nominal_mass
+        m.body_inertia[self._link_ids] = self._nominal_inertia * ratio[:, None]
+        # gravcomp g_c on a body of mass m_b gives a net upward force (g_c - 1) m_b g.
+        m.body_mass[self._buoy_ids] = params.buoyancy_kg() / (self._buoy_gravcomp - 1.0)
+
+        drag = params.fluid_drag and params.in_water
+        m.opt.density = params.water_density if drag else 0.0
+        m.opt.viscosity = params.fluid_viscosity if drag else 0.0
+        m.opt.gravity[:] = params.gravity
+        m.opt.noslip_iterations = NOSLIP_ITERATIONS if params.friction_holds else 0
+        m.jnt_limited[self._wrist_joint] = 0 if params.wrist_continuous else 1
+        collide = 1 if params.self_collision else 0
+        m.geom_contype[self._collision_geoms] = collide
+        m.geom_conaffinity[self._collision_geoms] = collide
+        if params.self_collision:
+            m.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+        else:
+            m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+
+        for motor in (self.motor, self.jaw_motor):
+            motor.supply_voltage = params.supply_voltage
+        self.motor.current_limits_mA = params.current_limits_mA
+        self.motor.torque_scale = params.torque_scale
+        self.jaw_motor.current_limits_mA = (params.jaw_current_limit_mA,)
+        mujoco.mj_setConst(m, self._scratch)
+        self._params = params
+
+    def randomize(
+        self, spread: float = 0.2, rng: np.random.Generator | int | None = None
+    ) -> ArmParams:
+        """Perturb friction, armature, masses and buoyancy by up to +-spread around
+        ``nominal_params`` (the arm as built, so repeated calls do not compound), keeping the
+        run-time torque scale, current limits and supply; draws from the arm's seeded
+        generator unless rng is given. Applies the result and returns it."""
+        now = self.params
+        drawn = self.nominal_params.randomized(self._rng if rng is None else rng, spread)
+        params = replace(
+            drawn,
+            torque_scale=now.torque_scale,
+            current_limits_mA=now.current_limits_mA,
+            jaw_current_limit_mA=now.jaw_current_limit_mA,
+            supply_voltage=now.supply_voltage,
+        )
+        self.set_params(params)
+        return params
+
+    # -- state ------------------------------------------------------------------------------
+    def coast(self, joints: Sequence[int]) -> None:
+        """Until the next `set_params`, `joints` (indices in E D C B) keep their speed through
+        any torque: their armature is made `COAST_ARMATURE`. A replay that puts them on a
+        measured path at every tick wants that path between ticks, not their own dynamics."""
+        for j in joints:
+            if not 0 <= int(j) < 4:
+                raise ValueError(f"joint index must be in 0..3 (E D C B), got {j}")
+            dof = self._dofadr[int(j)]
+            self.model.dof_armature[dof] = COAST_ARMATURE
+            # coasting: nothing to brake them either (at this armature neither would show)
+            self.model.dof_frictionloss[dof] = 0.0
+            self.model.dof_damping[dof] = 0.0
+            self._base_damping[int(j)] = 0.0
+
+    def reset(
+        self,
+        q: ArrayLike | None = None,
+        qdot: ArrayLike | None = None,
+        jaw_mm: float = 5.0,
+    ) -> None:
+        """Put the arm at rest (or moving at qdot) at q; default q is mid-range of each joint."""
+        limits = self.position_limits
+        q_arr = limits.mean(axis=1) if q is None else self._vector(q, "q (rad)")
+        qdot_arr = np.zeros(4) if qdot is None else self._vector(qdot, "qdot (rad/s)")
+        check = slice(0, 3) if self._params.wrist_continuous else slice(0, 4)
+        tol = 1e-9
+        outside = (q_arr[check] < limits[check, 0] - tol) | (q_arr[check] > limits[check, 1] + tol)
+        if np.any(outside):
+            bad = [
+                f"{JOINTS[i]}={q_arr[i]:.4f} not in [{limits[i, 0]:.4f}, {limits[i, 1]:.4f}]"
+                for i in np.flatnonzero(outside)
+            ]
+            raise ValueError("reset position outside the joint ranges: " + ", ".join(bad))
+        jaw = float(jaw_mm)
+        lo_mm, hi_mm = self._jaw_range_m * 1000.0
+        if not (math.isfinite(jaw) and lo_mm - tol <= jaw <= hi_mm + tol):
+            raise ValueError(f"jaw_mm must be in [{lo_mm:.1f}, {hi_mm:.1f}] mm, got {jaw_mm}")
+
+        d = self.data
+        mujoco.mj_resetData(self.model, d)
+        d.qpos[:4] = q_arr
+        d.qpos[4] = jaw / 1000.0
+        d.qvel[:4] = qdot_arr
+        self._damping[:5] = self._base_damping
+        self._command_mA[:] = 0.0
+        mujoco.mj_forward(self.model, d)
+        self._update_outputs()
+
+    def step(self, currents_mA: ArrayLike, jaw_current_mA: float = 0.0, n: int = 1) -> None:
+        """Hold the commanded currents (E D C B, jaw; mA) for n physics steps."""
+        cmd = self._vector(currents_mA, "currents_mA")
+        jaw = float(jaw_current_mA)
+        if not math.isfinite(jaw):
+            raise ValueError(f"jaw_current_mA must be finite, got {jaw_current_mA}")
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise ValueError(f"n (physics steps) must be an integer >= 1, got {n!r}")
+        self._command_mA[:4] = cmd
+        self._command_mA[4] = jaw
+
+        c = self._constants()
+        # Five actuators: plain floats (IEEE doubles, the same arithmetic as numpy's) are
+        # faster than arrays at this size.
+        v = c.v
+        amps = [
+            min(max(x, -lim), lim) / 1000.0
+            for x, lim in zip(self._command_mA.tolist(), c.limit_f, strict=True)
+        ]
+        ra = [r * a for r, a in zip(c.resistance_f, amps, strict=True)]
+        thr_hi = [(v - x) / ke for x, ke in zip(ra, c.backemf_f, strict=True)]  # supply limits
+        thr_lo = [(-v - x) / ke for x, ke in zip(ra, c.backemf_f, strict=True)]  # reverse too
+        f_cur = [k * a for k, a in zip(c.drive_f, amps, strict=True)]
+        f_volt, base, d_volt = c.f_volt, c.base, c.d_volt
+
+        m, d = self.model, self.data
+        qvel, ctrl, damping = self._qvel, self._ctrl, self._damping
+        regime = [2, 2, 2, 2, 2]  # forces a write of every actuator in the first step
+        mj_step = mujoco.mj_step
+        for _ in range(int(n)):
+            w = qvel.tolist()
+            for j in range(5):
+                wj = w[j]
+                new = 1 if wj > thr_hi[j] else (-1 if wj < thr_lo[j] else 0)
+                if new != regime[j]:
+                    regime[j] = new
+                    if new == 0:
+                        ctrl[j] = f_cur[j]
+                        damping[j] = base[j]
+                    else:
+                        ctrl[j] = new * f_volt[j]
+                        damping[j] = d_volt[j]
+            mj_step(m, d)
+        damping[:5] = self._base_damping  # the model between calls is the nominal one
+        # The currents and torques are worked out when read (a replay never reads them), from
+        # the speeds and settings at this moment.
+        self._outputs_pending = (c, self.data.qvel[:5].copy())
+
+    def _constants(self) -> _StepConstants:
+        """The motors' constants for `step`, rebuilt only when a setting changed (checked by
+        value: the limits and the torque scale may be edited in place)."""
+        motors = (self.motor, self.jaw_motor)
+        key = (*(mm.state_key() for mm in motors), self._base_damping.tobytes())
+        c = self._step_constants
+        if (
+            c is None
+            or c.motors[0] is not motors[0]
+            or c.motors[1] is not motors[1]
+            or c.key != key
+        ):
+            c = self._step_constants = _StepConstants.of(motors, self._base_damping, key)
+        return c
+
+    def _outputs(self) -> None:
+        pending = self._outputs_pending
+        if pending is not None:
+            self._outputs_pending = None
+            self._update_outputs(*pending)
+
+    def _update_outputs(self, c: _StepConstants | None = None, w: FloatArray | None = None) -> None:
+        """Current drawn and torque delivered, from the motor model at the final speeds."""
+        self._outputs_pending = None
+        c = self._constants() if c is None else c
+        emf = c.backemf * (self.data.qvel[:5] if w is None else w)
+        hi = np.minimum(c.limit, 1000.0 * (c.supply - emf) / c.resistance)
+        lo = np.maximum(c.neg_limit, 1000.0 * (-c.supply - emf) / c.resistance)
+        # Past the no-load speed lo > hi; the back-EMF bound wins (the motor brakes).
+        current = np.minimum(np.maximum(self._command_mA, lo), hi)
+        self._current_mA[:] = current
+        self._tau[:] = c.torque * current / 1000.0
+
+    @staticmethod
+    def _vector(values: ArrayLike, name: str) -> FloatArray:
+        array = np.asarray(values, dtype=np.float64)
+        if array.shape != (4,):
+            raise ValueError(
+                f"{name} needs 4 values in joint order E D C B, got shape {array.shape}"
+            )
+        if not np.all(np.isfinite(array)):
+            raise ValueError(f"{name} must be finite, got {array.tolist()}")
+        return array
+
+    @property
+    def q(self) -> FloatArray:
+        """Joint angles E D C B (rad) as the arm reports them."""
+        q = self.data.qpos[:4].copy()
+        if self._params.wrist_continuous:
+            q[_WRIST] %= 2.0 * math.pi
+        return q
+
+    @property
+    def qdot(self) -> FloatArray:
+        return self.data.qvel[:4].copy()
+
+    @property
+    def tau(self) -> FloatArray:
+        """Torque the motors delivered at the end of the last step (N m), E D C B."""
+        self._outputs()
+        return self._tau[:4].copy()
+
+    @property
+    def current_mA(self) -> FloatArray:
+        """Current drawn after the limit and back-EMF clamp (mA), E D C B."""
+        self._outputs()
+        return self._current_mA[:4].copy()
+
+    @property
+    def jaw_current_mA(self) -> float:
+        self._outputs()
+        return float(self._current_mA[4])
+
+    @property
+    def jaw_force(self) -> float:
+        """Force the jaw motor delivered along its slide (N)."""
+        self._outputs()
+        return float(self._tau[4])
+
+    @property
+    def jaw_mm(self) -> float:
+        return float(self.data.qpos[4] * 1000.0)
+
+    @property
+    def jaw_velocity_mm_s(self) -> float:
+        return float(self.data.qvel[4] * 1000.0)
+
+    @property
+    def time(self) -> float:
+        return float(self.data.time)
+
+    @property
+    def dt(self) -> float:
+        return float(self.model.opt.timestep)
+
+    @property
+    def torque_scale(self) -> FloatArray:
+        """Fraction of nominal torque per joint (E D C B); edit in place or assign."""
+        return self.motor.torque_scale
+
+    @torque_scale.setter
+    def torque_scale(self, scale: Sequence[float] | ArrayLike) -> None:
+        self.motor.torque_scale = scale
+
+    @property
+    def current_limits_mA(self) -> FloatArray:
+        """Symmetric current limits E D C B (mA); assign to change (CURRENT_LIMITS packet)."""
+        return self.motor.current_limits_mA
+
+    @current_limits_mA.setter
+    def current_limits_mA(self, limits: Sequence[float] | ArrayLike) -> None:
+        self.motor.current_limits_mA = limits
+
+    @property
+    def jaw_current_limit_mA(self) -> float:
+        return float(self.jaw_motor.current_limits_mA[0])
+
+    @jaw_current_limit_mA.setter
+    def jaw_current_limit_mA(self, limit: float) -> None:
+        self.jaw_motor.current_limits_mA = (limit,)
+
+    @property
+    def position_limits(self) -> FloatArray:
+        """[min, max] per joint E D C B (rad): the factory ranges; B is 0..2pi."""
+        return self.model.jnt_range[:4].copy()
+
+    @property
+    def jaw_limits_mm(self) -> tuple[float, float]:
+        return float(self._jaw_range_m[0] * 1000.0), float(self._jaw_range_m[1] * 1000.0)
+
+    # -- kinematics and statics -------------------------------------------------------------
+    def end_effector_pose(self) -> tuple[float, float, float, float, float, float]:
+        """Tool centre point in the base frame: x, y, z (mm), roll, pitch, yaw (rad, URDF
+        rpy convention R = Rz(yaw) Ry(pitch) Rx(roll))."""
+        mujoco.mj_kinematics(self.model, self.data)
+        return _pose(self.data.site_xpos[self._tcp], self.data.site_xmat[self._tcp])
+
+    def pose_at(self, q: ArrayLike) -> tuple[float, float, float, float, float, float]:
+        """`end_effector_pose()` with the joints at q (E D C B, rad); the arm is not moved."""
+        s = self._at(q)
+        return _pose(s.site_xpos[self._tcp], s.site_xmat[self._tcp])
+
+    def tcp_kinematics(self, q: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The tool centre point with the joints at q (E D C B, rad), for inverse kinematics:
+        position (m), rotation matrix (columns: the tool axes in the base frame), and the
+        position (m/rad) and rotation (rad/rad) Jacobians, 3 x 4 each, in the base frame."""
+        s = self._at(q)
+        jacp = np.zeros((3, self.model.nv))
+        jacr = np.zeros((3, self.model.nv))
+        mujoco.mj_jacSite(self.model, s, jacp, jacr, self._tcp)
+        rot = s.site_xmat[self._tcp].reshape(3, 3).copy()
+        return s.site_xpos[self._tcp].copy(), rot, jacp[:, :4].copy(), jacr[:, :4].copy()
+
+    def skeleton(self) -> FloatArray:
+        """World positions (m) of the base, each moving link's origin and the tool centre point:
+        a polyline that draws the arm (recordings)."""
+        mujoco.mj_kinematics(self.model, self.data)
+        points = [np.zeros(3)]
+        points.extend(self.data.xpos[i] for i in self._link_ids)
+        points.append(self.data.site_xpos[self._tcp])
+        return np.array(points, dtype=float)
+
+    def _at(self, q: ArrayLike) -> mujoco.MjData:
+        scratch = self._scratch
+        scratch.qpos[:4] = self._vector(q, "q (rad)")
+        scratch.qpos[4] = self.data.qpos[4]
+        scratch.qvel[:] = 0.0
+        mujoco.mj_forward(self.model, scratch)
+        return scratch
+
+    def gravity_torque(self, q: ArrayLike) -> FloatArray:
+        """Torque gravity and buoyancy exert on E D C B at rest at q (N m); a controller
+        holds the arm still by applying its negative."""
+        s = self._at(q)
+        return (s.qfrc_gravcomp[:4] - s.qfrc_bias[:4]).copy()
+
+    def mass_matrix(self, q: ArrayLike) -> FloatArray:
+        """Joint-space inertia of E D C B at q, armature included (kg m^2)."""
+        s = self._at(q)
+        full = np.zeros((self.model.nv, self.model.nv))
+        mujoco.mj_fullM(self.model, s, full)
+        return full[:4, :4].copy()
+
+
+def _pose(pos_m: ArrayLike, xmat: ArrayLike) -> tuple[float, float, float, float, float, float]:
+    pos = np.asarray(pos_m) * 1000.0
+    rot = np.asarray(xmat).reshape(3, 3)
+    roll = math.atan2(rot[2, 1], rot[2, 2])
+    pitch = math.atan2(-rot[2, 0], math.hypot(rot[0, 0], rot[1, 0]))
+    yaw = math.atan2(rot[1, 0], rot[0, 0])
+    return float(pos[0]), float(pos[1]), float(pos[2]), roll, pitch, yaw
