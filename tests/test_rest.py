@@ -211,7 +211,13 @@ def test_a_real_burst_on_the_stability_screen_is_flagged() -> None:
     after settling and stops; episode 44 settles cleanly."""
     from policy.campaigns.selection import _screen, _shipped
 
-    shipped = Path(__file__).resolve().parents[1] / "policy" / "weights" / "ddpg_actor.npz"
+    shipped = (
+        Path(__file__).resolve().parents[1]
+        / "policy"
+        / "controllers"
+        / "weights"
+        / "ddpg_actor.npz"
+    )
     burst, clean = (r.metrics for r in _screen(shipped, [43, 44], 12, 0.2, _shipped))
     assert burst.rest_speed_rms < REST_SPEED_RMS_MAX and burst.command_reversals == 0
     assert burst.energy_after_settling_j > 2 * REST_ENERGY_AFTER_SETTLING_MAX_J

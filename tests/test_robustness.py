@@ -362,7 +362,7 @@ def test_the_comparison_uses_only_the_arms_every_run_shares() -> None:
 def test_an_actor_file_runs_under_its_own_label(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    weights = ROOT / "policy" / "weights" / "ddpg_actor.npz"
+    weights = ROOT / "policy" / "controllers" / "weights" / "ddpg_actor.npz"
     argv = ["--controller", "ddpg", "--label", "robust", "--param", f"weights={weights}"]
     argv += ["--draws", "1", "--seconds", "2", "--out", str(tmp_path), "--quiet"]
     assert rb.main(argv) == 0

@@ -29,7 +29,7 @@ import numpy as np
 
 from protocol.alpha5 import JOINT_LETTERS, N_JOINTS
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 IDENTIFY_TOOL = REPO / "tools" / "identify.py"
 LINK_TIMEOUT_S = 30.0
 TAIL_LINES = 30
