@@ -577,16 +577,8 @@ def test_the_twins_coulomb_friction_creeps_below_breakaway_unless_it_is_made_to_
     tools/creep.py): MuJoCo's frictionloss is a soft constraint, so a joint pushed below its
     friction slides at push / ~120 N m s/rad instead of holding; `friction_holds` (its no-slip
     solver) makes the friction hold and leaves the slip above breakaway as it was."""
-    import importlib.util
-    import sys
-    from pathlib import Path
+    from reach_sim_bridge.model import creep
 
-    path = Path(__file__).resolve().parents[1] / "tools" / "creep.py"
-    spec = importlib.util.spec_from_file_location("tool_creep", path)
-    assert spec is not None and spec.loader is not None
-    creep = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = creep
-    spec.loader.exec_module(creep)
     half = creep.creep_speed(6.6, 0, 0.5)  # E pushed at 3.3 N m against 6.6
     assert 3.3 / half == pytest.approx(120, rel=0.1)
     assert abs(creep.creep_speed(6.6, 0, 0.5, holds=True)) < 1e-6

@@ -22,6 +22,7 @@ from policy.rl.expert import PDExpert
 from policy.rl.exploration import OUNoise
 from policy.rl.networks import Actor
 from policy.rl.replay import ReplayBuffer
+from policy.rl.run_dir import ship
 from policy.rl.trainer import Trainer, make_expert
 from reach_driver.controllers import ControlState
 
@@ -284,25 +285,14 @@ def test_train_cli_help_and_bad_override(tmp_path: Path) -> None:
     assert missing.returncode != 0 and "no checkpoint" in missing.stderr
 
 
-def _load_train_tool():  # type: ignore[no-untyped-def]
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("train_tool", ROOT / "tools" / "train.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_ship_copies_best_actor_with_provenance(tmp_path: Path) -> None:
-    tool = _load_train_tool()
     run = tmp_path / "run"
     cfg = tiny(DDPGConfig.paper(), total_steps=200)
     trainer = Trainer(cfg, run, log=lambda _: None)
     trainer.run()
     trainer.evaluate_and_keep_best()
     (run / "commands.txt").write_text("tools/train.py --config paper --run run\n")
-    dest = tool.ship(run, tmp_path / "w" / "actor.npz")
+    dest = ship(run, tmp_path / "w" / "actor.npz")
     meta = json.loads(dest.with_suffix(".json").read_text())
     assert meta["command"] == "tools/train.py --config paper --run run"
     assert meta["seed"] == 0 and meta["training_env_steps"] == 200
@@ -310,7 +300,7 @@ def test_ship_copies_best_actor_with_provenance(tmp_path: Path) -> None:
     weights = ActorWeights.load(dest)
     assert weights.observation == cfg.env.observation
     with pytest.raises(SystemExit, match="does not exist"):
-        tool.ship(tmp_path / "empty", tmp_path / "w2" / "a.npz")
+        ship(tmp_path / "empty", tmp_path / "w2" / "a.npz")
 
 
 def test_evaluate_cli_scores_the_expert() -> None:

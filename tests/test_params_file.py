@@ -3,17 +3,19 @@ the evaluation runner and training really use the arm a file describes."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
+import os
+import subprocess
 import sys
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
 import pytest
 
 from policy.campaigns.evaluation import Episode, RunConfig, run_episode
+from policy.rl.env import EnvConfig
+from policy.rl.scoring import params_arm_factory
 from reach_sim_bridge.cli import build_parser, config_from_args, main
 from reach_sim_bridge.emulator.server import SimServer
 from reach_sim_bridge.model.params import (
@@ -30,15 +32,6 @@ def _write(tmp_path: Path, data: Any, name: str = "arm.json") -> Path:
     path = tmp_path / name
     path.write_text(json.dumps(data), encoding="utf-8")
     return path
-
-
-def _tool(name: str) -> ModuleType:
-    spec = importlib.util.spec_from_file_location(f"{name}_cli", ROOT / "tools" / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_a_subset_overrides_and_the_rest_stays_nominal(tmp_path: Path) -> None:
@@ -201,32 +194,23 @@ def test_evaluation_runs_on_the_file_arm(tmp_path: Path) -> None:
 
 def test_evaluate_and_train_take_params(tmp_path: Path) -> None:
     path = _write(tmp_path, {"frictionloss": [1.5, 0.7, 0.7, 0.075]})
-    evaluate = _tool("evaluate")
-    args = evaluate.build_parser().parse_args(
-        ["--controller", "pid", "--random", "1", "--out", "x.json", "--params", str(path)]
-    )
-    assert args.params == path
-    train = _tool("train")
-    factory = train.params_arm_factory(path)
-    arm = factory(train.EnvConfig())
+    factory = params_arm_factory(path)
+    arm = factory(EnvConfig())
     assert arm.params.frictionloss == (1.5, 0.7, 0.7, 0.075)
-    assert train.params_arm_factory(None) is None
+    assert params_arm_factory(None) is None
     bad = _write(tmp_path, {"frictionloss": [1, 1]}, "bad.json")
     with pytest.raises(SystemExit, match="--params: .*needs 4 values"):
-        train.params_arm_factory(bad)
-    assert (
-        evaluate.main(
-            [
-                "--controller",
-                "pid",
-                "--random",
-                "1",
-                "--out",
-                str(tmp_path / "o.json"),
-                "--params",
-                str(bad),
-                "--quiet",
-            ]
-        )
-        == 2
+        params_arm_factory(bad)
+    # tools/evaluate.py takes --params, reads the file and refuses a bad one with exit 2
+    argv = ["--controller", "pid", "--random", "1", "--out", str(tmp_path / "o.json")]
+    evaluate = subprocess.run(
+        [sys.executable, str(ROOT / "tools" / "evaluate.py"), *argv, "--params", str(bad)]
+        + ["--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
     )
+    assert evaluate.returncode == 2, evaluate.stdout + evaluate.stderr
+    assert "needs 4 values" in evaluate.stderr, evaluate.stderr

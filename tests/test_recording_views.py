@@ -3,9 +3,7 @@ the MJCF's geoms where the simulator has them. Behaviour read back from the file
 
 from __future__ import annotations
 
-import importlib.util
 import re
-import sys
 import warnings
 from pathlib import Path
 
@@ -25,21 +23,11 @@ from reach_driver.recording import (
     StepSample,
 )
 from reach_driver.rrd_summary import read_blueprint, read_recording
+from reach_sim_bridge.model import geometry
 from reach_sim_bridge.model.arm import MODEL_PATH, Alpha5Arm
 
 ROOT = Path(__file__).resolve().parents[1]
 DT = 0.05
-
-
-def _gen_tool():  # type: ignore[no-untyped-def]
-    spec = importlib.util.spec_from_file_location(
-        "gen_arm_geometry", ROOT / "tools/gen_arm_geometry.py"
-    )
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def _write(path: Path, n: int = 40) -> None:
@@ -65,15 +53,16 @@ def _chunks(path: Path) -> list:
 
 
 def test_arm_geometry_is_the_mjcfs() -> None:
-    """reach_driver/arm_geometry.py is what tools/gen_arm_geometry.py makes of alpha5.xml."""
-    fresh = _gen_tool().extract(MODEL_PATH)
+    """reach_driver/arm_geometry.py is what tools/gen_arm_geometry.py makes of alpha5.xml
+    (reach_sim_bridge.model.geometry)."""
+    fresh = geometry.extract(MODEL_PATH)
     assert len(fresh) == len(GEOMS)
     for g, f in zip(GEOMS, fresh, strict=True):
         assert (g.name, g.link, g.shape) == (f["name"], f["link"], f["shape"])
         np.testing.assert_allclose(g.center, f["center"], atol=1e-6)
         np.testing.assert_allclose(g.quat_xyzw, f["quat_xyzw"], atol=1e-6)
         np.testing.assert_allclose(g.size, f["size"], atol=1e-6)
-    assert _gen_tool().render(fresh) == (ROOT / "reach_driver/arm_geometry.py").read_text()
+    assert geometry.render(fresh) == (ROOT / "reach_driver/arm_geometry.py").read_text()
 
 
 def test_geoms_posed_by_the_driver_sit_where_mujoco_puts_them() -> None:

@@ -6,16 +6,17 @@ trials reporting) needs Ray Tune, whose requirements (pandas) the extra ``ray[tu
 
 from __future__ import annotations
 
-import importlib.util
 import json
+import os
+import subprocess
 import sys
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import pytest
 
 from policy.campaigns import parallel as campaign
+from policy.campaigns.sweep import run_sweep, sweep_config
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
@@ -28,16 +29,16 @@ TINY = [
 ]
 
 
-def _tool() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("sweep_tool", ROOT / "tools" / "sweep.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-sweep = _tool()
+def _sweep(*argv: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    """tools/sweep.py run as a user runs it."""
+    return subprocess.run(
+        [sys.executable, str(ROOT / "tools" / "sweep.py"), *argv],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
 
 
 def _tune_available() -> bool:
@@ -49,7 +50,7 @@ def _tune_available() -> bool:
 
 
 def test_a_trial_trains_and_reports_every_evaluation(tmp_path: Path) -> None:
-    config = sweep.sweep_config("paper", 300, TINY)
+    config = sweep_config("paper", 300, TINY)
     reports: list[dict[str, Any]] = []
     campaign.run_trial({"seed": 5, "ddpg": config.to_dict(), "root": str(tmp_path)}, reports.append)
     assert [r["env_steps"] for r in reports] == [150, 300]
@@ -62,21 +63,21 @@ def test_a_trial_trains_and_reports_every_evaluation(tmp_path: Path) -> None:
         campaign.run_trial({"seed": 5, "ddpg": config.to_dict(), "root": str(tmp_path)}, print)
 
 
-def test_bad_settings_are_clear_errors(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
-    base = ["--seeds", "0", "1", "--out", str(tmp_path)]
-    assert sweep.main([*base, "--steps", "0"]) == 2
-    assert "--steps" in capsys.readouterr().err
-    assert sweep.main([*base, "--steps", "10", "--set", "no_such_key=1"]) == 2
-    assert "no_such_key" in capsys.readouterr().err
-    assert sweep.main(["--seeds", "1", "1", "--steps", "10", "--out", str(tmp_path)]) == 2
-    err = capsys.readouterr().err
-    assert "distinct" in err or "Ray Tune" in err
+def test_bad_settings_are_clear_errors(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="--steps"):
+        sweep_config("ours", 0, [])
+    with pytest.raises(ValueError, match="no_such_key"):
+        sweep_config("ours", 10, ["no_such_key=1"])
+    with pytest.raises((ValueError, campaign.CampaignError), match="distinct|Ray Tune"):
+        run_sweep(sweep_config("ours", 10, []), [1, 1], tmp_path)
+    # the command line says so on stderr, with exit status 2
+    out = _sweep("--seeds", "0", "1", "--out", str(tmp_path), "--steps", "0")
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert "--steps" in out.stderr
 
 
 @pytest.mark.skipif(_tune_available(), reason="Ray Tune is installed")
-def test_without_tune_the_message_names_the_extra(
-    capsys: pytest.CaptureFixture[str], tmp_path: Path
-) -> None:
+def test_without_tune_the_message_names_the_extra(tmp_path: Path) -> None:
     argv = [
         "--seeds",
         "0",
@@ -87,8 +88,9 @@ def test_without_tune_the_message_names_the_extra(
         str(tmp_path),
         *sum((["--set", s] for s in TINY), []),
     ]
-    assert sweep.main(argv) == 2
-    assert "ray[tune]" in capsys.readouterr().err
+    out = _sweep(*argv)
+    assert out.returncode == 2
+    assert "ray[tune]" in out.stderr
 
 
 @pytest.mark.slow
@@ -96,7 +98,8 @@ def test_without_tune_the_message_names_the_extra(
 def test_a_two_seed_sweep_on_tune_reports_both_trials(tmp_path: Path) -> None:
     argv = ["--config", "paper", "--seeds", "0", "1", "--steps", "300", "--workers", "1"]
     argv += ["--out", str(tmp_path), "--quiet", *sum((["--set", s] for s in TINY), [])]
-    assert sweep.main(argv) == 0
+    out = _sweep(*argv, timeout=900)
+    assert out.returncode == 0, out.stdout + out.stderr
     result = json.loads((tmp_path / "sweep.json").read_text())
     trials = result["trials"]
     assert [t["seed"] for t in trials] == [0, 1]

@@ -16,6 +16,9 @@ import pytest
 import torch
 from conftest import wait_until
 
+from policy.rl.config import DDPGConfig
+from policy.rl.overrides import resume_overrides
+
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = str(ROOT / "tools" / "train.py")
 #: a run of a few hundred steps that evaluates twice: seconds, not minutes
@@ -136,15 +139,6 @@ def test_resume_refuses_what_cannot_change_naming_the_field(
 
 
 def test_resume_with_an_unchanged_fixed_field_is_fine(tiny_run, tmp_path) -> None:
-    import importlib.util
-
-    from policy.rl.config import DDPGConfig
-
-    spec = importlib.util.spec_from_file_location("train_tool", TRAIN)
-    assert spec is not None and spec.loader is not None
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
-    resume_overrides = tool.resume_overrides
     config = DDPGConfig.from_dict(_checkpoint_config(tiny_run[0]))
     new, changes = resume_overrides(config, ["hidden=[16,16]", "batch_size=48"])
     assert changes == ["batch_size 32 -> 48"] and new.hidden == (16, 16)

@@ -1,0 +1,341 @@
+"""Attacks on the stack, as an adversarial tester would make them: fuzzed and flooded input to
+the codec and the virtual arm, strangers on its UDP port, bad commands, a silent controller and a
+lying arm. Each is bounded in count (times `scale`) and time, stops by itself and keeps all
+traffic on loopback (a virtual arm in this process, on a pty and 127.0.0.1); each returns an
+`Outcome` saying whether the stack held. tools/attack.py runs them and prints the table.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import random
+import resource
+import socket
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from protocol import DeviceID, Mode, Packet, PacketDecoder, PacketID, commands, encode_packet
+from protocol.payload import pack_floats
+from reach_driver import ArmClient, DriverError, LimitKind, SafetyConfig, open_transport
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
+
+E, D, C, B = DeviceID.E, DeviceID.D, DeviceID.C, DeviceID.B
+
+
+@dataclass
+class Outcome:
+    """One attack's row of the table: what was sent, what came of it, whether the stack held."""
+
+    attack: str
+    count: str
+    result: str
+    held: bool
+
+
+def _rss_mb() -> float:
+    """Resident memory of this process now (MB), from /proc where there is one."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _wait(predicate: Callable[[], object], timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(0.005)
+    return bool(predicate())
+
+
+def _server(tmp: str, **kwargs: object) -> SimServer:
+    server = SimServer(
+        SimConfig(link=os.path.join(tmp, "arm"), udp=("127.0.0.1", 0), **kwargs)  # type: ignore[arg-type]
+    )
+    server.start()
+    return server
+
+
+# -- the attacks ----------------------------------------------------------------------------
+
+
+def codec_fuzz(scale: float, tmp: str) -> Outcome:
+    """Mutated valid frames and random bytes into the stream decoder: no crash, and every byte
+    accounted for (a good frame, discarded, or pending)."""
+    rng = random.Random(2026)
+    runs = max(1000, int(200_000 * scale))
+    valid = [
+        commands.position(E, 1.5).encode(),
+        commands.request(D, [PacketID.POSITION, PacketID.VELOCITY]).encode(),
+        commands.current(B, -120.0).encode(),
+        encode_packet(C, PacketID.HARDWARE_STATUS, bytes(4)),
+    ]
+    decoder = PacketDecoder()
+    crashes = good_bytes = 0
+    for _ in range(runs):
+        frame = bytearray(rng.choice(valid))
+        kind = rng.random()
+        if kind < 0.4:
+            frame[rng.randrange(len(frame))] = rng.randrange(256)
+        elif kind < 0.6:
+            del frame[rng.randrange(len(frame)) :]
+        elif kind < 0.8:
+            frame = bytearray(rng.randbytes(rng.randrange(1, 300)))
+        try:
+            # A good frame re-encodes to the bytes it came in (COBS and CRC are canonical).
+            good_bytes += sum(len(p.encode()) for p in decoder.feed(bytes(frame)))
+        except Exception:  # noqa: BLE001 - any escape is the finding
+            crashes += 1
+    s = decoder.stats
+    accounted = s.bytes_received == good_bytes + s.bytes_discarded + decoder.pending_bytes
+    held = crashes == 0 and accounted
+    return Outcome(
+        "codec-fuzz",
+        f"{runs:,} frames",
+        f"{s.good_frames:,} good, {s.bad_total:,} bad, {crashes} crashes, bytes accounted: "
+        f"{accounted}",
+        held,
+    )
+
+
+def junk_flood(scale: float, tmp: str) -> Outcome:
+    """Undelimited junk at the virtual arm's pty: memory stays flat, the arm still answers."""
+    megabytes = max(1, int(50 * scale))
+    server = _server(tmp)
+    try:
+        fd = os.open(str(server.link), os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        chunk = bytes(random.Random(1).randrange(1, 256) for _ in range(65536))  # no 0x00
+        before = _rss_mb()
+        sent, end = 0, time.monotonic() + 30.0
+        while sent < megabytes * 2**20 and time.monotonic() < end:
+            try:
+                sent += os.write(fd, chunk)
+            except BlockingIOError:
+                time.sleep(0.001)
+            try:
+                while os.read(fd, 65536):
+                    pass
+            except BlockingIOError:
+                pass
+        os.close(fd)
+        grown = _rss_mb() - before
+        with ArmClient(open_transport(str(server.link))) as arm:
+            answered = bool(arm.request(E, [PacketID.POSITION]))
+    finally:
+        server.stop()
+    held = answered and grown < 50.0
+    return Outcome(
+        "junk-flood",
+        f"{sent / 2**20:.0f} MB",
+        f"memory +{grown:.1f} MB, answered afterwards: {answered}",
+        held,
+    )
+
+
+def udp_stranger(scale: float, tmp: str) -> Outcome:
+    """Garbage datagrams from another local port must not take the UDP heartbeat."""
+    count = max(10, int(2000 * scale))
+    server = _server(tmp)
+    assert server.udp_address is not None
+    host, port = server.udp_address
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        peer.settimeout(0.5)
+        stranger.setblocking(False)
+        peer.sendto(commands.heartbeat_set(E, [PacketID.POSITION]).encode(), (host, port))
+        peer.sendto(commands.heartbeat_frequency(E, 50).encode(), (host, port))
+        for _ in range(count):
+            stranger.sendto(b"\x13\x37\x42", (host, port))
+        got = _count_frames(peer, 1.0)
+        stolen = 0
+        try:
+            while True:
+                stolen += len(stranger.recv(65536))
+        except BlockingIOError:
+            pass
+        peer.sendto(commands.heartbeat_frequency(E, 0).encode(), (host, port))
+    finally:
+        peer.close()
+        stranger.close()
+        server.stop()
+    held = got >= 20 and stolen == 0
+    return Outcome(
+        "udp-stranger",
+        f"{count:,} datagrams",
+        f"peer got {got} heartbeat frames in 1 s, stranger got {stolen} bytes",
+        held,
+    )
+
+
+def _count_frames(sock: socket.socket, seconds: float) -> int:
+    decoder, frames, end = PacketDecoder(), 0, time.monotonic() + seconds
+    while time.monotonic() < end:
+        try:
+            frames += len(decoder.feed(sock.recv(65536)))
+        except TimeoutError:
+            break
+    return frames
+
+
+def request_flood(scale: float, tmp: str) -> Outcome:
+    """Broadcast requests as fast as loopback UDP carries them: the physics keeps real time."""
+    seconds = max(1.0, 4.0 * scale)
+    server = _server(tmp)
+    assert server.udp_address is not None
+    host, port = server.udp_address
+    ask = commands.request(DeviceID.BROADCAST, [PacketID.POSITION, PacketID.VELOCITY]).encode()
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setblocking(False)
+    sent = 0
+    try:
+        t0, sim0 = time.monotonic(), server.sim_time
+        while time.monotonic() - t0 < seconds:
+            try:
+                sock.sendto(ask * 50, (host, port))
+                sent += 50
+            except BlockingIOError:
+                time.sleep(0.0005)
+            try:
+                while sock.recv(65536):
+                    pass
+            except BlockingIOError:
+                pass
+        ratio = (server.sim_time - sim0) / (time.monotonic() - t0)
+        stats = server.stats()
+    finally:
+        sock.close()
+        server.stop()
+    # Loopback drops what the socket buffer cannot hold without telling the sender, so what
+    # was offered and what the arm read differ.
+    return Outcome(
+        "request-flood",
+        f"{sent:,} requests offered in {seconds:.0f} s",
+        f"{stats.datagrams_in:,} datagrams read, {stats.input_dropped_bytes:,} bytes dropped "
+        f"by the input budget; sim time / wall time {ratio:.2f}",
+        ratio >= 0.8,
+    )
+
+
+def bad_commands(scale: float, tmp: str) -> Outcome:
+    """NaN, Inf and out-of-limit commands are refused before the wire."""
+    server = _server(tmp)
+    refused = total = 0
+    try:
+        with ArmClient(open_transport(str(server.link))) as arm:
+            frames_before = server.stats().frames_in
+            for value in (math.nan, math.inf, -math.inf, 1e30, 5000.0):
+                for send in (
+                    lambda v: arm.command_current(E, v),
+                    lambda v: arm.command_position(D, v),
+                    lambda v: arm.command_velocity(C, v),
+                ):
+                    total += 1
+                    try:
+                        send(value)
+                    except (DriverError, ValueError):
+                        refused += 1
+            time.sleep(0.2)
+            reached = server.stats().frames_in - frames_before
+    finally:
+        server.stop()
+    # A current above the limit may be clamped rather than refused; what matters is that no
+    # non-finite value and no out-of-envelope position reached the arm.
+    q = server.snapshot().q
+    inside = bool(0.0 <= q[1] <= 3.5)
+    return Outcome(
+        "bad-commands",
+        f"{total} commands",
+        f"{refused} refused, {reached} frames reached the arm, D stayed inside: {inside}",
+        refused >= 12 and inside,
+    )
+
+
+def watchdog(scale: float, tmp: str) -> Outcome:
+    """A controller that stops sending: the watchdog puts the arm in zero velocity."""
+    server = _server(tmp)
+    try:
+        with ArmClient(
+            open_transport(str(server.link)), safety=SafetyConfig(watchdog_s=0.2)
+        ) as arm:
+            arm.stream((PacketID.POSITION,), 50, [C])
+            _wait(lambda: arm.joint(C).position is not None, 10.0)
+            arm.command_current(C, 30.0)
+            t0 = time.monotonic()
+            stopped = _wait(lambda: server.firmware.mode(int(C)) == Mode.ZERO_VELOCITY, 3.0)
+            trip_s = time.monotonic() - t0
+    finally:
+        server.stop()
+    return Outcome(
+        "watchdog",
+        "1 silent controller",
+        f"zero velocity after {trip_s:.2f} s (watchdog 0.20 s)",
+        stopped and trip_s < 1.0,
+    )
+
+
+def hostile_arm(scale: float, tmp: str) -> Outcome:
+    """A fake arm on loop:// (the driver reads back what it writes) reports absurd limits
+    unasked, then the driver is asked for motion the gate must refuse: nothing may reach the
+    wire, and the factory envelope must stay in force."""
+    arm = ArmClient(open_transport("loop://"), safety=SafetyConfig(watchdog_s=None))
+    arm.start(discover=False, read_limits=False)
+    try:
+        lies = [
+            encode_packet(E, PacketID.POSITION_LIMITS, pack_floats(1e6, -1e6)),
+            encode_packet(D, PacketID.CURRENT_LIMITS, pack_floats(math.inf, -math.inf)),
+            encode_packet(C, PacketID.VELOCITY_LIMITS, pack_floats(1e30, -1e30)),
+        ]
+        arm.transport.write_frames(lies)
+        _wait(lambda: arm.joint(C).velocity_limits is not None, 2.0)
+        before = arm.transport.stats.bytes_out
+        motion = [
+            lambda: arm.command_position(E, 500.0),
+            lambda: arm.command_current(D, 1e5),
+            lambda: arm.send(encode_packet_as(E, PacketID.RELATIVE_POSITION, 2.0)),
+            lambda: arm.send(encode_packet_as(DeviceID.BROADCAST, PacketID.POSITION, 1.0)),
+            lambda: arm.send(encode_packet_as(0x09, PacketID.CURRENT, 100.0)),
+            lambda: arm.send(encode_packet_as(E, PacketID.KM_END_VEL, 10.0, 0, 0, 0, 0, 0)),
+            lambda: arm.write_limits(E, LimitKind.CURRENT, math.inf, -math.inf),
+        ]
+        refused = 0
+        for attempt in motion:
+            try:
+                attempt()
+            except (DriverError, ValueError):
+                refused += 1
+        leaked = arm.transport.stats.bytes_out - before
+        lim = arm.guard.limit(E, LimitKind.POSITION)
+        kept = abs(lim.low - 0.0175) < 1e-6 and abs(lim.high - 6.143) < 1e-6  # the factory's
+        rejected = arm.stats.limits_rejected
+    finally:
+        arm.close(safe=False)
+    return Outcome(
+        "hostile-arm",
+        f"{len(lies)} lies, {len(motion)} motion packets",
+        f"{rejected} limit reports rejected, {refused} packets refused, {leaked} bytes "
+        f"reached the wire, E's bound kept at [{lim.low:g}, {lim.high:g}]",
+        rejected == len(lies) and refused == len(motion) and leaked == 0 and kept,
+    )
+
+
+def encode_packet_as(device: int, packet_id: PacketID, *values: float) -> Packet:
+    return Packet(device, packet_id, pack_floats(*values))
+
+
+ATTACKS: dict[str, Callable[[float, str], Outcome]] = {
+    "codec-fuzz": codec_fuzz,
+    "junk-flood": junk_flood,
+    "udp-stranger": udp_stranger,
+    "request-flood": request_flood,
+    "bad-commands": bad_commands,
+    "watchdog": watchdog,
+    "hostile-arm": hostile_arm,
+}

@@ -1,0 +1,102 @@
+"""A training run's directory: the config a new or resumed run starts from, the record of every
+command given (commands.txt), and shipping its best actor with how it was made.
+
+A run directory holds config.json, train.csv, eval.jsonl, best_actor.npz/.json, checkpoint.pt
+(+ buffers), commands.txt and train.log. Errors are `SystemExit` naming the flag, as the command
+line reports them.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from policy.controllers.weights import DEFAULT_WEIGHTS
+from policy.rl.config import DDPGConfig
+from policy.rl.overrides import apply_overrides, resume_overrides
+
+CHECKPOINT = "checkpoint.pt"
+COMMANDS = "commands.txt"
+
+
+@dataclass
+class RunStart:
+    """What a run starts from: `config` builds the trainer (on resume, the checkpoint's own),
+    `target` is what it continues with (`--set` and `--steps` applied), `changes` says what a
+    resume's `--set` changed ("field old -> new")."""
+
+    config: DDPGConfig
+    target: DDPGConfig
+    changes: list[str] = field(default_factory=list)
+
+
+def start_run(
+    run_dir: Path,
+    resume: bool,
+    preset: str,
+    seed: int,
+    steps: int | None,
+    overrides: list[str],
+) -> RunStart:
+    """The config of a new run (preset, seed, steps, `--set`), refused if `run_dir` already
+    holds one; or of the run in `run_dir` resumed (`--set` limited to what a resume can take)."""
+    if resume:
+        if not (run_dir / CHECKPOINT).exists():
+            raise SystemExit(f"--resume: no checkpoint in {run_dir}")
+        # The checkpoint's own config: what its networks and buffer were made with (config.json
+        # may be newer, from a resume killed before it saved).
+        saved = torch.load(run_dir / CHECKPOINT, weights_only=False)["config"]
+        config = DDPGConfig.from_dict(saved)
+        target = config
+        changes: list[str] = []
+        if overrides:
+            target, changes = resume_overrides(config, overrides)
+        if steps is not None:
+            target.total_steps = steps
+        return RunStart(config, target, changes)
+    if (run_dir / CHECKPOINT).exists():
+        raise SystemExit(f"{run_dir} already holds a run; use --resume or another --run")
+    fields: dict[str, Any] = {"seed": seed}
+    if steps is not None:
+        fields["total_steps"] = steps
+    config = apply_overrides(DDPGConfig.preset(preset, **fields), overrides)
+    return RunStart(config, config)
+
+
+def record_command(run_dir: Path, argv: list[str]) -> None:
+    """Append the command (tools/train.py and its arguments) to the run's commands.txt."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with open(run_dir / COMMANDS, "a") as fh:
+        fh.write(" ".join([".venv/bin/python", "tools/train.py", *argv]) + "\n")
+
+
+def ship(run_dir: Path, dest: Path = DEFAULT_WEIGHTS) -> Path:
+    """Copy the run's best evaluated actor, with how it was made, to the shipped weights."""
+    src = run_dir / "best_actor.npz"
+    if not src.exists():
+        raise SystemExit(f"--ship: {src} does not exist (no evaluation yet?)")
+    meta = json.loads(src.with_suffix(".json").read_text())
+    commands = (
+        (run_dir / COMMANDS).read_text().splitlines() if (run_dir / COMMANDS).exists() else []
+    )
+    meta.update(
+        {
+            "command": commands[0] if commands else None,
+            "commands": commands,
+            "seed": meta["config"]["seed"],
+            "training_time_s": round(float(meta.get("wall_s", float("nan"))), 1),
+            "training_env_steps": meta.get("env_steps"),
+            "run": run_dir.name,
+            "shipped_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
+    )
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src, dest)
+    dest.with_suffix(".json").write_text(json.dumps(meta, indent=1))
+    return dest
