@@ -46,7 +46,7 @@ VIEWER_USAGE = (
 )
 _PROBE_TIMEOUT_S = 1.0
 _VIEWER_CLOSE_S = 1.0  # the longest closing waits for a viewer that stopped answering
-VIEWER_WATCH_S = 1.0  # how often the viewer stream is flushed, off the logging thread
+_VIEWER_WATCH_S = 1.0  # how often the viewer stream is flushed, off the logging thread
 
 
 @dataclass(frozen=True)
@@ -312,7 +312,7 @@ class ViewerTee:
         self._on_viewer_error(exc)  # first: `viewing` is False only once it is said
         drop_viewer(viewer, wait_s=0.1)
 
-    def watch(self, period_s: float = VIEWER_WATCH_S) -> None:
+    def watch(self, period_s: float = _VIEWER_WATCH_S) -> None:
         """Flush the viewer stream every `period_s` on a thread of its own: a viewer that went
         away (rerun reports it only on a flush) is noticed, named and dropped without the
         logging thread ever waiting for it. A flush that merely times out (a slow viewer) is
