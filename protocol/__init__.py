@@ -1,7 +1,8 @@
 """Codec for the Reach / Blueprint Lab (BPL) serial packet protocol, version 1. No I/O.
 
 Clean-room implementation from the published protocol facts summarised in docs/protocol.md.
-`protocol.alpha5` holds the arm's facts that the driver and the simulator both need.
+`protocol.alpha5` holds the arm's facts that the driver and the simulator both need, and
+`protocol.viewer` their live Rerun viewer plumbing (not imported here: it is not codec).
 """
 
 from . import alpha5, commands, payload

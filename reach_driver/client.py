@@ -14,9 +14,10 @@ a reconnect that identity is confirmed before anything else is sent or accepted;
 arm gets only its safe stop and the link becomes FAILED (`ArmIdentityError`).
 
 `ArmClient` is the facade over the pieces, each in its own module: request matching
-(`requests`), link supervision and reconnecting (`supervisor`), which joints are armed and
-the watchdog (`watchdog`), the checks before a command goes out (`gate`), status flags
-(`faults`) and heartbeat streaming (`streaming`).
+(`requests`) and the reads built on it (`queries`, whose `ArmQueries` it inherits), link
+supervision and reconnecting (`supervisor`), which joints are armed and the watchdog
+(`watchdog`), the checks before a command goes out (`gate`), status flags (`faults`) and
+heartbeat streaming (`streaming`).
 """
 
 from __future__ import annotations
@@ -39,20 +40,18 @@ from protocol import (
     commands,
     decode_packet,
 )
-from protocol.alpha5 import ALL_DEVICES, JAW, JOINTS, Range
+from protocol.alpha5 import ALL_DEVICES, JAW, JOINTS
 from reach_driver import ik
 from reach_driver.errors import (
     ArmIdentityError,
     DriverError,
-    GarbageError,
     LimitError,
     LinkDownError,
-    NoResponseError,
     TransportError,
 )
 from reach_driver.faults import FaultFlags
 from reach_driver.gate import LIMIT_KIND_OF, CommandGate
-from reach_driver.identity import IDENTITY_PACKETS, DeviceIdentity, IdentityCheck
+from reach_driver.identity import DeviceIdentity, IdentityCheck
 from reach_driver.link import (
     ClientEvent,
     ClientStats,
@@ -62,15 +61,14 @@ from reach_driver.link import (
     LinkState,
 )
 from reach_driver.listeners import ListenerSet, PacketListener, PacketQueue, Subscription
-from reach_driver.requests import Replies, Requester, Waiters
+from reach_driver.queries import ArmQueries, limit_verdict
+from reach_driver.requests import Requester, Waiters
 from reach_driver.safety import (
     LimitKind,
     SafetyConfig,
     SafetyGuard,
-    as_range,
-    envelope_problem,
 )
-from reach_driver.state import ArmState, JointState, StateTable, joint_name, packet_value
+from reach_driver.state import ArmState, JointState, StateTable, joint_name
 from reach_driver.streaming import Stream
 from reach_driver.supervisor import LinkSupervisor
 from reach_driver.transport import Transport
@@ -81,19 +79,9 @@ log = logging.getLogger(__name__)
 __all__ = ["ArmClient", "ClientStats"]
 
 EVENT_HISTORY = 200
-#: What `read_diagnostics` asks each device for (docs/protocol.md section 3a).
-DIAGNOSTICS = (
-    PacketID.VOLTAGE,
-    PacketID.INTERNAL_TEMPERATURE,
-    PacketID.INTERNAL_HUMIDITY,
-    PacketID.INTERNAL_PRESSURE,  # 0x67 as V1.12.1 has it (newer SDKs: DEVICE_TYPE)
-    PacketID.PRESSURE,  # 0x6E, the newer SDKs' pressure
-    PacketID.FACTORY_CLIMATE,
-    PacketID.HARDWARE_STATUS,
-)
 
 
-class ArmClient:
+class ArmClient(ArmQueries):
     """Talks to one arm over one transport. See the module docstring."""
 
     def __init__(
@@ -272,191 +260,6 @@ class ArmClient:
                 callback(event)
             except Exception:
                 log.exception("event callback %r failed", callback)
-
-    # ----------------------------------------------------------------- requests
-
-    def request(
-        self,
-        device: int,
-        ids: Sequence[int],
-        *,
-        timeout_s: float | None = None,
-        retries: int | None = None,
-    ) -> dict[int, Packet]:
-        """Ask one device for packets; returns {packet id: reply}.
-
-        Replies are matched by device *and* packet id. Missing ones are asked for again up
-        to `retries` times; then `RequestTimeoutError` names what never came.
-        """
-        got = self.request_many([device], ids, timeout_s=timeout_s, retries=retries)
-        return got[int(device)]
-
-    def request_many(
-        self,
-        devices: Sequence[int],
-        ids: Sequence[int],
-        *,
-        timeout_s: float | None = None,
-        retries: int | None = None,
-        partial: bool = False,
-    ) -> Replies:
-        """The same packet ids from several devices, all requests written at once (one
-        device at a time on a half-duplex bus).
-
-        With `partial=True` devices that never answer are left out instead of raising.
-        """
-        return self._requests.request_many(
-            devices,
-            ids,
-            timeout_s=self.request_timeout_s if timeout_s is None else timeout_s,
-            retries=self.retries if retries is None else retries,
-            partial=partial,
-        )
-
-    # ----------------------------------------------------------------- discovery and info
-
-    def discover(self, devices: Sequence[int] | None = None) -> tuple[int, ...]:
-        """Find which devices answer (a MODE request each); raises if none does."""
-        devs = list(devices or self.devices)
-        before = self.decoder.stats.good_frames, self.decoder.stats.bytes_received
-        got = self.request_many(devs, [PacketID.MODE], partial=True)
-        self.found_devices = tuple(d for d in devs if d in got)
-        if not self.found_devices:
-            stats = self.decoder.stats
-            received = stats.bytes_received - before[1]
-            waited = self.request_timeout_s * (1 + self.retries)
-            baud = getattr(self.transport, "baud", None)
-            if received and stats.good_frames == before[0]:
-                raise GarbageError(
-                    f"{received} bytes arrived on {self.transport.url} in {waited:.2g} s but "
-                    f"none decoded as a BPL frame ({stats.bad_total} bad frames)"
-                    + (f": wrong baud rate? (using {baud})" if baud else "")
-                )
-            raise NoResponseError(
-                f"nothing answered on {self.transport.url} within {waited:.2g} s "
-                f"(asked devices {', '.join(joint_name(d) for d in devs)}): is the arm powered "
-                "and is this its port or address?"
-            )
-        return self.found_devices
-
-    def read_identity(self, devices: Sequence[int] | None = None) -> dict[int, DeviceIdentity]:
-        """Serial and model numbers and firmware version of each device that answers; kept
-        in `identity` to confirm the same arm answers after a reconnect."""
-        devs = list(devices or self.found_devices or self.devices)
-        got = self.request_many(devs, IDENTITY_PACKETS, partial=True)
-        for d in devs:
-            if got.get(d):
-                self.identity[d] = DeviceIdentity.from_replies(got[d])
-        return dict(self.identity)
-
-    def read_limits(
-        self, devices: Sequence[int] | None = None
-    ) -> dict[int, dict[LimitKind, Range]]:
-        """Read position, velocity and current limits; the safety guard adopts the plausible
-        ones (finite, inside the factory envelope) and returns those.
-
-        A device that does not report a limit, or reports one that is not plausible, keeps
-        the one in force (the documented default at first) and a warning is recorded in
-        `warnings`.
-        """
-        devs = list(devices or self.found_devices or self.devices)
-        kinds = list(LimitKind)
-        for d in devs:
-            for kind in kinds:
-                self.table.forget(d, kind.packet_id)
-        got = self.request_many(devs, [k.packet_id for k in kinds], partial=True)
-        out: dict[int, dict[LimitKind, Range]] = {}
-        for d in devs:
-            for kind in kinds:
-                reply = got.get(d, {}).get(kind.packet_id)
-                value, problem = _limit_verdict(reply, d, kind)
-                if value is not None and problem is None:  # adopted as it arrived
-                    out.setdefault(d, {})[kind] = as_range(kind, value)
-                elif reply is not None or not self.guard.has_arm_limit(d, kind):
-                    said = "did not report its" if reply is None else "reported implausible"
-                    self.warnings.append(
-                        f"{joint_name(d)} {said} {kind.value} limits"
-                        + (f" ({problem})" if reply is not None else "")
-                        + "; keeping the ones in force"
-                    )
-        return out
-
-    def write_limits(self, device: int, kind: LimitKind, maximum: float, minimum: float) -> Range:
-        """Tighten one limit on the arm, read it back and adopt what the arm reports.
-
-        Refused (`LimitError`, nothing sent) unless finite, inside the factory envelope and
-        inside the present limit; `widen_limits` is the call that may widen it.
-        """
-        return self._set_limits(int(device), kind, maximum, minimum, widen=False)
-
-    def widen_limits(self, device: int, kind: LimitKind, maximum: float, minimum: float) -> Range:
-        """Like `write_limits`, but may widen the present limit (never past the factory
-        envelope, never to a non-finite value)."""
-        return self._set_limits(int(device), kind, maximum, minimum, widen=True)
-
-    def _set_limits(
-        self, device: int, kind: LimitKind, maximum: float, minimum: float, *, widen: bool
-    ) -> Range:
-        self._gate.check_limit_write(device, kind, (maximum, minimum), widen=widen)
-        self._write([commands.limits(int(device), kind.packet_id, maximum, minimum).encode()])
-        self.table.forget(int(device), kind.packet_id)
-        reply = self.request(device, [kind.packet_id])[kind.packet_id]
-        value, problem = _limit_verdict(reply, device, kind)
-        if value is None or problem is not None:
-            raise LimitError(
-                f"{joint_name(device)} answered the {kind.value} limit write with "
-                f"{problem or 'a malformed payload'}; not adopted, the old limit stays"
-            )
-        return as_range(kind, value)
-
-    def read_info(self, devices: Sequence[int] | None = None) -> dict[int, JointState]:
-        """Versions, serial and model numbers, modes and status flags of each device."""
-        devs = list(devices or self.found_devices or self.devices)
-        ids = [
-            PacketID.MODE,
-            PacketID.SOFTWARE_VERSION,
-            PacketID.SERIAL_NUMBER,
-            PacketID.MODEL_NUMBER,
-            PacketID.HARDWARE_STATUS,
-        ]
-        self.request_many(devs, ids, partial=True)
-        return {d: self.table.get(d) for d in devs}
-
-    def read_diagnostics(self, devices: Sequence[int] | None = None) -> dict[int, JointState]:
-        """The Monitor readings of each device (supply voltage, internal temperature,
-        humidity and pressure, the factory climate) and its status flags; a device or value
-        that does not answer is left as it was (None if never read)."""
-        devs = list(devices or self.found_devices or self.devices)
-        self.request_many(devs, DIAGNOSTICS, partial=True)
-        return {d: self.table.get(d) for d in devs}
-
-    def read_modes(self, devices: Sequence[int] | None = None) -> dict[int, Mode | int | None]:
-        """Each device's mode as it answers now (None if it did not answer). Replies come
-        after every frame written before the request, so this confirms a mode change."""
-        devs = list(devices or self.found_devices or self.devices)
-        asked = self.clock()
-        self.request_many(devs, [PacketID.MODE], partial=True)
-        out: dict[int, Mode | int | None] = {}
-        for d in devs:
-            reading = self.table.get(d).mode
-            out[d] = None if reading is None or reading.t < asked else reading.value
-        return out
-
-    def read_status(self, devices: Sequence[int] | None = None) -> dict[int, list[str]]:
-        """Hardware status flags by name for each device that answers ([] when healthy)."""
-        devs = list(devices or self.found_devices or self.devices)
-        self.request_many(devs, [PacketID.HARDWARE_STATUS], partial=True)
-        out = {}
-        for d in devs:
-            js = self.table.get(d)
-            if js.status is not None:
-                out[d] = js.fault_names
-        return out
-
-    def read_joints(self, ids: Sequence[int] = (PacketID.POSITION, PacketID.VELOCITY)) -> ArmState:
-        """Poll the four joints once (one write) and return the fresh state."""
-        self.request_many(JOINTS, ids)
-        return self.state
 
     # ----------------------------------------------------------------- streaming
 
@@ -710,7 +513,7 @@ class ArmClient:
         packet from this device is waiting) and are plausible; else keep the ones in force,
         count it and say so. The state table keeps the raw reading either way."""
         dev, kind = int(packet.device_id), LIMIT_KIND_OF[int(packet.packet_id)]
-        value, problem = _limit_verdict(packet, dev, kind)
+        value, problem = limit_verdict(packet, dev, kind)
         if value is None:
             return  # malformed: the state table counted it
         if problem is None and not self._waiters.wants(packet.key):
@@ -850,21 +653,6 @@ class ArmClient:
             EventKind.LINK_UP,
             f"{self.transport.url} answering again after {attempts} attempt(s)",
         )
-
-
-def _limit_verdict(
-    packet: Packet | None, device: int, kind: LimitKind
-) -> tuple[Range | None, str | None]:
-    """(the limits a packet carries, why they are not plausible or None); (None, None) for
-    no packet or a malformed one."""
-    if packet is None:
-        return None, None
-    try:
-        value = packet_value(packet)
-    except ProtocolError:
-        return None, None
-    assert isinstance(value, tuple)
-    return value, envelope_problem(device, kind, value)
 
 
 def _four(values: Sequence[float] | np.ndarray) -> list[float]:

@@ -12,9 +12,9 @@ from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from types import FrameType
-from typing import Any
 
 from protocol.alpha5 import SERIAL_BAUD
+from protocol.viewer import add_viewer_option
 from reach_sim_bridge.emulator.faults import FaultConfig, torque_scales
 from reach_sim_bridge.emulator.server import TURNAROUND_BYTES, SimConfig, SimServer, serve_forever
 from reach_sim_bridge.emulator.udp import DEFAULT_UDP_HOST, DEFAULT_UDP_PORT, parse_udp_address
@@ -114,25 +114,6 @@ def _version() -> str:
         return version("reach-stack")
     except PackageNotFoundError:  # running from a source tree that was never installed
         return "unknown (not installed)"
-
-
-class _ViewerAction(argparse.Action):
-    """`--viewer MODE [VALUE...]` into a `ViewerSpec` (usage error if the words are wrong)."""
-
-    def __call__(
-        self,
-        parser: argparse.ArgumentParser,
-        namespace: argparse.Namespace,
-        values: Any,
-        option_string: str | None = None,
-    ) -> None:
-        from reach_sim_bridge.emulator.recording import parse_viewer
-
-        try:
-            spec = parse_viewer(list(values))
-        except ValueError as exc:
-            raise argparse.ArgumentError(self, str(exc)) from None
-        setattr(namespace, self.dest, spec)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -292,13 +273,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="write the arm's true state (angles, setpoints, currents, torques, "
         "modes, link counters, 3D skeleton) to a Rerun recording",
     )
-    out.add_argument(
-        "--viewer",
-        nargs="+",
-        action=_ViewerAction,
-        metavar=("MODE", "VALUE"),
-        default=None,
-        help="watch the arm's true state live in Rerun, beside --record (the file is still "
+    add_viewer_option(
+        out,
+        "watch the arm's true state live in Rerun, beside --record (the file is still "
         "written) or alone: spawn [PORT] starts the native viewer (needs a display); connect "
         "[URL|PORT] streams to a running one (default rerun+http://127.0.0.1:9876/proxy); "
         "serve [GRPC_PORT [WEB_PORT]] hosts a gRPC server (loopback, default 9876) and the web "

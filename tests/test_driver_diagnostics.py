@@ -289,7 +289,7 @@ def test_pressure_0x6e_is_decoded_and_tracked_apart_from_0x67() -> None:
     a firmware answering 0x67 as DEVICE_TYPE cannot overwrite the 0x6E pressure."""
     from protocol import Packet
     from protocol.payload import pack_floats
-    from reach_driver.client import DIAGNOSTICS
+    from reach_driver.queries import DIAGNOSTICS
     from reach_driver.state import StateTable, packet_value
 
     assert PacketID.PRESSURE == 0x6E and PacketID.PRESSURE in DIAGNOSTICS

@@ -24,8 +24,9 @@ import pytest
 import rerun_cli
 from conftest import wait_until
 
+from protocol.viewer import ViewerSpec, parse_viewer
 from reach_driver.cli import Exit, main
-from reach_driver.recording import RunRecorder, StepSample, ViewerSpec, parse_viewer
+from reach_driver.recording import RunRecorder, StepSample
 from reach_driver.rrd_summary import read_recording
 from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
@@ -347,31 +348,40 @@ def test_move_streams_the_arm_and_its_target_to_a_viewer(sim, receiver, capsys) 
 # -- reach-sim --viewer --------------------------------------------------------------------------
 
 
-def test_the_simulator_reads_viewer_words_as_the_driver_does() -> None:
-    from reach_sim_bridge.emulator import recording as sim_recording
+@pytest.mark.parametrize(
+    "words", [["spawn"], ["connect"], ["connect", "9000"], ["serve", "9100", "9101"]]
+)
+def test_both_command_lines_read_viewer_words_into_the_same_spec(words: list[str]) -> None:
+    from reach_driver.cli.parser import build_parser as driver_parser
+    from reach_sim_bridge.cli import build_parser as sim_parser
 
-    for words in (["spawn"], ["connect"], ["connect", "9000"], ["serve", "9100", "9101"]):
-        driver, sim_spec = parse_viewer(words), sim_recording.parse_viewer(words)
-        assert (driver.mode, driver.url, driver.port, driver.web_port, driver.bind) == (
-            sim_spec.mode,
-            sim_spec.url,
-            sim_spec.port,
-            sim_spec.web_port,
-            sim_spec.bind,
-        )
-        assert driver.web_url == sim_spec.web_url
+    driver_argv = ["--port", "loop://", "run", "--controller", "pid", "--target", "1", "1"]
+    driver_argv += ["1", "1", "--seconds", "1", "--viewer", *words]
+    expected = parse_viewer(words)
+    assert driver_parser().parse_args(driver_argv).viewer == expected
+    assert sim_parser().parse_args(["--viewer", *words]).viewer == expected
+
+
+def test_reach_sim_rejects_bad_viewer_words_as_a_usage_error(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from reach_sim_bridge.cli import build_parser as sim_parser
+
+    with pytest.raises(SystemExit) as exc:
+        sim_parser().parse_args(["--viewer", "serve", "9100", "9100"])
+    assert exc.value.code == 2
+    assert "must differ" in capsys.readouterr().err
 
 
 def test_sim_recorder_streams_its_samples_and_still_writes_the_file(tmp_path, receiver) -> None:
     from reach_sim_bridge.emulator.recording import SimRecorder
-    from reach_sim_bridge.emulator.recording import parse_viewer as sim_viewer
 
     port, received, proc = receiver
     path = tmp_path / "sim.rrd"
     warnings: list[str] = []
     with SimServer(SimConfig(speed=5.0, pty=False, udp=("127.0.0.1", 0))) as srv:
         recorder = SimRecorder(
-            srv, path, viewer=sim_viewer(["connect", str(port)]), warn=warnings.append
+            srv, path, viewer=parse_viewer(["connect", str(port)]), warn=warnings.append
         )
         assert recorder.viewing
         recorder.start()
@@ -383,6 +393,41 @@ def test_sim_recorder_streams_its_samples_and_still_writes_the_file(tmp_path, re
     assert len(local.step) >= 2 and local.metadata["source"] == "reach-sim"
     assert live.step.tolist() == local.step.tolist()
     np.testing.assert_allclose(live.q, local.q)
+
+
+def test_sim_recorder_without_a_viewer_warns_once_and_the_simulator_runs_on(tmp_path) -> None:
+    from reach_sim_bridge.emulator.recording import SimRecorder
+
+    path = tmp_path / "sim.rrd"
+    warnings: list[str] = []
+    with SimServer(SimConfig(speed=5.0, pty=False, udp=("127.0.0.1", 0))) as srv:
+        recorder = SimRecorder(
+            srv, path, viewer=parse_viewer(["connect", str(_free_port())]), warn=warnings.append
+        )
+        assert not recorder.viewing
+        recorder.start()
+        assert srv.wait_sim_time(srv.sim_time + 0.5, timeout=30)
+        recorder.stop()
+    assert len(warnings) == 1 and "no Rerun viewer answers" in warnings[0], warnings
+    assert "the recording goes on" in warnings[0] and "the simulator runs on" in warnings[0]
+    assert recorder.viewer_failed is not None and recorder.viewer_failed in warnings[0]
+    assert len(read_recording(path).step) >= 2
+
+
+def test_reading_viewer_words_does_not_load_rerun() -> None:
+    """`import protocol` and both command lines' parsers stay light: rerun loads only when a
+    viewer is opened (or a recorder is made)."""
+    code = (
+        "import sys, protocol, protocol.viewer, reach_driver.cli, reach_sim_bridge.cli\n"
+        "protocol.viewer.parse_viewer(['serve'])\n"
+        "print('rerun' in sys.modules)"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "False"
 
 
 def test_reach_sim_viewer_serve_prints_the_address_and_streams_only(tmp_path) -> None:

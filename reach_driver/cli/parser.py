@@ -9,6 +9,7 @@ from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
 from protocol.alpha5 import TORQUE_PER_AMP_NM
+from protocol.viewer import add_viewer_option
 from reach_driver.cli.exits import exit_table_text
 from reach_driver.control import Pacing
 from reach_driver.transport import DEFAULT_BAUD
@@ -122,36 +123,6 @@ VIEWER_HELP = (
     "without a display (ssh -L both ports). A viewer that cannot start or goes away is "
     "named once and dropped; control never stops for it. Put it after positional arguments"
 )
-
-
-class _ViewerAction(argparse.Action):
-    """`--viewer MODE [VALUE...]` into a `ViewerSpec` (usage error if the words are wrong)."""
-
-    def __call__(
-        self,
-        parser: argparse.ArgumentParser,
-        namespace: argparse.Namespace,
-        values: Any,
-        option_string: str | None = None,
-    ) -> None:
-        from reach_driver.recording import parse_viewer
-
-        try:
-            spec = parse_viewer(list(values))
-        except ValueError as exc:
-            raise argparse.ArgumentError(self, str(exc)) from None
-        setattr(namespace, self.dest, spec)
-
-
-def _add_viewer_option(parser: argparse.ArgumentParser, help_text: str = VIEWER_HELP) -> None:
-    parser.add_argument(
-        "--viewer",
-        nargs="+",
-        action=_ViewerAction,
-        metavar=("MODE", "VALUE"),
-        default=None,
-        help=help_text,
-    )
 
 
 def _add_connection_options(
@@ -319,7 +290,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="record what the arm reports for Rerun: states at 20 Hz, each device's Monitor "
         "readings and status flags as they are read (read back with `reach-driver inspect`)",
     )
-    _add_viewer_option(
+    add_viewer_option(
         mon,
         VIEWER_HELP + ". With a viewer, states go to it at 20 Hz; the table still refreshes "
         "twice a second",
@@ -378,7 +349,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="give up (exit 1, joints stopped) after this many seconds (default 60); the "
         "reply timeout is --reply-timeout here",
     )
-    _add_viewer_option(move)
+    add_viewer_option(move, VIEWER_HELP)
 
     run = add(
         "run",
@@ -436,7 +407,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.rrd",
         help="record the run for Rerun (a write error stops the recording, not the run: exit 6)",
     )
-    _add_viewer_option(run)
+    add_viewer_option(run, VIEWER_HELP)
 
     add("controllers", parents=[offline], help="list the registered controllers")
     ins = add(

@@ -21,6 +21,9 @@ Every device also reports its housing's climate and the supply voltage (the "Mon
 packets) from `reach_sim_bridge.emulator.monitor`, whose OVER_TEMPERATURE, OVER_HUMIDITY,
 OVER_PRESSURE and LOW_SUPPLY_VOLTAGE flags are conditions: they hold while the reading is
 past its level. Any flag set is reported with HARDWARE_STATUS at 1 Hz.
+
+The devices' specs, configuration and live state are plain data in `devices`; what each
+packet from the host does is in `handlers` (`PacketHandlers`, which `Firmware` inherits).
 """
 
 from __future__ import annotations
@@ -28,9 +31,7 @@ from __future__ import annotations
 import logging
 import math
 import random
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from enum import Enum
+from collections.abc import Callable
 
 import numpy as np
 
@@ -42,26 +43,43 @@ from protocol import (
     Mode,
     Packet,
     PacketID,
-    alpha5,
 )
 from protocol.alpha5 import JOINT_LETTERS
-from protocol.commands import HEARTBEAT_SLOTS, MAX_REQUEST_IDS
-from protocol.ids import UNDOCUMENTED_MODES
+from protocol.commands import HEARTBEAT_SLOTS
 from protocol.payload import pack_floats, pack_u8s
+from reach_sim_bridge.emulator.devices import (
+    ALPHA5_DEVICES,
+    HOLDING_MODES,
+    Device,
+    DeviceSpec,
+    ErrorReason,
+    FirmwareConfig,
+    Ignored,
+    Limits,
+    LoopGains,
+    Saved,
+)
 from reach_sim_bridge.emulator.events import EventLog
 from reach_sim_bridge.emulator.faults import Leak
-from reach_sim_bridge.emulator.monitor import MONITOR_FLAGS, Monitor, MonitorConfig
+from reach_sim_bridge.emulator.handlers import Handler, PacketHandlers, Rejected
+from reach_sim_bridge.emulator.monitor import MONITOR_FLAGS, Monitor
 from reach_sim_bridge.model import ik
 from reach_sim_bridge.model.arm import Alpha5Arm
-from reach_sim_bridge.model.sensors import SensorNoise
 
 log = logging.getLogger(__name__)
+
+# What configures a firmware, importable from here as well as from `devices`.
+__all__ = [
+    "ALPHA5_DEVICES",
+    "DeviceSpec",
+    "Firmware",
+    "FirmwareConfig",
+    "LoopGains",
+]
 
 LINK_ERROR_FLAGS = HardwareStatus.SERIAL_ERROR | HardwareStatus.CRC_ERROR
 _MONITOR_STEPS = 5  # physics steps per monitor update (10 ms at the default 2 ms)
 
-# Control packets that switch the mode implicitly; DISABLE and PASSIVE ignore them.
-_LOCKED_MODES = frozenset({Mode.DISABLE, Mode.PASSIVE})
 # Packets that give a joint its own command, ending a Cartesian velocity (KM_END_VEL).
 _JOINT_COMMANDS = frozenset(
     {
@@ -75,156 +93,9 @@ _JOINT_COMMANDS = frozenset(
         PacketID.KM_END_POS,
     }
 )
-# Modes whose loop servoes to `position_target`.
-_HOLDING_MODES = frozenset({Mode.POSITION, Mode.POSITION_HOLD, Mode.STANDBY, Mode.DISABLE})
 
 
-class ErrorReason(str, Enum):
-    """Why a well-framed packet was rejected (keys of `Firmware.errors`)."""
-
-    BAD_PAYLOAD = "bad_payload"  # wrong payload size for the packet (e.g. an empty MODE)
-    BAD_VALUE = "bad_value"  # NaN or infinite float
-    UNKNOWN_MODE = "unknown_mode"
-    BAD_LIMITS = "bad_limits"  # max < min, or a velocity/current range excluding 0
-    LIMITS_16_BYTES = "limits_16_bytes"  # 8 zero bytes then [min, max]: a client library's form
-    UNKNOWN_PACKET = "unknown_packet"  # a packet id this firmware does not implement
-
-
-class Ignored(str, Enum):
-    """Valid packets the arm deliberately does nothing with (keys of `Firmware.ignored`)."""
-
-    OUT_OF_LIMITS = "position_out_of_limits"
-    LOCKED = "control_while_disabled"  # control packet in DISABLE or PASSIVE
-    READ_ONLY = "read_only"  # e.g. a host sending TEMPERATURE
-    UNSUPPORTED_REQUEST = "unsupported_request"  # REQUEST/HEARTBEAT of an id we cannot report
-    OTHER_DEVICE = "other_device"  # addressed to a device this arm does not have
-    UNIMPLEMENTED_MODE = "unimplemented_mode"  # a mode value V1.12.1 does not document
-    UNREACHABLE = "unreachable_pose"  # KM_END_POS the arm cannot reach: no motion
-    NOT_BASE = "not_the_base_device"  # KM_END_POS/KM_END_VEL to a device other than E
-    END_VELOCITY_STOPPED = "end_velocity_at_joint_limit"  # a Cartesian move ran into a limit
-    COLLISION = "broadcast_collision"  # half duplex: several devices answered at once
-    PADDING = "request_padding"  # 0x00 slots in a REQUEST (or misplaced in a HEARTBEAT_SET)
-
-
-@dataclass(frozen=True)
-class LoopGains:
-    """Cascade gains; currents in mA, positions in the device's unit (rad or mm)."""
-
-    position: float  # 1/s: position error -> velocity demand
-    velocity_p: float  # mA per unit/s
-    velocity_i: float  # mA per unit (integral of the velocity error)
-
-
-@dataclass(frozen=True)
-class DeviceSpec:
-    """What differs between the five devices' firmware."""
-
-    device_id: DeviceID
-    letter: str
-    unit: str  # "rad" or "mm"
-    rate_limit: float  # firmware limit in position/velocity modes (unit/s)
-    gains: LoopGains
-    serial_number: float
-
-
-def _rate(device: DeviceID) -> float:
-    """The factory velocity limit: the firmware's rate limit in position and velocity modes."""
-    return alpha5.FACTORY_VELOCITY_LIMITS[device][1]
-
-
-# Gains tuned against Alpha5Arm (tools/ and tests/test_sim_firmware.py check the result):
-# E/D/C have ~0.13 kg m^2 reflected inertia and 20.2 N m/A; B 0.008 kg m^2 and 7.1 N m/A;
-# the jaw ~725 kg reflected mass and 914 N/A (units mm, so mA per mm).
-ALPHA5_DEVICES: tuple[DeviceSpec, ...] = (
-    DeviceSpec(DeviceID.A, "A", "mm", _rate(DeviceID.A), LoopGains(3.0, 20.0, 150.0), 4101.0),
-    DeviceSpec(DeviceID.B, "B", "rad", _rate(DeviceID.B), LoopGains(5.0, 100.0, 2000.0), 4102.0),
-    DeviceSpec(DeviceID.C, "C", "rad", _rate(DeviceID.C), LoopGains(5.0, 1e3, 2e4), 4103.0),
-    DeviceSpec(DeviceID.D, "D", "rad", _rate(DeviceID.D), LoopGains(5.0, 1e3, 2e4), 4104.0),
-    DeviceSpec(DeviceID.E, "E", "rad", _rate(DeviceID.E), LoopGains(5.0, 1e3, 2e4), 4105.0),
-)
-
-
-@dataclass(frozen=True)
-class FirmwareConfig:
-    """Identity and environment the firmware reports, and its error-reporting timing."""
-
-    devices: tuple[DeviceSpec, ...] = ALPHA5_DEVICES
-    software_version: tuple[int, int, int] = (0, 1, 0)  # the emulator's own version
-    model_number: float = 5005.0  # emulator's own number: the vendor's are not published
-    temperature_c: float = 20.0  # the water's: each housing starts at it (monitor model)
-    humidity_pct: float = 10.0  # in each housing at power-on
-    monitor: MonitorConfig = MonitorConfig()  # climate and supply model, factory levels
-    leaks: tuple[Leak, ...] = ()  # housings taking in water from the start
-    # RS-485: one shared wire. A broadcast REQUEST that more than one device answers
-    # collides on it; the host gets none of the answers (counted as `broadcast_collision`).
-    half_duplex: bool = False
-    status_period_s: float = 1.0  # HARDWARE_STATUS while an error flag is set
-    error_hold_s: float = 5.0  # link error flags clear after this long without errors
-    sensor_noise: SensorNoise | None = None
-    seed: int | None = None  # noise generator
-
-
-@dataclass
-class Limits:
-    """Stored as (lo, hi); the wire order is [max, min]."""
-
-    lo: float
-    hi: float
-
-    def contains(self, value: float) -> bool:
-        return self.lo <= value <= self.hi
-
-    def clamp(self, value: float) -> float:
-        return self.hi if value > self.hi else (self.lo if value < self.lo else value)
-
-
-@dataclass
-class Saved:
-    """What SAVE stores and RESET restores."""
-
-    position: tuple[float, float]
-    velocity: tuple[float, float]
-    current: tuple[float, float]
-    heartbeat_hz: int
-
-
-@dataclass
-class Device:
-    """One device's live firmware state."""
-
-    spec: DeviceSpec
-    index: int  # 0..3 in E D C B for the joints, -1 for the jaw
-    continuous: bool
-    position_limits: Limits
-    velocity_limits: Limits
-    current_limits: Limits
-    saved: Saved
-    mode: Mode = Mode.STANDBY
-    position_target: float = 0.0
-    velocity_target: float = 0.0
-    current_target: float = 0.0
-    integral: float = 0.0  # of the velocity error, in units (so i = ki * integral)
-    applied_mA: float = 0.0
-    status: HardwareStatus = HardwareStatus.NONE
-    injected: HardwareStatus = HardwareStatus.NONE  # by inject_fault: the monitor keeps these
-    last_error_time: float = -math.inf
-    status_phase: float = 0.0
-    heartbeat_ids: tuple[int, ...] = ()
-    heartbeat_hz: int = 0
-    heartbeat_phase: float = 0.0
-    slot: int = 0  # index in the firmware's device list (and the monitor's)
-
-
-class _Rejected(Exception):
-    def __init__(self, reason: ErrorReason, message: str) -> None:
-        super().__init__(message)
-        self.reason = reason
-
-
-Handler = Callable[[list[Device], Packet], list[Packet]]
-
-
-class Firmware:
+class Firmware(PacketHandlers):
     """All five devices of one arm. Not thread-safe: one owner calls handle() and tick()."""
 
     def __init__(self, arm: Alpha5Arm, config: FirmwareConfig | None = None) -> None:
@@ -418,7 +289,7 @@ class Firmware:
             return []
         try:
             return handler(targets, packet)
-        except _Rejected as rejected:
+        except Rejected as rejected:
             self._error(targets, rejected.reason, f"{packet!r}: {rejected}")
             return []
 
@@ -481,7 +352,7 @@ class Firmware:
             d.integral = 0.0
             d.applied_mA = d.current_limits.clamp(d.current_target)
             return d.applied_mA
-        if mode in _HOLDING_MODES:
+        if mode in HOLDING_MODES:
             err = d.position_target - pos
             if d.continuous:
                 err = (err + math.pi) % (2.0 * math.pi) - math.pi
@@ -615,13 +486,13 @@ class Firmware:
             )
             return None
         if len(packet.data) != 24:
-            raise _Rejected(
+            raise Rejected(
                 ErrorReason.BAD_PAYLOAD,
                 f"{name} payload must be 6 float32 (24 bytes), got {len(packet.data)}",
             )
         values = packet.floats()
         if not all(math.isfinite(v) for v in values):
-            raise _Rejected(ErrorReason.BAD_VALUE, f"{name} {values} is not finite")
+            raise Rejected(ErrorReason.BAD_VALUE, f"{name} {values} is not finite")
         if len(self._control(self._joints, name)) < len(self._joints):
             return None  # a joint in DISABLE or PASSIVE: the arm cannot move as a whole
         return values
@@ -698,276 +569,6 @@ class Firmware:
                 return
         for d, rate in zip(joints, rates, strict=True):
             d.velocity_target = rate
-
-    # -- errors -----------------------------------------------------------------------------
-    def _error(
-        self, targets: Sequence[Device], reason: ErrorReason, message: str, flag: bool = True
-    ) -> None:
-        self.errors.record(reason.value, message)
-        if flag:
-            self._raise_flag(targets, HardwareStatus.SERIAL_ERROR)
-
-    def _raise_flag(self, targets: Sequence[Device], flag: HardwareStatus) -> None:
-        now = self.arm.time
-        for d in targets:
-            if not d.status:
-                d.status_phase = self.config.status_period_s  # report at the next step
-            d.status |= flag
-            d.last_error_time = now
-
-    # -- packet handlers --------------------------------------------------------------------
-    def _set_mode(self, d: Device, mode: Mode) -> None:
-        if mode == d.mode:
-            return
-        if mode in _HOLDING_MODES:
-            d.position_target = self._position(d)
-        d.velocity_target = 0.0
-        d.current_target = 0.0
-        # Bumpless: the velocity loop's integral starts at the current already applied.
-        d.integral = d.applied_mA / d.spec.gains.velocity_i
-        d.mode = mode
-
-    def _on_mode(self, targets: list[Device], packet: Packet) -> list[Packet]:
-        data = packet.data
-        if len(data) != 1:
-            hint = " (an empty MODE: a sender using bytes(Mode.X)?)" if not data else ""
-            raise _Rejected(
-                ErrorReason.BAD_PAYLOAD, f"MODE payload must be 1 byte, got {len(data)}{hint}"
-            )
-        if data[0] in UNDOCUMENTED_MODES:
-            # Sent by a widely used client library; undocumented, so not emulated: the device
-            # keeps its mode, and nothing is flagged.
-            self.ignored.record(
-                Ignored.UNIMPLEMENTED_MODE.value,
-                f"mode 0x{data[0]:02X} is not documented in protocol V1.12.1; mode kept",
-            )
-            return []
-        try:
-            mode = Mode(data[0])
-        except ValueError:
-            raise _Rejected(
-                ErrorReason.UNKNOWN_MODE, f"mode 0x{data[0]:02X} is not one this firmware runs"
-            ) from None
-        for d in targets:
-            self._set_mode(d, mode)
-        return []
-
-    def _control(self, targets: list[Device], name: str) -> list[Device]:
-        """The targets that accept a control packet (the others are counted as ignored)."""
-        accepted = [d for d in targets if d.mode not in _LOCKED_MODES]
-        if len(accepted) < len(targets):
-            locked = " ".join(d.spec.letter for d in targets if d.mode in _LOCKED_MODES)
-            self.ignored.record(
-                Ignored.LOCKED.value, f"{name} ignored by {locked}: DISABLE/PASSIVE mode"
-            )
-        return accepted
-
-    def _on_position(self, targets: list[Device], packet: Packet) -> list[Packet]:
-        value = _one_float(packet, "POSITION")
-        for d in self._control(targets, "POSITION"):
-            self._command_position(d, value)
-        return []
-
-    def _on_relative(self, targets: list[Device], packet: Packet) -> list[Packet]:
-        delta = _one_float(packet, "relative POSITION")
-        for d in self._control(targets, "relative POSITION"):
-            base = d.position_target if d.mode == Mode.POSITION else self._position(d)
-            value = base + delta
-            if d.continuous:
-                value %= 2.0 * math.pi
-            self._command_position(d, value)
-        return []
-
-    def _command_position(self, d: Device, value: float) -> None:
-        if not d.position_limits.contains(value):
-            self.ignored.record(
-                Ignored.OUT_OF_LIMITS.value,
-                f"device {d.spec.letter}: position {value:.4f} {d.spec.unit} outside "
-                f"[{d.position_limits.lo:.4f}, {d.position_limits.hi:.4f}]; ignored",
-            )
-            return
-        self._set_mode(d, Mode.POSITION)
-        d.position_target = value
-
-    def _on_velocity(self, targets: list[Device], packet: Packet) -> list[Packet]:
-        value = _one_float(packet, "VELOCITY")
-        for d in self._control(targets, "VELOCITY"):
-            self._set_mode(d, Mode.VELOCITY)
-            rate = d.spec.rate_limit
-            d.velocity_target = max(min(d.velocity_limits.clamp(value), rate), -rate)
-        return []
-
-    def _on_current(self, targets: list[Device], packet: Packet) -> list[Packet]:
-        value = _one_float(packet, "CURRENT")
-        for d in self._control(targets, "CURRENT"):
-            self._set_mode(d, Mode.CURRENT)
-            d.current_target = d.current_limits.clamp(value)
-        return []
-
-    def _on_limits(self, targets: list[Device], packet: Packet) -> list[Packet]:
-        """Limits are refused (counted, changing nothing) when they are not [max, min], but no
-        status flag is raised: a client sending them once at start-up has no link fault."""
-        try:
-            return self._set_limits(targets, packet)
-        except _Rejected as rejected:
-            self._error(targets, rejected.reason, f"{packet!r}: {rejected}", flag=False)
-            return []
-
-    def _set_limits(self, targets: list[Device], packet: Packet) -> list[Packet]:
-        pid = PacketID(int(packet.packet_id))
-        if len(packet.data) == 16:
-            raise _Rejected(
-                ErrorReason.LIMITS_16_BYTES,
-                f"{pid.name} payload of 16 bytes (8 zero bytes then [min, max]?) refused: the "
-                "payload is 8 bytes, [max, min] (protocol V1.12.1)",
-            )
-        if len(packet.data) != 8:
-            raise _Rejected(
-                ErrorReason.BAD_PAYLOAD,
-                f"{pid.name} payload must be 8 bytes [max, min], got {len(packet.data)}",
-            )
-        hi, lo = packet.floats()
-        if not (math.isfinite(hi) and math.isfinite(lo)):
-            raise _Rejected(ErrorReason.BAD_VALUE, f"{pid.name} [{hi}, {lo}] is not finite")
-        if hi < lo:
-            raise _Rejected(
-                ErrorReason.BAD_LIMITS,
-                f"{pid.name} max {hi} < min {lo}: refused (the wire order is [max, min]; "
-                "[min, max] is the order of protocol V1.9 and of some client libraries)",
-            )
-        if pid != PacketID.POSITION_LIMITS and not lo <= 0.0 <= hi:
-            raise _Rejected(
-                ErrorReason.BAD_LIMITS, f"{pid.name} [{hi}, {lo}] must include 0 (max >= 0 >= min)"
-            )
-        for d in targets:
-            if pid == PacketID.POSITION_LIMITS:
-                d.position_limits = Limits(lo, hi)
-            elif pid == PacketID.VELOCITY_LIMITS:
-                d.velocity_limits = Limits(lo, hi)
-            else:
-                d.current_limits = Limits(lo, hi)
-                self._apply_drive_limit(d)
-        return []
-
-    def _apply_drive_limit(self, d: Device) -> None:
-        """The motor drive's symmetric limit follows the firmware's widest bound."""
-        limit = max(abs(d.current_limits.lo), abs(d.current_limits.hi))
-        if d.index < 0:
-            self.arm.jaw_current_limit_mA = limit
-        else:
-            limits = self.arm.current_limits_mA.copy()
-            limits[d.index] = limit
-            self.arm.current_limits_mA = limits
-
-    def _on_save(self, targets: list[Device], packet: Packet) -> list[Packet]:
-        for d in targets:
-            d.saved = Saved(
-                (d.position_limits.lo, d.position_limits.hi),
-                (d.velocity_limits.lo, d.velocity_limits.hi),
-                (d.current_limits.lo, d.current_limits.hi),
-                d.heartbeat_hz,
-            )
-        return []
-
-    def _on_reset(self, targets: list[Device], packet: Packet) -> list[Packet]:
-        for d in targets:
-            saved = d.saved
-            d.position_limits = Limits(*saved.position)
-            d.velocity_limits = Limits(*saved.velocity)
-            d.current_limits = Limits(*saved.current)
-            self._apply_drive_limit(d)
-            d.heartbeat_hz = saved.heartbeat_hz
-            d.heartbeat_ids = ()  # not saved across power cycles
-            d.status = d.injected = HardwareStatus.NONE
-            d.last_error_time = -math.inf
-            self._set_mode(d, Mode.STANDBY)
-            d.position_target = self._position(d)
-        return []
-
-    def _on_request(self, targets: list[Device], packet: Packet) -> list[Packet]:
-        ids = packet.data
-        if not 1 <= len(ids) <= MAX_REQUEST_IDS:
-            raise _Rejected(
-                ErrorReason.BAD_PAYLOAD,
-                f"REQUEST takes 1 to {MAX_REQUEST_IDS} packet ids, got {len(ids)}",
-            )
-        if 0 in ids:
-            # A pre-sized list appended to (`00 00 00 03 02 05`): real arms answer the real
-            # ids and raise nothing, so padding is only counted, once per packet.
-            self.ignored.record(
-                Ignored.PADDING.value,
-                f"REQUEST {list(ids)}: 0x00 is padding, not a packet id; skipped",
-            )
-        broadcast = int(packet.device_id) == DeviceID.BROADCAST
-        out: list[Packet] = []
-        for d in targets:
-            for pid in ids:
-                if pid == 0:
-                    continue
-                reply = self.report(int(d.spec.device_id), pid)
-                if reply is not None:
-                    out.append(reply)
-                elif not broadcast or pid not in self._reporters:
-                    self.ignored.record(
-                        Ignored.UNSUPPORTED_REQUEST.value,
-                        f"device {d.spec.letter} has no 0x{pid:02X} to report",
-                    )
-        if broadcast and self.config.half_duplex and len({p.device_id for p in out}) > 1:
-            self.ignored.record(
-                Ignored.COLLISION.value,
-                f"broadcast REQUEST {list(ids)}: {len(out)} answers from several devices "
-                "collided on the half-duplex line",
-            )
-            return []
-        return out
-
-    def _on_heartbeat_set(self, targets: list[Device], packet: Packet) -> list[Packet]:
-        if len(packet.data) > HEARTBEAT_SLOTS:
-            raise _Rejected(
-                ErrorReason.BAD_PAYLOAD,
-                f"HEARTBEAT_SET takes at most {HEARTBEAT_SLOTS} ids, got {len(packet.data)}",
-            )
-        ids = tuple(pid for pid in packet.data if pid)
-        if bytes(ids) + bytes(len(packet.data) - len(ids)) != bytes(packet.data):
-            # Zeros are the slots' filler; one before an id is a client's pre-sized list.
-            self.ignored.record(
-                Ignored.PADDING.value,
-                f"HEARTBEAT_SET {list(packet.data)}: zeros before ids skipped",
-            )
-        unknown = [pid for pid in ids if pid not in self._reporters]
-        if unknown:
-            self.ignored.record(
-                Ignored.UNSUPPORTED_REQUEST.value,
-                f"HEARTBEAT_SET ids {[f'0x{p:02X}' for p in unknown]} cannot "
-                "be reported; they will be skipped",
-            )
-        for d in targets:
-            d.heartbeat_ids = ids
-            d.heartbeat_phase = 0.0
-        return []
-
-    def _on_heartbeat_frequency(self, targets: list[Device], packet: Packet) -> list[Packet]:
-        if len(packet.data) != 1:
-            raise _Rejected(
-                ErrorReason.BAD_PAYLOAD,
-                f"HEARTBEAT_FREQUENCY payload must be 1 byte, got {len(packet.data)}",
-            )
-        for d in targets:
-            d.heartbeat_hz = packet.data[0]
-            d.heartbeat_phase = 0.0
-        return []
-
-
-def _one_float(packet: Packet, name: str) -> float:
-    if len(packet.data) != 4:
-        raise _Rejected(
-            ErrorReason.BAD_PAYLOAD,
-            f"{name} payload must be one float32 (4 bytes), got {len(packet.data)}",
-        )
-    value = packet.floats()[0]
-    if not math.isfinite(value):
-        raise _Rejected(ErrorReason.BAD_VALUE, f"{name} value {value} is not finite")
-    return value
 
 
 def _limits_payload(limits: Limits) -> bytes:

@@ -25,12 +25,10 @@ A simulator left running must not fill the disk, so the recording is bounded twi
   id, so `rerun FILE.*.rrd FILE.rrd` shows them as one.
 
 Live viewing (`reach-sim --viewer spawn | connect URL | serve`): the same samples go to a
-second stream with the same recording id whose sink is a viewer, never flushed by the
-recorder and not bounded (a viewer keeps what its memory limit allows); its first error is
-reported once and it is dropped, the file and the simulator go on. Without `--record` the
-arm is streamed only. The viewer code below is kept in step with `reach_driver.recording`
-(the layering forbids a module both could import; `tests/test_live_viewer.py` checks they
-read `--viewer` alike).
+second stream with the same recording id whose sink is a viewer (`protocol.viewer`, the one
+copy the driver uses too), never flushed by the recorder and not bounded (a viewer keeps what
+its memory limit allows); its first error is reported once and it is dropped, the file and
+the simulator go on. Without `--record` the arm is streamed only.
 """
 
 from __future__ import annotations
@@ -38,15 +36,13 @@ from __future__ import annotations
 import json
 import math
 import os
-import socket
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
-from typing import Any
 
 import mujoco
 import numpy as np
@@ -55,6 +51,14 @@ import rerun.blueprint as rrb
 
 from protocol import HardwareStatus, Mode
 from protocol.alpha5 import JOINT_LETTERS as JOINTS
+from protocol.viewer import (
+    ViewerError,
+    ViewerSpec,
+    ViewerTee,
+    live_view_off,
+    open_viewer,
+    viewer_failure,
+)
 from reach_sim_bridge.emulator.firmware import Firmware
 from reach_sim_bridge.emulator.server import SimServer
 from reach_sim_bridge.model.arm import Alpha5Arm
@@ -79,209 +83,6 @@ _PER_SAMPLE_ENTITIES = 13  # joints x 8, torques, velocities, links, jaw, link/f
 _ARM_COLOR = (230, 150, 40, 255)
 _BASE_COLOR = (90, 90, 90, 255)
 _LINKS = ("m3_inline", "m2_1_1", "m2", "m2_1_3", "m1", "jaw")
-
-
-#: where `--viewer connect` looks without a URL: a viewer started with plain `rerun`
-DEFAULT_VIEWER_PORT = 9876
-DEFAULT_VIEWER_URL = f"rerun+http://127.0.0.1:{DEFAULT_VIEWER_PORT}/proxy"
-#: `--viewer serve`: the gRPC port (loopback only) and the web viewer's HTTP port
-DEFAULT_WEB_PORT = 9090
-VIEWER_MODES = ("spawn", "connect", "serve")
-VIEWER_USAGE = (
-    "spawn [PORT] | connect [URL|PORT] | serve [GRPC_PORT [WEB_PORT]] "
-    f"(defaults: port {DEFAULT_VIEWER_PORT}, {DEFAULT_VIEWER_URL}, web port {DEFAULT_WEB_PORT})"
-)
-_PROBE_TIMEOUT_S = 1.0
-_VIEWER_CLOSE_S = 1.0  # the longest closing waits for a viewer that stopped answering
-_VIEWER_WATCH_S = 1.0  # how often the viewer stream is flushed, off the control thread
-
-
-@dataclass(frozen=True)
-class ViewerSpec:
-    """Where a live copy of a recording goes (`--viewer`)."""
-
-    mode: str  # "spawn" | "connect" | "serve"
-    url: str = DEFAULT_VIEWER_URL  # connect: the viewer; spawn/serve: the gRPC address made
-    port: int = DEFAULT_VIEWER_PORT  # spawn and serve: the gRPC port
-    web_port: int = DEFAULT_WEB_PORT  # serve: the web viewer's HTTP port
-    bind: str = "127.0.0.1"  # serve: loopback only; reach it over SSH (`ssh -L`)
-
-    @property
-    def web_url(self) -> str:
-        """serve: the address to open in a browser (the web viewer, told where the data is)."""
-        return f"http://127.0.0.1:{self.web_port}/?url=rerun%2Bhttp://127.0.0.1:{self.port}/proxy"
-
-    def describe(self) -> str:
-        if self.mode == "serve":
-            return f"serve (gRPC {self.bind}:{self.port}, web viewer port {self.web_port})"
-        return f"{self.mode} {self.url}"
-
-
-def _port(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise ValueError(f"not a port number: {text!r}") from None
-    if not 1 <= value <= 65535:
-        raise ValueError(f"a port is 1..65535, got {text}")
-    return value
-
-
-def _url_port(url: str) -> tuple[str, int]:
-    """(host, port) of a rerun gRPC URL (`rerun+http://HOST:PORT/proxy`)."""
-    rest = url.split("://", 1)[1] if "://" in url else url
-    hostport = rest.split("/", 1)[0]
-    host, sep, port = hostport.rpartition(":")
-    if not sep:
-        return hostport, 443 if url.startswith("rerun+https") else 80
-    return host.strip("[]") or "127.0.0.1", _port(port)
-
-
-def parse_viewer(words: Sequence[str]) -> ViewerSpec:
-    """`--viewer` words: `spawn [PORT]`, `connect [URL|PORT]`, `serve [GRPC_PORT [WEB_PORT]]`
-    (ValueError saying what is wrong)."""
-    if not words or words[0] not in VIEWER_MODES:
-        raise ValueError(f"expected {VIEWER_USAGE}; got {' '.join(words)!r}")
-    mode, rest = words[0], list(words[1:])
-    limit = {"spawn": 1, "connect": 1, "serve": 2}[mode]
-    if len(rest) > limit:
-        raise ValueError(
-            f"{mode} takes at most {limit} value(s), got {' '.join(rest)!r} (put --viewer "
-            "after positional arguments such as move's angles)"
-        )
-    if mode == "connect":
-        if not rest:
-            return ViewerSpec("connect")
-        target = rest[0]
-        if "://" not in target:
-            port = _port(target)
-            return ViewerSpec("connect", url=f"rerun+http://127.0.0.1:{port}/proxy", port=port)
-        if not target.startswith(("rerun://", "rerun+http://", "rerun+https://")):
-            raise ValueError(
-                f"a viewer URL starts rerun+http://, rerun+https:// or rerun://, got {target!r}"
-            )
-        return ViewerSpec("connect", url=target, port=_url_port(target)[1])
-    port = _port(rest[0]) if rest else DEFAULT_VIEWER_PORT
-    url = f"rerun+http://127.0.0.1:{port}/proxy"
-    if mode == "spawn":
-        return ViewerSpec("spawn", url=url, port=port)
-    web = _port(rest[1]) if len(rest) > 1 else DEFAULT_WEB_PORT
-    if web == port:
-        raise ValueError(f"serve: the gRPC and web ports must differ, both are {port}")
-    return ViewerSpec("serve", url=url, port=port, web_port=web)
-
-
-def _answers(host: str, port: int, timeout: float = _PROBE_TIMEOUT_S) -> bool:
-    try:
-        with socket.create_connection((host, port), timeout=timeout):
-            return True
-    except OSError:
-        return False
-
-
-def _free(host: str, port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        try:
-            s.bind((host, port))
-        except OSError:
-            return False
-    return True
-
-
-def _rerun_executable() -> str | None:
-    """The viewer installed beside this Python (a venv's bin/rerun), else None: rerun looks
-    in PATH (which a venv that was not activated does not put first)."""
-    candidate = os.path.join(os.path.dirname(sys.executable), "rerun")
-    return candidate if os.access(candidate, os.X_OK) else None
-
-
-class ViewerError(RuntimeError):
-    """The viewer could not be started or reached (the caller warns and goes on)."""
-
-
-def open_viewer(
-    spec: ViewerSpec,
-    app_id: str,
-    recording_id: str,
-    blueprint: rrb.Blueprint | None,
-    announce: Callable[[str], None] | None = None,
-) -> rr.RecordingStream:
-    """A stream whose sink is the viewer `spec` asks for (ViewerError if it cannot be had).
-
-    connect: the address must answer first (a GrpcSink to nothing would buffer the run in
-    memory and make every flush wait); spawn: `rr.spawn(connect=False)`, then a GrpcSink to
-    it; serve: a GrpcServerSink on loopback and the web viewer, their address announced."""
-    rec = rr.RecordingStream(app_id, recording_id=recording_id)
-    say = announce or (lambda _msg: None)
-    try:
-        if spec.mode == "connect":
-            host, port = _url_port(spec.url)
-            if not _answers(host, port):
-                raise ViewerError(
-                    f"no Rerun viewer answers at {spec.url} (start one with `rerun`, or watch "
-                    "with --viewer serve)"
-                )
-            rec.set_sinks(rr.GrpcSink(spec.url), default_blueprint=blueprint)
-        elif spec.mode == "spawn":
-            if sys.platform.startswith("linux") and not (
-                os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
-            ):
-                raise ViewerError(
-                    "--viewer spawn needs a display (neither DISPLAY nor WAYLAND_DISPLAY is "
-                    "set); on a machine without one use --viewer serve"
-                )
-            rr.spawn(
-                port=spec.port,
-                connect=False,
-                recording=rec,
-                hide_welcome_screen=True,
-                executable_path=_rerun_executable(),
-            )
-            if not _answers("127.0.0.1", spec.port):
-                raise ViewerError(f"the spawned viewer does not listen on port {spec.port}")
-            rec.set_sinks(rr.GrpcSink(spec.url), default_blueprint=blueprint)
-        else:  # serve
-            for port, what in ((spec.port, "gRPC"), (spec.web_port, "web viewer")):
-                if not _free(spec.bind if what == "gRPC" else "0.0.0.0", port):
-                    raise ViewerError(
-                        f"port {port} ({what}) is in use, by another run serving or a viewer: "
-                        "pick others (--viewer serve GRPC_PORT WEB_PORT) or --viewer connect"
-                    )
-            rec.set_sinks(
-                rr.GrpcServerSink(bind_ip=spec.bind, port=spec.port), default_blueprint=blueprint
-            )
-            rr.serve_web_viewer(web_port=spec.web_port, open_browser=False, connect_to=spec.url)
-            say(
-                f"viewer: open {spec.web_url} (web), or `rerun --connect {spec.url}` (native); "
-                f"from another machine forward both ports first: ssh -L {spec.web_port}:"
-                f"localhost:{spec.web_port} -L {spec.port}:localhost:{spec.port} HOST"
-            )
-        return rec
-    except ViewerError:
-        _drop(rec)
-        raise
-    except Exception as exc:  # rerun raises RuntimeError (no executable, a port it cannot bind)
-        _drop(rec)
-        raise ViewerError(f"{type(exc).__name__}: {exc}") from None
-
-
-def _drop(rec: rr.RecordingStream, wait_s: float = _VIEWER_CLOSE_S) -> None:
-    """Disconnect a viewer stream without waiting long: rerun's disconnect waits up to 5 s
-    for a viewer that does not answer, so it runs on a daemon thread given `wait_s`."""
-
-    def close() -> None:
-        try:
-            rec.flush(timeout_sec=wait_s)
-        except Exception:  # a viewer that is gone: nothing more to send
-            pass
-        try:
-            rec.disconnect()
-        except Exception:
-            pass
-
-    thread = threading.Thread(target=close, name="rerun-viewer-close", daemon=True)
-    thread.start()
-    thread.join(timeout=2 * wait_s + 0.5)
 
 
 @dataclass(frozen=True)
@@ -413,74 +214,6 @@ def _blueprint() -> rrb.Blueprint:
     )
 
 
-class _Tee:
-    """Logs to the file stream (its errors propagate: the caller decides) and to the viewer
-    stream (its first error is reported through `on_viewer_error` and the viewer dropped)."""
-
-    def __init__(
-        self,
-        file: rr.RecordingStream | None,
-        viewer: rr.RecordingStream | None,
-        on_viewer_error: Callable[[Exception], None],
-    ) -> None:
-        self.file, self.viewer = file, viewer
-        self._on_viewer_error = on_viewer_error
-        self._watching = threading.Event()
-
-    def _to_viewer(self, call: Callable[[rr.RecordingStream], None]) -> None:
-        viewer = self.viewer
-        if viewer is None:
-            return
-        try:
-            call(viewer)
-        except Exception as exc:
-            self._fail(viewer, exc)
-
-    def _fail(self, viewer: rr.RecordingStream, exc: Exception) -> None:
-        if self.viewer is not viewer:
-            return  # already dropped
-        self.viewer = None
-        self._on_viewer_error(exc)  # first: `viewing` is False only once it is said
-        _drop(viewer, wait_s=0.1)
-
-    def watch(self, period_s: float = _VIEWER_WATCH_S) -> None:
-        """Flush the viewer stream every `period_s` on a thread of its own: a viewer that went
-        away (rerun reports it only on a flush) is noticed, named and dropped without the
-        control loop ever waiting for it. A flush that merely times out (a slow viewer) is
-        not a failure."""
-        if self.viewer is None or self._watching.is_set():
-            return
-        self._watching.set()
-
-        def run() -> None:
-            while self._watching.is_set():
-                time.sleep(period_s)
-                viewer = self.viewer
-                if viewer is None or not self._watching.is_set():
-                    return
-                try:
-                    viewer.flush(timeout_sec=period_s)
-                except Exception as exc:
-                    if "timed out" not in str(exc).lower():
-                        self._fail(viewer, exc)
-                        return
-
-        threading.Thread(target=run, name="rerun-viewer-watch", daemon=True).start()
-
-    def unwatch(self) -> None:
-        self._watching.clear()
-
-    def log(self, path: str, entity: Any, static: bool = False) -> None:
-        if self.file is not None:
-            self.file.log(path, entity, static=static)
-        self._to_viewer(lambda v: v.log(path, entity, static=static))
-
-    def set_time(self, timeline: str, **kw: Any) -> None:
-        if self.file is not None:
-            self.file.set_time(timeline, **kw)
-        self._to_viewer(lambda v: v.set_time(timeline, **kw))
-
-
 class SimRecorder:
     """Samples a running SimServer at `rate_hz` of sim time into a .rrd, in its own thread
     (bounded in rate when the arm is idle and in size by `max_bytes`; see the module), and/or
@@ -535,7 +268,7 @@ class SimRecorder:
         self._modes: tuple[Mode, ...] | None = None
         self._status: tuple[HardwareStatus, ...] | None = None
         self._chunks = _CHUNKS_AT_OPEN
-        self._out = _Tee(None, None, self._viewer_error)
+        self._out = ViewerTee(None, None, self._viewer_error)
         if viewer is not None:
             try:
                 view = open_viewer(viewer, "reach-sim", self._recording_id, _blueprint(), announce)
@@ -543,7 +276,7 @@ class SimRecorder:
                 self._viewer_error(exc, opening=True)
             else:
                 self._out.viewer = view
-                self._log_scene(_Tee(None, view, self._viewer_error))
+                self._log_scene(ViewerTee(None, view, self._viewer_error))
         self._rec = self._open_part() if self.path is not None else None
         self._out.file = self._rec
         self._out.watch()
@@ -560,11 +293,10 @@ class SimRecorder:
     def _viewer_error(self, exc: Exception, opening: bool = False) -> None:
         if self.viewer_failed is not None:
             return
-        what = self.viewer.describe() if self.viewer is not None else "viewer"
-        when = "could not be started" if opening else "failed"
-        self.viewer_failed = f"--viewer {what} {when}: {exc}"
-        where = "the recording goes on" if self.path is not None else "nothing is recorded"
-        self._warn(f"{self.viewer_failed}; live view off, {where}, the simulator runs on")
+        self.viewer_failed = viewer_failure(self.viewer, exc, opening)
+        self._warn(
+            live_view_off(self.viewer_failed, self.path is not None, "the simulator runs on")
+        )
 
     # -- parts ------------------------------------------------------------------------------
     def _open_part(self) -> rr.RecordingStream:
@@ -582,7 +314,7 @@ class SimRecorder:
         self._chunks = _CHUNKS_AT_OPEN
         return rec
 
-    def _log_scene(self, rec: rr.RecordingStream | _Tee) -> None:
+    def _log_scene(self, rec: rr.RecordingStream | ViewerTee) -> None:
         """The static scene and metadata every part (and the viewer) starts with."""
         rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         g = self._geoms
@@ -754,14 +486,12 @@ class SimRecorder:
             self._thread.join(timeout=5.0)
         self._out.unwatch()
         with self._lock:
-            viewer, self._out.viewer = self._out.viewer, None
             try:
                 if self._rec is not None:
                     self._rec.flush(timeout_sec=5.0)
                     self._rec.disconnect()
             finally:
-                if viewer is not None:
-                    _drop(viewer)
+                self._out.close_viewer()
 
 
 def _flags(status: HardwareStatus) -> str:
