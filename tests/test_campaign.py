@@ -3,35 +3,30 @@ results, episode for episode, and a clear message when Ray is not installed."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
 from collections.abc import Iterator
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
 import pytest
 
 from policy.campaigns import parallel as campaign
+from policy.campaigns.evaluate_command import Options, execute
 from policy.campaigns.evaluation import RunConfig, evaluate, load_controller, random_episodes
 from reach_sim_bridge.model.sensors import SensorNoise
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = 31
 CONFIG = RunConfig(seconds=3.0, noise=SensorNoise(), seed=SEED, param_spread=0.2)
-COMMON = ["--controller", "pid", "--random", "4", "--seed", str(SEED), "--seconds", "3"]
-COMMON += ["--noise", "--perturb", "0.2", "--quiet"]
+COMMON: dict[str, Any] = {"controller": "pid", "random": 4, "seed": SEED, "seconds": 3.0}
+COMMON |= {"noise": True, "perturb": 0.2, "quiet": True}
 
 
-def _cli() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("evaluate_cli", ROOT / "tools" / "evaluate.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+def evaluate_cli(**options: Any) -> int:
+    """What `tools/evaluate.py` does with these options; the exit code."""
+    return execute(Options(**COMMON, **options))
 
 
 @pytest.fixture(scope="module")
@@ -62,10 +57,9 @@ def test_two_workers_give_the_serial_results_episode_for_episode(ray_local: Any)
 
 
 def test_cli_workers_2_writes_the_serial_json(ray_local: Any, tmp_path: Path) -> None:
-    cli = _cli()
     serial, parallel = tmp_path / "serial.json", tmp_path / "parallel.json"
-    assert cli.main([*COMMON, "--out", str(serial)]) == 0
-    assert cli.main([*COMMON, "--workers", "2", "--out", str(parallel)]) == 0
+    assert evaluate_cli(out=serial) == 0
+    assert evaluate_cli(workers=2, out=parallel) == 0
     a, b = json.loads(serial.read_text()), json.loads(parallel.read_text())
     assert a["episodes"] == b["episodes"] and a["summary"] == b["summary"]
 
@@ -75,7 +69,7 @@ def test_without_ray_workers_name_the_extra(
 ) -> None:
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` now raises ImportError
     out = tmp_path / "o.json"
-    assert _cli().main([*COMMON, "--workers", "2", "--out", str(out)]) == 2
+    assert evaluate_cli(workers=2, out=out) == 2
     err = " ".join(capsys.readouterr().err.split())
     assert "needs Ray" in err and "pip install -e '.[scale]'" in err
     assert not out.exists()
@@ -84,10 +78,9 @@ def test_without_ray_workers_name_the_extra(
 
 
 def test_workers_with_via_driver_or_below_one_are_refused(tmp_path: Path, capsys: Any) -> None:
-    cli = _cli()
     out = tmp_path / "o.json"
-    assert cli.main([*COMMON, "--workers", "2", "--via-driver", "--out", str(out)]) == 2
-    assert cli.main([*COMMON, "--workers", "0", "--out", str(out)]) == 2
+    assert evaluate_cli(workers=2, via_driver=True, out=out) == 2
+    assert evaluate_cli(workers=0, out=out) == 2
     err = capsys.readouterr().err
     assert "--via-driver" in err and "at least 1" in err
 

@@ -5,9 +5,7 @@ episode run to the end."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -16,6 +14,7 @@ import numpy as np
 import pytest
 from conftest import wait_until
 
+from policy.campaigns import chatter_screen
 from policy.campaigns.evaluation import evaluate
 from policy.tasks.episodes import NoisyReadings, RunConfig, random_episodes
 from policy.tasks.scenarios import SCENARIOS
@@ -32,15 +31,6 @@ TARGET = np.array([3.0, 1.5, 1.5, 1.5])
 DT = 0.05
 SCENARIO_1 = SCENARIOS[0].episode()
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def load_tool(name: str) -> Any:
-    spec = importlib.util.spec_from_file_location(f"tool_{name}", ROOT / "tools" / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def feed(
@@ -296,7 +286,7 @@ def direct_on_the_bad_arm(name: str, **params: Any):
 
 
 def test_the_actors_chatter_in_the_direct_runner_is_caught_and_the_pids_rest_is_not() -> None:
-    screen = load_tool("screen_chatter")
+    screen = chatter_screen  # what tools/screen_chatter.py runs
     ddpg = direct_on_the_bad_arm("ddpg", settle=False)
     assert ddpg.metrics.energy_j > 50.0  # the measured chatter: 63.7 J
     verdict, _ = screen.replay(ddpg)
@@ -310,7 +300,7 @@ def test_the_actors_chatter_in_the_direct_runner_is_caught_and_the_pids_rest_is_
 
 def test_the_shipped_ddpg_comes_to_rest_on_the_arm_where_its_actor_chatters() -> None:
     """The settle supervisor hands C to its settle law: no chatter for the guard to see."""
-    screen = load_tool("screen_chatter")
+    screen = chatter_screen  # what tools/screen_chatter.py runs
     ddpg = direct_on_the_bad_arm("ddpg")
     assert ddpg.metrics.reached and ddpg.metrics.at_rest
     assert ddpg.metrics.energy_j < 20.0  # its neighbours' ~12 J, not the actor's 63.7 J
@@ -377,15 +367,15 @@ def test_the_shipped_ddpg_over_the_chattering_controllers_episode_runs_to_the_en
 
 
 def test_the_screen_tool_writes_its_counts(tmp_path: Path) -> None:
-    screen = load_tool("screen_chatter")
     out = tmp_path / "screen.json"
-    short = ["--seconds", "8", "--late-window", "3"]  # every step has arrived by 5 s
-    argv = ["--controllers", "pid", "--episodes", "2", *short, "--out", str(out)]
-    assert screen.main(argv) == 0
+    short: dict[str, Any] = {"seconds": 8.0, "late_window": 3.0}  # all arrived by 5 s
+    argv = chatter_screen.Options(out, controllers="pid", episodes="2", **short)
+    assert chatter_screen.execute(argv) == 0
     report = json.loads(out.read_text())
     total = report["total"]
     assert total["episodes"] == 2 and total["false_positives"] == [] and total["chattering"] == 0
     assert [r["index"] for r in report["episodes"]] == [0, 1]
     assert report["settings"]["chatter_config"]["sustain_s"] == "5.0"
     assert report["settings"]["params"] == {}
-    assert screen.main([*argv, "--param", "no-equals-sign"]) == 2  # said, not a traceback
+    bad = replace(argv, param=["no-equals-sign"])
+    assert chatter_screen.execute(bad) == 2  # said, not a traceback

@@ -5,8 +5,8 @@ corrupted bytes, the arm restarting, a stalled controller, a bad target) and thr
 
 from __future__ import annotations
 
-import importlib.util
 import json
+import subprocess
 import sys
 import threading
 import time
@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from conftest import wait_until
 
+from policy.campaigns.evaluate_command import Options, execute
 from policy.campaigns.evaluation import Episode, RunConfig, run_episode
 from policy.campaigns.via_driver import (
     AGREEMENT,
@@ -37,15 +38,6 @@ from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 ROOT = Path(__file__).resolve().parents[1]
 JOINT_IDS = (5, 4, 3, 2)  # E D C B
-
-
-def _load_tool(name: str) -> Any:
-    spec = importlib.util.spec_from_file_location(f"tool_{name}", ROOT / "tools" / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 SCENARIO_1 = SCENARIOS[0].episode()
@@ -457,27 +449,21 @@ def test_pid_and_mpc_reach_a_target_through_the_driver(name: str, speed: float) 
 
 @pytest.mark.slow
 def test_evaluate_via_driver_writes_metrics_and_loop_timing(tmp_path: Path) -> None:
-    evaluate = _load_tool("evaluate")
     targets = tmp_path / "episodes.json"
     targets.write_text(
         json.dumps([{"start": [3.0, 1.6, 1.6, 3.0], "target": [3.3, 1.5, 1.8, 3.3]}])
     )
     out = tmp_path / "eval.json"
-    argv = [
-        "--controller",
-        "pid",
-        "--targets",
-        str(targets),
-        "--seconds",
-        "3",  # the PID settles at 2.45 s; at 2 s it is still moving (not at rest)
-        "--via-driver",
-        "--sim-speed",
-        "4",
-        "--out",
-        str(out),
-        "--quiet",
-    ]
-    assert evaluate.main(argv) == 0
+    argv = Options(
+        controller="pid",
+        targets=targets,
+        seconds=3.0,  # the PID settles at 2.45 s; at 2 s it is still moving (not at rest)
+        via_driver=True,
+        sim_speed=4.0,
+        out=out,
+        quiet=True,
+    )
+    assert execute(argv) == 0
     data = json.loads(out.read_text())
     episode = data["episodes"][0]
     assert episode["reached"] is True
@@ -490,12 +476,14 @@ def test_evaluate_via_driver_writes_metrics_and_loop_timing(tmp_path: Path) -> N
 
 
 @pytest.mark.slow
-def test_demo_runs_ddpg_through_the_cli_and_writes_a_recording(tmp_path: Path, capfd: Any) -> None:
-    demo = _load_tool("demo")
+def test_demo_runs_ddpg_through_the_cli_and_writes_a_recording(tmp_path: Path) -> None:
     record = tmp_path / "demo.rrd"
-    code = demo.main(["--speed", "4", "--seconds", "4", "--record", str(record)])
-    out = capfd.readouterr().out
-    assert code == 0, out
+    demo = [sys.executable, str(ROOT / "tools" / "demo.py"), "--speed", "4", "--seconds", "4"]
+    proc = subprocess.run(
+        [*demo, "--record", str(record)], capture_output=True, text=True, timeout=300, cwd=ROOT
+    )
+    out = proc.stdout
+    assert proc.returncode == 0, out + proc.stderr
     assert "scenario 1" in out and "RMSE" in out and f"rerun {record}" in out
     assert "reach-driver inspect" in out
     # the run ends on the first state taken at or after 4 s: a host pause (50 ms of wall time

@@ -1,10 +1,12 @@
-"""The evaluation runner and its CLI: what the controller sees, what the arm gets, the JSON."""
+"""The evaluation runner and tools/evaluate.py (policy/campaigns/evaluate_command.py): what
+the controller sees, what the arm gets, the JSON."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
+import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 from types import ModuleType, SimpleNamespace
 from typing import Any
@@ -12,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from policy.campaigns.evaluate_command import Options, execute
 from policy.campaigns.evaluation import (
     Episode,
     RunConfig,
@@ -21,6 +24,8 @@ from policy.campaigns.evaluation import (
     random_episodes,
     run_episode,
 )
+from policy.campaigns.paper.markdown import seed_lines
+from policy.campaigns.paper.settings import BEGIN, END, write_generated
 from policy.controllers.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from policy.tasks import scenarios
 from reach_driver.errors import DriverError
@@ -30,15 +35,6 @@ from reach_sim_bridge.model.sensors import SensorNoise
 
 ROOT = Path(__file__).resolve().parents[1]
 START = np.array([3.0, 1.5, 1.5, 1.5])
-
-
-def _cli() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("evaluate_cli", ROOT / "tools" / "evaluate.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up here
-    spec.loader.exec_module(module)
-    return module
 
 
 class Recorder:
@@ -206,19 +202,7 @@ def test_cli_runs_pid_and_writes_json(tmp_path: Path) -> None:
         json.dumps([{"start": [3.0, 1.5, 1.5, 1.5], "target": [3.2, 1.6, 1.4, 1.6]}])
     )
     out = tmp_path / "out.json"
-    code = _cli().main(
-        [
-            "--controller",
-            "pid",
-            "--targets",
-            str(targets),
-            "--seconds",
-            "4",
-            "--out",
-            str(out),
-            "--quiet",
-        ]
-    )
+    code = execute(Options(controller="pid", targets=targets, seconds=4.0, out=out, quiet=True))
     assert code == 0
     data = json.loads(out.read_text())
     assert data["controller"] == "pid" and data["config"]["seconds"] == 4
@@ -227,18 +211,18 @@ def test_cli_runs_pid_and_writes_json(tmp_path: Path) -> None:
 
 
 def test_cli_bad_input_exits_2_with_a_message(tmp_path: Path, capsys: Any) -> None:
-    cli = _cli()
     out = tmp_path / "o.json"
-    assert cli.main(["--controller", "nope", "--random", "1", "--out", str(out)]) == 2
+    assert execute(Options(controller="nope", random=1, out=out)) == 2
     assert "unknown controller 'nope'" in capsys.readouterr().err
-    assert cli.main(["--controller", "pid", "--random", "0", "--out", str(out)]) == 2
+    assert execute(Options(controller="pid", random=0, out=out)) == 2
     assert not out.exists()
 
 
-def test_cli_help_explains_the_options(capsys: Any) -> None:
-    with pytest.raises(SystemExit):
-        _cli().main(["--help"])
-    text = capsys.readouterr().out
+def test_cli_help_explains_the_options() -> None:
+    tool = [sys.executable, str(ROOT / "tools" / "evaluate.py"), "--help"]
+    proc = subprocess.run(tool, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    text = proc.stdout
     for word in (
         "--controller",
         "--targets",
@@ -256,23 +240,8 @@ def test_cli_record_writes_a_readable_recording(tmp_path: Path) -> None:
     from reach_driver.rrd_summary import read_recording
 
     rrd = tmp_path / "eval.rrd"
-    code = _cli().main(
-        [
-            "--controller",
-            "pid",
-            "--random",
-            "2",
-            "--seed",
-            "1",
-            "--seconds",
-            "1",
-            "--out",
-            str(tmp_path / "o.json"),
-            "--record",
-            str(rrd),
-            "--quiet",
-        ]
-    )
+    options = Options(controller="pid", random=2, seed=1, seconds=1.0, out=tmp_path / "o.json")
+    code = execute(replace(options, record=rrd, quiet=True))
     assert code == 0
     run = read_recording(rrd)
     assert run.q.shape == (2 * 21, 4)  # two episodes of 20 periods plus their initial states
@@ -280,15 +249,6 @@ def test_cli_record_writes_a_readable_recording(tmp_path: Path) -> None:
     first = data["episodes"][0]
     np.testing.assert_allclose(run.target[0], first["target"])
     np.testing.assert_allclose(run.q[0], first["start"])
-
-
-def _paper() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("paper_cli", ROOT / "tools" / "paper.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up here
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_paper_scenarios_map_inside_the_arm_limits() -> None:
@@ -307,15 +267,13 @@ def test_paper_scenarios_map_inside_the_arm_limits() -> None:
 
 
 def test_paper_replaces_only_its_generated_block(tmp_path: Path) -> None:
-    paper = _paper()
     doc = tmp_path / "results.md"
-    doc.write_text(f"intro\n{paper.BEGIN}\nold table\n{paper.END}\noutro\n")
-    paper.write_generated(doc, f"{paper.BEGIN}\nnew table\n{paper.END}")
-    assert doc.read_text() == f"intro\n{paper.BEGIN}\nnew table\n{paper.END}\noutro\n"
+    doc.write_text(f"intro\n{BEGIN}\nold table\n{END}\noutro\n")
+    write_generated(doc, f"{BEGIN}\nnew table\n{END}")
+    assert doc.read_text() == f"intro\n{BEGIN}\nnew table\n{END}\noutro\n"
 
 
 def test_paper_counts_ddpg_wins_over_mpc_across_seeds() -> None:
-    paper = _paper()
     keys = (*scenarios.TABLE_KEYS, "reached")
 
     def ev(*values: float) -> SimpleNamespace:
@@ -332,7 +290,7 @@ def test_paper_counts_ddpg_wins_over_mpc_across_seeds() -> None:
         "overshoot_pct": True,
         "settling_time_s": False,
     }  # a tie is not a win
-    text = "\n".join(paper.seed_lines(more, table, 2020, 20))
+    text = "\n".join(seed_lines(more, table, 2020, 20))
     assert "| 2020 | ddpg | 10.40 |" in text and "| 2120 | mpc | 10.70 |" in text
     assert (
         "on 2 seeds: energy 1/2, RMSE 2/2, MIE 2/2, MSSE 1/2, overshoot 2/2, settling time 1/2."

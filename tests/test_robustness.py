@@ -1,4 +1,5 @@
-"""tools/robustness.py: controllers over the uncertainty envelope (policy/tasks/envelope.py).
+"""tools/robustness.py and policy/campaigns/robustness/: controllers over the uncertainty
+envelope (policy/tasks/envelope.py).
 
 Infeasible corners are left out and counted, each arm's episode depends on its own seed only,
 serial and Ray runs agree episode for episode, the summary's intervals hold their means, and
@@ -6,17 +7,36 @@ serial and Ray runs agree episode for episode, the summary's intervals hold thei
 
 from __future__ import annotations
 
-import importlib.util
 import json
+import subprocess
 import sys
 from dataclasses import replace
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
 import pytest
 
+from policy.campaigns.robustness.arms import arm_episode, arm_twin, plan, subsample
+from policy.campaigns.robustness.campaign import make_jobs, run_jobs
+from policy.campaigns.robustness.command import Options, execute
+from policy.campaigns.robustness.identification import identify_rows
+from policy.campaigns.robustness.report import (
+    COMPARISON,
+    NEW_BLOCKS,
+    anatomy_line,
+    begin_marker,
+    comparison_block,
+    end_marker,
+    overshoot_by_table,
+)
+from policy.campaigns.robustness.summary import (
+    FACTOR_ORDER,
+    METRICS,
+    overshoot_by,
+    overshoot_summary,
+    summarize_rows,
+)
 from policy.tasks.envelope import corners
 from reach_sim_bridge.model.params import ArmParams
 
@@ -25,18 +45,10 @@ SEED = 3
 SECONDS = 3.0
 
 
-def _tool() -> ModuleType:
-    spec = importlib.util.spec_from_file_location(
-        "robustness_tool", ROOT / "tools" / "robustness.py"
-    )
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-rb = _tool()
+def robustness(**options: Any) -> int:
+    """What `tools/robustness.py` does with these options (its command line's values);
+    the exit code."""
+    return execute(Options(**options), command="tools/robustness.py")
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +57,7 @@ def corner_selection() -> Any:
 
 
 def test_infeasible_corners_are_left_out_and_counted(corner_selection: Any) -> None:
-    p = rb.plan(SEED, True, None, corner_selection=corner_selection)
+    p = plan(SEED, True, None, corner_selection=corner_selection)
     n_in, n_out = len(p.arms), len(p.infeasible["corners"])
     assert n_in + n_out == 1280
     assert p.available["corners"] == n_in and n_out > 0
@@ -57,16 +69,16 @@ def test_infeasible_corners_are_left_out_and_counted(corner_selection: Any) -> N
 
 
 def test_an_arms_episode_and_noise_depend_on_its_own_seed(corner_selection: Any) -> None:
-    small = rb.subsample(896, 5, SEED)
-    large = rb.subsample(896, 50, SEED)
+    small = subsample(896, 5, SEED)
+    large = subsample(896, 50, SEED)
     assert set(small) <= set(large) and len(set(large)) == 50
-    assert rb.subsample(896, None, SEED) == list(range(896))
-    a = rb.arm_episode(SEED, "corners", 7)
-    b = rb.arm_episode(SEED, "corners", 7)
+    assert subsample(896, None, SEED) == list(range(896))
+    a = arm_episode(SEED, "corners", 7)
+    b = arm_episode(SEED, "corners", 7)
     np.testing.assert_array_equal(a.start, b.start)
-    assert not np.array_equal(a.start, rb.arm_episode(SEED, "draws", 7).start)
-    p = rb.plan(SEED, True, 4, max_corners=3, corner_selection=corner_selection)
-    jobs = rb.make_jobs("pid", {}, p.arms, SEED, SECONDS)
+    assert not np.array_equal(a.start, arm_episode(SEED, "draws", 7).start)
+    p = plan(SEED, True, 4, max_corners=3, corner_selection=corner_selection)
+    jobs = make_jobs("pid", {}, p.arms, SEED, SECONDS)
     for arm, job in zip(p.arms, jobs, strict=True):
         np.testing.assert_array_equal(job.episode.torque_scale, arm.variant.torque_scale)
         assert job.config.latency_periods == arm.variant.latency_periods
@@ -80,8 +92,8 @@ def test_twin_jobs_give_each_arm_its_own_parameters_and_latency(corner_selection
     an identification would; `--twin-error` perturbs it reproducibly, within its bounds."""
     from reach_sim_bridge.model.params import ArmParams
 
-    p = rb.plan(SEED, True, 2, max_corners=3, corner_selection=corner_selection)
-    jobs = rb.make_jobs("lambda", {"lambda_factor": 4.0}, p.arms, SEED, SECONDS, twin_error=0.0)
+    p = plan(SEED, True, 2, max_corners=3, corner_selection=corner_selection)
+    jobs = make_jobs("lambda", {"lambda_factor": 4.0}, p.arms, SEED, SECONDS, twin_error=0.0)
     for arm, job in zip(p.arms, jobs, strict=True):
         params = json.loads(job.params_json)
         assert params["lambda_factor"] == 4.0
@@ -94,20 +106,24 @@ def test_twin_jobs_give_each_arm_its_own_parameters_and_latency(corner_selection
         assert params["noise_q"] == pytest.approx(sensor.position_std)
         assert params["noise_v"] == pytest.approx(sensor.velocity_std)
         assert params["twin_error"] == 0.0
-    assert rb.arm_twin(p.arms[0], SEED, 0.05)["twin_error"] == 0.05
-    off = [rb.arm_twin(a, SEED, 0.05)["params"] for a in p.arms]
-    assert off == [rb.arm_twin(a, SEED, 0.05)["params"] for a in p.arms]  # seeded per arm
+    assert arm_twin(p.arms[0], SEED, 0.05)["twin_error"] == 0.05
+    off = [arm_twin(a, SEED, 0.05)["params"] for a in p.arms]
+    assert off == [arm_twin(a, SEED, 0.05)["params"] for a in p.arms]  # seeded per arm
     for arm, twin in zip(p.arms, off, strict=True):
         ratio = np.asarray(twin["armature"]) / np.asarray(arm.variant.params.armature)
         assert np.all(np.abs(ratio - 1) <= 0.05) and np.any(ratio != 1)
         assert twin["torque_scale"] == list(arm.variant.torque_scale)
-    plain = rb.make_jobs("pid", {}, p.arms, SEED, SECONDS)
+    plain = make_jobs("pid", {}, p.arms, SEED, SECONDS)
     assert {j.params_json for j in plain} == {"{}"}
 
 
 def test_a_twin_campaign_records_how_its_twins_were_made(tmp_path: Path) -> None:
+    """The tool as a user runs it: its options recorded in the results."""
     argv = ["--controller", "lambda", "--twin", "--twin-error", "0.02", "--draws", "1"]
-    assert rb.main([*argv, "--seconds", "2", "--out", str(tmp_path), "--quiet"]) == 0
+    argv += ["--seconds", "2", "--out", str(tmp_path), "--quiet"]
+    tool = [sys.executable, str(ROOT / "tools" / "robustness.py")]
+    proc = subprocess.run([*tool, *argv], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
     report = json.loads((tmp_path / "lambda.json").read_text())
     assert report["settings"]["twin_error"] == 0.02
     assert report["params"] == {}  # the twins are per arm, not the campaign's parameters
@@ -122,9 +138,9 @@ def test_exported_arms_are_the_hidden_arms_and_fitted_twins_replace_them(
     runs only the arms that have one."""
     from reach_sim_bridge.model.params import load_arm_params, save_arm_params
 
-    argv = ["--draws", "3", "--seed", str(SEED)]
-    assert rb.main([*argv, "--export-arms", str(tmp_path / "arms")]) == 0
-    p = rb.plan(SEED, False, 3)
+    argv: dict[str, Any] = {"draws": 3, "seed": SEED}
+    assert robustness(**argv, export_arms=tmp_path / "arms") == 0
+    p = plan(SEED, False, 3)
     for arm in p.arms:
         path = tmp_path / "arms" / f"draws-{arm.index}.json"
         hidden = load_arm_params(path)
@@ -135,33 +151,33 @@ def test_exported_arms_are_the_hidden_arms_and_fitted_twins_replace_them(
         assert meta["sensor_noise"][0] == pytest.approx(0.002 * arm.variant.noise_scale)
     fit = replace(load_arm_params(tmp_path / "arms" / "draws-1.json"), damping=(1, 1, 1, 0.1))
     save_arm_params(fit, tmp_path / "fits" / "draws-1.json", {"_fit": {"note": "ignored"}})
-    jobs = rb.make_jobs(
+    jobs = make_jobs(
         "lambda", {}, p.arms, SEED, SECONDS, twin_error=0.01, fitted={("draws", 1): fit}
     )
     told = [ArmParams.from_json_dict(json.loads(j.params_json)["params"]) for j in jobs]
     assert told[1] == fit  # as fitted, not spread by twin_error as an arm without a fit is
-    assert told[0] == ArmParams.from_json_dict(rb.arm_twin(p.arms[0], SEED, 0.01)["params"])
+    assert told[0] == ArmParams.from_json_dict(arm_twin(p.arms[0], SEED, 0.01)["params"])
     assert json.loads(jobs[1].params_json)["twin_error"] == 0.01  # the trust, not a spread
     out = tmp_path / "out"
-    run = [*argv, "--controller", "lambda", "--twin", "--seconds", "1", "--quiet"]
-    assert rb.main([*run, "--twin-from", str(tmp_path / "fits"), "--out", str(out)]) == 0
+    run = {**argv, "controller": ["lambda"], "twin": True, "seconds": 1.0, "quiet": True}
+    assert robustness(**run, twin_from=tmp_path / "fits", out=out) == 0
     report = json.loads((out / "lambda.json").read_text())
     assert [e["index"] for e in report["episodes"]] == [1]
     assert report["settings"]["twin_from"] == "fits"
-    assert rb.main([*run, "--twin-from", str(tmp_path / "arms" / "none")]) == 2
-    assert rb.main([*argv, "--controller", "lambda", "--twin-from", str(tmp_path)]) == 2
+    assert robustness(**run, twin_from=tmp_path / "arms" / "none") == 2
+    assert robustness(**argv, controller=["lambda"], twin_from=tmp_path) == 2
 
 
 def _small_plan(corner_selection: Any) -> Any:
-    return rb.plan(SEED, True, 2, max_corners=2, corner_selection=corner_selection)
+    return plan(SEED, True, 2, max_corners=2, corner_selection=corner_selection)
 
 
 def test_serial_and_ray_give_the_same_results(corner_selection: Any) -> None:
     pytest.importorskip("ray")
-    jobs = rb.make_jobs("pid", {}, _small_plan(corner_selection).arms, SEED, SECONDS)
-    serial = rb.run_jobs(jobs, None, None)
+    jobs = make_jobs("pid", {}, _small_plan(corner_selection).arms, SEED, SECONDS)
+    serial = run_jobs(jobs, None, None)
     seen: list[int] = []
-    ray = rb.run_jobs(jobs, 1, None, lambda pair: seen.append(pair[0]))
+    ray = run_jobs(jobs, 1, None, lambda pair: seen.append(pair[0]))
     assert sorted(seen) == sorted(j.index for j in jobs)
     for a, b in zip(serial, ray, strict=True):
         assert a.metrics == b.metrics
@@ -174,7 +190,7 @@ def test_the_summary_holds_its_means_and_names_the_failures() -> None:
     for i in range(40):
         latency = [0.0, 2.0][i % 2]
         missed = latency > 1 and i % 4 == 1
-        factors = dict.fromkeys(rb.FACTOR_ORDER, 1.0)
+        factors = dict.fromkeys(FACTOR_ORDER, 1.0)
         factors.update(weak_joint=-1.0, latency_periods=latency, coulomb_edc=6.6 * (i % 3 == 0))
         rows.append(
             {
@@ -190,8 +206,8 @@ def test_the_summary_holds_its_means_and_names_the_failures() -> None:
                 },
             }
         )
-    s = rb.summarize_rows(rows)
-    for key, _, _ in rb.METRICS:
+    s = summarize_rows(rows)
+    for key, _, _ in METRICS:
         assert s[key]["low"] <= s[key]["mean"] <= s[key]["high"]
     assert s["missed"] == 10 and s["reached"]["mean"] == pytest.approx(0.75)
     assert s["worst"][0]["overshoot_pct"] == max(r["metrics"]["overshoot_pct"] for r in rows)
@@ -206,7 +222,7 @@ def test_the_summary_says_how_the_overshoots_came_about() -> None:
     """Arms over 2 %, split by their worst joint's crossing speed (an arrival carried through,
     or slowly across near the goal), with the median distance past and how many stayed
     within 3 sigma of their position noise; omitted for rows written before it existed."""
-    factors = dict.fromkeys(rb.FACTOR_ORDER, 1.0)
+    factors = dict.fromkeys(FACTOR_ORDER, 1.0)
 
     def row(pct: float, joint: str, past: float, speed: float, noise: float = 1.0) -> dict:
         return {
@@ -224,23 +240,23 @@ def test_the_summary_says_how_the_overshoots_came_about() -> None:
         row(1.0, "E", 0.040, 1.0),  # under 2 %: not counted
         {**row(0.0, "E", 0.0, 0.0), "overshoot": None},  # nothing past its goal
     ]
-    a = rb.overshoot_summary(rows)
+    a = overshoot_summary(rows)
     assert a is not None and a["over"] == 4
     assert a["arrival"]["arms"] == 2 and a["arrival"]["by_joint"]["B"] == 2
     assert a["arrival"]["median_past_mrad"] == pytest.approx(40.0)
     assert a["near_goal"]["arms"] == 2 and a["near_goal"]["within_noise"] == 1
     assert a["near_goal"]["by_joint"] == {"E": 0, "D": 1, "C": 1, "B": 0}
-    line = rb.anatomy_line(a)
+    line = anatomy_line(a)
     assert "(4 arms)" in line and "median 40 mrad past; B 2;" in line
     old = [{k: v for k, v in r.items() if k != "overshoot"} for r in rows]
-    assert rb.overshoot_summary(old) is None
+    assert overshoot_summary(old) is None
 
 
 def test_the_overshoot_is_grouped_by_the_levels_asked_for() -> None:
     """Per combination of levels: arms, arms over 2 %, those of them past the 20 mrad
     tolerance and those carried through by their approach, the medians; a factor the
     envelope does not have is a clear error."""
-    factors = dict.fromkeys(rb.FACTOR_ORDER, 1.0)
+    factors = dict.fromkeys(FACTOR_ORDER, 1.0)
 
     def row(latency: float, coulomb: float, pct: float, past: float, speed: float) -> dict:
         f = {**factors, "weak_joint": -1.0, "latency_periods": latency, "coulomb_edc": coulomb}
@@ -254,7 +270,7 @@ def test_the_overshoot_is_grouped_by_the_levels_asked_for() -> None:
         row(0.0, 6.6, 2.5, 0.030, 0.5),
         {**row(0.0, 6.6, 0.0, 0.0, 0.0), "overshoot": None},  # never past its goal
     ]
-    groups = rb.overshoot_by(rows, ["latency_periods", "coulomb_edc"])
+    groups = overshoot_by(rows, ["latency_periods", "coulomb_edc"])
     by = {(g["levels"]["latency_periods"], g["levels"]["coulomb_edc"]): g for g in groups}
     assert set(by) == {("high", "low"), ("low", "high")}
     latent = by[("high", "low")]
@@ -265,82 +281,82 @@ def test_the_overshoot_is_grouped_by_the_levels_asked_for() -> None:
     prompt = by[("low", "high")]
     assert (prompt["arms"], prompt["over"], prompt["over_past_tolerance"]) == (2, 1, 1)
     assert prompt["median_past_mrad"] == pytest.approx(15.0)
-    table = rb.overshoot_by_table(groups).splitlines()
+    table = overshoot_by_table(groups).splitlines()
     assert table[0].startswith("| latency_periods | coulomb_edc | arms |")
     assert table[2] == "| high | low | 3 | 2 | 1 | 1 | 3 | 10 |"
     with pytest.raises(ValueError, match="latency_periods"):
-        rb.overshoot_by(rows, ["lag"])
+        overshoot_by(rows, ["lag"])
 
 
 def test_a_run_writes_rows_a_summary_and_the_docs_block(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     doc = tmp_path / "robustness.md"
-    doc.write_text(f"# head\n\n{rb.NEW_BLOCKS}\n\ntail\n", encoding="utf-8")
-    argv = ["--controller", "pid", "--corners", "--max-corners", "2", "--draws", "2"]
-    argv += ["--seed", str(SEED), "--seconds", str(SECONDS), "--out", str(tmp_path)]
-    assert rb.main([*argv, "--quiet", "--write-docs", "--doc", str(doc)]) == 0
+    doc.write_text(f"# head\n\n{NEW_BLOCKS}\n\ntail\n", encoding="utf-8")
+    argv = {"controller": ["pid"], "corners": True, "max_corners": 2, "draws": 2}
+    argv |= {"seed": SEED, "seconds": SECONDS, "out": tmp_path}
+    assert robustness(**argv, quiet=True, write_docs=True, doc=doc) == 0
     report = json.loads((tmp_path / "pid.json").read_text())
     assert [r["set"] for r in report["episodes"]] == ["corners"] * 2 + ["draws"] * 2
     assert report["infeasible"]["corners"] == 384 and report["available"]["corners"] == 896
     row = report["episodes"][0]
-    assert set(rb.FACTOR_ORDER) <= set(row["factors"]) and "at_rest" in row["metrics"]
+    assert set(FACTOR_ORDER) <= set(row["factors"]) and "at_rest" in row["metrics"]
     assert all("overshoot" in r for r in report["episodes"])
     text = doc.read_text()
-    assert text.count(rb.begin_marker("pid")) == 1 and text.endswith("tail\n")
+    assert text.count(begin_marker("pid")) == 1 and text.endswith("tail\n")
     assert "| corners | 2 of 896 |" in text
     assert "reached" in capsys.readouterr().out
     # regenerated from the saved results: the block is replaced, not added again
     report["summary"] = {}
     report["label"] = "pid"
     (tmp_path / "pid.json").write_text(json.dumps(report))
-    regenerate = ["--from", str(tmp_path / "pid.json"), "--write-docs", "--doc", str(doc)]
-    assert rb.main(regenerate) == 0
+    regenerate = {"from_files": [tmp_path / "pid.json"], "write_docs": True, "doc": doc}
+    assert robustness(**regenerate) == 0
     again = doc.read_text()
-    assert again.count(rb.begin_marker("pid")) == 1 and "| draws | 2 |" in again
+    assert again.count(begin_marker("pid")) == 1 and "| draws | 2 |" in again
     # a run with other settings does not replace the block without --force
     report["settings"]["draws"] = 1000
     (tmp_path / "pid.json").write_text(json.dumps(report))
     capsys.readouterr()
-    assert rb.main(regenerate) == 2
+    assert robustness(**regenerate) == 2
     assert "--force" in capsys.readouterr().err and doc.read_text() == again
-    assert rb.main([*regenerate, "--force"]) == 0
+    assert robustness(**regenerate, force=True) == 0
     assert '"draws": 1000' in doc.read_text()
 
 
 def test_the_shipped_doc_has_the_markers_the_tool_writes() -> None:
     text = (ROOT / "docs" / "robustness.md").read_text(encoding="utf-8")
-    assert rb.NEW_BLOCKS in text
-    for label in ("ddpg", "ddpg-pure", "pid", "mpc", rb.COMPARISON):
-        assert text.count(rb.begin_marker(label)) == 1, label
-        assert text.count(rb.end_marker(label)) == 1, label
+    assert NEW_BLOCKS in text
+    for label in ("ddpg", "ddpg-pure", "pid", "mpc", COMPARISON):
+        assert text.count(begin_marker(label)) == 1, label
+        assert text.count(end_marker(label)) == 1, label
 
 
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["--controller", "pid"], "nothing to run"),
-        (["--corners"], "--controller"),
-        (["--controller", "nope", "--draws", "1"], "nope"),
-        (["--controller", "pid", "ddpg", "--label", "x", "--draws", "1"], "--label"),
-        (["--controller", "pid", "--max-corners", "3", "--draws", "1"], "--corners"),
-        (["--controller", "pid", "--draws", "1", "--workers", "0"], "--workers"),
-        (["--controller", "pid", "--draws", "1", "--overshoot-by", "lag"], "latency_periods"),
-        (["--controller", "lambda", "--draws", "1", "--twin-error", "0.1"], "--twin"),
-        (["--controller", "lambda", "--draws", "1", "--twin", "--twin-error", "1"], "[0, 1)"),
-        (["--controller", "pid", "--draws", "1", "--twin"], "latency_periods"),
+        ({"controller": ["pid"]}, "nothing to run"),
+        ({"corners": True}, "--controller"),
+        ({"controller": ["nope"], "draws": 1}, "nope"),
+        ({"controller": ["pid", "ddpg"], "label": "x", "draws": 1}, "--label"),
+        ({"controller": ["pid"], "max_corners": 3, "draws": 1}, "--corners"),
+        ({"controller": ["pid"], "draws": 1, "workers": 0}, "--workers"),
+        ({"controller": ["pid"], "draws": 1, "overshoot_by": ["lag"]}, "latency_periods"),
+        ({"controller": ["lambda"], "draws": 1, "twin_error": 0.1}, "--twin"),
+        ({"controller": ["lambda"], "draws": 1, "twin": True, "twin_error": 1.0}, "[0, 1)"),
+        ({"controller": ["pid"], "draws": 1, "twin": True}, "latency_periods"),
     ],
 )
 def test_bad_arguments_are_clear_errors(
-    argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    argv: dict[str, Any], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert rb.main([*argv, "--out", str(tmp_path), "--quiet"]) == 2
+    assert robustness(**argv, out=tmp_path, quiet=True) == 2
     assert message in capsys.readouterr().err
 
 
 def test_the_comparison_uses_only_the_arms_every_run_shares() -> None:
     def report(label: str, indices: list[int], reached: bool) -> dict[str, Any]:
-        factors = dict.fromkeys(rb.FACTOR_ORDER, 1.0)
+        factors = dict.fromkeys(FACTOR_ORDER, 1.0)
         factors["weak_joint"] = -1.0
         metrics = {"reached": reached, "at_rest": True, "overshoot_pct": 1.0}
         metrics.update(settling_time_s=2.0, energy_j=10.0)
@@ -351,7 +367,7 @@ def test_the_comparison_uses_only_the_arms_every_run_shares() -> None:
         return {"label": label, "episodes": rows}
 
     runs = [report("a", [0, 1, 2, 3], True), report("b", [1, 3, 5], False)]
-    block = rb.comparison_block([*runs, report("c", [1], True)])
+    block = comparison_block([*runs, report("c", [1], True)])
     assert "| draws | 2 | a | 100.0 % [100.0, 100.0] |" in block
     assert "| draws | 2 | b | 0.0 % [0.0, 0.0] |" in block
     assert "| draws | 1 | c |" in block and "| draws | 1 | b |" in block
@@ -363,13 +379,13 @@ def test_an_actor_file_runs_under_its_own_label(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     weights = ROOT / "policy" / "controllers" / "weights" / "ddpg_actor.npz"
-    argv = ["--controller", "ddpg", "--label", "robust", "--param", f"weights={weights}"]
-    argv += ["--draws", "1", "--seconds", "2", "--out", str(tmp_path), "--quiet"]
-    assert rb.main(argv) == 0
+    argv: dict[str, Any] = {"controller": ["ddpg"], "label": "robust"}
+    argv |= {"param": [f"weights={weights}"]}
+    argv |= {"draws": 1, "seconds": 2.0, "out": tmp_path, "quiet": True}
+    assert robustness(**argv) == 0
     report = json.loads((tmp_path / "robust.json").read_text())
     assert report["label"] == "robust" and report["params"] == {"weights": str(weights)}
-    missing = ["--param", f"weights={tmp_path / 'none.npz'}"]
-    assert rb.main([*argv[:4], *missing, *argv[6:]]) == 2
+    assert robustness(**{**argv, "param": [f"weights={tmp_path / 'none.npz'}"]}) == 2
     assert "none.npz" in capsys.readouterr().err
 
 
@@ -382,18 +398,18 @@ def test_params_move_the_whole_envelope_and_are_recorded(
     from reach_sim_bridge.model.params import ArmParams
 
     holds = ArmParams(friction_holds=True)
-    p = rb.plan(SEED, False, 3, base=holds)
+    p = plan(SEED, False, 3, base=holds)
     assert all(a.variant.params.friction_holds for a in p.arms)
-    assert not any(a.variant.params.friction_holds for a in rb.plan(SEED, False, 3).arms)
+    assert not any(a.variant.params.friction_holds for a in plan(SEED, False, 3).arms)
     params = tmp_path / "holds.json"
     params.write_text('{"friction_holds": true}')
-    argv = ["--controller", "pid", "--draws", "1", "--seed", str(SEED), "--seconds", "1"]
-    assert rb.main([*argv, "--params", str(params), "--out", str(tmp_path), "--quiet"]) == 0
+    argv = {"controller": ["pid"], "draws": 1, "seed": SEED, "seconds": 1.0}
+    assert robustness(**argv, params=params, out=tmp_path, quiet=True) == 0
     report = json.loads((tmp_path / "pid.json").read_text())
     assert report["settings"]["params"] == {"friction_holds": True}
     params.write_text('{"friction_hold": true}')
     capsys.readouterr()
-    assert rb.main([*argv, "--params", str(params), "--out", str(tmp_path), "--quiet"]) == 2
+    assert robustness(**argv, params=params, out=tmp_path, quiet=True) == 2
     assert "did you mean 'friction_holds'" in capsys.readouterr().err
 
 
@@ -439,8 +455,8 @@ def test_an_identification_campaign_fits_its_arms_through_the_driver_and_resumes
 
     fits = tmp_path / "fits"
     quick = "--max-current 600 --watchdog 1.0 --joints B --scale 0.25 --iterations 4"
-    argv = ["--draws", "1", "--seed", str(SEED), "--identify", str(fits)]
-    assert rb.main([*argv, "--identify-args", quick]) == 0
+    argv = {"draws": 1, "seed": SEED, "identify": fits}
+    assert robustness(**argv, identify_args=quick) == 0
     fitted = load_arm_params(fits / "draws-0.json")
     assert fitted != ArmParams()
     assert (fits / "draws-0.log.npz").exists()
@@ -448,23 +464,23 @@ def test_an_identification_campaign_fits_its_arms_through_the_driver_and_resumes
     assert hidden["_envelope"]["index"] == 0
     (run,) = json.loads((fits / "identify-summary.json").read_text())
     assert run["arm"] == "draws-0" and run["returncode"] == 0 and run["wall_s"] > 10
-    (row,) = rb.identify_rows(rb.plan(SEED, False, 1).arms, fits, {})
+    (row,) = identify_rows(plan(SEED, False, 1).arms, fits, {})
     b = row["joints"]["B"]
     assert b["validate_rms_mrad_fitted"] < b["validate_rms_mrad_nominal"]
     assert 0.5 < b["armature_ratio"] < 2.0  # the nominal twin is off by the arm's own spread
     assert "| draws-0 |" in capsys.readouterr().out
-    assert rb.main([*argv, "--identify-args", quick]) == 0
+    assert robustness(**argv, identify_args=quick) == 0
     assert "(1 already fitted there, skipped)" in " ".join(capsys.readouterr().err.split())
-    run = ["--draws", "1", "--seed", str(SEED), "--controller", "lambda", "--twin", "--quiet"]
-    assert rb.main([*run, "--twin-from", str(fits), "--seconds", "1", "--out", str(tmp_path)]) == 0
+    run = {"draws": 1, "seed": SEED, "controller": ["lambda"], "twin": True, "quiet": True}
+    assert robustness(**run, twin_from=fits, seconds=1.0, out=tmp_path) == 0
     assert json.loads((tmp_path / "lambda.json").read_text())["settings"]["twin_from"] == "fits"
 
 
 def test_an_identification_campaign_runs_no_controller(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    argv = ["--draws", "1", "--identify", str(tmp_path), "--controller", "lambda"]
-    assert rb.main(argv) == 2
+    argv = {"draws": 1, "identify": tmp_path, "controller": ["lambda"]}
+    assert robustness(**argv) == 2
     assert "--twin-from DIR" in capsys.readouterr().err
 
 

@@ -5,38 +5,24 @@ command a real arm gets.
 The virtual arm (SimServer) is served on a pseudo-terminal in this process, starting at the
 paper's zero pose; `reach-driver info` and `reach-driver run` then talk to it from a separate
 process, exactly as they would to /dev/ttyUSB0. The target is the paper's scenario 1 mapped
-to the arm's own angles by tools/paper.py (the one place that mapping lives).
+to the arm's own angles by policy/tasks/scenarios.py (the one place that mapping lives).
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import math
 import shutil
 import subprocess
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 
+from policy.tasks.scenarios import SCENARIOS
 from reach_sim_bridge.emulator.faults import FaultConfig
 from reach_sim_bridge.emulator.server import SimConfig, SimServer
-
-TOOLS = Path(__file__).resolve().parent
-
-
-def _paper() -> ModuleType:
-    """tools/paper.py (scenarios and the paper -> arm angle mapping), loaded by path."""
-    spec = importlib.util.spec_from_file_location("reach_paper_scenarios", TOOLS / "paper.py")
-    if spec is None or spec.loader is None:
-        raise RuntimeError(f"cannot load {TOOLS / 'paper.py'}")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while being built
-    spec.loader.exec_module(module)
-    return module
 
 
 def driver_command() -> list[str]:
@@ -112,8 +98,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not (math.isfinite(args.seconds) and args.seconds > 0):
         print(f"demo: --seconds must be a positive number, got {args.seconds}", file=sys.stderr)
         return 2
-    paper = _paper()
-    scenario = paper.SCENARIOS[args.scenario - 1]
+    scenario = SCENARIOS[args.scenario - 1]
     episode = scenario.episode()
     e, d, c, b = (float(v) for v in episode.start)
     start = (e, d, c, b)

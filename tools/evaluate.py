@@ -4,40 +4,18 @@
 Examples:
     tools/evaluate.py --controller pid --random 20 --seed 7 --out pid.json
     tools/evaluate.py --controller mpc --targets episodes.json --noise --out mpc.json
+
+policy/campaigns/evaluate_command.py runs it; this script is its command line.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
-from typing import Any
 
-from rich.console import Console
-from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-from rich.table import Table
-
-from policy.campaigns.evaluation import (
-    DEFAULT_RATE_HZ,
-    DEFAULT_SECONDS,
-    Episode,
-    EpisodeResult,
-    Evaluation,
-    RunConfig,
-    add_param_option,
-    evaluate,
-    load_controller,
-    load_episodes,
-    parse_controller_params,
-    random_episodes,
-)
-from policy.campaigns.parallel import CampaignError, evaluate_parallel
-from reach_driver.errors import DriverError
-from reach_driver.metrics import ALL_METRIC_KEYS, metric_label
-from reach_sim_bridge.model.params import load_arm_params
-from reach_sim_bridge.model.sensors import SensorNoise
+from policy.campaigns.evaluate_command import Options, execute
+from policy.campaigns.evaluation import DEFAULT_RATE_HZ, DEFAULT_SECONDS, add_param_option
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -165,146 +143,8 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def record_evaluation(evaluation: Evaluation, path: Path) -> None:
-    """Episodes one after another on the recording's time line, each announced as an event."""
-    from reach_driver.recording import RunRecorder, StepSample
-
-    meta = {"controller": evaluation.controller, "config": evaluation.config.to_dict()}
-    with RunRecorder(path, metadata=meta) as rec:
-        t0, step0 = 0.0, 0
-        for i, r in enumerate(evaluation.results):
-            rec.log_event(f"episode {i}: {r.episode.to_dict()}", t=t0, step=step0)
-            times = r.trace.times
-            for k in range(len(times)):
-                rec.log_step(
-                    StepSample(
-                        t=t0 + float(times[k]),
-                        step=step0 + k,
-                        q=r.trace.q[k],
-                        qdot=r.trace.qdot[k],
-                        target=r.trace.target,
-                        current_cmd_mA=r.currents_mA[k],
-                        torque_Nm=r.trace.tau[k],
-                    )
-                )
-            rec.log_event(
-                f"episode {i} metrics: {json.dumps(r.metrics.as_dict())}",
-                t=t0 + float(times[-1]),
-                step=step0 + len(times) - 1,
-            )
-            t0 += float(times[-1]) + evaluation.config.period
-            step0 += len(times)
-        rec.log_summary(evaluation.summary())
-
-
-def summary_table(evaluation: Evaluation) -> Table:
-    table = Table(title=f"{evaluation.controller}: {len(evaluation.results)} episodes")
-    table.add_column("#", justify="right")
-    for key in ALL_METRIC_KEYS:
-        table.add_column(escape(metric_label(key).replace(" [", "\n[")), justify="right")
-    table.add_column("rmse_floor\n[rad]", justify="right")
-    for i, r in enumerate(evaluation.results):
-        m = r.metrics.as_dict()
-        cells = [_fmt(m[k]) for k in ALL_METRIC_KEYS] + [_fmt(r.rmse_floor)]
-        table.add_row(str(i), *cells)
-    s = evaluation.summary()
-    table.add_section()
-    table.add_row(
-        "mean", *[_fmt(s[k]) for k in ALL_METRIC_KEYS], _fmt(s["rmse_floor"]), style="bold"
-    )
-    return table
-
-
-def _fmt(v: Any) -> str:
-    if isinstance(v, bool):
-        return "yes" if v else "NO"
-    return f"{float(v):.4g}"
-
-
-def run(args: argparse.Namespace, console: Console) -> Evaluation:
-    if args.via_driver:
-        from policy.campaigns.via_driver import DriverConfig, evaluate_via_driver
-    episodes: list[Episode] = (
-        load_episodes(args.targets)
-        if args.targets is not None
-        else random_episodes(args.random, args.seed)
-    )
-    config = RunConfig(
-        seconds=args.seconds,
-        rate_hz=args.rate,
-        noise=SensorNoise() if args.noise else None,
-        seed=args.seed,
-        param_spread=args.perturb,
-        params=None if args.params is None else load_arm_params(args.params),
-    )
-    params = parse_controller_params(args.param)
-    parallel = args.workers is not None or args.address is not None
-    if parallel and args.via_driver:
-        raise ValueError("--workers/--address run the direct backend; drop --via-driver")
-    if args.workers is not None and args.workers < 1:
-        raise ValueError(f"--workers must be at least 1, got {args.workers}")
-    # Built here even for Ray, whose workers build their own: a bad name or parameter fails
-    # before a cluster is started.
-    controller = load_controller(args.controller, **params)
-    with Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        TextColumn("{task.fields[last]}"),
-        console=console,
-        disable=args.quiet,
-    ) as progress:
-        task = progress.add_task(args.controller, total=len(episodes), last="")
-
-        def done(i: int, r: EpisodeResult) -> None:
-            mark = "reached" if r.metrics.reached else "NOT reached"
-            if not r.metrics.at_rest:
-                mark += " (not at rest)"
-            progress.update(task, advance=1, last=f"#{i} rmse {r.metrics.rmse:.3f} {mark}")
-
-        if parallel:
-            evaluation = evaluate_parallel(
-                args.controller,
-                params,
-                episodes,
-                config,
-                workers=args.workers,
-                address=args.address,
-                on_episode=done,
-            )
-        elif args.via_driver:
-            evaluation = evaluate_via_driver(
-                controller,
-                episodes,
-                config,
-                name=args.controller,
-                driver=DriverConfig(speed=args.sim_speed, baud=args.baud),
-                on_episode=done,
-            )
-        else:
-            evaluation = evaluate(
-                controller, episodes, config, name=args.controller, on_episode=done
-            )
-    return evaluation
-
-
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    console = Console(stderr=True)
-    try:
-        evaluation = run(args, console)
-    except (ValueError, DriverError, CampaignError) as exc:
-        console.print(f"[red]error:[/red] {escape(str(exc))}")
-        return 2
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(evaluation.to_dict(), indent=1), encoding="utf-8")
-    if args.record is not None:
-        record_evaluation(evaluation, args.record)
-    if not args.quiet:
-        Console().print(summary_table(evaluation))
-        console.print(f"wrote {args.out}" + (f" and {args.record}" if args.record else ""))
-    return 0
+    return execute(Options(**vars(build_parser().parse_args(argv))))
 
 
 if __name__ == "__main__":

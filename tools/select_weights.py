@@ -38,16 +38,18 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from rich.console import Console
 from rich.markup import escape
-from rich.table import Table
 
 from policy.campaigns.evaluation import RunConfig, evaluate, load_controller, random_episodes
 from policy.campaigns.parallel import CampaignError
-from policy.campaigns.selection import choose, screen, weights_of
-from policy.tasks.scenarios import SCENARIOS, TABLE_KEYS, wins
-from reach_driver.metrics import REST_KEYS
+from policy.campaigns.selection import (
+    choose,
+    score_candidate,
+    screen,
+    selection_table,
+    weights_of,
+)
 from reach_sim_bridge.model.sensors import SensorNoise
 
 
@@ -111,15 +113,6 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[dict[str, Any]] = []
     for candidate, path in zip(args.candidates, paths, strict=True):
         console.print(f"{candidate}: scenarios and {args.episodes} episodes")
-        sc = evaluate(
-            load_controller("ddpg", weights=path, settle=False),
-            [s.episode() for s in SCENARIOS],
-            RunConfig(),
-            name="ddpg",
-        )
-        summary = evaluate(
-            load_controller("ddpg", weights=path, settle=False), episodes, config, name="ddpg"
-        ).summary()
         try:
             screened = (
                 screen(
@@ -136,70 +129,13 @@ def main(argv: list[str] | None = None) -> int:
         except (CampaignError, ValueError) as exc:
             console.print(f"[red]error:[/red] {escape(str(exc))}")
             return 2
-        restless = [i for i, m in enumerate(screened) if not m.at_rest]
-        rows.append(
-            {
-                "candidate": str(candidate),
-                "weights": str(path),
-                "scenarios_reached": sum(r.metrics.reached for r in sc.results),
-                "scenario_final_error": [float(np.abs(r.final_error).max()) for r in sc.results],
-                "summary": summary,
-                "better_than_reference": wins(summary, reference),
-                "restless": restless,
-                "restless_rest": {
-                    i: {k: screened[i].as_dict()[k] for k in REST_KEYS} for i in restless
-                },
-            }
-        )
+        rows.append(score_candidate(candidate, path, episodes, config, reference, screened))
     best = choose(rows, reference)
-    table = Table(
-        title=f"selection set: seed {args.seed}, {args.episodes} episodes, noise, "
+    title = (
+        f"selection set: seed {args.seed}, {args.episodes} episodes, noise, "
         f"perturb {args.perturb}; * = chosen"
     )
-    for col in (
-        "candidate",
-        "scenarios",
-        "worst scenario |e|",
-        "restless",
-        "E [J]",
-        "RMSE",
-        "MIE",
-        "MSSE",
-        "OS [%]",
-        "ST [s]",
-        "reached",
-        "better",
-    ):
-        table.add_column(col)
-
-    def add(
-        name: str, s: dict[str, float], scen: str, worst: str, restless: str, better: str
-    ) -> None:
-        table.add_row(
-            name,
-            scen,
-            worst,
-            restless,
-            f"{s['energy_j']:.3f}",
-            f"{s['rmse']:.4f}",
-            f"{s['mie']:.4f}",
-            f"{s['msse']:.5f}",
-            f"{s['overshoot_pct']:.2f}",
-            f"{s['settling_time_s']:.3f}",
-            f"{s['reached']:.2f}",
-            better,
-        )
-
-    add(args.reference, reference, "-", "-", "-", "-")
-    for r in rows:
-        add(
-            r["candidate"] + ("*" if r is best else ""),
-            r["summary"],
-            f"{r['scenarios_reached']}/{len(SCENARIOS)}",
-            f"{max(r['scenario_final_error']):.4f}",
-            f"{len(r['restless'])}/{args.screen}",
-            f"{sum(r['better_than_reference'].values())}/{len(TABLE_KEYS)}",
-        )
+    table = selection_table(title, args.reference, reference, rows, best, args.screen)
     console.print(table)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(

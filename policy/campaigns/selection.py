@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rich.table import Table
 
 from policy.campaigns.evaluation import evaluate
 from policy.campaigns.parallel import run_on_ray
@@ -26,7 +27,7 @@ from policy.tasks.episodes import Episode, EpisodeResult, RunConfig, random_epis
 from policy.tasks.scenarios import SCENARIOS, TABLE_KEYS, wins
 from protocol.alpha5 import N_JOINTS
 from reach_driver.controllers import ControlState, load_controller
-from reach_driver.metrics import Metrics, Trace
+from reach_driver.metrics import REST_KEYS, Metrics, Trace
 
 #: screen episode i is reset with `seed * SCREEN_SEED_STRIDE + i`
 SCREEN_SEED_STRIDE = 1_000
@@ -194,3 +195,93 @@ def choose(rows: list[dict[str, Any]], reference: dict[str, float]) -> dict[str,
         return (-sum(wins(s, reference).values()), ratio)
 
     return min(ok, key=key)
+
+
+def score_candidate(
+    candidate: Path,
+    path: Path,
+    episodes: Sequence[Episode],
+    config: RunConfig,
+    reference: dict[str, float],
+    screened: Sequence[Metrics],
+) -> dict[str, Any]:
+    """One candidate's row for `choose`: the scenarios it reaches (nominal arm, no noise),
+    its selection-set summary and where it beats the reference, and its restless episodes
+    among `screened` (its stability screen, `screen`)."""
+    sc = evaluate(
+        load_controller(SCREENED, weights=path, settle=False),
+        [s.episode() for s in SCENARIOS],
+        RunConfig(),
+        name=SCREENED,
+    )
+    summary = evaluate(
+        load_controller(SCREENED, weights=path, settle=False), episodes, config, name=SCREENED
+    ).summary()
+    restless = [i for i, m in enumerate(screened) if not m.at_rest]
+    return {
+        "candidate": str(candidate),
+        "weights": str(path),
+        "scenarios_reached": sum(r.metrics.reached for r in sc.results),
+        "scenario_final_error": [float(np.abs(r.final_error).max()) for r in sc.results],
+        "summary": summary,
+        "better_than_reference": wins(summary, reference),
+        "restless": restless,
+        "restless_rest": {i: {k: screened[i].as_dict()[k] for k in REST_KEYS} for i in restless},
+    }
+
+
+def selection_table(
+    title: str,
+    reference_name: str,
+    reference: dict[str, float],
+    rows: Sequence[dict[str, Any]],
+    best: dict[str, Any] | None,
+    screen_episodes: int,
+) -> Table:
+    """The reference and every candidate's figures, the chosen one starred."""
+    table = Table(title=title)
+    for col in (
+        "candidate",
+        "scenarios",
+        "worst scenario |e|",
+        "restless",
+        "E [J]",
+        "RMSE",
+        "MIE",
+        "MSSE",
+        "OS [%]",
+        "ST [s]",
+        "reached",
+        "better",
+    ):
+        table.add_column(col)
+
+    def add(
+        name: str, s: dict[str, float], scen: str, worst: str, restless: str, better: str
+    ) -> None:
+        table.add_row(
+            name,
+            scen,
+            worst,
+            restless,
+            f"{s['energy_j']:.3f}",
+            f"{s['rmse']:.4f}",
+            f"{s['mie']:.4f}",
+            f"{s['msse']:.5f}",
+            f"{s['overshoot_pct']:.2f}",
+            f"{s['settling_time_s']:.3f}",
+            f"{s['reached']:.2f}",
+            better,
+        )
+
+    add(reference_name, reference, "-", "-", "-", "-")
+    for r in rows:
+        add(
+            r["candidate"] + ("*" if r is best else ""),
+            r["summary"],
+            f"{r['scenarios_reached']}/{len(SCENARIOS)}",
+            f"{max(r['scenario_final_error']):.4f}",
+            f"{len(r['restless'])}/{screen_episodes}",
+            f"{sum(r['better_than_reference'].values())}/{len(TABLE_KEYS)}",
+        )
+    return table

@@ -1,0 +1,156 @@
+"""A robustness campaign's arms identified through the driver (`policy.campaigns.identify`):
+the fits `--twin-from` reads, resumable, and their table against the hidden arms."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from policy.campaigns.identify import (
+    IdentifyJob,
+    IdentifyResult,
+    fit_row,
+    run_identify_job,
+    run_row,
+)
+from policy.campaigns.parallel import run_on_ray
+from policy.campaigns.robustness.arms import Arm, arm_file, arm_noise, arm_params, envelope_meta
+from protocol.alpha5 import JOINT_LETTERS
+from reach_sim_bridge.model.params import save_arm_params
+
+SUMMARY_FILE = "identify-summary.json"
+
+
+def identify_arms(
+    arms: Sequence[Arm],
+    out: Path,
+    seed: int,
+    console: Console,
+    *,
+    speed: float = 1.0,
+    identify_args: Sequence[str] = (),
+    workers: int | None = None,
+    address: str | None = None,
+) -> list[dict[str, Any]]:
+    """Identify each arm through the driver (`policy.campaigns.identify`): OUT/SET-INDEX.json,
+    the fit `--twin-from OUT` reads, beside its log (.log.npz) and the hidden arm
+    (.hidden.json); OUT/identify-summary.json has every arm's fit against its truth. Arms
+    already fitted in OUT are skipped, so an interrupted campaign resumes."""
+    out.mkdir(parents=True, exist_ok=True)
+    summary_path = out / SUMMARY_FILE
+    runs: dict[str, dict[str, Any]] = {}
+    if summary_path.exists():
+        runs = {r["arm"]: r for r in json.loads(summary_path.read_text(encoding="utf-8"))}
+    todo: list[IdentifyJob] = []
+    for a in arms:
+        stem = arm_file(a).removesuffix(".json")
+        hidden = save_arm_params(arm_params(a), out / f"{stem}.hidden.json", envelope_meta(a, seed))
+        if (out / arm_file(a)).exists():
+            continue
+        todo.append(
+            IdentifyJob(
+                stem,
+                hidden.read_text(encoding="utf-8"),
+                arm_noise(a),
+                speed=speed,
+                identify_args=tuple(identify_args),
+            )
+        )
+    skipped = len(arms) - len(todo)
+    console.print(
+        f"identifying {len(todo)} arms into {out}"
+        + (f" ({skipped} already fitted there, skipped)" if skipped else "")
+    )
+    t0 = time.monotonic()
+    finished = 0
+
+    def keep(result: IdentifyResult) -> None:
+        nonlocal finished
+        finished += 1
+        if result.ok:
+            assert result.fitted_json is not None
+            (out / f"{result.name}.json").write_text(result.fitted_json, encoding="utf-8")
+            (out / f"{result.name}.failed.txt").unlink(missing_ok=True)  # an earlier attempt's
+        else:
+            (out / f"{result.name}.failed.txt").write_text(
+                "\n".join(result.tail) + "\n", encoding="utf-8"
+            )
+        if result.log_npz is not None:
+            (out / f"{result.name}.log.npz").write_bytes(result.log_npz)
+        runs[result.name] = run_row(result)
+        summary_path.write_text(json.dumps(list(runs.values()), indent=1), encoding="utf-8")
+        elapsed = time.monotonic() - t0
+        state = "fitted" if result.ok else f"FAILED ({result.returncode}), see .failed.txt"
+        console.print(
+            f"{result.name}: {state} in {result.wall_s:.0f} s; {finished}/{len(todo)} done, "
+            f"eta {elapsed / finished * (len(todo) - finished):.0f} s"
+        )
+
+    if todo:
+        if workers is None and address is None:
+            for job in todo:
+                keep(run_identify_job(job))
+        else:
+            run_on_ray(run_identify_job, todo, workers, address, keep)
+    return identify_rows(arms, out, runs)
+
+
+def identify_rows(
+    arms: Sequence[Arm], out: Path, runs: dict[str, dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """Each arm's fit in ``out`` against its hidden arm (recomputed from the files), or how
+    its identification failed."""
+    rows = []
+    for a in arms:
+        stem = arm_file(a).removesuffix(".json")
+        fit, hidden = out / f"{stem}.json", out / f"{stem}.hidden.json"
+        if fit.exists():
+            truth, fitted = (json.loads(f.read_text(encoding="utf-8")) for f in (hidden, fit))
+            rows.append(fit_row(stem, truth, fitted, runs.get(stem)))
+        elif stem in runs:
+            rows.append(runs[stem])
+    return rows
+
+
+def identify_table(rows: Sequence[dict[str, Any]]) -> str:
+    """The fits against their hidden arms, one line per arm (markdown): each joint's
+    armature and damping as fitted over true (effective values: over the torque scale),
+    the torque scales the fit found (and the true ones) where either is not 1, and the
+    validation motions' replay RMS through the fitted (and the nominal) twin."""
+    lines = [
+        "| arm | wall [s] | fit [s] | armature fitted / true, E D C B | damping fitted / true "
+        "| torque scale fitted (true) | validation RMS fitted (nominal) [mrad] |",
+        "|---|---|---|---|---|---|---|",
+    ]
+
+    def num(value: Any, fmt: str) -> str:
+        return "-" if value is None else format(value, fmt)
+
+    for r in rows:
+        wall = num(r.get("wall_s"), ".0f")
+        if "joints" not in r:
+            lines.append(f"| {r['arm']} | {wall} | failed ({r.get('returncode')}) | | | | |")
+            continue
+        j = [r["joints"][x] for x in JOINT_LETTERS]
+        arm = " / ".join(num(q["armature_ratio"], ".2f") for q in j)
+        damp = " / ".join(num(q["damping_ratio"], ".2f") for q in j)
+        weak = ", ".join(
+            f"{x} {q['torque_scale']:.2f} ({q['true_torque_scale']:.2f})"
+            for x, q in zip(JOINT_LETTERS, j, strict=True)
+            if q["torque_scale"] != 1 or q["true_torque_scale"] != 1
+        )
+        rms = ", ".join(
+            f"{x} {num(q['validate_rms_mrad_fitted'], '.1f')} "
+            f"({num(q['validate_rms_mrad_nominal'], '.0f')})"
+            for x, q in zip(JOINT_LETTERS, j, strict=True)
+        )
+        lines.append(
+            f"| {r['arm']} | {wall} | {num(r.get('fit_s'), '.0f')} | {arm} | {damp} "
+            f"| {weak or 'none'} | {rms} |"
+        )
+    return "\n".join(lines)
