@@ -10,7 +10,8 @@ asked for `--help`; `make` targets must exist. A command that no longer parses f
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import ast
+import importlib
 import re
 import shlex
 import subprocess
@@ -59,13 +60,15 @@ def _program(word: str) -> str:
 
 
 def _tool_parser(script: str) -> argparse.ArgumentParser | None:
-    spec = importlib.util.spec_from_file_location(f"_doc_{Path(script).stem}", ROOT / script)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    build = getattr(module, "build_parser", None)
-    return build() if build is not None else None
+    """The parser of a tool whose command line lives in a package (the module the script takes
+    `main` from, which also holds `build_parser`); None for a tool that parses for itself."""
+    tree = ast.parse((ROOT / script).read_text(encoding="utf-8"))
+    for node in tree.body:
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            if any(alias.name == "main" for alias in node.names):
+                build = getattr(importlib.import_module(node.module), "build_parser", None)
+                return build() if build is not None else None
+    return None
 
 
 def _parses(parser: argparse.ArgumentParser, argv: list[str]) -> None:
