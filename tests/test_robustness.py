@@ -324,12 +324,42 @@ def test_a_run_writes_rows_a_summary_and_the_docs_block(
     assert '"draws": 1000' in doc.read_text()
 
 
-def test_the_shipped_doc_has_the_markers_the_tool_writes() -> None:
-    text = (ROOT / "docs" / "robustness.md").read_text(encoding="utf-8")
-    assert NEW_BLOCKS in text
-    for label in ("ddpg", "ddpg-pure", "pid", "mpc", COMPARISON):
-        assert text.count(begin_marker(label)) == 1, label
-        assert text.count(end_marker(label)) == 1, label
+def test_the_shipped_docs_have_the_markers_the_tool_writes() -> None:
+    """The comparison on the page users read, each controller's block and the new-blocks marker
+    on the tables page, once each across both."""
+    page = (ROOT / "docs" / "robustness.md").read_text(encoding="utf-8")
+    tables = (ROOT / "docs" / "robustness-tables.md").read_text(encoding="utf-8")
+    assert NEW_BLOCKS in tables and NEW_BLOCKS not in page
+    assert page.count(begin_marker(COMPARISON)) == 1 and page.count(end_marker(COMPARISON)) == 1
+    for label in ("ddpg", "ddpg-pure", "pid", "mpc"):
+        assert tables.count(begin_marker(label)) == 1, label
+        assert tables.count(end_marker(label)) == 1, label
+        assert begin_marker(label) not in page, label
+
+
+def test_blocks_are_written_where_they_are_and_new_ones_at_the_marker(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`write_docs` over several files: a block is replaced in the file that holds it, a new
+    label goes before the marker, the comparison stays where it is, and an untouched file is
+    not rewritten. (The blocks' contents are tested above; here each is just its label.)"""
+    import policy.campaigns.robustness.command as command
+
+    def block(label: str) -> str:
+        return f"{begin_marker(label)}\n**{label}**\n{end_marker(label)}"
+
+    monkeypatch.setattr(command, "markdown_block", lambda report: block(report["label"]))
+    monkeypatch.setattr(command, "comparison_block", lambda reports: block(COMPARISON))
+    page, tables, other = tmp_path / "page.md", tmp_path / "tables.md", tmp_path / "other.md"
+    page.write_text(f"{begin_marker(COMPARISON)}\nold\n{end_marker(COMPARISON)}\n")
+    tables.write_text(f"{begin_marker('pid')}\nold\n{end_marker('pid')}\n{NEW_BLOCKS}\n")
+    other.write_text("untouched\n")
+    reports: list[dict[str, Any]] = [{"label": label, "settings": {}} for label in ("pid", "new")]
+    assert command.write_docs([page, tables, other], reports, force=True) == [page, tables]
+    text = tables.read_text()
+    assert "old" not in text and text.index("**new**") < text.index(NEW_BLOCKS)
+    assert page.read_text().count(f"**{COMPARISON}**") == 1 and "**new**" not in page.read_text()
+    assert other.read_text() == "untouched\n"
 
 
 @pytest.mark.parametrize(

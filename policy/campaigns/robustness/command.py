@@ -25,8 +25,11 @@ from policy.campaigns.robustness.progress import ProgressLog
 from policy.campaigns.robustness.report import (
     COMPARISON,
     DOC,
+    NEW_BLOCKS,
+    TABLES_DOC,
     begin_marker,
     comparison_block,
+    end_marker,
     markdown_block,
     overshoot_by_table,
     print_summary,
@@ -65,7 +68,7 @@ class Options:
     write_docs: bool = False
     force: bool = False
     overshoot_by: Sequence[str] | None = None
-    doc: Path = DOC
+    doc: Path | None = None  # None: docs/robustness.md and its tables page
     quiet: bool = False
 
 
@@ -207,16 +210,32 @@ def run(opts: Options, command: str, console: Console) -> list[dict]:
     return reports
 
 
-def write_docs(doc: Path, reports: Sequence[dict[str, Any]], force: bool) -> None:
-    """Each report's block in ``doc`` (and the comparison, when it has one and there are
-    several reports)."""
-    text = doc.read_text(encoding="utf-8")
+def write_docs(docs: Sequence[Path], reports: Sequence[dict[str, Any]], force: bool) -> list[Path]:
+    """Each report's block, in whichever of ``docs`` holds it (a new one where the new-blocks
+    marker is), and the comparison, when a doc has one and there are several reports. Returns
+    the files written."""
+    texts = {doc: doc.read_text(encoding="utf-8") for doc in docs}
+
+    def holder(label: str) -> Path:
+        for doc, text in texts.items():
+            if begin_marker(label) in text and end_marker(label) in text:
+                return doc
+        return next((doc for doc, text in texts.items() if NEW_BLOCKS in text), docs[0])
+
+    changed: set[Path] = set()
     for report in reports:
+        doc = holder(report["label"])
         block = markdown_block(report)
-        text = update_doc(text, block, report["label"], report["settings"], force)
-    if len(reports) > 1 and begin_marker(COMPARISON) in text:
-        text = update_doc(text, comparison_block(reports), COMPARISON)
-    doc.write_text(text, encoding="utf-8")
+        texts[doc] = update_doc(texts[doc], block, report["label"], report["settings"], force)
+        changed.add(doc)
+    for doc, text in texts.items():
+        if len(reports) > 1 and begin_marker(COMPARISON) in text:
+            texts[doc] = update_doc(text, comparison_block(reports), COMPARISON)
+            changed.add(doc)
+    written = [doc for doc in docs if doc in changed]
+    for doc in written:
+        doc.write_text(texts[doc], encoding="utf-8")
+    return written
 
 
 def execute(opts: Options, command: str) -> int:
@@ -234,8 +253,9 @@ def execute(opts: Options, command: str) -> int:
                     table = overshoot_by_table(overshoot_by(rows, opts.overshoot_by))
                     out.print(escape(table), soft_wrap=True)
         if opts.write_docs:
-            write_docs(opts.doc, reports, opts.force)
-            console.print(f"wrote {opts.doc}")
+            docs = (opts.doc,) if opts.doc is not None else (DOC, TABLES_DOC)
+            for path in write_docs(docs, reports, opts.force):
+                console.print(f"wrote {path}")
     except (ValueError, DriverError, CampaignError, OSError) as exc:
         console.print(f"[red]error:[/red] {escape(str(exc))}")
         return 2
@@ -351,7 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--write-docs",
         action="store_true",
-        help="regenerate each label's block in docs/robustness.md",
+        help="regenerate each label's block in docs/robustness.md or docs/robustness-tables.md",
     )
     p.add_argument(
         "--force",
@@ -365,7 +385,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="also print the overshoot grouped by these factors' levels (low / high half of "
         "each range; the weak joint by letter), e.g. latency_periods coulomb_edc",
     )
-    p.add_argument("--doc", type=Path, default=DOC, help=argparse.SUPPRESS)
+    p.add_argument("--doc", type=Path, default=None, help=argparse.SUPPRESS)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
