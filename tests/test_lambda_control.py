@@ -22,8 +22,9 @@ from policy.tasks.envelope import corners
 from policy.tasks.episodes import Episode, EpisodeResult, RunConfig
 from reach_driver.controllers import ControlState, load_controller
 from reach_sim_bridge.model.arm import Alpha5Arm
-from reach_sim_bridge.model.params import ArmParams
+from reach_sim_bridge.model.params import ArmParams, ParamsFileError
 from reach_sim_bridge.model.sensors import SensorNoise
+from reach_sim_bridge.model.twin import FittedTwin, read_twin
 
 T = 0.05
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,6 +58,27 @@ def test_the_twin_comes_from_a_file_a_dict_or_the_registry(tmp_path: Path) -> No
         0.0499, abs=1e-4
     )
     assert make_controller(params=str(identified), latency_periods=1.0).config.latency_periods == 1
+
+
+def test_the_measured_delay_reaches_lambda_however_the_twin_is_given() -> None:
+    """A fitted twin's delay is the latency whether the twin comes as a file, as the file's
+    dict (its ``_fit`` with it) or as a `FittedTwin`; an explicit latency wins."""
+    identified = ROOT / "tests" / "data" / "identified_seed11.json"
+    twin = read_twin(identified)
+    assert twin.delay_s is not None
+    expected = twin.delay_s * LambdaConfig().rate_hz
+    given = {
+        "file": make_controller(params=identified),
+        "dict": make_controller(params=json.loads(identified.read_text())),
+        "twin": make_controller(params=twin),
+    }
+    for how, ctrl in given.items():
+        assert ctrl.config.latency_periods == pytest.approx(expected, rel=1e-12), how
+        assert ctrl.params == twin.params, how
+    assert make_controller(params=twin, latency_periods=0.5).config.latency_periods == 0.5
+    assert make_controller(params=FittedTwin()).config.latency_periods == 0.0
+    with pytest.raises(ParamsFileError, match=r"_fit.delay_s must be a number"):
+        make_controller(params={"_fit": {"delay_s": "2 ms"}})
 
 
 def test_the_prediction_through_the_commands_in_flight_is_the_arms_own() -> None:

@@ -24,6 +24,7 @@ from reach_sim_bridge.model.params import (
     load_arm_params,
     save_arm_params,
 )
+from reach_sim_bridge.model.twin import Estimate, FitMetadata, FittedTwin, read_twin, write_twin
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -72,6 +73,76 @@ def test_metadata_keys_are_ignored_but_plain_extra_keys_refused(tmp_path: Path) 
     )
     with pytest.raises(ValueError, match="start with '_'"):
         save_arm_params(ArmParams(), tmp_path / "x.json", extra={"fit": 1})
+
+
+IDENTIFIED = ROOT / "tests" / "data" / "identified_seed11.json"
+
+
+def test_a_fitted_twin_round_trips(tmp_path: Path) -> None:
+    """`write_twin` then `read_twin` gives the same twin; `load_arm_params` reads the same
+    file as its plain parameters."""
+    params = ArmParams(torque_scale=(1.0, 0.25, 1.0, 1.0)).randomized(3)
+    fit = FitMetadata(
+        method="test",
+        parameters={"armature[E]": Estimate(0.13, 1e-4), "delay_s": Estimate(0.004, 1e-4)},
+        delay_s=0.0031,
+        command_step_s=0.002,
+        delay_offsets_ms={"E0-relay-P1": 0.25},
+        quality_fitted={"validate/E": {"window": {"r2": 0.999, "rms_mrad": 0.5, "samples": 9}}},
+        arm_seconds=None,
+        log="arm.log.npz",
+        fit_seconds=12.5,
+        controller_gap=[{"controller": "pid", "episodes": 2}],
+        other={"future_key": [1, 2]},
+    )
+    twin = FittedTwin(params, fit, {"_envelope": {"latency_periods": 1.5}})
+    path = write_twin(twin, tmp_path / "twin.json")
+    back = read_twin(path)
+    assert back == twin
+    assert back.delay_s == 0.0031
+    assert back.fit is not None and back.fit.window_rms_mrad("validate/E") == 0.5
+    assert back.fit.window_rms_mrad("validate/E", "nominal") is None
+    assert load_arm_params(path) == params
+    assert FittedTwin.from_json_dict(json.loads(path.read_text())) == twin
+    assert read_twin(save_arm_params(params, tmp_path / "plain.json")) == FittedTwin(params)
+
+
+def test_an_identification_file_loads_as_a_twin_and_writes_back_the_same() -> None:
+    """A file tools/identify.py wrote (before the typed twin existed) reads as a `FittedTwin`
+    whose fit has every figure of its ``_fit``, and writes back the same ``_fit``."""
+    data = json.loads(IDENTIFIED.read_text())
+    twin = read_twin(IDENTIFIED)
+    assert twin.params == load_arm_params(IDENTIFIED)
+    assert twin.fit is not None
+    assert twin.delay_s == data["_fit"]["delay_s"]
+    assert (
+        twin.fit.parameters["armature[E]"].sigma
+        == (data["_fit"]["parameters"]["armature[E]"]["sigma"])
+    )
+    assert twin.fit.controller_gap == data["_fit"]["controller_gap"]
+    assert twin.to_json_dict()["_fit"] == data["_fit"]
+    assert list(twin.to_json_dict()["_fit"]) == list(data["_fit"])
+
+
+def test_a_twin_given_as_a_dict_keeps_its_fit_or_says_what_is_wrong(tmp_path: Path) -> None:
+    twin = FittedTwin.from_json_dict({"damping": [1, 1, 1, 0.1], "_fit": {"delay_s": 0.002}})
+    assert twin.params.damping == (1.0, 1.0, 1.0, 0.1) and twin.delay_s == 0.002
+    assert twin.fit is not None and twin.fit.parameters == {}  # the rest: not known
+    assert FittedTwin.from_json_dict({"_comment": "x"}).fit is None
+    for fit, message in [
+        ({"delay_s": "2 ms"}, r"_fit.delay_s must be a number"),
+        ({"delay_s": -0.001}, r"delay_s must be a finite number >= 0"),
+        ([0.002], r"_fit must be an object"),
+        ({"parameters": {"armature[E]": {"value": 0.1}}}, r"armature\[E\].sigma"),
+        ({"quality_fitted": {"validate/E": {"window": 1}}}, r"quality_fitted.validate/E"),
+    ]:
+        with pytest.raises(ParamsFileError, match=message):
+            FittedTwin.from_json_dict({"_fit": fit}, where="arm.json")
+    path = _write(tmp_path, {"_fit": {"delay_s": "2 ms"}})
+    with pytest.raises(ParamsFileError, match=str(path)):
+        read_twin(path)
+    with pytest.raises(ValueError, match="metadata keys"):
+        FittedTwin(metadata={"comment": "x"})
 
 
 @pytest.mark.parametrize(

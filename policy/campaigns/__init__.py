@@ -1,2 +1,3 @@
 """Experiments over many episodes and arms: rollout backends, Ray campaigns, selection,
-statistics."""
+statistics, and the identification of an arm through the driver (`identification`, and
+`identify`: many hidden arms identified on Ray)."""

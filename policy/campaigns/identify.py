@@ -7,8 +7,10 @@ two on one arm, exactly as a person would on a workstation:
 
 - ``reach-sim --params HIDDEN.json --sensor-noise Q,V --speed S --link LINK`` in a
   subprocess (its own process, so its physics keeps the wall clock while the driver works);
-- ``tools/identify.py --port LINK --out FIT.json --truth HIDDEN.json`` in another (the
-  excitation through `reach_driver`, then the fit, docs/identification.md).
+- ``python -m policy.campaigns.identification --port LINK --out FIT.json --truth
+  HIDDEN.json`` (what ``tools/identify.py`` runs) in another: the excitation through
+  `reach_driver`, then the fit (docs/identification.md). A process of its own so that its
+  time budget can be enforced and its output kept for the report.
 
 The job returns the fitted file and the excitation log as bytes, so a Ray cluster's nodes
 need no shared disk; `run_on_ray` (`policy.campaigns.parallel`) schedules one job per CPU. An
@@ -27,18 +29,21 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.alpha5 import JOINT_LETTERS, N_JOINTS
+from protocol.alpha5 import JOINT_LETTERS
+from reach_sim_bridge.model.params import ArmParams
+from reach_sim_bridge.model.twin import FitMetadata, FittedTwin
 
+#: The directory holding the packages (a checkout, or site-packages for an installed wheel).
 REPO = Path(__file__).resolve().parents[2]
-IDENTIFY_TOOL = REPO / "tools" / "identify.py"
+IDENTIFY_MODULE = "policy.campaigns.identification"
 LINK_TIMEOUT_S = 30.0
 TAIL_LINES = 30
 
 
 SIM_FAILED = -2
 """`IdentifyResult.returncode` when reach-sim did not come up (-1: the identification timed
-out; otherwise tools/identify.py's exit code). A failed arm is reported, not raised, so one
-bad arm does not stop a campaign."""
+out; otherwise its exit code, tools/identify.py's). A failed arm is reported, not raised, so
+one bad arm does not stop a campaign."""
 
 
 @dataclass(frozen=True)
@@ -135,7 +140,8 @@ def run_identify_job(job: IdentifyJob) -> IdentifyResult:
                 )
             cmd = [
                 sys.executable,
-                str(IDENTIFY_TOOL),
+                "-m",
+                IDENTIFY_MODULE,
                 "--port",
                 str(link),
                 "--out",
@@ -179,10 +185,10 @@ def run_identify_job(job: IdentifyJob) -> IdentifyResult:
         )
 
 
-def _effective(arm: dict, key: str) -> np.ndarray:
-    """``arm[key]`` per joint over its torque scale: what a current-mode identification sees."""
-    scale = np.asarray(arm.get("torque_scale", [1.0] * N_JOINTS), dtype=float)
-    return np.asarray(arm[key], dtype=float) / scale
+def _effective(arm: ArmParams, key: str) -> np.ndarray:
+    """``arm``'s `key` per joint over its torque scale: what a current-mode identification
+    sees."""
+    return np.asarray(getattr(arm, key), dtype=float) / np.asarray(arm.torque_scale, float)
 
 
 def fit_errors(hidden: dict, fitted: dict) -> dict:
@@ -192,23 +198,25 @@ def fit_errors(hidden: dict, fitted: dict) -> dict:
     either way: as its scale or as that heavier joint). Ratios of those effective values,
     fitted / true, for the armature and damping, the difference in N m for the Coulomb
     friction, both scales, and the replay's RMS on the validation motions (fitted and
-    nominal twin, mrad)."""
-    armature = _effective(fitted, "armature") / _effective(hidden, "armature")
-    damping = _effective(fitted, "damping") / _effective(hidden, "damping")
-    coulomb = _effective(fitted, "frictionloss") - _effective(hidden, "frictionloss")
-    quality = fitted.get("_fit", {})
+    nominal twin, mrad). `hidden` and `fitted` are parameter files' objects (`FittedTwin`)."""
+    truth = ArmParams.from_json_dict(hidden, where="hidden arm")
+    twin = FittedTwin.from_json_dict(fitted, where="fitted twin")
+    arm = twin.params
+    armature = _effective(arm, "armature") / _effective(truth, "armature")
+    damping = _effective(arm, "damping") / _effective(truth, "damping")
+    coulomb = _effective(arm, "frictionloss") - _effective(truth, "frictionloss")
+    fit = twin.fit or FitMetadata()
     out: dict[str, dict] = {}
     for j, letter in enumerate(JOINT_LETTERS):
         row: dict[str, float | None] = {
-            "torque_scale": float(fitted.get("torque_scale", [1.0] * N_JOINTS)[j]),
-            "true_torque_scale": float(hidden.get("torque_scale", [1.0] * N_JOINTS)[j]),
+            "torque_scale": arm.torque_scale[j],
+            "true_torque_scale": truth.torque_scale[j],
             "armature_ratio": float(armature[j]),
             "damping_ratio": float(damping[j]),
             "coulomb_error_nm": float(coulomb[j]),
         }
-        for twin, key in (("fitted", "quality_fitted"), ("nominal", "quality_nominal")):
-            q = quality.get(key, {}).get(f"validate/{letter}", {}).get("window")
-            row[f"validate_rms_mrad_{twin}"] = None if q is None else q["rms_mrad"]
+        for which in ("fitted", "nominal"):
+            row[f"validate_rms_mrad_{which}"] = fit.window_rms_mrad(f"validate/{letter}", which)
         out[letter] = row
     return out
 
@@ -224,9 +232,9 @@ def run_row(result: IdentifyResult) -> dict:
 def fit_row(name: str, hidden: dict, fitted: dict, run: dict | None = None) -> dict:
     """One arm's line in the campaign's table: the fit against its hidden arm (`fit_errors`),
     its fit and arm time, and how the job ran when that is known."""
-    meta = fitted.get("_fit", {})
+    fit = FittedTwin.from_json_dict(fitted, where=f"{name}: fitted twin").fit
     row: dict = {"arm": name, **(run or {})}
-    row["fit_s"] = meta.get("fit_seconds")
-    row["arm_s"] = meta.get("arm_seconds")
+    row["fit_s"] = None if fit is None else fit.fit_seconds
+    row["arm_s"] = None if fit is None else fit.arm_seconds
     row["joints"] = fit_errors(hidden, fitted)
     return row

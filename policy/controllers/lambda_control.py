@@ -64,7 +64,6 @@ corner of the envelope tried, with the nominal arm's it reaches almost none of t
 
 from __future__ import annotations
 
-import json
 from collections import deque
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -76,7 +75,8 @@ from protocol.alpha5 import N_JOINTS
 from reach_driver.controllers import ControlState
 from reach_driver.metrics import settling_band
 from reach_sim_bridge.model.arm import Alpha5Arm
-from reach_sim_bridge.model.params import ArmParams, load_arm_params
+from reach_sim_bridge.model.params import ArmParams
+from reach_sim_bridge.model.twin import FittedTwin, read_twin
 
 
 @dataclass(frozen=True)
@@ -292,12 +292,13 @@ class LambdaController:
 
 
 def make_controller(
-    params: str | Path | dict[str, Any] | None = None, **kwargs: Any
+    params: str | Path | dict[str, Any] | FittedTwin | None = None, **kwargs: Any
 ) -> LambdaController:
-    """Entry point `lambda`: `params` is the twin (an arm parameter file's path, or a dict of
-    `ArmParams` fields; nominal if omitted); keyword arguments are `LambdaConfig` fields.
-    Without `latency_periods`, a file written by `tools/identify.py` gives it: the command
-    delay it measured (`_fit.delay_s`) times the control rate."""
+    """Entry point `lambda`: `params` is the twin (an arm parameter file's path, a dict of
+    `ArmParams` fields, or a `FittedTwin`; nominal if omitted); keyword arguments are
+    `LambdaConfig` fields. Without `latency_periods`, a twin with a fit (a file written by
+    `tools/identify.py`, or a dict or `FittedTwin` holding its ``_fit``) gives it: the command
+    delay it measured times the control rate."""
     known = {f.name for f in fields(LambdaConfig)}
     unknown = set(kwargs) - known
     if unknown:
@@ -306,14 +307,13 @@ def make_controller(
         )
     config = replace(LambdaConfig(), **kwargs)
     if params is None:
-        twin = ArmParams()
+        twin = FittedTwin()
+    elif isinstance(params, FittedTwin):
+        twin = params
     elif isinstance(params, dict):
-        twin = ArmParams.from_json_dict(params)
+        twin = FittedTwin.from_json_dict(params)
     else:
-        twin = load_arm_params(params)
-        if "latency_periods" not in kwargs:
-            delay = json.loads(Path(params).read_text(encoding="utf-8")).get("_fit", {})
-            delay_s = delay.get("delay_s") if isinstance(delay, dict) else None
-            if isinstance(delay_s, (int, float)) and delay_s >= 0:
-                config = replace(config, latency_periods=float(delay_s) * config.rate_hz)
-    return LambdaController(twin, config)
+        twin = read_twin(params)
+    if "latency_periods" not in kwargs and twin.delay_s is not None:
+        config = replace(config, latency_periods=twin.delay_s * config.rate_hz)
+    return LambdaController(twin.params, config)

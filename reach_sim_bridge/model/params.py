@@ -315,17 +315,21 @@ def _check_physical(p: ArmParams, where: str) -> None:
 def load_arm_params(path: str | Path) -> ArmParams:
     """The arm a `--params FILE.json` describes: a JSON object of `ArmParams` field names
     (any subset; arrays of four in E D C B order; the rest nominal). Keys starting with
-    ``_`` are ignored (`tools/identify.py` writes its fit quality under ``_fit``)."""
+    ``_`` are ignored (a fit's metadata, ``_fit``, is read by `reach_sim_bridge.model.twin`)."""
+    return ArmParams.from_json_dict(read_params_json(path), where=str(path))
+
+
+def read_params_json(path: str | Path) -> Any:
+    """The JSON value of a parameter file (`ParamsFileError` if unreadable or not JSON)."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ParamsFileError(f"cannot read arm parameters {path}: {exc.strerror or exc}") from exc
     try:
-        data = json.loads(text)
+        return json.loads(text)
     except json.JSONDecodeError as exc:
         raise ParamsFileError(f"{path} is not valid JSON: {exc}") from exc
-    return ArmParams.from_json_dict(data, where=str(path))
 
 
 def save_arm_params(

@@ -1,0 +1,129 @@
+"""The identification report: a markdown file with the parameters (nominal, fitted, truth), the
+prediction quality of both twins and a figure per validation motion (measured against the
+nominal and the fitted twin)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from policy.campaigns.identification.driving import Session
+from policy.campaigns.identification.fitting import FitOutcome
+from protocol.alpha5 import JOINT_LETTERS
+from reach_sim_bridge.fit.replay import Replay, ref_name
+from reach_sim_bridge.fit.segments import Segment, segment_delays
+from reach_sim_bridge.model.params import ArmParams
+
+
+def _scored(outcome: FitOutcome, twin: str, seg: Segment) -> Segment:
+    """`seg` with the delay offset it was scored with for `twin` (itself if not scored)."""
+    for x in outcome.scored.get(twin, []):
+        if x.name == seg.name:
+            return x
+    return seg
+
+
+def write_report(
+    outcome: FitOutcome,
+    replay: Replay,
+    segments: Sequence[Segment],
+    out_dir: Path,
+    window_s: float,
+    session: Session | None,
+    truth: ArmParams | None,
+) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    nominal = ArmParams()
+    lines = ["# Identification report", ""]
+    if session is not None:
+        lines += [
+            f"Arm time: {session.arm_seconds:.1f} s excitation + ~{session.move_seconds:.1f} s "
+            f"moves; fit: {outcome.fit_seconds:.0f} s CPU-bound wall time.",
+            "",
+        ]
+    delays = np.concatenate([segment_delays(x) for x in outcome.scored.get("fitted", segments)])
+    lines += [
+        f"Transport delay (measured per command from the driver's timestamps, plus a "
+        f"per-segment offset): median {1e3 * float(np.median(delays)):.1f} ms, 99th percentile "
+        f"{1e3 * float(np.percentile(delays, 99)):.1f} ms; the arm takes commands every "
+        f"{outcome.quantum_s * 1e3:g} ms (chosen by the fit).",
+        "",
+    ]
+    header = "| parameter | nominal | fitted | 1 sigma |"
+    rule = "|---|---|---|---|"
+    if truth is not None:
+        header += " truth | error |"
+        rule += "---|---|"
+    lines += ["## Parameters", "", header, rule]
+    for r in outcome.results.values():
+        for ref, v, s in zip(r.refs, r.values, r.sigma, strict=True):
+            name, idx = ref
+            nom = 0.005 if name == "delay_s" else getattr(nominal, name)[idx]
+            row = f"| {ref_name(ref)} | {nom:.4g} | {v:.4g} | {s:.2g} |"
+            if truth is not None:
+                if name == "delay_s":
+                    row += " - | - |"
+                else:
+                    tv = getattr(truth, name)[idx]
+                    # a frictionless joint has no relative error: give the difference
+                    err = f"{100 * (v - tv) / tv:+.1f} %" if tv != 0 else f"{v - tv:+.2g} (abs)"
+                    row += f" {tv:.4g} | {err} |"
+            lines.append(row)
+    lines += [
+        "",
+        f"## Prediction quality ({window_s:g} s windows from the measured state, and open "
+        "loop over whole segments)",
+        "",
+        "| motions / joint | twin | R^2 window | RMS window mrad | R^2 open loop | "
+        "RMS open loop mrad |",
+        "|---|---|---|---|---|---|",
+    ]
+    for key in outcome.fitted_quality:
+        for twin, table in (
+            ("nominal", outcome.nominal_quality),
+            ("fitted", outcome.fitted_quality),
+        ):
+            qw, qo = table[key]["window"], table[key]["open_loop"]
+            lines.append(
+                f"| {key} | {twin} | {qw['r2']:.4f} | {qw['rms_mrad']:.2f} | {qo['r2']:.4f} | "
+                f"{qo['rms_mrad']:.2f} |"
+            )
+    lines += ["", "## Validation motions", ""]
+    for seg in segments:
+        if seg.role != "validate":
+            continue
+        j = seg.joint
+        t = np.arange(seg.ticks + 1) * seg.period
+        fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
+        nom_seg = _scored(outcome, "nominal", seg)
+        fit_seg = _scored(outcome, "fitted", seg)
+        nom_r = replay.simulate(nominal, 0.0, nom_seg, window_s)
+        fit_r = replay.simulate(outcome.params, 0.0, fit_seg, window_s)
+        axes[0].plot(t, seg.q[:, j], "k", lw=1.5, label="measured")
+        axes[0].plot(t, nom_r.q[:, j], "C1", lw=1, label="nominal twin")
+        axes[0].plot(t, fit_r.q[:, j], "C0--", lw=1, label="fitted twin")
+        axes[0].set_ylabel(f"{JOINT_LETTERS[j]} angle (rad)")
+        axes[0].legend(loc="best", fontsize=8)
+        axes[1].plot(t, 1e3 * (nom_r.q[:, j] - seg.q[:, j]), "C1", lw=1, label="nominal")
+        axes[1].plot(t, 1e3 * (fit_r.q[:, j] - seg.q[:, j]), "C0", lw=1, label="fitted")
+        axes[1].set_ylabel("error (mrad)")
+        axes[1].legend(loc="best", fontsize=8)
+        axes[2].plot(t, seg.command_mA[:, j], "k", lw=1)
+        axes[2].set_ylabel("command (mA)")
+        axes[2].set_xlabel(f"arm time (s); {window_s:g} s windows start from the measured state")
+        fig.suptitle(f"{seg.name}: {seg.meta.get('wave', '')}")
+        fig.tight_layout()
+        png = out_dir / f"{seg.name}.png"
+        fig.savefig(png, dpi=90)
+        plt.close(fig)
+        lines += [f"![{seg.name}]({png.name})", ""]
+    path = out_dir / "report.md"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
