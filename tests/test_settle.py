@@ -291,7 +291,7 @@ def test_on_a_latent_loop_a_slow_crossing_is_engaged() -> None:
 
     def engaged(latency: float) -> bool:
         sup = SettleSupervisor(SettleLaw(), np.full(4, 600.0))
-        sup.latency_periods, sup._timed = latency, True
+        sup._latency.periods, sup._latency.timed = latency, True
         target = np.ones(4)
         for k in range(4):  # C crosses its goal at 0.3 rad/s between steps 1 and 2
             q = target.copy()
@@ -312,7 +312,7 @@ def test_on_a_prompt_loop_the_fast_crossing_watch_leaves_b_to_the_actor() -> Non
         law_ = SettleLaw(**law)  # type: ignore[arg-type]
         sup = SettleSupervisor(law_, np.array([600.0, 600.0, 600.0, 300.0]))
         if timed:
-            sup.latency_periods, sup._timed = 0.05, True
+            sup._latency.periods, sup._latency.timed = 0.05, True
         target = np.ones(4)
         for k in range(4):  # every joint crosses its goal at 1.1 rad/s between steps 1 and 2
             sup.update(0.05 * k, target - 0.08 + 0.055 * k, np.full(4, 1.1), target, np.zeros(4))
@@ -333,7 +333,7 @@ def test_on_a_latent_loop_a_joint_is_engaged_before_its_commands_carry_it_across
 
     def first_engaged(latency: float, ahead: float) -> tuple[int | None, str]:
         sup = SettleSupervisor(SettleLaw(latent_ahead=ahead), np.full(4, 600.0))
-        sup.latency_periods, sup._timed = latency, True
+        sup._latency.periods, sup._latency.timed = latency, True
         target = np.ones(4)
         for k in range(6):  # C comes in at 1 rad/s from 0.12 rad: it crosses after step 2
             q = target.copy()
@@ -361,7 +361,7 @@ def test_the_controller_reports_what_its_supervisor_did() -> None:
     assert "latency not timed; engaged no joint" in ctrl.report()["summary"]
     sup = ctrl.settle
     assert isinstance(sup, SettleSupervisor)
-    sup.latency_periods, sup._timed = 1.5, True
+    sup._latency.periods, sup._latency.timed = 1.5, True
     target = np.ones(4)
     for k in range(4):  # C will cross its goal at 0.3 rad/s: engaged on a latent loop
         q = target.copy()
@@ -421,9 +421,9 @@ def test_the_noise_is_estimated_from_a_resting_joints_samples() -> None:
         q = np.array([0.0, 0.006, 0.0, 0.0]) * rng.standard_normal(4)
         v = np.array([0.0, 0.06, 0.0, 0.0]) * rng.standard_normal(4)
         sup.update(0.05 * k, q, v, target, np.zeros(4))
-    assert np.sqrt(sup._q_var[1]) == pytest.approx(0.006, rel=0.25)
-    assert np.sqrt(sup._v_var[1]) == pytest.approx(0.06, rel=0.25)
-    assert sup._q_var[0] == 0.0 and sup._v_var[0] == 0.0
+    assert np.sqrt(sup._noise.q_var[1]) == pytest.approx(0.006, rel=0.25)
+    assert np.sqrt(sup._noise.v_var[1]) == pytest.approx(0.06, rel=0.25)
+    assert sup._noise.q_var[0] == 0.0 and sup._noise.v_var[0] == 0.0
 
 
 def test_a_joint_stuck_again_restarts_its_ramp_below_where_it_broke_away() -> None:
@@ -673,7 +673,7 @@ def _leave_goal(
         out.append(float(sent[2]) - u_i[-1])  # what the gains add
         x, t, v = x + 0.05 * v, t + 0.05, float(np.clip(v + dv, 0.0, 0.3 if dv > 0 else 1.0))
     assert sup.engaged[2]
-    return np.array(u_i), np.array(out), bool(sup._hold_bad[2])
+    return np.array(u_i), np.array(out), bool(sup._hold.bad[2])
 
 
 def test_a_falling_engaged_joint_ramps_towards_its_goal_a_coasting_one_does_not() -> None:
@@ -762,7 +762,7 @@ def test_a_ramping_joint_that_reaches_freeze_has_its_ramp_backed_off(
     if freeze_breakaway:  # 80 % of the ramp taken back (it ramped on while e_f lagged)
         assert 0 < left < 1.5 * ramped * (1 - sup.law.backoff)
         # ... as any breakaway: the command it broke away at remembered, the re-stick wait on
-        assert sup._break_u[1, 0] >= ramped and sup._since_break[1] < sup.law.restick_s
+        assert sup._ramp.break_u[1, 0] >= ramped and sup._ramp.since_break[1] < sup.law.restick_s
     else:  # the whole ramp left pushing
         assert left >= ramped
 
@@ -1095,11 +1095,11 @@ def test_a_joint_still_coasting_away_after_its_engagement_gets_stiffer_gains() -
     of the episode); it gets `fall_gain` times the gains. A joint that stops within
     `coast_band`, as every strong joint did, keeps them."""
     weak, ratio = _coast_through(0.4)
-    assert weak._hold_bad[2] and ratio == pytest.approx(SettleLaw().fall_gain)
+    assert weak._hold.bad[2] and ratio == pytest.approx(SettleLaw().fall_gain)
     off, ratio = _coast_through(0.4, coast_s=0.0)
-    assert not off._hold_bad[2] and ratio == pytest.approx(1.0)
+    assert not off._hold.bad[2] and ratio == pytest.approx(1.0)
     strong, ratio = _coast_through(0.15)  # out to 0.18 rad
-    assert not strong._hold_bad[2] and ratio == pytest.approx(1.0)
+    assert not strong._hold.bad[2] and ratio == pytest.approx(1.0)
     with pytest.raises(ValueError, match="coast"):
         SettleLaw(coast_band=0.0)
 

@@ -1,202 +1,51 @@
 """A per-joint settle supervisor around the DDPG actor: engineered, not learned.
 
-The actor is stateless and has one near-goal gain for every arm. On an arm with 1-2 periods of
-control latency and little Coulomb friction that gain drives a joint into a limit cycle around
-its goal, and on a light joint (B) or under 2-3x sensor noise it jitters at the goal
-(docs/robustness.md). This layer watches every joint near its goal and hands *that joint* to a
-conservative settle law when it sees the signature, until the target changes or the joint
-leaves `release` of its goal (then it is the actor's again, and watched again). The approach,
-and every joint that settles normally, stay the actor's: on Table I's standard episodes (seed
-2020) it never engages. It ships in `ddpg`; `ddpg --param settle=0` turns it off and
-`ddpg-pure` has none (docs/robustness.md, "The settle supervisor").
+Why: the actor is stateless, with one near-goal gain for every arm. With 1-2 periods of control
+latency and little Coulomb friction that gain drives a joint into a limit cycle about its goal;
+on a light joint (B) or under 2-3x sensor noise it jitters there; a weak or high-friction joint
+stops short of it. The supervisor hands *that joint* to a conservative settle law and leaves the
+approach, and every joint that settles normally, to the actor (on Table I's standard episodes
+it never engages). It ships in `ddpg`; `ddpg --param settle=0` turns it off and `ddpg-pure` has
+none (docs/robustness.md, "The settle supervisor"). Its numbers, each with what set it, are
+`policy.controllers.settle_law.SettleLaw`'s fields.
 
-Watching (per joint, within `band` of the goal):
+What it watches, per joint: the error to the goal and the speed, low-passed (`filter_s`); the
+sensors' noise, estimated from successive samples while the joint is slow, so that "moving"
+and "broken away" mean `noise_sigmas` beyond it; and the loop's latency, timed once per loop
+from how late the joints start after a target's first hard commands (`onset_*`).
 
-- **cycling**: the actor's command reverses sign at `reversal_fraction` of the joint's
-  current limit or more, `reversals` times with no gap over `max_gap_s` between them and over
-  at least `min_span_s` (an arrival that brakes reverses 2-4 times in 0.1-0.15 s, docs/metrics.md
-  "Rest"; a limit cycle of period ~0.4 s reverses twice per period);
-- **crossing** (`crossing_speed` > 0): the joint crosses its goal at `crossing_speed` or
-  faster (0.8 rad/s, two thirds of the no-load speed). The actor brakes its arrivals before the
-  goal; with 1-2 periods of latency it brakes on a state already that old, crosses at full
-  speed and starts the cycle that the reversal watch sees only one or two swings later, each
-  swing 2-3 J spent after the joint counts as settled. On a loop whose latency is timed at
-  `latent_periods` (0.2) or more, a joint crossing at `latent_crossing_speed` (0.15 rad/s) is
-  engaged: there a crossing at any speed is the first swing of the cycle, and E arriving
-  unbraked at 1-2 periods spent 0.6-1.1 J in that swing before it reached 0.8 rad/s. On a
-  loop timed below that, `crossing_on_prompt_loop` (on) keeps the 0.8 rad/s watch on E, D
-  and C (`prompt_joints`): it catches frictionless heavy rotors early. Not on B: there it took
-  B on one of Table I's seed-2120 episodes (crossing at 1.15 rad/s), which the soft law
-  settled 0.8 s later than the actor would;
-  on a latent loop a joint is also engaged *before* it crosses, once it will cross at that
-  speed within the latency plus `latent_ahead` (1) periods: the commands already in flight
-  carry it that far, and a crossing seen only once it has happened was a full-speed swing
-  through the settling band (0.4-0.7 J spent after the joint counted as settled);
-- **reversing** (`reversing_speed` > 0, E D C: `prompt_joints`): the measured speed reverses
-  between two samples, `reversing_speed` (0.5 rad/s) or faster both ways. On a prompt loop
-  the actor bang-bangs a strong frictionless joint at its goal at the no-load speed each way
-  (+1.17, -0.75, +1.17, -1.17 rad/s on E), within its band and short of its goal, so the
-  crossing watch sees it only once it crosses, 0.5 J later; noise does not reverse that fast,
-  and a braked arrival does not reverse at all;
-- **jitter** (`jitter_speed` > 0): after `jitter_s` (1 s) with the reading's error within
-  `jitter_band` (`jitter_raw`: the low-passed error lags a fast arrival), the RMS of
-  the measured speed over the last `jitter_window_s` (0.5 s, so that an arrival's last swing
-  inside the band falls before it) exceeds `jitter_speed` (the sensor noise alone gives
-  0.02-0.06 rad/s). At 1.5 s and 1 s an actor kicking a joint at its goal on a noisy arm
-  spent over 0.5 J before it was taken. On a quiet arm the threshold is lower: once the
-  sensors' speed noise sigma is estimated (the quietest joint's), it is hypot(
-  `jitter_true_speed`, `jitter_noise_k` sigma) if that is less, 0.054 rad/s at 1x noise:
-  there the actor dithered frictionless joints at 0.05-0.07 rad/s of true speed, more than
-  the rest metric allows, and through the noise that read under 0.08;
-- **stuck short** (`stuck`; out to `stuck_band`, 0.5 rad, since a weak joint held by
-  friction stops 0.15-0.25 rad short): the low-passed error stays above `stuck_error` and the
-  low-passed speed below `stuck_speed` (or what the noise can explain, below) for `stuck_s`,
-  and the low-passed error has not shrunk by more than the noise explains since the watch
-  began, at a rate that would bring it in within `creep_arrive_s` (4 s): a joint creeping in
-  slower than its noisy speed can show is not stuck, and engaged on the actor's command that
-  moved it, it slid on through its goal; a creep that slow takes the rest of the episode.
+When it engages (`Reason`), a joint near its goal:
 
-Noise: each joint's position and speed noise is estimated from successive samples while it is
-slow (second and first differences). A breakaway, and a joint that is not slow, is a move of
-`noise_sigmas` (3) standard deviations of the low-passed signal or more: at 3x the sensor
-noise the low-passed speed alone wanders +-0.02 rad/s and the fixed 0.03 rad/s read a joint
-stuck for 10 s as moving (the stuck watch never engaged it) and a ramp as broken away.
+- cycling: within `band`, the actor's command reverses `reversals` times, none over
+  `max_gap_s` apart, over at least `min_span_s`;
+- crossing: it crosses its goal at `crossing_speed`, or on a loop timed at `latent_periods`
+  or more at `latent_crossing_speed`, also `latent_ahead` periods before it would;
+- reversing: within `band` (`prompt_joints`), its measured speed reverses between two
+  samples at `reversing_speed` or more both ways;
+- jitter: `jitter_s` inside `jitter_band`, its speed's RMS over `jitter_window_s` exceeds
+  `jitter_speed` (lower on a quiet arm: `jitter_true_speed`);
+- hold (`hold_s` > 0): settled inside `hold_error` that long;
+- stuck: within `stuck_band`, outside `stuck_error` and slow for `stuck_s`, not creeping in.
 
-Latency: at a target's first step the actor drives every joint far from its goal hard; each
-drive is at speed within about 10 ms, so a joint that has moved ``d`` at speed ``v`` at a later
-sample started ``d / v`` before it, and the earliest joint's start after that first command is
-the loop's latency (a weak or heavy joint accelerates late; a joint still at rest at the sample
-before is timed from there, so gravity sag before the command took effect does not count).
-On 300 envelope draws (0-2 periods, noise 1-3x, armature x0.5-1.5) it comes out 0.05 period
-late on average, SD 0.12, never off by 0.5; counting whole periods, all that 20 Hz samples
-show directly, is off by up to one. It is timed once per loop (again only if a target gave
-nothing to time it by).
+What it commands on an engaged joint: u = u_I + kp e - kd qdot (mA). u_I starts at the actor's
+own hold on the goal (a stuck joint's at the actor's low-passed command, which held it there)
+and integrates ki e outside `freeze`. A joint stuck outside `stuck_error` ramps towards its goal
+to overcome friction: backed off at breakaway, restarted near where it last broke away,
+slowed each time it hunts across the goal, the backoff given back if the breakaway proves to
+be noise; a stuck joint creeping into its goal has `arrive` taken off its command. A joint
+moved onto the actor's hold that then moves away with it, falls, or coasts on past its goal
+(a weak or heavy joint) has that hold marked bad: it ramps back (`fall_ramp`) under
+`fall_gain` times the gains.
 
-The settle law (currents, mA, per joint) is ``u = u_I + kp e - kd qdot``:
-
-- ``u_I`` starts at the actor's own command at rest on the goal (what the network learned holds
-  the joint there against gravity and buoyancy; the mean of a cycling command, the old start,
-  is arbitrary and drove engaged joints away) and integrates ``ki e``; a joint engaged because
-  it is stuck short starts instead from the actor's low-passed command, which was holding it
-  at rest there (D at 30 % torque starting from the nominal hold fell back 0.13 rad);
-  the gains keep 35 degrees of phase margin and a gain margin of 2 over the envelope's joints
-  with 25-130 ms of loop delay (`DEFAULT_*` in `policy.controllers.settle_law`), which makes them
-  soft: 2-4 N m/rad. An engaged joint mid-swing may coast well past its goal under them, so it is
-  released only beyond `release` (0.5 rad): handing it back to the actor restarted the cycle;
-- while the joint is stuck outside `stuck_error` it also ramps at `ramp` (fraction of the
-  current limit per second) towards the goal, so that Coulomb friction (6.6 N m is 330 mA on
-  E D C) is overcome in a few seconds; at breakaway, `backoff` of the ramp added since it
-  stuck is taken back (the excess over breakaway would otherwise carry it through).
-  Breakaway is the low-passed speed reaching `stuck_speed` or the low-passed error shrinking
-  by `progress` since the ramp began: a joint creeping in at 0.01 rad/s is below what the
-  noisy speed can show, and ramping on drove a slow stick-slip cycle across the goal. A ramp
-  fast enough for 6.6 N m breaks a joint with 0.2 N m away with several times its friction,
-  and with latency it sticks again on the other side: each time that happens the joint's
-  ramp rate is multiplied by `ramp_decay` (0.7, with no floor: `ramp_floor` 0), so the
-  hunting dies out while a high-friction joint still breaks away in seconds. On B the rate
-  also grows with what the ramp has added since the joint stuck (`ramp_grow`: doubled after
-  10 % of the limit, 30 mA; a memory restart's jump counts): B's ramp is slow, and a weak
-  B's friction is 90 mA of its command. Breakaway counts only towards the goal (a joint
-  slipping away from it under gravity has not broken free of the ramp). With `raw_breakaway`
-  a single sample of measured speed towards the goal beyond what the noise explains is a
-  breakaway too, and stops the stuck watch engaging a joint that has just begun to slip
-  (engaged on the actor's low-passed command, one slid 0.12 rad, past its goal): the
-  low-passed speed sees a slip 2-3 periods late, and with 1-2 periods of latency the ramp's
-  command swung a 6 N m joint 0.05 rad, from one side of its goal to the other, each time: a
-  hunt across the tolerance at 0.1-0.3 J a swing;
-- breakaway memory: where friction holds, the backoff leaves the joint well inside its
-  friction band and a re-ramp climbed the whole band again (7 s on a weak D). A joint that
-  sticks again on the side it broke away from restarts `memory_margin` (5 % of the limit)
-  below the command it broke away at, and ramps at `memory_rate` (0.3) of the rate from there:
-  the push past breakaway grows with the rate, and with it the step the joint makes;
-- a breakaway refuted: one sample of speed noise towards the goal (3 sigma, `raw_breakaway`)
-  reads as a breakaway once in about 740 samples of Gaussian noise (37 s at 20 Hz), and its
-  backoff takes 80 % of the ramp back. `restick_s` after a breakaway, a joint that is slow
-  and further from its goal than where its ramp began, by more than the noise explains, did
-  not break away: the backoff is given back, its ramp goes on from where it stood and the
-  memory keeps the breakaway before (`confirm_breakaway`: a weak B creeping away from its
-  goal while its ramp caught up lost its ramp that way twice and ended just outside the
-  tolerance). Only further away: a joint merely no nearer is common where friction holds
-  (seen breaking away late, it has made its step and stuck again), and at three times the
-  noise giving such joints their backoff back drove 6.6 N m joints through their goals (9
-  of the corners of the twin whose friction holds lost, 0.5-1.4 J after settling);
-- reversing: a joint whose breakaway carried it through its goal sticks on the far side
-  still commanded the first way, a whole friction band (2 x 300 mA at 6 N m) from pushing
-  back; its ramp starts from the actor's hold at the goal instead (D engaged on the actor's
-  330 mA, broken away before the backoff had anything to take back, took the rest of the
-  episode to ramp down from +306 mA), where the joint broke away the first way
-  `reverse_to_hold` (a quarter of the limit, 3 N m on E D C) or more from that hold: the
-  hold is the actor's, learned on the model, and on a joint with little friction the jump to
-  it was a kick (done everywhere, 81.7 % of the corners reached instead of 90.8 %);
-- arrival: a joint engaged because it was stuck rests on a command near breakaway; on one just
-  past it, it creeps on through its goal and sticks beyond, a whole friction band away from
-  coming back. Creeping into `stuck_error` of the goal (armed outside twice that), `arrive`
-  (5 % of the limit) is taken off its command once; creeping across the goal, the same is
-  pushed back towards it, each push `arrive_decay` (half) of the one before (a weak D on
-  a frictionless arm, pushed 30 mA each time it crept across, hunted about its goal to
-  the end: 5 more corners reached, one lost). Only on joints engaged as stuck: on a joint
-  with little friction the same 5 % is a kick (measured: 93.8 % instead of 97.9 % when it
-  applied to every joint that had ramped). And after a breakaway the ramp waits `restick_s`
-  before it may start again: the low-passed error lags a creeping joint, and a ramp
-  restarted on that lag pushed a joint in at 0.08 rad/s 20 mrad through its goal;
-- inside `freeze` (low-passed error) a joint at rest does not integrate: one held by friction
-  inside the tolerance is left alone instead of hunting (one still drifting through the band
-  integrates on, or a stale u_I carries it out the other side). A ramping joint that reaches
-  `freeze` has broken away (`freeze_breakaway`), like any other breakaway (the backoff, the
-  command it broke away at for the memory, the wait of `restick_s`): on a noisy sensor
-  `progress` may need as much movement as lies between `stuck_error` and `freeze`, and
-  forgetting the ramp there left its excess pushing the joint through its goal;
-- checking the hold: the actor's hold is learned on the model; on a weak joint (25 % torque)
-  carrying 20 % more mass it is a fraction of what holds the joint (C: -16 mA where -60
-  did), and a joint moved onto it falls (D at 25 % dropped 0.4 rad, 2 s before the end, and
-  was missed). So a joint moved to the hold from a command that held it (the jump of
-  `reverse_to_hold`, or an engagement for jitter, which starts from the hold instead of the
-  low-passed actor command) is watched for its latency plus four periods: if it moves the way
-  of that change, low-passed and measured speed both beyond the noise (`hold_check`), the
-  change is undone and the joint's hold is not used again on that target (12 of the 896
-  corners reached that were missed, none lost; draws and Table I unchanged);
-- falling: a joint engaged on the actor's hold as it crosses its goal is already moving when
-  the hold takes over, so the hold check cannot see it fall; a weak one does (C at 25 %
-  torque, engaged at 1 rad/s on the actor's hold, 68 mA short of what holds it, fell 0.5 rad,
-  was released to the actor, driven back through its goal and engaged again, six times). An
-  engaged joint outside `band` moving away from its goal at the fastest it has since it began
-  to (within the noise: a coast through the goal slows from its crossing speed at once, a fall
-  does not) ramps towards the goal at `fall_ramp` of the stuck ramp's rate, and its hold is
-  not used again on that target; engaged again after a release it keeps the u_i it had
-  (`fall_memory`). The ramp runs on for the latency and the filter's lag and may carry it
-  through: each fall on the other side of the goal from the last one ramps at `fall_decay` of
-  the rate before. Calling a joint falling whenever its low-passed speed away had not dropped
-  since the last sample ramped coasting joints on their noise (3 corners lost). Such a joint
-  is weak or heavy, and at 25 % torque the soft gains act as a quarter of themselves: they
-  swung a weak C about its goal with a period of 8 s (0.34, 0.28, 0.16, 0.08 rad out); on a
-  joint whose hold is marked bad they are `fall_gain` (2) times as stiff (9 more of the
-  corners reached, none lost; 3 or 4 times reached none of the rest);
-- coasting: a weak joint need not fall to show it. Engaged as it crossed its goal at 1 rad/s,
-  a frictionless C at 25 % torque coasted 0.28-0.36 rad past it under the soft gains, swung
-  back and forth for the rest of the episode and was kicked on by the stuck ramp at each
-  turn (5 corners ended 20-40 mrad out). A joint still moving away from its goal `coast_s`
-  (0.7 s) after it was engaged, beyond `coast_band` (0.2 rad) on the far side, is marked as
-  one whose hold failed, and gets `fall_gain` too: no strong joint went more than 0.26 rad
-  past, and nearly all turned within 0.55 s;
-- a take-off that held: on a frictionless weak joint the arrival's `arrive` take-off is what
-  held it up (a weak D taken 30 mA off as it crept in fell back 0.1 rad, crept in again
-  over 4 s and was taken off again, to the end). A joint that backs out of twice
-  `stuck_error` on the side it arrived from, not across, gets the take-off back, and no more
-  are taken on that target (`arrive_check`: 3 of the 896 corners reached that were missed,
-  none lost);
-- creeping across: a joint that creeps across its goal, slow, on about the actor's hold
-  (`creep_hold`, 5 % of the limit) is one friction does not hold (the twin's soft friction
-  lets a 0.3-0.7 N m joint drift 1-2 mrad/s for 15 s on a command within 17 mA of its
-  hold). Its stuck ramp then runs at `creep_rate` (half): at the full rate, seen breaking
-  away periods late on a noisy sensor, it kicked such joints 40 mrad back through their goal
-  in the last second. Pushed across by what is left of a ramp (70-110 mA past the hold) a
-  joint says nothing of its friction, and ramps back at the full rate.
+When it releases: an engaged joint further than `release` from its goal is the actor's again,
+and watched again. A new target starts every joint afresh (the latency, once timed, stays).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Any
 
 import numpy as np
@@ -210,14 +59,217 @@ NOISE_FILTER_S = 1.0
 NOISE_SETTLED = 0.8
 
 
+class Reason(str, Enum):
+    """Why a joint was handed to the settle law (`SettleSupervisor.reasons`; its value is the
+    report's "reason")."""
+
+    NONE = ""  # not engaged on this target
+    CYCLING = "cycling"
+    CROSSING = "crossing"
+    CROSSING_AHEAD = "crossing ahead"
+    REVERSING = "reversing"
+    JITTER = "jitter"
+    HOLD = "hold"
+    STUCK = "stuck"
+
+    def __str__(self) -> str:
+        return self.value
+
+
+def _per_joint(value: float | bool | int) -> Any:
+    """A dataclass field holding one `value` per joint, of its type (float, bool or int)."""
+    return field(default_factory=lambda: np.full(N_JOINTS, value, dtype=type(value)))
+
+
+@dataclass
+class _Filtered:
+    """The low-passed signals (EMAs), started at a target's first sample."""
+
+    e: np.ndarray = _per_joint(0.0)  # rad: the error to the goal (`filter_s`)
+    v: np.ndarray = _per_joint(0.0)  # rad/s: the measured speed (`filter_s`)
+    u: np.ndarray = _per_joint(0.0)  # mA: the actor's command (`hold_filter_s`)
+    fresh: np.ndarray = _per_joint(True)  # no sample yet on this target
+
+
+@dataclass
+class _Noise:
+    """The sensors' noise per joint, from successive samples while the joint is slow."""
+
+    q_var: np.ndarray = _per_joint(0.0)  # rad^2: of the position
+    v_var: np.ndarray = _per_joint(0.0)  # (rad/s)^2: of the speed
+    v_w: np.ndarray = _per_joint(0.0)  # the weight the speed EMA has gathered (from 0)
+    q_hist: np.ndarray = field(  # the errors of the two samples before, oldest first
+        default_factory=lambda: np.full((2, N_JOINTS), math.nan)
+    )
+    v_prev: np.ndarray = _per_joint(math.nan)  # rad/s: the speed of the sample before
+
+
+@dataclass
+class _Watch:
+    """The watches on a joint the actor holds."""
+
+    v2: np.ndarray  # (window, joint): the last `jitter_window_s` of squared speeds, a ring
+    v2_n: int = 0  # samples written into `v2`
+    sign: np.ndarray = _per_joint(0.0)  # the sign of the last strong actor command (0: none)
+    rev_start: np.ndarray = _per_joint(math.nan)  # s: the first reversal of this run
+    rev_last: np.ndarray = _per_joint(math.nan)  # s: the last reversal
+    rev_count: np.ndarray = _per_joint(0)  # reversals in this run
+    stuck_for: np.ndarray = _per_joint(0.0)  # s the stuck watch has seen it stuck
+    stuck_e0: np.ndarray = _per_joint(0.0)  # abs(e_f) when the stuck watch's timer began
+    held_for: np.ndarray = _per_joint(0.0)  # s settled inside `hold_error`
+    in_band_for: np.ndarray = _per_joint(0.0)  # s inside `jitter_band`
+    e_prev: np.ndarray = _per_joint(0.0)  # rad: the error of the sample before (crossings)
+
+
+@dataclass
+class _Ramp:
+    """The stuck ramp of an engaged joint and its breakaways."""
+
+    ramped: np.ndarray = _per_joint(0.0)  # mA added since the joint stuck (what a backoff takes)
+    was_stuck: np.ndarray = _per_joint(False)  # ramping, until it breaks away
+    stuck_from: np.ndarray = _per_joint(0.0)  # rad: abs(e_f) where the ramp began
+    side: np.ndarray = _per_joint(0.0)  # the side of the goal it last ramped from
+    scale: np.ndarray = _per_joint(1.0)  # of `ramp`: shrinks by `ramp_decay` per side change
+    rate: np.ndarray = _per_joint(1.0)  # 1, `memory_rate` restarted from memory, `creep_rate`
+    since_break: np.ndarray = _per_joint(math.inf)  # s since the last breakaway
+    break_u: np.ndarray = field(  # mA, per side (+, -): the command it last broke away at
+        default_factory=lambda: np.full((N_JOINTS, 2), math.nan)
+    )
+    # a breakaway until `restick_s` later (`confirm_breakaway`): the ramp it ended (its
+    # backoff was `backoff` of that) and the memory it replaced
+    brk_pending: np.ndarray = _per_joint(False)
+    brk_ramped: np.ndarray = _per_joint(0.0)
+    brk_prev: np.ndarray = _per_joint(math.nan)
+
+
+@dataclass
+class _Arrival:
+    """An engaged joint's arrivals and crossings of its goal (`arrive`, `creep_rate`)."""
+
+    arriving: np.ndarray = _per_joint(False)  # armed outside 2 `stuck_error`, until inside
+    side: np.ndarray = _per_joint(0.0)  # the side of the goal e_f was last on, outside `freeze`
+    took: np.ndarray = _per_joint(0.0)  # mA the last arrival took off, until the joint crosses
+    off: np.ndarray = _per_joint(False)  # an arrival's take-off did not hold it: no more
+    scale: np.ndarray = _per_joint(1.0)  # of `arrive`: shrinks by `arrive_decay` per push
+    crept: np.ndarray = _per_joint(False)  # crept across its goal on the hold (`creep_rate`)
+
+
+@dataclass
+class _Hold:
+    """Whether the actor's hold holds an engaged joint (`hold_check`, falls, coasts)."""
+
+    bad: np.ndarray = _per_joint(False)  # it did not: not used again, `fall_gain` on
+    jump_from: np.ndarray = _per_joint(math.nan)  # mA: u_i before a jump to the hold, checked
+    jump_to: np.ndarray = _per_joint(0.0)  # mA: ... and after it
+    jump_age: np.ndarray = _per_joint(0.0)  # s since that jump
+
+
+@dataclass
+class _Fall:
+    """The fall and coast watches on an engaged joint (`fall_ramp`, `coast_s`)."""
+
+    away_peak: np.ndarray = _per_joint(0.0)  # rad/s: fastest low-passed speed away, this move
+    side: np.ndarray = _per_joint(0.0)  # the side of the goal the joint last fell on
+    scale: np.ndarray = _per_joint(1.0)  # of `fall_ramp`: shrinks by `fall_decay` per side
+    coast_side: np.ndarray = _per_joint(0.0)  # the side of the goal it was engaged on (0: off)
+    engaged_for: np.ndarray = _per_joint(0.0)  # s since it was engaged
+
+
+@dataclass
+class _Latency:
+    """The loop's latency, timed from a target's first samples (`onset_*`)."""
+
+    period: float  # s: the control period, measured while timing (`default_dt` before)
+    periods: float | None = None  # the latency in periods (None: not yet timed)
+    timed: bool = False  # timed from motion (it stays across targets)
+    step: int = 0  # samples seen while timing
+    clock: float = 0.0  # s since the onset sample
+    # at the onset sample: the joints commanded hard, their commands' signs, their positions
+    onset: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    # since then: (clock, distance moved the commanded way, speed that way)
+    samples: list[tuple[float, np.ndarray, np.ndarray]] = field(default_factory=list)
+
+    def time(
+        self,
+        law: SettleLaw,
+        limits_mA: np.ndarray,
+        dt: float,
+        q: np.ndarray,
+        qdot: np.ndarray,
+        e: np.ndarray,
+        u: np.ndarray,
+    ) -> None:
+        """One sample. At a target's first, the joints the actor drives hard (`onset_fraction`)
+        far from their goals (`onset_error`); `onset_steps` samples later, the earliest of
+        their starts after it: each joint is at speed (80 % of its fastest) within about 10 ms
+        of its start, so one that moved d at speed v at a sample started d / v before it (a
+        weak or heavy joint is late; counting whole periods, all 20 Hz samples show, is off
+        by up to one)."""
+        self.step += 1
+        if self.onset is None:
+            hard = (
+                (np.abs(u) >= law.onset_fraction * limits_mA)
+                & (np.abs(e) >= law.onset_error)
+                & (np.sign(u) == np.sign(e))
+            )
+            self.onset = (hard, np.sign(u) * hard, q.copy())
+            if not hard.any():
+                self.periods = 0.0  # nothing to time it by; the next target tries
+            return
+        self.clock += dt
+        hard, sign, q0 = self.onset
+        self.samples.append((self.clock, sign * (q - q0), sign * qdot))
+        if self.step < law.onset_steps:
+            return
+        starts: list[float] = []
+        times = np.array([s[0] for s in self.samples])
+        for j in np.flatnonzero(hard):
+            moved = np.array([s[1][j] for s in self.samples])
+            speed = np.array([s[2][j] for s in self.samples])
+            fast = speed >= max(0.3, 0.8 * speed.max())  # at speed: 80 % of the fastest seen
+            if not fast.any():
+                continue
+            k = int(np.argmax(fast))
+            if k > 0 and speed[k - 1] < 0.3 * speed[k]:
+                # still at the sample before: time the start from the distance since then, so
+                # that gravity sag before the command took effect does not read as motion
+                starts.append(float(times[k] - (moved[k] - moved[k - 1]) / speed[k]))
+            else:
+                starts.append(float(times[k] - moved[k] / speed[k]))
+        period = float(times[-1]) / len(times)
+        self.period = period
+        self.periods = max(0.0, min(starts)) / period if starts else 0.0
+        self.timed = bool(starts)
+
+
 @dataclass
 class SettleSupervisor:
     """The per-joint state machine: `update` each control step with the actor's command."""
 
     law: SettleLaw
     limits_mA: np.ndarray
-    engaged: np.ndarray = field(init=False)
-    reasons: list[str] = field(init=False)
+    # What the supervisor did with each joint on this target (`report`):
+    engaged: np.ndarray = field(init=False)  # bool: the settle law has it
+    reasons: list[Reason] = field(init=False)  # why it was last engaged
+    engaged_at: np.ndarray = field(init=False)  # s, the controller's clock: when
+    releases: np.ndarray = field(init=False)  # times handed back to the actor
+    u_i: np.ndarray = field(init=False)  # mA: the settle law's integral (u_I)
+    # Its run-time state, by concern:
+    _lp: _Filtered = field(init=False, repr=False)
+    _noise: _Noise = field(init=False, repr=False)
+    _watch: _Watch = field(init=False, repr=False)
+    _ramp: _Ramp = field(init=False, repr=False)
+    _arrival: _Arrival = field(init=False, repr=False)
+    _hold: _Hold = field(init=False, repr=False)
+    _fall: _Fall = field(init=False, repr=False)
+    _latency: _Latency = field(init=False, repr=False)
+    _target: np.ndarray | None = field(init=False, repr=False)  # the goal (rad)
+    _t: float | None = field(init=False, repr=False)  # s: the last sample's time
+    _u_goal: np.ndarray | None = field(init=False, repr=False)  # mA: the actor's hold there
+    # from the law: the joints whose crossing watch stays on a prompt loop, and those whose
+    # reversing watch is on (`prompt_joints`)
+    _prompt_watch: np.ndarray = field(init=False, repr=False)
+    _reverse_watch: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.limits_mA = np.asarray(self.limits_mA, dtype=float)
@@ -229,70 +281,42 @@ class SettleSupervisor:
     def reset(self) -> None:
         n = N_JOINTS
         self.engaged = np.zeros(n, dtype=bool)
-        self.reasons = [""] * n
+        self.reasons = [Reason.NONE] * n
         self.engaged_at = np.full(n, math.nan)
         self.releases = np.zeros(n, dtype=int)
-        self._target: np.ndarray | None = None
-        self._t: float | None = None
-        self._u_goal: np.ndarray | None = None
-        self._fresh = np.ones(n, dtype=bool)
-        self.e_f = np.zeros(n)
-        self.v_f = np.zeros(n)
-        self.u_f = np.zeros(n)
         self.u_i = np.zeros(n)
-        self._sign = np.zeros(n)
-        self._rev_start = np.full(n, math.nan)
-        self._rev_last = np.full(n, math.nan)
-        self._rev_count = np.zeros(n, dtype=int)
-        self._stuck_for = np.zeros(n)
-        self._stuck_e0 = np.zeros(n)  # abs(e_f) when the stuck watch's timer began
-        self._held_for = np.zeros(n)
-        self._in_band_for = np.zeros(n)
         window = max(1, int(round(self.law.jitter_window_s / self.law.default_dt)))
-        self._v2 = np.zeros((window, n))
-        self._v2_n = 0
-        self._ramped = np.zeros(n)
-        self._was_stuck = np.zeros(n, dtype=bool)
-        self._stuck_from = np.zeros(n)
-        self._ramp_side = np.zeros(n)
-        self._ramp_scale = np.ones(n)
-        self._e_prev = np.zeros(n)
-        self._arriving = np.zeros(n, dtype=bool)
-        self._side = np.zeros(n)  # the side of the goal the low-passed error was last on,
-        # outside `freeze`
-        self._since_break = np.full(n, math.inf)
-        self._jump_from = np.full(n, math.nan)  # u_i before a jump to the hold, while checked
-        self._jump_age = np.zeros(n)
-        self._jump_to = np.zeros(n)
-        self._hold_bad = np.zeros(n, dtype=bool)
-        self._arrive_scale = np.ones(n)  # of `arrive`: shrinks by `arrive_decay` per push
-        self._away_peak = np.zeros(n)  # fastest low-passed speed away from the goal, this move
-        self._fall_side = np.zeros(n)  # the side of the goal the joint last fell on
-        self._fall_scale = np.ones(n)  # of `fall_ramp`: shrinks by `fall_decay` per side
-        self._took = np.zeros(n)  # what the last arrival took off, until the joint crosses
-        self._arrive_off = np.zeros(n, dtype=bool)  # an arrival's take-off did not hold it
-        self._coast_side = np.zeros(n)  # the side of the goal it was engaged on (0: unwatched)
-        self._engaged_for = np.zeros(n)  # s since it was engaged
-        self._crept = np.zeros(n, dtype=bool)  # crept across its goal on the hold (`creep_rate`)
-        self._rate = np.ones(n)  # the ramp's rate: 1, or memory_rate when restarted from memory
-        self._break_u = np.full((n, 2), math.nan)  # per side: the command it last broke away at
-        # a breakaway until `restick_s` later (`confirm_breakaway`): the ramp it ended (its
-        # backoff was `backoff` of that) and the memory it replaced
-        self._brk_pending = np.zeros(n, dtype=bool)
-        self._brk_ramped = np.zeros(n)
-        self._brk_prev = np.full(n, math.nan)
-        self._q_var = np.zeros(n)  # the sensors' noise, from successive samples while slow
-        self._v_var = np.zeros(n)
-        self._v_w = np.zeros(n)  # the weight the speed-noise EMA has gathered (from 0 at reset)
-        self._q_hist = np.full((2, n), math.nan)
-        self._v_prev = np.full(n, math.nan)
-        self._step = 0
-        self._clock = 0.0
-        self._onset: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._samples: list[tuple[float, np.ndarray, np.ndarray]] = []
-        self.latency_periods: float | None = None
-        self._timed = False
-        self._period = self.law.default_dt
+        self._lp = _Filtered()
+        self._noise = _Noise()
+        self._watch = _Watch(np.zeros((window, n)))
+        self._ramp = _Ramp()
+        self._arrival = _Arrival()
+        self._hold = _Hold()
+        self._fall = _Fall()
+        self._latency = _Latency(self.law.default_dt)
+        self._target = None
+        self._t = None
+        self._u_goal = None
+
+    @property
+    def latency_periods(self) -> float | None:
+        """The loop's latency in control periods, as timed (None before it has been)."""
+        return self._latency.periods
+
+    @property
+    def e_f(self) -> np.ndarray:
+        """The low-passed error to the goal (rad), per joint."""
+        return self._lp.e
+
+    @property
+    def v_f(self) -> np.ndarray:
+        """The low-passed speed (rad/s), per joint."""
+        return self._lp.v
+
+    @property
+    def u_f(self) -> np.ndarray:
+        """The low-passed actor command (mA), per joint."""
+        return self._lp.u
 
     def report(self) -> dict[str, Any]:
         """What the supervisor did on the current target: the latency it timed (periods, None
@@ -300,7 +324,7 @@ class SettleSupervisor:
         how often it was released back to the actor."""
         engaged = {
             JOINT_LETTERS[j]: {
-                "reason": self.reasons[j],
+                "reason": self.reasons[j].value,
                 "at_s": float(self.engaged_at[j]),
                 "releases": int(self.releases[j]),
             }
@@ -312,10 +336,10 @@ class SettleSupervisor:
 
     def _new_target(self, target: np.ndarray) -> None:
         # the latency is the loop's, not the target's: once timed from motion it stays
-        periods, timed, period = self.latency_periods, self._timed, self._period
+        timed = self._latency
         self.reset()
-        if timed:
-            self.latency_periods, self._timed, self._period = periods, True, period
+        if timed.timed:
+            self._latency = _Latency(timed.period, timed.periods, True)
         self._target = target.copy()
 
     def update(
@@ -339,27 +363,30 @@ class SettleSupervisor:
         now = self._t if self._t is not None else 0.0
         e = target - q
         a = min(1.0, dt / law.filter_s)
-        self.e_f = np.where(self._fresh, e, self.e_f + a * (e - self.e_f))
-        self.v_f = np.where(self._fresh, qdot, self.v_f + a * (qdot - self.v_f))
+        lp = self._lp
+        lp.e = np.where(lp.fresh, e, lp.e + a * (e - lp.e))
+        lp.v = np.where(lp.fresh, qdot, lp.v + a * (qdot - lp.v))
         b = min(1.0, dt / law.hold_filter_s)
-        self.u_f = np.where(self._fresh, u, self.u_f + b * (u - self.u_f))
-        self._fresh[:] = False
-        v_last = self._v_prev.copy()
+        lp.u = np.where(lp.fresh, u, lp.u + b * (u - lp.u))
+        lp.fresh[:] = False
+        v_last = self._noise.v_prev.copy()
         self._estimate_noise(dt, e, qdot)
         near = np.abs(e) < law.band
-        self._v2[self._v2_n % self._v2.shape[0]] = qdot**2
-        self._v2_n += 1
+        watch = self._watch
+        watch.v2[watch.v2_n % watch.v2.shape[0]] = qdot**2
+        watch.v2_n += 1
         self._u_goal = u_goal
+        latency = self._latency
         latent = law.latent_crossing_speed > 0 and law.crossing_speed > 0
-        if latent and self.latency_periods is None:
-            self._time_latency(dt, q, qdot, e, u)
+        if latent and latency.periods is None:
+            latency.time(law, self.limits_mA, dt, q, qdot, e, u)
         crossing_speed = np.full(N_JOINTS, law.crossing_speed)
         ahead = -1.0
-        if latent and (self.latency_periods or 0.0) >= law.latent_periods:
+        if latent and (latency.periods or 0.0) >= law.latent_periods:
             crossing_speed[:] = law.latent_crossing_speed
             if law.latent_ahead >= 0:
-                ahead = ((self.latency_periods or 0.0) + law.latent_ahead) * self._period
-        elif latent and self._timed:
+                ahead = ((latency.periods or 0.0) + law.latent_ahead) * latency.period
+        elif latent and latency.timed:
             # timed without latency: an overshoot is the actor's own, but on those joints
             crossing_speed[~self._prompt_watch] = 0.0
         out = np.asarray(u, dtype=float).copy()
@@ -367,19 +394,19 @@ class SettleSupervisor:
             if self.engaged[j] and abs(e[j]) > law.release:
                 self._release(j)
             if not self.engaged[j]:
-                self._watch(j, now, dt, near[j], e[j], u[j], qdot[j])
+                self._watch_joint(j, now, dt, near[j], e[j], u[j], qdot[j])
             reversed_ = qdot[j] * v_last[j] < 0 and self._reverse_watch[j] and near[j]
             fast = min(abs(qdot[j]), abs(v_last[j])) >= law.reversing_speed > 0
             if not self.engaged[j] and reversed_ and fast:
-                self._engage(j, now, "reversing")
+                self._engage(j, now, Reason.REVERSING)
             if not self.engaged[j] and crossing_speed[j] > 0:
-                crossed = self._e_prev[j] * e[j] < 0
+                crossed = watch.e_prev[j] * e[j] < 0
                 if crossed and abs(qdot[j]) >= crossing_speed[j]:
-                    self._engage(j, now, "crossing")
+                    self._engage(j, now, Reason.CROSSING)
                 elif ahead >= 0 and near[j] and abs(qdot[j]) >= crossing_speed[j]:
                     if (e[j] - qdot[j] * ahead) * e[j] < 0:
-                        self._engage(j, now, "crossing ahead")
-            self._e_prev[j] = e[j]
+                        self._engage(j, now, Reason.CROSSING_AHEAD)
+            watch.e_prev[j] = e[j]
             if self.engaged[j]:
                 out[j] = self._settle(j, dt, e[j], qdot[j])
         return out
@@ -388,98 +415,60 @@ class SettleSupervisor:
         """Position and speed noise per joint from second (position) and first (speed)
         differences of successive samples while the joint is slow, where noise dominates
         them: var(e_k - 2 e_k-1 + e_k-2) = 6 var(e), var(v_k - v_k-1) = 2 var(v)."""
-        slow = np.abs(self.v_f) < self.law.stuck_speed
+        noise = self._noise
+        slow = np.abs(self._lp.v) < self.law.stuck_speed
         a = min(1.0, dt / NOISE_FILTER_S)
-        dd = e - 2 * self._q_hist[1] + self._q_hist[0]
+        dd = e - 2 * noise.q_hist[1] + noise.q_hist[0]
         ok = slow & np.isfinite(dd)
-        self._q_var = np.where(ok, self._q_var + a * (dd**2 / 6 - self._q_var), self._q_var)
-        dv = qdot - self._v_prev
+        noise.q_var = np.where(ok, noise.q_var + a * (dd**2 / 6 - noise.q_var), noise.q_var)
+        dv = qdot - noise.v_prev
         ok = slow & np.isfinite(dv)
-        self._v_var = np.where(ok, self._v_var + a * (dv**2 / 2 - self._v_var), self._v_var)
-        self._v_w = np.where(ok, self._v_w + a * (1.0 - self._v_w), self._v_w)
-        self._q_hist = np.stack([self._q_hist[1], e.astype(float)])
-        self._v_prev = np.asarray(qdot, dtype=float).copy()
+        noise.v_var = np.where(ok, noise.v_var + a * (dv**2 / 2 - noise.v_var), noise.v_var)
+        noise.v_w = np.where(ok, noise.v_w + a * (1.0 - noise.v_w), noise.v_w)
+        noise.q_hist = np.stack([noise.q_hist[1], e.astype(float)])
+        noise.v_prev = np.asarray(qdot, dtype=float).copy()
 
-    def _time_latency(
-        self, dt: float, q: np.ndarray, qdot: np.ndarray, e: np.ndarray, u: np.ndarray
-    ) -> None:
-        """`latency_periods` from a target's first samples (module docstring, "Latency")."""
-        law = self.law
-        self._step += 1
-        if self._onset is None:
-            hard = (
-                (np.abs(u) >= law.onset_fraction * self.limits_mA)
-                & (np.abs(e) >= law.onset_error)
-                & (np.sign(u) == np.sign(e))
-            )
-            self._onset = (hard, np.sign(u) * hard, q.copy())
-            if not hard.any():
-                self.latency_periods = 0.0  # nothing to time it by; the next target tries
-            return
-        self._clock += dt
-        hard, sign, q0 = self._onset
-        self._samples.append((self._clock, sign * (q - q0), sign * qdot))
-        if self._step < law.onset_steps:
-            return
-        starts: list[float] = []
-        times = np.array([s[0] for s in self._samples])
-        for j in np.flatnonzero(hard):
-            moved = np.array([s[1][j] for s in self._samples])
-            speed = np.array([s[2][j] for s in self._samples])
-            fast = speed >= max(0.3, 0.8 * speed.max())  # at speed: 80 % of the fastest seen
-            if not fast.any():
-                continue
-            k = int(np.argmax(fast))
-            if k > 0 and speed[k - 1] < 0.3 * speed[k]:
-                # still at the sample before: time the start from the distance since then, so
-                # that gravity sag before the command took effect does not read as motion
-                starts.append(float(times[k] - (moved[k] - moved[k - 1]) / speed[k]))
-            else:
-                starts.append(float(times[k] - moved[k] / speed[k]))
-        period = float(times[-1]) / len(times)
-        self._period = period
-        self.latency_periods = max(0.0, min(starts)) / period if starts else 0.0
-        self._timed = bool(starts)
-
-    def _watch(
+    def _watch_joint(
         self, j: int, now: float, dt: float, near: bool, e: float, u: float, qdot: float
     ) -> None:
+        """The watches on a joint the actor holds (module docstring): engage it, or not."""
         law = self.law
+        watch = self._watch
         if law.stuck and not near and abs(e) < law.stuck_band:
             self._watch_stuck(j, now, dt, qdot)
             return
         if not near:
-            self._sign[j] = 0.0
-            self._rev_count[j] = 0
-            self._stuck_for[j] = 0.0
-            self._held_for[j] = 0.0
-            self._in_band_for[j] = 0.0
+            watch.sign[j] = 0.0
+            watch.rev_count[j] = 0
+            watch.stuck_for[j] = 0.0
+            watch.held_for[j] = 0.0
+            watch.in_band_for[j] = 0.0
             return
         if law.cycles and abs(u) >= law.reversal_fraction * self.limits_mA[j]:
             sign = math.copysign(1.0, u)
-            if self._sign[j] != 0.0 and sign != self._sign[j]:
-                if not now - self._rev_last[j] <= law.max_gap_s:
-                    self._rev_start[j], self._rev_count[j] = now, 0
-                self._rev_last[j] = now
-                self._rev_count[j] += 1
-                span = now - self._rev_start[j]
-                if self._rev_count[j] >= law.reversals and span >= law.min_span_s - 1e-9:
-                    self._engage(j, now, "cycling")
+            if watch.sign[j] != 0.0 and sign != watch.sign[j]:
+                if not now - watch.rev_last[j] <= law.max_gap_s:
+                    watch.rev_start[j], watch.rev_count[j] = now, 0
+                watch.rev_last[j] = now
+                watch.rev_count[j] += 1
+                span = now - watch.rev_start[j]
+                if watch.rev_count[j] >= law.reversals and span >= law.min_span_s - 1e-9:
+                    self._engage(j, now, Reason.CYCLING)
                     return
-            self._sign[j] = sign
+            watch.sign[j] = sign
         if law.jitter_speed > 0:
-            inside = abs(e if law.jitter_raw else self.e_f[j]) < law.jitter_band
-            self._in_band_for[j] = self._in_band_for[j] + dt if inside else 0.0
-            if self._in_band_for[j] >= law.jitter_s - 1e-9 and self._v2_n >= self._v2.shape[0]:
-                rms = math.sqrt(float(np.mean(self._v2[:, j])))
+            inside = abs(e if law.jitter_raw else self._lp.e[j]) < law.jitter_band
+            watch.in_band_for[j] = watch.in_band_for[j] + dt if inside else 0.0
+            if watch.in_band_for[j] >= law.jitter_s - 1e-9 and watch.v2_n >= watch.v2.shape[0]:
+                rms = math.sqrt(float(np.mean(watch.v2[:, j])))
                 if rms > self._jitter_limit():
-                    self._engage(j, now, "jitter")
+                    self._engage(j, now, Reason.JITTER)
                     return
         if law.hold_s > 0:
-            settled = abs(self.e_f[j]) < law.hold_error
-            self._held_for[j] = self._held_for[j] + dt if settled else 0.0
-            if self._held_for[j] >= law.hold_s - 1e-9:
-                self._engage(j, now, "hold")
+            settled = abs(self._lp.e[j]) < law.hold_error
+            watch.held_for[j] = watch.held_for[j] + dt if settled else 0.0
+            if watch.held_for[j] >= law.hold_s - 1e-9:
+                self._engage(j, now, Reason.HOLD)
                 return
         if law.stuck:
             self._watch_stuck(j, now, dt, qdot)
@@ -490,10 +479,11 @@ class SettleSupervisor:
         noise is the arm's sensors', so the quietest joint whose estimate has settled (80 %
         of its weight: 1.6 s of slow samples) gives it; a dithering joint's own is inflated."""
         law = self.law
-        settled = self._v_w >= NOISE_SETTLED
+        noise = self._noise
+        settled = noise.v_w >= NOISE_SETTLED
         if law.jitter_true_speed <= 0 or not settled.any():
             return law.jitter_speed
-        sigma = math.sqrt(float(np.min(self._v_var[settled] / self._v_w[settled])))
+        sigma = math.sqrt(float(np.min(noise.v_var[settled] / noise.v_w[settled])))
         return min(law.jitter_speed, math.hypot(law.jitter_true_speed, law.jitter_noise_k * sigma))
 
     def _noise_floors(self, j: int, dt: float) -> tuple[float, float]:
@@ -502,38 +492,40 @@ class SettleSupervisor:
         samples' variance; a difference of two of them, twice that)."""
         a = min(1.0, dt / self.law.filter_s)
         shrink = a / (2 - a)
-        speed = self.law.noise_sigmas * math.sqrt(shrink * self._v_var[j])
-        moved = self.law.noise_sigmas * math.sqrt(2 * shrink * self._q_var[j])
+        speed = self.law.noise_sigmas * math.sqrt(shrink * self._noise.v_var[j])
+        moved = self.law.noise_sigmas * math.sqrt(2 * shrink * self._noise.q_var[j])
         return speed, moved
 
     def _slipping(self, j: int, e: float, qdot: float) -> bool:
         """One sample's measured speed towards the goal beyond what the noise explains."""
         law = self.law
-        floor = max(2 * law.stuck_speed, law.noise_sigmas * math.sqrt(self._v_var[j]))
+        floor = max(2 * law.stuck_speed, law.noise_sigmas * math.sqrt(self._noise.v_var[j]))
         return math.copysign(1.0, e) * qdot >= floor
 
     def _watch_stuck(self, j: int, now: float, dt: float, qdot: float) -> None:
         law = self.law
-        slow = abs(self.v_f[j]) < max(law.stuck_speed, self._noise_floors(j, dt)[0])
+        watch = self._watch
+        e_f = self._lp.e
+        slow = abs(self._lp.v[j]) < max(law.stuck_speed, self._noise_floors(j, dt)[0])
         if slow and law.raw_breakaway:  # not a joint that has just begun to slip
-            slow = not self._slipping(j, self.e_f[j], qdot)
-        still = abs(self.e_f[j]) > law.stuck_error and slow
-        if still and self._stuck_for[j] > 0 and law.creep_arrive_s > 0:
+            slow = not self._slipping(j, e_f[j], qdot)
+        still = abs(e_f[j]) > law.stuck_error and slow
+        if still and watch.stuck_for[j] > 0 and law.creep_arrive_s > 0:
             # creeping in slower than the noisy speed can show: the low-passed error has
             # shrunk since the watch began by more than the noise explains, fast enough to
             # arrive within `creep_arrive_s` (a slower creep is as good as stuck)
-            shrunk = self._stuck_e0[j] - abs(self.e_f[j])
+            shrunk = watch.stuck_e0[j] - abs(e_f[j])
             moved = max(law.progress, self._noise_floors(j, dt)[1])
-            soon = abs(self.e_f[j]) * self._stuck_for[j] / law.creep_arrive_s
+            soon = abs(e_f[j]) * watch.stuck_for[j] / law.creep_arrive_s
             if shrunk > moved and shrunk >= soon:
                 still = False
-        if still and self._stuck_for[j] == 0:
-            self._stuck_e0[j] = abs(self.e_f[j])
-        self._stuck_for[j] = self._stuck_for[j] + dt if still else 0.0
-        if self._stuck_for[j] >= law.stuck_s - 1e-9:
-            self._engage(j, now, "stuck")
+        if still and watch.stuck_for[j] == 0:
+            watch.stuck_e0[j] = abs(e_f[j])
+        watch.stuck_for[j] = watch.stuck_for[j] + dt if still else 0.0
+        if watch.stuck_for[j] >= law.stuck_s - 1e-9:
+            self._engage(j, now, Reason.STUCK)
 
-    def _engage(self, j: int, now: float, why: str) -> None:
+    def _engage(self, j: int, now: float, why: Reason) -> None:
         self.engaged[j] = True
         self.reasons[j] = why
         self.engaged_at[j] = now
@@ -541,55 +533,58 @@ class SettleSupervisor:
         # steady command, which holds it there (on a weak joint, several times the nominal
         # hold), so it starts from that low-passed command, as does a supervisor used without
         # an actor (u_goal not given).
-        if self._u_goal is None or why == "stuck":
-            self.u_i[j] = self.u_f[j]
-        elif why == "jitter":
-            self._to_hold(j, float(self._u_goal[j]), self.u_f[j])
-        elif not (self.law.fall_memory and self._hold_bad[j]):
+        if self._u_goal is None or why is Reason.STUCK:
+            self.u_i[j] = self._lp.u[j]
+        elif why is Reason.JITTER:
+            self._to_hold(j, float(self._u_goal[j]), self._lp.u[j])
+        elif not (self.law.fall_memory and self._hold.bad[j]):
             self.u_i[j] = float(self._u_goal[j])
-        self._ramped[j] = 0.0
-        self._was_stuck[j] = False
-        self._brk_pending[j] = False  # a breakaway before a release is not this engagement's
-        self._crept[j] = False
+        self._ramp.ramped[j] = 0.0
+        self._ramp.was_stuck[j] = False
+        self._ramp.brk_pending[j] = False  # a breakaway before a release is not this one's
+        self._arrival.crept[j] = False
         # a joint stuck short is at rest, not coasting: only the others are watched (`coast_s`)
-        self._coast_side[j] = 0.0 if why == "stuck" else math.copysign(1.0, self.e_f[j])
-        self._engaged_for[j] = 0.0
+        coast_side = 0.0 if why is Reason.STUCK else math.copysign(1.0, self._lp.e[j])
+        self._fall.coast_side[j] = coast_side
+        self._fall.engaged_for[j] = 0.0
 
     def _to_hold(self, j: int, hold: float, alt: float) -> None:
         """u_i to the actor's hold, checked (`hold_check`) against `alt`, what held it so far."""
-        if self._hold_bad[j]:
+        held = self._hold
+        if held.bad[j]:
             self.u_i[j] = alt
             return
         self.u_i[j] = hold
         if abs(hold - alt) < self.law.creep_hold * self.limits_mA[j]:
             return  # about the same: nothing to check
-        self._jump_from[j] = alt
-        self._jump_to[j] = hold
-        self._jump_age[j] = 0.0
+        held.jump_from[j] = alt
+        held.jump_to[j] = hold
+        held.jump_age[j] = 0.0
 
     def _release(self, j: int) -> None:
         self.engaged[j] = False
         self.releases[j] += 1
-        self._sign[j] = 0.0
-        self._rev_count[j] = 0
-        self._rev_last[j] = math.nan
-        self._stuck_for[j] = 0.0
+        self._watch.sign[j] = 0.0
+        self._watch.rev_count[j] = 0
+        self._watch.rev_last[j] = math.nan
+        self._watch.stuck_for[j] = 0.0
 
-    def _fall(self, j: int, dt: float, ef: float, floor: float) -> None:
+    def _fall_watch(self, j: int, dt: float, ef: float, floor: float) -> None:
         """`fall_ramp`: a joint outside `band` moving away from its goal at the fastest it has
         since it began to (within `floor`), not slowing as a coast through the goal does, is
         falling: what it is on does not hold it."""
         law = self.law
-        away = -math.copysign(1.0, ef) * self.v_f[j]
-        self._away_peak[j] = 0.0 if away < floor else max(self._away_peak[j], away)
-        if abs(ef) <= law.band or away < floor or away < self._away_peak[j] - floor:
+        fall = self._fall
+        away = -math.copysign(1.0, ef) * self._lp.v[j]
+        fall.away_peak[j] = 0.0 if away < floor else max(fall.away_peak[j], away)
+        if abs(ef) <= law.band or away < floor or away < fall.away_peak[j] - floor:
             return
         side = math.copysign(1.0, ef)
-        if self._fall_side[j] == -side:  # the last fall's ramp carried it through its goal
-            self._fall_scale[j] *= law.fall_decay
-        self._fall_side[j] = side
-        self._hold_bad[j] = True
-        rate = law.fall_ramp * self._fall_scale[j] * law.ramp[j] * self.limits_mA[j]
+        if fall.side[j] == -side:  # the last fall's ramp carried it through its goal
+            fall.scale[j] *= law.fall_decay
+        fall.side[j] = side
+        self._hold.bad[j] = True
+        rate = law.fall_ramp * fall.scale[j] * law.ramp[j] * self.limits_mA[j]
         self.u_i[j] += side * rate * dt
 
     def _coast(self, j: int, ef: float, floor: float) -> None:
@@ -597,47 +592,52 @@ class SettleSupervisor:
         that far past it, is one on which the soft gains act as a fraction of themselves. The
         watch ends there, or once the joint is seen coming back after `coast_s`."""
         law = self.law
-        if self._engaged_for[j] < law.coast_s - 1e-9:
+        fall = self._fall
+        if fall.engaged_for[j] < law.coast_s - 1e-9:
             return
-        past = -self._coast_side[j] * ef  # > 0: on the far side of the goal
-        away = -math.copysign(1.0, ef) * self.v_f[j]
+        past = -fall.coast_side[j] * ef  # > 0: on the far side of the goal
+        away = -math.copysign(1.0, ef) * self._lp.v[j]
         if past > law.coast_band and away >= floor:
-            self._hold_bad[j] = True
-            self._coast_side[j] = 0.0
+            self._hold.bad[j] = True
+            fall.coast_side[j] = 0.0
         elif away <= -floor:
-            self._coast_side[j] = 0.0
+            fall.coast_side[j] = 0.0
 
     def _confirm(self, j: int, ef: float, slow: bool, progress: float) -> None:
         """`restick_s` after a breakaway: a joint that is slow and further from its goal than
         where its ramp began, by more than the noise explains (`progress`), did not break
         away; noise said it did. Its backoff is given back and its ramp goes on where it
         stood."""
-        away = self._ramp_side[j] * ef - self._stuck_from[j]  # < 0: nearer, or through
-        if away > progress and slow and not self._was_stuck[j]:
-            k = 0 if self._ramp_side[j] > 0 else 1
-            self.u_i[j] += self.law.backoff * self._brk_ramped[j]
-            self._ramped[j] = self._brk_ramped[j]
-            self._break_u[j, k] = self._brk_prev[j]
-            self._was_stuck[j] = True
-        self._brk_pending[j] = False
+        ramp = self._ramp
+        away = ramp.side[j] * ef - ramp.stuck_from[j]  # < 0: nearer, or through
+        if away > progress and slow and not ramp.was_stuck[j]:
+            k = 0 if ramp.side[j] > 0 else 1
+            self.u_i[j] += self.law.backoff * ramp.brk_ramped[j]
+            ramp.ramped[j] = ramp.brk_ramped[j]
+            ramp.break_u[j, k] = ramp.brk_prev[j]
+            ramp.was_stuck[j] = True
+        ramp.brk_pending[j] = False
 
     def _settle(self, j: int, dt: float, e: float, qdot: float) -> float:
+        """The settle law's command for engaged joint `j` (module docstring)."""
         law = self.law
+        ramp, arrival, held = self._ramp, self._arrival, self._hold
         limit = self.limits_mA[j]
-        ef = self.e_f[j]
-        if abs(ef) > law.freeze or abs(self.v_f[j]) >= law.stuck_speed:
-            gain = law.fall_gain if self._hold_bad[j] else 1.0
+        ef = self._lp.e[j]
+        v_f = self._lp.v[j]
+        if abs(ef) > law.freeze or abs(v_f) >= law.stuck_speed:
+            gain = law.fall_gain if held.bad[j] else 1.0
             self.u_i[j] += gain * law.ki[j] * e * dt
-        may_ramp = law.stuck if self.reasons[j] == "stuck" else law.ramp_engaged
+        may_ramp = law.stuck if self.reasons[j] is Reason.STUCK else law.ramp_engaged
         speed_floor, moved_floor = self._noise_floors(j, dt)
         moving = max(law.stuck_speed, speed_floor)  # a low-passed speed beyond the noise
-        slow = abs(self.v_f[j]) < moving
+        slow = abs(v_f) < moving
         # Breakaway: the low-passed speed, or (`progress` > 0) the low-passed error having
         # shrunk by `progress` since the ramp began; a joint creeping in slower than the noisy
         # speed can show has broken away too, and ramping on would carry it through its goal.
         progress = max(law.progress, moved_floor)
-        moved = law.progress > 0 and abs(ef) < self._stuck_from[j] - progress
-        toward = math.copysign(1.0, ef) * self.v_f[j]  # > 0: moving towards the goal
+        moved = law.progress > 0 and abs(ef) < ramp.stuck_from[j] - progress
+        toward = math.copysign(1.0, ef) * v_f  # > 0: moving towards the goal
         broke = toward >= moving or moved
         if law.raw_breakaway and not broke:
             broke = self._slipping(j, ef, qdot)
@@ -645,109 +645,118 @@ class SettleSupervisor:
             # ramped in from outside `stuck_error` to inside `freeze`: it broke away, though
             # on a noisy sensor `progress` may not have said so yet
             broke = True
-        self._since_break[j] += dt
-        if law.hold_check and math.isfinite(self._jump_from[j]):
-            self._jump_age[j] += dt
-            window = ((self.latency_periods or 0.0) + 4.0) * self._period
-            d = math.copysign(1.0, self._jump_to[j] - self._jump_from[j])
-            if d * self.v_f[j] >= moving and d * qdot >= moving:
-                self.u_i[j] += self._jump_from[j] - self._jump_to[j]
-                self._hold_bad[j] = True
-                self._jump_from[j] = math.nan
-            elif self._jump_age[j] > window + 1e-9:
-                self._jump_from[j] = math.nan
+        ramp.since_break[j] += dt
+        if law.hold_check and math.isfinite(held.jump_from[j]):
+            held.jump_age[j] += dt
+            window = ((self.latency_periods or 0.0) + 4.0) * self._latency.period
+            d = math.copysign(1.0, held.jump_to[j] - held.jump_from[j])
+            if d * v_f >= moving and d * qdot >= moving:
+                self.u_i[j] += held.jump_from[j] - held.jump_to[j]
+                held.bad[j] = True
+                held.jump_from[j] = math.nan
+            elif held.jump_age[j] > window + 1e-9:
+                held.jump_from[j] = math.nan
         if law.fall_ramp > 0:
-            self._fall(j, dt, ef, moving)
-        self._engaged_for[j] += dt
-        if law.coast_s > 0 and self._coast_side[j] != 0:
+            self._fall_watch(j, dt, ef, moving)
+        self._fall.engaged_for[j] += dt
+        if law.coast_s > 0 and self._fall.coast_side[j] != 0:
             self._coast(j, ef, moving)
-        if self._brk_pending[j] and self._since_break[j] >= law.restick_s - 1e-9:
+        if ramp.brk_pending[j] and ramp.since_break[j] >= law.restick_s - 1e-9:
             self._confirm(j, ef, slow, progress)
-        if self._was_stuck[j] and broke:
-            self._since_break[j] = 0.0
-            k = 0 if self._ramp_side[j] > 0 else 1
+        if ramp.was_stuck[j] and broke:
+            ramp.since_break[j] = 0.0
+            k = 0 if ramp.side[j] > 0 else 1
             if law.confirm_breakaway and abs(ef) > law.freeze:
-                self._brk_pending[j] = True
-                self._brk_ramped[j] = self._ramped[j]
-                self._brk_prev[j] = self._break_u[j, k]
-            self._break_u[j, k] = self.u_i[j]
-            self.u_i[j] -= law.backoff * self._ramped[j]
-            self._ramped[j] = 0.0
-            self._was_stuck[j] = False
+                ramp.brk_pending[j] = True
+                ramp.brk_ramped[j] = ramp.ramped[j]
+                ramp.brk_prev[j] = ramp.break_u[j, k]
+            ramp.break_u[j, k] = self.u_i[j]
+            self.u_i[j] -= law.backoff * ramp.ramped[j]
+            ramp.ramped[j] = 0.0
+            ramp.was_stuck[j] = False
         elif (
             may_ramp
             and abs(ef) > law.stuck_error
             and slow
-            and self._since_break[j] >= law.restick_s - 1e-9
+            and ramp.since_break[j] >= law.restick_s - 1e-9
         ):
-            if not self._was_stuck[j]:
-                self._stuck_from[j] = abs(ef)
-                side = math.copysign(1.0, ef)
-                if self._ramp_side[j] == -side:  # the last breakaway carried it through
-                    self._ramp_scale[j] = max(law.ramp_floor, law.ramp_decay * self._ramp_scale[j])
-                self._ramp_side[j] = side
-                brk = self._break_u[j, 0 if side > 0 else 1]
-                self._rate[j] = law.creep_rate if self._crept[j] else 1.0
-                hold = None if self._u_goal is None else float(self._u_goal[j])
-                other = self._break_u[j, 1 if side > 0 else 0]  # broke away the other way at
-                if (
-                    law.reverse_to_hold > 0
-                    and hold is not None
-                    and side * (hold - self.u_i[j]) > 0
-                    and abs(other - hold) >= law.reverse_to_hold * limit
-                ):
-                    # still pushing the other way across a wide friction band (carried through
-                    # its goal): start from the hold (not ramp: the backoff leaves it alone)
-                    self._to_hold(j, hold, self.u_i[j])
-                if law.memory_margin >= 0 and math.isfinite(brk):
-                    # it broke away at `brk` last time: the ramp need not climb from below
-                    jump = brk - side * law.memory_margin * limit - self.u_i[j]
-                    if side * jump > 0:
-                        self.u_i[j] += jump
-                        self._ramped[j] += jump
-                        self._rate[j] = law.memory_rate
-            rate = law.ramp[j] * self._ramp_scale[j] * self._rate[j]
+            if not ramp.was_stuck[j]:
+                self._start_ramp(j, ef, limit)
+            rate = law.ramp[j] * ramp.scale[j] * ramp.rate[j]
             if law.ramp_grow[j] > 0:
-                rate *= 1.0 + abs(self._ramped[j]) / (law.ramp_grow[j] * limit)
+                rate *= 1.0 + abs(ramp.ramped[j]) / (law.ramp_grow[j] * limit)
             step = math.copysign(rate * limit * dt, ef)
             self.u_i[j] += step
-            self._ramped[j] += step
-            self._was_stuck[j] = True
+            ramp.ramped[j] += step
+            ramp.was_stuck[j] = True
         if abs(ef) <= law.freeze:
-            self._ramped[j] = 0.0
-            self._was_stuck[j] = False
+            ramp.ramped[j] = 0.0
+            ramp.was_stuck[j] = False
         # An arrival is armed outside twice `stuck_error` and spent once the joint is inside
         # `stuck_error`: taken off if it creeps in, or left alone if it comes to rest there.
         # Only on a joint engaged because it was stuck: friction holds it, not its command.
-        if law.arrive > 0 and self.reasons[j] == "stuck" and abs(ef) > 2 * law.stuck_error:
-            if law.arrive_check and self._took[j] != 0 and self._took[j] * ef > 0:
+        stuck = self.reasons[j] is Reason.STUCK
+        if law.arrive > 0 and stuck and abs(ef) > 2 * law.stuck_error:
+            if law.arrive_check and arrival.took[j] != 0 and arrival.took[j] * ef > 0:
                 # back out on the side it arrived from, not across: what was taken off held it
-                self.u_i[j] += self._took[j]
-                self._took[j] = 0.0
-                self._arrive_off[j] = True
-            self._arriving[j] = not self._arrive_off[j]
-        elif self._arriving[j] and abs(ef) < law.stuck_error:
+                self.u_i[j] += arrival.took[j]
+                arrival.took[j] = 0.0
+                arrival.off[j] = True
+            arrival.arriving[j] = not arrival.off[j]
+        elif arrival.arriving[j] and abs(ef) < law.stuck_error:
             if toward > max(0.5 * law.stuck_speed, speed_floor):
-                took = math.copysign(law.arrive * limit * self._arrive_scale[j], ef)
+                took = math.copysign(law.arrive * limit * arrival.scale[j], ef)
                 self.u_i[j] -= took
-                self._took[j] = took
-                self._arriving[j] = False
+                arrival.took[j] = took
+                arrival.arriving[j] = False
             elif slow:
-                self._arriving[j] = False
+                arrival.arriving[j] = False
         if abs(ef) > law.freeze:
             side = math.copysign(1.0, ef)
-            if self._side[j] == -side:  # crossed its goal since it was last outside `freeze`
-                self._took[j] = 0.0
+            if arrival.side[j] == -side:  # crossed its goal since it was last outside `freeze`
+                arrival.took[j] = 0.0
                 hold = None if self._u_goal is None else float(self._u_goal[j])
                 if slow and hold is not None and abs(self.u_i[j] - hold) < law.creep_hold * limit:
                     # crept across on about the actor's hold, no ramp pushing it: friction is weak
-                    self._crept[j] = True
-                if law.arrive > 0 and self.reasons[j] == "stuck":
+                    arrival.crept[j] = True
+                if law.arrive > 0 and stuck:
                     # crept across the goal (not ramping: a ramp's breakaway has its backoff)
-                    self.u_i[j] += side * law.arrive * limit * self._arrive_scale[j]
-                    self._arrive_scale[j] *= law.arrive_decay
-            self._side[j] = side
+                    self.u_i[j] += side * law.arrive * limit * arrival.scale[j]
+                    arrival.scale[j] *= law.arrive_decay
+            arrival.side[j] = side
         self.u_i[j] = float(np.clip(self.u_i[j], -limit, limit))
-        gain = law.fall_gain if self._hold_bad[j] else 1.0
+        gain = law.fall_gain if held.bad[j] else 1.0
         cmd = self.u_i[j] + gain * (law.kp[j] * e - law.kd[j] * qdot)
         return float(np.clip(cmd, -limit, limit))
+
+    def _start_ramp(self, j: int, ef: float, limit: float) -> None:
+        """A stuck ramp begins on side sign(ef): its rate, and where it starts from (the
+        actor's hold if it must push back across a wide friction band, `reverse_to_hold`; near
+        where it last broke away this way, `memory_margin`)."""
+        law = self.law
+        ramp = self._ramp
+        ramp.stuck_from[j] = abs(ef)
+        side = math.copysign(1.0, ef)
+        if ramp.side[j] == -side:  # the last breakaway carried it through
+            ramp.scale[j] = max(law.ramp_floor, law.ramp_decay * ramp.scale[j])
+        ramp.side[j] = side
+        brk = ramp.break_u[j, 0 if side > 0 else 1]
+        ramp.rate[j] = law.creep_rate if self._arrival.crept[j] else 1.0
+        hold = None if self._u_goal is None else float(self._u_goal[j])
+        other = ramp.break_u[j, 1 if side > 0 else 0]  # broke away the other way at
+        if (
+            law.reverse_to_hold > 0
+            and hold is not None
+            and side * (hold - self.u_i[j]) > 0
+            and abs(other - hold) >= law.reverse_to_hold * limit
+        ):
+            # still pushing the other way across a wide friction band (carried through
+            # its goal): start from the hold (not ramp: the backoff leaves it alone)
+            self._to_hold(j, hold, self.u_i[j])
+        if law.memory_margin >= 0 and math.isfinite(brk):
+            # it broke away at `brk` last time: the ramp need not climb from below
+            jump = brk - side * law.memory_margin * limit - self.u_i[j]
+            if side * jump > 0:
+                self.u_i[j] += jump
+                ramp.ramped[j] += jump
+                ramp.rate[j] = law.memory_rate

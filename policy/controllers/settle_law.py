@@ -1,7 +1,8 @@
 """The settle supervisor's thresholds and gains (`SettleLaw`), each default with what set it.
 
-What each watch and each part of the settle law does, and why, is in `policy.controllers.settle`'s
-module docstring; this module holds the numbers, so that a variant of the law is one dict of field
+What the supervisor watches, when it engages, what it commands and when it releases is in
+`policy.controllers.settle`'s module docstring; this module holds the numbers, grouped by the
+watch or the part of the law they set, so that a variant of the law is one dict of field
 overrides (`SettleLaw.from_param`, `--param settle={...}`).
 """
 
@@ -46,39 +47,33 @@ class SettleLaw:
     """Thresholds of the watch and gains of the settle law (`policy.controllers.settle`'s
     docstring)."""
 
+    # Where it looks
     band: float = 0.15  # rad: only joints this close to their goal are watched
     release: float = 0.5  # rad: an engaged joint this far from its goal goes back to the actor
+    stuck_band: float = 0.5  # rad: the stuck watch looks at joints this close to their goal
+
+    # The low-passed signals, the control period, the noise
+    filter_s: float = 0.25  # time constant of the low-passed error and speed
+    hold_filter_s: float = 0.5  # ... and of the low-passed actor command u_I starts from
+    default_dt: float = 0.05
+    noise_sigmas: float = 3.0  # >= 0: a breakaway is a move this many standard deviations of
+    # its own noise (the sensors' noise, estimated while the joint is slow) or more
+
+    # Watch: cycling
+    cycles: bool = True  # watch for cycling
     reversal_fraction: float = 0.1  # of the current limit
     reversals: int = 4
     max_gap_s: float = 0.3
     min_span_s: float = 0.4
-    stuck_error: float = 0.017  # rad, low-passed
-    stuck_speed: float = 0.03  # rad/s, low-passed
-    stuck_s: float = 1.5
-    filter_s: float = 0.25  # time constant of the low-passed error and speed
-    hold_filter_s: float = 0.5  # ... and of the low-passed actor command u_I starts from
-    kp: tuple[float, float, float, float] = DEFAULT_KP
-    kd: tuple[float, float, float, float] = DEFAULT_KD
-    ki: tuple[float, float, float, float] = DEFAULT_KI
-    ramp: tuple[float, float, float, float] = DEFAULT_RAMP  # of the limit per second, stuck
-    ramp_grow: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.1)  # of the limit (0:
-    # off): a stuck ramp's rate grows by its base rate for each `ramp_grow` of the limit it
-    # has added since the joint stuck (a breakaway memory's restart jump counts too). B's
-    # base rate is slow (a fast one set a light B hunting), and on a weak B (25 % torque) its
-    # 0.16 N m of friction is 90 mA of command, six seconds of it; growing, under three
-    backoff: float = 0.8  # of the ramp added since the joint stuck, taken back at breakaway
-    freeze: float = 0.008  # rad, low-passed: no integration for a joint at rest inside
-    ramp_decay: float = 0.7  # the ramp's rate is multiplied by this each time a joint sticks
-    # on the other side of its goal from where it last ramped (stick-slip hunting)
-    ramp_floor: float = 0.0  # ... but not below this fraction of `ramp` (0.3 until the
-    # sixteenth round: on a frictionless arm at 3x noise the ramp, kept at 0.3, kicked a C
-    # through its goal at every turn to the end; only frictionless corners ever decay below)
-    progress: float = 0.004  # rad, > 0: breakaway also when the low-passed error has shrunk
-    # this much since the stuck ramp began (creep slower than stuck_speed)
+
+    # Watch: crossing, and the loop's latency that sets its speed
     crossing_speed: float = 0.8  # rad/s, > 0: engage a joint that crosses its goal this fast
     latent_crossing_speed: float = 0.15  # rad/s, > 0 (and crossing_speed > 0): ... this fast
-    # on a loop timed at `latent_periods` of latency or more (module docstring, "Latency")
+    # on a loop timed at `latent_periods` of latency or more (`onset_*` below)
     latent_periods: float = 0.2  # a loop without latency times at 0.06 +- 0.05 (max 0.23 in 100)
+    latent_ahead: float = 1.0  # periods (< 0: off): on a loop timed at `latent_periods` or
+    # more, engage a joint that will cross its goal at `latent_crossing_speed` or faster within
+    # its latency plus this many periods (the commands in flight carry it that far)
     crossing_on_prompt_loop: bool = True  # watch crossings at `crossing_speed` on a loop timed
     # below `latent_periods` too, on the joints of `prompt_joints`. Off, the actor's own
     # overshoot there is its to finish, but 8 more of the 896 corners miss (frictionless heavy
@@ -88,10 +83,14 @@ class SettleLaw:
     onset_fraction: float = 0.5  # of the current limit: a joint commanded this hard ...
     onset_error: float = 0.4  # rad: ... this far from its goal at a target's first step
     onset_steps: int = 8  # ... times the latency from the samples of this many steps
-    default_dt: float = 0.05
-    cycles: bool = True  # watch for cycling
-    stuck: bool = True  # watch for stuck short (engage), and ramp while stuck
-    ramp_engaged: bool = True  # ramp while stuck on a joint engaged for cycling too
+
+    # Watch: reversing
+    reversing_speed: float = 0.5  # rad/s, >= 0 (0: off): engage a joint of `prompt_joints`
+    # inside `band` whose measured speed reverses between two samples, this fast both ways (a
+    # strong frictionless joint the actor bang-bangs about its goal, full speed each way; 0.25
+    # also took arrivals on Table I's arms, and the soft law parked them 3 mrad out)
+
+    # Watch: jitter
     jitter_speed: float = 0.08  # > 0: engage a joint whose measured speed RMS over the last
     # jitter_window_s exceeds this after jitter_s inside jitter_band (noise-driven jitter)
     jitter_true_speed: float = 0.045  # rad/s, >= 0 (0: off): once the arm's speed noise is
@@ -103,38 +102,44 @@ class SettleLaw:
     # 1.5 sigma with a margin; with a low multiple the watch took noisy joints at rest
     jitter_band: float = 0.03  # rad
     jitter_raw: bool = True  # time `jitter_s` from the reading's error inside `jitter_band`,
-    # not the low-passed one (False: until the twenty-second round), which lags a fast
-    # arrival by about its speed x `filter_s`: E arriving at 1.17 rad/s on corner 370 was
-    # due 0.45 s late, after the actor, dithering it on 3x noise, kicked it 60 mrad through
+    # not the low-passed one (False), which lags a fast arrival by about its speed x
+    # `filter_s`: E arriving at 1.17 rad/s on corner 370 was due 0.45 s late, after the
+    # actor, dithering it on 3x noise, kicked it 60 mrad through
     jitter_s: float = 1.0
     jitter_window_s: float = 0.5
+
+    # Watch: hold
     hold_s: float = 0.0  # > 0: engage a joint settled inside hold_error for this long
     hold_error: float = 0.015  # rad, low-passed
-    noise_sigmas: float = 3.0  # >= 0: a breakaway is a move this many standard deviations of
-    # its own noise (the sensors' noise, estimated while the joint is slow) or more
-    memory_margin: float = 0.05  # of the limit (< 0: no memory): a joint stuck again on the
-    # side it broke away from restarts its ramp this far below the command it broke away at
-    memory_rate: float = 0.3  # of the ramp's rate, (0, 1]: ... and ramps this much slower
-    # from there (the push past breakaway, and so the step it makes, grows with the rate)
-    restick_s: float = 0.5  # s after a breakaway before the ramp may start again: the
-    # low-passed error lags a creeping joint by speed x `filter_s` (20 mrad at 0.08 rad/s)
-    arrive: float = 0.05  # of the limit, >= 0: an engaged joint creeping into `stuck_error`
-    # of its goal on the command it is left at has that much taken off it, once per arrival:
-    # on a command just past breakaway it would creep on through the goal and stick beyond
-    arrive_decay: float = 0.5  # (0, 1]: each push back across the goal is this much smaller
-    # than the last on this target: on a frictionless weak joint the 5 % is itself a kick,
-    # and the pushes kept a joint hunting 30 mrad about its goal with a period of 3 s
-    stuck_band: float = 0.5  # rad: the stuck watch looks at joints this close to their goal
-    latent_ahead: float = 1.0  # periods (< 0: off): on a loop timed at `latent_periods` or
-    # more, engage a joint that will cross its goal at `latent_crossing_speed` or faster within
-    # its latency plus this many periods (the commands in flight carry it that far)
-    reverse_to_hold: float = 0.25  # of the limit (0: off): a ramp that must push the other
-    # way starts from the actor's hold, not from the far side of the friction band (2 x 300 mA
-    # at 6 N m), where the joint broke away the first way this far from the hold or more (on
-    # a joint with little friction the actor's hold, learned on the model, is a kick)
+
+    # Watch: stuck short
+    stuck: bool = True  # watch for stuck short (engage), and ramp while stuck
+    stuck_error: float = 0.017  # rad, low-passed
+    stuck_speed: float = 0.03  # rad/s, low-passed
+    stuck_s: float = 1.5
     creep_arrive_s: float = 4.0  # > 0: the stuck watch restarts when the low-passed error has
     # shrunk by more than the noise explains since it began, at a rate that brings the joint
     # in within this time (creeping in, not stuck); 0: off
+
+    # The settle law: gains and integration
+    kp: tuple[float, float, float, float] = DEFAULT_KP
+    kd: tuple[float, float, float, float] = DEFAULT_KD
+    ki: tuple[float, float, float, float] = DEFAULT_KI
+    freeze: float = 0.008  # rad, low-passed: no integration for a joint at rest inside
+
+    # The stuck ramp
+    ramp_engaged: bool = True  # ramp while stuck on a joint engaged for cycling too
+    ramp: tuple[float, float, float, float] = DEFAULT_RAMP  # of the limit per second, stuck
+    ramp_grow: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.1)  # of the limit (0:
+    # off): a stuck ramp's rate grows by its base rate for each `ramp_grow` of the limit it
+    # has added since the joint stuck (a breakaway memory's restart jump counts too). B's
+    # base rate is slow (a fast one set a light B hunting), and on a weak B (25 % torque) its
+    # 0.16 N m of friction is 90 mA of command, six seconds of it; growing, under three
+    ramp_decay: float = 0.7  # the ramp's rate is multiplied by this each time a joint sticks
+    # on the other side of its goal from where it last ramped (stick-slip hunting)
+    ramp_floor: float = 0.0  # ... but not below this fraction of `ramp` (at 0.3, on a
+    # frictionless arm at 3x noise the ramp kicked a C through its goal at every turn to the
+    # end; only frictionless corners ever decay below)
     creep_rate: float = 0.5  # (0, 1]: the stuck ramp's rate on a joint that crept across its
     # goal, slow, on about the actor's hold: friction does not hold it, and at the full rate
     # the ramp, seen breaking away periods late on a noisy sensor, kicked such a joint 40 mrad
@@ -142,8 +147,44 @@ class SettleLaw:
     creep_hold: float = 0.05  # of the limit, >= 0: "about the hold". Pushed across by a
     # ramp's residue (70-110 mA past the hold) a joint says nothing of its friction, and at
     # half the rate draw 174 of seed 1 was left short
+
+    # Breakaway from the ramp
+    backoff: float = 0.8  # of the ramp added since the joint stuck, taken back at breakaway
+    progress: float = 0.004  # rad, > 0: breakaway also when the low-passed error has shrunk
+    # this much since the stuck ramp began (creep slower than stuck_speed)
+    raw_breakaway: bool = True  # a breakaway is also one sample's measured speed towards the
+    # goal of `noise_sigmas` of its noise (and twice `stuck_speed`) or more: the low-passed
+    # speed sees a slip 2-3 periods late, and on a latent loop the slip carries through the goal
     freeze_breakaway: bool = True  # a ramping joint reaching `freeze` has broken away (its
     # backoff taken, the command remembered) even where noise keeps `progress` from saying so
+    confirm_breakaway: bool = True  # a breakaway after which the joint, slow `restick_s`
+    # later, is further from its goal than where its ramp began, by more than the noise
+    # explains, was noise: its backoff is given back and the ramp goes on (a weak B creeping
+    # away from its goal while its ramp caught up lost 80 % of that ramp to one sample's
+    # 3-sigma speed, and was left 20 mrad out)
+    restick_s: float = 0.5  # s after a breakaway before the ramp may start again: the
+    # low-passed error lags a creeping joint by speed x `filter_s` (20 mrad at 0.08 rad/s)
+    memory_margin: float = 0.05  # of the limit (< 0: no memory): a joint stuck again on the
+    # side it broke away from restarts its ramp this far below the command it broke away at
+    memory_rate: float = 0.3  # of the ramp's rate, (0, 1]: ... and ramps this much slower
+    # from there (the push past breakaway, and so the step it makes, grows with the rate)
+    reverse_to_hold: float = 0.25  # of the limit (0: off): a ramp that must push the other
+    # way starts from the actor's hold, not from the far side of the friction band (2 x 300 mA
+    # at 6 N m), where the joint broke away the first way this far from the hold or more (on
+    # a joint with little friction the actor's hold, learned on the model, is a kick)
+
+    # Arrival of a joint engaged as stuck
+    arrive: float = 0.05  # of the limit, >= 0: an engaged joint creeping into `stuck_error`
+    # of its goal on the command it is left at has that much taken off it, once per arrival:
+    # on a command just past breakaway it would creep on through the goal and stick beyond
+    arrive_decay: float = 0.5  # (0, 1]: each push back across the goal is this much smaller
+    # than the last on this target: on a frictionless weak joint the 5 % is itself a kick,
+    # and the pushes kept a joint hunting 30 mrad about its goal with a period of 3 s
+    arrive_check: bool = True  # an arrival's take-off (`arrive`) after which the joint backs out
+    # of `2 stuck_error` on the side it arrived from is given back, and no more are taken on
+    # this target: on a frictionless weak joint it was what held the joint up
+
+    # A weak or heavy joint: the actor's hold checked, falls, coasts
     hold_check: bool = True  # a joint moved to the actor's hold (`reverse_to_hold`, or
     # engaged for jitter) that then moves the way of that change within its latency plus four
     # periods was not held by it (a weak or heavy joint): the change is undone and that
@@ -157,18 +198,11 @@ class SettleLaw:
     # the last fall (the ramp ran on for the latency and carried it through), the rate shrinks
     fall_memory: bool = True  # a joint that fell, released and engaged again on the same
     # target, keeps the u_i it had (the actor's hold let it fall, every time: C six times)
-    arrive_check: bool = True  # an arrival's take-off (`arrive`) after which the joint backs out
-    # of `2 stuck_error` on the side it arrived from is given back, and no more are taken on
-    # this target: on a frictionless weak joint it was what held the joint up
     fall_gain: float = 2.0  # >= 1: times the gains (kp, kd, ki) on a joint whose hold is marked
     # bad, a weak or heavy one: at 25 % torque the soft gains act as a quarter, and swung a C
     # through its goal with a period of 8 s. Doubled, they use up their gain margin of 2 only
     # on the envelope's lightest, strongest joint at its longest delay, which is not one the
     # actor's hold fails (measured on the corners: 9 reached that were missed, none lost)
-    reversing_speed: float = 0.5  # rad/s, >= 0 (0: off): engage a joint of `prompt_joints`
-    # inside `band` whose measured speed reverses between two samples, this fast both ways (a
-    # strong frictionless joint the actor bang-bangs about its goal, full speed each way; 0.25
-    # also took arrivals on Table I's arms, and the soft law parked them 3 mrad out)
     coast_s: float = 0.7  # s (0: off): an engaged joint still coasting away from its goal
     # this long after it was engaged, beyond `coast_band` on the far side of the goal from
     # where it was engaged, is weak or heavy for the soft gains: they are `fall_gain` times as
@@ -177,14 +211,6 @@ class SettleLaw:
     # within 0.55 s; a weak C (25 % torque) went up to 0.5 rad past, turning after up to 5 s,
     # then swung about its goal with a period of 8 s, kicked on by the stuck ramp at each turn
     coast_band: float = 0.2  # rad: past 0.15 it also took a strong, light D (0.17 rad)
-    confirm_breakaway: bool = True  # a breakaway after which the joint, slow `restick_s`
-    # later, is further from its goal than where its ramp began, by more than the noise
-    # explains, was noise: its backoff is given back and the ramp goes on (a weak B creeping
-    # away from its goal while its ramp caught up lost 80 % of that ramp to one sample's
-    # 3-sigma speed, and was left 20 mrad out)
-    raw_breakaway: bool = True  # a breakaway is also one sample's measured speed towards the
-    # goal of `noise_sigmas` of its noise (and twice `stuck_speed`) or more: the low-passed
-    # speed sees a slip 2-3 periods late, and on a latent loop the slip carries through the goal
 
     def __post_init__(self) -> None:
         for name in ("kp", "kd", "ki", "ramp", "ramp_grow"):
