@@ -374,7 +374,7 @@ def test_identify_a_hidden_virtual_arm_end_to_end(tmp_path: Path) -> None:
         fit_q = meta.quality_fitted[f"validate/{letter}"]["window"]
         nom_q = meta.quality_nominal[f"validate/{letter}"]["window"]
         assert fit_q["r2"] >= 0.99
-        # Half-length segments on a loaded host (docs/identification.md, run D): measured
+        # Half-length segments on a loaded host (docs/identification.md, "The short test"): measured
         # 0.38-4.4 mrad and 3x-70x closer than the nominal twin; the 2 mrad and 5x targets
         # are met by the full-length runs (A-C), not always by this short one.
         assert fit_q["rms_mrad"] < 5.0
@@ -411,8 +411,8 @@ def test_twin_gap_pairs_the_same_episodes_on_three_arms() -> None:
     assert "pid" in twin_gap.markdown([g]) and g.summary()["fitted"]["meets_targets"]
 
 
-#: A twin `tools/identify.py` fitted (four joints, `--scale 1`, through the driver on
-#: `reach-sim --params` of `ArmParams().randomized(11)`; docs/identification.md, run A).
+#: A twin `tools/identify.py` fitted (four joints, `--scale 1`, through the driver on `reach-sim
+#: --params` of `ArmParams().randomized(11)`; docs/identification.md, "Near-nominal arms").
 IDENTIFIED = ROOT / "tests" / "data" / "identified_seed11.json"
 
 
@@ -505,10 +505,10 @@ def test_the_coarse_start_tells_a_weak_drive(scale: float) -> None:
 
 def test_a_joint_is_fitted_beside_a_weak_one_it_does_not_know_yet() -> None:
     """C excited while a D at 25 % torque holds the arm (on about 90 mA), fitted from the
-    nominal arm, as `fit_arm` fits C before D. Driven between ticks by its logged current, a
-    nominal D moves four times too hard and C's fit takes the reaction (corner 207: C 25 %
-    heavy, the wrist 63 % light; docs/identification.md, run G). Coasting between the ticks
-    that put it on its path (`Replay.coast_others`), D's parameters do not enter C's fit."""
+    nominal arm, as `fit_arm` fits C before D. Driven between ticks by its logged current, a nominal
+    D moves four times too hard and C's fit takes the reaction (corner 207: C 25 % heavy, the wrist
+    63 % light; docs/identification.md, "Arms of the envelope"). Coasting between the ticks that put
+    it on its path (`Replay.coast_others`), D's parameters do not enter C's fit."""
     truth = replace(ArmParams(), torque_scale=(1.0, 0.25, 1.0, 1.0))
     segs = [_record(truth, 2, "relay", 4.0), _record(truth, 2, "chirp", 4.0)]
     refs = default_refs(2, fit_delay=False)

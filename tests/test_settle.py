@@ -239,7 +239,7 @@ def test_corners_whose_c_the_stuck_ramp_kept_hunting_at_its_floor_are_reached(in
     """A frictionless C at three times the sensor noise: each turn of its swing about the goal
     looks stuck, and the ramp, kept at 0.3 of its rate by the old `ramp_floor`, kicked it
     through again to the end (ending 18-34 mrad out, or still moving). Decaying on without a
-    floor, the hunt dies out (docs/robustness.md, "Sixteenth round")."""
+    floor, the hunt dies out (a robustness campaign, seed 1)."""
     floored = {"ramp_floor": 0.3}
     shipped, before = _shipped_and_without(floored, "corners", index)
     assert shipped.reached and shipped.at_rest
@@ -905,13 +905,12 @@ def test_fresh_draws_the_supervisor_used_to_miss_are_reached(
     seed: int, index: int, off: dict[str, object]
 ) -> None:
     """Misses of fresh draws, each reached and at rest with the shipped defaults and missed
-    again with its mechanism turned back (docs/robustness.md, "Ninth round" and "Tenth
-    round"): 577 and 849 spend over 0.5 J after settling on a dithering joint the jitter watch
-    took late or not at all, 421 on a creeping joint the stuck watch engaged, 520 ends 21 mrad
-    past on a ramp that reaching `freeze` forgot; 524 and 401 are still moving at the end, a
-    joint that crept through its goal kicked back by a full-rate ramp. Draw 174 of seed 1
-    (never missed) is what `creep_hold` keeps: a joint a ramp pushed across ramps back at
-    the full rate."""
+    again with its mechanism turned back (fresh draws of seeds 2-10, docs/robustness.md "Held-out
+    arms"): 577 and 849 spend over 0.5 J after settling on a dithering joint the jitter watch took
+    late or not at all, 421 on a creeping joint the stuck watch engaged, 520 ends 21 mrad past on a
+    ramp that reaching `freeze` forgot; 524 and 401 are still moving at the end, a joint that crept
+    through its goal kicked back by a full-rate ramp. Draw 174 of seed 1 (never missed) is what
+    `creep_hold` keeps: a joint a ramp pushed across ramps back at the full rate."""
     shipped, before = _shipped_and_without(off, "draws", index, seed=seed)
     assert shipped.reached and shipped.at_rest
     if (seed, index) == (2, 577):
@@ -965,7 +964,7 @@ def test_weak_heavy_corners_the_supervisor_used_to_miss_are_reached(
     index: int, off: dict[str, object]
 ) -> None:
     """Frictionless corners with one joint at 25 % torque and 20 % more mass
-    (docs/robustness.md, "Twelfth round"). The actor's learned hold is a fraction of what
+    (a robustness campaign, seed 1). The actor's learned hold is a fraction of what
     holds such a joint: moved onto it, the joint fell and was missed, and `hold_check` sees
     the fall begin and undoes the move. And the `arrive` push back across the goal is a kick
     there, each one alike, so the joint hunted to the end; `arrive_decay` halves each.
@@ -1012,7 +1011,7 @@ def test_a_joint_whose_speed_reverses_at_speed_near_its_goal_is_engaged() -> Non
 @pytest.mark.parametrize("index", [74, 234])
 def test_corners_whose_e_the_actor_bang_banged_at_its_goal_are_reached(index: int) -> None:
     """Frictionless corners where the actor bang-bangs E at its goal at the no-load speed
-    each way, inside its settling band (docs/robustness.md, "Fourteenth round"), until the
+    each way, inside its settling band (a robustness campaign, seed 1), until the
     crossing watch took it. `reversing_speed` takes it at the first full-speed reversal.
     Counted from the settling time the bang-bang and E's approach spent 0.5 J and more and
     failed the rest metric; counted from E's first turn (docs/metrics.md, "Rest") 0.44 J, so
@@ -1057,8 +1056,8 @@ def test_a_stuck_ramp_that_climbs_without_breaking_away_grows_on_b() -> None:
 @pytest.mark.parametrize("index", [464, 805])
 def test_corners_with_a_weak_b_held_by_friction_are_reached(index: int) -> None:
     """A weak B (25 % torque) with 0.16 N m of friction, 90 mA of its command: at B's slow
-    base ramp it ended 20-22 mrad out, its ramp seconds into the climb (docs/robustness.md,
-    "Fourteenth round"); with `ramp_grow` it breaks free and finishes."""
+    base ramp it ended 20-22 mrad out, its ramp seconds into the climb (a robustness campaign,
+    seed 1); with `ramp_grow` it breaks free and finishes."""
     # any one of these finishes it now (464: also the jitter watch on a quiet arm)
     off = {"ramp_grow": 0.0, "confirm_breakaway": False, "jitter_true_speed": 0.0}
     shipped, before = _shipped_and_without(off, "corners", index)
@@ -1106,8 +1105,8 @@ def test_a_joint_still_coasting_away_after_its_engagement_gets_stiffer_gains() -
 
 @pytest.mark.parametrize("index", [148, 428])
 def test_corners_whose_weak_c_coasted_through_its_goal_are_reached(index: int) -> None:
-    """Frictionless, heavy, latent corners with C at 25 % torque (docs/robustness.md,
-    "Fifteenth round"): engaged as it crossed its goal at 1 rad/s, C coasted 0.3 rad past it
+    """Frictionless, heavy, latent corners with C at 25 % torque (a robustness campaign,
+    seed 1): engaged as it crossed its goal at 1 rad/s, C coasted 0.3 rad past it
     under the soft gains, swung about it with a period of 8 s and was kicked on by the stuck
     ramp at each turn, 20-40 mrad out at the end. `coast_s` sees the coast and doubles its
     gains."""
@@ -1119,8 +1118,8 @@ def test_corners_whose_weak_c_coasted_through_its_goal_are_reached(index: int) -
 
 @pytest.mark.parametrize("index", [300, 460])
 def test_corners_whose_actor_dithered_under_the_noise_are_reached(index: int) -> None:
-    """Frictionless corners at 1x sensor noise without latency (docs/robustness.md,
-    "Seventeenth round"): the actor kept C moving at its goal at 0.05-0.09 rad/s of true
+    """Frictionless corners at 1x sensor noise without latency (a robustness campaign,
+    seed 1): the actor kept C moving at its goal at 0.05-0.09 rad/s of true
     speed, which read 0.055-0.065 rad/s through the noise, under the jitter watch's 0.08, for
     17 s; engaged that late, C was still swinging at the end. On an arm this quiet the watch
     now takes such a joint at 0.054 rad/s (`jitter_true_speed`)."""
@@ -1132,12 +1131,12 @@ def test_corners_whose_actor_dithered_under_the_noise_are_reached(index: int) ->
 
 
 def test_the_jitter_watch_times_a_fast_arrival_from_the_reading_not_its_low_pass() -> None:
-    """Corner 370 (frictionless, three times the sensor noise, no latency; docs/robustness.md,
-    "Twenty-second round"): E arrives at 1.17 rad/s and the actor, reading 6 mrad of noise,
-    dithers it at its goal at 0.2-0.5 rad/s. Timed from the low-passed error, which lagged
-    the arrival by 0.45 s, the jitter watch was not due before the actor kicked E at full
-    speed 60 mrad through its goal, and E spent 0.55 J after settling (the rest metric allows
-    0.5). Timed from the reading (`jitter_raw`) it takes E 0.1 s before that kick."""
+    """Corner 370 (frictionless, three times the sensor noise, no latency; the last corner
+    of seed 1 the supervisor missed): E arrives at 1.17 rad/s and the actor, reading 6 mrad of
+    noise, dithers it at its goal at 0.2-0.5 rad/s. Timed from the low-passed error, which lagged
+    the arrival by 0.45 s, the jitter watch was not due before the actor kicked E at full speed 60
+    mrad through its goal, and E spent 0.55 J after settling (the rest metric allows 0.5). Timed
+    from the reading (`jitter_raw`) it takes E 0.1 s before that kick."""
     shipped, before = _shipped_and_without({"jitter_raw": False}, "corners", 370)
     assert shipped.reached and shipped.at_rest
     assert not before.at_rest

@@ -1,12 +1,12 @@
 """A model-based controller tuned by the lambda rule: each joint follows a speed reference
 proportional to its error, with the closed loop made slower than the loop's dead time.
 
-Why it exists (docs/robustness.md, "Eighteenth round"): the DDPG actor and the MPC were both
-made for the nominal arm, and on the arms of the uncertainty envelope they overshoot by what
-they do not know: the loop's latency, a joint's inertia and friction. This controller is the
+Why it exists (docs/robustness.md, "`lambda`: a controller told the arm"): the DDPG actor and the
+MPC were both made for the nominal arm, and on the arms of the uncertainty envelope they overshoot
+by what they do not know: the loop's latency, a joint's inertia and friction. This controller is the
 other way round: it knows nothing but a twin of the arm (`ArmParams`, nominal or fitted by
-`tools/identify.py`) and the loop's latency, and derives every gain from them, so it tells how
-much of the overshoot knowing the arm removes.
+`tools/identify.py`) and the loop's latency, and derives every gain from them, so it tells how much
+of the overshoot knowing the arm removes.
 
 Every control period (T = 1 / rate_hz):
 

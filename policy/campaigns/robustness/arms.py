@@ -125,7 +125,7 @@ def arm_file(arm: Arm) -> str:
 def export_arms(arms: Sequence[Arm], out: Path, seed: int) -> list[Path]:
     """Each arm as an arm parameter file (`reach-sim --params`), its sensor noise and
     latency under ``_envelope`` (metadata the loader ignores): the hidden arms an
-    identification campaign serves (docs/robustness.md, "Twentieth round")."""
+    identification campaign serves (docs/campaigns.md, "Campaigns on fitted twins")."""
     return [save_arm_params(arm_params(a), out / arm_file(a), envelope_meta(a, seed)) for a in arms]
 
 
