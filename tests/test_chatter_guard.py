@@ -8,13 +8,14 @@ from __future__ import annotations
 import importlib.util
 import json
 import sys
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from conftest import wait_until
+from conftest import WATCHDOG_S, wait_until
 
 from policy.campaigns.evaluation import evaluate
 from policy.tasks.episodes import NoisyReadings, RunConfig, random_episodes
@@ -23,7 +24,7 @@ from protocol import Mode
 from reach_driver import ArmClient, ControlLoop, SafetyConfig, open_transport
 from reach_driver.chatter import ChatterConfig, ChatterDetector, HoldMode, Verdict
 from reach_driver.controllers import ControlState, load_controller
-from reach_sim_bridge.emulator.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimServer
 from reach_sim_bridge.model.sensors import SensorNoise
 
 LIMITS = np.array([600.0, 600.0, 600.0, 300.0])
@@ -207,22 +208,9 @@ def modes(sim: SimServer) -> list[Mode]:
     return [sim.firmware.mode(d) for d in JOINT_IDS]
 
 
-@pytest.fixture
-def sim(tmp_path: Path):
-    server = SimServer(
-        SimConfig(speed=SPEED, start=tuple(SCENARIO_1.start), link=str(tmp_path / "arm"))
-    )
-    server.start()
-    yield server
-    server.stop()
-    assert server.error is None
-
-
-# A loaded host (2 cores, several test runs at once) stalls past the default 0.2 s watchdog
-# now and then; the watchdog is not what these tests are about.
-WATCHDOG_S = 1.0
 SPEED = 1.0  # real time: the guard needs the bang-bang on every tick, which a loaded host at 2x
 # arm speed does not keep up (the cycle breaks and the guard rightly stays quiet)
+pytestmark = pytest.mark.sim(speed=SPEED, start=SCENARIO_1.start)
 
 
 def run_on(sim: SimServer, controller: Any, safety: SafetyConfig, seconds: float = 12.0):
@@ -317,32 +305,30 @@ def test_the_shipped_ddpg_comes_to_rest_on_the_arm_where_its_actor_chatters() ->
     assert screen.replay(ddpg) == (None, 0)
 
 
-def run_on_the_bad_arm(tmp_path: Path, name: str, seconds: float = 8.0, **params: Any) -> Any:
+def run_on_the_bad_arm(
+    sim_factory: Callable[..., SimServer], name: str, seconds: float = 8.0, **params: Any
+) -> Any:
     """The same episode through the driver (the served arm set up as policy/campaigns/via_driver.py
     does), with the guard on."""
     episode = bad_episode()
     seed = BAD_SEED + BAD_EPISODE
-    server = SimServer(
-        SimConfig(speed=SPEED, start=tuple(episode.start), link=str(tmp_path / "arm"))
-    )
+    server = sim_factory(speed=SPEED, start=episode.start, start_now=False)
     server.arm.randomize(BAD_CONFIG.param_spread, rng=BAD_CONFIG.perturbation_rng(seed))
     server.arm.reset(q=episode.start.copy())
     server.start()
-    try:
-        rng = np.random.default_rng(seed)
-        controller = NoisyReadings(load_controller(name, **params), SensorNoise(), rng)
-        safety = SafetyConfig(watchdog_s=WATCHDOG_S)
-        with ArmClient(open_transport(str(server.link)), safety=safety) as client:
-            summary = ControlLoop(client, controller, DT).run(episode.target, seconds)
-        return summary, modes(server)
-    finally:
-        server.stop()
-        assert server.error is None
+    rng = np.random.default_rng(seed)
+    controller = NoisyReadings(load_controller(name, **params), SensorNoise(), rng)
+    safety = SafetyConfig(watchdog_s=WATCHDOG_S)
+    with ArmClient(open_transport(str(server.link)), safety=safety) as client:
+        summary = ControlLoop(client, controller, DT).run(episode.target, seconds)
+    return summary, modes(server)
 
 
 @pytest.mark.slow
-def test_the_pid_over_that_episode_through_the_driver_runs_to_the_end(tmp_path: Path) -> None:
-    summary, held = run_on_the_bad_arm(tmp_path, "pid")
+def test_the_pid_over_that_episode_through_the_driver_runs_to_the_end(
+    sim_factory: Callable[..., SimServer],
+) -> None:
+    summary, held = run_on_the_bad_arm(sim_factory, "pid")
     assert summary.ok and summary.chatter is None, summary.stopped_by
     assert held == [Mode.ZERO_VELOCITY] * 4
     assert np.max(np.abs(summary.final_error)) < 0.005
@@ -350,13 +336,13 @@ def test_the_pid_over_that_episode_through_the_driver_runs_to_the_end(tmp_path: 
 
 @pytest.mark.slow
 def test_the_actor_over_that_episode_through_the_driver_is_stopped_iff_it_chatters(
-    tmp_path: Path,
+    sim_factory: Callable[..., SimServer],
 ) -> None:
     # Through the driver (commands a few ms of arm time late, float32 angles) whether the
     # actor chatters on this arm depends on the host's timing: on a lightly loaded host it
     # does (stopped at ~8 s), on a heavily loaded one it has settled. Either way the guard
     # must be right.
-    summary, held = run_on_the_bad_arm(tmp_path, "ddpg", seconds=14.0, settle=False)
+    summary, held = run_on_the_bad_arm(sim_factory, "ddpg", seconds=14.0, settle=False)
     if summary.chatter is None:
         assert summary.ok, summary.stopped_by
         assert summary.trace is not None

@@ -10,20 +10,12 @@ import time
 
 import numpy as np
 import pytest
-from conftest import wait_until
+from conftest import LOOPBACK, wait_until
 
 from protocol import Mode
 from reach_driver.cli import Exit, main
-from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
-
-@pytest.fixture
-def sim(tmp_path):
-    server = SimServer(SimConfig(speed=1.0, link=str(tmp_path / "arm"), udp=("127.0.0.1", 0)))
-    server.start()
-    yield server
-    server.stop()
-    assert server.error is None
+pytestmark = pytest.mark.sim(speed=1.0, udp=LOOPBACK)
 
 
 def _in_thread(argv: list[str]) -> tuple[threading.Thread, dict[str, object]]:

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import wait_until
+from conftest import WATCHDOG_S, wait_until
 
 from policy.campaigns.evaluation import Episode, RunConfig, run_episode
 from policy.campaigns.via_driver import (
@@ -33,7 +33,7 @@ from reach_driver.cli import Exit, main
 from reach_driver.control import control_period
 from reach_driver.controllers import load_controller
 from reach_driver.rrd_summary import summarize_recording
-from reach_sim_bridge.emulator.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimServer
 
 ROOT = Path(__file__).resolve().parents[1]
 JOINT_IDS = (5, 4, 3, 2)  # E D C B
@@ -56,18 +56,13 @@ def modes(sim: SimServer) -> list[Mode]:
     return [sim.firmware.mode(d) for d in JOINT_IDS]
 
 
-@pytest.fixture
-def sim_at_scenario_start(tmp_path: Path):
-    # 2x, not faster: a host pause of 25 ms is 50 ms of arm time here, one control period
-    # of latency, which the shipped DDPG rides out (two periods can set it cycling: the
-    # envelope's latency factor, docs/robustness.md)
-    server = SimServer(
-        SimConfig(speed=2.0, start=tuple(SCENARIO_1.start), link=str(tmp_path / "arm"))
-    )
-    server.start()
-    yield server
-    server.stop()
-    assert server.error is None
+# The `sim` fixture's arm: at scenario 1's start, 2x. Every arm served in a test here (the
+# fixture's and run_episode_via_driver's) pauses with the host (conftest.arm_pauses_with_host):
+# the runs see the same arm-time sequence whatever the load.
+pytestmark = [
+    pytest.mark.sim(speed=2.0, start=SCENARIO_1.start),
+    pytest.mark.usefixtures("arm_pauses_with_host"),
+]
 
 
 # ------------------------------------------------------------------------- fast: pure logic
@@ -220,9 +215,8 @@ def test_the_served_arm_gets_the_episodes_start_torque_scale_and_parameter_draw(
 
 
 def test_a_target_outside_the_limits_is_refused_and_nothing_moves(
-    sim_at_scenario_start: SimServer, tmp_path: Path, capsys: Any
+    sim: SimServer, tmp_path: Path, capsys: Any
 ) -> None:
-    sim = sim_at_scenario_start
     q0 = sim.snapshot().q
     record = tmp_path / "refused.rrd"
     target = [*SCENARIO_1.target[:3], 6.5]  # B beyond 2 pi
@@ -238,12 +232,12 @@ def test_a_target_outside_the_limits_is_refused_and_nothing_moves(
 
 @pytest.mark.slow
 def test_ddpg_reaches_scenario_1_through_reach_driver_and_prints_its_metrics(
-    sim_at_scenario_start: SimServer, tmp_path: Path, capsys: Any
+    sim: SimServer, tmp_path: Path, capsys: Any
 ) -> None:
-    sim = sim_at_scenario_start
     record = tmp_path / "ddpg.rrd"
-    argv = ["--port", str(sim.link), "run", "--controller", "ddpg", "--target"]
-    argv += [*map(str, SCENARIO_1.target), "--seconds", "8", "--record", str(record)]
+    argv = ["--port", str(sim.link), "--watchdog", str(WATCHDOG_S), "run", "--controller"]
+    argv += ["ddpg", "--target", *map(str, SCENARIO_1.target), "--seconds", "8"]
+    argv += ["--record", str(record)]
     code = main(argv)
     out = capsys.readouterr().out
     assert code == Exit.OK, out
@@ -271,9 +265,8 @@ def test_ddpg_reaches_scenario_1_through_reach_driver_and_prints_its_metrics(
 
 @pytest.mark.slow
 def test_the_arm_restarting_mid_run_stops_the_run_safely_and_says_so(
-    sim_at_scenario_start: SimServer, capsys: Any
+    sim: SimServer, capsys: Any
 ) -> None:
-    sim = sim_at_scenario_start
     t0 = sim.sim_time
 
     def power_cycle() -> None:
@@ -297,8 +290,7 @@ def test_the_arm_restarting_mid_run_stops_the_run_safely_and_says_so(
 
 
 @pytest.mark.slow
-def test_a_motor_fault_mid_run_stops_the_run(sim_at_scenario_start: SimServer, capsys: Any) -> None:
-    sim = sim_at_scenario_start
+def test_a_motor_fault_mid_run_stops_the_run(sim: SimServer, capsys: Any) -> None:
     t0 = sim.sim_time
 
     def motor_fault() -> None:
@@ -307,7 +299,8 @@ def test_a_motor_fault_mid_run_stops_the_run(sim_at_scenario_start: SimServer, c
 
     injector = threading.Thread(target=motor_fault)
     injector.start()
-    argv = ["--port", str(sim.link), "run", "--controller", "pid", "--target"]
+    argv = ["--port", str(sim.link), "--watchdog", str(WATCHDOG_S), "run", "--controller", "pid"]
+    argv.append("--target")
     argv += [*map(str, SCENARIO_1.target), "--seconds", "20"]
     code = main(argv)
     injector.join()
@@ -321,15 +314,16 @@ def test_a_motor_fault_mid_run_stops_the_run(sim_at_scenario_start: SimServer, c
 
 
 def test_max_current_tightens_what_the_controller_may_command(
-    sim_at_scenario_start: SimServer, tmp_path: Path, capsys: Any
+    sim: SimServer, tmp_path: Path, capsys: Any
 ) -> None:
-    sim = sim_at_scenario_start
     record = tmp_path / "gentle.rrd"
     argv = [
         "--port",
         str(sim.link),
         "--max-current",
         "100,100,100,50",
+        "--watchdog",
+        str(WATCHDOG_S),
         "run",
         "--controller",
         "pid",
@@ -353,9 +347,8 @@ def test_max_current_tightens_what_the_controller_may_command(
 
 
 def test_a_stalled_controller_is_stopped_by_the_watchdog(
-    sim_at_scenario_start: SimServer,
+    sim: SimServer,
 ) -> None:
-    sim = sim_at_scenario_start
     pid = load_controller("pid")
     seen: dict[str, bool] = {}
 
@@ -402,7 +395,9 @@ def test_the_driver_path_agrees_with_the_direct_environment() -> None:
     )
     assert v.reached and d.reached
     timing = via.timing_dict()
-    assert timing["steps"] >= 150 and timing["arm_speed"] == pytest.approx(2.0, rel=0.1)
+    # the arm served at 2x: never faster (slower when the host pauses it; speed is measured
+    # by the benchmarks, not here)
+    assert timing["steps"] >= 150 and 0.0 < timing["arm_speed"] <= 2.0 * 1.05
 
 
 @pytest.mark.slow
@@ -507,14 +502,14 @@ def test_demo_runs_ddpg_through_the_cli_and_writes_a_recording(tmp_path: Path, c
 
 @pytest.mark.slow
 def test_lambda_reaches_scenario_1_through_reach_driver_from_a_twin_file(
-    sim_at_scenario_start: SimServer, tmp_path: Path, capsys: Any
+    sim: SimServer, tmp_path: Path, capsys: Any
 ) -> None:
     """The model-based controller through the real path, its twin read from an arm file (the
     emulated arm is the nominal one, so is the twin): reached at rest, no overshoot."""
-    sim = sim_at_scenario_start
     twin = tmp_path / "arm.json"
     twin.write_text('{"frictionloss": [0.7, 0.7, 0.7, 0.075]}')
-    argv = ["--port", str(sim.link), "run", "--controller", "lambda", "--param"]
+    argv = ["--port", str(sim.link), "--watchdog", str(WATCHDOG_S), "run", "--controller"]
+    argv += ["lambda", "--param"]
     argv += [f"params={twin}", "--target", *map(str, SCENARIO_1.target), "--seconds", "6"]
     code = main([*argv, "--json", "-q"])
     out = capsys.readouterr().out
