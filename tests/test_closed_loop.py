@@ -248,8 +248,10 @@ def test_ddpg_reaches_scenario_1_through_reach_driver_and_prints_its_metrics(
     assert wait_until(lambda: modes(sim) == [Mode.ZERO_VELOCITY] * 4, timeout=10.0)
     summary: dict[str, Any] = summarize_recording(record)
     recorded = summary["recorded_summary"]
-    # every control step (160 at 20 Hz, fewer if a tick was lost) and the state that ended it
-    assert summary["steps"] == recorded["steps"] + 1 and recorded["steps"] >= 150
+    # every control step and the state that ended it; each of the 160 ticks at 20 Hz was
+    # stepped on, or counted as skipped when the loop, late on a loaded host, took a newer one
+    assert summary["steps"] == recorded["steps"] + 1
+    assert recorded["steps"] + recorded["skipped_states"] >= 160 and recorded["steps"] >= 120
     assert 8.0 - 1e-9 <= summary["duration_s"] <= 8.1 + 1e-9  # or a tick or two on, if late
     assert recorded["metrics"]["reached"] is True, (recorded["metrics"], out)
     # `reach-driver inspect` scores the recording like the run printed it, energy included
@@ -397,7 +399,8 @@ def test_the_driver_path_agrees_with_the_direct_environment() -> None:
     timing = via.timing_dict()
     # the arm served at 2x: never faster (slower when the host pauses it; speed is measured
     # by the benchmarks, not here)
-    assert timing["steps"] >= 150 and 0.0 < timing["arm_speed"] <= 2.0 * 1.05
+    assert timing["steps"] + timing["skipped_states"] >= 160 and timing["steps"] >= 120
+    assert 0.0 < timing["arm_speed"] <= 2.0 * 1.05
 
 
 @pytest.mark.slow
