@@ -151,6 +151,17 @@ def wait_until(
     return bool(predicate())
 
 
+def recorded_steps(path: Path) -> list[int]:
+    """The steps a .rrd file holds so far ([] while it does not read yet: a file another process
+    is still writing may not), for waiting on a recording instead of sleeping."""
+    from reach_driver.rrd_summary import read_recording
+
+    try:
+        return [int(k) for k in read_recording(path).step]
+    except Exception:
+        return []
+
+
 def default_sigint() -> None:
     """`preexec_fn` for a child that a test interrupts with SIGINT: Ctrl-C's default action,
     as a shell in the foreground gives it. A non-interactive shell's background jobs (CI run

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rerun_cli
-from conftest import WATCHDOG_S, wait_until
+from conftest import WATCHDOG_S, recorded_steps, wait_until
 
 from reach_driver.cli import Exit, main
 from reach_driver.recording import RunRecorder, StepSample, ViewerSpec, parse_viewer
@@ -61,12 +61,8 @@ def _settle(path: Path, quiet_s: float = 0.5, timeout: float = 5.0) -> None:
 
 
 def _holds_steps(path: Path, steps: list[int]) -> bool:
-    """Whether the receiver's file already holds exactly these steps (a file it is still
-    writing may not read yet)."""
-    try:
-        return bool(read_recording(path).step.tolist() == steps)
-    except Exception:
-        return False
+    """Whether the receiver's file already holds exactly these steps."""
+    return recorded_steps(path) == steps
 
 
 def _stop(

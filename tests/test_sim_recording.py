@@ -5,12 +5,11 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import serial
-from conftest import wait_until
+from conftest import recorded_steps, wait_until
 
 from protocol import DeviceID, commands
 from reach_driver.rrd_summary import read_recording
@@ -61,7 +60,7 @@ def test_cli_writes_a_recording_that_survives_sigint(tmp_path: Path) -> None:
     try:
         assert proc.stdout is not None
         assert proc.stdout.readline().startswith("pty ")
-        time.sleep(1.5)
+        assert wait_until(lambda: len(recorded_steps(path)) >= 10, timeout=30.0, poll_s=0.1)
     finally:
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=30)
