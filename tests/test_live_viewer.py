@@ -322,8 +322,9 @@ def test_run_with_viewer_and_record_writes_both(sim, tmp_path, receiver, capsys)
     live = read_recording(received)
     # every step the loop took (and the state that ended it), each of the 30 ticks stepped on
     # or counted as skipped by a loop a loaded host ran late
-    assert local.summary and len(local.step) == local.summary["steps"] + 1
-    assert local.summary["steps"] + local.summary["skipped_states"] >= 30
+    steps = int(local.summary["steps"])  # type: ignore[call-overload]
+    skipped = int(local.summary["skipped_states"])  # type: ignore[call-overload]
+    assert len(local.step) == steps + 1 and steps + skipped >= 30
     assert live.step.tolist() == local.step.tolist() and live.summary == local.summary
 
 
