@@ -28,10 +28,12 @@ import pytest
 if TYPE_CHECKING:
     from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
+#: What `sim_factory` hands a test: `make(**SimConfig fields) -> SimServer`.
+SimFactory = Callable[..., "SimServer"]
 #: Serve UDP on loopback, on a free port (`SimConfig(udp=LOOPBACK)`).
 LOOPBACK = ("127.0.0.1", 0)
 DEFAULT_SPEED = 4.0
-#: Wall seconds a tests' arm may fall behind its pace before it gives the time up instead of
+#: Wall seconds a test's arm may fall behind its pace before it gives the time up instead of
 #: catching up: 10 ms is 40 ms of arm time at 4x, under one 50 ms control period.
 ARM_MAX_LAG_S = 0.01
 #: The driver's watchdog (`--watchdog`, SafetyConfig.watchdog_s) for runs whose subject is not
@@ -75,14 +77,15 @@ def arm_pauses_with_host(monkeypatch: pytest.MonkeyPatch) -> None:
     which is what made the closed-loop tests' figures depend on the load. Here the arm gives up
     whatever it is behind past ARM_MAX_LAG_S (counted in its stats as lag_s), so arm and
     driver resume together and a run sees the same arm-time sequence whatever the load; the
-    arm's speed is then at most, not exactly, its configured speed."""
+    arm's speed is then at most, not exactly, its configured speed. (The server's loop reads
+    MAX_LAG_WALL_S on every pass; a test process's arms share the patched value.)"""
     from reach_sim_bridge.emulator import server
 
     monkeypatch.setattr(server, "MAX_LAG_WALL_S", ARM_MAX_LAG_S)
 
 
 @pytest.fixture
-def sim_factory(tmp_path: Path, arm_pauses_with_host: None) -> Iterator[Callable[..., SimServer]]:
+def sim_factory(tmp_path: Path, arm_pauses_with_host: None) -> Iterator[SimFactory]:
     """`make(**fields)`: a started arm (`sim_config`); `make(config=cfg)` one as given, and
     `make(..., start_now=False)` one not yet started (to set it up first). All are stopped at the
     end of the test, and none may have failed."""
@@ -110,7 +113,7 @@ def sim_factory(tmp_path: Path, arm_pauses_with_host: None) -> Iterator[Callable
 
 
 @pytest.fixture
-def sim(request: pytest.FixtureRequest, sim_factory: Callable[..., SimServer]) -> SimServer:
+def sim(request: pytest.FixtureRequest, sim_factory: SimFactory) -> SimServer:
     """The virtual arm as the closest `sim` marker and an indirect parameter say (module
     docstring); started, and stopped at the end of the test."""
     fields: dict[str, Any] = {}

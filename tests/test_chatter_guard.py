@@ -8,14 +8,13 @@ from __future__ import annotations
 import importlib.util
 import json
 import sys
-from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from conftest import FEEDBACK_TIMEOUT_S, WATCHDOG_S, wait_until
+from conftest import FEEDBACK_TIMEOUT_S, WATCHDOG_S, SimFactory, wait_until
 
 from policy.campaigns.evaluation import evaluate
 from policy.tasks.episodes import NoisyReadings, RunConfig, random_episodes
@@ -314,7 +313,7 @@ def test_the_shipped_ddpg_comes_to_rest_on_the_arm_where_its_actor_chatters() ->
 
 
 def run_on_the_bad_arm(
-    sim_factory: Callable[..., SimServer], name: str, seconds: float = 8.0, **params: Any
+    sim_factory: SimFactory, name: str, seconds: float = 8.0, **params: Any
 ) -> Any:
     """The same episode through the driver (the served arm set up as policy/campaigns/via_driver.py
     does), with the guard on."""
@@ -335,7 +334,7 @@ def run_on_the_bad_arm(
 
 @pytest.mark.slow
 def test_the_pid_over_that_episode_through_the_driver_runs_to_the_end(
-    sim_factory: Callable[..., SimServer],
+    sim_factory: SimFactory,
 ) -> None:
     summary, held = run_on_the_bad_arm(sim_factory, "pid")
     assert summary.ok and summary.chatter is None, summary.stopped_by
@@ -345,7 +344,7 @@ def test_the_pid_over_that_episode_through_the_driver_runs_to_the_end(
 
 @pytest.mark.slow
 def test_the_actor_over_that_episode_through_the_driver_is_stopped_iff_it_chatters(
-    sim_factory: Callable[..., SimServer],
+    sim_factory: SimFactory,
 ) -> None:
     # Through the driver (commands a few ms of arm time late, float32 angles) whether the
     # actor chatters on this arm depends on the host's timing: on a lightly loaded host it

@@ -13,11 +13,10 @@ import math
 import struct
 import threading
 import time
-from collections.abc import Callable
 
 import numpy as np
 import pytest
-from conftest import wait_until
+from conftest import SimFactory, wait_until
 
 from protocol import DeviceID, Mode, Packet, PacketID, commands
 from protocol.alpha5 import JOINTS
@@ -139,7 +138,7 @@ def test_start_reads_the_arms_identity(sim: SimServer) -> None:
 
 
 def test_reconnect_to_a_different_arm_is_refused_and_it_only_gets_the_safe_stop(
-    sim_factory: Callable[..., SimServer],
+    sim_factory: SimFactory,
 ) -> None:
     first = sim_factory(speed=SPEED)  # both arms on the same link
     link = str(first.link)
