@@ -10,20 +10,12 @@ import time
 
 import numpy as np
 import pytest
-from conftest import wait_until
+from conftest import LOOPBACK, wait_until
 
 from protocol import Mode
 from reach_driver.cli import Exit, main
-from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
-
-@pytest.fixture
-def sim(tmp_path):
-    server = SimServer(SimConfig(speed=1.0, link=str(tmp_path / "arm"), udp=("127.0.0.1", 0)))
-    server.start()
-    yield server
-    server.stop()
-    assert server.error is None
+pytestmark = pytest.mark.sim(speed=1.0, udp=LOOPBACK)
 
 
 def _in_thread(argv: list[str]) -> tuple[threading.Thread, dict[str, object]]:
@@ -47,7 +39,7 @@ def test_move_stops_at_once_when_the_link_is_lost_and_says_why(sim, capsys) -> N
     target = q0 + np.array([-1.5, 0.0, 0.0, 0.0])  # seconds of arm time at the rate limit
     thread, result = _in_thread(["--port", str(sim.link), "move", *map(str, target)])
     assert wait_until(lambda: sim.firmware.mode(5) == Mode.POSITION, timeout=20.0)
-    time.sleep(0.2)
+    assert sim.wait_sim_time(sim.sim_time + 0.2, timeout=20)  # 0.2 s into a 3 s move
     sim.stop()  # an outage: the pty goes away, the firmware keeps its state
     lost_at = time.monotonic()
     thread.join(timeout=30.0)  # the move's --timeout is the default 60 s
@@ -70,7 +62,7 @@ def test_run_stops_when_the_link_is_lost(sim, capsys) -> None:
     argv += [*map(str, target), "--seconds", "600"]
     thread, result = _in_thread(argv)
     assert wait_until(lambda: sim.firmware.mode(5) == Mode.CURRENT, timeout=20.0)
-    time.sleep(0.5)
+    assert sim.wait_sim_time(sim.sim_time + 0.5, timeout=20)  # ten control steps in
     sim.stop()
     thread.join(timeout=30.0)
     assert not thread.is_alive(), "run went on after the link was lost"

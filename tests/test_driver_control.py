@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import wait_until
+from conftest import LOOPBACK, udp_url, wait_until
 
 from protocol import Mode
 from reach_driver import ArmClient, ControlLoop, ControlState, Pacing, StepRecord, open_transport
-from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
-SPEED = 4.0
+# Real time: a loop late by a period (40 ms of wall time here, 10 ms at 4x) skips a tick, which
+# a loaded host makes happen; the runs here count ticks.
+SPEED = 1.0
 
 
 class Constant:
@@ -31,15 +32,11 @@ class Constant:
 
 
 @pytest.fixture
-def arm_and_sim():
-    server = SimServer(SimConfig(speed=SPEED, pty=False, udp=("127.0.0.1", 0)))
-    server.start()
-    host, port = server.udp_address
-    client = ArmClient(open_transport(f"udp://{host}:{port}")).start()
+def arm_and_sim(sim_factory):
+    server = sim_factory(speed=SPEED, pty=False, udp=LOOPBACK)
+    client = ArmClient(open_transport(udp_url(server))).start()
     yield client, server
     client.close()
-    server.stop()
-    assert server.error is None
 
 
 def test_stream_pacing_counts_arm_time_in_heartbeats(arm_and_sim) -> None:
@@ -52,8 +49,8 @@ def test_stream_pacing_counts_arm_time_in_heartbeats(arm_and_sim) -> None:
     summary = loop.run(q0, 1.0)
     assert summary.ok, summary.error
     t = summary.timing
-    # 25 heartbeats of arm time; a host pause (the arm runs at 4x) may let the loop take a
-    # newer state and skip one, which is counted, never a step at the wrong arm time.
+    # 25 heartbeats of arm time; a loop late on a loaded host may take a newer state and skip
+    # one, which is counted, never a step at the wrong arm time.
     assert summary.steps == len(records) == t.steps
     assert 23 <= summary.steps <= 25 and summary.steps + t.skipped_states >= 25
     assert controller.resets == 1
@@ -93,34 +90,29 @@ def test_outputs_beyond_the_current_limits_are_clipped_and_counted(arm_and_sim) 
     )
     q0 = client.read_joints().q
     summary = loop.run(q0, 0.3)
-    assert summary.saturated_steps == summary.steps == 6
+    # every step taken saturated: the 6 ticks of 0.3 s, less any a late loop skipped (counted)
+    assert summary.saturated_steps == summary.steps == len(records) >= 1
+    assert summary.steps + summary.timing.skipped_states >= 6
     for r in records:
         assert r.saturated
         np.testing.assert_array_equal(r.raw_command_mA, [5000.0, -5000.0, 0.0, 900.0])
         assert r.command_mA[0] <= 600.0 and r.command_mA[1] >= -600.0 and r.command_mA[3] <= 300.0
 
 
-def test_soft_barrier_keeps_a_joint_pushed_outward_inside_its_bound(tmp_path) -> None:
+def test_soft_barrier_keeps_a_joint_pushed_outward_inside_its_bound(sim_factory) -> None:
     hi_c = 3.4034
-    cfg = SimConfig(
-        speed=SPEED, pty=False, udp=("127.0.0.1", 0), start=(3.0, 1.5, hi_c - 0.15, 3.0)
-    )
-    with SimServer(cfg) as sim:
-        assert sim.udp_address is not None
-        host, port = sim.udp_address
-        with ArmClient(open_transport(f"udp://{host}:{port}")) as client:
-            records: list[StepRecord] = []
-            loop = ControlLoop(
-                client, Constant([0.0, 0.0, 600.0, 0.0]), 0.05, on_step=records.append
-            )
-            summary = loop.run(client.read_joints().q, 2.0)
-            assert summary.ok, summary.error
-            assert summary.barrier_steps > 0
-            assert max(r.q[2] for r in records) < hi_c + 0.02
-            assert sim.snapshot().q[2] < hi_c + 0.02
-            # Once at the bound the outward current is cut to nothing.
-            last = records[-1]
-            assert last.command_mA[2] == pytest.approx(0.0, abs=60.0)
+    sim = sim_factory(speed=SPEED, pty=False, udp=LOOPBACK, start=(3.0, 1.5, hi_c - 0.15, 3.0))
+    with ArmClient(open_transport(udp_url(sim))) as client:
+        records: list[StepRecord] = []
+        loop = ControlLoop(client, Constant([0.0, 0.0, 600.0, 0.0]), 0.05, on_step=records.append)
+        summary = loop.run(client.read_joints().q, 2.0)
+        assert summary.ok, summary.error
+        assert summary.barrier_steps > 0
+        assert max(r.q[2] for r in records) < hi_c + 0.02
+        assert sim.snapshot().q[2] < hi_c + 0.02
+        # Once at the bound the outward current is cut to nothing.
+        last = records[-1]
+        assert last.command_mA[2] == pytest.approx(0.0, abs=60.0)
 
 
 def test_a_controller_returning_nan_stops_the_run_and_the_arm_is_left_safe(arm_and_sim) -> None:
@@ -161,21 +153,22 @@ def test_bad_arguments_are_refused_before_anything_is_sent(arm_and_sim) -> None:
 
 
 @pytest.mark.slow
-def test_arm_time_pacing_gives_the_same_run_at_any_simulator_speed() -> None:
+def test_arm_time_pacing_gives_the_same_run_at_any_simulator_speed(sim_factory) -> None:
     from policy.controllers.pid import make_controller
 
     finals, sim_seconds = [], []
-    for speed in (2.0, 6.0):
-        with SimServer(SimConfig(speed=speed, pty=False, udp=("127.0.0.1", 0))) as sim:
-            assert sim.udp_address is not None
-            host, port = sim.udp_address
-            with ArmClient(open_transport(f"udp://{host}:{port}")) as client:
-                q0 = client.read_joints().q
-                t0 = sim.sim_time
-                summary = ControlLoop(client, make_controller(), 0.05).run(
-                    q0 + np.array([0.6, -0.4, 0.5, 1.0]), 3.0
-                )
-                sim_seconds.append(sim.sim_time - t0)
+    # 1x and 3x: 50 and 17 ms of wall time a period, slack enough for a late loop on a loaded
+    # host not to skip a tick (a skipped tick is a different run)
+    for speed in (1.0, 3.0):
+        sim = sim_factory(speed=speed, pty=False, udp=LOOPBACK)
+        with ArmClient(open_transport(udp_url(sim))) as client:
+            q0 = client.read_joints().q
+            t0 = sim.sim_time
+            summary = ControlLoop(client, make_controller(), 0.05).run(
+                q0 + np.array([0.6, -0.4, 0.5, 1.0]), 3.0
+            )
+            sim_seconds.append(sim.sim_time - t0)
+        sim.stop()
         assert summary.ok and summary.loop_seconds == pytest.approx(3.0)
         finals.append(summary.final_q)
     np.testing.assert_allclose(finals[0], finals[1], atol=0.01)

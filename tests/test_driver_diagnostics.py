@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import math
 import re
-from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -26,25 +25,13 @@ from reach_driver.faults import (
 from reach_sim_bridge.emulator.faults import Leak
 from reach_sim_bridge.emulator.firmware import FirmwareConfig
 from reach_sim_bridge.emulator.monitor import MONITOR_FLAGS, MonitorConfig
-from reach_sim_bridge.emulator.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimServer
 
 SPEED = 4.0
 NAMED = [f for f in HardwareStatus if f.value and f.name]
 
 
-def _server(tmp_path, firmware: FirmwareConfig | None = None, speed: float = SPEED) -> SimServer:
-    cfg = SimConfig(speed=speed, link=str(tmp_path / "arm"), firmware=firmware or FirmwareConfig())
-    server = SimServer(cfg)
-    server.start()
-    return server
-
-
-@pytest.fixture
-def sim(tmp_path) -> Iterator[SimServer]:
-    server = _server(tmp_path)
-    yield server
-    server.stop()
-    assert server.error is None
+pytestmark = pytest.mark.sim(speed=SPEED)
 
 
 def _client(server: SimServer) -> ArmClient:
@@ -147,37 +134,32 @@ INJECTABLE = [f for f in NAMED if not f & MONITOR_FLAGS]  # the monitor model ow
 
 @pytest.mark.parametrize("flag", INJECTABLE, ids=lambda f: f.name)
 def test_an_injected_flag_blocks_the_joint_or_not_as_the_policy_says(
-    tmp_path, flag: HardwareStatus
+    sim: SimServer, flag: HardwareStatus
 ) -> None:
-    sim = _server(tmp_path)
-    try:
-        with _client(sim) as client:
-            device = int(DeviceID.C)
-            here = float(client.read_joints((PacketID.POSITION,)).q[2])
-            sim.inject_fault(device, flag)
-            _wait_flag(client, device, flag)
-            if FLAG_POLICY[flag][0]:
-                with pytest.raises(ArmFaultError) as err:
-                    client.command_position(device, here)
-                message = str(err.value)
-                assert flag.name is not None  # a single flag: named
-                assert flag.name in message and "C (0x03)" in message
-                assert "nothing was sent" in message
-                with pytest.raises(ArmFaultError):
-                    client.command_velocity(device, 0.1)
-                with pytest.raises(ArmFaultError):
-                    client.set_mode(device, Mode.CURRENT)
-                assert sim.firmware.mode(device) == Mode.STANDBY  # nothing reached it
-                client.set_mode(device, Mode.ZERO_VELOCITY)  # a safe mode always goes out
-                client.command_position(DeviceID.E, float(client.state.q[0]))  # E is healthy
-                assert client.blocking_faults() == {device: [flag.name]}
-            else:
+    with _client(sim) as client:
+        device = int(DeviceID.C)
+        here = float(client.read_joints((PacketID.POSITION,)).q[2])
+        sim.inject_fault(device, flag)
+        _wait_flag(client, device, flag)
+        if FLAG_POLICY[flag][0]:
+            with pytest.raises(ArmFaultError) as err:
                 client.command_position(device, here)
-                assert wait_until(lambda: sim.firmware.mode(device) == Mode.POSITION)
-                assert client.blocking_faults() == {}
-    finally:
-        sim.stop()
-    assert sim.error is None
+            message = str(err.value)
+            assert flag.name is not None  # a single flag: named
+            assert flag.name in message and "C (0x03)" in message
+            assert "nothing was sent" in message
+            with pytest.raises(ArmFaultError):
+                client.command_velocity(device, 0.1)
+            with pytest.raises(ArmFaultError):
+                client.set_mode(device, Mode.CURRENT)
+            assert sim.firmware.mode(device) == Mode.STANDBY  # nothing reached it
+            client.set_mode(device, Mode.ZERO_VELOCITY)  # a safe mode always goes out
+            client.command_position(DeviceID.E, float(client.state.q[0]))  # E is healthy
+            assert client.blocking_faults() == {device: [flag.name]}
+        else:
+            client.command_position(device, here)
+            assert wait_until(lambda: sim.firmware.mode(device) == Mode.POSITION)
+            assert client.blocking_faults() == {}
 
 
 @pytest.mark.parametrize(
@@ -191,15 +173,12 @@ def test_an_injected_flag_blocks_the_joint_or_not_as_the_policy_says(
     ],
     ids=["over-temperature", "low-supply-voltage"],
 )
-def test_monitor_flags_block(tmp_path, firmware: FirmwareConfig, flag: HardwareStatus) -> None:
-    sim = _server(tmp_path, firmware)
-    try:
-        with _client(sim) as client:
-            _wait_flag(client, int(DeviceID.D), flag)
-            with pytest.raises(ArmFaultError, match=flag.name):
-                client.command_positions(client.read_joints((PacketID.POSITION,)).q)
-    finally:
-        sim.stop()
+def test_monitor_flags_block(sim_factory, firmware: FirmwareConfig, flag: HardwareStatus) -> None:
+    sim = sim_factory(speed=SPEED, firmware=firmware)
+    with _client(sim) as client:
+        _wait_flag(client, int(DeviceID.D), flag)
+        with pytest.raises(ArmFaultError, match=flag.name):
+            client.command_positions(client.read_joints((PacketID.POSITION,)).q)
 
 
 def test_info_json_names_the_flags_of_every_byte(sim, capsys) -> None:
@@ -255,33 +234,30 @@ def test_read_diagnostics_gives_plausible_readings_of_every_device(sim) -> None:
         assert js.status.value == HardwareStatus.NONE
 
 
-def test_a_leak_shows_as_rising_humidity_and_the_over_humidity_flag(tmp_path) -> None:
-    sim = _server(tmp_path, speed=8.0)
+def test_a_leak_shows_as_rising_humidity_and_the_over_humidity_flag(sim_factory) -> None:
+    sim = sim_factory(speed=8.0)
     device = int(DeviceID.D)
-    try:
-        with _client(sim) as client:
-            before = client.read_diagnostics([device])[device].humidity
-            assert before is not None and before.value == pytest.approx(10.0)
-            # tau 5 s: the humidity crosses the 40 % level after 0.4 tau, 2 s of sim time
-            sim.observe(lambda arm, fw: fw.inject_leak(Leak(device, time_constant_s=5.0)))
-            seen: list[float] = []
+    with _client(sim) as client:
+        before = client.read_diagnostics([device])[device].humidity
+        assert before is not None and before.value == pytest.approx(10.0)
+        # tau 5 s: the humidity crosses the 40 % level after 0.4 tau, 2 s of sim time
+        sim.observe(lambda arm, fw: fw.inject_leak(Leak(device, time_constant_s=5.0)))
+        seen: list[float] = []
 
-            def flagged() -> bool:
-                js = client.read_diagnostics([device])[device]
-                assert js.humidity is not None and js.status is not None
-                seen.append(js.humidity.value)
-                return bool(js.status.value & HardwareStatus.OVER_HUMIDITY)
+        def flagged() -> bool:
+            js = client.read_diagnostics([device])[device]
+            assert js.humidity is not None and js.status is not None
+            seen.append(js.humidity.value)
+            return bool(js.status.value & HardwareStatus.OVER_HUMIDITY)
 
-            assert wait_until(flagged, timeout=10.0, poll_s=0.05)
-            assert seen[-1] > 40.0
-            assert np.all(np.diff(seen) >= 0.0) and seen[-1] > seen[0]
-            assert "OVER_HUMIDITY" in client.blocking_faults()[device]
-            with pytest.raises(ArmFaultError, match="OVER_HUMIDITY"):
-                client.command_position(device, float(client.read_joints().q[1]))
-            others = client.read_diagnostics([int(DeviceID.E)])[int(DeviceID.E)]
-            assert others.humidity is not None and others.humidity.value < 11.0  # E is dry
-    finally:
-        sim.stop()
+        assert wait_until(flagged, timeout=10.0, poll_s=0.05)
+        assert seen[-1] > 40.0
+        assert np.all(np.diff(seen) >= 0.0) and seen[-1] > seen[0]
+        assert "OVER_HUMIDITY" in client.blocking_faults()[device]
+        with pytest.raises(ArmFaultError, match="OVER_HUMIDITY"):
+            client.command_position(device, float(client.read_joints().q[1]))
+        others = client.read_diagnostics([int(DeviceID.E)])[int(DeviceID.E)]
+        assert others.humidity is not None and others.humidity.value < 11.0  # E is dry
 
 
 def test_pressure_0x6e_is_decoded_and_tracked_apart_from_0x67() -> None:

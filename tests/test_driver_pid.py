@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import LOOPBACK, udp_url
 
 from policy.controllers.pid import PIDController, PIDGains, make_controller
 from reach_driver import (
@@ -16,7 +17,6 @@ from reach_driver import (
     load_controller,
     open_transport,
 )
-from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 LIMITS = np.array([600.0, 600.0, 600.0, 300.0])
 
@@ -95,24 +95,24 @@ def test_the_entry_point_builds_a_pid_and_unknown_names_are_listed() -> None:
 
 
 @pytest.mark.slow
-def test_pid_reaches_targets_on_the_virtual_arm_without_large_overshoot() -> None:
-    with SimServer(SimConfig(speed=4.0, pty=False, udp=("127.0.0.1", 0))) as sim:
-        assert sim.udp_address is not None
-        host, port = sim.udp_address
-        with ArmClient(open_transport(f"udp://{host}:{port}")) as client:
-            q0 = client.read_joints().q
-            for step in ([0.9, -0.7, 0.8, 1.5], [-1.2, 0.5, -0.9, -1.8]):
-                start = client.read_joints().q
-                target = q0 + np.array(step)
-                records: list[StepRecord] = []
-                summary = ControlLoop(client, make_controller(), 0.05, on_step=records.append).run(
-                    target, 5.0
-                )
-                assert summary.ok, summary.error
-                q = np.array([r.q for r in records])
-                direction = np.sign(target - start)
-                overshoot = np.max((q - target) * direction, axis=0) / np.abs(target - start)
-                assert np.all(overshoot < 0.06), overshoot
-                assert np.max(np.abs(summary.final_error)) < 0.015, summary.final_error
-                # Within 2 cm-ish of every target after 3 s of the 5 s run.
-                assert np.max(np.abs(target - q[60])) < 0.05
+def test_pid_reaches_targets_on_the_virtual_arm_without_large_overshoot(sim_factory) -> None:
+    sim = sim_factory(speed=4.0, pty=False, udp=LOOPBACK)
+    with ArmClient(open_transport(udp_url(sim))) as client:
+        q0 = client.read_joints().q
+        for step in ([0.9, -0.7, 0.8, 1.5], [-1.2, 0.5, -0.9, -1.8]):
+            start = client.read_joints().q
+            target = q0 + np.array(step)
+            records: list[StepRecord] = []
+            summary = ControlLoop(client, make_controller(), 0.05, on_step=records.append).run(
+                target, 5.0
+            )
+            assert summary.ok, summary.error
+            q = np.array([r.q for r in records])
+            direction = np.sign(target - start)
+            overshoot = np.max((q - target) * direction, axis=0) / np.abs(target - start)
+            assert np.all(overshoot < 0.06), overshoot
+            assert np.max(np.abs(summary.final_error)) < 0.015, summary.final_error
+            # Within 2 cm-ish of every target after 3 s of the 5 s run (the first step at
+            # or after 3 s of arm time: a late loop may have skipped the one at 3 s).
+            at_3s = next(r.q for r in records if r.t >= 3.0 - 1e-9)
+            assert np.max(np.abs(target - at_3s)) < 0.05

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import default_sigint, wait_until
+from conftest import LOOPBACK, WATCHDOG_S, default_sigint, udp_url, wait_until
 
 from protocol import DeviceID, Mode, PacketID
 from reach_driver import (
@@ -29,30 +29,16 @@ from reach_driver import (
 )
 from reach_driver.cli import Exit, main
 from reach_sim_bridge.emulator.faults import FaultConfig
-from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 SPEED = 4.0
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture
-def sim(tmp_path):
-    server = SimServer(SimConfig(speed=SPEED, link=str(tmp_path / "arm"), udp=("127.0.0.1", 0)))
-    server.start()
-    yield server
-    server.stop()
-    assert server.error is None
+pytestmark = pytest.mark.sim(speed=SPEED, udp=LOOPBACK)
 
 
-def ports(server: SimServer) -> dict[str, str]:
-    assert server.udp_address is not None
-    host, port = server.udp_address
-    return {"pty": str(server.link), "udp": f"udp://{host}:{port}"}
-
-
-@pytest.mark.parametrize("link", ["pty", "udp"])
-def test_info_lists_devices_versions_limits_and_status(sim, link, capsys) -> None:
-    code = main(["--port", ports(sim)[link], "info", "--json"])
+def test_info_lists_devices_versions_limits_and_status(sim, sim_port, capsys) -> None:
+    code = main(["--port", sim_port, "info", "--json"])
     out = capsys.readouterr().out
     assert code == Exit.OK, out
     devices = json.loads(out)["devices"]
@@ -68,17 +54,16 @@ def test_info_lists_devices_versions_limits_and_status(sim, link, capsys) -> Non
 
 
 def test_info_table_names_each_joint(sim, capsys) -> None:
-    assert main(["--port", ports(sim)["pty"], "info"]) == Exit.OK
+    assert main(["--port", str(sim.link), "info"]) == Exit.OK
     out = capsys.readouterr().out
     for name in ("E (0x05)", "D (0x04)", "C (0x03)", "B (0x02)", "A (0x01)", "0.1.0"):
         assert name in out
 
 
-@pytest.mark.parametrize("link", ["pty", "udp"])
-def test_move_reaches_the_target_in_position_mode(sim, link, capsys) -> None:
+def test_move_reaches_the_target_in_position_mode(sim, sim_port, capsys) -> None:
     q0 = sim.snapshot().q
     target = q0 + np.array([0.3, -0.2, 0.25, -0.4])
-    argv = ["--port", ports(sim)[link], "move", *map(str, target), "--jaw", "8", "--timeout", "30"]
+    argv = ["--port", sim_port, "move", *map(str, target), "--jaw", "8", "--timeout", "30"]
     code = main(argv)
     out = capsys.readouterr().out
     assert code == Exit.OK, out
@@ -93,7 +78,7 @@ def test_move_reaches_the_target_in_position_mode(sim, link, capsys) -> None:
 
 def test_move_outside_a_limit_is_refused_and_nothing_moves(sim, capsys) -> None:
     q0 = sim.snapshot().q
-    code = main(["--port", ports(sim)["pty"], "move", "3.0", "3.9", "1.5", "3.0"])
+    code = main(["--port", str(sim.link), "move", "3.0", "3.9", "1.5", "3.0"])
     err = capsys.readouterr().err
     assert code == Exit.LIMIT
     assert "limit" in err and "D (0x04)" in err
@@ -105,19 +90,22 @@ def test_move_outside_a_limit_is_refused_and_nothing_moves(sim, capsys) -> None:
 def test_move_that_cannot_finish_in_time_fails_with_a_message(sim, capsys) -> None:
     q0 = sim.snapshot().q
     target = q0 + np.array([-1.5, 0.0, 0.0, 0.0])  # ~3 s of arm time at the rate limit
-    code = main(["--port", ports(sim)["pty"], "move", *map(str, target), "--timeout", "0.2"])
+    code = main(["--port", str(sim.link), "move", *map(str, target), "--timeout", "0.2"])
     assert code == Exit.FAILED
     assert "timed out" in capsys.readouterr().err
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("link", ["pty", "udp"])
-def test_run_pid_reaches_the_target_and_leaves_the_arm_safe(sim, link, tmp_path, capsys) -> None:
+@pytest.mark.sim(speed=1.0)  # a loop late by a period skips a tick: 50 ms of slack, not 12.5
+def test_run_pid_reaches_the_target_and_leaves_the_arm_safe(
+    sim, sim_port, tmp_path, capsys
+) -> None:
     q0 = sim.snapshot().q
     target = q0 + np.array([0.5, -0.4, 0.4, 0.8])
     t0 = sim.sim_time
     record = tmp_path / "run.rrd"
-    argv = ["--port", ports(sim)[link], "run", "--controller", "pid", "--target"]
+    argv = ["--port", sim_port, "--watchdog", str(WATCHDOG_S), "run", "--controller", "pid"]
+    argv.append("--target")
     argv += [*map(str, target), "--seconds", "4", "--record", str(record)]
     code = main(argv)
     out = capsys.readouterr().out
@@ -133,17 +121,18 @@ def test_run_pid_reaches_the_target_and_leaves_the_arm_safe(sim, link, tmp_path,
 
     summary: dict[str, Any] = summarize_recording(record)
     # Every step the loop took, and the state that ended the run. At 20 Hz that is 80 steps
-    # plus one, less any state the stream superseded when the host fell behind (a busy core).
+    # plus one, less any state the stream superseded when the host fell behind (a busy core):
+    # every tick is stepped on or counted, and most are stepped on.
     taken = int(re.search(r"run:\s+(\d+)\s+steps", out).group(1))  # type: ignore[union-attr]
     skipped = int(re.search(r"skipped\s+states\s+(\d+)", out).group(1))  # type: ignore[union-attr]
     assert summary["steps"] == taken + 1
-    assert 80 - skipped <= taken <= 80 and skipped <= 4
+    assert 80 - skipped <= taken <= 80 and taken >= 60
     assert np.max(np.abs(summary["final_error"])) < 0.02
     assert summary["metadata"]["controller"] == "pid"
 
 
 def test_run_with_an_unknown_controller_names_the_registered_ones(sim, capsys) -> None:
-    argv = ["--port", ports(sim)["pty"], "run", "--controller", "nope"]
+    argv = ["--port", str(sim.link), "run", "--controller", "nope"]
     argv += ["--target", "3", "1.5", "1.5", "3", "--seconds", "1"]
     assert main(argv) == Exit.USAGE  # a typo in the command line, as in tools/evaluate.py
     err = capsys.readouterr().err
@@ -151,7 +140,7 @@ def test_run_with_an_unknown_controller_names_the_registered_ones(sim, capsys) -
 
 
 def test_run_target_outside_the_limits_is_refused(sim, capsys) -> None:
-    argv = ["--port", ports(sim)["udp"], "run", "--controller", "pid"]
+    argv = ["--port", udp_url(sim), "run", "--controller", "pid"]
     argv += ["--target", "3", "1.5", "-0.5", "3", "--seconds", "1"]
     assert main(argv) == Exit.LIMIT
     assert "C (0x03)" in capsys.readouterr().err
@@ -159,7 +148,7 @@ def test_run_target_outside_the_limits_is_refused(sim, capsys) -> None:
 
 
 def test_monitor_shows_states_rates_and_link_counters(sim, capsys) -> None:
-    assert main(["--port", ports(sim)["udp"], "monitor", "--seconds", "0.6"]) == Exit.OK
+    assert main(["--port", udp_url(sim), "monitor", "--seconds", "0.6"]) == Exit.OK
     out = capsys.readouterr().out
     assert "E (0x05)" in out and "standby" in out and "frames ok" in out
 
@@ -180,19 +169,18 @@ def test_nothing_answering_says_so(capsys) -> None:
     assert "nothing answered" in capsys.readouterr().err
 
 
-def test_garbage_only_suggests_the_baud_rate(tmp_path, capsys) -> None:
-    cfg = SimConfig(speed=SPEED, link=str(tmp_path / "arm"), faults=FaultConfig(corrupt_rate=1.0))
-    with SimServer(cfg) as server:
-        code = main(["--port", str(server.link), "--timeout", "0.05", "info"])
+def test_garbage_only_suggests_the_baud_rate(sim_factory, capsys) -> None:
+    server = sim_factory(faults=FaultConfig(corrupt_rate=1.0))
+    code = main(["--port", str(server.link), "--timeout", "0.05", "info"])
     assert code == Exit.NO_ARM
     assert "wrong baud rate" in capsys.readouterr().err
 
 
-def test_some_garbage_on_the_line_is_counted_and_survived(tmp_path) -> None:
-    cfg = SimConfig(
-        speed=SPEED, link=str(tmp_path / "arm"), faults=FaultConfig(corrupt_rate=0.002), seed=3
-    )
-    with SimServer(cfg) as server, ArmClient(open_transport(str(server.link)), retries=5) as arm:
+def test_some_garbage_on_the_line_is_counted_and_survived(sim_factory) -> None:
+    server = sim_factory(faults=FaultConfig(corrupt_rate=0.002), seed=3)
+    # a 0.5 s reply timeout: what is lost here is the damaged frames, not replies a loaded host
+    # delivers after the default 0.1 s (six tries of 0.1 s ran out in a 0.6 s stall)
+    with ArmClient(open_transport(str(server.link)), retries=5, request_timeout_s=0.5) as arm:
         for _ in range(40):
             arm.read_joints()
         assert arm.decoder_stats.bad_total > 0
@@ -209,10 +197,9 @@ def _client(url: str, events: list) -> ArmClient:
     return arm.start()
 
 
-@pytest.mark.parametrize("link", ["pty", "udp"])
-def test_link_lost_when_the_sim_restarts_is_reported_and_reopened(sim, link) -> None:
+def test_link_lost_when_the_sim_restarts_is_reported_and_reopened(sim, sim_port) -> None:
     events: list = []
-    arm = _client(ports(sim)[link], events)
+    arm = _client(sim_port, events)
     try:
         arm.stream((PacketID.POSITION,), 10, [DeviceID.E])
         sim.stop()
@@ -241,7 +228,7 @@ def test_link_lost_when_the_sim_restarts_is_reported_and_reopened(sim, link) -> 
 
 def test_losing_the_link_mid_control_leaves_the_arm_safe_on_reconnect(sim) -> None:
     events: list = []
-    arm = _client(ports(sim)["udp"], events)
+    arm = _client(udp_url(sim), events)
     try:
         arm.read_joints()
         arm.command_current(DeviceID.D, 20.0)
@@ -257,7 +244,7 @@ def test_losing_the_link_mid_control_leaves_the_arm_safe_on_reconnect(sim) -> No
 
 
 def test_watchdog_puts_the_arm_in_zero_velocity_when_the_controller_stops(sim) -> None:
-    with ArmClient(open_transport(ports(sim)["pty"]), safety=SafetyConfig(watchdog_s=0.2)) as arm:
+    with ArmClient(open_transport(str(sim.link)), safety=SafetyConfig(watchdog_s=0.2)) as arm:
         arm.stream((PacketID.POSITION,), 50, [DeviceID.C])
         assert wait_until(lambda: arm.joint(DeviceID.C).position is not None, timeout=10.0)
         arm.command_current(DeviceID.C, 30.0)
@@ -269,7 +256,8 @@ def test_watchdog_puts_the_arm_in_zero_velocity_when_the_controller_stops(sim) -
 @pytest.mark.slow
 def test_ctrl_c_during_run_leaves_the_arm_safe_and_exits_130(sim) -> None:
     target = sim.snapshot().q + np.array([0.2, 0.2, 0.2, 0.2])
-    cmd = [sys.executable, "-m", "reach_driver.cli", "--port", ports(sim)["udp"], "run"]
+    cmd = [sys.executable, "-m", "reach_driver.cli", "--port", udp_url(sim)]
+    cmd += ["--watchdog", str(WATCHDOG_S), "run"]
     cmd += ["--controller", "pid", "--target", *map(str, target), "--seconds", "600"]
     proc = subprocess.Popen(
         cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=default_sigint
@@ -291,7 +279,7 @@ def test_ctrl_c_during_run_leaves_the_arm_safe_and_exits_130(sim) -> None:
 def test_limits_written_to_the_arm_are_read_back_and_enforced(sim) -> None:
     from reach_driver import LimitError, LimitKind
 
-    with ArmClient(open_transport(ports(sim)["pty"])) as arm:
+    with ArmClient(open_transport(str(sim.link))) as arm:
         assert arm.write_limits(DeviceID.D, LimitKind.CURRENT, 400.0, -400.0) == (-400.0, 400.0)
         assert arm.guard.limit(DeviceID.D, LimitKind.CURRENT).high == 400.0
         assert sim.arm.current_limits_mA[1] == 400.0  # the arm itself took it
@@ -309,11 +297,11 @@ def test_limits_written_to_the_arm_are_read_back_and_enforced(sim) -> None:
 def test_a_link_error_flag_is_only_a_warning_for_move(sim, capsys) -> None:
     from protocol import Packet
 
-    with ArmClient(open_transport(ports(sim)["pty"])) as arm:
+    with ArmClient(open_transport(str(sim.link))) as arm:
         arm.write_frames_unchecked([Packet(DeviceID.D, PacketID.MODE, b"").encode()])  # bad payload
         assert wait_until(lambda: "SERIAL_ERROR" in arm.read_status().get(4, []), timeout=10.0)
     target = sim.snapshot().q + np.array([0.0, 0.1, 0.0, 0.0])
-    assert main(["--port", ports(sim)["pty"], "move", *map(str, target)]) == Exit.OK
+    assert main(["--port", str(sim.link), "move", *map(str, target)]) == Exit.OK
     out = capsys.readouterr().out
     assert "warning" in out and "SERIAL_ERROR" in out
 
@@ -401,7 +389,7 @@ def test_info_names_the_status_flags_of_a_faulty_joint(capsys) -> None:
 
 
 def test_rs485_mode_talks_to_one_device_at_a_time(sim) -> None:
-    with ArmClient(open_transport(ports(sim)["pty"], rs485=True)) as arm:
+    with ArmClient(open_transport(str(sim.link), rs485=True)) as arm:
         assert arm.found_devices == (5, 4, 3, 2, 1)
         writes = arm.transport.stats.writes
         state = arm.read_joints()

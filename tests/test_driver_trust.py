@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import wait_until
+from conftest import SimFactory, wait_until
 
 from protocol import DeviceID, Mode, Packet, PacketID, commands
 from protocol.alpha5 import JOINTS
@@ -35,7 +35,7 @@ from reach_driver.link import ClientStats
 from reach_driver.requests import Requester, Waiters
 from reach_driver.watchdog import Watchdog
 from reach_sim_bridge.emulator.firmware import ALPHA5_DEVICES, FirmwareConfig
-from reach_sim_bridge.emulator.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimServer
 
 E, D, C, B, A = DeviceID.E, DeviceID.D, DeviceID.C, DeviceID.B, DeviceID.A
 BROADCAST = DeviceID.BROADCAST
@@ -124,25 +124,24 @@ def sim_client(link: str, events: list) -> ArmClient:
     return arm.start()
 
 
-def test_start_reads_the_arms_identity(tmp_path) -> None:
-    with SimServer(SimConfig(speed=SPEED, link=str(tmp_path / "arm"))) as sim:
-        events: list = []
-        arm = sim_client(str(sim.link), events)
-        try:
-            ident = arm.identity
-            assert set(ident) == {5, 4, 3, 2, 1}
-            assert ident[4].serial_number == 4104.0
-            assert ident[4].model_number == 5005.0
-            assert ident[4].software_version == "0.1.0"
-        finally:
-            arm.close()
+def test_start_reads_the_arms_identity(sim: SimServer) -> None:
+    events: list = []
+    arm = sim_client(str(sim.link), events)
+    try:
+        ident = arm.identity
+        assert set(ident) == {5, 4, 3, 2, 1}
+        assert ident[4].serial_number == 4104.0
+        assert ident[4].model_number == 5005.0
+        assert ident[4].software_version == "0.1.0"
+    finally:
+        arm.close()
 
 
-def test_reconnect_to_a_different_arm_is_refused_and_it_only_gets_the_safe_stop(tmp_path) -> None:
-    link = str(tmp_path / "arm")
-    first = SimServer(SimConfig(speed=SPEED, link=link))
-    first.start()
-    second: SimServer | None = None
+def test_reconnect_to_a_different_arm_is_refused_and_it_only_gets_the_safe_stop(
+    sim_factory: SimFactory,
+) -> None:
+    first = sim_factory(speed=SPEED)  # both arms on the same link
+    link = str(first.link)
     events: list = []
     arm = sim_client(link, events)
     try:
@@ -152,26 +151,26 @@ def test_reconnect_to_a_different_arm_is_refused_and_it_only_gets_the_safe_stop(
         arm.command_positions(q + 0.05)
         first.stop()  # the link drops mid-move ...
         assert wait_until(lambda: arm.link_state is not LinkState.UP, timeout=10.0)
-        second = SimServer(SimConfig(speed=SPEED, link=link, firmware=other_arm()))
-        second.start()  # ... and another arm answers on the same path
+        second = sim_factory(speed=SPEED, firmware=other_arm())  # ... and another arm answers
         assert wait_until(
             lambda: (
                 arm.link_state is not LinkState.DOWN and arm.link_state is not LinkState.PROBING
             ),
             timeout=10.0,
         )
-        time.sleep(0.3)  # whatever the driver sends on reconnecting has reached the arm
-        # The new arm was not given the old set-up, and it was stopped.
+        # The link is failed: not UP (control loops see it as down), and it stays so.
+        assert arm.link_state is LinkState.FAILED
+        # The new arm was stopped: the last frames the driver wrote it before failing the
+        # link, so once the arm has them, whatever was written before them has landed too ...
+        assert wait_until(
+            lambda: all(second.firmware.mode(int(d)) == Mode.ZERO_VELOCITY for d in JOINTS),
+            timeout=20.0,
+        )
+        # ... and it was not given the old set-up.
         for dev in JOINTS:
             beat = second.firmware.report(int(dev), PacketID.HEARTBEAT_FREQUENCY)
             assert beat is not None and beat.data == b"\x00", f"{dev.name} was set streaming"
-        assert wait_until(
-            lambda: all(second.firmware.mode(int(d)) == Mode.ZERO_VELOCITY for d in JOINTS),
-            timeout=5.0,
-        )
-        # The link is failed: not UP (control loops see it as down), and it stays so.
-        assert arm.link_state is LinkState.FAILED
-        time.sleep(1.0)
+        time.sleep(1.0)  # a few probing backoffs (0.4 s at most): no reopening
         assert arm.link_state is LinkState.FAILED
         assert np.isnan(arm.state.q).all()  # the other arm's positions were not accepted
         error_type = driver_errors.ArmIdentityError
@@ -184,26 +183,22 @@ def test_reconnect_to_a_different_arm_is_refused_and_it_only_gets_the_safe_stop(
         assert any("serial number" in e.message for e in events)
     finally:
         arm.close()
-        first.stop()
-        if second is not None:
-            second.stop()
 
 
-def test_reconnect_to_the_same_arm_after_a_power_cycle_is_accepted(tmp_path) -> None:
-    with SimServer(SimConfig(speed=SPEED, link=str(tmp_path / "arm"))) as sim:
-        events: list = []
-        arm = sim_client(str(sim.link), events)
-        try:
-            arm.stream((PacketID.POSITION,), 10, [DeviceID.E])
-            sim.restart(downtime_s=0.3)
-            assert wait_until(lambda: arm.stats.reconnects == 1, timeout=10.0)
-            assert arm.link_state is LinkState.UP
-            n = arm.table.counts.get((5, PacketID.POSITION), 0)
-            assert wait_until(
-                lambda: arm.table.counts.get((5, PacketID.POSITION), 0) > n + 3, timeout=10.0
-            )
-        finally:
-            arm.close()
+def test_reconnect_to_the_same_arm_after_a_power_cycle_is_accepted(sim: SimServer) -> None:
+    events: list = []
+    arm = sim_client(str(sim.link), events)
+    try:
+        arm.stream((PacketID.POSITION,), 10, [DeviceID.E])
+        sim.restart(downtime_s=0.3)
+        assert wait_until(lambda: arm.stats.reconnects == 1, timeout=10.0)
+        assert arm.link_state is LinkState.UP
+        n = arm.table.counts.get((5, PacketID.POSITION), 0)
+        assert wait_until(
+            lambda: arm.table.counts.get((5, PacketID.POSITION), 0) > n + 3, timeout=10.0
+        )
+    finally:
+        arm.close()
 
 
 # -- 2. one gate for every packet that can move the arm or widen a limit ----------------------

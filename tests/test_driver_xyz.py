@@ -4,8 +4,6 @@ target on the virtual arm, and an unreachable target is refused before anything 
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
 import pytest
 from conftest import wait_until
@@ -23,7 +21,7 @@ from reach_driver.ik import (
     solve_position,
 )
 from reach_driver.kinematics import tool_position
-from reach_sim_bridge.emulator.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimServer
 from reach_sim_bridge.model import ik as sim_ik
 from reach_sim_bridge.model.arm import Alpha5Arm
 
@@ -38,13 +36,7 @@ def _poses(n: int, seed: int) -> np.ndarray:
     return rng.uniform(inner[:, 0], inner[:, 1], size=(n, 4))
 
 
-@pytest.fixture
-def sim(tmp_path) -> Iterator[SimServer]:
-    server = SimServer(SimConfig(speed=SPEED, link=str(tmp_path / "arm")))
-    server.start()
-    yield server
-    server.stop()
-    assert server.error is None
+pytestmark = pytest.mark.sim(speed=SPEED)
 
 
 # ------------------------------------------------------------------ the solver

@@ -9,12 +9,12 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from conftest import recorded_steps, wait_until
 
 from reach_driver.metrics import Trace, compute_metrics
 from reach_driver.recording import RunRecorder, StepSample
@@ -140,7 +140,9 @@ def test_recording_survives_sigkill(tmp_path: Path) -> None:
     try:
         assert proc.stdout is not None
         assert proc.stdout.readline().strip() == "ready"
-        time.sleep(0.3)
+        # killed once the first 50 steps are on disk (flushed every 0.05 s: a loaded host may
+        # take longer to get there, never forever)
+        assert wait_until(lambda: len(recorded_steps(path)) >= 50, timeout=30.0, poll_s=0.05)
     finally:
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(timeout=10)

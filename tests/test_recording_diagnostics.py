@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import WATCHDOG_S
 
 from protocol import DeviceID, HardwareStatus
 from reach_driver.cli import Exit, main
@@ -56,7 +57,8 @@ def test_a_recorded_run_holds_every_devices_diagnostics(sim: SimServer, tmp_path
     sim.inject_fault(int(DeviceID.B), HardwareStatus.JOINT_SERVICE_DUE)  # reported, not blocking
     record = tmp_path / "run.rrd"
     target = sim.snapshot().q + np.array([0.2, -0.1, 0.1, 0.2])
-    argv = ["--port", str(sim.link), "-q", "run", "--controller", "pid", "--target"]
+    argv = ["--port", str(sim.link), "-q", "--watchdog", str(WATCHDOG_S), "run"]
+    argv += ["--controller", "pid", "--target"]
     argv += [*map(str, target), "--seconds", "1", "--record", str(record)]
     assert main(argv) == Exit.OK
     run = read_recording(record)

@@ -14,30 +14,23 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import LOOPBACK, WATCHDOG_S, udp_url
 
 from reach_driver import recording
 from reach_driver.cli import Exit, main
 from reach_driver.rrd_summary import read_recording
-from reach_sim_bridge.emulator.server import SimConfig, SimServer
+from reach_sim_bridge.emulator.server import SimServer
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture
-def sim(tmp_path):
-    server = SimServer(SimConfig(speed=4.0, link=str(tmp_path / "arm"), udp=("127.0.0.1", 0)))
-    server.start()
-    yield server
-    server.stop()
-    assert server.error is None
+pytestmark = pytest.mark.sim(speed=4.0, udp=LOOPBACK)
 
 
 def _run_argv(sim: SimServer, record: Path, seconds: float = 2.0) -> list[str]:
-    assert sim.udp_address is not None
-    host, port = sim.udp_address
     target = sim.snapshot().q + np.array([0.3, -0.2, 0.2, 0.3])
-    # A generous watchdog: these tests are about the recording, not a loaded host's pauses.
-    argv = ["--port", f"udp://{host}:{port}", "--watchdog", "1.0", "run", "--controller", "pid"]
+    # These tests are about the recording, not the watchdog.
+    argv = ["--port", udp_url(sim), "--watchdog", str(WATCHDOG_S), "run", "--controller", "pid"]
     argv.append("--target")
     return [*argv, *map(str, target), "--seconds", str(seconds), "--record", str(record)]
 

@@ -82,7 +82,7 @@ def _reply_delay(server: SimServer, idle_bytes: int) -> float:
     try:
         sent = time.monotonic()
         port.write(commands.request(E, [PacketID.POSITION]).encode() + bytes(idle_bytes))
-        got, first = _read_until(port, 1, timeout=5.0)
+        got, first = _read_until(port, 1, timeout=20.0)
     finally:
         port.close()
     assert [p.key for p in got] == [(E, PacketID.POSITION)]
@@ -90,7 +90,9 @@ def _reply_delay(server: SimServer, idle_bytes: int) -> float:
 
 
 def test_the_arm_does_not_talk_while_host_bytes_are_arriving(serve) -> None:
-    baud, idle = 9600, 200  # 200 byte times at 9600 baud: 0.21 s of the host's bytes
+    # 800 byte times at 9600 baud: 0.83 s of the host's bytes, long enough that full duplex's
+    # answer beats them even when a loaded host reads it a few hundred ms late
+    baud, idle = 9600, 800
     request = len(commands.request(E, [PacketID.POSITION]).encode())
     half = _reply_delay(serve(baud=baud, half_duplex=True), idle)
     # The host's bytes all land, the line stays quiet TURNAROUND_BYTES, then the 10-byte reply.
@@ -101,14 +103,18 @@ def test_the_arm_does_not_talk_while_host_bytes_are_arriving(serve) -> None:
 
 
 def test_talking_over_the_arm_collides_and_is_counted(serve) -> None:
-    baud = 4800  # ten replies take ~0.3 s of wire: time to talk over them
+    # Ten replies take ~1.2 s of wire at 1200 baud: time to talk over them even when a loaded
+    # host runs this thread a few hundred ms late after the first one.
+    baud = 1200
     server = serve(baud=baud, half_duplex=True)
     port = _open(server)
     try:
         port.write(commands.request(E, TEN_IDS).encode())
-        got, _ = _read_until(port, 1, timeout=5.0)  # the first reply is out: the arm talks on
+        got, _ = _read_until(port, 1, timeout=20.0)  # the first reply is out: the arm talks on
         port.write(commands.request(D, [PacketID.SOFTWARE_VERSION]).encode())
-        more, _ = _read_until(port, len(TEN_IDS), timeout=1.5)
+        # the other nine but the one garbled (a deadline), then a look for any more
+        more, _ = _read_until(port, len(TEN_IDS) - 2, timeout=20.0)
+        more += _read_until(port, 1, timeout=0.5)[0]
     finally:
         port.close()
     got += more

@@ -65,6 +65,16 @@ def _read_for(t: SerialTransport, seconds: float) -> bytes:
     return out
 
 
+def _read_until(t: SerialTransport, want: bytes, timeout: float = 20.0) -> bytes:
+    """What the transport reads until `want` is in it (the reply, after any echo: the echo
+    comes first on the wire), or `timeout` seconds pass: a deadline, not a window."""
+    out = b""
+    end = time.monotonic() + timeout
+    while want not in out and time.monotonic() < end:
+        out += t.read() or b""
+    return out
+
+
 def _exchange(path: str, master: int, *, rs485: bool) -> tuple[bytes, bytes]:
     adapter = EchoingAdapter(master)
     adapter.start()
@@ -73,7 +83,7 @@ def _exchange(path: str, master: int, *, rs485: bool) -> tuple[bytes, bytes]:
     try:
         request = commands.request(E, [PacketID.POSITION]).encode()
         t.write_frames([request])
-        got = _read_for(t, 0.3)
+        got = _read_until(t, REPLY)
     finally:
         t.close()
         adapter.stop.set()
@@ -109,7 +119,7 @@ def test_an_adapter_that_does_not_echo_loses_nothing(pty) -> None:
     try:
         t.write_frames([commands.request(E, [PacketID.POSITION]).encode()])
         os.write(master, REPLY)
-        got = _read_for(t, 0.2)
+        got = _read_until(t, REPLY)
     finally:
         t.close()
     assert got == REPLY
@@ -131,7 +141,7 @@ def test_an_echo_split_across_reads_is_still_dropped(pty) -> None:
             os.write(master, echo[i : i + 3])
             got += _read_for(t, 0.02)
         os.write(master, REPLY)
-        got += _read_for(t, 0.1)
+        got += _read_until(t, REPLY)
     finally:
         t.close()
     assert got == REPLY
@@ -157,7 +167,8 @@ def test_echoes_on_either_side_of_a_reply_are_all_dropped(pty) -> None:
         time.sleep(0.01)
         wire = os.read(master, 4096)  # the open's 0x00 and both frames
         os.write(master, wire[: -len(second)] + REPLY + second)
-        got = _read_for(t, 0.1)
+        got = _read_until(t, REPLY)
+        got += _read_for(t, 0.1)  # and the second echo after it, dropped too
     finally:
         t.close()
     assert got == REPLY
@@ -174,6 +185,6 @@ def test_an_adapter_that_never_echoes_is_found_out(pty) -> None:
         assert _read_for(t, 0.05) == b""
         assert t.local_echo is False
         os.write(master, REPLY)
-        assert _read_for(t, 0.1) == REPLY
+        assert _read_until(t, REPLY) == REPLY
     finally:
         t.close()
