@@ -88,7 +88,7 @@ def test_workers_with_via_driver_or_below_one_are_refused(tmp_path: Path, capsys
 def test_the_stability_screen_on_ray_gives_the_serial_metrics(ray_local: Any) -> None:
     from policy.campaigns.selection import screen
 
-    shipped = ROOT / "policy" / "controllers" / "weights" / "ddpg_actor.npz"
+    shipped = ROOT / "policy" / "controllers" / "weights" / "ddpg_distilled_actor.npz"
     serial = screen(shipped, 2, seed=3, perturb=0.2)
     assert screen(shipped, 2, seed=3, perturb=0.2, workers=2) == serial
     assert all(m.at_rest for m in serial)

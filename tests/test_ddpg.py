@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from policy.controllers.ddpg import make_controller
+from policy.controllers.ddpg_distilled import make_controller
 from policy.controllers.weights import DEFAULT_WEIGHTS, ActorWeights
 from policy.rl.batched import evaluate_batched as evaluate
 from policy.rl.checkpoint import actor_arrays, load_actor_npz, save_actor_npz
@@ -378,7 +378,7 @@ def test_a_wider_training_workspace_keeps_the_evaluation_episodes(tmp_path: Path
 
 
 def test_reference_integral_shifts_the_shown_target_near_the_goal_only() -> None:
-    from policy.controllers.ddpg import ReferenceIntegral, make_pure_controller
+    from policy.controllers.ddpg_distilled import ReferenceIntegral, make_pure_controller
 
     ctrl = make_controller()  # shipped: actor + reference integral (gain 1/s, band 0.02 rad)
     assert ctrl.integral == ReferenceIntegral()
@@ -412,7 +412,7 @@ def test_reference_integral_shifts_the_shown_target_near_the_goal_only() -> None
 
 def test_reference_integral_removes_the_steady_error_friction_leaves() -> None:
     from policy.campaigns.evaluation import RunConfig, evaluate, random_episodes
-    from policy.controllers.ddpg import make_pure_controller
+    from policy.controllers.ddpg_distilled import make_pure_controller
     from reach_sim_bridge.model.sensors import SensorNoise
 
     episodes = random_episodes(3, seed=7)
@@ -428,7 +428,7 @@ def test_reference_integral_removes_the_steady_error_friction_leaves() -> None:
 def test_robust_preset_screens_envelope_arms_and_masks_bc_on_latent_ones(tmp_path: Path) -> None:
     cfg = DDPGConfig.robust()
     assert cfg.env.envelope_fraction == 0.5 and cfg.env.reward.sign_flip_weight > 0
-    assert cfg.init_actor == "policy/controllers/weights/ddpg_actor.npz"
+    assert cfg.init_actor == "policy/controllers/weights/ddpg_distilled_actor.npz"
     assert DDPGConfig.from_dict(cfg.to_dict()) == cfg
     small = tiny(
         cfg,

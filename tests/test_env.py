@@ -282,7 +282,7 @@ def test_observation_features_and_bounds() -> None:
 def test_controller_sees_the_same_observation_as_the_env(tmp_path) -> None:  # type: ignore[no-untyped-def]
     import torch
 
-    from policy.controllers.ddpg import make_controller
+    from policy.controllers.ddpg_distilled import make_controller
     from policy.rl.checkpoint import save_actor_npz
     from policy.rl.config import DDPGConfig
     from policy.rl.networks import Actor

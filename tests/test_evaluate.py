@@ -343,7 +343,7 @@ def test_stability_screen_flags_a_chattering_policy() -> None:
             self.sign = -self.sign
             return np.full(4, 600.0 * self.sign)
 
-    shipped = ROOT / "policy" / "controllers" / "weights" / "ddpg_actor.npz"
+    shipped = ROOT / "policy" / "controllers" / "weights" / "ddpg_distilled_actor.npz"
     assert select.restless_episodes(
         shipped, 2, seed=3, perturb=0.2, factory=lambda _p: BangBang()
     ) == [0, 1]

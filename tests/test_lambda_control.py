@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from policy.campaigns.direct import DirectArm
-from policy.controllers.ddpg import make_controller as make_ddpg
+from policy.controllers.ddpg_distilled import make_controller as make_ddpg
 from policy.controllers.lambda_control import LambdaConfig, LambdaController, make_controller
 from policy.tasks.envelope import corners
 from policy.tasks.episodes import Episode, EpisodeResult, RunConfig

@@ -216,7 +216,7 @@ def test_a_real_burst_on_the_stability_screen_is_flagged() -> None:
         / "policy"
         / "controllers"
         / "weights"
-        / "ddpg_actor.npz"
+        / "ddpg_distilled_actor.npz"
     )
     burst, clean = (r.metrics for r in _screen(shipped, [43, 44], 12, 0.2, _shipped))
     assert burst.rest_speed_rms < REST_SPEED_RMS_MAX and burst.command_reversals == 0

@@ -408,7 +408,7 @@ def test_the_comparison_uses_only_the_arms_every_run_shares() -> None:
 def test_an_actor_file_runs_under_its_own_label(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    weights = ROOT / "policy" / "controllers" / "weights" / "ddpg_actor.npz"
+    weights = ROOT / "policy" / "controllers" / "weights" / "ddpg_distilled_actor.npz"
     argv: dict[str, Any] = {"controller": ["ddpg"], "label": "robust"}
     argv |= {"param": [f"weights={weights}"]}
     argv |= {"draws": 1, "seconds": 2.0, "out": tmp_path, "quiet": True}

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from policy.campaigns.direct import DirectArm
-from policy.controllers.ddpg import make_controller
+from policy.controllers.ddpg_distilled import make_controller
 from policy.controllers.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from policy.controllers.settle import SettleSupervisor
 from policy.controllers.settle_law import SettleLaw
@@ -58,7 +58,7 @@ def _shipped_and_without(
 
 
 def test_settle_is_on_in_the_shipped_controller_off_in_the_pure_one_and_validated() -> None:
-    from policy.controllers.ddpg import make_pure_controller
+    from policy.controllers.ddpg_distilled import make_pure_controller
 
     shipped = make_controller()
     assert shipped.settle is not None and shipped.settle.law == SettleLaw()

@@ -102,7 +102,7 @@ def bench_sb3(
 def bench_inference(n: int) -> None:
     """Latency of one control-loop action: the shipped numpy controller (actor, reference
     integral, settle supervisor), the same without the supervisor, and the torch actor."""
-    from policy.controllers.ddpg import make_controller
+    from policy.controllers.ddpg_distilled import make_controller
     from policy.controllers.weights import DEFAULT_WEIGHTS
     from policy.rl.checkpoint import load_actor_npz
     from policy.rl.networks import Actor

@@ -124,12 +124,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         metavar="FILE.npz",
         help="with --ship: write the actor (+ .json) here instead of the shipped weights, "
         "e.g. a candidate that does not meet the bar "
-        "(policy/controllers/weights/ddpg_robust_actor.npz)",
+        "(policy/controllers/weights/ddpg_distilled_robust_actor.npz)",
     )
     p.add_argument(
         "--ship",
         action="store_true",
-        help="copy RUN's best actor to policy/controllers/weights/ddpg_actor.npz (+ .json with "
+        help="copy RUN's best actor to policy/controllers/weights/ddpg_distilled_actor.npz (+ .json with "
         "the commands, seed, config, training time and evaluation), then exit",
     )
     return p.parse_args(argv)

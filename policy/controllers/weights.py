@@ -4,7 +4,7 @@ A pair of files: `NAME.npz` holds the dense layers as float64 arrays W0 b0 W1 b1
 in, torch's layout), `NAME.json` beside it what the controller needs to rebuild the inputs and
 outputs (observation config, current limits, activation) plus the run's config and provenance.
 
-The shipped pair is `policy/controllers/weights/ddpg_actor.npz` (the data folder beside this
+The shipped pair is `policy/controllers/weights/ddpg_distilled_actor.npz` (the data folder beside this
 module; it has no `__init__.py`, so `policy.controllers.weights` is this module). The controller
 side (`ActorWeights`) is numpy only: the control loop never imports torch. The training side writes
 and reads the same format in `policy.rl.checkpoint`.
@@ -23,7 +23,7 @@ from policy.controllers.observation import ObservationConfig
 from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, N_JOINTS
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-DEFAULT_WEIGHTS = WEIGHTS_DIR / "ddpg_actor.npz"
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "ddpg_distilled_actor.npz"
 FORMAT = "reach-stack ddpg actor v1"
 LAYERS = ["linear", "leaky_relu", "linear", "leaky_relu", "linear", "tanh"]
 #: torch's default slope, what `policy.rl.networks` builds and the json records

@@ -160,7 +160,7 @@ class DDPGConfig:
             base,
             name="robust",
             env=env,
-            init_actor="policy/controllers/weights/ddpg_actor.npz",
+            init_actor="policy/controllers/weights/ddpg_distilled_actor.npz",
             total_steps=250_000,
             expert_energy_lambda=6.0,
             expert_kp=(3.0, 3.0, 3.0, 1.5),

@@ -7,9 +7,9 @@ inputs are built by `policy.controllers.observation.build_observation` with the 
 beside the weights, so the driver feeds the network what training did.
 The weights and their format: `policy.controllers.weights`.
 
-    from policy.controllers.ddpg import make_controller
+    from policy.controllers.ddpg_distilled import make_controller
     ctrl = make_controller()                 # shipped weights,
-    policy/controllers/weights/ddpg_actor.npz,
+    policy/controllers/weights/ddpg_distilled_actor.npz,
                                              # reference integral and settle supervisor
     ctrl.reset(); currents_mA = ctrl.act(state, target)   # state has .q .qdot .t (E D C B)
 """
