@@ -1,8 +1,9 @@
 """The policy's input vector, built by ONE function for training, evaluation and the driver.
 
 A learned controller only works on inputs distributed like the ones it was trained on, so the
-environment (`policy.rl.env`) and the deployed controller (`policy.controllers.ddpg_distilled`) both call
-`build_observation` with the configuration stored beside the weights.
+environment (`policy.rl.env`) and the deployed controllers (`policy.controllers.ddpg`,
+`policy.controllers.ddpg_distilled`) call `build_observation` (through `InputMemory` when the
+network has memory channels) with the configuration stored beside the weights.
 """
 
 from __future__ import annotations
@@ -42,19 +43,53 @@ class ObservationConfig:
     include_error: bool = True
     fine_error_scale: float = 0.05  # rad; 0 disables the squashed fine-error channel
     qdot_scale: float = 1.2  # rad/s, the motors' no-load speed
+    #: the policy's own previous action (4 entries, fractions of the current limit): lets
+    #: it learn smooth commands and, with the readings, which arm it is on
+    previous_action: bool = False
+    #: s; > 0 adds a leaky mean of tanh(e / integral_error_scale) over this time constant
+    #: (4 entries in [-1, 1]): a memory of the error that stays, so the network can learn
+    #: to push through static friction or a heavier arm. 0 disables
+    integral_tau: float = 0.0
+    #: rad: where the integral channel's squashing bends (a steady 3 mrad reads 0.29)
+    integral_error_scale: float = 0.01
 
     @classmethod
     def paper(cls) -> ObservationConfig:
         return cls(normalise=False, include_error=False, fine_error_scale=0.0)
 
+    def __post_init__(self) -> None:
+        if self.integral_tau < 0 or self.integral_error_scale <= 0:
+            raise ValueError(
+                "integral_tau must be >= 0 and integral_error_scale > 0, got "
+                f"{self.integral_tau}, {self.integral_error_scale}"
+            )
+        if (self.previous_action or self.integral_tau > 0) and not (
+            self.include_error and self.fine_error_scale > 0
+        ):
+            raise ValueError("the memory channels follow the error channels: enable those too")
+
     @property
     def size(self) -> int:
+        return (self.stateless_groups + self.memory_groups) * N_JOINTS
+
+    @property
+    def stateless_groups(self) -> int:
+        """Groups of 4 built from one reading and the target alone."""
         n = 3
         if self.include_error:
             n += 1
             if self.fine_error_scale > 0:
                 n += 1
-        return n * N_JOINTS
+        return n
+
+    @property
+    def memory_groups(self) -> int:
+        """Groups of 4 that carry the past (`InputMemory`): previous action, error integral."""
+        return int(self.previous_action) + int(self.integral_tau > 0)
+
+    @property
+    def has_memory(self) -> bool:
+        return self.memory_groups > 0
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -90,9 +125,14 @@ def _affine(config: ObservationConfig) -> tuple[np.ndarray, np.ndarray]:
 
 
 def build_observation(
-    q: np.ndarray, qdot: np.ndarray, q_req: np.ndarray, config: ObservationConfig
+    q: np.ndarray,
+    qdot: np.ndarray,
+    q_req: np.ndarray,
+    config: ObservationConfig,
+    memory: InputMemory | None = None,
 ) -> np.ndarray:
-    """Observation (float32) from joint angles, speeds and the requested angles, E D C B.
+    """Observation (float32) from joint angles, speeds and the requested angles, E D C B,
+    followed by the memory channels (`memory`'s, required when the config has them).
 
     Runs every control period, so it is a handful of numpy calls on one small buffer.
     """
@@ -120,7 +160,54 @@ def build_observation(
     x *= scale
     if offset.size > 16:
         np.tanh(x[16:20], out=x[16:20])
-    return x.astype(np.float32)
+    if not config.has_memory:
+        return x.astype(np.float32)
+    if memory is None:
+        raise ValueError("this observation has memory channels: pass its InputMemory")
+    return np.concatenate([x, memory.channels()]).astype(np.float32)
+
+
+class InputMemory:
+    """What the policy's memory channels hold, updated once per control period by the env in
+    training and by the controller at run time, through the same two calls:
+
+        obs = memory.observe(q, qdot, q_req)   # folds this reading's error in, builds obs
+        memory.acted(action)                   # the action computed from obs
+
+    The integral is a leaky mean (time constant `integral_tau`, period `dt`) of the squashed
+    error of the readings the policy saw; nothing is reset but by `reset()`, at the start of
+    an episode or a run, so the network, not a rule, decides what a target change means.
+    """
+
+    def __init__(self, config: ObservationConfig, dt: float) -> None:
+        if not dt > 0:
+            raise ValueError(f"control period must be > 0, got {dt}")
+        self.config = config
+        self.dt = float(dt)
+        self.leak = float(np.exp(-dt / config.integral_tau)) if config.integral_tau > 0 else 0.0
+        self.prev_action = np.zeros(N_JOINTS)
+        self.integral = np.zeros(N_JOINTS)
+
+    def reset(self) -> None:
+        self.prev_action = np.zeros(N_JOINTS)
+        self.integral = np.zeros(N_JOINTS)
+
+    def observe(self, q: np.ndarray, qdot: np.ndarray, q_req: np.ndarray) -> np.ndarray:
+        if self.config.integral_tau > 0:
+            error = np.tanh((np.asarray(q_req) - np.asarray(q)) / self.config.integral_error_scale)
+            self.integral = self.leak * self.integral + (1.0 - self.leak) * error
+        return build_observation(q, qdot, q_req, self.config, self)
+
+    def acted(self, action: np.ndarray) -> None:
+        self.prev_action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+
+    def channels(self) -> np.ndarray:
+        parts = []
+        if self.config.previous_action:
+            parts.append(self.prev_action)
+        if self.config.integral_tau > 0:
+            parts.append(self.integral)
+        return np.concatenate(parts) if parts else np.zeros(0)
 
 
 def observation_bounds(config: ObservationConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -144,6 +231,9 @@ def observation_bounds(config: ObservationConfig) -> tuple[np.ndarray, np.ndarra
         if config.fine_error_scale > 0:
             lows.append(-np.ones(N_JOINTS))
             highs.append(np.ones(N_JOINTS))
+    for _ in range(config.memory_groups):  # previous action, integral: both in [-1, 1]
+        lows.append(-np.ones(N_JOINTS))
+        highs.append(np.ones(N_JOINTS))
     low = np.concatenate(lows).astype(np.float32)
     high = np.concatenate(highs).astype(np.float32)
     return low, high

@@ -4,9 +4,10 @@ A pair of files: `NAME.npz` holds the dense layers as float64 arrays W0 b0 W1 b1
 in, torch's layout), `NAME.json` beside it what the controller needs to rebuild the inputs and
 outputs (observation config, current limits, activation) plus the run's config and provenance.
 
-The shipped pair is `policy/controllers/weights/ddpg_distilled_actor.npz` (the data folder beside this
-module; it has no `__init__.py`, so `policy.controllers.weights` is this module). The controller
-side (`ActorWeights`) is numpy only: the control loop never imports torch. The training side writes
+The shipped pairs are `ddpg_actor` (the `ddpg` entry point, learned from scratch) and
+`ddpg_distilled_actor` in `policy/controllers/weights/`, the data folder beside this module (it
+has no `__init__.py`, so `policy.controllers.weights` is this module). The controller side
+(`ActorWeights`) is numpy only: the control loop never imports torch. The training side writes
 and reads the same format in `policy.rl.checkpoint`.
 """
 
@@ -24,6 +25,10 @@ from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, N_JOINTS
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "ddpg_distilled_actor.npz"
+#: the `ddpg` entry point's weights: the policy learned from scratch (policy.controllers.ddpg)
+LEARNED_WEIGHTS = WEIGHTS_DIR / "ddpg_actor.npz"
+#: the control rate of weights whose file does not record the env they were trained in
+DEFAULT_CONTROL_HZ = 20.0
 FORMAT = "reach-stack ddpg actor v1"
 LAYERS = ["linear", "leaky_relu", "linear", "leaky_relu", "linear", "tanh"]
 #: torch's default slope, what `policy.rl.networks` builds and the json records
@@ -85,6 +90,15 @@ class ActorWeights:
         object.__setattr__(self, "_b32", tuple(b.astype(np.float32) for b in self.biases))
         if not 0.0 <= self.leaky_slope < 1.0:
             raise ValueError(f"leaky_relu_slope must be in [0, 1), got {self.leaky_slope}")
+
+    @property
+    def control_hz(self) -> float:
+        """The control rate the actor was trained at (its env's `control_hz`)."""
+        env = self.metadata.get("env") or {}
+        hz = float(env.get("control_hz", DEFAULT_CONTROL_HZ)) if isinstance(env, dict) else 0.0
+        if not (np.isfinite(hz) and hz > 0):
+            raise ValueError(f"weights metadata: control_hz must be > 0, got {hz}")
+        return hz
 
     def forward(self, obs: np.ndarray) -> np.ndarray:
         """Actions in [-1, 1] for one observation (n,) or a batch (B, n)."""

@@ -141,6 +141,15 @@ class DDPGConfig:
     #: there, docs/training.md "Robust fine-tune"); None: BC everywhere
     bc_max_latency: float | None = None
 
+    def __post_init__(self) -> None:
+        reward = self.env.reward
+        if reward.potential_weight and reward.potential_gamma != self.gamma:
+            raise ValueError(
+                f"potential shaping keeps the optimal policy only with its gamma equal to the "
+                f"agent's: env.reward.potential_gamma {reward.potential_gamma} != gamma "
+                f"{self.gamma}"
+            )
+
     @classmethod
     def robust(cls, **overrides: Any) -> DDPGConfig:
         """Fine-tune of the shipped actor for the uncertainty envelope (issue 16): half the

@@ -27,8 +27,8 @@ from policy.controllers.observation import (
     WORKSPACE_HALF_RANGE,
     WORKSPACE_HIGH,
     WORKSPACE_LOW,
+    InputMemory,
     ObservationConfig,
-    build_observation,
     observation_bounds,
 )
 from policy.tasks.arm import ArmLike
@@ -72,6 +72,12 @@ class RewardConfig:
     #: fraction of the current limit both commands must exceed for a reversal to count
     #: (the rest metric's 10 %)
     sign_flip_threshold: float = 0.1
+    #: potential-based shaping (Ng et al. 1999), either mode: + gamma Phi(s') - Phi(s) with
+    #: Phi = -potential_weight mean_j |e_j| / half-range_j. It rewards progress towards the
+    #: goal without changing which policy is optimal, provided `potential_gamma` is the
+    #: agent's discount (DDPGConfig checks). 0 disables
+    potential_weight: float = 0.0
+    potential_gamma: float = 0.99
 
 
 @dataclass(frozen=True)
@@ -159,6 +165,7 @@ class EnvConfig:
 #: the terms of `reward_terms`, in the order they are summed
 REWARD_TERMS = (
     "precision",
+    "potential",
     "distance",
     "velocity",
     "action_change",
@@ -183,10 +190,16 @@ def reward_terms(
     prev_action: np.ndarray,
     in_bounds: bool,
     config: RewardConfig,
+    prev_q: np.ndarray | None = None,
 ) -> dict[str, float]:
     """One step's reward, term by term (signed; inactive terms 0), from the TRUE state (never
-    the noisy readings). Their sum in `REWARD_TERMS` order is the reward, exactly."""
+    the noisy readings). Their sum in `REWARD_TERMS` order is the reward, exactly. `prev_q`
+    (the true angles before the step) is needed by the potential term only."""
     terms = dict.fromkeys(REWARD_TERMS, 0.0)
+    if config.potential_weight and prev_q is not None:
+        terms["potential"] = config.potential_gamma * _potential(q, q_req, config) - _potential(
+            prev_q, q_req, config
+        )
     if not in_bounds:
         terms["out_of_bounds"] = float(config.out_of_bounds)
         return terms
@@ -211,6 +224,10 @@ def reward_terms(
         flips = sign_flips(action, prev_action, config.sign_flip_threshold)
         terms["sign_flip"] = -float(config.sign_flip_weight * np.mean(gate * flips))
     return terms
+
+
+def _potential(q: np.ndarray, q_req: np.ndarray, config: RewardConfig) -> float:
+    return -float(config.potential_weight * np.mean(np.abs(q_req - q) / WORKSPACE_HALF_RANGE))
 
 
 def compute_reward(
@@ -368,6 +385,8 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         #: commands in flight: (physics step they take effect at, currents mA)
         self._pending: deque[tuple[int, np.ndarray]] = deque()
         self._applied = np.zeros(N_JOINTS)
+        #: the observation's memory channels (previous action, error integral), if any
+        self.memory = InputMemory(config.observation, self.control_dt)
 
     # -- gymnasium API -------------------------------------------------------------------
     def reset(
@@ -421,6 +440,7 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         self._pending.clear()
         self._applied = np.zeros(N_JOINTS)
         self.steps = 0
+        self.memory.reset()
         return self._observe(), self._info(in_bounds=True)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -431,14 +451,16 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
             raise ValueError(f"action must be finite, got {action}")
         action = np.clip(action, -1.0, 1.0)
         currents = action * self.current_limits_mA
+        prev_q = np.array(self.arm.q, dtype=np.float64)
         power = self._advance(currents)
         self.steps += 1
         q, qdot = np.asarray(self.arm.q), np.asarray(self.arm.qdot)
         in_bounds = bool(np.all((q > self.bounds_low) & (q < self.bounds_high)))
         terms = reward_terms(
-            q, qdot, self.target, action, self.prev_action, in_bounds, self.config.reward
+            q, qdot, self.target, action, self.prev_action, in_bounds, self.config.reward, prev_q
         )
         self.prev_action = action
+        self.memory.acted(action)
         info = self._info(in_bounds)
         info["reward_terms"] = terms
         if power is not None:
@@ -496,7 +518,7 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
     def _observe(self) -> np.ndarray:
         q, qdot = self.readings()
         self.last_reading = (q, qdot)
-        obs = build_observation(q, qdot, self.target, self.config.observation)
+        obs = self.memory.observe(q, qdot, self.target)
         return np.clip(obs, self._obs_low, self._obs_high)
 
     def _info(self, in_bounds: bool) -> dict[str, Any]:

@@ -1,0 +1,67 @@
+"""`ddpg`: the torque policy learned by reinforcement learning from scratch, run as trained.
+
+Nothing is wrapped around the network: each period the controller builds the observation the
+env built in training (`policy.controllers.observation.InputMemory`: the readings, the
+target, and the memory channels the weights ask for, the previous action and a leaky
+integral of the error), runs the actor (numpy, no torch) and sends its action times the
+current limits. What trained it (algorithm, steps, seed, the command that reproduces it) is in
+the weights file's provenance (`reach-driver controllers`, docs/training.md).
+
+    from policy.controllers.ddpg import make_controller
+    ctrl = make_controller()                  # shipped weights, policy/controllers/weights/
+    ctrl.reset(); currents_mA = ctrl.act(state, target)   # state has .q .qdot (E D C B)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from policy.controllers.observation import InputMemory
+from policy.controllers.weights import LEARNED_WEIGHTS, ActorWeights
+from protocol.alpha5 import N_JOINTS
+from reach_driver.controllers import ControlState
+
+
+class LearnedController:
+    """The actor alone: currents (mA, E D C B) from the readings, the target and the
+    network's own memory channels, at the control rate it was trained at (`control_hz`)."""
+
+    def __init__(self, weights: ActorWeights, current_limits_mA: Any = None) -> None:
+        self.weights = weights
+        limits = weights.current_limits_mA if current_limits_mA is None else current_limits_mA
+        self.current_limits_mA = np.asarray(limits, dtype=np.float64)
+        if self.current_limits_mA.shape != (N_JOINTS,) or np.any(self.current_limits_mA < 0):
+            raise ValueError(f"current_limits_mA needs 4 values >= 0, got {limits!r}")
+        self.control_hz = weights.control_hz
+        self.memory = InputMemory(weights.observation, 1.0 / self.control_hz)
+
+    def reset(self) -> None:
+        """Forget the memory channels: a run starts as an episode did in training."""
+        self.memory.reset()
+
+    def act(self, state: ControlState, target: np.ndarray) -> np.ndarray:
+        target = np.asarray(target, dtype=np.float64)
+        if target.shape != (N_JOINTS,) or not np.all(np.isfinite(target)):
+            raise ValueError(f"target must be 4 finite angles (rad, E D C B), got {target!r}")
+        q = np.asarray(state.q, dtype=np.float64)
+        qdot = np.asarray(state.qdot, dtype=np.float64)
+        if q.shape != (N_JOINTS,) or qdot.shape != (N_JOINTS,):
+            raise ValueError(
+                f"state.q and state.qdot must have shape (4,), got {q.shape}, {qdot.shape}"
+            )
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qdot))):
+            raise ValueError(f"state must be finite, got q={q}, qdot={qdot}")
+        action = self.weights.forward(self.memory.observe(q, qdot, target))
+        self.memory.acted(action)
+        out: np.ndarray = action * self.current_limits_mA
+        return out
+
+
+def make_controller(
+    weights: str | Path | None = None, current_limits_mA: Any = None
+) -> LearnedController:
+    """DDPG-family torque policy learned from scratch (no demonstrations, no teacher)."""
+    return LearnedController(ActorWeights.load(weights or LEARNED_WEIGHTS), current_limits_mA)

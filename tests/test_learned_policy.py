@@ -1,0 +1,130 @@
+"""The learned `ddpg` policy's inputs and controller: what training saw is what the arm gets.
+
+The memory channels (previous action, leaky error integral) are state kept outside the
+network; the env (training) and `LearnedController` (run time) must keep it identically, or
+the deployed network sees inputs it never trained on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from policy.controllers.ddpg import LearnedController
+from policy.controllers.observation import InputMemory, ObservationConfig, build_observation
+from policy.controllers.weights import FORMAT, LAYERS, ActorWeights
+from policy.rl.config import DDPGConfig
+from policy.rl.env import EnvConfig, ReachAlphaEnv, RewardConfig, RewardMode, reward_terms
+from reach_driver.controllers import ControlState
+
+MEMORY_OBS = ObservationConfig(previous_action=True, integral_tau=1.0)
+
+
+def random_weights(config: ObservationConfig, seed: int = 0, hz: float = 20.0) -> ActorWeights:
+    rng = np.random.default_rng(seed)
+    sizes = [config.size, 32, 32, 4]
+    weights = tuple(rng.normal(0, 0.5, (o, i)) for i, o in zip(sizes, sizes[1:], strict=False))
+    biases = tuple(rng.normal(0, 0.1, o) for o in sizes[1:])
+    meta = {"format": FORMAT, "layers": LAYERS, "env": {"control_hz": hz}}
+    return ActorWeights(weights, biases, 0.01, config, np.array([600.0, 600, 600, 300]), meta)
+
+
+def test_memory_channels_size_and_bounds() -> None:
+    assert MEMORY_OBS.size == 28
+    assert ObservationConfig().size == 20
+    with pytest.raises(ValueError, match="memory channels"):
+        ObservationConfig(include_error=False, previous_action=True)
+    with pytest.raises(ValueError, match="integral_tau"):
+        ObservationConfig(integral_tau=-1.0)
+
+
+def test_integral_is_a_leaky_mean_of_the_squashed_error() -> None:
+    dt = 0.05
+    memory = InputMemory(MEMORY_OBS, dt)
+    q, q_req = np.full(4, 1.0), np.array([1.003, 0.997, 1.0, 1.5])
+    squashed = np.tanh((q_req - q) / MEMORY_OBS.integral_error_scale)
+    for k in range(1, 41):
+        obs = memory.observe(q, np.zeros(4), q_req)
+        expected = (1 - np.exp(-k * dt / MEMORY_OBS.integral_tau)) * squashed
+        np.testing.assert_allclose(obs[24:28], expected, rtol=1e-5, atol=1e-7)
+    # after two time constants a steady 3 mrad error reads 0.86 of tanh(0.3)
+    assert obs[24] == pytest.approx(0.8647 * np.tanh(0.3), rel=1e-3)
+    memory.acted(np.array([2.0, -0.5, 0.0, 0.25]))
+    obs = memory.observe(q, np.zeros(4), q_req)
+    np.testing.assert_allclose(obs[20:24], [1.0, -0.5, 0.0, 0.25])  # clipped as applied
+    memory.reset()
+    assert not memory.integral.any() and not memory.prev_action.any()
+
+
+def test_memory_observation_needs_its_memory() -> None:
+    with pytest.raises(ValueError, match="InputMemory"):
+        build_observation(np.ones(4), np.zeros(4), np.ones(4), MEMORY_OBS)
+
+
+def test_controller_feeds_the_network_what_the_env_fed_it() -> None:
+    """Step the env with the actor's own actions; the controller, given the readings the env
+    observed, sends exactly those actions (times the limits) at every step."""
+    weights = random_weights(MEMORY_OBS)
+    env = ReachAlphaEnv(EnvConfig(observation=MEMORY_OBS, sensor_noise=True))
+    controller = LearnedController(weights)
+    obs, _ = env.reset(seed=3)
+    controller.reset()
+    for k in range(60):
+        q, qdot = env.last_reading
+        sent = controller.act(ControlState(q, qdot, k * env.control_dt), env.target)
+        action = weights.forward(obs)
+        np.testing.assert_allclose(sent, action * weights.current_limits_mA, rtol=1e-5)
+        obs, *_ = env.step(action)
+    assert controller.control_hz == 20.0
+
+
+def test_controller_rejects_bad_input() -> None:
+    controller = LearnedController(random_weights(MEMORY_OBS))
+    state = ControlState(np.full(4, np.nan), np.zeros(4), 0.0)
+    with pytest.raises(ValueError, match="finite"):
+        controller.act(state, np.ones(4))
+    with pytest.raises(ValueError, match="target"):
+        controller.act(ControlState(np.ones(4), np.zeros(4), 0.0), np.ones(3))
+
+
+def test_weights_file_round_trip_keeps_memory_config(tmp_path: pytest.TempPathFactory) -> None:
+    weights = random_weights(MEMORY_OBS, hz=10.0)
+    path = tmp_path / "actor.npz"  # type: ignore[operator]
+    arrays = {f"W{i}": w for i, w in enumerate(weights.weights)}
+    arrays.update({f"b{i}": b for i, b in enumerate(weights.biases)})
+    np.savez(path, **arrays)
+    meta = dict(weights.metadata, observation=MEMORY_OBS.to_dict())
+    path.with_suffix(".json").write_text(json.dumps(meta))
+    loaded = ActorWeights.load(path)
+    assert loaded.observation == MEMORY_OBS
+    assert LearnedController(loaded).control_hz == 10.0
+
+
+def test_potential_shaping_telescopes() -> None:
+    """With gamma 1 the shaping terms of a trajectory sum to Phi(end) - Phi(start): progress
+    is rewarded, but no path to the same end earns more than another."""
+    config = RewardConfig(mode=RewardMode.SHAPED, potential_weight=3.0, potential_gamma=1.0)
+    rng = np.random.default_rng(1)
+    q_req = np.array([3.0, 1.5, 1.5, 1.5])
+    path = [q_req + rng.normal(0, 0.5, 4) for _ in range(30)]
+    z = np.zeros(4)
+    total = sum(
+        reward_terms(b, z, q_req, z, z, True, config, prev_q=a)["potential"]
+        for a, b in zip(path, path[1:], strict=False)
+    )
+    half_range = np.array([2.7, 1.2, 1.2, 1.15])
+
+    def phi(q: np.ndarray) -> float:
+        return -3.0 * float(np.mean(np.abs(q_req - q) / half_range))
+
+    assert total == pytest.approx(phi(path[-1]) - phi(path[0]), abs=1e-9)
+
+
+def test_potential_gamma_must_be_the_agents() -> None:
+    env = EnvConfig(reward=RewardConfig(potential_weight=1.0, potential_gamma=0.9))
+    with pytest.raises(ValueError, match="potential_gamma"):
+        DDPGConfig(env=env, gamma=0.99)
+    DDPGConfig(env=dataclasses.replace(env, reward=RewardConfig(potential_weight=1.0)))
