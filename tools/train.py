@@ -1,7 +1,7 @@
-"""Train the DDPG controller on ReachAlpha-v0, with checkpoints that survive the session.
+"""Train a torque policy on ReachAlpha-v0, with checkpoints that survive the session.
 
-    .venv/bin/python tools/train.py --config ours --run runs/ours-s0 --seed 0
-    .venv/bin/python tools/train.py --run runs/ours-s0 --resume          # continue later
+    .venv/bin/python tools/train.py --run runs/scratch-s0 --seed 0       # the shipped ddpg's recipe
+    .venv/bin/python tools/train.py --run runs/scratch-s0 --resume       # continue later
     .venv/bin/python tools/train.py --config paper --run runs/paper-s0   # the paper's DDPG
 
 Writes to the run directory: config.json, train.csv (one row per finished episode: return and
@@ -40,9 +40,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument(
         "--config",
-        default="ours",
-        choices=["ours", "paper", "robust"],
-        help="hyperparameter preset (policy.rl.config.DDPGConfig.ours / .paper / .robust)",
+        default="scratch",
+        choices=["scratch", "paper", "ours", "robust"],
+        help="hyperparameter preset, a classmethod of policy.rl.config.DDPGConfig: scratch "
+        "(the shipped ddpg, learned from scratch; default), paper (Carlucho et al. as "
+        "stated), ours and robust (the distilled stack's stages: demonstrations and "
+        "behaviour cloning from a privileged expert)",
     )
     p.add_argument("--run", type=Path, help="run directory (checkpoints, logs)")
     p.add_argument("--seed", type=int, default=0)

@@ -72,6 +72,10 @@ class RewardConfig:
     #: fraction of the current limit both commands must exceed for a reversal to count
     #: (the rest metric's 10 %)
     sign_flip_threshold: float = 0.1
+    #: x mean_j max(0, -sign(e_j) qdot_j) / no-load speed: moving AWAY from the goal, which
+    #: no shortest path does; it is what an overshoot is once the goal is crossed, and what
+    #: a sag under gravity is before it (shaped mode)
+    away_weight: float = 0.0
     #: potential-based shaping (Ng et al. 1999), either mode: + gamma Phi(s') - Phi(s) with
     #: Phi = -potential_weight mean_j |e_j| / half-range_j. It rewards progress towards the
     #: goal without changing which policy is optimal, provided `potential_gamma` is the
@@ -168,6 +172,7 @@ REWARD_TERMS = (
     "potential",
     "distance",
     "velocity",
+    "away",
     "action_change",
     "sign_flip",
     "out_of_bounds",
@@ -217,6 +222,9 @@ def reward_terms(
     terms["velocity"] = -float(
         config.velocity_weight * np.mean(gate * np.abs(qdot) / NO_LOAD_SPEEDS)
     )
+    if config.away_weight:
+        away = np.maximum(0.0, -np.sign(error) * qdot) / NO_LOAD_SPEEDS
+        terms["away"] = -float(config.away_weight * np.mean(away))
     terms["action_change"] = -float(
         config.action_change_weight * np.mean(gate * np.abs(action - prev_action))
     )
