@@ -132,8 +132,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument(
         "--ship",
         action="store_true",
-        help="copy RUN's best actor to policy/controllers/weights/ddpg_distilled_actor.npz (+ .json with "
-        "the commands, seed, config, training time and evaluation), then exit",
+        help="copy RUN's best actor to policy/controllers/weights/ddpg_actor.npz, the `ddpg` "
+        "controller's weights (+ .json with its provenance: the commands, seed, config, "
+        "training time and evaluation), then exit",
     )
     return p.parse_args(argv)
 

@@ -17,7 +17,7 @@ from typing import Any
 
 import torch
 
-from policy.controllers.weights import DEFAULT_WEIGHTS
+from policy.controllers.weights import LEARNED_WEIGHTS
 from policy.rl.config import DDPGConfig
 from policy.rl.overrides import apply_overrides, resume_overrides
 
@@ -76,7 +76,7 @@ def record_command(run_dir: Path, argv: list[str]) -> None:
         fh.write(" ".join([".venv/bin/python", "tools/train.py", *argv]) + "\n")
 
 
-def ship(run_dir: Path, dest: Path = DEFAULT_WEIGHTS) -> Path:
+def ship(run_dir: Path, dest: Path = LEARNED_WEIGHTS) -> Path:
     """Copy the run's best evaluated actor, with how it was made, to the shipped weights."""
     src = run_dir / "best_actor.npz"
     if not src.exists():
