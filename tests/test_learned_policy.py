@@ -13,6 +13,7 @@ import json
 import numpy as np
 import pytest
 
+import policy.rl.env as policy_env
 from policy.controllers.ddpg import LearnedController
 from policy.controllers.observation import InputMemory, ObservationConfig, build_observation
 from policy.controllers.weights import FORMAT, LAYERS, ActorWeights
@@ -128,3 +129,15 @@ def test_potential_gamma_must_be_the_agents() -> None:
     with pytest.raises(ValueError, match="potential_gamma"):
         DDPGConfig(env=env, gamma=0.99)
     DDPGConfig(env=dataclasses.replace(env, reward=RewardConfig(potential_weight=1.0)))
+
+
+def test_away_term_charges_moving_away_from_the_goal_only() -> None:
+    config = RewardConfig(mode=RewardMode.SHAPED, away_weight=2.0, distance_weight=0.0)
+    q_req = np.full(4, 1.5)
+    q = np.array([1.4, 1.6, 1.4, 1.6])  # E and C below the goal, D and B above
+    towards = np.array([0.5, -0.5, 0.5, -0.5])
+    z = np.zeros(4)
+    assert reward_terms(q, towards, q_req, z, z, True, config)["away"] == 0.0
+    away = reward_terms(q, -towards, q_req, z, z, True, config)["away"]
+    speeds = np.asarray(policy_env.NO_LOAD_SPEEDS)
+    assert away == pytest.approx(-2.0 * float(np.mean(0.5 / speeds)))
