@@ -41,10 +41,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument(
         "--config",
         default="scratch",
-        choices=["scratch", "paper", "ours", "robust"],
+        choices=["scratch", "paper", "paper-per-joint", "ours", "robust"],
         help="hyperparameter preset, a classmethod of policy.rl.config.DDPGConfig: scratch "
         "(the shipped ddpg, learned from scratch; default), paper (Carlucho et al. as "
-        "stated), ours and robust (the distilled stack's stages: demonstrations and "
+        "stated, the reward on the norm of the error), paper-per-joint (its reward per "
+        "joint), ours and robust (the distilled stack's stages: demonstrations and "
         "behaviour cloning from a privileged expert)",
     )
     p.add_argument("--run", type=Path, help="run directory (checkpoints, logs)")

@@ -191,7 +191,16 @@ class DDPGConfig:
 
     @classmethod
     def paper(cls, **overrides: Any) -> DDPGConfig:
+        """The paper's configuration as stated, its reward read as a Gaussian of the NORM of
+        the four joints' error: -1 + exp(-0.5 (|e| / 0.018)^2)."""
         return dataclasses.replace(cls(), **overrides)
+
+    @classmethod
+    def paper_per_joint(cls, **overrides: Any) -> DDPGConfig:
+        """The paper's configuration with its reward read per joint: the mean of four
+        Gaussians, -1 + mean_j exp(-0.5 (e_j / 0.018)^2). Everything else as `paper()`."""
+        env = EnvConfig(reward=RewardConfig(mode=RewardMode.SHAPED, distance_weight=0.0))
+        return dataclasses.replace(cls(name="paper-per-joint", env=env), **overrides)
 
     @classmethod
     def ours(cls, **overrides: Any) -> DDPGConfig:
@@ -286,6 +295,7 @@ class DDPGConfig:
     def preset(cls, name: str, **overrides: Any) -> DDPGConfig:
         presets: dict[str, Callable[..., DDPGConfig]] = {
             "paper": cls.paper,
+            "paper-per-joint": cls.paper_per_joint,
             "scratch": cls.scratch,
             "ours": cls.ours,
             "robust": cls.robust,
