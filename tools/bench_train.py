@@ -12,8 +12,12 @@ updates/s and transitions learned from per second (updates x batch), each as a r
 Contenders:
   sb3     SB3 DDPG, batch 64, one update per env step (train_freq 1, gradient_steps 1)
   paper   our loop with the paper's settings: 1 env, batch 64, one update per step
-  ours    our loop as the shipped run trains: 8 envs per round, batch 256, 2 updates per
-          round (same transitions learned from per env step as the paper's 64), twin critics
+  ours    our loop as the distilled stack's first stage trained: 8 envs per round, batch
+          256, 2 updates per round (the paper's 64 transitions learned from per env step),
+          twin critics
+  scratch the `scratch` preset as it trains the shipped `ddpg`, its own env included
+          (memory channels, shaped reward, envelope arms): 256-256 networks, 16 envs per
+          round, batch 256, 2 updates per round (32 transitions per env step)
 """
 
 from __future__ import annotations
@@ -194,11 +198,20 @@ def main(argv: list[str] | None = None) -> int:
         target_noise=0.1,
         tau=0.005,
     )
+    scratch = DDPGConfig.scratch(
+        seed=args.seed,
+        learning_starts=args.warmup,
+        eval_every=10**9,
+        total_steps=10**9,
+        buffer_size=200_000,
+        eval_envelope_episodes=0,
+    )
     tmp = tempfile.TemporaryDirectory()
     contenders: dict[str, Callable[[], dict[str, float]]] = {
         "sb3": bench_sb3(paper.env, args.warmup, args.steps, args.seed),
         "paper": bench_ours(paper, args.warmup, args.steps, tmp.name + "/paper"),
         "ours": bench_ours(ours, args.warmup, args.steps, tmp.name + "/ours"),
+        "scratch": bench_ours(scratch, args.warmup, args.steps, tmp.name + "/scratch"),
     }
     results: dict[str, list[dict[str, float]]] = {name: [] for name in contenders}
     for r in range(args.rounds):
