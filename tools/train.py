@@ -1,12 +1,13 @@
-"""Train the DDPG controller on ReachAlpha-v0, with checkpoints that survive the session.
+"""Train an actor on ReachAlpha-v0 (DDPG, TD3, TD3 + behaviour cloning from the PD expert, as
+the config says), with checkpoints that survive the session.
 
-    .venv/bin/python tools/train.py --config ours --run runs/ours-s0 --seed 0
+    .venv/bin/python tools/train.py --config ours --run runs/ours-s0 --seed 0   # TD3+BC
     .venv/bin/python tools/train.py --run runs/ours-s0 --resume          # continue later
     .venv/bin/python tools/train.py --config paper --run runs/paper-s0   # the paper's DDPG
 
 Writes to the run directory: config.json, train.csv (one row per finished episode: return and
 losses), eval.jsonl (periodic deterministic evaluation), best_actor.npz/.json (best evaluated
-actor, the format policy/controllers/weights/ ships), checkpoint.pt + buffer.npz (everything to
+actor with its provenance, the format policy/controllers/weights/ ships), checkpoint.pt + buffer.npz (everything to
 resume), commands.txt (every command given), train.log (what was printed).
 
 `--resume --set KEY=VALUE` applies the fields a resumed run can change (learning rates, batch
@@ -27,7 +28,7 @@ from typing import Any
 
 from policy.campaigns.selection import envelope_results, envelope_summary
 from policy.controllers.weights import DEFAULT_WEIGHTS
-from policy.rl.run_dir import record_command, ship, start_run
+from policy.rl.run_dir import COMMANDS, record_command, ship, start_run
 from policy.rl.scoring import evaluate_weights, params_arm_factory
 from policy.rl.session import Sitting, train_run
 from reach_driver.controllers import load_controller
@@ -74,7 +75,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--evaluate",
         metavar="WEIGHTS",
         default=None,
-        help="score an actor (.npz path, 'shipped', or 'expert' for the PD "
+        help="score an actor (.npz path; 'shipped' for the distilled actor of ddpg-distilled, "
+        "policy/controllers/weights/ddpg_distilled_actor.npz; or 'expert' for the PD "
         "demonstrator) on --episodes fixed episodes with sensor noise, nominal "
         "and with E at 25%% torque, print the metrics as JSON, then exit",
     )
@@ -100,8 +102,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         type=int,
         default=None,
         metavar="N",
-        help="with --evaluate WEIGHTS|shipped: run the `ddpg` controller as shipped (actor + "
-        "reference integral; --pure: the actor alone) on N arms drawn from the uncertainty "
+        help="with --evaluate WEIGHTS|shipped: run the `ddpg-distilled` controller with those "
+        "weights (actor + reference integral + settle supervisor; --pure: "
+        "`ddpg-distilled-pure`, the actor alone) on N arms drawn from the uncertainty "
         "envelope (policy.tasks.envelope.draws(N, --envelope-seed)), one episode each "
         "(random_episodes(N, --episode-seed)), sensor noise on; print reached / at rest / "
         "overshoot as JSON",
@@ -129,8 +132,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument(
         "--ship",
         action="store_true",
-        help="copy RUN's best actor to policy/controllers/weights/ddpg_distilled_actor.npz (+ .json with "
-        "the commands, seed, config, training time and evaluation), then exit",
+        help="copy RUN's best actor to policy/controllers/weights/ddpg_distilled_actor.npz, the "
+        "weights of `ddpg-distilled` (+ .json with the commands, seed, config, training time, "
+        "evaluation and provenance), then exit",
     )
     return p.parse_args(argv)
 
@@ -142,7 +146,7 @@ def evaluate_envelope(args: argparse.Namespace) -> dict[str, Any]:
     if args.envelope < 1:
         raise SystemExit(f"--envelope needs N >= 1, got {args.envelope}")
     path = DEFAULT_WEIGHTS if args.evaluate == "shipped" else Path(args.evaluate)
-    name = "ddpg-pure" if args.pure else "ddpg"
+    name = "ddpg-distilled-pure" if args.pure else "ddpg-distilled"
     try:
         controller = load_controller(name, weights=str(path))
     except DriverError as exc:
@@ -180,8 +184,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     start = start_run(run_dir, args.resume, args.config, args.seed, args.steps, args.set)
     record_command(run_dir, argv or sys.argv[1:])
+    # every command the run was given (the start, then each resume): the actor's provenance
+    command = "; ".join((run_dir / COMMANDS).read_text().splitlines())
     sitting = Sitting(args.until, args.hours, args.checkpoint_minutes, bar=not args.no_progress)
-    return train_run(run_dir, start, args.resume, arm_factory, sitting)
+    return train_run(run_dir, start, args.resume, arm_factory, sitting, command)
 
 
 if __name__ == "__main__":
