@@ -134,8 +134,8 @@ def bench_inference(n: int) -> None:
 
     print(f"\n{'inference':<22} {'p50 us':>8} {'p99 us':>8} {'max us':>8}")
     contenders = (
-        ("ddpg act (shipped)", numpy_act),
-        ("ddpg act, settle=0", bare_act),
+        ("ddpg-distilled act (shipped)", numpy_act),
+        ("ddpg-distilled act, settle=0", bare_act),
         ("torch actor + obs", torch_act),
     )
     for name, fn in contenders:

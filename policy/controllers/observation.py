@@ -1,8 +1,8 @@
 """The policy's input vector, built by ONE function for training, evaluation and the driver.
 
 A learned controller only works on inputs distributed like the ones it was trained on, so the
-environment (`policy.rl.env`) and the deployed controller (`policy.controllers.ddpg_distilled`) both call
-`build_observation` with the configuration stored beside the weights.
+environment (`policy.rl.env`) and the deployed controller (`policy.controllers.ddpg_distilled`)
+both call `build_observation` with the configuration stored beside the weights.
 """
 
 from __future__ import annotations
