@@ -55,7 +55,8 @@ bench: $(BSTAMP)
 	if [ -n "$$missed" ]; then echo "benchmarks that missed their aim:$$missed" >&2; exit 1; fi; \
 	echo "all benchmarks met their aims"
 
-# The shipped DDPG through `reach-driver` on the virtual arm, real time (~25 s); writes demo.rrd.
+# The shipped learned controller (for now ddpg-distilled: an actor distilled from a PD expert)
+# through `reach-driver` on the virtual arm, real time (~25 s); writes demo.rrd.
 # e.g. make demo DEMO_ARGS="--speed 4 --scenario 3"
 demo: install
 	$(PY) tools/demo.py $(DEMO_ARGS)

@@ -11,8 +11,13 @@ from reach_driver.client import ArmClient, ClientStats
 from reach_driver.control import ControlLoop, Pacing
 from reach_driver.controllers import (
     Controller,
+    ControllerInfo,
+    ControllerKind,
     ControlState,
     available_controllers,
+    describe_controllers,
+    engineered,
+    learned,
     load_controller,
 )
 from reach_driver.errors import (
@@ -55,6 +60,8 @@ __all__ = [
     "ControlState",
     "ControlSummary",
     "Controller",
+    "ControllerInfo",
+    "ControllerKind",
     "DriverError",
     "EventKind",
     "GarbageError",
@@ -83,6 +90,9 @@ __all__ = [
     "TransportStats",
     "WatchdogTrippedError",
     "available_controllers",
+    "describe_controllers",
+    "engineered",
+    "learned",
     "load_controller",
     "open_transport",
 ]

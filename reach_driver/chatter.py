@@ -1,10 +1,11 @@
 """Chatter: a joint caught in a sustained limit cycle around its goal (docs/chatter.md).
 
 A controller can keep every command inside the limits and still bang-bang a joint across its
-goal at full speed for as long as it is left running (the shipped DDPG does this on a few
-per cent of degraded arms, docs/results.md). Neither the limits nor the watchdog see it. The
-detector here does, from the streams the control loop already has: per joint the error to
-the target, the speed, the commanded current and the loop time.
+goal at full speed for as long as it is left running (the distilled actor without its settle
+supervisor, `ddpg-distilled --param settle=0`, does this on a few per cent of degraded arms,
+docs/results.md). Neither the limits nor the watchdog see it. The detector here does, from
+the streams the control loop already has: per joint the error to the target, the speed, the
+commanded current and the loop time.
 
 Definition (per joint, one sample per control step):
 

@@ -7,13 +7,20 @@ through the `reach_stack.controllers` entry points.
 Like python-can's interface plugins: the driver never imports `policy` (or anyone else's
 controller package); a package registers `name = "module:factory"` and the factory is called
 with keyword arguments to build an object with `reset()` and `act(state, target)`.
+
+A factory may also say what it is, for `reach-driver controllers` (`describe_controllers`): the
+first line of its docstring is its summary, and the decorators `learned(provenance)` and
+`engineered` mark how it was made; a learned one's `provenance()` says how it was trained
+(algorithm, demonstrations, teacher, env steps...), so nobody has to guess from its name.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from enum import Enum
 from importlib.metadata import EntryPoint, entry_points
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
@@ -88,3 +95,90 @@ def load_controller(name: str, **kwargs: Any) -> Controller:
         if not callable(getattr(controller, method, None)):
             raise DriverError(f"controller {name!r} ({ep.value}) has no {method}() method")
     return controller  # type: ignore[no-any-return]
+
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+class ControllerKind(str, Enum):
+    """How a registered controller was made, as its factory declares it."""
+
+    LEARNED = "learned"  #: its factory has a `provenance()` (how it was trained)
+    ENGINEERED = "engineered"  #: marked `@engineered`: designed and tuned, nothing learned
+    UNDECLARED = "undeclared"  #: a plain factory that says neither (or failed to load)
+
+
+def learned(provenance: Callable[[], Mapping[str, Any]]) -> Callable[[F], F]:
+    """Mark a factory as building a learned controller whose training `provenance()` tells
+    (called only when asked: it may read a weights file). The factory itself is unchanged."""
+
+    def mark(factory: F) -> F:
+        factory.provenance = provenance  # type: ignore[attr-defined]
+        factory.controller_kind = ControllerKind.LEARNED  # type: ignore[attr-defined]
+        return factory
+
+    return mark
+
+
+def engineered(factory: F) -> F:
+    """Mark a factory as building an engineered controller (designed and tuned, not learned)."""
+    factory.controller_kind = ControllerKind.ENGINEERED  # type: ignore[attr-defined]
+    return factory
+
+
+@dataclass(frozen=True)
+class ControllerInfo:
+    """One registered controller as `reach-driver controllers` lists it. `error` says why its
+    entry point (or its provenance) could not be loaded; the rest is then what is known."""
+
+    name: str
+    target: str  #: the entry point's "module:attr"
+    summary: str  #: the first line of the factory's docstring ("" if it has none)
+    provenance: dict[str, Any] | None  #: a learned controller's, else None
+    error: str | None
+    kind: ControllerKind = ControllerKind.UNDECLARED
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "target": self.target,
+            "kind": self.kind.value,
+            "summary": self.summary,
+            "provenance": self.provenance,
+            "error": self.error,
+        }
+
+
+def _summary(factory: object) -> str:
+    for line in (getattr(factory, "__doc__", None) or "").strip().splitlines():
+        if line.strip():
+            return line.strip()
+    return ""
+
+
+def _describe(ep: EntryPoint) -> ControllerInfo:
+    try:
+        factory = ep.load()
+    except Exception as exc:  # a broken plugin is listed with its error, never a traceback
+        return ControllerInfo(ep.name, ep.value, "", None, f"{type(exc).__name__}: {exc}")
+    summary = _summary(factory)
+    kind = getattr(factory, "controller_kind", ControllerKind.UNDECLARED)
+    if not isinstance(kind, ControllerKind):
+        kind = ControllerKind.UNDECLARED
+    provenance_of = getattr(factory, "provenance", None)
+    if not callable(provenance_of):
+        return ControllerInfo(ep.name, ep.value, summary, None, None, kind)
+    try:
+        provenance = dict(provenance_of())
+    except Exception as exc:  # e.g. its weights file is missing
+        error = f"provenance: {type(exc).__name__}: {exc}"
+        return ControllerInfo(ep.name, ep.value, summary, None, error, ControllerKind.LEARNED)
+    return ControllerInfo(ep.name, ep.value, summary, provenance, None, ControllerKind.LEARNED)
+
+
+def describe_controllers() -> list[ControllerInfo]:
+    """Every registered controller, by name: what it is and, for a learned one, how it was
+    trained. Each entry point is loaded (imported) to read its docstring; one that fails is
+    listed with `error` set instead of raising."""
+    eps = _entry_points()
+    return [_describe(eps[name]) for name in sorted(eps)]

@@ -57,7 +57,8 @@ def feed(
 def chatter(
     n: int, error: float = 0.008, speed: float = 1.17, mA: float = 270.0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """What the shipped DDPG does on a few degraded arms (docs/results.md): the sign of the
+    """What the distilled actor without its settle supervisor does on a few degraded arms
+    (docs/results.md): the sign of the
     error, the speed and the command flip every step."""
     signs = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
     return error * signs, -speed * signs, mA * signs
@@ -173,7 +174,8 @@ def test_the_configuration_is_validated_and_the_guard_is_on_by_default() -> None
 class BangBang:
     """A PID, except that within 0.1 rad of its goal joint C bang-bangs at half its current
     limit, flipping every step, about a small pull to the goal. C then cycles like the
-    shipped DDPG does on its bad arms: a reversal every step at ~1.15 rad/s, +-5 mrad."""
+    distilled actor (without its settle supervisor) does on its bad arms: a reversal every
+    step at ~1.15 rad/s, +-5 mrad."""
 
     def __init__(self) -> None:
         self.pid = load_controller("pid")
@@ -264,9 +266,9 @@ def test_pid_over_the_same_episode_runs_to_the_end(sim: SimServer) -> None:
     assert summary.left_in == "zero_velocity (confirmed by the arm)"
 
 
-# The arm on which the DDPG actor with its reference integral (the shipped controller before
-# the settle supervisor) chatters in the direct runner: episode 33 of `tools/evaluate.py
-# --controller ddpg --param settle=0 --random 60 --seed 12000 --noise --perturb 0.2`.
+# The arm on which the distilled actor with its reference integral (`ddpg-distilled` without
+# its settle supervisor) chatters in the direct runner: episode 33 of `tools/evaluate.py
+# --controller ddpg-distilled --param settle=0 --random 60 --seed 12000 --noise --perturb 0.2`.
 BAD_SEED, BAD_EPISODE = 12000, 33
 BAD_CONFIG = RunConfig(seed=BAD_SEED, param_spread=0.2, noise=SensorNoise())
 
@@ -282,9 +284,9 @@ def direct_on_the_bad_arm(name: str, **params: Any):
 
 def test_the_actors_chatter_in_the_direct_runner_is_caught_and_the_pids_rest_is_not() -> None:
     screen = chatter_screen  # what tools/screen_chatter.py runs
-    ddpg = direct_on_the_bad_arm("ddpg", settle=False)
-    assert ddpg.metrics.energy_j > 50.0  # the measured chatter: 63.7 J
-    verdict, _ = screen.replay(ddpg)
+    distilled = direct_on_the_bad_arm("ddpg-distilled", settle=False)
+    assert distilled.metrics.energy_j > 50.0  # the measured chatter: 63.7 J
+    verdict, _ = screen.replay(distilled)
     assert verdict is not None and verdict.letter == "C"
     # C arrives at ~1 s and bang-bangs a reversal per step: caught 5 s into it.
     assert verdict.t < 7.0 and verdict.reversals > 90
@@ -293,13 +295,13 @@ def test_the_actors_chatter_in_the_direct_runner_is_caught_and_the_pids_rest_is_
     assert screen.replay(pid) == (None, 0)
 
 
-def test_the_shipped_ddpg_comes_to_rest_on_the_arm_where_its_actor_chatters() -> None:
+def test_the_shipped_ddpg_distilled_comes_to_rest_on_the_arm_where_its_actor_chatters() -> None:
     """The settle supervisor hands C to its settle law: no chatter for the guard to see."""
     screen = chatter_screen  # what tools/screen_chatter.py runs
-    ddpg = direct_on_the_bad_arm("ddpg")
-    assert ddpg.metrics.reached and ddpg.metrics.at_rest
-    assert ddpg.metrics.energy_j < 20.0  # its neighbours' ~12 J, not the actor's 63.7 J
-    assert screen.replay(ddpg) == (None, 0)
+    distilled = direct_on_the_bad_arm("ddpg-distilled")
+    assert distilled.metrics.reached and distilled.metrics.at_rest
+    assert distilled.metrics.energy_j < 20.0  # its neighbours' ~12 J, not the actor's 63.7 J
+    assert screen.replay(distilled) == (None, 0)
 
 
 def run_on_the_bad_arm(
@@ -340,7 +342,7 @@ def test_the_actor_over_that_episode_through_the_driver_is_stopped_iff_it_chatte
     # actor chatters on this arm depends on the host's timing: on a lightly loaded host it
     # does (stopped at ~8 s), on a heavily loaded one it has settled. Either way the guard
     # must be right.
-    summary, held = run_on_the_bad_arm(sim_factory, "ddpg", seconds=14.0, settle=False)
+    summary, held = run_on_the_bad_arm(sim_factory, "ddpg-distilled", seconds=14.0, settle=False)
     if summary.chatter is None:
         assert summary.ok, summary.stopped_by
         assert summary.trace is not None
@@ -353,10 +355,10 @@ def test_the_actor_over_that_episode_through_the_driver_is_stopped_iff_it_chatte
 
 
 @pytest.mark.slow
-def test_the_shipped_ddpg_over_the_chattering_controllers_episode_runs_to_the_end(
+def test_the_shipped_ddpg_distilled_over_the_chattering_controllers_episode_runs_to_the_end(
     sim: SimServer,
 ) -> None:
-    summary = run_on(sim, load_controller("ddpg"), SafetyConfig())
+    summary = run_on(sim, load_controller("ddpg-distilled"), SafetyConfig())
     assert summary.ok and summary.chatter is None, summary.stopped_by
 
 

@@ -100,8 +100,8 @@ HOSTILE = {
     "run --param kp=nan": ([*_run(), "--param", "kp=nan"], "finite"),
     "run --param kp=1,inf": ([*_run(), "--param", "kp=1,inf,1,1"], "finite"),
     "run --param weights=missing.npz": (
-        ["run", "--controller", "ddpg", "--target", "3", "1.5", "1.5", "3", "--seconds", "1"]
-        + ["--param", "weights=missing.npz"],
+        ["run", "--controller", "ddpg-distilled", "--target", "3", "1.5", "1.5", "3"]
+        + ["--seconds", "1", "--param", "weights=missing.npz"],
         "missing.npz",
     ),
     "--retries -5": (["--retries", "-5", "info"], "must be >= 0"),

@@ -354,17 +354,18 @@ def test_run_json_is_one_object_with_the_summary_and_metrics(sim, capsys) -> Non
 
 
 def test_run_says_and_records_what_the_controllers_supervisor_did(sim, tmp_path, capsys) -> None:
-    """A controller's `report()` (here the shipped ddpg's settle supervisor) is printed after
+    """A controller's `report()` (here ddpg-distilled's settle supervisor) is printed after
     the metrics, is in the JSON, and is kept in the recording's summary."""
     from reach_driver.rrd_summary import summarize_recording
 
     target = sim.snapshot().q + np.array([0.6, -0.5, 0.5, 0.6])  # far enough to time latency
     record = tmp_path / "settle.rrd"
-    argv = ["--port", str(sim.link), "--watchdog", str(WATCHDOG_S), "run", "--controller", "ddpg"]
+    argv = ["--port", str(sim.link), "--watchdog", str(WATCHDOG_S), "run"]
+    argv += ["--controller", "ddpg-distilled"]
     argv += ["--target", *map(str, target), "--seconds", "1.5", "-q"]
     assert main([*argv, "--record", str(record)]) == Exit.OK
     out = capsys.readouterr().out
-    assert "controller ddpg: settle supervisor: loop latency timed at " in out, out
+    assert "controller ddpg-distilled: settle supervisor: loop latency timed at " in out, out
     summary: dict[str, Any] = summarize_recording(record)
     recorded = summary["recorded_summary"]["controller_report"]
     assert recorded["settle"]["latency_periods"] >= 0.0

@@ -52,8 +52,8 @@ def modes(sim: SimServer) -> list[Mode]:
 # (the fixture's and run_episode_via_driver's) pauses with the host (conftest.
 # arm_pauses_with_host). What a loaded host still does is run the control loop late now and
 # then, so that it skips a tick (counted): a period is 50 ms of wall time at 1x, 25 ms at 2x,
-# and the DDPG and lambda runs below overshoot when ticks go missing (seen at 2x under a busy
-# loop: lambda 50 % past its goal).
+# and the ddpg-distilled and lambda runs below overshoot when ticks go missing (seen at 2x under
+# a busy loop: lambda 50 % past its goal).
 pytestmark = [
     pytest.mark.sim(speed=1.0, start=SCENARIO_1.start),
     pytest.mark.usefixtures("arm_pauses_with_host"),
@@ -63,10 +63,10 @@ pytestmark = [
 # ------------------------------------------------------------------------- fast: pure logic
 
 
-def test_ddpg_runs_at_the_rate_it_was_trained_at() -> None:
-    ddpg = load_controller("ddpg")
-    trained_hz = ddpg.weights.metadata["env"]["control_hz"]  # type: ignore[attr-defined]
-    period, warning = control_period(ddpg, None)
+def test_ddpg_distilled_runs_at_the_rate_it_was_trained_at() -> None:
+    distilled = load_controller("ddpg-distilled")
+    trained_hz = distilled.weights.metadata["env"]["control_hz"]  # type: ignore[attr-defined]
+    period, warning = control_period(distilled, None)
     assert period == pytest.approx(1.0 / trained_hz) and warning is None
     pid = load_controller("pid", period_s=0.1)
     assert control_period(pid, None) == (0.1, None)
@@ -215,7 +215,7 @@ def test_a_target_outside_the_limits_is_refused_and_nothing_moves(
     q0 = sim.snapshot().q
     record = tmp_path / "refused.rrd"
     target = [*SCENARIO_1.target[:3], 6.5]  # B beyond 2 pi
-    argv = ["--port", str(sim.link), "run", "--controller", "ddpg", "--target"]
+    argv = ["--port", str(sim.link), "run", "--controller", "ddpg-distilled", "--target"]
     argv += [*map(str, target), "--seconds", "5", "--record", str(record)]
     assert main(argv) == Exit.LIMIT
     err = capsys.readouterr().err
@@ -226,12 +226,12 @@ def test_a_target_outside_the_limits_is_refused_and_nothing_moves(
 
 
 @pytest.mark.slow
-def test_ddpg_reaches_scenario_1_through_reach_driver_and_prints_its_metrics(
+def test_ddpg_distilled_reaches_scenario_1_through_reach_driver_and_prints_its_metrics(
     sim: SimServer, tmp_path: Path, capsys: Any
 ) -> None:
-    record = tmp_path / "ddpg.rrd"
+    record = tmp_path / "ddpg-distilled.rrd"
     argv = ["--port", str(sim.link), "--watchdog", str(WATCHDOG_S), "run", "--controller"]
-    argv += ["ddpg", "--target", *map(str, SCENARIO_1.target), "--seconds", "8"]
+    argv += ["ddpg-distilled", "--target", *map(str, SCENARIO_1.target), "--seconds", "8"]
     argv += ["--record", str(record)]
     code = main(argv)
     out = capsys.readouterr().out
@@ -382,10 +382,10 @@ def test_a_stalled_controller_is_stopped_by_the_watchdog(
 @pytest.mark.slow
 def test_the_driver_path_agrees_with_the_direct_environment() -> None:
     """Same controller, same episode: the protocol path must not degrade control."""
-    ddpg = load_controller("ddpg")
+    distilled = load_controller("ddpg-distilled")
     config = RunConfig(seconds=8.0)
-    direct = run_episode(ddpg, SCENARIO_1, config)
-    via = run_episode_via_driver(ddpg, SCENARIO_1, config, DriverConfig(speed=2.0))
+    direct = run_episode(distilled, SCENARIO_1, config)
+    via = run_episode_via_driver(distilled, SCENARIO_1, config, DriverConfig(speed=2.0))
     d, v = direct.metrics, via.result.metrics
     assert via.result.trace.q.shape == direct.trace.q.shape == (161, 4)
     assert abs(v.rmse - d.rmse) <= AGREEMENT.rmse_rel * d.rmse
@@ -407,11 +407,11 @@ def test_the_driver_path_agrees_with_the_direct_environment() -> None:
 @pytest.mark.slow
 def test_the_torque_limited_scenario_through_the_driver() -> None:
     """Scenario 3: E at 25 % torque, set on the served arm, slows E as in the direct env."""
-    ddpg = load_controller("ddpg")
+    distilled = load_controller("ddpg-distilled")
     config = RunConfig(seconds=10.0)
-    via = run_episode_via_driver(ddpg, SCENARIO_3, config, DriverConfig(speed=4.0))
-    weak = run_episode(ddpg, SCENARIO_3, config)
-    strong = run_episode(ddpg, Episode(SCENARIO_3.start, SCENARIO_3.target), config)
+    via = run_episode_via_driver(distilled, SCENARIO_3, config, DriverConfig(speed=4.0))
+    weak = run_episode(distilled, SCENARIO_3, config)
+    strong = run_episode(distilled, Episode(SCENARIO_3.start, SCENARIO_3.target), config)
     # E at 1 s through the driver is where the weak arm's E is within 2 periods of 1 s (at 4x
     # real time a loaded machine slips the served clock by a period or so: E then moves 0.048
     # rad a period), and far short of where the full-torque arm's is (0.25 rad further)
@@ -426,12 +426,12 @@ def test_the_torque_limited_scenario_through_the_driver() -> None:
 
 @pytest.mark.slow
 def test_one_percent_corrupted_bytes_are_survived() -> None:
-    ddpg = load_controller("ddpg")
+    distilled = load_controller("ddpg-distilled")
     config = RunConfig(seconds=8.0)
     via = run_episode_via_driver(
-        ddpg, SCENARIO_1, config, DriverConfig(speed=4.0, corrupt_rate=0.01, seed=3)
+        distilled, SCENARIO_1, config, DriverConfig(speed=4.0, corrupt_rate=0.01, seed=3)
     )
-    direct = run_episode(ddpg, SCENARIO_1, config)
+    direct = run_episode(distilled, SCENARIO_1, config)
     timing = via.timing_dict()
     assert via.bad_frames > 50  # ~10 % of frames damaged, each counted
     assert timing["partial_states"] > 10  # ticks completed from the previous one
@@ -490,7 +490,7 @@ def test_evaluate_via_driver_writes_metrics_and_loop_timing(tmp_path: Path) -> N
 
 
 @pytest.mark.slow
-def test_demo_runs_ddpg_through_the_cli_and_writes_a_recording(tmp_path: Path) -> None:
+def test_demo_runs_ddpg_distilled_through_the_cli_and_writes_a_recording(tmp_path: Path) -> None:
     record = tmp_path / "demo.rrd"
     demo = [sys.executable, str(ROOT / "tools" / "demo.py"), "--speed", "4", "--seconds", "4"]
     proc = subprocess.run(

@@ -417,7 +417,8 @@ IDENTIFIED = ROOT / "tests" / "data" / "identified_seed11.json"
 
 
 def test_the_fitted_twin_predicts_controller_metrics() -> None:
-    """The issue's target for the gap a twin closes: pid and ddpg on the fitted twin spend
+    """The issue's target for the gap a twin closes: pid and ddpg-distilled on the fitted
+    twin spend
     within 5 % of the energy they spend on the hidden arm and settle within 0.1 s of it, on
     every episode, and closer than on the nominal twin (measured: docs/identification.md)."""
     from policy.campaigns.evaluation import RunConfig, random_episodes
@@ -425,7 +426,7 @@ def test_the_fitted_twin_predicts_controller_metrics() -> None:
     hidden = ArmParams().randomized(11)
     fitted = load_arm_params(IDENTIFIED)
     gaps = twin_gap.measure_gap(
-        ["pid", "ddpg"], hidden, fitted, random_episodes(2, 0), RunConfig(seconds=10)
+        ["pid", "ddpg-distilled"], hidden, fitted, random_episodes(2, 0), RunConfig(seconds=10)
     )
     for g in gaps:
         assert g.meets_targets("fitted"), g.summary()

@@ -2,7 +2,7 @@
 
 What it must do: predict the arm exactly through the commands in flight when its twin is the
 arm, drive a frictionless arm with two periods of latency to its goal without overshoot where
-the DDPG actor overshoots, refuse bad settings, and take its twin from a file, a dict or a
+the distilled actor overshoots, refuse bad settings, and take its twin from a file, a dict or a
 campaign (`tools/robustness.py --twin`).
 """
 
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from policy.campaigns.direct import DirectArm
-from policy.controllers.ddpg_distilled import make_controller as make_ddpg
+from policy.controllers.ddpg_distilled import make_controller as make_distilled
 from policy.controllers.lambda_control import LambdaConfig, LambdaController, make_controller
 from policy.tasks.envelope import corners
 from policy.tasks.episodes import Episode, EpisodeResult, RunConfig
@@ -107,7 +107,7 @@ def _latent_frictionless_corner() -> tuple[ArmParams, tuple[float, float, float,
 
 
 def test_a_latent_frictionless_arm_is_reached_without_the_overshoot_of_the_actor() -> None:
-    """No Coulomb friction and two periods of latency: the DDPG actor (trained on 0.7 N m and
+    """No Coulomb friction and two periods of latency: the distilled actor (trained on 0.7 N m and
     no latency) carries joints well through their goals; the lambda controller, told the
     arm, arrives without going 2 % past."""
     params, scale, latency = _latent_frictionless_corner()
@@ -121,11 +121,11 @@ def test_a_latent_frictionless_arm_is_reached_without_the_overshoot_of_the_actor
     lam = DirectArm().run(
         LambdaController(twin, LambdaConfig(latency_periods=latency)), episode, config, 0
     )
-    ddpg = DirectArm().run(make_ddpg(), episode, config, 0)
+    distilled = DirectArm().run(make_distilled(), episode, config, 0)
     assert lam.metrics.reached and lam.metrics.at_rest
     assert lam.metrics.overshoot_pct < 2.0
     assert np.all(np.abs(lam.final_error) < 0.005)
-    assert ddpg.metrics.overshoot_pct > 5.0  # what the twin is worth here
+    assert distilled.metrics.overshoot_pct > 5.0  # what the twin is worth here
 
 
 def _noisy_small_step(

@@ -39,7 +39,7 @@ START = np.array([2.0, 1.0, 1.5, 1.0])
 def _settled_then(chatter_from: float | None, seed: int = 0) -> Trace:
     """Joints ramp to the target at 1 rad/s and hold (gravity-holding command on D and C,
     sensor-size noise); from ``chatter_from`` C bang-bangs +-8 mrad at the no-load speed
-    with +-260 mA reversing every period, as the degraded-arm DDPG episode does."""
+    with +-260 mA reversing every period, as the degraded-arm distilled-actor episode does."""
     rng = np.random.default_rng(seed)
     t = np.arange(N + 1) * DT
     step = TARGET - START
@@ -184,13 +184,13 @@ CHATTERING = 33  # docs/metrics.md, "Rest": 63.7 J where its neighbours spend ab
 
 
 @pytest.mark.slow
-def test_the_degraded_arm_ddpg_chatter_is_flagged_and_its_neighbours_are_not() -> None:
-    """`tools/evaluate.py --controller ddpg --param settle=0 --random 60 --seed 12000 --noise
-    --perturb 0.2`, episodes 32-34, through the direct backend (about 0.5 s each): the actor
+def test_the_degraded_arm_distilled_actor_chatter_is_flagged_and_its_neighbours_are_not() -> None:
+    """`tools/evaluate.py --controller ddpg-distilled --param settle=0 --random 60 --seed 12000
+    --noise --perturb 0.2`, episodes 32-34, through the direct backend (about 0.5 s each): the actor
     with its reference integral, without the settle supervisor that now ships around it."""
     episodes = random_episodes(60, SEED_12000)
     config = RunConfig(noise=SensorNoise(), seed=SEED_12000, param_spread=0.2)
-    controller = load_controller("ddpg", settle=False)
+    controller = load_controller("ddpg-distilled", settle=False)
     backend = DirectArm()
     metrics = {
         i: backend.run(controller, episodes[i], config, SEED_12000 + i).metrics

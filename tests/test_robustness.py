@@ -331,7 +331,7 @@ def test_the_shipped_docs_have_the_markers_the_tool_writes() -> None:
     tables = (ROOT / "docs" / "robustness-tables.md").read_text(encoding="utf-8")
     assert NEW_BLOCKS in tables and NEW_BLOCKS not in page
     assert page.count(begin_marker(COMPARISON)) == 1 and page.count(end_marker(COMPARISON)) == 1
-    for label in ("ddpg", "ddpg-pure", "pid", "mpc"):
+    for label in ("ddpg-distilled", "ddpg-distilled-pure", "pid", "mpc"):
         assert tables.count(begin_marker(label)) == 1, label
         assert tables.count(end_marker(label)) == 1, label
         assert begin_marker(label) not in page, label
@@ -368,7 +368,7 @@ def test_blocks_are_written_where_they_are_and_new_ones_at_the_marker(
         ({"controller": ["pid"]}, "nothing to run"),
         ({"corners": True}, "--controller"),
         ({"controller": ["nope"], "draws": 1}, "nope"),
-        ({"controller": ["pid", "ddpg"], "label": "x", "draws": 1}, "--label"),
+        ({"controller": ["pid", "ddpg-distilled"], "label": "x", "draws": 1}, "--label"),
         ({"controller": ["pid"], "max_corners": 3, "draws": 1}, "--corners"),
         ({"controller": ["pid"], "draws": 1, "workers": 0}, "--workers"),
         ({"controller": ["pid"], "draws": 1, "overshoot_by": ["lag"]}, "latency_periods"),
@@ -409,7 +409,7 @@ def test_an_actor_file_runs_under_its_own_label(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     weights = ROOT / "policy" / "controllers" / "weights" / "ddpg_distilled_actor.npz"
-    argv: dict[str, Any] = {"controller": ["ddpg"], "label": "robust"}
+    argv: dict[str, Any] = {"controller": ["ddpg-distilled"], "label": "robust"}
     argv |= {"param": [f"weights={weights}"]}
     argv |= {"draws": 1, "seconds": 2.0, "out": tmp_path, "quiet": True}
     assert robustness(**argv) == 0

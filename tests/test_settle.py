@@ -1,4 +1,4 @@
-"""The settle supervisor around the DDPG actor (policy/controllers/settle.py): it stops a limit
+"""The settle supervisor around the distilled actor (policy/controllers/settle.py): it stops a limit
 cycle the plain actor keeps up on a latent arm, and leaves a nominal episode to the actor."""
 
 from __future__ import annotations

@@ -52,7 +52,9 @@ def _tune_available() -> bool:
 def test_a_trial_trains_and_reports_every_evaluation(tmp_path: Path) -> None:
     config = sweep_config("paper", 300, TINY)
     reports: list[dict[str, Any]] = []
-    campaign.run_trial({"seed": 5, "ddpg": config.to_dict(), "root": str(tmp_path)}, reports.append)
+    campaign.run_trial(
+        {"seed": 5, "training": config.to_dict(), "root": str(tmp_path)}, reports.append
+    )
     assert [r["env_steps"] for r in reports] == [150, 300]
     assert all(r["seed"] == 5 for r in reports)
     assert reports[-1]["best_score"] == max(r["score"] for r in reports)
@@ -60,7 +62,7 @@ def test_a_trial_trains_and_reports_every_evaluation(tmp_path: Path) -> None:
     assert (run_dir / "best_actor.npz").exists() and (run_dir / "checkpoint.pt").exists()
     assert json.loads((run_dir / "config.json").read_text())["seed"] == 5
     with pytest.raises(ValueError, match="already holds a run"):
-        campaign.run_trial({"seed": 5, "ddpg": config.to_dict(), "root": str(tmp_path)}, print)
+        campaign.run_trial({"seed": 5, "training": config.to_dict(), "root": str(tmp_path)}, print)
 
 
 def test_bad_settings_are_clear_errors(tmp_path: Path) -> None:

@@ -167,3 +167,15 @@ def test_ctrl_c_saves_a_checkpoint_and_exits_130(tmp_path) -> None:
     assert "checkpoint saved at" in out
     steps = torch.load(run / "checkpoint.pt", weights_only=False)["state"]["env_steps"]
     assert 0 < steps < 200000
+
+
+def test_the_best_actor_records_how_it_was_trained(tiny_run: tuple[Path, str]) -> None:
+    """tools/train.py's command (from commands.txt) reaches the exported actor's provenance."""
+    run, _ = tiny_run
+    provenance = json.loads((run / "best_actor.json").read_text())["provenance"]
+    command = (run / "commands.txt").read_text().splitlines()[0]
+    assert provenance["command"] == command and f"--run {run}" in command
+    assert provenance["algorithm"].startswith("TD3 + behaviour cloning")
+    assert provenance["demonstrations"] == "2 episodes of a privileged PD expert"
+    assert provenance["teacher"].startswith("PDExpert (privileged")
+    assert provenance["stages"][0]["run"] == "run" and provenance["stages"][0]["init_actor"] is None

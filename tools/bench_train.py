@@ -107,7 +107,7 @@ def bench_inference(n: int) -> None:
     """Latency of one control-loop action: the shipped numpy controller (actor, reference
     integral, settle supervisor), the same without the supervisor, and the torch actor."""
     from policy.controllers.ddpg_distilled import make_controller
-    from policy.controllers.weights import DEFAULT_WEIGHTS
+    from policy.controllers.weights import DISTILLED_WEIGHTS
     from policy.rl.checkpoint import load_actor_npz
     from policy.rl.networks import Actor
     from reach_driver.controllers import ControlState
@@ -116,7 +116,7 @@ def bench_inference(n: int) -> None:
     bare = make_controller(settle=False)
     w = ctrl.weights
     actor = Actor(w.weights[0].shape[1], 4, (w.weights[0].shape[0], w.weights[1].shape[0]))
-    load_actor_npz(actor, DEFAULT_WEIGHTS)
+    load_actor_npz(actor, DISTILLED_WEIGHTS)
     rng = np.random.default_rng(0)
     states = [
         ControlState(q=rng.uniform(0.5, 2.8, 4), qdot=rng.normal(0, 0.5, 4), t=0.05 * k)
@@ -138,8 +138,8 @@ def bench_inference(n: int) -> None:
 
     print(f"\n{'inference':<22} {'p50 us':>8} {'p99 us':>8} {'max us':>8}")
     contenders = (
-        ("ddpg act (shipped)", numpy_act),
-        ("ddpg act, settle=0", bare_act),
+        ("ddpg-distilled act (shipped)", numpy_act),
+        ("ddpg-distilled act, settle=0", bare_act),
         ("torch actor + obs", torch_act),
     )
     for name, fn in contenders:

@@ -1,6 +1,8 @@
 #!/usr/bin/env python3
-"""`make demo`: the shipped DDPG drives the virtual Alpha 5 through `reach-driver`, the same
-command a real arm gets.
+"""`make demo`: the shipped learned controller drives the virtual Alpha 5 through `reach-driver`,
+the same command a real arm gets. For now that is `ddpg-distilled`, an actor distilled from a
+privileged PD expert (TD3 + behaviour cloning) with an engineered reference integral and settle
+supervisor around it (`reach-driver controllers` says what each controller is).
 
 The virtual arm (SimServer) is served on a pseudo-terminal in this process, starting at the
 paper's zero pose; `reach-driver info` and `reach-driver run` then talk to it from a separate
@@ -51,7 +53,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="demo.py",
         description=(
-            "Serve the virtual Alpha 5 on a pty, then run the shipped DDPG policy through "
+            "Serve the virtual Alpha 5 on a pty, then run a controller (by default "
+            "ddpg-distilled, an actor distilled from a PD expert) through "
             "`reach-driver run` (the real CLI path, in its own process) to the paper's "
             "scenario 1 target, print the run's metrics and write a Rerun recording."
         ),
@@ -60,7 +63,12 @@ def build_parser() -> argparse.ArgumentParser:
             "`reach-driver inspect demo.rrd`. The same run against a real arm: docs/hil.md."
         ),
     )
-    p.add_argument("--controller", default="ddpg", help="registered controller (default ddpg)")
+    p.add_argument(
+        "--controller",
+        default="ddpg-distilled",
+        help="registered controller (default ddpg-distilled; `reach-driver controllers` "
+        "lists them)",
+    )
     p.add_argument(
         "--scenario",
         type=int,

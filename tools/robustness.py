@@ -15,9 +15,10 @@ sensor noise uses episode seed ``seed + 100000 * set + i``. A corner's episode t
 not depend on ``--max-corners``, and the first N draws of ``--draws 1000`` are ``--draws N``.
 
 Examples:
-    tools/robustness.py --controller pid ddpg --corners --draws 1000 --seed 1 --workers 1
+    tools/robustness.py --controller pid ddpg-distilled --corners --draws 1000 --seed 1 --workers 1
     tools/robustness.py --controller mpc --corners --max-corners 100 --draws 200 --seed 1
-    tools/robustness.py --controller ddpg --label robust --param weights=runs/x/actor.npz \\
+    tools/robustness.py --controller ddpg-distilled --label robust \\
+        --param weights=runs/x/actor.npz \\
         --corners --draws 1000 --seed 1 --write-docs
     tools/robustness.py --from runs/robustness/*.json --write-docs
 """

@@ -5,7 +5,8 @@ replayed over direct-backend episodes, checked against an independent definition
 policy/campaigns/chatter_screen.py screens; this script is its command line.
 
 Examples:
-    tools/screen_chatter.py --controllers ddpg,ddpg-pure,pid --episodes 640,200,200 \\
+    tools/screen_chatter.py --controllers ddpg-distilled,ddpg-distilled-pure,pid \\
+        --episodes 640,200,200 \\
         --seed 20000 --workers 2 --out screen.json
 """
 
@@ -29,7 +30,11 @@ def build_parser() -> argparse.ArgumentParser:
         ),
         epilog="The guard's definition and thresholds: docs/chatter.md.",
     )
-    p.add_argument("--controllers", default="ddpg,ddpg-pure,pid", help="comma-separated names")
+    p.add_argument(
+        "--controllers",
+        default="ddpg-distilled,ddpg-distilled-pure,pid",
+        help="comma-separated names",
+    )
     p.add_argument(
         "--episodes",
         default="640,200,200",

@@ -2,8 +2,8 @@
 """Pick which trained actor to ship, by a rule fixed before looking at Table I's episodes.
 
 Candidates are run directories (their `best_actor.npz`) or `.npz` files. Each one is run as
-the `ddpg` controller without its settle supervisor (the actor with its reference integral:
-the rule judges what was learned, which the supervisor would cover) on
+the `ddpg-distilled` controller without its settle supervisor (the actor with its reference
+integral: the rule judges what was learned, which the supervisor would cover) on
 - the paper's four scenarios (policy/tasks/scenarios.py: nominal arm, no noise), which it must all
 reach;
 - a selection set that is NOT the comparison's: ``random_episodes(--episodes, --seed)`` with
@@ -56,9 +56,9 @@ from reach_sim_bridge.model.sensors import SensorNoise
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="select_weights.py",
-        description="Score trained DDPG actors on the paper's scenarios and on a selection set "
-        "(not Table I's episodes) against a reference controller, and name the one "
-        "to ship by a fixed rule (see the module docstring).",
+        description="Score trained actors (ddpg-distilled candidates) on the paper's scenarios "
+        "and on a selection set (not Table I's episodes) against a reference controller, and "
+        "name the one to ship by a fixed rule (see the module docstring).",
     )
     p.add_argument(
         "candidates",

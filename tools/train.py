@@ -1,13 +1,15 @@
-"""Train a torque policy on ReachAlpha-v0, with checkpoints that survive the session.
+"""Train an actor on ReachAlpha-v0 (DDPG, TD3, TD3 + behaviour cloning from the PD expert, as
+the config says), with checkpoints that survive the session.
 
     .venv/bin/python tools/train.py --run runs/scratch-s0 --seed 0       # the shipped ddpg's recipe
     .venv/bin/python tools/train.py --run runs/scratch-s0 --resume       # continue later
+    .venv/bin/python tools/train.py --config ours --run runs/ours-s0 --seed 0   # TD3+BC
     .venv/bin/python tools/train.py --config paper --run runs/paper-s0   # the paper's DDPG
 
 Writes to the run directory: config.json, train.csv (one row per finished episode: return and
 losses), eval.jsonl (periodic deterministic evaluation), best_actor.npz/.json (best evaluated
-actor, the format policy/controllers/weights/ ships), checkpoint.pt + buffer.npz (everything to
-resume), commands.txt (every command given), train.log (what was printed).
+actor with its provenance, the format policy/controllers/weights/ ships), checkpoint.pt +
+buffer.npz (everything to resume), commands.txt (every command given), train.log (what was printed).
 
 `--resume --set KEY=VALUE` applies the fields a resumed run can change (learning rates, batch
 size, exploration, the BC schedule, evaluation cadence: `policy.rl.overrides.RESUMABLE`) and
@@ -26,9 +28,9 @@ from pathlib import Path
 from typing import Any
 
 from policy.campaigns.selection import envelope_results, envelope_summary
-from policy.controllers.weights import DEFAULT_WEIGHTS
-from policy.rl.run_dir import record_command, ship, start_run
-from policy.rl.scoring import evaluate_weights, params_arm_factory
+from policy.controllers.weights import LEARNED_WEIGHTS
+from policy.rl.run_dir import COMMANDS, record_command, ship, start_run
+from policy.rl.scoring import evaluate_weights, params_arm_factory, weights_path
 from policy.rl.session import Sitting, train_run
 from reach_driver.controllers import load_controller
 from reach_driver.errors import DriverError
@@ -78,9 +80,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--evaluate",
         metavar="WEIGHTS",
         default=None,
-        help="score an actor (.npz path, 'shipped', or 'expert' for the PD "
-        "demonstrator) on --episodes fixed episodes with sensor noise, nominal "
-        "and with E at 25%% torque, print the metrics as JSON, then exit",
+        help="score an actor (.npz path; 'shipped' for the `ddpg` actor, "
+        "policy/controllers/weights/ddpg_actor.npz; 'distilled' for the actor of "
+        "ddpg-distilled; or 'expert' for the PD demonstrator) on --episodes fixed episodes "
+        "with sensor noise, nominal and with E at 25%% torque, print the metrics as JSON, "
+        "then exit",
     )
     p.add_argument("--episodes", type=int, default=20, help="episodes for --evaluate")
     p.add_argument(
@@ -104,15 +108,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         type=int,
         default=None,
         metavar="N",
-        help="with --evaluate WEIGHTS|shipped: run the `ddpg` controller as shipped (actor + "
-        "reference integral; --pure: the actor alone) on N arms drawn from the uncertainty "
+        help="with --evaluate WEIGHTS|shipped|distilled: run the `ddpg` controller (the actor "
+        "alone, its memory channels kept as in training) with those weights, or with "
+        "--distilled `ddpg-distilled` (actor + reference integral + settle supervisor; with "
+        "--pure `ddpg-distilled-pure`, its actor alone) on N arms drawn from the uncertainty "
         "envelope (policy.tasks.envelope.draws(N, --envelope-seed)), one episode each "
         "(random_episodes(N, --episode-seed)), sensor noise on; print reached / at rest / "
         "overshoot as JSON",
     )
     p.add_argument("--envelope-seed", type=int, default=1, help="seed of the envelope draws")
     p.add_argument("--episode-seed", type=int, default=5, help="seed of the envelope episodes")
-    p.add_argument("--pure", action="store_true", help="with --envelope: the actor alone")
+    p.add_argument("--distilled", action="store_true", help="with --envelope: run ddpg-distilled")
+    p.add_argument("--pure", action="store_true", help="with --envelope: run ddpg-distilled-pure")
     p.add_argument(
         "--params",
         type=Path,
@@ -146,8 +153,8 @@ def evaluate_envelope(args: argparse.Namespace) -> dict[str, Any]:
         raise SystemExit("--envelope: the expert reads the env's true state; give weights")
     if args.envelope < 1:
         raise SystemExit(f"--envelope needs N >= 1, got {args.envelope}")
-    path = DEFAULT_WEIGHTS if args.evaluate == "shipped" else Path(args.evaluate)
-    name = "ddpg-pure" if args.pure else "ddpg"
+    path = weights_path(args.evaluate)
+    name = "ddpg-distilled-pure" if args.pure else "ddpg-distilled" if args.distilled else "ddpg"
     try:
         controller = load_controller(name, weights=str(path))
     except DriverError as exc:
@@ -181,12 +188,14 @@ def main(argv: list[str] | None = None) -> int:
     run_dir: Path = args.run
     if args.ship:
         verb = "wrote" if args.ship_as else "shipped"
-        print(f"{verb} {ship(run_dir, args.ship_as or DEFAULT_WEIGHTS)}")
+        print(f"{verb} {ship(run_dir, args.ship_as or LEARNED_WEIGHTS)}")
         return 0
     start = start_run(run_dir, args.resume, args.config, args.seed, args.steps, args.set)
     record_command(run_dir, argv or sys.argv[1:])
+    # every command the run was given (the start, then each resume): the actor's provenance
+    command = "; ".join((run_dir / COMMANDS).read_text().splitlines())
     sitting = Sitting(args.until, args.hours, args.checkpoint_minutes, bar=not args.no_progress)
-    return train_run(run_dir, start, args.resume, arm_factory, sitting)
+    return train_run(run_dir, start, args.resume, arm_factory, sitting, command)
 
 
 if __name__ == "__main__":

@@ -2,9 +2,9 @@
 """The gap a fitted twin closes: a controller's metrics on the hidden arm, the fitted twin and
 the nominal twin, on the same episodes.
 
-    tools/twin_gap.py --hidden HIDDEN.json --fitted arm.json               # pid and ddpg
+    tools/twin_gap.py --hidden HIDDEN.json --fitted arm.json        # pid and ddpg-distilled
     tools/twin_gap.py --hidden HIDDEN.json --fitted arm.json --controllers pid --episodes 8
-    tools/identify.py ... --truth HIDDEN.json --check-controller pid,ddpg  # after a fit
+    tools/identify.py ... --truth HIDDEN.json --check-controller pid,ddpg-distilled  # after a fit
 
 Why: a twin is for predicting what a controller does on the arm. The issue's target is that a
 controller's energy on the fitted twin is within 5 % of its energy on the arm, and its

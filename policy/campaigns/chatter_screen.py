@@ -52,7 +52,7 @@ class Options:
     """The command line of `tools/screen_chatter.py` (its help says what each one does)."""
 
     out: Path
-    controllers: str = "ddpg,ddpg-pure,pid"
+    controllers: str = "ddpg-distilled,ddpg-distilled-pure,pid"
     episodes: str = "640,200,200"
     param: Sequence[str] = ()
     seed: int = 20000

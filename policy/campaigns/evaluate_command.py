@@ -221,7 +221,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--controller",
         required=True,
-        help="controller entry-point name in reach_stack.controllers (ddpg, mpc, pid)",
+        help="controller entry-point name in reach_stack.controllers (ddpg-distilled, mpc, "
+        "pid, lambda; `reach-driver controllers` lists them)",
     )
     add_param_option(p, "--param horizon=15")
     src = p.add_mutually_exclusive_group(required=True)

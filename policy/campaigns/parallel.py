@@ -209,7 +209,7 @@ def import_tune() -> ModuleType:
 
 
 def run_trial(config: dict[str, Any], report: Callable[[dict[str, Any]], None]) -> None:
-    """One training run of a sweep: ``config["ddpg"]`` (a `DDPGConfig.to_dict()`) with seed
+    """One training run of a sweep: ``config["training"]`` (a `DDPGConfig.to_dict()`) with seed
     ``config["seed"]``, in ``config["root"]/seed-N``, for its ``total_steps``; ``report`` gets
     each checkpoint evaluation as it is made (the trainer's score, the nominal set's reached
     fraction, overshoot and energy) and the last one is the run's final evaluation."""
@@ -218,14 +218,14 @@ def run_trial(config: dict[str, Any], report: Callable[[dict[str, Any]], None]) 
     from policy.rl.config import DDPGConfig
     from policy.rl.trainer import Trainer, make_expert
 
-    data = dict(config["ddpg"])
+    data = dict(config["training"])
     data["seed"] = int(config["seed"])
-    ddpg = DDPGConfig.from_dict(data)
-    run_dir = Path(config["root"]) / f"seed-{ddpg.seed}"
+    training = DDPGConfig.from_dict(data)
+    run_dir = Path(config["root"]) / f"seed-{training.seed}"
     if (run_dir / "checkpoint.pt").exists():
         raise ValueError(f"{run_dir} already holds a run; choose another --out")
-    trainer = Trainer(ddpg, run_dir, expert=make_expert(ddpg), log=lambda _msg: None)
-    (run_dir / "config.json").write_text(json.dumps(ddpg.to_dict(), indent=1))
+    trainer = Trainer(training, run_dir, expert=make_expert(training), log=lambda _msg: None)
+    (run_dir / "config.json").write_text(json.dumps(training.to_dict(), indent=1))
     sent = [0]
 
     def flush() -> None:
@@ -233,7 +233,7 @@ def run_trial(config: dict[str, Any], report: Callable[[dict[str, Any]], None]) 
             nominal = record["nominal"]
             report(
                 {
-                    "seed": ddpg.seed,
+                    "seed": training.seed,
                     "env_steps": record["env_steps"],
                     "score": record["score"],
                     "best_score": trainer.state.best_score,
@@ -245,7 +245,7 @@ def run_trial(config: dict[str, Any], report: Callable[[dict[str, Any]], None]) 
             )
         sent[0] = len(trainer.state.history)
 
-    trainer.run(until_steps=ddpg.total_steps, progress=lambda _s, _l: flush())
+    trainer.run(until_steps=training.total_steps, progress=lambda _s, _l: flush())
     history = trainer.state.history
     if not history or history[-1]["env_steps"] != trainer.state.env_steps:
         trainer.evaluate_and_keep_best()

@@ -31,7 +31,7 @@ from reach_driver.metrics import REST_KEYS, Metrics, Trace
 
 #: screen episode i is reset with `seed * SCREEN_SEED_STRIDE + i`
 SCREEN_SEED_STRIDE = 1_000
-SCREENED = "ddpg"
+SCREENED = "ddpg-distilled"
 """The screen runs the actor with its reference integral, built by this name, and without the
 settle supervisor: it screens what was learned, which the supervisor would cover."""
 
@@ -108,9 +108,9 @@ def screen(
     address: str | None = None,
 ) -> list[Metrics]:
     """Every screen episode's metrics, the actor run as shipped (`factory(path)`, by default
-    the `ddpg` controller with these weights). With ``workers`` or ``address`` the episodes
-    run on Ray (`policy.campaigns.parallel`) with the same results: each env's randomness comes from
-    its own reset seed. A custom ``factory`` runs in this process only."""
+    the `ddpg-distilled` controller with these weights). With ``workers`` or ``address`` the
+    episodes run on Ray (`policy.campaigns.parallel`) with the same results: each env's
+    randomness comes from its own reset seed. A custom ``factory`` runs in this process only."""
     if workers is None and address is None:
         results = _screen(path, range(episodes), seed, perturb, factory or _shipped)
         return [r.metrics for r in results]

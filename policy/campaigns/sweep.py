@@ -47,7 +47,7 @@ def run_sweep(
             tune.with_resources(tune_trial, {"cpu": 1}),
             param_space={
                 "seed": tune.grid_search(seeds),
-                "ddpg": config.to_dict(),
+                "training": config.to_dict(),
                 "root": str(out),
             },
             tune_config=tune.TuneConfig(metric="score", mode="max"),

@@ -20,9 +20,9 @@ from typing import Any
 import numpy as np
 
 from policy.controllers.observation import InputMemory
-from policy.controllers.weights import LEARNED_WEIGHTS, ActorWeights
+from policy.controllers.weights import LEARNED_WEIGHTS, ActorWeights, provenance_of
 from protocol.alpha5 import N_JOINTS
-from reach_driver.controllers import ControlState
+from reach_driver.controllers import ControlState, learned
 
 
 class LearnedController:
@@ -60,8 +60,12 @@ class LearnedController:
         return out
 
 
+@learned(provenance_of(LEARNED_WEIGHTS, "nothing: the actor alone, with its memory channels"))
 def make_controller(
     weights: str | Path | None = None, current_limits_mA: Any = None
 ) -> LearnedController:
-    """DDPG-family torque policy learned from scratch (no demonstrations, no teacher)."""
+    """Torque policy learned by RL from scratch: no demonstrations, no teacher, nothing around.
+
+    Entry point `ddpg`: the actor of the shipped weights (or those at `weights`), its inputs
+    built as in training, its output sent as it is."""
     return LearnedController(ActorWeights.load(weights or LEARNED_WEIGHTS), current_limits_mA)

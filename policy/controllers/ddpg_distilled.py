@@ -1,16 +1,23 @@
-"""The trained DDPG actor as a controller for the control loop: a numpy forward pass.
+"""The distilled actor as a controller for the control loop: a numpy forward pass.
+
+What it is: not a policy learned by RL from scratch. The actor was trained by TD3 with a
+behaviour-cloning term toward a privileged PD expert (`policy.rl.expert.PDExpert`, which reads
+the true state, the masses and the torque scale) and 100 of its demonstration episodes per
+stage, in four stages, each fine-tuning the previous one (the weights' json, "provenance";
+docs/training.md). Around the network, engineered: a reference integral (`ReferenceIntegral`)
+and a settle supervisor (`policy.controllers.settle`). Entry points: `ddpg-distilled` (all of
+it), `ddpg-distilled-pure` (the actor alone).
 
 A whole `act()` measured p50 82 us, p99 180 us with the settle supervisor, 39 / 92 us for the
 actor and integral alone (observation + three float32 matrix products) and 56 / 110 us for
 the torch actor (tools/bench_train.py --inference, idle 2-core machine; 0.5 ms budget). The
-inputs are built by `policy.controllers.observation.build_observation` with the configuration saved
-beside the weights, so the driver feeds the network what training did.
+inputs are built by `policy.controllers.observation.build_observation` with the configuration
+saved beside the weights, so the driver feeds the network what training did.
 The weights and their format: `policy.controllers.weights`.
 
     from policy.controllers.ddpg_distilled import make_controller
-    ctrl = make_controller()                 # shipped weights,
-    policy/controllers/weights/ddpg_distilled_actor.npz,
-                                             # reference integral and settle supervisor
+    ctrl = make_controller()     # policy/controllers/weights/ddpg_distilled_actor.npz,
+                                 # reference integral and settle supervisor
     ctrl.reset(); currents_mA = ctrl.act(state, target)   # state has .q .qdot .t (E D C B)
 """
 
@@ -25,9 +32,9 @@ import numpy as np
 from policy.controllers.observation import build_observation
 from policy.controllers.settle import SettleSupervisor
 from policy.controllers.settle_law import SettleLaw
-from policy.controllers.weights import DEFAULT_WEIGHTS, ActorWeights
+from policy.controllers.weights import DISTILLED_WEIGHTS, ActorWeights, provenance_of
 from protocol.alpha5 import N_JOINTS
-from reach_driver.controllers import ControlState
+from reach_driver.controllers import ControlState, learned
 
 
 @dataclass(frozen=True)
@@ -42,7 +49,7 @@ class ReferenceIntegral:
     (docs/training.md, "Fine-tuning"). Shifting the reference is the classic outer-loop fix
     that leaves the learned network untouched. The integral restarts whenever the target
     changes or the joint leaves the band, so the approach itself is the policy's alone.
-    `gain` 0 turns it off (the pure policy, entry point `ddpg-pure`).
+    `gain` 0 turns it off (the actor alone, entry point `ddpg-distilled-pure`).
     """
 
     gain: float = 1.0  # 1/s
@@ -57,7 +64,7 @@ class ReferenceIntegral:
             )
 
 
-class DDPGController:
+class DistilledController:
     """The actor: currents (mA, E D C B) from the joint state and the target, with an optional
     integral on the reference it is shown (`ReferenceIntegral`)."""
 
@@ -166,6 +173,13 @@ class DDPGController:
         return out
 
 
+AROUND_THE_ACTOR = (
+    "engineered: a reference integral (1/s, within 0.02 rad, at most 0.01 rad) and a settle "
+    "supervisor (policy/controllers/settle.py)"
+)
+
+
+@learned(provenance_of(DISTILLED_WEIGHTS, AROUND_THE_ACTOR))
 def make_controller(
     weights: str | Path | None = None,
     current_limits_mA: Any = None,
@@ -173,24 +187,30 @@ def make_controller(
     integral_band: float = ReferenceIntegral.band,
     integral_cap: float = ReferenceIntegral.cap,
     settle: Any = True,
-) -> DDPGController:
-    """The shipped controller (entry point `ddpg`): the DDPG actor (shipped weights, or those
-    at `weights`) with its reference integral (`integral_gain` 0 turns it off) and the settle
-    supervisor of `policy.controllers.settle` (docs/robustness.md). `settle`: true for its
-    defaults, a dict of `SettleLaw` fields, or false for the actor and integral alone, the
-    controller that chatters on a few per cent of degraded arms (docs/chatter.md)."""
+) -> DistilledController:
+    """TD3+BC actor + reference integral + settle law.
+
+    Entry point `ddpg-distilled`: the actor distilled from a privileged PD expert (shipped
+    weights, or those at `weights`) with its reference integral (`integral_gain` 0 turns it
+    off) and the settle supervisor of `policy.controllers.settle` (docs/robustness.md).
+    `settle`: true for its defaults, a dict of `SettleLaw` fields, or false for the actor and
+    integral alone, the controller that chatters on a few per cent of degraded arms
+    (docs/chatter.md)."""
     integral = ReferenceIntegral(gain=integral_gain, band=integral_band, cap=integral_cap)
-    return DDPGController(
-        ActorWeights.load(weights or DEFAULT_WEIGHTS),
+    return DistilledController(
+        ActorWeights.load(weights or DISTILLED_WEIGHTS),
         current_limits_mA,
         integral,
         SettleLaw.from_param(settle),
     )
 
 
+@learned(provenance_of(DISTILLED_WEIGHTS, "nothing: the actor alone"))
 def make_pure_controller(
     weights: str | Path | None = None, current_limits_mA: Any = None
-) -> DDPGController:
-    """The DDPG actor alone, stateless, as trained (entry point `ddpg-pure`): no reference
-    integral, no settle supervisor."""
+) -> DistilledController:
+    """TD3+BC actor alone (no integral, no settle law).
+
+    Entry point `ddpg-distilled-pure`: the actor distilled from a privileged PD expert,
+    stateless, as trained."""
     return make_controller(weights, current_limits_mA, integral_gain=0.0, settle=False)

@@ -1,12 +1,12 @@
 """A model-based controller tuned by the lambda rule: each joint follows a speed reference
 proportional to its error, with the closed loop made slower than the loop's dead time.
 
-Why it exists (docs/robustness.md, "`lambda`: a controller told the arm"): the DDPG actor and the
-MPC were both made for the nominal arm, and on the arms of the uncertainty envelope they overshoot
-by what they do not know: the loop's latency, a joint's inertia and friction. This controller is the
-other way round: it knows nothing but a twin of the arm (`ArmParams`, nominal or fitted by
-`tools/identify.py`) and the loop's latency, and derives every gain from them, so it tells how much
-of the overshoot knowing the arm removes.
+Why it exists (docs/robustness.md, "`lambda`: a controller told the arm"): the distilled actor
+(`ddpg-distilled`) and the MPC were both made for the nominal arm, and on the arms of the
+uncertainty envelope they overshoot by what they do not know: the loop's latency, a joint's
+inertia and friction. This controller is the other way round: it knows nothing but a twin of
+the arm (`ArmParams`, nominal or fitted by `tools/identify.py`) and the loop's latency, and
+derives every gain from them, so it tells how much of the overshoot knowing the arm removes.
 
 Every control period (T = 1 / rate_hz):
 
@@ -72,7 +72,7 @@ from typing import Any
 import numpy as np
 
 from protocol.alpha5 import N_JOINTS
-from reach_driver.controllers import ControlState
+from reach_driver.controllers import ControlState, engineered
 from reach_driver.metrics import settling_band
 from reach_sim_bridge.model.arm import Alpha5Arm
 from reach_sim_bridge.model.params import ArmParams
@@ -291,10 +291,13 @@ class LambdaController:
         return out
 
 
+@engineered
 def make_controller(
     params: str | Path | dict[str, Any] | FittedTwin | None = None, **kwargs: Any
 ) -> LambdaController:
-    """Entry point `lambda`: `params` is the twin (an arm parameter file's path, a dict of
+    """Lambda rule on a twin; engineered, no learning.
+
+    Entry point `lambda`: `params` is the twin (an arm parameter file's path, a dict of
     `ArmParams` fields, or a `FittedTwin`; nominal if omitted); keyword arguments are
     `LambdaConfig` fields. Without `latency_periods`, a twin with a fit (a file written by
     `tools/identify.py`, or a dict or `FittedTwin` holding its ``_fit``) gives it: the command

@@ -32,7 +32,7 @@ import casadi as ca
 import mujoco
 import numpy as np
 
-from reach_driver.controllers import ControlState
+from reach_driver.controllers import ControlState, engineered
 from reach_sim_bridge.model.arm import Alpha5Arm
 from reach_sim_bridge.model.params import ArmParams
 
@@ -406,8 +406,12 @@ class MPCController:
         }
 
 
+@engineered
 def make_controller(**kwargs: Any) -> MPCController:
-    """Entry point `mpc`: keyword arguments are `MPCConfig` fields."""
+    """MPC on a nominal model; engineered, no learning.
+
+    Entry point `mpc`: the paper's cost on a per-joint model of the arm; keyword arguments
+    are `MPCConfig` fields."""
     unknown = set(kwargs) - set(MPCConfig.__dataclass_fields__)
     if unknown:
         raise ValueError(

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, N_JOINTS
-from reach_driver.controllers import ControlState
+from reach_driver.controllers import ControlState, engineered
 
 # Tuned on the virtual arm at 20 Hz in current mode (tests/test_driver_pid.py): E, D, C share
 # a motor and gearbox (20.2 N m/A, ~0.12 kg m^2 reflected inertia), B is much lighter.
@@ -104,8 +104,11 @@ class PIDController:
         return np.clip(out, -self.limits, self.limits)
 
 
+@engineered
 def make_controller(**kwargs: Any) -> PIDController:
-    """Entry-point factory: `kp`, `ki`, `kd`, `integral_zone` (one value or 4 each),
+    """Per-joint PID; engineered, no learning.
+
+    Entry point `pid`: `kp`, `ki`, `kd`, `integral_zone` (one value or 4 each),
     `current_limits_mA`, `period_s`."""
     gains = PIDGains(
         kp=_four("kp", kwargs.pop("kp", DEFAULT_KP)),

@@ -1,13 +1,13 @@
-"""A per-joint settle supervisor around the DDPG actor: engineered, not learned.
+"""A per-joint settle supervisor around the distilled actor: engineered, not learned.
 
 Why: the actor is stateless, with one near-goal gain for every arm. With 1-2 periods of control
 latency and little Coulomb friction that gain drives a joint into a limit cycle about its goal;
 on a light joint (B) or under 2-3x sensor noise it jitters there; a weak or high-friction joint
 stops short of it. The supervisor hands *that joint* to a conservative settle law and leaves the
 approach, and every joint that settles normally, to the actor (on Table I's standard episodes
-it never engages). It ships in `ddpg`; `ddpg --param settle=0` turns it off and `ddpg-pure` has
-none (docs/robustness.md, "The settle supervisor"). Its numbers, each with what set it, are
-`policy.controllers.settle_law.SettleLaw`'s fields.
+it never engages). It ships in `ddpg-distilled`; `ddpg-distilled --param settle=0` turns it off
+and `ddpg-distilled-pure` has none (docs/robustness.md, "The settle supervisor"). Its numbers,
+each with what set it, are `policy.controllers.settle_law.SettleLaw`'s fields.
 
 What it watches, per joint: the error to the goal and the speed, low-passed (`filter_s`); the
 sensors' noise, estimated from successive samples while the joint is slow, so that "moving"

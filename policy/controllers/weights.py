@@ -2,7 +2,9 @@
 
 A pair of files: `NAME.npz` holds the dense layers as float64 arrays W0 b0 W1 b1 W2 b2 (W: out x
 in, torch's layout), `NAME.json` beside it what the controller needs to rebuild the inputs and
-outputs (observation config, current limits, activation) plus the run's config and provenance.
+outputs (observation config, current limits, activation) plus the run's config and, under
+"provenance", how the actor was trained (`Provenance`: algorithm, demonstrations, teacher,
+env steps, wall time, seed, command, and every training stage it descends from).
 
 The shipped pairs are `ddpg_actor` (the `ddpg` entry point, learned from scratch) and
 `ddpg_distilled_actor` in `policy/controllers/weights/`, the data folder beside this module (it
@@ -14,7 +16,8 @@ and reads the same format in `policy.rl.checkpoint`.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +27,7 @@ from policy.controllers.observation import ObservationConfig
 from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, N_JOINTS
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-DEFAULT_WEIGHTS = WEIGHTS_DIR / "ddpg_distilled_actor.npz"
+DISTILLED_WEIGHTS = WEIGHTS_DIR / "ddpg_distilled_actor.npz"
 #: the `ddpg` entry point's weights: the policy learned from scratch (policy.controllers.ddpg)
 LEARNED_WEIGHTS = WEIGHTS_DIR / "ddpg_actor.npz"
 #: the control rate of weights whose file does not record the env they were trained in
@@ -33,6 +36,115 @@ FORMAT = "reach-stack ddpg actor v1"
 LAYERS = ["linear", "leaky_relu", "linear", "leaky_relu", "linear", "tanh"]
 #: torch's default slope, what `policy.rl.networks` builds and the json records
 LEAKY_RELU_SLOPE = 0.01
+
+
+#: what `Provenance.demonstrations` and `.teacher` say when there were none
+NONE = "none"
+
+
+@dataclass(frozen=True)
+class TrainingStage:
+    """One training run in an actor's lineage (a fine-tune starts from the previous stage's
+    actor): its run directory's name, what it started from, the env steps and wall time up to
+    the checkpoint that was kept, its seed and command. `wall_s` None: not recorded."""
+
+    run: str
+    env_steps: int
+    wall_s: float | None
+    seed: int
+    command: str
+    init_actor: str | None = None
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> TrainingStage:
+        wall = data.get("wall_s")
+        return cls(
+            run=str(data.get("run", "")),
+            env_steps=int(data["env_steps"]),
+            wall_s=None if wall is None else float(wall),
+            seed=int(data["seed"]),
+            command=str(data.get("command", "")),
+            init_actor=data.get("init_actor"),
+        )
+
+
+@dataclass(frozen=True)
+class Provenance:
+    """How an actor was trained, said plainly: whether it learned from scratch or imitated a
+    teacher is the first thing a user of a "learned" controller needs to know.
+
+    `env_steps` and `wall_s` count every stage of `stages` (the actor's whole lineage);
+    `seed` and `command` are the last stage's. `complete` is False when an earlier actor it
+    was fine-tuned from has no recorded provenance: the totals then cover the recorded stages
+    only, and `note` says what is missing."""
+
+    algorithm: str  #: e.g. "DDPG", "TD3", "TD3 + behaviour cloning (TD3+BC) toward ..."
+    demonstrations: str  #: "none", or e.g. "100 episodes of a privileged PD expert"
+    teacher: str  #: "none", or the expert the actor imitated and what it could see
+    env_steps: int
+    wall_s: float
+    seed: int
+    command: str
+    stages: tuple[TrainingStage, ...] = ()
+    complete: bool = True
+    note: str = ""
+
+    @property
+    def from_scratch(self) -> bool:
+        """Learned by RL alone: no demonstrations, no teacher, no earlier actor."""
+        return (
+            self.demonstrations == NONE
+            and self.teacher == NONE
+            and self.complete
+            and all(stage.init_actor is None for stage in self.stages)
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Provenance:
+        unknown = set(data) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"unknown provenance fields {sorted(unknown)}")
+        return cls(
+            algorithm=str(data["algorithm"]),
+            demonstrations=str(data["demonstrations"]),
+            teacher=str(data["teacher"]),
+            env_steps=int(data["env_steps"]),
+            wall_s=float(data["wall_s"]),
+            seed=int(data["seed"]),
+            command=str(data["command"]),
+            stages=tuple(TrainingStage.from_dict(s) for s in data.get("stages", ())),
+            complete=bool(data.get("complete", True)),
+            note=str(data.get("note", "")),
+        )
+
+
+def read_provenance(path: str | Path) -> Provenance | None:
+    """The provenance recorded beside the weights at `path` (.npz or .json), None if that
+    json has none (files written before it was recorded); the weights are not read."""
+    meta_path = Path(path).with_suffix(".json")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{meta_path} is not valid JSON: {exc}") from exc
+    block = meta.get("provenance")
+    return None if block is None else Provenance.from_dict(block)
+
+
+def provenance_of(weights: Path, around: str) -> Callable[[], dict[str, Any]]:
+    """What `reach-driver controllers` shows for a controller built on the weights at
+    `weights`: how they were trained (their json's "provenance") and what the controller adds
+    around the network. Read only when asked."""
+
+    def provenance() -> dict[str, Any]:
+        recorded = read_provenance(weights)
+        if recorded is None:
+            raise ValueError(f"{weights.with_suffix('.json')} records no provenance")
+        return {**recorded.to_dict(), "weights": weights.name, "around_the_network": around}
+
+    return provenance
 
 
 @dataclass(frozen=True)
@@ -99,6 +211,12 @@ class ActorWeights:
         if not (np.isfinite(hz) and hz > 0):
             raise ValueError(f"weights metadata: control_hz must be > 0, got {hz}")
         return hz
+
+    @property
+    def provenance(self) -> Provenance | None:
+        """How this actor was trained (None for a file written without it)."""
+        block = self.metadata.get("provenance")
+        return None if block is None else Provenance.from_dict(block)
 
     def forward(self, obs: np.ndarray) -> np.ndarray:
         """Actions in [-1, 1] for one observation (n,) or a batch (B, n)."""

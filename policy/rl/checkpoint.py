@@ -1,20 +1,29 @@
 """The training side of the actor weights format (`policy.controllers.weights` defines it).
 
-`save_actor_npz` writes a torch `Actor` as the controller loads it; `load_actor_npz` reads one
-back into an `Actor` to fine-tune.
+`save_actor_npz` writes a torch `Actor` as the controller loads it, with how it was trained
+(`provenance`); `load_actor_npz` reads one back into an `Actor` to fine-tune.
 """
 
 from __future__ import annotations
 
 import json
 import os
+from dataclasses import replace
 from enum import Enum
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from policy.controllers.weights import FORMAT, LAYERS, LEAKY_RELU_SLOPE
+from policy.controllers.weights import (
+    FORMAT,
+    LAYERS,
+    LEAKY_RELU_SLOPE,
+    NONE,
+    Provenance,
+    TrainingStage,
+    read_provenance,
+)
 from policy.rl.config import DDPGConfig
 from policy.rl.networks import Actor
 from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA
@@ -29,10 +38,82 @@ def actor_arrays(actor: Actor) -> dict[str, np.ndarray]:
     return out
 
 
+#: the demonstrator of `policy.rl.expert`, and what it reads that the actor never sees
+TEACHER = "PDExpert (privileged: true state, masses, torque scale)"
+
+
+def algorithm(config: DDPGConfig) -> str:
+    """What the config trains: DDPG, or TD3 if any of its three changes is on; + behaviour
+    cloning when the actor loss imitates the teacher."""
+    plain = not config.twin_critics and config.policy_delay == 1 and config.target_noise == 0
+    name = "DDPG" if plain else "TD3"
+    if config.bc_weight > 0:
+        name += (
+            f" + behaviour cloning toward the teacher (weight {config.bc_weight:g} -> "
+            f"{config.bc_weight_final:g})"
+        )
+    return name
+
+
+def _with_earlier(this: str, earlier: str) -> str:
+    return this if earlier == this else f"{this}; earlier stages: {earlier}"
+
+
+def provenance(config: DDPGConfig, stage: TrainingStage) -> Provenance:
+    """How an actor trained by `config` up to `stage` was made. A fine-tune (`init_actor`)
+    carries the provenance of the actor it started from: its stages come first and count in
+    the totals; an `init_actor` without one makes the provenance incomplete, and says so."""
+    demos = config.demo_episodes
+    this = Provenance(
+        algorithm=algorithm(config),
+        demonstrations=(
+            f"{demos} episode{'s' if demos != 1 else ''} of a privileged PD expert"
+            if demos > 0
+            else NONE
+        ),
+        teacher=TEACHER if config.bc_weight > 0 or demos > 0 else NONE,
+        env_steps=stage.env_steps,
+        wall_s=round(stage.wall_s or 0.0, 1),
+        seed=stage.seed,
+        command=stage.command,
+        stages=(stage,),
+    )
+    if config.init_actor is None:
+        return this
+    try:
+        earlier = read_provenance(config.init_actor)
+    except (OSError, ValueError):
+        earlier = None
+    if earlier is None:
+        return replace(
+            this,
+            complete=False,
+            note=f"fine-tuned from {config.init_actor}, which records no provenance: the "
+            "totals cover this stage only",
+        )
+    return replace(
+        this,
+        algorithm=_with_earlier(this.algorithm, earlier.algorithm),
+        demonstrations=_with_earlier(this.demonstrations, earlier.demonstrations),
+        teacher=_with_earlier(this.teacher, earlier.teacher),
+        env_steps=earlier.env_steps + this.env_steps,
+        wall_s=round(earlier.wall_s + this.wall_s, 1),
+        stages=(*earlier.stages, stage),
+        complete=earlier.complete,
+        note=earlier.note,
+    )
+
+
 def save_actor_npz(
-    path: str | Path, actor: Actor, config: DDPGConfig, extra: dict[str, Any] | None = None
+    path: str | Path,
+    actor: Actor,
+    config: DDPGConfig,
+    extra: dict[str, Any] | None = None,
+    stage: TrainingStage | None = None,
 ) -> None:
-    """Weights (npz) plus what the controller needs to rebuild inputs and outputs (json)."""
+    """Weights (npz) plus what the controller needs to rebuild inputs and outputs (json), and
+    for a trained actor (`stage`: the run, env steps and wall time so far, seed, command) its
+    provenance."""
     path = Path(path)
     arrays: dict[str, Any] = dict(actor_arrays(actor))
     meta = {
@@ -45,6 +126,10 @@ def save_actor_npz(
         "config": config.to_dict(),
         **(extra or {}),
     }
+    if stage is not None:
+        meta["env_steps"] = stage.env_steps
+        meta["wall_s"] = stage.wall_s
+        meta["provenance"] = provenance(config, stage).to_dict()
     tmp = path.with_name(path.stem + ".tmp.npz")
     np.savez(tmp, **arrays)
     os.replace(tmp, path)

@@ -17,7 +17,8 @@ from typing import Any
 
 import torch
 
-from policy.controllers.weights import LEARNED_WEIGHTS
+from policy.controllers.weights import LEARNED_WEIGHTS, TrainingStage
+from policy.rl.checkpoint import provenance
 from policy.rl.config import DDPGConfig
 from policy.rl.overrides import apply_overrides, resume_overrides
 
@@ -96,6 +97,16 @@ def ship(run_dir: Path, dest: Path = LEARNED_WEIGHTS) -> Path:
             "shipped_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
     )
+    if "provenance" not in meta:  # an actor saved before provenance was recorded
+        stage = TrainingStage(
+            run=run_dir.name,
+            env_steps=int(meta["env_steps"]),
+            wall_s=float(meta["wall_s"]) if "wall_s" in meta else None,
+            seed=int(meta["config"]["seed"]),
+            command=" && ".join(commands),
+        )
+        config = DDPGConfig.from_dict(meta["config"])
+        meta["provenance"] = provenance(config, stage).to_dict()
     dest.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(src, dest)
     dest.with_suffix(".json").write_text(json.dumps(meta, indent=1))

@@ -11,7 +11,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from policy.controllers.weights import DEFAULT_WEIGHTS, ActorWeights
+from policy.controllers.weights import DISTILLED_WEIGHTS, LEARNED_WEIGHTS, ActorWeights
 from policy.rl.batched import evaluate_batched
 from policy.rl.config import WEAK_EVAL_SEED_OFFSET, WEAK_EVAL_TORQUE_SCALE, DDPGConfig
 from policy.rl.env import EnvConfig
@@ -35,6 +35,13 @@ def params_arm_factory(path: Path | None) -> Any:
     return factory
 
 
+def weights_path(which: str) -> Path:
+    """`--evaluate`'s WEIGHTS: 'shipped' (the `ddpg` actor), 'distilled' (`ddpg-distilled`'s)
+    or a path."""
+    named = {"shipped": LEARNED_WEIGHTS, "distilled": DISTILLED_WEIGHTS}
+    return named.get(which, Path(which))
+
+
 def evaluate_weights(
     which: str,
     episodes: int,
@@ -50,7 +57,7 @@ def evaluate_weights(
     if which == "expert":
         expert = PDExpert(energy_lambda=expert_energy)
     else:
-        path = DEFAULT_WEIGHTS if which == "shipped" else Path(which)
+        path = weights_path(which)
         try:
             weights = ActorWeights.load(path)
         except (OSError, ValueError) as exc:

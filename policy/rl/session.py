@@ -33,14 +33,27 @@ class Sitting:
 
 
 def train_run(
-    run_dir: Path, start: RunStart, resume: bool, arm_factory: Any, sitting: Sitting
+    run_dir: Path,
+    start: RunStart,
+    resume: bool,
+    arm_factory: Any,
+    sitting: Sitting,
+    command: str = "",
 ) -> int:
     """Train the run in `run_dir` (new, or resumed from its checkpoint) for one sitting; the
-    exit status: 0, or 128 + the signal that interrupted it."""
+    exit status: 0, or 128 + the signal that interrupted it. `command` (how the run was
+    started and resumed) goes into each exported actor's provenance."""
     config = start.config
     console = Console(highlight=False)
     log = RunLog(run_dir / "train.log", console)
-    trainer = Trainer(config, run_dir, expert=make_expert(config), arm_factory=arm_factory, log=log)
+    trainer = Trainer(
+        config,
+        run_dir,
+        expert=make_expert(config),
+        arm_factory=arm_factory,
+        log=log,
+        command=command,
+    )
     if resume:
         trainer.load()
         apply_on_resume(trainer, start.target)

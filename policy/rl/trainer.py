@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from policy.controllers.weights import TrainingStage
 from policy.rl.agent import Agent
 from policy.rl.batched import EvalResult, Expert, eval_envs, evaluate_batched
 from policy.rl.checkpoint import save_actor_npz
@@ -86,9 +87,12 @@ class Trainer:
         expert: Expert | None = None,
         arm_factory: Any = None,
         log: Callable[[str], None] = print,
+        command: str = "",
     ) -> None:
         torch.set_num_threads(1)
         self.config = config
+        #: how the run was started (and resumed), recorded in each exported actor's provenance
+        self.command = command
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.expert = expert
@@ -380,12 +384,15 @@ class Trainer:
     def export_best(self, path: Path, record: dict[str, Any]) -> None:
         actor = Actor(self.obs_dim, N_JOINTS, self.config.hidden)
         actor.load_state_dict(self.best_actor)
-        save_actor_npz(
-            path,
-            actor,
-            self.config,
-            extra={"eval": record, "env_steps": self.state.env_steps, "wall_s": self.state.wall_s},
+        stage = TrainingStage(
+            run=self.run_dir.name,
+            env_steps=self.state.env_steps,
+            wall_s=round(self.state.wall_s, 1),
+            seed=self.config.seed,
+            command=self.command,
+            init_actor=self.config.init_actor,
         )
+        save_actor_npz(path, actor, self.config, extra={"eval": record}, stage=stage)
 
     # -- checkpoints -----------------------------------------------------------------------
     def save(self) -> Path:

@@ -23,6 +23,7 @@ from reach_driver.cli.live import MoveView, RunView, chain
 from reach_driver.cli.recorder import CliRecorder
 from reach_driver.cli.render import (
     blocking_faults,
+    controllers_lines,
     diagnostics_table,
     info_json,
     info_table,
@@ -36,7 +37,12 @@ from reach_driver.cli.render import (
 from reach_driver.cli.report import summary_dict
 from reach_driver.client import ArmClient
 from reach_driver.control import ControlLoop, Pacing, control_period
-from reach_driver.controllers import available_controllers, controller_report, load_controller
+from reach_driver.controllers import (
+    available_controllers,
+    controller_report,
+    describe_controllers,
+    load_controller,
+)
 from reach_driver.errors import ArmFaultError, DriverError
 from reach_driver.kinematics import tool_position
 from reach_driver.link import EventKind, LinkState
@@ -463,8 +469,12 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
 
 
 def cmd_controllers(args: argparse.Namespace, console: Console) -> Exit:
-    for name in available_controllers():
-        console.print(name)
+    infos = describe_controllers()
+    if args.json:
+        console.print_json(json.dumps([info.to_dict() for info in infos], default=str))
+        return Exit.OK
+    for line in controllers_lines(infos):
+        console.print(line, markup=False, highlight=False, soft_wrap=True)
     return Exit.OK
 
 

@@ -33,8 +33,9 @@ examples:
   reach-driver --port udp://192.168.2.3 monitor
   reach-driver --port /dev/ttyUSB0 move 3.1 1.5 1.5 3.0 --jaw 8
   reach-driver --port /dev/ttyUSB0 run --controller pid --target 3.1 1.5 1.5 3.0 --seconds 10
-  reach-driver --port /dev/ttyUSB0 run --controller ddpg --target 5.78 1.97 1.67 3.96 \\
-      --seconds 20 --record run.rrd
+  reach-driver --port /dev/ttyUSB0 run --controller ddpg-distilled \\
+      --target 5.78 1.97 1.67 3.96 --seconds 20 --record run.rrd
+  reach-driver controllers          # what each controller is; a learned one's training
   reach-driver inspect run.rrd
   reach-driver --port /tmp/alpha5 run --controller pid --target 3.1 1.5 1.5 3.0 \\
       --seconds 10 --viewer serve     # watch it live from a browser (or an SSH tunnel)
@@ -372,7 +373,12 @@ def build_parser() -> argparse.ArgumentParser:
         "goes on, its summary is printed and it exits 6. A viewer failing changes nothing "
         "but a warning.",
     )
-    run.add_argument("--controller", required=True, help="e.g. pid, mpc, ddpg")
+    run.add_argument(
+        "--controller",
+        required=True,
+        help="a registered name, e.g. pid, mpc, ddpg-distilled (`reach-driver controllers` "
+        "lists them)",
+    )
     run.add_argument("--target", nargs=4, type=float, required=True, metavar=("E", "D", "C", "B"))
     run.add_argument("--seconds", type=_positive, required=True, help="loop (arm) seconds")
     run.add_argument(
@@ -409,7 +415,23 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_viewer_option(run, VIEWER_HELP)
 
-    add("controllers", parents=[offline], help="list the registered controllers")
+    ctl = add(
+        "controllers",
+        parents=[offline],
+        help="the registered controllers: what each is, how a learned one was trained",
+        description="List every controller registered in the reach_stack.controllers entry "
+        "points (the names `run --controller` takes): its name, whether it is learned or "
+        "engineered, the first line of its docstring and, for a learned one, its provenance "
+        "(algorithm, demonstrations, teacher, env steps, wall time, seed, the training "
+        "command). Each entry point is imported to describe it; one that fails to import is "
+        "listed with its error, and the exit status is still 0.",
+    )
+    ctl.add_argument(
+        "--json",
+        action="store_true",
+        help="a JSON list, one object per controller (name, target, kind, summary, "
+        "provenance, error)",
+    )
     ins = add(
         "inspect",
         parents=[offline],

@@ -1,8 +1,10 @@
-"""How the CLI shows things: the info and monitor tables, run summaries, metrics, recordings."""
+"""How the CLI shows things: the info and monitor tables, run summaries, metrics, recordings,
+the registered controllers."""
 
 from __future__ import annotations
 
 import math
+import textwrap
 from typing import Any
 
 import numpy as np
@@ -15,6 +17,7 @@ from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS, TORQUE_PER_AMP_NM
 from reach_driver.cli.exits import for_operator
 from reach_driver.cli.report import run_metrics, run_overshoot
 from reach_driver.client import ArmClient
+from reach_driver.controllers import ControllerInfo, ControllerKind
 from reach_driver.faults import blocking_flags, flag_labels, status_bytes
 from reach_driver.metrics import METRIC_KEYS, metric_label
 from reach_driver.records import ControlSummary
@@ -492,3 +495,69 @@ def print_sim_recording(console: Console, summary: dict[str, Any], clean: str) -
     console.print(f"faults at the end: {escape(str(summary.get('final_faults', 'none')))}")
     for line in summary.get("events", []):
         console.print(f"  {escape(str(line))}")
+
+
+#: `reach-driver controllers` fits a terminal of this width
+LISTING_WIDTH = 80
+
+
+def _clip(text: str, width: int) -> str:
+    """`text` in `width` columns, cut at a word with "..." if it is longer."""
+    if len(text) <= width:
+        return text
+    return textwrap.shorten(text, width=width, placeholder="...")
+
+
+def _value_text(value: Any) -> str:
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, (list, tuple)):
+        return ", ".join(_value_text(v) for v in value)
+    return str(value)
+
+
+def _wrapped(label: str, text: str, indent: int) -> list[str]:
+    first = " " * indent + f"{label}: "
+    return textwrap.wrap(
+        text or "-",
+        width=LISTING_WIDTH,
+        initial_indent=first,
+        subsequent_indent=" " * (indent + 4),
+        break_on_hyphens=False,
+    )
+
+
+def provenance_lines(provenance: dict[str, Any], indent: int = 4) -> list[str]:
+    """A learned controller's provenance, a field a line (wrapped to 80 columns); a field
+    holding records (e.g. its training stages) is counted here and given whole by --json."""
+    lines: list[str] = []
+    for key, value in provenance.items():
+        nested = isinstance(value, dict) or (
+            isinstance(value, (list, tuple)) and any(isinstance(v, dict) for v in value)
+        )
+        text = f"{len(value)} (each in --json)" if nested else _value_text(value)
+        lines += _wrapped(str(key), text, indent)
+    return lines
+
+
+def controllers_lines(infos: list[ControllerInfo]) -> list[str]:
+    """The registered controllers as a table in 80 columns (name, kind, summary cut to fit),
+    each learned one's provenance indented below it, and any load error."""
+    name_w = min(24, max([len("name"), *(len(i.name) for i in infos)]))
+    kind_w = max(len(kind.value) for kind in ControllerKind)
+    summary_w = LISTING_WIDTH - name_w - kind_w - 4
+    lines = [f"{'name':<{name_w}}  {'kind':<{kind_w}}  summary"]
+    if not infos:
+        return [*lines, "(no controllers registered: is reach-stack installed? pip install -e .)"]
+    for info in infos:
+        summary = info.summary or ("(failed to load)" if info.error else "(no docstring)")
+        summary = _clip(summary.rstrip("."), summary_w)
+        row = f"{info.name:<{name_w}}  {info.kind.value:<{kind_w}}  {summary}"
+        lines.append(row.rstrip())
+        if info.error:
+            lines += _wrapped("error", info.error, 4)
+        if info.provenance:
+            lines += provenance_lines(info.provenance)
+    return lines

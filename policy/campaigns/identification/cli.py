@@ -25,7 +25,7 @@ fitted twin (`reach_sim_bridge.model.twin.write_twin`: the `--params` format wit
 under "_fit", which `load_arm_params` ignores): per parameter its value and 1-sigma
 uncertainty, the delays, R^2 and residual RMS; and a report PARAMS.report/report.md with PNG
 figures (measured vs nominal twin vs fitted twin; `report`), with `--truth HIDDEN.json
---check-controller pid,ddpg` the controller gap (`twin_gap`).
+--check-controller pid,ddpg-distilled` the controller gap (`twin_gap`).
 """
 
 from __future__ import annotations
@@ -109,8 +109,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--check-controller",
         metavar="NAMES",
-        help="with --truth: run these controllers (comma-separated, e.g. pid,ddpg) on the "
-        "hidden arm, the fitted twin and the nominal twin on the same episodes and report "
+        help="with --truth: run these controllers (comma-separated, e.g. pid,ddpg-distilled) "
+        "on the hidden arm, the fitted twin and the nominal twin on the same episodes and report "
         "the energy and settling-time gaps (tools/twin_gap.py)",
     )
     p.add_argument("--check-episodes", type=int, default=6, metavar="N")

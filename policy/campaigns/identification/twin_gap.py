@@ -33,7 +33,7 @@ ENERGY_TOL = 0.05
 SETTLING_TOL_S = 0.1
 """... and settling time within this many seconds."""
 TWINS = ("hidden", "fitted", "nominal")
-DEFAULT_CONTROLLERS = ("pid", "ddpg")
+DEFAULT_CONTROLLERS = ("pid", "ddpg-distilled")
 
 
 @dataclass(frozen=True)

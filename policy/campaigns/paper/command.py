@@ -219,8 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
         "is the setting of the table committed in docs/results.md. By default only "
         "runs/paper/ is written (JSON, a preview of the generated block, figures); "
         "--write-docs also writes docs/figures/*.png and the generated block of "
-        "docs/results.md. Controllers that cannot be loaded (e.g. DDPG without weights) "
-        "are skipped and listed.",
+        "docs/results.md. Controllers that cannot be loaded (e.g. ddpg-distilled without its "
+        "weights) are skipped and listed.",
     )
     p.add_argument(
         "--controllers",

@@ -12,8 +12,13 @@ from protocol.alpha5 import JOINT_LETTERS
 from reach_driver.metrics import settling_band
 
 #: overlaid in the scenario figures, in this order (when run)
-FIGURE_CONTROLLERS = ("ddpg", "mpc", "pid")
-COLORS = {"pid": "tab:green", "mpc": "tab:blue", "ddpg": "tab:red", "ddpg-pure": "tab:orange"}
+FIGURE_CONTROLLERS = ("ddpg-distilled", "mpc", "pid")
+COLORS = {
+    "pid": "tab:green",
+    "mpc": "tab:blue",
+    "ddpg-distilled": "tab:red",
+    "ddpg-distilled-pure": "tab:orange",
+}
 
 
 JOINT_NAMES = tuple(f"{letter} (paper joint {j + 1})" for j, letter in enumerate(JOINT_LETTERS))

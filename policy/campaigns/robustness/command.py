@@ -271,7 +271,12 @@ def build_parser() -> argparse.ArgumentParser:
         "and energy with 95 % bootstrap intervals, the worst arms and failures by factor.",
         epilog="The envelope and the results: docs/robustness.md.",
     )
-    p.add_argument("--controller", nargs="+", metavar="NAME", help="ddpg ddpg-pure mpc pid ...")
+    p.add_argument(
+        "--controller",
+        nargs="+",
+        metavar="NAME",
+        help="ddpg-distilled ddpg-distilled-pure mpc pid ...",
+    )
     p.add_argument(
         "--label",
         help="name for the results and the docs block (default: the controller's name; "

@@ -1,4 +1,5 @@
-"""DDPG agent, training loop, checkpoints and the deployed numpy controller."""
+"""The training side (DDPG / TD3 / TD3+BC agent, training loop, checkpoints, provenance) and the
+distilled controller it made (`ddpg-distilled`: a numpy actor + reference integral)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import pytest
 import torch
 
 from policy.controllers.ddpg_distilled import make_controller
-from policy.controllers.weights import DEFAULT_WEIGHTS, ActorWeights
+from policy.controllers.weights import DISTILLED_WEIGHTS, NONE, ActorWeights, TrainingStage
 from policy.rl.batched import evaluate_batched as evaluate
 from policy.rl.checkpoint import actor_arrays, load_actor_npz, save_actor_npz
 from policy.rl.config import DDPGConfig
@@ -131,10 +132,10 @@ def test_controller_outputs_currents_and_rejects_bad_input(tmp_path: Path) -> No
 
 def test_shipped_weights_load_with_their_metadata() -> None:
     ctrl = make_controller()
-    meta = json.loads(DEFAULT_WEIGHTS.with_suffix(".json").read_text())
+    meta = json.loads(DISTILLED_WEIGHTS.with_suffix(".json").read_text())
     for key in ("command", "seed", "config", "training_time_s", "eval"):
         assert key in meta, key
-    assert DEFAULT_WEIGHTS.stat().st_size < 5_000_000
+    assert DISTILLED_WEIGHTS.stat().st_size < 5_000_000
     state = ControlState(q=np.array([1.0, 1.0, 1.0, 1.0]), qdot=np.zeros(4), t=0.0)
     out = ctrl.act(state, np.array([2.0, 2.0, 2.0, 2.0]))
     assert out.shape == (4,) and np.all(np.abs(out) <= ctrl.current_limits_mA + 1e-9)
@@ -328,10 +329,10 @@ def test_init_actor_starts_from_shipped_weights(tmp_path: Path) -> None:
         num_envs=2,
         demo_episodes=0,
         eval_episodes=2,
-        init_actor=str(DEFAULT_WEIGHTS),
+        init_actor=str(DISTILLED_WEIGHTS),
     )
     trainer = Trainer(cfg, tmp_path, expert=make_expert(cfg), log=lambda _: None)
-    shipped = ActorWeights.load(DEFAULT_WEIGHTS)
+    shipped = ActorWeights.load(DISTILLED_WEIGHTS)
     obs = np.random.default_rng(1).uniform(-1, 1, size=(32, cfg.env.observation.size))
     np.testing.assert_allclose(
         trainer.agent.act(obs.astype(np.float32)), shipped.forward(obs), atol=1e-5
@@ -419,7 +420,9 @@ def test_reference_integral_removes_the_steady_error_friction_leaves() -> None:
     config = RunConfig(noise=SensorNoise(), seed=7, param_spread=0.2)
     pure = evaluate(make_pure_controller(), episodes, config, name="pure").summary()
     # the integral alone, without the settle supervisor that ships around it
-    shipped = evaluate(make_controller(settle=False), episodes, config, name="ddpg").summary()
+    shipped = evaluate(
+        make_controller(settle=False), episodes, config, name="ddpg-distilled"
+    ).summary()
     assert shipped["reached"] == pure["reached"] == 1.0
     assert shipped["msse"] < 0.6 * pure["msse"]  # the bias near the goal goes
     assert shipped["rmse"] <= pure["rmse"] * 1.01  # and the approach is the policy's own
@@ -508,3 +511,66 @@ def test_envelope_evaluation_runs_the_shipped_controller_on_envelope_arms() -> N
         text=True,
     )
     assert out.returncode != 0 and "true state" in out.stderr
+
+
+def test_the_shipped_weights_say_they_were_distilled_from_a_privileged_expert() -> None:
+    """The provenance in the shipped json: four stages, each with demonstrations of the PD
+    expert, whose env steps and wall times add up to the totals; not learned from scratch."""
+    provenance = ActorWeights.load(DISTILLED_WEIGHTS).provenance
+    assert provenance is not None and provenance.complete
+    assert "TD3" in provenance.algorithm and "behaviour cloning" in provenance.algorithm
+    assert provenance.demonstrations != NONE and "PDExpert" in provenance.teacher
+    assert "true state" in provenance.teacher and not provenance.from_scratch
+    assert [s.run for s in provenance.stages] == ["ours-s1", "energy-b", "wide-s6", "fine-s10"]
+    assert provenance.stages[0].init_actor is None
+    assert provenance.env_steps == sum(s.env_steps for s in provenance.stages) == 625_000
+    walls = [s.wall_s for s in provenance.stages]
+    assert None not in walls and provenance.wall_s == pytest.approx(sum(walls), abs=0.1)
+    meta = json.loads(DISTILLED_WEIGHTS.with_suffix(".json").read_text())
+    assert provenance.seed == meta["seed"] and provenance.command == meta["command"]
+
+
+def _stage(run: str, steps: int, wall: float, seed: int, init: str | None = None) -> TrainingStage:
+    return TrainingStage(run, steps, wall, seed, f"tools/train.py --run runs/{run}", init)
+
+
+def test_saved_actors_record_how_they_were_trained(tmp_path: Path) -> None:
+    """DDPG without a teacher is from scratch; TD3+BC names the expert and its episodes; a
+    fine-tune carries the earlier stages and adds them up, or says the lineage is incomplete."""
+    actor = Actor(DDPGConfig.paper().env.observation.size, 4, DDPGConfig.paper().hidden)
+    save_actor_npz(tmp_path / "p.npz", actor, DDPGConfig.paper(), stage=_stage("p", 800, 9.5, 0))
+    paper = ActorWeights.load(tmp_path / "p.npz").provenance
+    assert paper is not None and paper.algorithm == "DDPG" and paper.from_scratch
+    assert (paper.demonstrations, paper.teacher) == (NONE, NONE)
+    assert (paper.env_steps, paper.wall_s, paper.seed) == (800, 9.5, 0)
+    assert paper.command == "tools/train.py --run runs/p"
+
+    ours = DDPGConfig.ours(init_actor=str(tmp_path / "p.npz"))
+    actor = Actor(ours.env.observation.size, 4, ours.hidden)
+    stage = _stage("o", 200, 2.0, 3, ours.init_actor)
+    save_actor_npz(tmp_path / "o.npz", actor, ours, stage=stage)
+    tuned = ActorWeights.load(tmp_path / "o.npz").provenance
+    assert tuned is not None and tuned.algorithm.startswith("TD3 + behaviour cloning")
+    assert tuned.algorithm.endswith("earlier stages: DDPG")
+    assert tuned.demonstrations.startswith("100 episodes of a privileged PD expert")
+    assert tuned.teacher.startswith("PDExpert (privileged: true state, masses, torque scale)")
+    assert [s.run for s in tuned.stages] == ["p", "o"] and tuned.complete
+    assert (tuned.env_steps, tuned.wall_s, tuned.seed) == (1000, 11.5, 3)
+
+    orphan = DDPGConfig.ours(init_actor=str(tmp_path / "nowhere.npz"))
+    save_actor_npz(tmp_path / "x.npz", actor, orphan, stage=_stage("x", 50, 1.0, 4))
+    lost = ActorWeights.load(tmp_path / "x.npz").provenance
+    assert lost is not None and not lost.complete and "nowhere.npz" in lost.note
+    assert lost.env_steps == 50
+
+
+def test_a_trained_run_exports_its_provenance_with_the_command(tmp_path: Path) -> None:
+    cfg = tiny(DDPGConfig.paper(), total_steps=200)
+    trainer = Trainer(cfg, tmp_path / "run-a", log=lambda _: None, command="train.py --run a")
+    trainer.run()
+    trainer.evaluate_and_keep_best()
+    provenance = ActorWeights.load(tmp_path / "run-a" / "best_actor.npz").provenance
+    assert provenance is not None and provenance.from_scratch
+    assert provenance.env_steps == 200 and provenance.command == "train.py --run a"
+    assert provenance.stages[0].run == "run-a" and provenance.seed == cfg.seed
+    assert provenance.wall_s == pytest.approx(trainer.state.wall_s, abs=0.05)
