@@ -141,3 +141,16 @@ def test_away_term_charges_moving_away_from_the_goal_only() -> None:
     away = reward_terms(q, -towards, q_req, z, z, True, config)["away"]
     speeds = np.asarray(policy_env.NO_LOAD_SPEEDS)
     assert away == pytest.approx(-2.0 * float(np.mean(0.5 / speeds)))
+
+
+def test_fine_precision_term_tells_one_milliradian_from_five() -> None:
+    config = RewardConfig(mode=RewardMode.SHAPED, fine_weight=1.0, distance_weight=0.0)
+    q_req, z = np.full(4, 1.5), np.zeros(4)
+
+    def fine(error: float) -> float:
+        return reward_terms(q_req - error, z, q_req, z, z, True, config)["precision_fine"]
+
+    assert fine(0.0) == 0.0
+    assert fine(0.001) == pytest.approx(-1 + np.exp(-0.5 * (1 / 4) ** 2))
+    assert fine(0.005) - fine(0.001) < -0.5  # the coarse term moves by 0.04 over the same
+    assert fine(0.1) == pytest.approx(-1.0)

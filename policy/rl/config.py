@@ -250,7 +250,8 @@ class DDPGConfig:
         """What trains the shipped `ddpg`: learned from scratch, with no demonstrations, no
         behaviour cloning and no teacher. TD3's critics and updates; the network sees its
         previous action and a leaky integral of the error beside the normalised readings; a
-        shaped reward (per-joint precision, distance, calm and never-away arrival); arms drawn
+        shaped reward (per-joint precision, coarse and fine, distance, a calm arrival that never
+        moves away from the goal); starts and goals over B's whole turn; arms drawn
         from the uncertainty envelope for half the episodes and +-20 % around the nominal one
         for the rest, with sensor noise, latency and a weak joint. docs/training.md says what
         each ingredient brings."""
@@ -263,16 +264,19 @@ class DDPGConfig:
                 velocity_weight=0.5,
                 action_change_weight=0.1,
                 away_weight=2.0,
+                fine_weight=1.0,
             ),
             sensor_noise=True,
             torque_scale_low=(0.25, 1.0, 1.0, 1.0),
             param_perturbation=0.2,
             envelope_fraction=0.5,
+            # B over most of its turn: the paper's scenarios ask it for 3.96-5.65 rad
+            workspace_high=(5.8, 2.9, 2.9, 5.8),
         )
         base = cls(
             name="scratch",
             env=env,
-            total_steps=1_500_000,
+            total_steps=1_200_000,
             hidden=(256, 256),
             tau=0.005,
             twin_critics=True,

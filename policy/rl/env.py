@@ -72,6 +72,11 @@ class RewardConfig:
     #: fraction of the current limit both commands must exceed for a reversal to count
     #: (the rest metric's 10 %)
     sign_flip_threshold: float = 0.1
+    #: x (-1 + mean_j exp(-0.5 (e_j / fine_sigma)^2)): a second, narrow precision term that
+    #: still tells 1 mrad from 5 (sigma 0.018 barely does), so holding the goal to the
+    #: milliradian pays (shaped mode). 0 disables
+    fine_weight: float = 0.0
+    fine_sigma: float = 0.004  # rad
     #: x mean_j max(0, -sign(e_j) qdot_j) / no-load speed: moving AWAY from the goal, which
     #: no shortest path does; it is what an overshoot is once the goal is crossed, and what
     #: a sag under gravity is before it (shaped mode)
@@ -169,6 +174,7 @@ class EnvConfig:
 #: the terms of `reward_terms`, in the order they are summed
 REWARD_TERMS = (
     "precision",
+    "precision_fine",
     "potential",
     "distance",
     "velocity",
@@ -216,6 +222,9 @@ def reward_terms(
         return terms
     gate = np.exp(-0.5 * (error / config.near_scale) ** 2)
     terms["precision"] = float(-1.0 + np.mean(np.exp(-0.5 * (error / config.sigma) ** 2)))
+    if config.fine_weight:
+        fine = np.mean(np.exp(-0.5 * (error / config.fine_sigma) ** 2))
+        terms["precision_fine"] = float(config.fine_weight * (-1.0 + fine))
     terms["distance"] = -float(
         config.distance_weight * np.mean(np.abs(error) / WORKSPACE_HALF_RANGE)
     )
