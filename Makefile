@@ -55,7 +55,7 @@ bench: $(BSTAMP)
 	if [ -n "$$missed" ]; then echo "benchmarks that missed their aim:$$missed" >&2; exit 1; fi; \
 	echo "all benchmarks met their aims"
 
-# The shipped learned controller (for now ddpg-distilled: an actor distilled from a PD expert)
+# The shipped learned controller (ddpg: learned by RL from scratch)
 # through `reach-driver` on the virtual arm, real time (~25 s); writes demo.rrd.
 # e.g. make demo DEMO_ARGS="--speed 4 --scenario 3"
 demo: install

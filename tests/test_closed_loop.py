@@ -63,10 +63,11 @@ pytestmark = [
 # ------------------------------------------------------------------------- fast: pure logic
 
 
-def test_ddpg_distilled_runs_at_the_rate_it_was_trained_at() -> None:
-    distilled = load_controller("ddpg-distilled")
-    trained_hz = distilled.weights.metadata["env"]["control_hz"]  # type: ignore[attr-defined]
-    period, warning = control_period(distilled, None)
+@pytest.mark.parametrize("name", ["ddpg", "ddpg-distilled"])
+def test_learned_controllers_run_at_the_rate_they_were_trained_at(name: str) -> None:
+    learned = load_controller(name)
+    trained_hz = learned.weights.metadata["env"]["control_hz"]  # type: ignore[attr-defined]
+    period, warning = control_period(learned, None)
     assert period == pytest.approx(1.0 / trained_hz) and warning is None
     pid = load_controller("pid", period_s=0.1)
     assert control_period(pid, None) == (0.1, None)
@@ -226,12 +227,12 @@ def test_a_target_outside_the_limits_is_refused_and_nothing_moves(
 
 
 @pytest.mark.slow
-def test_ddpg_distilled_reaches_scenario_1_through_reach_driver_and_prints_its_metrics(
+def test_ddpg_reaches_scenario_1_through_reach_driver_and_prints_its_metrics(
     sim: SimServer, tmp_path: Path, capsys: Any
 ) -> None:
-    record = tmp_path / "ddpg-distilled.rrd"
+    record = tmp_path / "ddpg.rrd"
     argv = ["--port", str(sim.link), "--watchdog", str(WATCHDOG_S), "run", "--controller"]
-    argv += ["ddpg-distilled", "--target", *map(str, SCENARIO_1.target), "--seconds", "8"]
+    argv += ["ddpg", "--target", *map(str, SCENARIO_1.target), "--seconds", "8"]
     argv += ["--record", str(record)]
     code = main(argv)
     out = capsys.readouterr().out
@@ -381,11 +382,12 @@ def test_a_stalled_controller_is_stopped_by_the_watchdog(
 
 @pytest.mark.slow
 def test_the_driver_path_agrees_with_the_direct_environment() -> None:
-    """Same controller, same episode: the protocol path must not degrade control."""
-    distilled = load_controller("ddpg-distilled")
+    """Same controller, same episode: the protocol path must not degrade control (`ddpg`
+    keeps memory channels across periods: a lost or doubled period would show here)."""
+    ddpg = load_controller("ddpg")
     config = RunConfig(seconds=8.0)
-    direct = run_episode(distilled, SCENARIO_1, config)
-    via = run_episode_via_driver(distilled, SCENARIO_1, config, DriverConfig(speed=2.0))
+    direct = run_episode(ddpg, SCENARIO_1, config)
+    via = run_episode_via_driver(ddpg, SCENARIO_1, config, DriverConfig(speed=2.0))
     d, v = direct.metrics, via.result.metrics
     assert via.result.trace.q.shape == direct.trace.q.shape == (161, 4)
     assert abs(v.rmse - d.rmse) <= AGREEMENT.rmse_rel * d.rmse
@@ -407,11 +409,11 @@ def test_the_driver_path_agrees_with_the_direct_environment() -> None:
 @pytest.mark.slow
 def test_the_torque_limited_scenario_through_the_driver() -> None:
     """Scenario 3: E at 25 % torque, set on the served arm, slows E as in the direct env."""
-    distilled = load_controller("ddpg-distilled")
+    ddpg = load_controller("ddpg")
     config = RunConfig(seconds=10.0)
-    via = run_episode_via_driver(distilled, SCENARIO_3, config, DriverConfig(speed=4.0))
-    weak = run_episode(distilled, SCENARIO_3, config)
-    strong = run_episode(distilled, Episode(SCENARIO_3.start, SCENARIO_3.target), config)
+    via = run_episode_via_driver(ddpg, SCENARIO_3, config, DriverConfig(speed=4.0))
+    weak = run_episode(ddpg, SCENARIO_3, config)
+    strong = run_episode(ddpg, Episode(SCENARIO_3.start, SCENARIO_3.target), config)
     # E at 1 s through the driver is where the weak arm's E is within 2 periods of 1 s (at 4x
     # real time a loaded machine slips the served clock by a period or so: E then moves 0.048
     # rad a period), and far short of where the full-torque arm's is (0.25 rad further)
@@ -490,7 +492,7 @@ def test_evaluate_via_driver_writes_metrics_and_loop_timing(tmp_path: Path) -> N
 
 
 @pytest.mark.slow
-def test_demo_runs_ddpg_distilled_through_the_cli_and_writes_a_recording(tmp_path: Path) -> None:
+def test_demo_runs_ddpg_through_the_cli_and_writes_a_recording(tmp_path: Path) -> None:
     record = tmp_path / "demo.rrd"
     demo = [sys.executable, str(ROOT / "tools" / "demo.py"), "--speed", "4", "--seconds", "4"]
     proc = subprocess.run(

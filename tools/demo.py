@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """`make demo`: the shipped learned controller drives the virtual Alpha 5 through `reach-driver`,
-the same command a real arm gets. For now that is `ddpg-distilled`, an actor distilled from a
-privileged PD expert (TD3 + behaviour cloning) with an engineered reference integral and settle
-supervisor around it (`reach-driver controllers` says what each controller is).
+the same command a real arm gets: `ddpg`, the torque policy learned by reinforcement learning
+from scratch, with nothing around the network (`reach-driver controllers` says what each
+controller is and how it was trained).
 
 The virtual arm (SimServer) is served on a pseudo-terminal in this process, starting at the
 paper's zero pose; `reach-driver info` and `reach-driver run` then talk to it from a separate
@@ -54,7 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="demo.py",
         description=(
             "Serve the virtual Alpha 5 on a pty, then run a controller (by default "
-            "ddpg-distilled, an actor distilled from a PD expert) through "
+            "ddpg, the policy learned from scratch) through "
             "`reach-driver run` (the real CLI path, in its own process) to the paper's "
             "scenario 1 target, print the run's metrics and write a Rerun recording."
         ),
@@ -65,9 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--controller",
-        default="ddpg-distilled",
-        help="registered controller (default ddpg-distilled; `reach-driver controllers` "
-        "lists them)",
+        default="ddpg",
+        help="registered controller (default ddpg; `reach-driver controllers` lists them)",
     )
     p.add_argument(
         "--scenario",
