@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 import policy.rl.env as policy_env
-from policy.controllers.ddpg import LearnedController
+from policy.controllers.ddpg import LearnedController, make_controller
 from policy.controllers.observation import InputMemory, ObservationConfig, build_observation
-from policy.controllers.weights import FORMAT, LAYERS, ActorWeights
+from policy.controllers.weights import FORMAT, LAYERS, LEARNED_WEIGHTS, ActorWeights
 from policy.rl.config import DDPGConfig
 from policy.rl.env import EnvConfig, ReachAlphaEnv, RewardConfig, RewardMode, reward_terms
 from reach_driver.controllers import ControlState
@@ -154,3 +154,17 @@ def test_fine_precision_term_tells_one_milliradian_from_five() -> None:
     assert fine(0.001) == pytest.approx(-1 + np.exp(-0.5 * (1 / 4) ** 2))
     assert fine(0.005) - fine(0.001) < -0.5  # the coarse term moves by 0.04 over the same
     assert fine(0.1) == pytest.approx(-1.0)
+
+
+def test_the_shipped_ddpg_is_learned_from_scratch_and_says_how() -> None:
+    weights = ActorWeights.load(LEARNED_WEIGHTS)
+    provenance = weights.provenance
+    assert provenance is not None and provenance.from_scratch
+    assert provenance.demonstrations == "none" and provenance.teacher == "none"
+    assert provenance.algorithm in ("DDPG", "TD3")  # no behaviour cloning suffix
+    assert "tools/train.py" in provenance.command and provenance.env_steps > 0
+    config = DDPGConfig.from_dict(weights.metadata["config"])
+    assert config.demo_episodes == 0 and config.bc_weight == 0 and config.init_actor is None
+    assert weights.observation.has_memory  # its memory channels travel with it
+    controller = make_controller()
+    assert isinstance(controller, LearnedController) and controller.control_hz == 20.0
