@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -91,10 +93,10 @@ def test_controller_rejects_bad_input() -> None:
         controller.act(ControlState(np.ones(4), np.zeros(4), 0.0), np.ones(3))
 
 
-def test_weights_file_round_trip_keeps_memory_config(tmp_path: pytest.TempPathFactory) -> None:
+def test_weights_file_round_trip_keeps_memory_config(tmp_path: Path) -> None:
     weights = random_weights(MEMORY_OBS, hz=10.0)
-    path = tmp_path / "actor.npz"  # type: ignore[operator]
-    arrays = {f"W{i}": w for i, w in enumerate(weights.weights)}
+    path = tmp_path / "actor.npz"
+    arrays: dict[str, Any] = {f"W{i}": w for i, w in enumerate(weights.weights)}
     arrays.update({f"b{i}": b for i, b in enumerate(weights.biases)})
     np.savez(path, **arrays)
     meta = dict(weights.metadata, observation=MEMORY_OBS.to_dict())
