@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 import pytest
 
 if TYPE_CHECKING:
+    from policy.rl.config import DDPGConfig
     from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 #: What `sim_factory` hands a test: `make(**SimConfig fields) -> SimServer`.
@@ -137,6 +138,21 @@ def sim_port(request: pytest.FixtureRequest, sim: SimServer) -> str:
         return udp_url(sim)
     assert sim.link is not None
     return str(sim.link)
+
+
+def tiny(config: DDPGConfig, **overrides: object) -> DDPGConfig:
+    """A training config that runs a few hundred steps in a couple of seconds."""
+    import dataclasses
+
+    base: dict[str, object] = dict(
+        total_steps=400,
+        learning_starts=100,
+        eval_every=10**9,
+        buffer_size=5_000,
+        env=dataclasses.replace(config.env, episode_s=5.0),
+    )
+    base.update(overrides)
+    return dataclasses.replace(config, **base)  # type: ignore[arg-type]
 
 
 def wait_until(

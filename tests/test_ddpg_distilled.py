@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import tiny
 
 from policy.controllers.ddpg_distilled import make_controller
 from policy.controllers.weights import DISTILLED_WEIGHTS, NONE, ActorWeights, TrainingStage
@@ -28,19 +29,6 @@ from policy.rl.trainer import Trainer, make_expert
 from reach_driver.controllers import ControlState
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def tiny(config: DDPGConfig, **overrides: object) -> DDPGConfig:
-    """A config that trains for a few hundred steps in a couple of seconds."""
-    base = dict(
-        total_steps=400,
-        learning_starts=100,
-        eval_every=10**9,
-        buffer_size=5_000,
-        env=dataclasses.replace(config.env, episode_s=5.0),
-    )
-    base.update(overrides)
-    return dataclasses.replace(config, **base)  # type: ignore[arg-type]
 
 
 def test_paper_hyperparameters() -> None:

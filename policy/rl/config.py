@@ -84,6 +84,10 @@ class DDPGConfig:
     num_envs: int = 1
     #: gradient updates per round (1: the paper's one update per env step)
     updates_per_round: int = 1
+    #: step the envs in a child process one round ahead of the learner
+    #: (policy.rl.collector): on two cores the physics and the updates overlap. Not with
+    #: an expert, a curriculum or a --params arm
+    collector_process: bool = False
     # --- improvements (all off in the paper's configuration) ---
     #: TD3's clipped double Q: two critics, the min of their targets in the TD target
     twin_critics: bool = False

@@ -26,6 +26,7 @@ from policy.controllers.weights import TrainingStage
 from policy.rl.agent import Agent
 from policy.rl.batched import EvalResult, Expert, eval_envs, evaluate_batched
 from policy.rl.checkpoint import save_actor_npz
+from policy.rl.collector import CollectorProcess
 from policy.rl.config import (
     CURRICULUM_MAX_STEP,
     DEMO_SEED_OFFSET,
@@ -241,6 +242,8 @@ class Trainer:
     ) -> TrainState:
         cfg = self.config
         until = min(until_steps or cfg.total_steps, cfg.total_steps)
+        if cfg.collector_process:
+            return self._run_pipelined(until, checkpoint_every_s, progress, csv_path)
         if self.state.env_steps == 0 and len(self.demos) == 0:
             self.collect_demonstrations()
         if self._obs is None:
@@ -300,6 +303,80 @@ class Trainer:
             if csv is not None:
                 csv.close()
         return self.state
+
+    def _run_pipelined(
+        self,
+        until: int,
+        checkpoint_every_s: float,
+        progress: Callable[[TrainState, dict[str, float]], None] | None,
+        csv_path: Path | None,
+    ) -> TrainState:
+        """`run` with the envs in a child process one round ahead (policy.rl.collector):
+        the learner updates on the buffer while the child steps the next round."""
+        cfg = self.config
+        if self.expert is not None or cfg.curriculum_start is not None:
+            raise ValueError("collector_process: the expert and the curriculum need the envs here")
+        if self.arm_factory is not None:
+            raise ValueError("collector_process: the child builds the nominal arm only")
+        csv = open(csv_path, "a", buffering=1) if csv_path else None  # noqa: SIM115
+        if csv is not None and csv.tell() == 0:
+            csv.write(
+                "env_steps,episodes,wall_s,episode_return,critic_loss,actor_loss,"
+                "bc_loss,q,epsilon,bc_weight\n"
+            )
+        t_last_ckpt = time.monotonic()
+        t_start = time.monotonic() - self.state.wall_s
+        next_eval = (self.state.env_steps // cfg.eval_every + 1) * cfg.eval_every
+        losses: dict[str, float] = {}
+        with CollectorProcess(cfg, self.state.env_steps) as collector:
+            if self.state.episodes == 0:
+                self.state.episodes = cfg.num_envs  # the child's first episodes
+
+            def ask() -> None:
+                uniform = self.state.env_steps < cfg.learning_starts
+                actor = None if uniform else self._actor_arrays()
+                collector.request(actor, self.epsilon(), uniform)
+
+            ask()
+            try:
+                while self.state.env_steps < until:
+                    if self.state.env_steps >= cfg.learning_starts:
+                        self.agent.set_learning_rates(self.state.env_steps)
+                        for _ in range(cfg.updates_per_round):
+                            losses = self.agent.update(self._sample(), self.bc_weight())
+                    got = collector.result()
+                    no_label = np.zeros_like(got.actions)
+                    self.buffer.add(
+                        got.obs, got.actions, got.rewards, got.next_obs, got.terms, no_label
+                    )
+                    self.state.env_steps += cfg.num_envs
+                    self.state.episodes += len(got.returns)
+                    if self.state.env_steps < until:
+                        ask()
+                    if csv is not None:
+                        for ep_return in got.returns:
+                            csv.write(self._csv_row(ep_return, losses))
+                    self.state.wall_s = time.monotonic() - t_start
+                    if progress is not None:
+                        progress(self.state, losses)
+                    if self.state.env_steps >= next_eval:
+                        next_eval += cfg.eval_every
+                        self.evaluate_and_keep_best()
+                    if time.monotonic() - t_last_ckpt > checkpoint_every_s:
+                        self.save()
+                        t_last_ckpt = time.monotonic()
+            finally:
+                if csv is not None:
+                    csv.close()
+        return self.state
+
+    def _actor_arrays(self) -> list[np.ndarray]:
+        """The actor's layers (W, b per layer, torch's layout) for the collector."""
+        return [
+            t.detach().numpy().copy()
+            for layer in self.agent.actor.linears()
+            for t in (layer.weight, layer.bias)
+        ]
 
     def _sample(self) -> dict[str, np.ndarray]:
         cfg = self.config
