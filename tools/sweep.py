@@ -33,9 +33,14 @@ def build_parser() -> argparse.ArgumentParser:
         prog="sweep.py",
         description="Train the same configuration for several seeds on Ray Tune (one trial "
         "per seed, each reporting its checkpoint evaluations) and summarise the spread.",
-        epilog="docs/robustness.md, 'Seed sweeps'. Needs Ray Tune: pip install 'ray[tune]'.",
+        epilog="docs/training.md, 'Seed sweeps'. Needs Ray Tune: pip install 'ray[tune]'.",
     )
-    p.add_argument("--config", default="ours", choices=["ours", "paper"], help="preset (ours)")
+    p.add_argument(
+        "--config",
+        default="ours",
+        choices=["scratch", "paper", "paper-per-joint", "ours", "robust"],
+        help="preset, a classmethod of policy.rl.config.DDPGConfig (ours)",
+    )
     p.add_argument("--seeds", type=int, nargs="+", required=True, metavar="SEED")
     p.add_argument("--steps", type=int, required=True, help="env steps per trial")
     p.add_argument(

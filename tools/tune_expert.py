@@ -2,7 +2,7 @@
 """Sweep of the demonstrator's energy weight (`PDExpert.energy_lambda`) on a fixed episode set.
 
 How the demonstrator behind the distilled actor's weights (`ddpg-distilled`) was chosen
-(docs/training.md):
+(docs/distilled.md):
 - Episodes: ``--episodes`` random start/target pairs from ``random_episodes(n, --seed)``; the
   default seed (11) is the MPC tuning set's, not the comparison's (2020).
 - Conditions: sensor noise and +-20 % degraded arm parameters, as Table I. The expert reads

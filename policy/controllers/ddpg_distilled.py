@@ -4,7 +4,7 @@ What it is: not a policy learned by RL from scratch. The actor was trained by TD
 behaviour-cloning term toward a privileged PD expert (`policy.rl.expert.PDExpert`, which reads
 the true state, the masses and the torque scale) and 100 of its demonstration episodes per
 stage, in four stages, each fine-tuning the previous one (the weights' json, "provenance";
-docs/training.md). Around the network, engineered: a reference integral (`ReferenceIntegral`)
+docs/distilled.md). Around the network, engineered: a reference integral (`ReferenceIntegral`)
 and a settle supervisor (`policy.controllers.settle`). Entry points: `ddpg-distilled` (all of
 it), `ddpg-distilled-pure` (the actor alone).
 
@@ -46,7 +46,7 @@ class ReferenceIntegral:
     Why: the policy stops a few mrad short wherever static friction (0.7 N m, 6 % of the
     current limit on E, D, C) holds the joint against its small final command, and on an arm
     whose masses or buoyancy differ from the model; with no memory it cannot correct that
-    (docs/training.md, "Fine-tuning"). Shifting the reference is the classic outer-loop fix
+    (docs/distilled.md, "Fine-tuning"). Shifting the reference is the classic outer-loop fix
     that leaves the learned network untouched. The integral restarts whenever the target
     changes or the joint leaves the band, so the approach itself is the policy's alone.
     `gain` 0 turns it off (the actor alone, entry point `ddpg-distilled-pure`).

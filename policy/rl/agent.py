@@ -2,8 +2,8 @@
 
 `Agent.update` reads top to bottom like CleanRL's `ddpg_continuous_action.py`: the critic
 loss against the target networks' bootstrap, then (every `policy_delay` updates) the actor
-loss and the soft update of the targets. The TD3 and TD3+BC options (docs/training.md) are
-branches inside those steps, each off in `DDPGConfig.paper()`.
+loss and the soft update of the targets. The TD3 and TD3+BC options (docs/training.md,
+docs/distilled.md) are branches inside those steps, each off in `DDPGConfig.paper()`.
 
 Speed (tools/bench_train.py): fused Adam, gradients of the actor loss for the actor only, and a
 foreach lerp for the target networks.

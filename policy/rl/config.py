@@ -1,7 +1,8 @@
 """Every hyperparameter of a DDPG run, and the constants training fixes once.
 
-`DDPGConfig.paper()` is Carlucho et al. (OCEANS 2020) as stated; `DDPGConfig.ours()` is what the
-shipped policy used (docs/training.md says why each change was made). A run's config is saved
+`DDPGConfig.paper()` is Carlucho et al. (OCEANS 2020) as stated; `DDPGConfig.scratch()` trains
+the shipped `ddpg` (docs/training.md says why each change was made); `DDPGConfig.ours()` and
+`DDPGConfig.robust()` are the distilled stack's (docs/distilled.md). A run's config is saved
 in its run directory and beside the weights, so every field round-trips through `to_dict`.
 """
 
@@ -117,7 +118,7 @@ class DDPGConfig:
     #: the demonstrator's gains (`PDExpert.kp` 1/rad, `.kd` s/rad, E D C B); None: its
     #: defaults (8, 8, 8, 4) / (0.4, 0.4, 0.4, 0.1), tuned on the nominal arm. A softer
     #: velocity loop (smaller kd, same kp / kd) limit-cycles on fewer latent arms
-    #: (docs/training.md "Robust fine-tune")
+    #: (docs/distilled.md "Robust fine-tune")
     expert_kp: tuple[float, float, float, float] | None = None
     expert_kd: tuple[float, float, float, float] | None = None
     #: start the actor (and its target) from these weights (.npz, the shipped format):
@@ -142,7 +143,7 @@ class DDPGConfig:
     eval_envelope_episodes: int = 0
     #: demonstrator's labels only where it is a good teacher: on episodes whose control latency
     #: exceeds this many periods the BC term is off (the PD on the true state limit-cycles
-    #: there, docs/training.md "Robust fine-tune"); None: BC everywhere
+    #: there, docs/distilled.md "Robust fine-tune"); None: BC everywhere
     bc_max_latency: float | None = None
 
     def __post_init__(self) -> None:

@@ -34,10 +34,10 @@ class PDExpert:
     Euler-Lagrange solution), so joints with little way to go or much friction move slower,
     while a joint whose remaining time is the longest (the one that sets the settling time)
     keeps full speed. The cruise speed is held by a friction feed-forward that fades out
-    within `cruise_gate` of the target, where the plain PD takes over (docs/training.md).
+    within `cruise_gate` of the target, where the plain PD takes over (docs/distilled.md).
     """
 
-    # tuned on the nominal arm at 20 Hz (docs/training.md): no overshoot, no steady error
+    # tuned on the nominal arm at 20 Hz (docs/distilled.md): no overshoot, no steady error
     kp: tuple[float, float, float, float] = (8.0, 8.0, 8.0, 4.0)  # 1/rad
     kd: tuple[float, float, float, float] = (0.4, 0.4, 0.4, 0.1)  # s/rad
     gravity_ff: bool = True
