@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from policy.controllers.observation import InputMemory
-from policy.controllers.weights import LEARNED_WEIGHTS, ActorWeights, provenance_of
+from policy.controllers.weights import LEARNED_WEIGHTS, PAPER_WEIGHTS, ActorWeights, provenance_of
 from protocol.alpha5 import N_JOINTS
 from reach_driver.controllers import ControlState, learned
 
@@ -69,3 +69,14 @@ def make_controller(
     Entry point `ddpg`: the actor of the shipped weights (or those at `weights`), its inputs
     built as in training, its output sent as it is."""
     return LearnedController(ActorWeights.load(weights or LEARNED_WEIGHTS), current_limits_mA)
+
+
+@learned(provenance_of(PAPER_WEIGHTS, "nothing: the actor alone"))
+def make_paper_controller(
+    weights: str | Path | None = None, current_limits_mA: Any = None
+) -> LearnedController:
+    """The paper's DDPG as stated, learned from scratch: its networks, noise, reward, steps.
+
+    Entry point `ddpg-paper`: what the paper's configuration (`tools/train.py --config
+    paper-per-joint`) learns on this arm, whatever that is (docs/training.md)."""
+    return LearnedController(ActorWeights.load(weights or PAPER_WEIGHTS), current_limits_mA)

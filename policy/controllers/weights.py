@@ -30,6 +30,8 @@ WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DISTILLED_WEIGHTS = WEIGHTS_DIR / "ddpg_distilled_actor.npz"
 #: the `ddpg` entry point's weights: the policy learned from scratch (policy.controllers.ddpg)
 LEARNED_WEIGHTS = WEIGHTS_DIR / "ddpg_actor.npz"
+#: the `ddpg-paper` entry point's: the paper's configuration as stated, trained from scratch
+PAPER_WEIGHTS = WEIGHTS_DIR / "ddpg_paper_actor.npz"
 #: the control rate of weights whose file does not record the env they were trained in
 DEFAULT_CONTROL_HZ = 20.0
 FORMAT = "reach-stack ddpg actor v1"
