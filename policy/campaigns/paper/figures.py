@@ -12,11 +12,12 @@ from protocol.alpha5 import JOINT_LETTERS
 from reach_driver.metrics import settling_band
 
 #: overlaid in the scenario figures, in this order (when run)
-FIGURE_CONTROLLERS = ("ddpg-distilled", "mpc", "pid")
+FIGURE_CONTROLLERS = ("ddpg", "mpc", "pid")
 COLORS = {
     "pid": "tab:green",
     "mpc": "tab:blue",
-    "ddpg-distilled": "tab:red",
+    "ddpg": "tab:red",
+    "ddpg-distilled": "tab:purple",
     "ddpg-distilled-pure": "tab:orange",
 }
 

@@ -27,10 +27,14 @@ PAPER_TABLE = {
 
 #: paired comparisons (a - b) reported with bootstrap intervals, when both were run
 PAIRS = (
+    ("ddpg", "mpc"),
+    ("ddpg", "pid"),
+    ("ddpg", "ddpg-distilled"),
     ("ddpg-distilled", "mpc"),
     ("ddpg-distilled-pure", "mpc"),
-    ("ddpg-distilled", "ddpg-distilled-pure"),
 )
+#: the learned controller whose wins over the MPC are counted per seed
+LEARNED = "ddpg"
 SHORT = {k: METRIC_LABELS[k][0] for k in TABLE_KEYS}
 
 
@@ -94,7 +98,7 @@ def ci_lines(table: dict[str, dict[str, Any]], n: int, resamples: int, ci_seed: 
 def paired_lines(
     every: dict[int, dict[str, dict[str, Any]]], main_seed: int, resamples: int, ci_seed: int
 ) -> tuple[list[str], dict[str, Any]]:
-    """ddpg-distilled - MPC (and the other PAIRS) per metric, paired by episode: on Table I's
+    """ddpg - MPC (and the other PAIRS) per metric, paired by episode: on Table I's
     seed and pooled over every seed run. Returns the lines and the numbers (for runs/paper JSON)."""
     pairs = [(a, b) for a, b in PAIRS if all(a in every[sd] and b in every[sd] for sd in every)]
     if not pairs:
@@ -177,7 +181,7 @@ def _summary(run: Any) -> dict[str, float]:
 def seed_lines(
     more: dict[int, dict[str, Any]], table: dict[str, Any], seed: int, n: int
 ) -> list[str]:
-    """The comparison repeated on other seeds, and how often ddpg-distilled beats MPC per metric."""
+    """The comparison repeated on other seeds, and how often `LEARNED` beats MPC per metric."""
     every = {seed: table, **more}
     lines = [
         "",
@@ -195,15 +199,15 @@ def seed_lines(
                 f"{s['mie']:.4f} | {s['msse']:.5f} | {s['overshoot_pct']:.2f} | "
                 f"{s['settling_time_s']:.3f} | {s['reached']:.2f} |"
             )
-    pairs = [runs for runs in every.values() if "ddpg-distilled" in runs and "mpc" in runs]
+    pairs = [runs for runs in every.values() if LEARNED in runs and "mpc" in runs]
     if pairs:
         counts = {k: 0 for k in TABLE_KEYS}
         for runs in pairs:
-            for k, better in wins(_summary(runs["ddpg-distilled"]), _summary(runs["mpc"])).items():
+            for k, better in wins(_summary(runs[LEARNED]), _summary(runs["mpc"])).items():
                 counts[k] += better
         lines += [
             "",
-            f"ddpg-distilled better than MPC on {len(pairs)} seeds: "
+            f"{LEARNED} better than MPC on {len(pairs)} seeds: "
             + ", ".join(f"{SHORT[k]} {counts[k]}/{len(pairs)}" for k in TABLE_KEYS)
             + ". (Per-seed means; a tie is not a win.)",
         ]

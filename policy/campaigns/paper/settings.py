@@ -61,7 +61,7 @@ class Settings:
 
 
 COMMITTED = Settings(
-    controllers=("pid", "mpc", "ddpg-distilled", "ddpg-distilled-pure"),
+    controllers=("pid", "mpc", "ddpg", "ddpg-distilled"),
     seed=2020,
     n=20,
     seconds=20.0,
