@@ -273,16 +273,16 @@ def test_paper_replaces_only_its_generated_block(tmp_path: Path) -> None:
     assert doc.read_text() == f"intro\n{BEGIN}\nnew table\n{END}\noutro\n"
 
 
-def test_paper_counts_ddpg_distilled_wins_over_mpc_across_seeds() -> None:
+def test_paper_counts_the_learned_policys_wins_over_mpc_across_seeds() -> None:
     keys = (*scenarios.TABLE_KEYS, "reached")
 
     def ev(*values: float) -> SimpleNamespace:
         return SimpleNamespace(summary=lambda: dict(zip(keys, values, strict=True)))
 
     mpc = ev(10.7, 0.23, 0.90, 0.0014, 1.9, 1.86, 1.0)
-    table = {"mpc": mpc, "ddpg-distilled": ev(10.4, 0.22, 0.88, 0.0015, 0.3, 1.86, 1.0)}
-    more = {2120: {"mpc": mpc, "ddpg-distilled": ev(10.9, 0.22, 0.88, 0.0010, 0.3, 1.80, 1.0)}}
-    assert scenarios.wins(table["ddpg-distilled"].summary(), mpc.summary()) == {
+    table = {"mpc": mpc, "ddpg": ev(10.4, 0.22, 0.88, 0.0015, 0.3, 1.86, 1.0)}
+    more = {2120: {"mpc": mpc, "ddpg": ev(10.9, 0.22, 0.88, 0.0010, 0.3, 1.80, 1.0)}}
+    assert scenarios.wins(table["ddpg"].summary(), mpc.summary()) == {
         "energy_j": True,
         "rmse": True,
         "mie": True,
@@ -291,7 +291,7 @@ def test_paper_counts_ddpg_distilled_wins_over_mpc_across_seeds() -> None:
         "settling_time_s": False,
     }  # a tie is not a win
     text = "\n".join(seed_lines(more, table, 2020, 20))
-    assert "| 2020 | ddpg-distilled | 10.40 |" in text and "| 2120 | mpc | 10.70 |" in text
+    assert "| 2020 | ddpg | 10.40 |" in text and "| 2120 | mpc | 10.70 |" in text
     assert (
         "on 2 seeds: energy 1/2, RMSE 2/2, MIE 2/2, MSSE 1/2, overshoot 2/2, settling time 1/2."
         in text
