@@ -84,6 +84,18 @@ def test_json_gives_the_distilled_controllers_provenance(capsys) -> None:
         assert by_name[name]["kind"] == "engineered" and by_name[name]["provenance"] is None
 
 
+def test_json_says_ddpg_was_learned_from_scratch(capsys) -> None:
+    by_name = {info["name"]: info for info in json.loads(listing(capsys, "--json"))}
+    ddpg = by_name["ddpg"]
+    assert ddpg["target"] == "policy.controllers.ddpg:make_controller"
+    assert ddpg["kind"] == "learned" and "from scratch" in ddpg["summary"]
+    provenance = ddpg["provenance"]
+    assert provenance["demonstrations"] == "none" and provenance["teacher"] == "none"
+    assert provenance["algorithm"] == "TD3" and provenance["complete"]
+    assert "tools/train.py" in provenance["command"] and provenance["env_steps"] > 0
+    assert provenance["around_the_network"].startswith("nothing")
+
+
 def test_a_controller_that_fails_to_import_is_listed_with_its_error(monkeypatch, capsys) -> None:
     with_entry_point(monkeypatch, "broken", "no_such_package_xyz.ctrl:make_controller")
     text = listing(capsys)
