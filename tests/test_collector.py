@@ -46,7 +46,11 @@ def test_a_child_failure_is_raised_in_the_learner() -> None:
 def test_training_with_the_collector_is_deterministic_for_a_seed(tmp_path: Path) -> None:
     def train(seed: int, name: str) -> Trainer:
         trainer = Trainer(small_scratch(seed=seed), tmp_path / name, log=lambda _: None)
-        trainer.run(csv_path=tmp_path / f"{name}.csv")
+        try:  # in two sittings: the child and its episodes go on between them
+            trainer.run(until_steps=200, csv_path=tmp_path / f"{name}.csv")
+            trainer.run(csv_path=tmp_path / f"{name}.csv")
+        finally:
+            trainer.close()
         return trainer
 
     a, b, c = train(0, "a"), train(0, "b"), train(1, "c")

@@ -18,6 +18,8 @@ Contenders:
   scratch the `scratch` preset as it trains the shipped `ddpg`, its own env included
           (memory channels, shaped reward, envelope arms): 256-256 networks, 16 envs per
           round, batch 256, 2 updates per round (32 transitions per env step)
+  scratch+collector  the same with `collector_process`: the envs in a second process, one
+          round ahead of the learner (on one core this only adds the hand-over)
 """
 
 from __future__ import annotations
@@ -38,9 +40,12 @@ from policy.rl.trainer import Trainer
 
 
 def bench_ours(
-    config: DDPGConfig, warmup: int, steps: int, run_dir: str
+    config: DDPGConfig, warmup: int, steps: int, run_dir: str, trainers: list[Trainer]
 ) -> Callable[[], dict[str, float]]:
+    """Rounds of `steps` env steps of our training loop; the trainer joins `trainers` (to be
+    closed at the end: `collector_process` keeps a child process)."""
     trainer = Trainer(config, run_dir, log=lambda _: None)
+    trainers.append(trainer)
     trainer.run(until_steps=warmup)
 
     def one_round() -> dict[str, float]:
@@ -207,11 +212,19 @@ def main(argv: list[str] | None = None) -> int:
         eval_envelope_episodes=0,
     )
     tmp = tempfile.TemporaryDirectory()
+    trainers: list[Trainer] = []
     contenders: dict[str, Callable[[], dict[str, float]]] = {
         "sb3": bench_sb3(paper.env, args.warmup, args.steps, args.seed),
-        "paper": bench_ours(paper, args.warmup, args.steps, tmp.name + "/paper"),
-        "ours": bench_ours(ours, args.warmup, args.steps, tmp.name + "/ours"),
-        "scratch": bench_ours(scratch, args.warmup, args.steps, tmp.name + "/scratch"),
+        "paper": bench_ours(paper, args.warmup, args.steps, tmp.name + "/paper", trainers),
+        "ours": bench_ours(ours, args.warmup, args.steps, tmp.name + "/ours", trainers),
+        "scratch": bench_ours(scratch, args.warmup, args.steps, tmp.name + "/scratch", trainers),
+        "scratch+collector": bench_ours(
+            dataclasses.replace(scratch, collector_process=True),
+            args.warmup,
+            args.steps,
+            tmp.name + "/collector",
+            trainers,
+        ),
     }
     results: dict[str, list[dict[str, float]]] = {name: [] for name in contenders}
     for r in range(args.rounds):
@@ -223,16 +236,18 @@ def main(argv: list[str] | None = None) -> int:
         return statistics.median(x[key] for x in results[name])
 
     print(
-        f"\n{'contender':<10} {'env steps/s':>12} {'updates/s':>10} {'samples/s':>10}"
+        f"\n{'contender':<18} {'env steps/s':>12} {'updates/s':>10} {'samples/s':>10}"
         f" {'x SB3 steps':>12} {'x SB3 samples':>14}"
     )
     base_steps, base_samples = median("sb3", "env_steps_s"), median("sb3", "samples_s")
     for name in contenders:
         s, u, n = (median(name, k) for k in ("env_steps_s", "updates_s", "samples_s"))
         print(
-            f"{name:<10} {s:>12.0f} {u:>10.0f} {n:>10.0f} {s / base_steps:>12.2f}"
+            f"{name:<18} {s:>12.0f} {u:>10.0f} {n:>10.0f} {s / base_steps:>12.2f}"
             f" {n / base_samples:>14.2f}"
         )
+    for trainer in trainers:
+        trainer.close()
     tmp.cleanup()
     print(
         f"\n(medians of {args.rounds} rounds of {args.steps} env steps; torch "

@@ -245,7 +245,10 @@ def run_trial(config: dict[str, Any], report: Callable[[dict[str, Any]], None]) 
             )
         sent[0] = len(trainer.state.history)
 
-    trainer.run(until_steps=training.total_steps, progress=lambda _s, _l: flush())
+    try:
+        trainer.run(until_steps=training.total_steps, progress=lambda _s, _l: flush())
+    finally:
+        trainer.close()
     history = trainer.state.history
     if not history or history[-1]["env_steps"] != trainer.state.env_steps:
         trainer.evaluate_and_keep_best()

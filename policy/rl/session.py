@@ -97,6 +97,8 @@ def train_run(
     except KeyboardInterrupt:
         name = signal.Signals(interrupted[0]).name if interrupted else "SIGINT"
         log(f"interrupted ({name}): saving a checkpoint")
+    finally:
+        trainer.close()
     history = trainer.state.history
     if not history or history[-1]["env_steps"] != trainer.state.env_steps:
         trainer.evaluate_and_keep_best()

@@ -155,6 +155,8 @@ class Trainer:
         self.state = TrainState()
         self.best_actor = copy.deepcopy(self.agent.actor.state_dict())
         self._obs: np.ndarray | None = None
+        #: the envs' child process with `collector_process` (started by the first `run`)
+        self._collector: CollectorProcess | None = None
 
     # -- schedules -------------------------------------------------------------------------
     def epsilon(self) -> float:
@@ -328,47 +330,58 @@ class Trainer:
         t_start = time.monotonic() - self.state.wall_s
         next_eval = (self.state.env_steps // cfg.eval_every + 1) * cfg.eval_every
         losses: dict[str, float] = {}
-        with CollectorProcess(cfg, self.state.env_steps) as collector:
-            if self.state.episodes == 0:
-                self.state.episodes = cfg.num_envs  # the child's first episodes
+        if self._collector is None:  # kept across calls: its episodes go on, as `_obs`'s
+            self._collector = CollectorProcess(cfg, self.state.env_steps)
+            self.state.episodes += cfg.num_envs  # the child's first episodes
+        collector = self._collector
 
-            def ask() -> None:
-                uniform = self.state.env_steps < cfg.learning_starts
-                actor = None if uniform else self._actor_arrays()
-                collector.request(actor, self.epsilon(), uniform)
+        def ask() -> None:
+            uniform = self.state.env_steps < cfg.learning_starts
+            actor = None if uniform else self._actor_arrays()
+            collector.request(actor, self.epsilon(), uniform)
 
+        if self.state.env_steps < until:
             ask()
-            try:
-                while self.state.env_steps < until:
-                    if self.state.env_steps >= cfg.learning_starts:
-                        self.agent.set_learning_rates(self.state.env_steps)
-                        for _ in range(cfg.updates_per_round):
-                            losses = self.agent.update(self._sample(), self.bc_weight())
-                    got = collector.result()
-                    no_label = np.zeros_like(got.actions)
-                    self.buffer.add(
-                        got.obs, got.actions, got.rewards, got.next_obs, got.terms, no_label
-                    )
-                    self.state.env_steps += cfg.num_envs
-                    self.state.episodes += len(got.returns)
-                    if self.state.env_steps < until:
-                        ask()
-                    if csv is not None:
-                        for ep_return in got.returns:
-                            csv.write(self._csv_row(ep_return, losses))
-                    self.state.wall_s = time.monotonic() - t_start
-                    if progress is not None:
-                        progress(self.state, losses)
-                    if self.state.env_steps >= next_eval:
-                        next_eval += cfg.eval_every
-                        self.evaluate_and_keep_best()
-                    if time.monotonic() - t_last_ckpt > checkpoint_every_s:
-                        self.save()
-                        t_last_ckpt = time.monotonic()
-            finally:
+        try:
+            while self.state.env_steps < until:
+                if self.state.env_steps >= cfg.learning_starts:
+                    self.agent.set_learning_rates(self.state.env_steps)
+                    for _ in range(cfg.updates_per_round):
+                        losses = self.agent.update(self._sample(), self.bc_weight())
+                got = collector.result()
+                no_label = np.zeros_like(got.actions)
+                self.buffer.add(
+                    got.obs, got.actions, got.rewards, got.next_obs, got.terms, no_label
+                )
+                self.state.env_steps += cfg.num_envs
+                self.state.episodes += len(got.returns)
+                if self.state.env_steps < until:
+                    ask()
                 if csv is not None:
-                    csv.close()
+                    for ep_return in got.returns:
+                        csv.write(self._csv_row(ep_return, losses))
+                self.state.wall_s = time.monotonic() - t_start
+                if progress is not None:
+                    progress(self.state, losses)
+                if self.state.env_steps >= next_eval:
+                    next_eval += cfg.eval_every
+                    self.evaluate_and_keep_best()
+                if time.monotonic() - t_last_ckpt > checkpoint_every_s:
+                    self.save()
+                    t_last_ckpt = time.monotonic()
+        except BaseException:  # a round may be in flight: end the child with it
+            self.close()
+            raise
+        finally:
+            if csv is not None:
+                csv.close()
         return self.state
+
+    def close(self) -> None:
+        """End the collector process, if `collector_process` started one."""
+        if self._collector is not None:
+            self._collector.close()
+            self._collector = None
 
     def _actor_arrays(self) -> list[np.ndarray]:
         """The actor's layers (W, b per layer, torch's layout) for the collector."""
@@ -531,6 +544,7 @@ class Trainer:
             self.buffer.load({k: data[k] for k in (*ReplayBuffer.FIELDS, "meta")})
             self.demos.load({k: data[f"demo_{k}"] for k in (*ReplayBuffer.FIELDS, "meta")})
         self._obs = None  # episodes restart after a resume
+        self.close()
         # later episodes are drawn from each env's own generator: reseed them from the step
         for i, env in enumerate(self.timed):
             env.reset(
