@@ -61,6 +61,7 @@ RESUMABLE = frozenset(
         "eps_end",
         "eps_steps",
         "updates_per_round",
+        "collector_process",
         "target_noise",
         "target_noise_clip",
         "policy_delay",
