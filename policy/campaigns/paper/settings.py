@@ -61,7 +61,7 @@ class Settings:
 
 
 COMMITTED = Settings(
-    controllers=("pid", "mpc", "ddpg", "ddpg-distilled"),
+    controllers=("pid", "mpc", "ddpg", "ddpg-distilled", "ddpg-distilled-pure"),
     seed=2020,
     n=20,
     seconds=20.0,
