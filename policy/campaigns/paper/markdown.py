@@ -32,6 +32,7 @@ PAIRS = (
     ("ddpg", "ddpg-distilled"),
     ("ddpg-distilled", "mpc"),
     ("ddpg-distilled-pure", "mpc"),
+    ("ddpg-distilled", "ddpg-distilled-pure"),
 )
 #: the learned controller whose wins over the MPC are counted per seed
 LEARNED = "ddpg"
