@@ -14,6 +14,7 @@ before learning starts, a numpy copy of the actor); the child process only serve
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
@@ -26,6 +27,8 @@ from policy.rl.env import ReachAlphaEnv, time_limited
 from policy.rl.exploration import OUNoise
 from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, N_JOINTS
 
+#: the thread-count variables of the BLAS libraries numpy may use, set to 1 for the child
+BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 #: seconds a request may take before the child is declared stuck (a round is milliseconds)
 ROUND_TIMEOUT_S = 120.0
 
@@ -127,7 +130,18 @@ class CollectorProcess:
         self.process = ctx.Process(
             target=_serve, args=(child, config.to_dict(), from_step), daemon=True
         )
-        self.process.start()
+        # one BLAS thread in the child: its small matrix products gain nothing from more,
+        # and a second thread would take the learner's core
+        saved = {name: os.environ.get(name) for name in BLAS_THREADS}
+        os.environ.update(dict.fromkeys(BLAS_THREADS, "1"))
+        try:
+            self.process.start()
+        finally:
+            for name, value in saved.items():
+                if value is None:
+                    os.environ.pop(name, None)
+                else:
+                    os.environ[name] = value
         child.close()
         self._pending = False
 
