@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from policy.controllers.observation import InputMemory
+from policy.controllers.observation import InputMemory, checked_inputs
 from policy.controllers.weights import LEARNED_WEIGHTS, PAPER_WEIGHTS, ActorWeights, provenance_of
 from protocol.alpha5 import N_JOINTS
 from reach_driver.controllers import ControlState, learned
@@ -43,17 +43,7 @@ class LearnedController:
         self.memory.reset()
 
     def act(self, state: ControlState, target: np.ndarray) -> np.ndarray:
-        target = np.asarray(target, dtype=np.float64)
-        if target.shape != (N_JOINTS,) or not np.all(np.isfinite(target)):
-            raise ValueError(f"target must be 4 finite angles (rad, E D C B), got {target!r}")
-        q = np.asarray(state.q, dtype=np.float64)
-        qdot = np.asarray(state.qdot, dtype=np.float64)
-        if q.shape != (N_JOINTS,) or qdot.shape != (N_JOINTS,):
-            raise ValueError(
-                f"state.q and state.qdot must have shape (4,), got {q.shape}, {qdot.shape}"
-            )
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qdot))):
-            raise ValueError(f"state must be finite, got q={q}, qdot={qdot}")
+        q, qdot, target = checked_inputs(state.q, state.qdot, target)
         action = self.weights.forward(self.memory.observe(q, qdot, target))
         self.memory.acted(action)
         out: np.ndarray = action * self.current_limits_mA

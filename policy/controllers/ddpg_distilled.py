@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from policy.controllers.observation import build_observation
+from policy.controllers.observation import build_observation, checked_inputs
 from policy.controllers.settle import SettleSupervisor
 from policy.controllers.settle_law import SettleLaw
 from policy.controllers.weights import DISTILLED_WEIGHTS, ActorWeights, provenance_of
@@ -118,18 +118,7 @@ class DistilledController:
 
     @staticmethod
     def _checked(state: ControlState, target: np.ndarray) -> tuple[np.ndarray, ...]:
-        target = np.asarray(target, dtype=np.float64)
-        if target.shape != (N_JOINTS,) or not np.all(np.isfinite(target)):
-            raise ValueError(f"target must be 4 finite angles (rad, E D C B), got {target!r}")
-        q = np.asarray(state.q, dtype=np.float64)
-        qdot = np.asarray(state.qdot, dtype=np.float64)
-        if q.shape != (N_JOINTS,) or qdot.shape != (N_JOINTS,):
-            raise ValueError(
-                f"state.q and state.qdot must have shape (4,), got {q.shape}, {qdot.shape}"
-            )
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qdot))):
-            raise ValueError(f"state must be finite, got q={q}, qdot={qdot}")
-        return q, qdot, target
+        return checked_inputs(state.q, state.qdot, target)
 
     def shown_target(self, state: ControlState, target: np.ndarray) -> np.ndarray:
         """The target the network is shown: `target` plus the reference integral."""

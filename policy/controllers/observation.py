@@ -124,6 +124,23 @@ def _affine(config: ObservationConfig) -> tuple[np.ndarray, np.ndarray]:
     return offset, scale
 
 
+def checked_inputs(q: Any, qdot: Any, target: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A learned controller's reading and target as float arrays, or a ValueError saying what
+    is wrong: a network fed NaN or a wrong shape answers with nonsense, not an error."""
+    target = np.asarray(target, dtype=np.float64)
+    if target.shape != (N_JOINTS,) or not np.all(np.isfinite(target)):
+        raise ValueError(f"target must be 4 finite angles (rad, E D C B), got {target!r}")
+    q = np.asarray(q, dtype=np.float64)
+    qdot = np.asarray(qdot, dtype=np.float64)
+    if q.shape != (N_JOINTS,) or qdot.shape != (N_JOINTS,):
+        raise ValueError(
+            f"state.q and state.qdot must have shape (4,), got {q.shape}, {qdot.shape}"
+        )
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qdot))):
+        raise ValueError(f"state must be finite, got q={q}, qdot={qdot}")
+    return q, qdot, target
+
+
 def build_observation(
     q: np.ndarray,
     qdot: np.ndarray,

@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 import torch
@@ -53,6 +53,19 @@ from protocol.alpha5 import N_JOINTS
 def _side_score(result: EvalResult, reached_weight: float) -> float:
     """What a side set adds to the checkpoint score: reaching, less its overshoot."""
     return reached_weight * result.reached_fraction - SIDE_OVERSHOOT_WEIGHT * result.overshoot_pct
+
+
+def _open_csv(path: Path | None) -> TextIO | None:
+    """train.csv for appending (one row per finished episode), its header if it is new."""
+    if path is None:
+        return None
+    csv = open(path, "a", buffering=1)  # noqa: SIM115
+    if csv.tell() == 0:
+        csv.write(
+            "env_steps,episodes,wall_s,episode_return,critic_loss,actor_loss,"
+            "bc_loss,q,epsilon,bc_weight\n"
+        )
+    return csv
 
 
 def make_expert(config: DDPGConfig) -> Expert | None:
@@ -251,12 +264,7 @@ class Trainer:
         if self._obs is None:
             self._obs = np.stack([self._reset_env(i) for i in range(cfg.num_envs)])
         ep_returns = np.zeros(cfg.num_envs)
-        csv = open(csv_path, "a", buffering=1) if csv_path else None  # noqa: SIM115
-        if csv is not None and csv.tell() == 0:
-            csv.write(
-                "env_steps,episodes,wall_s,episode_return,critic_loss,actor_loss,"
-                "bc_loss,q,epsilon,bc_weight\n"
-            )
+        csv = _open_csv(csv_path)
         t_last_ckpt = time.monotonic()
         t_start = time.monotonic() - self.state.wall_s
         next_eval = (self.state.env_steps // cfg.eval_every + 1) * cfg.eval_every
@@ -320,12 +328,7 @@ class Trainer:
             raise ValueError("collector_process: the expert and the curriculum need the envs here")
         if self.arm_factory is not None:
             raise ValueError("collector_process: the child builds the nominal arm only")
-        csv = open(csv_path, "a", buffering=1) if csv_path else None  # noqa: SIM115
-        if csv is not None and csv.tell() == 0:
-            csv.write(
-                "env_steps,episodes,wall_s,episode_return,critic_loss,actor_loss,"
-                "bc_loss,q,epsilon,bc_weight\n"
-            )
+        csv = _open_csv(csv_path)
         t_last_ckpt = time.monotonic()
         t_start = time.monotonic() - self.state.wall_s
         next_eval = (self.state.env_steps // cfg.eval_every + 1) * cfg.eval_every
