@@ -81,6 +81,16 @@ def make_expert(config: DDPGConfig) -> Expert | None:
 
 
 @dataclass
+class _Cadence:
+    """When a run's loop evaluates and checkpoints next, and its clock's origin."""
+
+    t_start: float
+    next_eval: int
+    last_checkpoint: float
+    checkpoint_every_s: float
+
+
+@dataclass
 class TrainState:
     """What a run has done: saved in its checkpoint, so a resumed run goes on from here."""
 
@@ -118,13 +128,15 @@ class Trainer:
             raise ValueError("demonstrations / behaviour cloning need an expert controller")
         self.rng = np.random.default_rng(config.seed)
         #: the envs themselves (the expert and the curriculum read and set their state) ...
+        #: (none here with `collector_process`: the child process steps its own)
         self.envs = [
-            ReachAlphaEnv(config.env, arm_factory=arm_factory) for _ in range(config.num_envs)
+            ReachAlphaEnv(config.env, arm_factory=arm_factory)
+            for _ in range(0 if config.collector_process else config.num_envs)
         ]
         #: ... and behind gymnasium's TimeLimit, as gym.make builds them: episodes are
         #: stepped and reset here, and end (truncated) after `config.env.episode_s`
         self.timed = [time_limited(env) for env in self.envs]
-        obs_dim = self.envs[0].observation_space.shape[0]  # type: ignore[index]
+        obs_dim = config.env.observation.size
         self.obs_dim = obs_dim
         self.agent = Agent(config, obs_dim)
         if config.init_actor is not None:
@@ -265,9 +277,7 @@ class Trainer:
             self._obs = np.stack([self._reset_env(i) for i in range(cfg.num_envs)])
         ep_returns = np.zeros(cfg.num_envs)
         csv = _open_csv(csv_path)
-        t_last_ckpt = time.monotonic()
-        t_start = time.monotonic() - self.state.wall_s
-        next_eval = (self.state.env_steps // cfg.eval_every + 1) * cfg.eval_every
+        cadence = self._cadence(checkpoint_every_s)
         losses: dict[str, float] = {}
         try:
             while self.state.env_steps < until:
@@ -295,20 +305,8 @@ class Trainer:
                     next_obs[j] = self._reset_env(int(j))
                 self._obs = next_obs
                 self.state.env_steps += cfg.num_envs
-
-                if self.state.env_steps >= cfg.learning_starts:
-                    self.agent.set_learning_rates(self.state.env_steps)
-                    for _ in range(cfg.updates_per_round):
-                        losses = self.agent.update(self._sample(), self.bc_weight())
-                self.state.wall_s = time.monotonic() - t_start
-                if progress is not None:
-                    progress(self.state, losses)
-                if self.state.env_steps >= next_eval:
-                    next_eval += cfg.eval_every
-                    self.evaluate_and_keep_best()
-                if time.monotonic() - t_last_ckpt > checkpoint_every_s:
-                    self.save()
-                    t_last_ckpt = time.monotonic()
+                losses = self._learn() or losses
+                self._end_round(cadence, progress, losses)
         finally:
             if csv is not None:
                 csv.close()
@@ -329,9 +327,7 @@ class Trainer:
         if self.arm_factory is not None:
             raise ValueError("collector_process: the child builds the nominal arm only")
         csv = _open_csv(csv_path)
-        t_last_ckpt = time.monotonic()
-        t_start = time.monotonic() - self.state.wall_s
-        next_eval = (self.state.env_steps // cfg.eval_every + 1) * cfg.eval_every
+        cadence = self._cadence(checkpoint_every_s)
         losses: dict[str, float] = {}
         if self._collector is None:  # kept across calls: its episodes go on, as `_obs`'s
             self._collector = CollectorProcess(cfg, self.state.env_steps)
@@ -347,10 +343,7 @@ class Trainer:
             ask()
         try:
             while self.state.env_steps < until:
-                if self.state.env_steps >= cfg.learning_starts:
-                    self.agent.set_learning_rates(self.state.env_steps)
-                    for _ in range(cfg.updates_per_round):
-                        losses = self.agent.update(self._sample(), self.bc_weight())
+                losses = self._learn() or losses  # while the child steps the next round
                 got = collector.result()
                 no_label = np.zeros_like(got.actions)
                 self.buffer.add(
@@ -363,15 +356,7 @@ class Trainer:
                 if csv is not None:
                     for ep_return in got.returns:
                         csv.write(self._csv_row(ep_return, losses))
-                self.state.wall_s = time.monotonic() - t_start
-                if progress is not None:
-                    progress(self.state, losses)
-                if self.state.env_steps >= next_eval:
-                    next_eval += cfg.eval_every
-                    self.evaluate_and_keep_best()
-                if time.monotonic() - t_last_ckpt > checkpoint_every_s:
-                    self.save()
-                    t_last_ckpt = time.monotonic()
+                self._end_round(cadence, progress, losses)
         except BaseException:  # a round may be in flight: end the child with it
             self.close()
             raise
@@ -379,6 +364,43 @@ class Trainer:
             if csv is not None:
                 csv.close()
         return self.state
+
+    def _learn(self) -> dict[str, float] | None:
+        """A round's gradient updates once learning has started; the last one's losses."""
+        cfg = self.config
+        if self.state.env_steps < cfg.learning_starts:
+            return None
+        self.agent.set_learning_rates(self.state.env_steps)
+        losses = None
+        for _ in range(cfg.updates_per_round):
+            losses = self.agent.update(self._sample(), self.bc_weight())
+        return losses
+
+    def _cadence(self, checkpoint_every_s: float) -> _Cadence:
+        every = self.config.eval_every
+        return _Cadence(
+            t_start=time.monotonic() - self.state.wall_s,
+            next_eval=(self.state.env_steps // every + 1) * every,
+            last_checkpoint=time.monotonic(),
+            checkpoint_every_s=checkpoint_every_s,
+        )
+
+    def _end_round(
+        self,
+        cadence: _Cadence,
+        progress: Callable[[TrainState, dict[str, float]], None] | None,
+        losses: dict[str, float],
+    ) -> None:
+        """After each round, in either loop: the clock, progress, evaluation, checkpoint."""
+        self.state.wall_s = time.monotonic() - cadence.t_start
+        if progress is not None:
+            progress(self.state, losses)
+        if self.state.env_steps >= cadence.next_eval:
+            cadence.next_eval += self.config.eval_every
+            self.evaluate_and_keep_best()
+        if time.monotonic() - cadence.last_checkpoint > cadence.checkpoint_every_s:
+            self.save()
+            cadence.last_checkpoint = time.monotonic()
 
     def close(self) -> None:
         """End the collector process, if `collector_process` started one."""
