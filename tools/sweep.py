@@ -9,7 +9,8 @@ the nominal set's reached fraction, overshoot and energy. Locally by default (``
 each seed's final and best score and their spread; OUT/sweep.json keeps them.
 
 Examples:
-    tools/sweep.py --config ours --seeds 0 1 2 --steps 200000 --out runs/sweep-ours
+    tools/sweep.py --seeds 0 1 2 --steps 200000 --out runs/sweep-scratch
+    tools/sweep.py --ablate no-away --seeds 0 1 2 --steps 200000 --out runs/ablation/no-away
     tools/sweep.py --seeds 0 1 --steps 400 --set eval_every=200 --set demo_episodes=0 \\
         --out runs/sweep-tiny
 """
@@ -24,6 +25,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.markup import escape
 
+from policy.campaigns.ablation import ingredient
 from policy.campaigns.parallel import CampaignError
 from policy.campaigns.sweep import run_sweep, summarize, sweep_config
 
@@ -37,9 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--config",
-        default="ours",
+        default="scratch",
         choices=["scratch", "paper", "paper-per-joint", "ours", "robust"],
-        help="preset, a classmethod of policy.rl.config.DDPGConfig (ours)",
+        help="preset, a classmethod of policy.rl.config.DDPGConfig (scratch)",
     )
     p.add_argument("--seeds", type=int, nargs="+", required=True, metavar="SEED")
     p.add_argument("--steps", type=int, required=True, help="env steps per trial")
@@ -49,6 +51,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="KEY=VALUE",
         help="override a config field as tools/train.py --set does (repeatable)",
+    )
+    p.add_argument(
+        "--ablate",
+        metavar="INGREDIENT",
+        help="switch one ingredient of the recipe off (its overrides come before --set); "
+        "tools/ablation.py --list names them",
     )
     p.add_argument("--out", type=Path, required=True, help="sweep directory (runs, Tune's logs)")
     p.add_argument("--workers", type=int, metavar="N", help="CPUs on this machine (all)")
@@ -61,7 +69,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     console = Console(stderr=True)
     try:
-        config = sweep_config(args.config, args.steps, args.set)
+        overrides = list(args.set)
+        if args.ablate is not None:
+            overrides = [*ingredient(args.ablate).overrides, *overrides]
+        config = sweep_config(args.config, args.steps, overrides)
         trials = run_sweep(
             config, args.seeds, args.out, args.workers, args.address, 0 if args.quiet else 1
         )

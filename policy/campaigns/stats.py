@@ -70,6 +70,44 @@ def bootstrap_ci(
     return float(low), float(high)
 
 
+def seed_episode_bootstrap(
+    values: Sequence[Sequence[float]] | np.ndarray,
+    resamples: int = DEFAULT_RESAMPLES,
+    seed: int = 0,
+    episodes: np.ndarray | None = None,
+) -> np.ndarray:
+    """Means of ``resamples`` two-level resamples of ``values`` (seeds x episodes): the
+    training seeds with replacement, then the episodes with replacement. Both levels vary,
+    so the spread counts run-to-run differences as well as episode ones.
+
+    ``episodes`` ((resamples, n_episodes) indices) shares the episode draws between two
+    calls: two configurations scored on the same episodes are then compared pairwise there,
+    while their seeds (independent trainings) are drawn independently."""
+    arr = np.asarray(values, dtype=float)
+    if arr.ndim != 2 or arr.size == 0:
+        raise ValueError(f"need a (seeds, episodes) array, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("values must be finite")
+    rng = np.random.default_rng(seed)
+    n_seeds, n_episodes = arr.shape
+    if episodes is None:
+        episodes = rng.integers(0, n_episodes, size=(resamples, n_episodes))
+    if episodes.shape[0] != resamples or episodes.max(initial=0) >= n_episodes:
+        raise ValueError("episode draws do not match the resamples or the episodes")
+    seeds = rng.integers(0, n_seeds, size=(resamples, n_seeds))
+    out = np.empty(resamples)
+    for r in range(resamples):
+        out[r] = arr[seeds[r]][:, episodes[r]].mean()
+    return out
+
+
+def interval(dist: np.ndarray, confidence: float = DEFAULT_CONFIDENCE) -> tuple[float, float]:
+    """The percentile interval of a bootstrap distribution."""
+    alpha = 1.0 - confidence
+    low, high = np.quantile(dist, [alpha / 2.0, 1.0 - alpha / 2.0])
+    return float(low), float(high)
+
+
 @dataclass(frozen=True)
 class PairedDifference:
     """``stat(a - b)`` over paired episodes, its bootstrap interval, and how often a < b."""
@@ -115,6 +153,8 @@ def paired_difference_ci(
 
 
 __all__ = [
+    "interval",
+    "seed_episode_bootstrap",
     "DEFAULT_CONFIDENCE",
     "DEFAULT_RESAMPLES",
     "PairedDifference",

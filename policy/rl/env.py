@@ -34,6 +34,7 @@ from policy.controllers.observation import (
 from policy.tasks.arm import ArmLike
 from policy.tasks.envelope import Envelope, Variant, draws
 from protocol.alpha5 import N_JOINTS
+from reach_driver.metrics import OVERSHOOT_MIN_STEP_RAD
 from reach_sim_bridge.model.motor import no_load_speed
 from reach_sim_bridge.model.sensors import SensorNoise
 
@@ -87,6 +88,13 @@ class RewardConfig:
     #: agent's discount (DDPGConfig checks). 0 disables
     potential_weight: float = 0.0
     potential_gamma: float = 0.99
+    #: x mean_j clip(past_j / max(|step_j|, overshoot_floor), 0, 1) for the joints whose
+    #: step is at least OVERSHOOT_MIN_STEP_RAD, with past_j how far beyond its goal joint j
+    #: is, signed by its step from the episode's start: the overshoot metric's own ratio
+    #: (docs/metrics.md), paid each step it lasts. The floor keeps a short step from making
+    #: a milliradian past its goal cost more than stopping short (shaped mode). 0 disables
+    overshoot_weight: float = 0.0
+    overshoot_floor: float = 0.1  # rad
 
 
 @dataclass(frozen=True)
@@ -179,6 +187,7 @@ REWARD_TERMS = (
     "distance",
     "velocity",
     "away",
+    "overshoot",
     "action_change",
     "sign_flip",
     "out_of_bounds",
@@ -202,10 +211,12 @@ def reward_terms(
     in_bounds: bool,
     config: RewardConfig,
     prev_q: np.ndarray | None = None,
+    start: np.ndarray | None = None,
 ) -> dict[str, float]:
     """One step's reward, term by term (signed; inactive terms 0), from the TRUE state (never
     the noisy readings). Their sum in `REWARD_TERMS` order is the reward, exactly. `prev_q`
-    (the true angles before the step) is needed by the potential term only."""
+    (the true angles before the step) is needed by the potential term only, `start` (the
+    episode's first angles) by the overshoot term only."""
     terms = dict.fromkeys(REWARD_TERMS, 0.0)
     if config.potential_weight and prev_q is not None:
         terms["potential"] = config.potential_gamma * _potential(q, q_req, config) - _potential(
@@ -234,6 +245,12 @@ def reward_terms(
     if config.away_weight:
         away = np.maximum(0.0, -np.sign(error) * qdot) / NO_LOAD_SPEEDS
         terms["away"] = -float(config.away_weight * np.mean(away))
+    if config.overshoot_weight and start is not None:
+        step = q_req - start
+        moving = np.abs(step) >= OVERSHOOT_MIN_STEP_RAD
+        past = -error * np.sign(step) / np.maximum(np.abs(step), config.overshoot_floor)
+        share = np.where(moving, np.clip(past, 0.0, 1.0), 0.0)
+        terms["overshoot"] = -float(config.overshoot_weight * np.mean(share))
     terms["action_change"] = -float(
         config.action_change_weight * np.mean(gate * np.abs(action - prev_action))
     )
@@ -474,7 +491,15 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         q, qdot = np.asarray(self.arm.q), np.asarray(self.arm.qdot)
         in_bounds = bool(np.all((q > self.bounds_low) & (q < self.bounds_high)))
         terms = reward_terms(
-            q, qdot, self.target, action, self.prev_action, in_bounds, self.config.reward, prev_q
+            q,
+            qdot,
+            self.target,
+            action,
+            self.prev_action,
+            in_bounds,
+            self.config.reward,
+            prev_q,
+            self.start,
         )
         self.prev_action = action
         self.memory.acted(action)
