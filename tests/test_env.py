@@ -184,6 +184,29 @@ def test_reward_terms_in_info_sum_to_the_reward(reward: RewardConfig) -> None:
     )
 
 
+def test_overshoot_term_is_the_metrics_ratio_past_the_goal() -> None:
+    cfg = dataclasses.replace(SHAPED, overshoot_weight=4.0, overshoot_floor=0.1)
+    start = np.array([1.0, 1.0, 1.0, 1.0])
+    goal = np.array([1.5, 0.95, 1.02, 1.0])  # E steps +0.5, D -0.05, C 0.02 (too short), B 0
+    z = np.zeros(4)
+
+    def term(q: np.ndarray) -> float:
+        return reward_terms(q, z, goal, z, z, True, cfg, start=start)["overshoot"]
+
+    assert term(start) == 0.0  # nowhere near the goal
+    assert term(goal) == 0.0
+    # E 0.05 past (10 % of its 0.5 step), D 0.005 past (its 0.05 step under the 0.1 floor)
+    past = goal + np.array([0.05, -0.005, 0.5, 0.3])  # C and B: no step, never overshoot
+    assert term(past) == pytest.approx(-4.0 * (0.05 / 0.5 + 0.005 / 0.1) / 4)
+    assert term(goal + np.array([5.0, 0, 0, 0])) == pytest.approx(-1.0)  # clipped at 1
+    assert term(goal - np.array([0.05, -0.005, 0, 0])) == 0.0  # short of the goal: not past
+    assert reward_terms(past, z, goal, z, z, True, SHAPED, start=start)["overshoot"] == 0.0
+    env = ReachAlphaEnv(EnvConfig(reward=cfg))
+    env.reset(seed=0, options={"start": start, "target": start + np.array([0.2, 0, 0, 0])})
+    paid = [env.step(np.array([1.0, 0, 0, 0]))[4]["reward_terms"]["overshoot"] for _ in range(30)]
+    assert paid[0] == 0.0 and min(paid) < 0.0  # E driven through its goal pays once past it
+
+
 def test_control_rate_is_a_parameter() -> None:
     env = ReachAlphaEnv(EnvConfig(control_hz=50.0, episode_s=2.0))
     assert env.n_substeps == 10

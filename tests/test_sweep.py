@@ -111,3 +111,10 @@ def test_a_two_seed_sweep_on_tune_reports_both_trials(tmp_path: Path) -> None:
         assert t["final"]["seed"] == t["seed"]
         assert (tmp_path / f"seed-{t['seed']}" / "best_actor.npz").exists()
     assert trials[0]["final"]["score"] != trials[1]["final"]["score"]  # two seeds, two runs
+
+
+def test_ablate_names_an_ingredient_or_is_refused(tmp_path: Path) -> None:
+    bad = _sweep("--ablate", "salt", "--seeds", "0", "--steps", "10", "--out", str(tmp_path))
+    assert bad.returncode == 2
+    assert "unknown ingredient 'salt'" in bad.stderr
+    assert not any(tmp_path.iterdir())  # refused before anything ran

@@ -22,7 +22,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.markup import escape
 
-from policy.campaigns.ablation import INGREDIENTS, TestSets, markdown, score_root, summarize
+from policy.campaigns.ablation import INGREDIENTS, HeldOutSets, markdown, score_root, summarize
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("root", type=Path, nargs="?", help="the ablation's directory")
     p.add_argument("--list", action="store_true", help="list the ingredients and exit")
-    defaults = TestSets()
+    defaults = HeldOutSets()
     p.add_argument(
         "--standard",
         type=int,
@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.standard < 1 or args.envelope < 1:
         err.print("[red]error:[/red] --standard and --envelope must be at least 1")
         return 2
-    sets = TestSets(args.standard, args.envelope, args.test_seed)
+    sets = HeldOutSets(args.standard, args.envelope, args.test_seed)
     scores = score_root(args.root, sets, lambda what: err.print(f"scoring {escape(what)}"))
     if not scores:
         err.print(

@@ -5,7 +5,7 @@ and the spread across seeds and episodes.
 An ingredient is a named set of ``--set`` overrides (`INGREDIENTS`); training one is a seed
 sweep (tools/sweep.py ``--ablate NAME``, or tools/train.py per seed) into ``ROOT/NAME/seed-N``.
 `score_root` then runs each ``ROOT/NAME/seed-N/best_actor.npz`` on the same held-out test
-episodes (`TestSets`: never used in training or checkpoint selection) and `summarize` gives
+episodes (`HeldOutSets`: never used in training or checkpoint selection) and `summarize` gives
 per ingredient the means with seed-then-episode bootstrap intervals and the difference to
 the recipe itself. tools/ablation.py prints it and writes the table docs/training.md holds.
 """
@@ -80,7 +80,7 @@ def ingredient(name: str) -> Ingredient:
 
 
 @dataclass(frozen=True)
-class TestSets:
+class HeldOutSets:
     """The held-out episodes every actor is scored on. Their seeds (from `seed`) lie apart
     from training's (`seed * ENV_SEED_STRIDE + ...`, far below) and from checkpoint
     selection's (`eval_seed` 10 000 plus offsets under 10 000)."""
@@ -101,7 +101,7 @@ EPISODE_KEYS = ("reached", "at_rest", "overshoot_pct", "msse", "energy_j")
 SMALL_OVERSHOOT_PCT = 2.0
 
 
-def evaluate_actor(path: Path, sets: TestSets) -> dict[str, list[dict[str, float]]]:
+def evaluate_actor(path: Path, sets: HeldOutSets) -> dict[str, list[dict[str, float]]]:
     """The actor at `path` alone (its memory channels kept by the env, as the `ddpg`
     controller keeps them) on both test sets: per set, one dict of `EPISODE_KEYS` per
     episode."""
@@ -125,7 +125,7 @@ SCORES = "test_scores.json"
 
 
 def score_root(
-    root: Path, sets: TestSets, progress: Callable[[str], None] | None = None
+    root: Path, sets: HeldOutSets, progress: Callable[[str], None] | None = None
 ) -> dict[str, dict[int, dict[str, list[dict[str, float]]]]]:
     """Every ``root/NAME/seed-N/best_actor.npz`` on the test sets, by ingredient and seed;
     each actor's figures are kept beside it and reused while its weights and the sets are
