@@ -40,10 +40,10 @@ typecheck: install
 	$(VENV)/bin/mypy tests tools
 
 # pytest exits 5 when it collects nothing: say so plainly and fail (an empty run proves nothing).
-# Every test runs once: the real-time ones wait on events and count in the arm's time, so a
-# loaded host makes them slower, not red (tests/conftest.py).
+# Every test runs once, spread over the cores (pytest-xdist): the real-time ones wait on events
+# and count in the arm's time, so a loaded host makes them slower, not red (tests/conftest.py).
 pytest: install
-	@$(VENV)/bin/pytest -q; rc=$$?; \
+	@$(VENV)/bin/pytest -q -n auto; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing" >&2; fi; exit $$rc
 
 test: lint typecheck pytest

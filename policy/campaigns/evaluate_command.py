@@ -191,7 +191,7 @@ def run(args: Options, console: Console) -> Evaluation:
 def execute(args: Options) -> int:
     """Run, write the JSON (and the recording); the exit code (2 with the reason on stderr
     for a clear error)."""
-    console = Console(stderr=True)
+    console = Console(stderr=True, soft_wrap=True)
     try:
         evaluation = run(args, console)
     except (ValueError, DriverError, CampaignError) as exc:

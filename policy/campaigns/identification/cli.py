@@ -125,7 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    console = Console(stderr=True)
+    console = Console(stderr=True, soft_wrap=True)
     out: Path = args.out
     log_path: Path = args.log or out.with_suffix(".log.npz")
     report_dir: Path = args.report or out.with_suffix(".report")

@@ -240,7 +240,7 @@ def write_docs(docs: Sequence[Path], reports: Sequence[dict[str, Any]], force: b
 
 def execute(opts: Options, command: str) -> int:
     """Run the command; its exit code (2 with the reason on stderr for a clear error)."""
-    console = Console(stderr=True)
+    console = Console(stderr=True, soft_wrap=True)
     try:
         reports = run(opts, command, console)
         out = Console()
