@@ -9,17 +9,16 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 from conftest import LOOPBACK, WATCHDOG_S, default_sigint, udp_url, wait_until
 
-from protocol import DeviceID, Mode, PacketDecoder, PacketID
+from policy.campaigns.attacks import HangingLink, lie_about_velocity
+from protocol import Mode
 from reach_driver import ArmClient, ControlLoop, ControlState, Interrupted, open_transport
 from reach_driver.cli import Exit, main
 from reach_driver.rrd_summary import read_recording
@@ -117,64 +116,6 @@ def test_exit_statuses_for_signals_are_128_plus_the_signal() -> None:
 # -- 2: Ctrl-C while the arm's network side hangs ---------------------------------------------
 
 
-class HangingLink:
-    """A UDP relay between the driver and the arm that can hang: while `hang` is set every
-    datagram, either way, is dropped (an arm whose network side stops answering). Counts the
-    ZERO_VELOCITY mode commands to E it drops."""
-
-    def __init__(self, arm: tuple[str, int]) -> None:
-        self.arm = arm
-        self.front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.front.bind(("127.0.0.1", 0))
-        self.back = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.back.bind(("127.0.0.1", 0))
-        self.hang = threading.Event()
-        self.dropped_safe = 0
-        self._client: tuple[str, int] | None = None
-        self._stop = threading.Event()
-        self._decoder = PacketDecoder()
-        self._threads = [
-            threading.Thread(target=self._pump, args=(self.front, True), daemon=True),
-            threading.Thread(target=self._pump, args=(self.back, False), daemon=True),
-        ]
-        for t in self._threads:
-            t.start()
-
-    @property
-    def url(self) -> str:
-        host, port = self.front.getsockname()
-        return f"udp://{host}:{port}"
-
-    def _pump(self, sock: socket.socket, from_driver: bool) -> None:
-        sock.settimeout(0.05)
-        while not self._stop.is_set():
-            try:
-                data, addr = sock.recvfrom(65536)
-            except (TimeoutError, OSError):
-                continue
-            if from_driver:
-                self._client = addr
-                if self.hang.is_set():
-                    for packet in self._decoder.feed(data):
-                        if (
-                            packet.packet_id == PacketID.MODE
-                            and packet.device_id == DeviceID.E
-                            and packet.data[:1] == bytes([Mode.ZERO_VELOCITY])
-                        ):
-                            self.dropped_safe += 1
-                    continue
-                self.back.sendto(data, self.arm)
-            elif not self.hang.is_set() and self._client is not None:
-                self.front.sendto(data, self._client)
-
-    def close(self) -> None:
-        self._stop.set()
-        for t in self._threads:
-            t.join()
-        self.front.close()
-        self.back.close()
-
-
 @pytest.fixture
 def hanging_link(sim):
     link = HangingLink(sim.udp_address)
@@ -202,7 +143,9 @@ def test_ctrl_c_while_the_arm_hangs_keeps_sending_the_safe_mode_until_confirmed(
     assert _modes(sim) == [Mode.ZERO_VELOCITY] * 4, (out, err)
     assert proc.returncode == Exit.INTERRUPTED, err
     # (" after the link came back" when the hang lasted past the stale-link time)
-    assert re.search(r"interrupted: by SIGINT; arm left in zero_velocity.* \(confirmed by the arm\)", err)
+    assert re.search(
+        r"interrupted: by SIGINT; arm left in zero_velocity.* \(confirmed by the arm\)", err
+    )
 
 
 def test_ctrl_c_while_the_arm_hangs_past_the_wait_says_it_is_not_confirmed(
@@ -244,20 +187,6 @@ def test_a_move_that_times_out_leaves_the_arm_in_the_safe_mode(sim, capsys) -> N
 # -- 7: NaN or Inf from the arm, or any exception in a controller or a step hook --------------
 
 
-def _bad_velocity_after(sim, seconds: float, value: float) -> None:
-    """From `seconds` of arm time on, E reports `value` as its velocity."""
-    firmware = sim.firmware
-    honest = firmware._noisy_velocity
-    start = sim.sim_time + seconds
-
-    def lying(d):
-        if d.spec.device_id == DeviceID.E and firmware.time >= start:
-            return value
-        return honest(d)
-
-    firmware._noisy_velocity = lying
-
-
 @pytest.mark.parametrize(
     ("controller", "value"), [("ddpg", float("nan")), ("lambda", float("inf"))]
 )
@@ -266,7 +195,7 @@ def test_a_non_finite_velocity_ends_the_run_cleanly_with_summary_and_recording(
 ) -> None:
     record = tmp_path / "run.rrd"
     target = sim.snapshot().q + np.array([0.3, 0.2, 0.2, 0.2])
-    _bad_velocity_after(sim, 0.5, value)
+    lie_about_velocity(sim, value)
     argv = ["--port", str(sim.link), "--watchdog", str(WATCHDOG_S), "run"]
     argv += ["--controller", controller, "--target", *map(str, target), "--seconds", "5"]
     code = main([*argv, "--json", "--record", str(record)])
@@ -315,13 +244,13 @@ def client(sim):
     arm.close()
 
 
-def test_an_exception_in_a_controller_or_a_hook_ends_the_run_with_its_summary(
-    sim, client
-) -> None:
+def test_an_exception_in_a_controller_or_a_hook_ends_the_run_with_its_summary(sim, client) -> None:
     q0 = client.read_joints().q
     summary = ControlLoop(client, Raising(RuntimeError("boom")), 0.05).run(q0, 10.0)
     assert summary.error is not None
-    assert "the controller failed at t = " in summary.error and "RuntimeError: boom" in summary.error
+    assert (
+        "the controller failed at t = " in summary.error and "RuntimeError: boom" in summary.error
+    )
     assert summary.steps == 3
     assert summary.left_in == "zero_velocity (confirmed by the arm)"
     assert _modes(sim) == [Mode.ZERO_VELOCITY] * 4
