@@ -162,7 +162,7 @@ def test_ctrl_c_while_the_arm_hangs_past_the_wait_says_it_is_not_confirmed(
     assert proc.returncode == Exit.INTERRUPTED, err
     result = json.loads(out)
     assert result["left_in"].startswith("unknown: "), result["left_in"]
-    assert "confirmed by the arm" not in err and "a safe mode" not in err
+    assert "(confirmed by the arm)" not in err and "a safe mode" not in err
     assert "interrupted: by SIGINT; arm left in unknown: " in err
     assert "cut its power" in err  # what to do about an arm that may still be pushing
 

@@ -436,6 +436,7 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
         view = RunView(Console(stderr=True, highlight=False), args.seconds, enabled=not args.quiet)
         hook = chain(recorder.on_step if recorder is not None else None, view.on_step)
         loop = ControlLoop(client, controller, period, pacing=args.pacing, on_step=hook)
+        signum: int | None = None
         with args.signals.taken(loop.stop):  # a signal ends the loop like any other end
             try:
                 with view:
@@ -443,8 +444,8 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             except Interrupted as exc:  # a KeyboardInterrupt not from our handler
                 if not isinstance(exc.summary, ControlSummary):
                     raise
-                summary = exc.summary
-        signum = args.signals.first
+                summary, signum = exc.summary, exc.signum
+        signum = args.signals.first or signum
         if signum is not None and summary.error is None and summary.stopped_by != "duration":
             why = (
                 f"interrupted by {signal.Signals(signum).name} at t = {summary.loop_seconds:.2f} s"

@@ -36,7 +36,8 @@ class Exit(IntEnum):
 EXIT_TABLE: dict[Exit, str] = {
     Exit.OK: "done: the command finished; a run lasted --seconds (whether it got there: "
     "'reached'); monitor stopped by Ctrl-C or --seconds",
-    Exit.FAILED: "failed: a run cut short (watchdog, lost link, fault, controller error), a "
+    Exit.FAILED: "failed: a run cut short (watchdog, lost link, fault, a non-finite reading, "
+    "a controller error), a "
     "move that timed out, a fault before starting, an unreadable recording",
     Exit.USAGE: "bad command line: unknown option, malformed value, no --port",
     Exit.LIMIT: "refused by a limit: nothing was sent, nothing moved",
@@ -78,12 +79,13 @@ def for_operator(message: str) -> str:
 
 
 def left_in_for_operator(left_in: str, port: str | None) -> str:
-    """How the arm was left, true once this process has exited. The loop's own wording for an
-    unreachable arm promises a safe mode 'as soon as the arm answers', which only holds while
-    the client lives; the CLI exits right after saying it."""
-    head, sep, _ = left_in.partition("; the driver sends ")
-    if not sep:
+    """How the arm was left, true once this process has exited, with what to do when the arm
+    did not confirm its safe mode. The client's own wording for an unreachable arm promises
+    a safe mode 'as soon as the arm answers', which only holds while the client lives; the
+    CLI exits right after saying it."""
+    if not left_in.startswith("unknown:"):
         return left_in
+    head, _, _ = left_in.partition("; the driver sends ")
     where = f" --port {port}" if port else ""
     return (
         f"{head}. reach-driver exits now and sends nothing more: each joint keeps the last "
