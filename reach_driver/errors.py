@@ -7,6 +7,10 @@ of someone holding a cable, not a debugger.
 from __future__ import annotations
 
 import signal
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from reach_driver.records import ControlSummary
 
 
 class DriverError(Exception):
@@ -84,7 +88,11 @@ class Interrupted(KeyboardInterrupt):
     its `summary` (a `ControlSummary`), any other command `left_in`."""
 
     def __init__(
-        self, signum: int = signal.SIGINT, *, summary: object = None, left_in: str | None = None
+        self,
+        signum: int = signal.SIGINT,
+        *,
+        summary: ControlSummary | None = None,
+        left_in: str | None = None,
     ) -> None:
         super().__init__(signum)
         self.signum = int(signum)

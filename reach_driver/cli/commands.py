@@ -442,7 +442,7 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
                 with view:
                     summary = loop.run(target, args.seconds)
             except Interrupted as exc:  # a KeyboardInterrupt not from our handler
-                if not isinstance(exc.summary, ControlSummary):
+                if exc.summary is None:
                     raise
                 summary, signum = exc.summary, exc.signum
         signum = args.signals.first or signum
