@@ -63,6 +63,7 @@ from reach_driver.link import (
 from reach_driver.listeners import ListenerSet, PacketListener, PacketQueue, Subscription
 from reach_driver.queries import ArmQueries, limit_verdict
 from reach_driver.requests import Requester, Waiters
+from reach_driver.safe_stop import SafeStop
 from reach_driver.safety import (
     LimitKind,
     SafetyConfig,
@@ -75,6 +76,10 @@ from reach_driver.transport import Transport
 from reach_driver.watchdog import Watchdog
 
 log = logging.getLogger(__name__)
+
+SAFE_RETRY_S = 0.05
+"""`make_safe`: the pause between attempts (a silent arm already costs each attempt its
+request timeouts)."""
 
 __all__ = ["ArmClient", "ClientStats"]
 
@@ -408,6 +413,57 @@ class ArmClient(ArmQueries):
         """Put joints (default: the four joints and the jaw) in the configured safe mode."""
         self._send_safe_mode(tuple(devices or (*JOINTS, JAW)))
 
+    def make_safe(
+        self, devices: Sequence[int] | None = None, *, wait_s: float | None = None
+    ) -> SafeStop:
+        """Put `devices` (default: the four joints and the jaw) in the safe mode and read
+        their modes back; until all confirm it, send it again, for up to `wait_s` wall
+        seconds (default `SafetyConfig.safe_wait_s`), waiting for a lost link meanwhile.
+        Unconfirmed, the safe mode stays owed: this client sends it once the link is back."""
+        devs = tuple(int(d) for d in (devices or (*JOINTS, JAW)))
+        mode = self.guard.config.safe_mode
+        wait = self.guard.config.safe_wait_s if wait_s is None else float(wait_s)
+        start = time.monotonic()
+        deadline = start + wait
+        sent = 0
+        problem = ""
+        saw_down = False
+        while True:
+            state = self.supervisor.state
+            if state is LinkState.UP:
+                try:
+                    self._send_safe_mode(devs)
+                    sent += 1
+                    problem = self.mode_problem(devs, mode)
+                except DriverError as exc:
+                    problem = str(exc)
+                else:
+                    if not problem:
+                        return SafeStop(mode, True, sent, time.monotonic() - start, wait, saw_down)
+            else:
+                saw_down = True
+                problem = problem or f"link {state.value}: {self.link_reason}"
+                if state in (LinkState.CLOSED, LinkState.FAILED):
+                    break
+            if time.monotonic() >= deadline:
+                break
+            time.sleep(SAFE_RETRY_S)
+        self.watchdog.mark_safe_pending()
+        state = self.supervisor.state
+        down = None if state is LinkState.UP else f"{state.value} ({self.link_reason})"
+        return SafeStop(mode, False, sent, time.monotonic() - start, wait, saw_down, problem, down)
+
+    def mode_problem(self, devices: Sequence[int], mode: Mode) -> str:
+        """Read the modes of `devices` back: "" when every one answers `mode`, else what
+        differs ("no answer from E D, C in current")."""
+        modes = self.read_modes(devices)
+        silent = [joint_name(d) for d, m in modes.items() if m is None]
+        other = [
+            f"{joint_name(d)} in {_mode_name(m)}" for d, m in modes.items() if m not in (None, mode)
+        ]
+        parts = ([f"no answer from {' '.join(silent)}"] if silent else []) + other
+        return ", ".join(parts)
+
     def rearm(self) -> None:
         """Allow velocity/current commands again after a watchdog trip."""
         self.watchdog.rearm()
@@ -653,6 +709,10 @@ class ArmClient(ArmQueries):
             EventKind.LINK_UP,
             f"{self.transport.url} answering again after {attempts} attempt(s)",
         )
+
+
+def _mode_name(mode: Mode | int | None) -> str:
+    return mode.name.lower() if isinstance(mode, Mode) else f"mode 0x{int(mode or 0):02X}"
 
 
 def _four(values: Sequence[float] | np.ndarray) -> list[float]:

@@ -17,10 +17,12 @@ motor, driver or encoder fault ends the run (`ArmFaultError`). The chatter guard
 (`SafetyConfig.chatter`, `reach_driver.chatter`) watches every step sent: when a joint
 bang-bangs around its goal the driver stops asking the controller, holds the arm (POSITION
 at the present angles, or ZERO_VELOCITY) and ends the run with the reason in `stopped_by`
-and `chatter`. On any other exit, Ctrl-C included,
-the joints are put in the safe mode and streaming is stopped; if the link is down at that
-moment the loop waits a little for it to return so the safe mode can go out, and the summary
-says how the arm was left.
+and `chatter`. Every other end (the duration, a driver error, a non-finite reading from the
+arm, an exception in the controller or the step hook, Ctrl-C or a signal raised as
+`KeyboardInterrupt`) takes one path: streaming stopped, the joints put in the safe mode and
+their modes read back, resent until the arm confirms it or `SafetyConfig.safe_wait_s` runs
+out (a lost link is waited for meanwhile), and a summary whose `left_in` claims only what the
+arm confirmed. An interrupt is passed on as `Interrupted` carrying that summary.
 
 The summary carries the run as a uniformly sampled `LoopTrace` (the state that ended the run
 is its last row) from which `reach_driver.metrics` scores it like the evaluation runner does,
@@ -44,7 +46,13 @@ from reach_driver.assembler import StateAssembler
 from reach_driver.chatter import ChatterDetector, HoldMode, Verdict
 from reach_driver.client import ArmClient
 from reach_driver.controllers import Controller, ControlState
-from reach_driver.errors import ArmFaultError, DriverError
+from reach_driver.errors import (
+    ArmFaultError,
+    BadReadingError,
+    ControllerError,
+    DriverError,
+    Interrupted,
+)
 from reach_driver.link import LinkState
 from reach_driver.records import ControlSummary, LoopTrace, StepHook, StepRecord, TimingStats
 from reach_driver.safety import LimitKind
@@ -78,7 +86,6 @@ def telemetry_fits(ids: Sequence[int], hz: int, wire_bytes_per_s: float | None) 
     return Stream(tuple(ids), hz, tuple(JOINTS)).fits(wire_bytes_per_s)
 
 
-RECONNECT_WAIT_S = 3.0
 STATUS_PERIOD_S = 1.0
 """Each joint's HARDWARE_STATUS is asked for this often (loop time) during a run, one joint at
 a time so a half-duplex line never sees two answers at once; a motor, driver or encoder
@@ -134,7 +141,6 @@ class ControlLoop:
         state_timeout_s: float | None = None,
         leave_safe: bool = True,
         measure_current: bool = True,
-        reconnect_wait_s: float = RECONNECT_WAIT_S,
     ) -> None:
         self.client = client
         self.controller = controller
@@ -157,11 +163,11 @@ class ControlLoop:
         self.state_timeout_s = state_timeout_s or max(0.5, 10 * self.period_s)
         self.leave_safe = leave_safe
         self.measure_current = measure_current
-        self.reconnect_wait_s = reconnect_wait_s
         self._stop = threading.Event()
 
     def stop(self) -> None:
-        """Ask a running loop to end after its current step (from any thread)."""
+        """Ask a running loop to end after its current step, or the next run not to start
+        stepping (from any thread, or a signal handler): it ends as every run does."""
         self._stop.set()
 
     def run(self, target: Sequence[float] | np.ndarray, seconds: float) -> ControlSummary:
@@ -173,9 +179,9 @@ class ControlLoop:
             self.client.guard.check(int(dev), LimitKind.POSITION, float(value))
         if seconds <= 0:
             raise ValueError(f"seconds must be positive, got {seconds}")
-        self._stop.clear()
         events_before = len(self.client.events)
         run = _Run(self, goal, seconds)
+        interrupted: KeyboardInterrupt | None = None
         try:
             run.execute()
         except _Guarded as exc:
@@ -183,13 +189,31 @@ class ControlLoop:
         except DriverError as exc:
             run.error = str(exc)
             run.stopped_by = f"{type(exc).__name__}: {exc}"
+        except KeyboardInterrupt as exc:  # Ctrl-C, or a signal the caller turned into one
+            interrupted = exc
+            name = exc.signal_name if isinstance(exc, Interrupted) else "SIGINT"
+            run.error = run.stopped_by = f"interrupted by {name} at t = {run.t:.2f} s"
+        except Exception as exc:  # a bug anywhere in a step: still one way out, and said
+            log.exception("the control loop failed")
+            run.error = f"internal error at t = {run.t:.2f} s: {type(exc).__name__}: {exc}"
+            run.stopped_by = f"{type(exc).__name__}: {exc}"
         finally:
             run.cleanup()
+            self._stop.clear()  # asked of this run; the next starts afresh
         history = list(self.client.events)
         run.events = tuple(f"{e.kind.value}: {e.message}" for e in history[events_before:])
         if run.verdict is not None:
             run.events += (run.stopped_by,)
-        return run.summary()
+        summary = run.summary()
+        if interrupted is not None:
+            # Passed on, carrying how the run ended and how it left the arm.
+            out = interrupted if isinstance(interrupted, Interrupted) else Interrupted()
+            out.summary = summary
+            out.left_in = summary.left_in
+            if out is interrupted:
+                raise out
+            raise out from interrupted
+        return summary
 
 
 class _Guarded(Exception):
@@ -355,12 +379,29 @@ class _Run:
         self.t, self.q, self.qdot = t, q, qdot
         self.step_walls.append(now)
         age = now - float(np.min(times))
-        raw = np.asarray(
-            loop.controller.act(ControlState(q.copy(), qdot.copy(), t), self.goal.copy()),
-            dtype=float,
-        ).reshape(-1)
+        for name, values, unit in (("position", q, "rad"), ("velocity", qdot, "rad/s")):
+            bad = ~np.isfinite(values)
+            if np.any(bad):
+                which = ", ".join(
+                    f"{joint_name(int(d))} {v}"
+                    for d, v in zip(JOINTS, values, strict=True)
+                    if not np.isfinite(v)
+                )
+                raise BadReadingError(
+                    f"the arm reported a non-finite {name} ({unit}) at t = {t:.2f} s: {which}; "
+                    "no controller was given it"
+                )
+        try:
+            raw = np.asarray(
+                loop.controller.act(ControlState(q.copy(), qdot.copy(), t), self.goal.copy()),
+                dtype=float,
+            ).reshape(-1)
+        except Exception as exc:
+            raise ControllerError(
+                f"the controller failed at t = {t:.2f} s: {type(exc).__name__}: {exc}"
+            ) from exc
         if raw.shape != (N,) or not np.all(np.isfinite(raw)):
-            raise DriverError(f"controller returned {raw!r}: need 4 finite currents in mA")
+            raise ControllerError(f"controller returned {raw!r}: need 4 finite currents in mA")
         clipped = np.clip(raw, self.i_lo, self.i_hi)
         saturated = bool(np.any(clipped != raw))
         if not self.mode_set:
@@ -394,26 +435,31 @@ class _Run:
         )
         if loop.on_step is not None:
             stats = client.decoder_stats
-            loop.on_step(
-                StepRecord(
-                    step=self.step,
-                    t=t,
-                    wall_t=now - self.t0_wall,
-                    q=q.copy(),
-                    qdot=qdot.copy(),
-                    target=self.goal.copy(),
-                    raw_command_mA=raw,
-                    command_mA=sent,
-                    state_age_s=age,
-                    latency_s=latency,
-                    saturated=saturated,
-                    barrier=barrier,
-                    good_frames=stats.good_frames,
-                    bad_frames=stats.bad_total,
-                    current_mA=measured,
-                    torque_Nm=torque,
-                )
+            record = StepRecord(
+                step=self.step,
+                t=t,
+                wall_t=now - self.t0_wall,
+                q=q.copy(),
+                qdot=qdot.copy(),
+                target=self.goal.copy(),
+                raw_command_mA=raw,
+                command_mA=sent,
+                state_age_s=age,
+                latency_s=latency,
+                saturated=saturated,
+                barrier=barrier,
+                good_frames=stats.good_frames,
+                bad_frames=stats.bad_total,
+                current_mA=measured,
+                torque_Nm=torque,
             )
+            try:
+                loop.on_step(record)
+            except Exception as exc:
+                raise ControllerError(
+                    f"the step hook (recorder or viewer) failed at t = {t:.2f} s: "
+                    f"{type(exc).__name__}: {exc}"
+                ) from exc
         self.step += 1
         if self.chatter is not None:
             verdict = self.chatter.update(t, q, qdot, sent, self.goal)
@@ -445,65 +491,33 @@ class _Run:
         self.pcpu = time.process_time() - self.pcpu0
 
     def cleanup(self) -> None:
+        """Stop streaming and leave the arm in the safe mode (`ArmClient.make_safe`: resent
+        until the arm confirms it or `SafetyConfig.safe_wait_s` runs out); `left_in` says
+        how, claiming only what the arm confirmed."""
         client = self.client
-        mode = client.guard.config.safe_mode.name.lower()
-        after = ""
-        if client.link_state is not LinkState.UP:
-            # The client sends the safe mode by itself once the link is back; wait a little
-            # for that so the run can say how it left the arm.
-            lost = f"{client.link_state.value} ({client.link_reason})"
-            wait = self.loop.reconnect_wait_s if client.link_config.reconnect else 0.0
-            deadline = time.monotonic() + wait
-            while client.link_state is not LinkState.UP and time.monotonic() < deadline:
-                if client.link_state in (LinkState.CLOSED, LinkState.FAILED):
-                    break
-                time.sleep(0.02)
-            if client.link_state is not LinkState.UP:
-                self.left_in = (
-                    f"unknown: the link is {lost} after waiting {wait:g} s; "
-                    f"the driver sends {mode} as soon as the arm answers again"
-                )
-                return
-            after = " after the link came back"
-        try:
-            client.stop_stream()
-        except DriverError as exc:
-            log.warning("could not stop streaming: %s", exc)
+        if client.link_state is LinkState.UP:
+            try:
+                client.stop_stream()
+            except DriverError as exc:
+                log.warning("could not stop streaming: %s", exc)
         if self.held_in_position:
             # The guard's POSITION hold stays; the safe mode would release it.
+            jaw = client.make_safe([JAW])
+            if not jaw.confirmed:
+                log.warning("the jaw's safe mode: %s", jaw.describe())
             try:
-                client.safe_stop([JAW])
+                problem = client.mode_problem(JOINTS, Mode.POSITION)
             except DriverError as exc:
-                log.warning("could not put the jaw in the safe mode: %s", exc)
+                problem = str(exc)
+            how = "(confirmed by the arm)" if not problem else f"(not confirmed: {problem})"
             self.left_in = (
-                f"position hold at the angles of t = {self.t:.2f} s (chatter guard){after}"
-                f"{self._confirmation(Mode.POSITION)}"
+                f"position hold at the angles of t = {self.t:.2f} s (chatter guard) {how}"
             )
             return
         if not self.loop.leave_safe:
-            self.left_in = f"as the controller left it (leave_safe off){after}"
+            self.left_in = "as the controller left it (leave_safe off)"
             return
-        try:
-            client.safe_stop(JOINTS)
-            self.left_in = f"{mode}{after}{self._confirmation(client.guard.config.safe_mode)}"
-        except DriverError as exc:
-            log.warning("could not put the joints in the safe mode: %s", exc)
-            self.left_in = f"unknown: could not send {mode}: {exc}"
-
-    def _confirmation(self, safe: Mode) -> str:
-        """Read the modes back: the run says how it left the arm only once the arm says so."""
-        try:
-            modes = self.client.read_modes(JOINTS)
-        except DriverError as exc:
-            return f" (sent; not confirmed: {exc})"
-        silent = [joint_name(d) for d, m in modes.items() if m is None]
-        other = [
-            f"{joint_name(d)} in {_mode_name(m)}" for d, m in modes.items() if m not in (None, safe)
-        ]
-        if not silent and not other:
-            return " (confirmed by the arm)"
-        parts = ([f"no answer from {' '.join(silent)}"] if silent else []) + other
-        return f" (sent; not confirmed: {', '.join(parts)})"
+        self.left_in = client.make_safe(JOINTS).describe()
 
     # -- results ----------------------------------------------------------------------------
     def trace(self) -> LoopTrace | None:
@@ -561,7 +575,3 @@ class _Run:
             events=self.events,
             chatter=self.verdict,
         )
-
-
-def _mode_name(mode: Mode | int | None) -> str:
-    return mode.name.lower() if isinstance(mode, Mode) else f"mode 0x{int(mode or 0):02X}"

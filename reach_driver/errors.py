@@ -6,6 +6,12 @@ of someone holding a cable, not a debugger.
 
 from __future__ import annotations
 
+import signal
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from reach_driver.records import ControlSummary
+
 
 class DriverError(Exception):
     """Base of every error raised by `reach_driver`."""
@@ -63,3 +69,39 @@ class WatchdogTrippedError(DriverError):
 
 class ArmFaultError(DriverError):
     """The arm reports hardware status flags (over current, encoder error, ...)."""
+
+
+class ControllerError(DriverError):
+    """A controller (or a per-step hook: a recorder, a viewer) raised or returned something
+    other than 4 finite currents; the run ended there and the arm was put in its safe mode."""
+
+
+class BadReadingError(DriverError):
+    """The arm reported a value the control loop cannot use (NaN or Inf); the run ended
+    before any controller saw it."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """A signal asked the process to stop (SIGINT, SIGTERM, SIGHUP, SIGQUIT). A
+    `KeyboardInterrupt`, so code that stops on Ctrl-C stops on these too; whatever was under
+    way when it arrived fills in how it left the arm before passing it on: a control loop
+    its `summary` (a `ControlSummary`), any other command `left_in`."""
+
+    def __init__(
+        self,
+        signum: int = signal.SIGINT,
+        *,
+        summary: ControlSummary | None = None,
+        left_in: str | None = None,
+    ) -> None:
+        super().__init__(signum)
+        self.signum = int(signum)
+        self.summary = summary
+        self.left_in = left_in
+
+    @property
+    def signal_name(self) -> str:
+        try:
+            return signal.Signals(self.signum).name
+        except ValueError:
+            return f"signal {self.signum}"

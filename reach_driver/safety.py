@@ -69,7 +69,9 @@ class SafetyConfig:
     limit checks and the barrier (for bench work on a disconnected joint, never a default).
     `chatter` is the control loop's chatter guard (`reach_driver.chatter`, docs/chatter.md):
     a joint bang-banging around its goal ends the run with the arm held; `chatter=None`
-    turns it off (identification's relay swings, say).
+    turns it off (identification's relay swings, say). `safe_wait_s` bounds how long the
+    end of a command (`ArmClient.make_safe`) keeps sending `safe_mode` and reading the modes
+    back until every joint confirms it, a lost link's return included (wall seconds).
     """
 
     enabled: bool = True
@@ -84,8 +86,11 @@ class SafetyConfig:
     #: only with this set does the gate let it out (finite, to a known joint).
     allow_indexed_position: bool = False
     chatter: ChatterConfig | None = field(default_factory=ChatterConfig)
+    safe_wait_s: float = 5.0
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.safe_wait_s) and self.safe_wait_s >= 0):
+            raise ValueError(f"safe_wait_s must be finite and >= 0, got {self.safe_wait_s}")
         if self.barrier_width < 0 or self.position_margin < 0:
             raise ValueError("barrier_width and position_margin must not be negative")
         if self.watchdog_s is not None and self.watchdog_s <= 0:

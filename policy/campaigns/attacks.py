@@ -7,15 +7,21 @@ traffic on loopback (a virtual arm in this process, on a pty and 127.0.0.1); eac
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import random
 import resource
+import signal
 import socket
+import subprocess
+import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from protocol import DeviceID, Mode, Packet, PacketDecoder, PacketID, commands, encode_packet
 from protocol.payload import pack_floats
@@ -326,6 +332,234 @@ def hostile_arm(scale: float, tmp: str) -> Outcome:
     )
 
 
+# -- the ways a move or run ends ---------------------------------------------------------------
+
+REPO = Path(__file__).resolve().parents[2]
+JOINT_IDS = (5, 4, 3, 2)
+
+
+def _driver(*argv: str) -> subprocess.Popen[str]:
+    """`reach-driver ARGV` from this tree in a child, Ctrl-C at its default (as a shell in the
+    foreground starts it)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "reach_driver", *argv],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+
+
+def _finish(proc: subprocess.Popen[str]) -> tuple[str, str]:
+    try:
+        return proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def _safe(server: SimServer) -> bool:
+    return all(server.firmware.mode(d) == Mode.ZERO_VELOCITY for d in JOINT_IDS)
+
+
+def _pushing_run(port: str, server: SimServer, *options: str) -> list[str]:
+    """A PID run to E 1.5 rad away (at most 6.0): E saturates at its 600 mA for seconds."""
+    q = server.snapshot().q
+    target = [min(q[0] + 1.5, 6.0), q[1] + 0.2, q[2] + 0.2, q[3] + 0.2]
+    run = ["--port", port, "--watchdog", "1", *options, "run", "--controller", "pid"]
+    return run + ["--target", *map(str, target), "--seconds", "600"]
+
+
+CONFIRMED = "arm left in zero_velocity (confirmed by the arm)"
+
+
+def exit_signals(scale: float, tmp: str) -> Outcome:
+    """SIGHUP (an ssh drop), SIGQUIT, SIGTERM and SIGINT at a `run` pushing E at its current
+    limit: each must end with the arm confirmed in zero velocity, the summary, 128 + signal."""
+    server = _server(tmp)
+    said = []
+    held = True
+    try:
+        for sig in (signal.SIGHUP, signal.SIGQUIT, signal.SIGTERM, signal.SIGINT):
+            proc = _driver(*_pushing_run(str(server.link), server))
+            try:
+                if _wait(lambda: server.firmware.mode(5) == Mode.CURRENT, 60.0):
+                    proc.send_signal(sig)
+            finally:
+                out, err = _finish(proc)
+            ok = _safe(server) and proc.returncode == 128 + sig and CONFIRMED in out
+            held &= ok and "Traceback" not in err
+            said.append(f"{sig.name} {proc.returncode}{'' if ok else ' NOT SAFE'}")
+    finally:
+        server.stop()
+    return Outcome(
+        "exit-signals",
+        "4 signals to a run at 600 mA",
+        f"exit {', '.join(said)}; each with the summary and '{CONFIRMED}'",
+        held,
+    )
+
+
+class HangingLink:
+    """A UDP relay between a driver and an arm that can hang: while `hang` is set every
+    datagram, either way, is dropped (an arm whose network side stops answering). Counts the
+    ZERO_VELOCITY mode commands to E it drops."""
+
+    def __init__(self, arm: tuple[str, int]) -> None:
+        self.arm = arm
+        self.front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.front.bind(("127.0.0.1", 0))
+        self.back = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.back.bind(("127.0.0.1", 0))
+        self.hang = threading.Event()
+        self.dropped_safe = 0
+        self._client: tuple[str, int] | None = None
+        self._stop = threading.Event()
+        self._decoder = PacketDecoder()
+        self._threads = [
+            threading.Thread(target=self._pump, args=(self.front, True), daemon=True),
+            threading.Thread(target=self._pump, args=(self.back, False), daemon=True),
+        ]
+        for t in self._threads:
+            t.start()
+
+    @property
+    def url(self) -> str:
+        host, port = self.front.getsockname()
+        return f"udp://{host}:{port}"
+
+    def _pump(self, sock: socket.socket, from_driver: bool) -> None:
+        sock.settimeout(0.05)
+        while not self._stop.is_set():
+            try:
+                data, addr = sock.recvfrom(65536)
+            except OSError:  # a timeout too
+                continue
+            if from_driver:
+                self._client = addr
+                if self.hang.is_set():
+                    for packet in self._decoder.feed(data):
+                        if (
+                            packet.packet_id == PacketID.MODE
+                            and packet.device_id == E
+                            and packet.data[:1] == bytes([Mode.ZERO_VELOCITY])
+                        ):
+                            self.dropped_safe += 1
+                    continue
+                self.back.sendto(data, self.arm)
+            elif not self.hang.is_set() and self._client is not None:
+                self.front.sendto(data, self._client)
+
+    def close(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join()
+        self.front.close()
+        self.back.close()
+
+
+def hang_at_interrupt(scale: float, tmp: str) -> Outcome:
+    """Ctrl-C while the arm's network side hangs: the driver must keep sending the safe mode
+    until the arm, answering again, confirms it, and say so only then."""
+    server = _server(tmp)
+    assert server.udp_address is not None
+    link = HangingLink(server.udp_address)
+    try:
+        still_pushing = False
+        proc = _driver(*_pushing_run(link.url, server, "--safe-wait", "60"))
+        try:
+            if _wait(lambda: server.firmware.mode(5) == Mode.CURRENT, 60.0):
+                link.hang.set()
+                proc.send_signal(signal.SIGINT)
+                _wait(lambda: link.dropped_safe >= 2 or proc.poll() is not None, 30.0)
+                still_pushing = server.firmware.mode(5) == Mode.CURRENT
+                link.hang.clear()
+        finally:
+            out, err = _finish(proc)
+        resent = link.dropped_safe
+    finally:
+        link.close()
+        server.stop()
+    safe = _safe(server)
+    return Outcome(
+        "hang-at-interrupt",
+        "1 Ctrl-C into a hung link",
+        f"zero_velocity lost {resent} times in the hang and resent; once the arm answered: "
+        f"{'confirmed' if 'confirmed by the arm' in err else 'NOT confirmed'}, exit "
+        f"{proc.returncode}",
+        resent >= 2 and still_pushing and safe and proc.returncode == 130,
+    )
+
+
+def move_timeout(scale: float, tmp: str) -> Outcome:
+    """`move --timeout 1` to a target 3 s away: the joints must stop where they are."""
+    server = _server(tmp)
+    try:
+        target = server.snapshot().q + [-1.5, 0.0, 0.0, 0.0]
+        proc = _driver("--port", str(server.link), "move", *map(str, target), "--timeout", "1")
+        out, err = _finish(proc)
+        safe = _safe(server)
+        e0 = server.snapshot().q[0]
+        server.wait_sim_time(server.sim_time + 1.0, timeout=30.0)
+        drift = abs(server.snapshot().q[0] - e0)
+    finally:
+        server.stop()
+    return Outcome(
+        "move-timeout",
+        "1 move cut short",
+        f"exit {proc.returncode}, joints {'in zero_velocity' if safe else 'NOT safe'}, E moved "
+        f"{drift * 1e3:.1f} mrad in the next second",
+        proc.returncode == 1 and safe and drift < 0.02 and CONFIRMED in out,
+    )
+
+
+def lie_about_velocity(server: SimServer, value: float) -> None:
+    """While E is in current mode (a controller has acted), `server`'s E reports `value` as
+    its velocity: a sensor or firmware fault the emulator has no switch for."""
+    firmware = server.firmware
+    honest = firmware._noisy_velocity
+
+    def lying(d: Any) -> float:
+        if d.spec.device_id == E and firmware.mode(int(E)) == Mode.CURRENT:
+            return value
+        return honest(d)
+
+    firmware._noisy_velocity = lying  # type: ignore[method-assign]
+
+
+def nan_velocity(scale: float, tmp: str) -> Outcome:
+    """The arm reports a NaN velocity for E mid-run (`ddpg`): one line naming it, the
+    summary, how the arm was left, valid --json."""
+    server = _server(tmp)
+    lie_about_velocity(server, math.nan)
+    try:
+        q = server.snapshot().q
+        target = [q[0] + 0.3, q[1] + 0.2, q[2] + 0.2, q[3] + 0.2]
+        argv = ["--port", str(server.link), "--watchdog", "1", "run", "--controller", "ddpg"]
+        proc = _driver(*argv, "--target", *map(str, target), "--seconds", "5", "--json")
+        out, err = _finish(proc)
+        safe = _safe(server)
+    finally:
+        server.stop()
+    try:
+        result = json.loads(out)
+    except ValueError:
+        result = {}
+    error = str(result.get("error"))
+    return Outcome(
+        "nan-velocity",
+        "1 NaN velocity mid-run",
+        f"exit {proc.returncode}: {error[:60]}...; left in {result.get('left_in')}",
+        proc.returncode == 1
+        and safe
+        and "non-finite velocity" in error
+        and result.get("left_in") == "zero_velocity (confirmed by the arm)"
+        and "Traceback" not in err,
+    )
+
+
 def encode_packet_as(device: int, packet_id: PacketID, *values: float) -> Packet:
     return Packet(device, packet_id, pack_floats(*values))
 
@@ -338,4 +572,8 @@ ATTACKS: dict[str, Callable[[float, str], Outcome]] = {
     "bad-commands": bad_commands,
     "watchdog": watchdog,
     "hostile-arm": hostile_arm,
+    "exit-signals": exit_signals,
+    "hang-at-interrupt": hang_at_interrupt,
+    "move-timeout": move_timeout,
+    "nan-velocity": nan_velocity,
 }

@@ -11,20 +11,23 @@ import logging
 import signal
 import sys
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from types import FrameType
+from typing import Any
 
 from rich.console import Console
 from rich.markup import escape
 
 from reach_driver.cli.commands import COMMANDS
 from reach_driver.cli.connect import safety_config
-from reach_driver.cli.exits import Exit, UsageError, for_operator
+from reach_driver.cli.exits import Exit, UsageError, for_operator, left_in_for_operator
 from reach_driver.cli.parser import build_parser, package_version
 from reach_driver.errors import (
     BadUrlError,
     DriverError,
     GarbageError,
+    Interrupted,
     LimitError,
     LinkDownError,
     NoResponseError,
@@ -36,10 +39,6 @@ from reach_driver.errors import (
 __all__ = ["Exit", "build_parser", "main"]
 
 log = logging.getLogger("reach_driver.cli")
-
-
-def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
-    raise KeyboardInterrupt
 
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -93,20 +92,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:
         errors.print(f"[red]error[/]: --log-file {escape(str(args.log_file))}: {escape(str(exc))}")
         return int(Exit.USAGE)
-    previous = signal.getsignal(signal.SIGTERM)
-    if previous is signal.SIG_DFL and threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _raise_interrupt)  # terminate leaves the arm safe too
+    signals = Signals()
+    args.signals = signals  # move and run take the signals over while they command the arm
+    signals.install()
     log.info(
         "reach-driver %s: %s", package_version(), " ".join(sys.argv[1:] if argv is None else argv)
     )
     code = int(Exit.FAILED)
     try:
         code = _run(args, console, errors)
+        if signals.first is not None and args.command in ("move", "run"):
+            code = Exit.for_signal(signals.first)  # also one that came while it reported
         return code
     finally:
         log.info("exit %d", code)
-        if signal.getsignal(signal.SIGTERM) is _raise_interrupt:
-            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        signals.restore()
         undo_logging()
 
 
@@ -121,12 +121,15 @@ def _say(errors: Console, label: str, message: str, style: str = "red") -> None:
 def _run(args: argparse.Namespace, console: Console, errors: Console) -> int:
     try:
         return int(COMMANDS[args.command](args, console))
-    except KeyboardInterrupt:
-        if args.command in ("move", "run"):
-            _say(errors, "interrupted", "arm left in a safe mode, link closed", style="")
-        else:
-            _say(errors, "interrupted", "nothing was commanded, link closed", style="")
-        return int(Exit.INTERRUPTED)
+    except KeyboardInterrupt as exc:
+        stop = exc if isinstance(exc, Interrupted) else Interrupted()
+        how = (
+            f"arm left in {left_in_for_operator(stop.left_in, args.port)}"
+            if stop.left_in
+            else "nothing was commanded, link closed"
+        )
+        _say(errors, "interrupted", f"by {stop.signal_name}; {how}", style="")
+        return Exit.for_signal(stop.signum)
     except LimitError as exc:
         _say(errors, "limit", str(exc))
         return int(Exit.LIMIT)
@@ -145,3 +148,69 @@ def _run(args: argparse.Namespace, console: Console, errors: Console) -> int:
     except (LinkDownError, DriverError) as exc:
         _say(errors, "failed", str(exc))
         return int(Exit.FAILED)
+    except OSError as exc:
+        if args.signals.first is None:
+            raise
+        # After SIGHUP the terminal may be gone: the arm was seen to first, only output failed.
+        log.warning("output failed after %s: %s", args.signals.first, exc)
+        return Exit.for_signal(args.signals.first)
+    except Exception as exc:  # a bug: one line here, the traceback in --log-file
+        log.exception("internal error")
+        _say(errors, "internal error", f"{type(exc).__name__}: {exc}")
+        return int(Exit.FAILED)
+
+
+class Signals:
+    """SIGINT, SIGTERM, SIGHUP and SIGQUIT end a command one way. Outside a `taken` stretch
+    the first raises `Interrupted` in the main thread (where commands run); inside one (a
+    move or run commanding the arm) it calls that stretch's stop instead, so the command
+    ends between steps and leaves the arm safe the way any other end does. Later signals are
+    logged and ignored: they cannot cut short the safe stop under way (bounded by
+    --safe-wait). A signal the caller set to be ignored (nohup, a background job's SIGINT)
+    stays ignored."""
+
+    HANDLED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
+
+    def __init__(self) -> None:
+        self.received: list[int] = []
+        self._stop: Callable[[], None] | None = None
+        self._previous: dict[int, Any] = {}
+
+    @property
+    def first(self) -> int | None:
+        return self.received[0] if self.received else None
+
+    def install(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return  # only the main thread gets signals (tests run main() on others)
+        for sig in self.HANDLED:
+            previous = signal.getsignal(sig)
+            if previous is signal.SIG_DFL or previous is signal.default_int_handler:
+                self._previous[sig] = previous
+                signal.signal(sig, self._on_signal)
+
+    def restore(self) -> None:
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)
+        self._previous.clear()
+
+    @contextmanager
+    def taken(self, stop: Callable[[], None]) -> Iterator[None]:
+        """Within: a signal calls `stop` instead of raising (and does after it, too: once a
+        command commands the arm, it reports to the end)."""
+        self._stop = stop
+        if self.received:
+            stop()  # one came before: do not start
+        yield
+
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        first = not self.received
+        self.received.append(signum)
+        name = signal.Signals(signum).name
+        log.warning("%s received%s", name, "" if first else "; already stopping, ignored")
+        if not first:
+            return
+        if self._stop is not None:
+            self._stop()
+            return
+        raise Interrupted(signum)

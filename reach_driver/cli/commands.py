@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
+import signal
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -43,7 +46,7 @@ from reach_driver.controllers import (
     describe_controllers,
     load_controller,
 )
-from reach_driver.errors import ArmFaultError, DriverError
+from reach_driver.errors import ArmFaultError, DriverError, Interrupted
 from reach_driver.kinematics import tool_position
 from reach_driver.link import EventKind, LinkState
 from reach_driver.records import ControlSummary
@@ -152,18 +155,20 @@ class _StateStream:
         self.step += 1
 
 
-def _wait(seconds: float, stream: _StateStream | None) -> None:
-    """Sleep `seconds`, feeding the viewer stream meanwhile if there is one."""
+def _wait(seconds: float, stream: _StateStream | None, stop: threading.Event | None = None) -> None:
+    """Sleep `seconds` (less once `stop` is set), feeding the viewer stream meanwhile if
+    there is one."""
+    stop = stop or threading.Event()
     if stream is None:
-        time.sleep(seconds)
+        stop.wait(seconds)
         return
     end = time.monotonic() + seconds
-    while True:
+    while not stop.is_set():
         stream.tick()
         left = end - time.monotonic()
         if left <= 0:
             return
-        time.sleep(min(stream.PERIOD_S, left))
+        stop.wait(min(stream.PERIOD_S, left))
 
 
 def _monitor_json(
@@ -219,93 +224,123 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
     recorder: CliRecorder | None = None
     stream: _StateStream | None = None
     viewer = getattr(args, "viewer", None)
+    stop = threading.Event()  # set by a signal: the move ends at its next poll
+    short: BaseException | None = None  # what ended the move short of its target
+    lost = False
     try:
-        if args.xyz is not None:  # joint targets by the driver's IK; out of reach: exit 3
-            target = client.solve_xyz(*args.xyz)
-        # Check everything first: a refused target must leave every joint where it is.
-        for dev, value in zip(JOINTS, target, strict=True):
-            client.guard.check(dev, LimitKind.POSITION, float(value))
-        if args.jaw is not None:
-            client.guard.check(JAW, LimitKind.POSITION, args.jaw)
-        faults = blocking_faults(client.read_status(), console)
-        if faults:
-            raise ArmFaultError(f"arm reports faults, not moving: {faults}")
-        ids: tuple[PacketID, ...] = (PacketID.POSITION,)
-        if viewer is not None:
-            ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT)
-            meta = {"command": "move", "port": args.port, "target": target.tolist()}
-            recorder = CliRecorder(None, meta, viewer=viewer)
-            stream = _StateStream(client, recorder, target)
-        client.stream(ids, 20, devices)
-        q0 = client.read_joints((PacketID.POSITION,)).q
-        commanded = True
-        client.set_mode(devices, Mode.POSITION)
-        client.command_positions(target)
-        if args.jaw is not None:
-            client.command_jaw(args.jaw)
-        start_err = float(np.max(np.abs(target - q0))) or 1.0
-        move_started = client.clock()
-        deadline = time.monotonic() + args.move_timeout
-        notes = Console(stderr=True, highlight=False)
-        lines = MoveView(notes, enabled=not args.quiet)
-        with Progress(
-            TextColumn("[bold]move[/]"),
-            BarColumn(),
-            TextColumn("{task.fields[detail]}"),
-            TimeElapsedColumn(),
-            console=notes,
-            transient=True,
-            disable=args.quiet or not notes.is_terminal,
-        ) as progress:
-            task = progress.add_task("move", total=1.0, detail="")
-            while True:
-                state = client.state
-                err = target - state.q
-                jaw_err = abs(args.jaw - state.jaw_mm) if args.jaw is not None else 0.0
-                worst = float(np.max(np.abs(err)))
-                detail = " ".join(f"{j} {e:+.3f}" for j, e in zip(JOINT_LETTERS, err, strict=True))
+        try:
+            with args.signals.taken(stop.set):
+                if args.xyz is not None:  # joint targets by the driver's IK; out of reach: exit 3
+                    target = client.solve_xyz(*args.xyz)
+                # Check everything first: a refused target must leave every joint where it is.
+                for dev, value in zip(JOINTS, target, strict=True):
+                    client.guard.check(dev, LimitKind.POSITION, float(value))
                 if args.jaw is not None:
-                    detail += f" jaw {args.jaw - state.jaw_mm:+.2f} mm"
-                progress.update(
-                    task, completed=min(1.0, max(0.0, 1.0 - worst / start_err)), detail=detail
-                )
-                jaw_left = args.jaw - state.jaw_mm if args.jaw is not None else None
-                tool_err = _tool_error_mm(args, state.q)
-                done = (
-                    worst <= args.tolerance
-                    and jaw_err <= args.jaw_tolerance
-                    and tool_err <= args.xyz_tolerance
-                )
-                lines.update(err, jaw_left, force=done)
-                if done:
-                    progress.update(task, completed=1.0)
-                    break
-                if client.link_state is not LinkState.UP:
-                    progress.stop()
-                    _report_link_lost(client, target, move_started)
-                    return Exit.LINK_LOST
-                faults = blocking_faults(state.faults, None)
+                    client.guard.check(JAW, LimitKind.POSITION, args.jaw)
+                faults = blocking_faults(client.read_status(), console)
                 if faults:
-                    client.safe_stop(devices)
-                    raise ArmFaultError(f"fault during the move, joints stopped: {faults}")
-                if time.monotonic() > deadline:
-                    raise DriverError(
-                        f"move timed out after {args.move_timeout:g} s; errors (rad) {detail}"
-                    )
-                _wait(0.05, stream)
-        console.print(f"[green]reached[/] within {args.tolerance} rad: {detail}")
-        if args.xyz is not None:
-            goal = ", ".join(f"{v:.1f}" for v in args.xyz)
-            console.print(f"tool centre point {tool_err:.2f} mm from ({goal}) mm")
-        return Exit.OK
-    except KeyboardInterrupt:
-        # Ctrl-C means stop: in position mode the joints would go on to the target.
-        if commanded and client.link_state is LinkState.UP:
-            try:
-                client.safe_stop(devices)
-            except DriverError:
-                pass  # the message says "interrupted"; close() tries once more
-        raise
+                    raise ArmFaultError(f"arm reports faults, not moving: {faults}")
+                ids: tuple[PacketID, ...] = (PacketID.POSITION,)
+                if viewer is not None:
+                    ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT)
+                    meta = {"command": "move", "port": args.port, "target": target.tolist()}
+                    recorder = CliRecorder(None, meta, viewer=viewer)
+                    stream = _StateStream(client, recorder, target)
+                client.stream(ids, 20, devices)
+                q0 = client.read_joints((PacketID.POSITION,)).q
+                if stop.is_set():
+                    raise Interrupted(args.signals.first or signal.SIGINT)  # nothing commanded
+                commanded = True
+                client.set_mode(devices, Mode.POSITION)
+                client.command_positions(target)
+                if args.jaw is not None:
+                    client.command_jaw(args.jaw)
+                start_err = float(np.max(np.abs(target - q0))) or 1.0
+                move_started = client.clock()
+                deadline = time.monotonic() + args.move_timeout
+                notes = Console(stderr=True, highlight=False)
+                lines = MoveView(notes, enabled=not args.quiet)
+                with Progress(
+                    TextColumn("[bold]move[/]"),
+                    BarColumn(),
+                    TextColumn("{task.fields[detail]}"),
+                    TimeElapsedColumn(),
+                    console=notes,
+                    transient=True,
+                    disable=args.quiet or not notes.is_terminal,
+                ) as progress:
+                    task = progress.add_task("move", total=1.0, detail="")
+                    while True:
+                        state = client.state
+                        err = target - state.q
+                        jaw_err = abs(args.jaw - state.jaw_mm) if args.jaw is not None else 0.0
+                        worst = float(np.max(np.abs(err)))
+                        detail = " ".join(
+                            f"{j} {e:+.3f}" for j, e in zip(JOINT_LETTERS, err, strict=True)
+                        )
+                        if args.jaw is not None:
+                            detail += f" jaw {args.jaw - state.jaw_mm:+.2f} mm"
+                        progress.update(
+                            task,
+                            completed=min(1.0, max(0.0, 1.0 - worst / start_err)),
+                            detail=detail,
+                        )
+                        jaw_left = args.jaw - state.jaw_mm if args.jaw is not None else None
+                        tool_err = _tool_error_mm(args, state.q)
+                        done = (
+                            worst <= args.tolerance
+                            and jaw_err <= args.jaw_tolerance
+                            and tool_err <= args.xyz_tolerance
+                        )
+                        lines.update(err, jaw_left, force=done)
+                        if done:
+                            progress.update(task, completed=1.0)
+                            break
+                        if stop.is_set():
+                            break
+                        if client.link_state is not LinkState.UP:
+                            progress.stop()
+                            _report_link_lost(client, target, move_started)
+                            lost = True
+                            break
+                        faults = blocking_faults(state.faults, None)
+                        if faults:
+                            short = ArmFaultError(f"fault during the move: {faults}")
+                            break
+                        if time.monotonic() > deadline:
+                            short = DriverError(
+                                f"move timed out after {args.move_timeout:g} s; errors (rad) "
+                                f"{detail}"
+                            )
+                            break
+                        _wait(0.05, stream, stop)
+                if done:
+                    console.print(f"[green]reached[/] within {args.tolerance} rad: {detail}")
+                    if args.xyz is not None:
+                        goal = ", ".join(f"{v:.1f}" for v in args.xyz)
+                        console.print(f"tool centre point {tool_err:.2f} mm from ({goal}) mm")
+                    return Exit.OK
+        except BaseException as exc:  # a viewer, a bug, a KeyboardInterrupt not from a signal
+            if not commanded:
+                raise
+            short = exc
+        # Short of the target after commanding it: in position mode the joints would go on
+        # there, so stop them as a run does, and say truthfully whether the arm confirmed it.
+        left_in = left_in_for_operator(client.make_safe(devices).describe(), args.port)
+        signum = args.signals.first
+        if isinstance(short, Interrupted):
+            short.left_in = left_in
+            raise short
+        if isinstance(short, KeyboardInterrupt):
+            raise Interrupted(signal.SIGINT, left_in=left_in) from short
+        console.print(f"arm left in {escape(left_in)}", soft_wrap=True)
+        if signum is not None:
+            _say_interrupted(signum, left_in)
+            return Exit.for_signal(signum)
+        if lost:
+            return Exit.LINK_LOST
+        assert short is not None
+        raise short
     finally:
         if recorder is not None:
             recorder.close()
@@ -401,12 +436,21 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
         view = RunView(Console(stderr=True, highlight=False), args.seconds, enabled=not args.quiet)
         hook = chain(recorder.on_step if recorder is not None else None, view.on_step)
         loop = ControlLoop(client, controller, period, pacing=args.pacing, on_step=hook)
-        try:
-            with view:
-                summary = loop.run(target, args.seconds)
-        except KeyboardInterrupt:
-            error = "interrupted"
-            raise
+        signum: int | None = None
+        with args.signals.taken(loop.stop):  # a signal ends the loop like any other end
+            try:
+                with view:
+                    summary = loop.run(target, args.seconds)
+            except Interrupted as exc:  # a KeyboardInterrupt not from our handler
+                if exc.summary is None:
+                    raise
+                summary, signum = exc.summary, exc.signum
+        signum = args.signals.first or signum
+        if signum is not None and summary.error is None and summary.stopped_by != "duration":
+            why = (
+                f"interrupted by {signal.Signals(signum).name} at t = {summary.loop_seconds:.2f} s"
+            )
+            summary = dataclasses.replace(summary, error=why, stopped_by=why)
         error = summary.error
         report = controller_report(controller)
         if recorder is not None:
@@ -417,7 +461,9 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             # before the last lines, which say how it went
             recorder.finish(summary, error, report)
         left_in = left_in_for_operator(summary.left_in, args.port)
-        if summary.error:
+        if signum is not None:
+            code = Exit.for_signal(signum)
+        elif summary.error:
             code = Exit.FAILED
         elif recorder is not None and recorder.failed:
             code = Exit.RECORDING_INCOMPLETE
@@ -438,6 +484,7 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             console.out(json.dumps(jsonable(out)), highlight=False)
             if recorder is not None and recorder.failed:
                 _notes().print(f"[yellow]recording incomplete[/]: {escape(recorder.failed)}")
+            _say_interrupted(signum, left_in)
             return code
         print_summary(console, summary)
         print_metrics(console, summary)
@@ -461,11 +508,21 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             )
         if summary.error:
             console.print(f"[red]run failed[/]: {escape(for_operator(summary.error))}")
+        _say_interrupted(signum, left_in)
         return code
     finally:
         if recorder is not None:
             recorder.finish(summary, error)  # a no-op once finished
         client.close()
+
+
+def _say_interrupted(signum: int | None, left_in: str) -> None:
+    """The last line on stderr of a move or run a signal ended."""
+    if signum is not None:
+        _notes().print(
+            f"interrupted: by {signal.Signals(signum).name}; arm left in {escape(left_in)}",
+            soft_wrap=True,
+        )
 
 
 def cmd_controllers(args: argparse.Namespace, console: Console) -> Exit:

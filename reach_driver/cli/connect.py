@@ -104,4 +104,5 @@ def safety_config(args: argparse.Namespace) -> SafetyConfig:
         current_limits_mA=currents,
         position_margin=args.position_margin,
         chatter=ChatterConfig(hold=HoldMode(args.chatter_hold)) if args.chatter_guard else None,
+        safe_wait_s=args.safe_wait,
     )

@@ -3,6 +3,7 @@ messages for a person at the command line rather than a Python caller."""
 
 from __future__ import annotations
 
+import signal
 import textwrap
 from enum import IntEnum
 
@@ -19,13 +20,24 @@ class Exit(IntEnum):
     NO_ARM = 4
     LINK_LOST = 5  # the link went down while a command was under way
     RECORDING_INCOMPLETE = 6  # the run completed; its --record file stops early
-    INTERRUPTED = 130
+    # A signal ended a move or run: 128 + its number, the shell's convention.
+    HANGUP = 128 + signal.SIGHUP  # 129: the terminal went away (an ssh drop)
+    INTERRUPTED = 128 + signal.SIGINT  # 130: Ctrl-C
+    QUIT = 128 + signal.SIGQUIT  # 131: Ctrl-\
+    TERMINATED = 128 + signal.SIGTERM  # 143: kill, systemd stop
+
+    @classmethod
+    def for_signal(cls, signum: int) -> Exit:
+        """The exit status of a move or run a signal ended (SIGHUP, SIGINT, SIGQUIT or
+        SIGTERM, the ones `reach-driver` handles): 128 + its number."""
+        return cls(128 + int(signum))
 
 
 EXIT_TABLE: dict[Exit, str] = {
     Exit.OK: "done: the command finished; a run lasted --seconds (whether it got there: "
     "'reached'); monitor stopped by Ctrl-C or --seconds",
-    Exit.FAILED: "failed: a run cut short (watchdog, lost link, fault, controller error), a "
+    Exit.FAILED: "failed: a run cut short (watchdog, lost link, fault, a non-finite reading, "
+    "a controller error), a "
     "move that timed out, a fault before starting, an unreadable recording",
     Exit.USAGE: "bad command line: unknown option, malformed value, no --port",
     Exit.LIMIT: "refused by a limit: nothing was sent, nothing moved",
@@ -34,8 +46,12 @@ EXIT_TABLE: dict[Exit, str] = {
     "last positions the arm reported)",
     Exit.RECORDING_INCOMPLETE: "a run completed but its --record file is incomplete (e.g. a "
     "full disk: recording stopped, control went on)",
-    Exit.INTERRUPTED: "move or run interrupted (Ctrl-C, SIGTERM): the joints were put in "
-    "zero_velocity",
+    Exit.HANGUP: "move or run ended by SIGHUP (the terminal or ssh session went away)",
+    Exit.INTERRUPTED: "move or run ended by Ctrl-C (SIGINT)",
+    Exit.QUIT: "move or run ended by SIGQUIT (Ctrl-\\)",
+    Exit.TERMINATED: "move or run ended by SIGTERM. For 129-143 as for 1: the joints were "
+    "put in zero_velocity, resent until the arm confirmed it or --safe-wait ran out; the line "
+    "'arm left in ...' says which",
 }
 
 
@@ -63,12 +79,13 @@ def for_operator(message: str) -> str:
 
 
 def left_in_for_operator(left_in: str, port: str | None) -> str:
-    """How the arm was left, true once this process has exited. The loop's own wording for an
-    unreachable arm promises a safe mode 'as soon as the arm answers', which only holds while
-    the client lives; the CLI exits right after saying it."""
-    head, sep, _ = left_in.partition("; the driver sends ")
-    if not sep:
+    """How the arm was left, true once this process has exited, with what to do when the arm
+    did not confirm its safe mode. The client's own wording for an unreachable arm promises
+    a safe mode 'as soon as the arm answers', which only holds while the client lives; the
+    CLI exits right after saying it."""
+    if not left_in.startswith("unknown:"):
         return left_in
+    head, _, _ = left_in.partition("; the driver sends ")
     where = f" --port {port}" if port else ""
     return (
         f"{head}. reach-driver exits now and sends nothing more: each joint keeps the last "

@@ -115,6 +115,13 @@ def _positive(text: str) -> float:
     return value
 
 
+def _non_negative(text: str) -> float:
+    value = float(text)
+    if not value >= 0 or not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text}")
+    return value
+
+
 VIEWER_HELP = (
     "watch live in Rerun, beside --record (the file is still written): spawn [PORT] starts "
     "the native viewer (needs a display); connect [URL|PORT] streams to a running one "
@@ -170,6 +177,15 @@ def _add_connection_options(
         metavar="S",
         help="seconds without a command or fresh feedback before the arm is put in a safe "
         "mode during velocity/current control (default 0.2)",
+    )
+    g.add_argument(
+        "--safe-wait",
+        type=_non_negative,
+        default=default(5.0),
+        metavar="S",
+        help="at the end of a move or run (Ctrl-C, a signal and failures included): seconds "
+        "to keep sending the safe mode until the arm confirms it, waiting for a lost link "
+        "meanwhile (default 5)",
     )
     g.add_argument(
         "--max-current",
