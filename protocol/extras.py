@@ -5,7 +5,8 @@ the controllers that need no solver or simulator; the heavy libraries come with 
 (pyproject.toml): MuJoCo with `sim`, CasADi with `mpc`, torch and Gymnasium with `train`, Ray
 with `scale`. A module that needs one imports it inside `needs_extra(feature, extra)`, so a
 user without it reads "the mpc controller needs CasADi: pip install 'reach-stack[mpc]'"
-(`MissingExtra`) instead of a traceback ending in "No module named 'casadi'".
+(`MissingExtra`) instead of a traceback ending in "No module named 'casadi'". A script's own
+imports go inside `script_needs_extra`, which ends the program with that line (exit 2).
 
 None of this is the codec. It lives in `protocol` for the reason `protocol.viewer` does: the
 driver, the simulator and the controllers all name a missing extra, and this is the one package
@@ -14,6 +15,7 @@ they all may import. `protocol/__init__` does not import it.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -56,3 +58,19 @@ def needs_extra(feature: str, extra: str) -> Iterator[None]:
         if module not in OPTIONAL_MODULES:
             raise
         raise MissingExtra(feature, extra, module) from None
+
+
+#: A script that cannot start for want of an extra exits as for a bad command line.
+USAGE_EXIT = 2
+
+
+@contextmanager
+def script_needs_extra(program: str, extra: str) -> Iterator[None]:
+    """For a script's imports (e.g. `tools/train.py`): a missing optional library ends the
+    program with one line on stderr naming `extra`, exit 2, not a traceback."""
+    try:
+        with needs_extra(program, extra):
+            yield
+    except MissingExtra as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(USAGE_EXIT) from None

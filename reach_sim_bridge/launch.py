@@ -6,9 +6,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 
-from protocol.extras import MissingExtra, needs_extra
-
-USAGE_EXIT = 2  # as for a bad command line: nothing was started
+from protocol.extras import USAGE_EXIT, MissingExtra, needs_extra
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -63,7 +63,8 @@ def _tool_parser(script: str) -> argparse.ArgumentParser | None:
     """The parser of a tool whose command line lives in a package (the module the script takes
     `main` from, which also holds `build_parser`); None for a tool that parses for itself."""
     tree = ast.parse((ROOT / script).read_text(encoding="utf-8"))
-    for node in tree.body:
+    inner = [n for stmt in tree.body if isinstance(stmt, ast.With) for n in stmt.body]
+    for node in [*tree.body, *inner]:  # imports inside `with script_needs_extra(...)` too
         if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             if any(alias.name == "main" for alias in node.names):
                 build = getattr(importlib.import_module(node.module), "build_parser", None)

@@ -29,7 +29,8 @@ ROOT = Path(__file__).resolve().parents[1]
 HEAVY = ("torch", "mujoco", "casadi", "gymnasium", "ray")
 
 #: Run in the child before anything else: refuse the heavy modules, log each attempt to import
-#: one (a line per attempt in $TRIED), then run `-c CODE` or the module named, as python does.
+#: one (a line per attempt in $TRIED), then run `-c CODE`, the script or the module named, as
+#: python does.
 BLOCKER = """
 import importlib.abc, os, runpy, sys
 
@@ -45,6 +46,10 @@ sys.meta_path.insert(0, Refuse())
 if sys.argv[1] == "-c":
     sys.argv = ["-c", *sys.argv[2:]]
     exec(compile(CODE, "<string>", "exec"), {"__name__": "__main__"})
+elif sys.argv[1].endswith(".py"):
+    sys.argv = sys.argv[1:]
+    sys.path.insert(0, os.path.dirname(sys.argv[0]))
+    runpy.run_path(sys.argv[0], run_name="__main__")
 else:
     sys.argv = [sys.argv[1], *sys.argv[2:]]
     runpy.run_module(sys.argv[0], run_name="__main__", alter_sys=True)
@@ -154,6 +159,32 @@ def test_reach_sim_without_mujoco_is_one_line_and_exit_2(tmp_path) -> None:
         "reach-sim: error: reach-sim (the virtual arm) needs MuJoCo: pip install 'reach-stack[sim]'"
     )
     assert not (tmp_path / "arm").exists()
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (
+            ["tools/train.py", "--help"],
+            "tools/train.py needs Gymnasium: pip install 'reach-stack[train]'",
+        ),
+        (
+            ["tools/sweep.py", "--help"],
+            "tools/sweep.py needs Gymnasium: pip install 'reach-stack[train]'",
+        ),
+        (["tools/demo.py", "--help"], "tools/demo.py needs MuJoCo: pip install 'reach-stack[sim]'"),
+        (
+            ["tools/evaluate.py", "--controller", "pid", "--random", "1", "--out", "x.json"],
+            "tools/evaluate.py needs MuJoCo: pip install 'reach-stack[sim]'",
+        ),
+    ],
+)
+def test_a_tool_whose_extra_is_missing_is_one_line_and_exit_2(tmp_path, argv, expected) -> None:
+    """The first library missing is named; the extra brings it and the others the tool needs."""
+    proc, _ = without_heavy(tmp_path, str(ROOT / argv[0]), *argv[1:])
+    assert proc.returncode == 2
+    assert one_error_line(proc) == f"error: {expected}"
+    assert not (tmp_path / "x.json").exists()
 
 
 @pytest.mark.slow
