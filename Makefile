@@ -11,21 +11,38 @@ $(PY):
 	python3 -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
 
-# torch first, pinned to a CPU build, so nothing pulls CUDA. On a machine whose default index
-# serves CUDA wheels: make test TORCH_INDEX=https://download.pytorch.org/whl/cpu
-# (or TORCH_VERSION=... for another pinned version).
+# What each target installs (pyproject.toml's extras): `make demo` the base install (driver,
+# reach-driver, recordings, pid and ddpg) and `sim` (MuJoCo, reach-sim); `make test` everything:
+# `dev`, `scale` and `all` (sim, mpc, train, scale).
+#
+# torch comes only with `train` (in `all`), and on a stock index pip would pick a CUDA build
+# (several GB). So it is installed first, pinned and from TORCH_INDEX, and every later install
+# is held to that pin (--constraint): what follows finds torch satisfied and can never swap it.
+# On a machine whose default index serves CUDA wheels (stock PyPI on Linux):
+#   make test TORCH_INDEX=https://download.pytorch.org/whl/cpu
+# (TORCH_VERSION=... for another pinned version: a new pin file, so torch is installed again).
 TORCH_VERSION ?= 2.13.0
 TORCH_INDEX   ?=
 TORCH_FLAGS   := $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
+TORCH_PIN     := $(VENV)/torch-$(TORCH_VERSION).pin
+DSTAMP        := $(VENV)/.installed-demo
 
-$(STAMP): pyproject.toml | $(PY)
+$(TORCH_PIN): | $(PY)
 	$(PIP) install -q $(TORCH_FLAGS) torch==$(TORCH_VERSION)
-	$(PIP) install -q -e '.[dev,scale]'
+	echo "torch==$(TORCH_VERSION)" > $(TORCH_PIN)
+
+$(STAMP): pyproject.toml $(TORCH_PIN)
+	$(PIP) install -q --constraint $(TORCH_PIN) -e '.[dev,scale,all]'
 	touch $(STAMP)
 
 $(BSTAMP): $(STAMP)
-	$(PIP) install -q -e '.[dev,scale,bench]'
+	$(PIP) install -q --constraint $(TORCH_PIN) -e '.[dev,scale,all,bench]'
 	touch $(BSTAMP)
+
+# The demo needs no torch, CasADi or Ray.
+$(DSTAMP): pyproject.toml | $(PY)
+	$(PIP) install -q -e '.[sim]'
+	touch $(DSTAMP)
 
 install: $(STAMP)
 
@@ -58,7 +75,7 @@ bench: $(BSTAMP)
 # The shipped learned controller (ddpg: learned by RL from scratch)
 # through `reach-driver` on the virtual arm, real time (~25 s); writes demo.rrd.
 # e.g. make demo DEMO_ARGS="--speed 4 --scenario 3"
-demo: install
+demo: $(DSTAMP)
 	$(PY) tools/demo.py $(DEMO_ARGS)
 
 clean:

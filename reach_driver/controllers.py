@@ -24,7 +24,8 @@ from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
-from reach_driver.errors import DriverError
+from protocol.extras import MissingExtra
+from reach_driver.errors import DriverError, ExtraNotInstalledError
 
 GROUP = "reach_stack.controllers"
 
@@ -74,7 +75,9 @@ def available_controllers() -> list[str]:
 
 
 def load_controller(name: str, **kwargs: Any) -> Controller:
-    """Build the controller registered as `name`; a clear `DriverError` if it cannot be."""
+    """Build the controller registered as `name`; a clear `DriverError` if it cannot be
+    (`ExtraNotInstalledError` naming the extra to install if it needs a library that is not
+    installed)."""
     eps = _entry_points()
     ep = eps.get(name)
     if ep is None:
@@ -82,6 +85,8 @@ def load_controller(name: str, **kwargs: Any) -> Controller:
         raise DriverError(f"unknown controller {name!r}; registered: {known}")
     try:
         factory = ep.load()
+    except MissingExtra as exc:  # e.g. mpc without CasADi: say what to install
+        raise ExtraNotInstalledError(str(exc), exc.extra) from None
     except Exception as exc:
         raise DriverError(
             f"controller {name!r} is registered as {ep.value} but failed to load: "
@@ -129,7 +134,8 @@ def engineered(factory: F) -> F:
 @dataclass(frozen=True)
 class ControllerInfo:
     """One registered controller as `reach-driver controllers` lists it. `error` says why its
-    entry point (or its provenance) could not be loaded; the rest is then what is known."""
+    entry point (or its provenance) could not be loaded; the rest is then what is known.
+    `extra` names the extra to install when the reason is a library that is not installed."""
 
     name: str
     target: str  #: the entry point's "module:attr"
@@ -137,6 +143,7 @@ class ControllerInfo:
     provenance: dict[str, Any] | None  #: a learned controller's, else None
     error: str | None
     kind: ControllerKind = ControllerKind.UNDECLARED
+    extra: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -146,6 +153,7 @@ class ControllerInfo:
             "summary": self.summary,
             "provenance": self.provenance,
             "error": self.error,
+            "extra": self.extra,
         }
 
 
@@ -159,6 +167,8 @@ def _summary(factory: object) -> str:
 def _describe(ep: EntryPoint) -> ControllerInfo:
     try:
         factory = ep.load()
+    except MissingExtra as exc:  # its library is not installed: say which extra brings it
+        return ControllerInfo(ep.name, ep.value, "", None, str(exc), extra=exc.extra)
     except Exception as exc:  # a broken plugin is listed with its error, never a traceback
         return ControllerInfo(ep.name, ep.value, "", None, f"{type(exc).__name__}: {exc}")
     summary = _summary(factory)

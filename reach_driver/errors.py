@@ -17,6 +17,15 @@ class DriverError(Exception):
     """Base of every error raised by `reach_driver`."""
 
 
+class ExtraNotInstalledError(DriverError):
+    """What was asked for needs an optional library that is not installed; the message names
+    the extra that brings it (`protocol.extras`), e.g. pip install 'reach-stack[mpc]'."""
+
+    def __init__(self, message: str, extra: str) -> None:
+        super().__init__(message)
+        self.extra = extra
+
+
 class BadUrlError(DriverError, ValueError):
     """A `--port` string that names no transport we can open."""
 

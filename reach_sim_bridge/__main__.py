@@ -2,6 +2,6 @@
 
 import sys
 
-from reach_sim_bridge.cli import main
+from reach_sim_bridge.launch import main
 
 sys.exit(main())

@@ -63,7 +63,8 @@ def _tool_parser(script: str) -> argparse.ArgumentParser | None:
     """The parser of a tool whose command line lives in a package (the module the script takes
     `main` from, which also holds `build_parser`); None for a tool that parses for itself."""
     tree = ast.parse((ROOT / script).read_text(encoding="utf-8"))
-    for node in tree.body:
+    inner = [n for stmt in tree.body if isinstance(stmt, ast.With) for n in stmt.body]
+    for node in [*tree.body, *inner]:  # imports inside `with script_needs_extra(...)` too
         if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             if any(alias.name == "main" for alias in node.names):
                 build = getattr(importlib.import_module(node.module), "build_parser", None)
@@ -140,6 +141,8 @@ def test_documented_command_works(doc, command, arm, monkeypatch, capsys) -> Non
 
         _parses(sim_parser(), args)  # a server: parsed, not started (the fixture is one)
         _help([sys.executable, "-m", "reach_sim_bridge"])
+    elif program == "pip":
+        _installs_what_pyproject_defines(args)
     elif program == "rerun":
         _help([str(Path(sys.executable).with_name("rerun"))])  # a viewer needs a display
     elif program.startswith("tools/") or program.endswith(".py"):
@@ -150,6 +153,22 @@ def test_documented_command_works(doc, command, arm, monkeypatch, capsys) -> Non
         _help([sys.executable, str(ROOT / script)])
     else:
         pytest.fail(f"{doc}: no rule for {command!r}; add one to this test")
+
+
+def _installs_what_pyproject_defines(args: list[str]) -> None:
+    """`pip install reach-stack[EXTRA,...]` (or `.[...]`): each extra is one pyproject.toml
+    defines (read as text: tomllib is Python 3.11+)."""
+    assert args[:1] == ["install"], args
+    text = (ROOT / "pyproject.toml").read_text()
+    section = text.split("[project.optional-dependencies]", 1)[1].split("\n[", 1)[0]
+    defined = set(re.findall(r"^([\w-]+) = ", section, re.MULTILINE))
+    for arg in args[1:]:
+        if arg.startswith("-"):
+            continue
+        name, _, rest = arg.partition("[")
+        assert name in ("reach-stack", "."), arg
+        extras = {e.strip() for e in rest.rstrip("]").split(",") if e.strip()}
+        assert extras <= defined, f"{arg}: pyproject.toml defines {sorted(defined)}"
 
 
 def _required(head: list[str]) -> list[str]:

@@ -22,9 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from policy.tasks.scenarios import SCENARIOS
-from reach_sim_bridge.emulator.faults import FaultConfig
-from reach_sim_bridge.emulator.server import SimConfig, SimServer
+from protocol.extras import script_needs_extra
+
+with script_needs_extra("tools/demo.py", "sim"):
+    from policy.tasks.scenarios import SCENARIOS
+    from reach_sim_bridge.emulator.faults import FaultConfig
+    from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 
 def driver_command() -> list[str]:

@@ -18,7 +18,12 @@ from __future__ import annotations
 
 import sys
 
-from policy.campaigns.paper.command import main
+from protocol.extras import script_needs_extra
+
+with script_needs_extra("tools/paper.py", "sim"):
+    import mujoco  # noqa: F401  (imported as the run goes: checked here, before any output)
+
+    from policy.campaigns.paper.command import main
 
 if __name__ == "__main__":
     sys.exit(main())

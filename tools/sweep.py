@@ -25,9 +25,12 @@ from pathlib import Path
 from rich.console import Console
 from rich.markup import escape
 
-from policy.campaigns.ablation import ingredient
-from policy.campaigns.parallel import CampaignError
-from policy.campaigns.sweep import run_sweep, summarize, sweep_config
+from protocol.extras import script_needs_extra
+
+with script_needs_extra("tools/sweep.py", "train"):
+    from policy.campaigns.ablation import ingredient
+    from policy.campaigns.parallel import CampaignError
+    from policy.campaigns.sweep import run_sweep, summarize, sweep_config
 
 
 def build_parser() -> argparse.ArgumentParser:

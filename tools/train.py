@@ -27,13 +27,16 @@ import time
 from pathlib import Path
 from typing import Any
 
-from policy.campaigns.selection import envelope_results, envelope_summary
-from policy.controllers.weights import LEARNED_WEIGHTS
-from policy.rl.run_dir import COMMANDS, record_command, ship, start_run
-from policy.rl.scoring import evaluate_weights, params_arm_factory, weights_path
-from policy.rl.session import Sitting, train_run
-from reach_driver.controllers import load_controller
-from reach_driver.errors import DriverError
+from protocol.extras import script_needs_extra
+
+with script_needs_extra("tools/train.py", "train"):
+    from policy.campaigns.selection import envelope_results, envelope_summary
+    from policy.controllers.weights import LEARNED_WEIGHTS
+    from policy.rl.run_dir import COMMANDS, record_command, ship, start_run
+    from policy.rl.scoring import evaluate_weights, params_arm_factory, weights_path
+    from policy.rl.session import Sitting, train_run
+    from reach_driver.controllers import load_controller
+    from reach_driver.errors import DriverError
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

@@ -72,11 +72,14 @@ from typing import Any
 import numpy as np
 
 from protocol.alpha5 import N_JOINTS
+from protocol.extras import needs_extra
 from reach_driver.controllers import ControlState, engineered
 from reach_driver.metrics import settling_band
-from reach_sim_bridge.model.arm import Alpha5Arm
 from reach_sim_bridge.model.params import ArmParams
 from reach_sim_bridge.model.twin import FittedTwin, read_twin
+
+with needs_extra("the lambda controller", "sim"):  # its twin is the MuJoCo model
+    from reach_sim_bridge.model.arm import Alpha5Arm
 
 
 @dataclass(frozen=True)

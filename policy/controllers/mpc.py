@@ -28,13 +28,17 @@ import time
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-import casadi as ca
-import mujoco
 import numpy as np
 
+from protocol.extras import needs_extra
 from reach_driver.controllers import ControlState, engineered
-from reach_sim_bridge.model.arm import Alpha5Arm
 from reach_sim_bridge.model.params import ArmParams
+
+with needs_extra("the mpc controller", "mpc"):  # CasADi, and MuJoCo for the nominal model
+    import casadi as ca
+    import mujoco
+
+    from reach_sim_bridge.model.arm import Alpha5Arm
 
 SOLVERS = ("ipopt", "sqp-qrqp", "sqp-osqp", "sqp-qpoases")
 Vec4 = tuple[float, float, float, float]

@@ -26,6 +26,7 @@ from reach_driver.cli.parser import build_parser, package_version
 from reach_driver.errors import (
     BadUrlError,
     DriverError,
+    ExtraNotInstalledError,
     GarbageError,
     Interrupted,
     LimitError,
@@ -137,6 +138,9 @@ def _run(args: argparse.Namespace, console: Console, errors: Console) -> int:
         _say(errors, "error", str(exc))
         return int(Exit.USAGE)
     except BadUrlError as exc:
+        _say(errors, "error", str(exc))
+        return int(Exit.USAGE)
+    except ExtraNotInstalledError as exc:  # e.g. --controller mpc without CasADi
         _say(errors, "error", str(exc))
         return int(Exit.USAGE)
     except (PortNotFoundError, PortPermissionError, GarbageError, NoResponseError) as exc:

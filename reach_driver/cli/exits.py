@@ -39,7 +39,8 @@ EXIT_TABLE: dict[Exit, str] = {
     Exit.FAILED: "failed: a run cut short (watchdog, lost link, fault, a non-finite reading, "
     "a controller error), a "
     "move that timed out, a fault before starting, an unreadable recording",
-    Exit.USAGE: "bad command line: unknown option, malformed value, no --port",
+    Exit.USAGE: "bad command line: unknown option, malformed value, no --port; a "
+    "controller whose extra is not installed (the line names the extra to install)",
     Exit.LIMIT: "refused by a limit: nothing was sent, nothing moved",
     Exit.NO_ARM: "no arm: wrong port, no permission, nothing answering, wrong baud",
     Exit.LINK_LOST: "the link was lost during a move (the message says since when and the "

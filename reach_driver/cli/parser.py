@@ -440,13 +440,14 @@ def build_parser() -> argparse.ArgumentParser:
         "engineered, the first line of its docstring and, for a learned one, its provenance "
         "(algorithm, demonstrations, teacher, env steps, wall time, seed, the training "
         "command). Each entry point is imported to describe it; one that fails to import is "
-        "listed with its error, and the exit status is still 0.",
+        "listed with its error (one whose library is not installed, with the extra that "
+        "brings it), and the exit status is still 0.",
     )
     ctl.add_argument(
         "--json",
         action="store_true",
         help="a JSON list, one object per controller (name, target, kind, summary, "
-        "provenance, error)",
+        "provenance, error, extra: the extra to install when it is not installed)",
     )
     ins = add(
         "inspect",

@@ -552,12 +552,15 @@ def controllers_lines(infos: list[ControllerInfo]) -> list[str]:
     if not infos:
         return [*lines, "(no controllers registered: is reach-stack installed? pip install -e .)"]
     for info in infos:
-        summary = info.summary or ("(failed to load)" if info.error else "(no docstring)")
+        if info.extra:
+            summary = f"(not installed: needs the {info.extra} extra)"
+        else:
+            summary = info.summary or ("(failed to load)" if info.error else "(no docstring)")
         summary = _clip(summary.rstrip("."), summary_w)
         row = f"{info.name:<{name_w}}  {info.kind.value:<{kind_w}}  {summary}"
         lines.append(row.rstrip())
         if info.error:
-            lines += _wrapped("error", info.error, 4)
+            lines += _wrapped("missing" if info.extra else "error", info.error, 4)
         if info.provenance:
             lines += provenance_lines(info.provenance)
     return lines

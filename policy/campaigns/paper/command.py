@@ -36,6 +36,7 @@ from policy.campaigns.paper.table import run_table, summary, table_path
 from policy.campaigns.stats import DEFAULT_RESAMPLES
 from policy.tasks.scenarios import SCENARIOS
 from reach_driver.controllers import Controller
+from reach_driver.errors import ExtraNotInstalledError
 from reach_sim_bridge.model.sensors import SensorNoise
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -136,7 +137,7 @@ def execute(args: Options) -> int:
     for name in settings.controllers:
         try:
             controller: Controller = load_controller(name)
-        except (ValueError, OSError, RuntimeError) as exc:
+        except (ValueError, OSError, RuntimeError, ExtraNotInstalledError) as exc:
             console.print(f"[yellow]{name}: skipped[/yellow] ({exc})")
             skipped[name] = str(exc)
             continue
