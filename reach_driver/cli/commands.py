@@ -48,6 +48,7 @@ from reach_driver.kinematics import tool_position
 from reach_driver.link import EventKind, LinkState
 from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind
+from reach_driver.watchdog import watchdog_too_short
 
 
 def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
@@ -370,6 +371,12 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             f"period {period:g} s needs a {1.0 / period:.3g} Hz heartbeat; with --pacing stream "
             "the period must be 1/255 s (3.9 ms) .. 1 s (--pacing poll allows down to 0.001 s)"
         )
+    # Before the arm is touched: a period the watchdog cannot span trips on the first command.
+    paced = 1.0 / round(1.0 / period) if args.pacing == Pacing.STREAM.value else period
+    too_short = watchdog_too_short(paced, args.watchdog)
+    if too_short is not None:
+        given = "--period" if args.period else f"controller {args.controller!r}'s own period"
+        raise UsageError(f"{given}: {too_short}")
     if mismatch:
         Console(stderr=True, highlight=False).print(f"[yellow]warning[/]: {escape(mismatch)}")
     recorder: CliRecorder | None = None

@@ -52,6 +52,7 @@ def exit_table_text(indent: str = "  ") -> str:
 _API_ADVICE = {
     "call rearm() to command again": "the command stopped; read the lines above for why "
     "(a stalled controller, a loaded host, lost feedback), then run it again",
+    "SafetyConfig.watchdog_s": "--watchdog",
 }
 
 

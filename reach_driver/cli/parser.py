@@ -169,7 +169,8 @@ def _add_connection_options(
         default=default(0.2),
         metavar="S",
         help="seconds without a command or fresh feedback before the arm is put in a safe "
-        "mode during velocity/current control (default 0.2)",
+        "mode during velocity/current control (default 0.2); at least two control periods "
+        "(`run` refuses a --period it cannot span)",
     )
     g.add_argument(
         "--max-current",
@@ -386,7 +387,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=_period,
         help="control period in arm seconds (default: the controller's own, e.g. the rate a "
         "policy was trained at, else 0.05); at least 0.001 s, and 1/255 .. 1 s with --pacing "
-        "stream (the arm's heartbeat is 1..255 Hz)",
+        "stream (the arm's heartbeat is 1..255 Hz); at most half of --watchdog",
     )
     run.add_argument(
         "--pacing",

@@ -1,0 +1,76 @@
+"""Bad input from a person's command line or files: a period the watchdog cannot span, a
+recording pointed at the arm's own port, corrupt weights, crafted recordings, hostile JSON and
+files that never end. Each gets one clear line and a documented exit status, no traceback,
+before anything reaches the arm. Each test here failed on the code before its fix."""
+
+from __future__ import annotations
+
+import pytest
+
+from protocol import DeviceID, commands
+from reach_driver import ArmClient, SafetyConfig, open_transport
+from reach_driver.cli import Exit, main
+from reach_driver.cli.exits import for_operator
+from reach_driver.control import ControlLoop
+from reach_driver.watchdog import Watchdog
+
+E = int(DeviceID.E)
+TARGET = ["3.0", "1.5", "1.5", "3.0"]
+NO_ARM = "/nonexistent/reach-test-port"  # connecting to it would exit 4 (no arm)
+
+
+def _one_clear_line(err: str) -> None:
+    assert "Traceback" not in err, err
+    assert len([line for line in err.splitlines() if line.strip()]) == 1, err
+
+
+# -- 9: a control period the watchdog cannot span ----------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("extra", "culprit"),
+    [(["--period", "0.5"], "--period"), (["--period", "0.15"], "--period")],
+)
+def test_a_period_the_watchdog_cannot_span_is_refused_before_connecting(
+    extra, culprit, capsys
+) -> None:
+    argv = ["--port", NO_ARM, "run", "--controller", "pid", "--target", *TARGET]
+    assert main([*argv, "--seconds", "1", *extra]) == Exit.USAGE
+    err = capsys.readouterr().err
+    _one_clear_line(err)
+    assert culprit in err and "--watchdog" in err and "SafetyConfig" not in err
+    assert "no arm" not in err  # refused before the port was opened
+
+
+def test_a_longer_watchdog_lets_the_same_period_through_to_the_port(capsys) -> None:
+    argv = ["--port", NO_ARM, "--watchdog", "1.0", "run", "--controller", "pid"]
+    assert main([*argv, "--target", *TARGET, "--seconds", "1", "--period", "0.5"]) == Exit.NO_ARM
+
+
+def test_the_control_loop_refuses_a_period_its_watchdog_cannot_span() -> None:
+    client = ArmClient(open_transport("loop://"), safety=SafetyConfig(watchdog_s=0.2))
+    try:
+        with pytest.raises(ValueError, match="watchdog"):
+            ControlLoop(client, object(), 0.5)  # type: ignore[arg-type]
+        ControlLoop(client, object(), 0.1)  # type: ignore[arg-type]  # two periods: fine
+    finally:
+        client.close(safe=False)
+
+
+def test_the_watchdog_says_when_the_feedback_stopped_not_the_controller() -> None:
+    w = Watchdog()
+    w.note_sent([commands.current(E, 10.0)], now=1.0)
+    # The arm's last state came at 0.99; the loop, paced by it, sent nothing after 1.0.
+    reason, _ = w.expired(1.3, 0.2, lambda dev: 0.99) or ("", ())
+    assert reason.startswith("feedback from E (0x05) stale for 0.300 s"), reason
+    assert "feedback stopped" in reason and "no command for 0.300 s either" in reason
+    assert "--watchdog" in for_operator(reason)
+
+
+def test_the_watchdog_blames_the_controller_only_while_feedback_arrives() -> None:
+    w = Watchdog()
+    w.note_sent([commands.current(E, 10.0)], now=1.0)
+    reason, _ = w.expired(1.3, 0.2, lambda dev: 1.28) or ("", ())
+    assert reason.startswith("no command for 0.300 s"), reason
+    assert "controller did not command" in reason and "feedback kept arriving" in reason
+    assert "--watchdog" in for_operator(reason)
