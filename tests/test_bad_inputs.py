@@ -5,6 +5,8 @@ before anything reaches the arm. Each test here failed on the code before its fi
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
 from protocol import DeviceID, commands
@@ -74,3 +76,55 @@ def test_the_watchdog_blames_the_controller_only_while_feedback_arrives() -> Non
     assert reason.startswith("no command for 0.300 s"), reason
     assert "controller did not command" in reason and "feedback kept arriving" in reason
     assert "--watchdog" in for_operator(reason)
+
+
+# -- 10: --record pointed at the arm's own port ------------------------------------------------
+
+
+@pytest.fixture
+def pty_port(tmp_path):
+    """A pty standing for the arm's port, linked as reach-sim links one: (link, slave path,
+    master fd); whatever the driver writes arrives on the master."""
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    link = tmp_path / "alpha5"
+    link.symlink_to(path)
+    os.set_blocking(master, False)
+    yield str(link), path, master
+    os.close(slave)
+    os.close(master)
+
+
+def _written(master: int) -> bytes:
+    try:
+        return os.read(master, 1 << 16)
+    except (BlockingIOError, OSError):
+        return b""
+
+
+@pytest.mark.parametrize("command", ["run", "monitor"])
+@pytest.mark.parametrize("which", ["device", "link", "null"])
+def test_a_recording_at_the_arms_port_or_a_device_is_refused_before_anything_is_sent(
+    pty_port, command, which, capsys
+) -> None:
+    link, device, master = pty_port
+    record = {"device": device, "link": link, "null": os.devnull}[which]
+    argv = ["--port", link, command, "--record", record]
+    if command == "run":
+        argv += ["--controller", "pid", "--target", *TARGET, "--seconds", "1"]
+    else:
+        argv += ["--seconds", "1"]
+    assert main(argv) == Exit.USAGE
+    err = capsys.readouterr().err
+    _one_clear_line(err)
+    assert "--record" in err and ("arm's port" in err if which != "null" else "device" in err)
+    assert _written(master) == b""
+
+
+def test_a_log_file_at_the_arms_port_is_refused(pty_port, capsys) -> None:
+    link, device, master = pty_port
+    assert main(["--port", link, "--log-file", device, "info"]) == Exit.USAGE
+    err = capsys.readouterr().err
+    _one_clear_line(err)
+    assert "--log-file" in err and "arm's port" in err
+    assert _written(master) == b""

@@ -20,7 +20,7 @@ from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS
 from reach_driver.cli.connect import connect
 from reach_driver.cli.exits import Exit, UsageError, for_operator, left_in_for_operator
 from reach_driver.cli.live import MoveView, RunView, chain
-from reach_driver.cli.recorder import CliRecorder
+from reach_driver.cli.recorder import CliRecorder, output_path_problem
 from reach_driver.cli.render import (
     blocking_faults,
     controllers_lines,
@@ -68,7 +68,16 @@ def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
         client.close()
 
 
+def _check_record(args: argparse.Namespace) -> None:
+    """Before the port is opened: `--record` must name a file, never the arm's port."""
+    if args.record:
+        problem = output_path_problem("--record", args.record, args.port, devices=True)
+        if problem:
+            raise UsageError(f"{problem}; nothing was sent")
+
+
 def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
+    _check_record(args)
     client = connect(args, console)
     viewer = getattr(args, "viewer", None)
     recorder: CliRecorder | None = None
@@ -377,6 +386,7 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
     if too_short is not None:
         given = "--period" if args.period else f"controller {args.controller!r}'s own period"
         raise UsageError(f"{given}: {too_short}")
+    _check_record(args)
     if mismatch:
         Console(stderr=True, highlight=False).print(f"[yellow]warning[/]: {escape(mismatch)}")
     recorder: CliRecorder | None = None
