@@ -17,6 +17,7 @@ from types import FrameType
 from rich.console import Console
 from rich.markup import escape
 
+from protocol.viewer import viewer_options_problem
 from reach_driver.cli.commands import COMMANDS
 from reach_driver.cli.connect import safety_config
 from reach_driver.cli.exits import Exit, UsageError, for_operator
@@ -81,6 +82,9 @@ def _configure_logging(args: argparse.Namespace) -> Callable[[], None]:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    viewer_problem = viewer_options_problem(args)
+    if viewer_problem:
+        parser.error(viewer_problem)
     if hasattr(args, "max_current"):
         try:
             safety_config(args)

@@ -12,8 +12,8 @@ from rich.console import Console
 from rich.markup import escape
 
 from protocol.alpha5 import JOINTS
-from reach_driver.cli.exits import for_operator
 from reach_driver.chatter import ChatterConfig, HoldMode
+from reach_driver.cli.exits import for_operator
 from reach_driver.client import ArmClient
 from reach_driver.errors import BadUrlError
 from reach_driver.interfaces import open_transport

@@ -119,9 +119,9 @@ VIEWER_HELP = (
     "watch live in Rerun, beside --record (the file is still written): spawn [PORT] starts "
     "the native viewer (needs a display); connect [URL|PORT] streams to a running one "
     "(default rerun+http://127.0.0.1:9876/proxy, what plain `rerun` listens on); serve "
-    "[GRPC_PORT [WEB_PORT]] hosts a gRPC server (loopback, default 9876) and the web viewer "
-    "(default 9090) here and prints the address to open: the way to watch on a machine "
-    "without a display (ssh -L both ports). A viewer that cannot start or goes away is "
+    "[GRPC_PORT [WEB_PORT]] hosts a gRPC server (default 9876) and the web viewer (default "
+    "9090) here, both on loopback unless --viewer-bind, and prints the address to open: "
+    "the way to watch on a machine without a display (ssh -L both ports). A viewer that cannot start or goes away is "
     "named once and dropped; control never stops for it. Put it after positional arguments"
 )
 
