@@ -280,7 +280,8 @@ def build_parser() -> argparse.ArgumentParser:
         "[URL|PORT] streams to a running one (default rerun+http://127.0.0.1:9876/proxy); "
         "serve [GRPC_PORT [WEB_PORT]] hosts a gRPC server (default 9876) and the web viewer "
         "(default 9090), both on loopback unless --viewer-bind, and prints the address to "
-        "open (no display needed; ssh -L both ports). A viewer that cannot start or goes away is named once and dropped; the "
+        "open (no display needed; ssh -L both ports). "
+        "A viewer that cannot start or goes away is named once and dropped; the "
         "simulator runs on. A driver run served on 9876 at the same time needs other ports",
     )
     out.add_argument(

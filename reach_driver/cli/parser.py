@@ -121,7 +121,8 @@ VIEWER_HELP = (
     "(default rerun+http://127.0.0.1:9876/proxy, what plain `rerun` listens on); serve "
     "[GRPC_PORT [WEB_PORT]] hosts a gRPC server (default 9876) and the web viewer (default "
     "9090) here, both on loopback unless --viewer-bind, and prints the address to open: "
-    "the way to watch on a machine without a display (ssh -L both ports). A viewer that cannot start or goes away is "
+    "the way to watch on a machine without a display (ssh -L both ports). "
+    "A viewer that cannot start or goes away is "
     "named once and dropped; control never stops for it. Put it after positional arguments"
 )
 
