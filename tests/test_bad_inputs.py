@@ -5,10 +5,16 @@ before anything reaches the arm. Each test here failed on the code before its fi
 
 from __future__ import annotations
 
+import json
 import os
+import re
+import shutil
+from pathlib import Path
 
+import numpy as np
 import pytest
 
+from policy.controllers.weights import ActorWeights
 from protocol import DeviceID, commands
 from reach_driver import ArmClient, SafetyConfig, open_transport
 from reach_driver.cli import Exit, main
@@ -128,3 +134,82 @@ def test_a_log_file_at_the_arms_port_is_refused(pty_port, capsys) -> None:
     _one_clear_line(err)
     assert "--log-file" in err and "arm's port" in err
     assert _written(master) == b""
+
+
+# -- 11: corrupt weights files -----------------------------------------------------------------
+
+SHIPPED = Path(__file__).resolve().parents[1] / "policy/controllers/weights/ddpg_actor"
+
+
+def _copy_actor(tmp_path: Path) -> tuple[Path, dict]:
+    npz = tmp_path / "actor.npz"
+    shutil.copy(SHIPPED.with_suffix(".npz"), npz)
+    meta = json.loads(SHIPPED.with_suffix(".json").read_text())
+    npz.with_suffix(".json").write_text(json.dumps(meta))
+    return npz, meta
+
+
+def _arrays(npz: Path) -> dict[str, np.ndarray]:
+    with np.load(npz) as data:
+        return {k: data[k] for k in data.files}
+
+
+def _corrupt(kind: str, tmp_path: Path) -> Path:
+    npz, meta = _copy_actor(tmp_path)
+    meta_path = npz.with_suffix(".json")
+    if kind == "missing-key":
+        del meta["observation"]
+    elif kind == "json-list":
+        meta = [meta]  # type: ignore[assignment]
+    elif kind == "string-for-number":  # used only once the network runs: failed mid-run
+        meta["observation"]["qdot_scale"] = "1.2"
+    elif kind == "string-for-limits":
+        meta["current_limits_mA"] = "600"
+    elif kind == "nested-json":
+        meta_path.write_text("[" * 100_000 + "]" * 100_000)
+        return npz
+    elif kind == "one-d-layer":
+        arrays = _arrays(npz)
+        arrays["W0"] = arrays["W0"][0]
+        np.savez(npz, **arrays)
+    elif kind == "truncated-npz":
+        data = npz.read_bytes()
+        npz.write_bytes(data[: len(data) // 2])
+    elif kind == "nan-weights":
+        arrays = _arrays(npz)
+        arrays["W1"][0, 0] = np.nan
+        np.savez(npz, **arrays)
+    elif kind == "bad-provenance":
+        meta["provenance"] = {"algorithm": "TD3"}
+    meta_path.write_text(json.dumps(meta))
+    return npz
+
+
+CORRUPTIONS = [
+    "missing-key",
+    "json-list",
+    "string-for-number",
+    "string-for-limits",
+    "nested-json",
+    "one-d-layer",
+    "truncated-npz",
+    "nan-weights",
+    "bad-provenance",
+]
+
+
+@pytest.mark.parametrize("kind", CORRUPTIONS)
+def test_a_corrupt_weights_file_is_refused_at_load_with_one_line(kind, tmp_path, capsys) -> None:
+    npz = _corrupt(kind, tmp_path)
+    with pytest.raises(ValueError, match=re.escape(str(tmp_path))):
+        ActorWeights.load(npz)
+    argv = ["--port", NO_ARM, "run", "--controller", "ddpg", "--param", f"weights={npz}"]
+    assert main([*argv, "--target", *TARGET, "--seconds", "1"]) == Exit.USAGE
+    err = capsys.readouterr().err
+    _one_clear_line(err)
+    assert "ddpg" in err and str(tmp_path) in err
+
+
+def test_the_shipped_weights_still_load_and_act() -> None:
+    actor = ActorWeights.load(SHIPPED.with_suffix(".npz"))
+    assert actor.forward(np.zeros(actor.observation.size)).shape == (4,)
