@@ -213,3 +213,78 @@ def test_a_corrupt_weights_file_is_refused_at_load_with_one_line(kind, tmp_path,
 def test_the_shipped_weights_still_load_and_act() -> None:
     actor = ActorWeights.load(SHIPPED.with_suffix(".npz"))
     assert actor.forward(np.zeros(actor.observation.size)).shape == (4,)
+
+
+# -- 11: crafted recordings to `inspect` -------------------------------------------------------
+
+
+def _craft(path: Path, rows: list[list[float]], times: list[float], summary: str | None) -> None:
+    """A recording shaped like `run --record`'s: each joint's [q, target] per step."""
+    import rerun as rr
+
+    from reach_driver.recording import TIMELINE_STEP, TIMELINE_TIME
+
+    rec = rr.RecordingStream("reach-driver", recording_id=f"crafted-{path.name}")
+    rec.save(str(path))
+    for k, (row, t) in enumerate(zip(rows, times, strict=True)):
+        rec.set_time(TIMELINE_TIME, duration=t)
+        rec.set_time(TIMELINE_STEP, sequence=k)
+        for j in "EDCB":
+            rec.log(f"joints/{j}/position", rr.Scalars(row))
+    if summary is not None:
+        rec.log("run/summary", rr.TextDocument(summary), static=True)
+    rec.flush()
+    rec.disconnect()
+
+
+def _strict_json(text: str) -> object:
+    def refuse(token: str) -> object:
+        raise AssertionError(f"bare {token} in JSON output")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+STEADY = [[1.0 + 0.01 * k, 1.5] for k in range(20)]
+SPACED = [0.05 * k for k in range(20)]
+
+
+@pytest.mark.parametrize(
+    ("kind", "rows", "times", "summary", "said"),
+    [
+        ("summary-not-json", STEADY, SPACED, "{not json", "summary"),
+        ("summary-a-list", STEADY, SPACED, "[1, 2]", "summary"),
+        ("summary-nested", STEADY, SPACED, "[" * 100_000 + "]" * 100_000, "summary"),
+        ("ragged-rows", [[1.0, 1.5]] * 10 + [[1.0]] * 10, SPACED, None, "rows"),
+    ],
+)
+def test_a_crafted_recording_is_one_clear_error(
+    kind, rows, times, summary, said, tmp_path, capsys
+) -> None:
+    path = tmp_path / f"{kind}.rrd"
+    _craft(path, rows, times, summary)
+    for json_flag in ([], ["--json"]):
+        assert main(["inspect", *json_flag, str(path)]) == Exit.FAILED
+        captured = capsys.readouterr()
+        _one_clear_line(captured.out + captured.err)
+        assert "cannot read" in captured.out + captured.err and said in captured.out + captured.err
+
+
+def test_a_recording_whose_steps_all_sit_at_t0_reads_without_metrics(tmp_path, capsys) -> None:
+    path = tmp_path / "t0.rrd"
+    _craft(path, STEADY, [0.0] * len(STEADY), None)
+    assert main(["inspect", "--json", str(path)]) == Exit.OK
+    data = _strict_json(capsys.readouterr().out)
+    assert data["steps"] == 20 and "metrics" not in data  # type: ignore[index]
+    assert "no metrics" in str(data["notes"])  # type: ignore[index]
+    assert main(["inspect", str(path)]) == Exit.OK
+    assert "no metrics" in capsys.readouterr().out
+
+
+def test_inspect_json_has_no_bare_nan_or_infinity(tmp_path, capsys) -> None:
+    path = tmp_path / "nan.rrd"
+    rows = [*STEADY[:-1], [float("nan"), 1.5]]
+    _craft(path, rows, SPACED, json.dumps({"rmse": float("inf"), "note": float("nan")}))
+    assert main(["inspect", "--json", str(path)]) == Exit.OK
+    data = _strict_json(capsys.readouterr().out)
+    assert data["final_position"][0] is None  # type: ignore[index]
+    assert data["recorded_summary"] == {"rmse": None, "note": None}  # type: ignore[index]

@@ -501,10 +501,12 @@ def cmd_inspect(args: argparse.Namespace, console: Console) -> Exit:
     try:
         summary: dict[str, Any] = summarize_recording(args.file)
     except (RecordingReadError, OSError) as exc:
-        console.print(f"[red]error[/]: cannot read {escape(args.file)}: {escape(str(exc))}")
+        console.print(
+            f"[red]error[/]: cannot read {escape(args.file)}: {escape(str(exc))}", soft_wrap=True
+        )
         return Exit.FAILED
-    if args.json:
-        console.print_json(json.dumps(summary, default=float))
+    if args.json:  # strict JSON: NaN and infinities are null
+        console.print_json(json.dumps(jsonable(summary), allow_nan=False))
         return Exit.OK
     print_recording(console, summary)
     return Exit.OK
