@@ -23,8 +23,8 @@ import pyarrow as pa
 from rerun.chunk import RrdReader
 
 from protocol import HardwareStatus
-from protocol.files import UserFileError, parse_json
 from protocol.alpha5 import JOINT_LETTERS
+from protocol.files import UserFileError, parse_json
 from reach_driver.metrics import Trace, compute_metrics, overshoot_anatomy
 from reach_driver.recording import (
     DIAGNOSTIC_LETTERS,
