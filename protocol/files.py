@@ -32,7 +32,9 @@ class UserFileError(ValueError):
 def read_bounded(path: str | Path, what: str, max_bytes: int) -> bytes:
     """The bytes of the regular file `path`, at most `max_bytes` (UserFileError otherwise)."""
     try:
-        with open(path, "rb") as f:
+        # O_NONBLOCK: opening a FIFO for reading would otherwise wait for a writer.
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
+        with open(fd, "rb") as f:
             st = os.fstat(f.fileno())
             if not stat.S_ISREG(st.st_mode):
                 raise UserFileError(f"{what} {path} is not a regular file (a device or pipe?)")
@@ -40,6 +42,7 @@ def read_bounded(path: str | Path, what: str, max_bytes: int) -> bytes:
                 raise UserFileError(
                     f"{what} {path} is {st.st_size:,} bytes, more than the {max_bytes:,} read"
                 )
+            os.set_blocking(fd, True)
             data = f.read(max_bytes + 1)  # a file growing as it is read stops here too
     except OSError as exc:
         raise UserFileError(f"cannot read {what} {path}: {exc.strerror or exc}") from exc

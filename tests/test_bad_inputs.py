@@ -288,3 +288,60 @@ def test_inspect_json_has_no_bare_nan_or_infinity(tmp_path, capsys) -> None:
     data = _strict_json(capsys.readouterr().out)
     assert data["final_position"][0] is None  # type: ignore[index]
     assert data["recorded_summary"] == {"rmse": None, "note": None}  # type: ignore[index]
+
+
+# -- 11: hostile parameter and targets files ---------------------------------------------------
+
+
+def _nested(path: Path) -> Path:
+    path.write_text("[" * 100_000 + "]" * 100_000)
+    return path
+
+
+@pytest.mark.parametrize("kind", ["dev-zero", "fifo", "huge", "nested", "not-utf8"])
+def test_reach_sim_params_that_never_end_or_nest_are_refused_unread(kind, tmp_path, capsys) -> None:
+    from reach_sim_bridge.cli import main as sim_main
+
+    if kind == "dev-zero":
+        path = Path("/dev/zero")
+    elif kind == "fifo":
+        path = tmp_path / "fifo.json"
+        os.mkfifo(path)  # opening it for reading would wait for a writer: never opened
+    elif kind == "huge":
+        path = tmp_path / "huge.json"
+        with open(path, "wb") as f:
+            f.truncate(2**30)  # 1 GB, sparse: was read whole (2.15 GB of memory)
+    elif kind == "nested":
+        path = _nested(tmp_path / "nested.json")
+    else:
+        path = tmp_path / "latin1.json"
+        path.write_bytes(b'{"water_density": "\xe9"}')
+    with pytest.raises(SystemExit) as exc:
+        sim_main(["--no-pty", "--params", str(path)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    errors = [line for line in err.splitlines() if "error:" in line]
+    assert len(errors) == 1 and str(path) in errors[0], err
+    unread = {"dev-zero": "not a regular file", "fifo": "not a regular file", "huge": "more than"}
+    assert unread.get(kind, "") in errors[0]  # refused before reading, not after
+
+
+def test_evaluate_targets_nested_past_the_recursion_limit_is_one_line(tmp_path, capsys) -> None:
+    from policy.campaigns.evaluate_command import main as evaluate_main
+
+    path = _nested(tmp_path / "targets.json")
+    argv = ["--controller", "pid", "--targets", str(path), "--out", str(tmp_path / "o.json")]
+    assert evaluate_main(argv) == 2
+    err = capsys.readouterr().err
+    _one_clear_line(err)
+    assert "nested too deeply" in err and "targets" in err
+
+
+def test_lambda_params_nested_past_the_recursion_limit_is_a_usage_error(tmp_path, capsys) -> None:
+    path = _nested(tmp_path / "arm.json")
+    argv = ["--port", NO_ARM, "run", "--controller", "lambda", "--param", f"params={path}"]
+    assert main([*argv, "--target", *TARGET, "--seconds", "1"]) == Exit.USAGE
+    err = capsys.readouterr().err
+    _one_clear_line(err)
+    assert "nested too deeply" in err
