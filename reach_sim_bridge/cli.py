@@ -194,7 +194,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="serve the arm this parameter file describes: a JSON object of ArmParams "
         "field names (any subset; arrays of four in E D C B order; the rest nominal; keys "
         "starting with _ ignored), as tools/identify.py writes. --randomize-params then "
-        "perturbs around it and --torque-scale multiplies its torque_scale",
+        "perturbs around it and --torque-scale multiplies its torque_scale. A file that cannot "
+        "be used (not a regular file, over 16 MB, not JSON, an unknown key) is one line and "
+        "exit 2",
     )
     arm.add_argument(
         "--dt",
