@@ -9,8 +9,11 @@ read `--viewer` without loading rerun.
 
 A recorder sends its entities to two streams with the same recording id: its file, and one
 whose sink is the viewer (`open_viewer`): one spawned here (`spawn`), one already running
-(`connect URL`, a `GrpcSink`), or a gRPC server plus the web viewer hosted by this process
-(`serve`, a `GrpcServerSink` and `rr.serve_web_viewer`) for a machine without a display. They
+(`connect URL`, a `GrpcSink`), or a gRPC server plus the web viewer (`serve`, a
+`GrpcServerSink` here and the web viewer in a child `rerun --serve-web --bind ADDR`) for a
+machine without a display. Both listen on loopback unless `--viewer-bind` says otherwise: a
+robot's telemetry is not served to the network unasked. (rerun 0.41's `rr.serve_web_viewer`
+takes no bind address and listens on every interface, so it is not used.) They
 are separate streams on purpose: in rerun 0.41 a stream's `flush()` waits for every sink and
 raises if any fails, so with one stream of two sinks a viewer that went away would block the
 logging thread at each flush and end the file. `ViewerTee` logs to both; the viewer stream is
@@ -21,13 +24,19 @@ the file goes on.
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import ipaddress
 import os
+import shutil
+import signal
 import socket
+import subprocess
 import sys
 import threading
 import time
+import weakref
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -37,8 +46,11 @@ if TYPE_CHECKING:
 #: where `--viewer connect` looks without a URL: a viewer started with plain `rerun`
 DEFAULT_VIEWER_PORT = 9876
 DEFAULT_VIEWER_URL = f"rerun+http://127.0.0.1:{DEFAULT_VIEWER_PORT}/proxy"
-#: `--viewer serve`: the gRPC port (loopback only) and the web viewer's HTTP port
+#: `--viewer serve`: the gRPC port and the web viewer's HTTP port
 DEFAULT_WEB_PORT = 9090
+#: `--viewer serve` listens here unless `--viewer-bind` says otherwise: this machine only
+DEFAULT_BIND = "127.0.0.1"
+_WEB_START_S = 20.0  # the longest the web viewer's process may take to listen (a loaded host)
 VIEWER_MODES = ("spawn", "connect", "serve")
 VIEWER_USAGE = (
     "spawn [PORT] | connect [URL|PORT] | serve [GRPC_PORT [WEB_PORT]] "
@@ -57,17 +69,51 @@ class ViewerSpec:
     url: str = DEFAULT_VIEWER_URL  # connect: the viewer; spawn/serve: the gRPC address made
     port: int = DEFAULT_VIEWER_PORT  # spawn and serve: the gRPC port
     web_port: int = DEFAULT_WEB_PORT  # serve: the web viewer's HTTP port
-    bind: str = "127.0.0.1"  # serve: loopback only; reach it over SSH (`ssh -L`)
+    bind: str = DEFAULT_BIND  # serve: where both listen (loopback: reach it over `ssh -L`)
+
+    @property
+    def host(self) -> str:
+        """serve: the address this machine reaches both servers at."""
+        return _connect_host(self.bind)
 
     @property
     def web_url(self) -> str:
         """serve: the address to open in a browser (the web viewer, told where the data is)."""
-        return f"http://127.0.0.1:{self.web_port}/?url=rerun%2Bhttp://127.0.0.1:{self.port}/proxy"
+        host = _url_host(self.host)
+        return f"http://{host}:{self.web_port}/?url=rerun%2Bhttp://{host}:{self.port}/proxy"
+
+    @property
+    def loopback(self) -> bool:
+        return ipaddress.ip_address(self.bind).is_loopback
 
     def describe(self) -> str:
         if self.mode == "serve":
-            return f"serve (gRPC {self.bind}:{self.port}, web viewer port {self.web_port})"
+            return f"serve (gRPC {self.bind}:{self.port}, web viewer {self.bind}:{self.web_port})"
         return f"{self.mode} {self.url}"
+
+
+def _connect_host(bind: str) -> str:
+    """Where to reach a server bound to `bind`: itself, or loopback for 'every interface'."""
+    address = ipaddress.ip_address(bind)
+    if address.is_unspecified:
+        return "127.0.0.1" if address.version == 4 else "::1"
+    return bind
+
+
+def _url_host(host: str) -> str:
+    return f"[{host}]" if ":" in host else host
+
+
+def with_bind(spec: ViewerSpec, bind: str) -> ViewerSpec:
+    """`spec` (serve) listening on `bind` (ValueError if it is no IP address or not serve)."""
+    try:
+        ipaddress.ip_address(bind)
+    except ValueError:
+        raise ValueError(f"--viewer-bind takes an IP address, got {bind!r}") from None
+    if spec.mode != "serve":
+        raise ValueError(f"--viewer-bind is for --viewer serve, not {spec.mode}")
+    bound = replace(spec, bind=bind)
+    return replace(bound, url=f"rerun+http://{_url_host(bound.host)}:{spec.port}/proxy")
 
 
 def _port(text: str) -> int:
@@ -136,13 +182,45 @@ class ViewerAction(argparse.Action):
     ) -> None:
         try:
             spec = parse_viewer(list(values))
+            bind = getattr(namespace, "viewer_bind", None)
+            if bind is not None:
+                spec = with_bind(spec, bind)
         except ValueError as exc:
             raise argparse.ArgumentError(self, str(exc)) from None
         setattr(namespace, self.dest, spec)
 
 
+class ViewerBindAction(argparse.Action):
+    """`--viewer-bind ADDR`: where `--viewer serve` listens (before or after `--viewer`)."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        spec = getattr(namespace, "viewer", None)
+        try:
+            bound = with_bind(spec if spec is not None else ViewerSpec("serve"), str(values))
+        except ValueError as exc:
+            raise argparse.ArgumentError(self, str(exc)) from None
+        setattr(namespace, self.dest, str(values))
+        if spec is not None:
+            namespace.viewer = bound
+
+
+BIND_HELP = (
+    "with --viewer serve: the address the gRPC server and the web viewer listen on (default "
+    f"{DEFAULT_BIND}, this machine only; watch from elsewhere through ssh -L). 0.0.0.0 (or a "
+    "LAN address) serves the arm's telemetry to anyone who can reach this machine: only on a "
+    "network you trust"
+)
+
+
 def add_viewer_option(parser: argparse._ActionsContainer, help_text: str) -> None:
-    """`--viewer MODE [VALUE...]` on a parser or an argument group (None when not given)."""
+    """`--viewer MODE [VALUE...]` on a parser or an argument group (None when not given), and
+    `--viewer-bind ADDR` beside it."""
     parser.add_argument(
         "--viewer",
         nargs="+",
@@ -151,6 +229,16 @@ def add_viewer_option(parser: argparse._ActionsContainer, help_text: str) -> Non
         default=None,
         help=help_text,
     )
+    parser.add_argument(
+        "--viewer-bind", action=ViewerBindAction, metavar="ADDR", default=None, help=BIND_HELP
+    )
+
+
+def viewer_options_problem(args: argparse.Namespace) -> str | None:
+    """A `--viewer-bind` given without `--viewer serve` (for the parser's error), or None."""
+    if getattr(args, "viewer_bind", None) is not None and getattr(args, "viewer", None) is None:
+        return "--viewer-bind is for --viewer serve, which was not given"
+    return None
 
 
 def _answers(host: str, port: int, timeout: float = _PROBE_TIMEOUT_S) -> bool:
@@ -168,6 +256,69 @@ def _free(host: str, port: int) -> bool:
         except OSError:
             return False
     return True
+
+
+def _rerun_cli() -> str | None:
+    """The `rerun` binary itself (rerun_cli's), so the web viewer's process is the one this
+    process stops; else the venv's or PATH's `rerun` script."""
+    found = importlib.util.find_spec("rerun_cli")
+    if found is not None and found.origin:
+        binary = os.path.join(os.path.dirname(found.origin), "rerun")
+        if os.access(binary, os.X_OK):
+            return binary
+    return _rerun_executable() or shutil.which("rerun")
+
+
+def _die_with_parent() -> None:
+    """In the web viewer's child, before exec: it gets SIGTERM if this process dies (Linux)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
+    except Exception:
+        pass
+
+
+def _start_web_viewer(spec: ViewerSpec) -> subprocess.Popen[bytes]:
+    """The web viewer on `spec.bind`:`spec.web_port`, pointed at the gRPC server, in a child
+    `rerun` (which, unlike `rr.serve_web_viewer`, takes a bind address); it is listening when
+    this returns (ViewerError if it cannot be started)."""
+    exe = _rerun_cli()
+    if exe is None:
+        raise ViewerError("--viewer serve needs the `rerun` viewer (rerun-sdk), not found")
+    cmd = [exe, "--serve-web", "--bind", spec.bind, "--web-viewer-port", str(spec.web_port)]
+    proc = subprocess.Popen(
+        [*cmd, spec.url],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,  # Ctrl-C is this process's to handle; it stops the child
+        preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
+    )
+    end = time.monotonic() + _WEB_START_S
+    while not _answers(spec.host, spec.web_port, timeout=0.2):
+        if proc.poll() is not None or time.monotonic() > end:
+            _stop_process(proc)
+            raise ViewerError(
+                f"the web viewer did not start on {spec.bind}:{spec.web_port} "
+                f"(`rerun --serve-web` exit status {proc.returncode})"
+            )
+        time.sleep(0.05)
+    return proc
+
+
+def _stop_process(proc: subprocess.Popen[bytes]) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=2.0)
+
+
+#: The attribute of a served stream that stops its web viewer (`drop_viewer` calls it).
+_STOP_WEB = "_reach_stop_web_viewer"
 
 
 def _rerun_executable() -> str | None:
@@ -226,7 +377,7 @@ def open_viewer(
             rec.set_sinks(rr.GrpcSink(spec.url), default_blueprint=blueprint)
         else:  # serve
             for port, what in ((spec.port, "gRPC"), (spec.web_port, "web viewer")):
-                if not _free(spec.bind if what == "gRPC" else "0.0.0.0", port):
+                if not _free(spec.bind, port):
                     raise ViewerError(
                         f"port {port} ({what}) is in use, by another run serving or a viewer: "
                         "pick others (--viewer serve GRPC_PORT WEB_PORT) or --viewer connect"
@@ -234,12 +385,20 @@ def open_viewer(
             rec.set_sinks(
                 rr.GrpcServerSink(bind_ip=spec.bind, port=spec.port), default_blueprint=blueprint
             )
-            rr.serve_web_viewer(web_port=spec.web_port, open_browser=False, connect_to=spec.url)
-            say(
-                f"viewer: open {spec.web_url} (web), or `rerun --connect {spec.url}` (native); "
-                f"from another machine forward both ports first: ssh -L {spec.web_port}:"
-                f"localhost:{spec.web_port} -L {spec.port}:localhost:{spec.port} HOST"
-            )
+            web = _start_web_viewer(spec)
+            setattr(rec, _STOP_WEB, weakref.finalize(rec, _stop_process, web))
+            if spec.loopback:
+                reach = (
+                    f"from another machine forward both ports first: ssh -L {spec.web_port}:"
+                    f"localhost:{spec.web_port} -L {spec.port}:localhost:{spec.port} HOST"
+                )
+            else:
+                reach = (
+                    f"listening on {spec.bind} (--viewer-bind): anyone who can reach ports "
+                    f"{spec.port} and {spec.web_port} of this machine can watch"
+                )
+            native = f"`rerun --connect {spec.url}` (native)"
+            say(f"viewer: open {spec.web_url} (web), or {native}; {reach}")
         return rec
     except ViewerError:
         drop_viewer(rec)
@@ -266,6 +425,9 @@ def drop_viewer(rec: rr.RecordingStream, wait_s: float = _VIEWER_CLOSE_S) -> Non
     thread = threading.Thread(target=close, name="rerun-viewer-close", daemon=True)
     thread.start()
     thread.join(timeout=2 * wait_s + 0.5)
+    stop_web = getattr(rec, _STOP_WEB, None)
+    if stop_web is not None:
+        stop_web()  # `serve`'s web viewer process (at most a few seconds, usually at once)
 
 
 def viewer_failure(spec: ViewerSpec | None, exc: Exception, opening: bool) -> str:

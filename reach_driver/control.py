@@ -59,6 +59,7 @@ from reach_driver.safety import LimitKind
 from reach_driver.state import joint_name
 from reach_driver.streaming import Stream
 from reach_driver.trace import FinalState, TraceRows
+from reach_driver.watchdog import watchdog_too_short
 
 log = logging.getLogger(__name__)
 
@@ -159,6 +160,9 @@ class ControlLoop:
                 raise ValueError(f"period must be positive, got {period_s}")
             self.hz = 0
             self.period_s = period_s
+        too_short = watchdog_too_short(self.period_s, client.guard.config.watchdog_s)
+        if too_short is not None:
+            raise ValueError(too_short)
         self.on_step = on_step
         self.state_timeout_s = state_timeout_s or max(0.5, 10 * self.period_s)
         self.leave_safe = leave_safe

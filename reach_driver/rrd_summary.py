@@ -9,7 +9,7 @@ before its first step is still recognised by the metadata written when it opened
 
 from __future__ import annotations
 
-import json
+import math
 import shutil
 import struct
 import tempfile
@@ -24,6 +24,7 @@ from rerun.chunk import RrdReader
 
 from protocol import HardwareStatus
 from protocol.alpha5 import JOINT_LETTERS
+from protocol.files import UserFileError, parse_json
 from reach_driver.metrics import Trace, compute_metrics, overshoot_anatomy
 from reach_driver.recording import (
     DIAGNOSTIC_LETTERS,
@@ -90,8 +91,9 @@ def _seconds(column: pa.Array) -> np.ndarray:
     return values.astype(float) * 1e-9
 
 
-def _temporal_series(chunks: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(time, step, values) of a Scalars entity, concatenated over its chunks."""
+def _temporal_series(chunks: list, entity: str = "") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(time, step, values) of a Scalars entity, concatenated over its chunks (a
+    RecordingReadError if its rows differ in length: no writer of ours makes such a file)."""
     times, steps, values = [], [], []
     for chunk in chunks:
         batch = chunk.to_record_batch()
@@ -104,7 +106,14 @@ def _temporal_series(chunks: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not steps:
         return np.zeros(0), np.zeros(0, dtype=int), np.zeros((0, 0))
     t, s = np.concatenate(times), np.concatenate(steps)
-    v = np.array([row if row is not None else [] for row in values], dtype=float)
+    rows = [row if row is not None else [] for row in values]
+    widths = sorted({len(row) for row in rows})
+    if len(widths) > 1:
+        raise RecordingReadError(
+            f"{entity}: rows of {' and '.join(map(str, widths))} values mixed: not a series "
+            "reach-stack writes"
+        )
+    v = np.array(rows, dtype=float)
     order = np.argsort(s, kind="stable")
     return t[order], s[order], v[order]
 
@@ -220,10 +229,23 @@ def _metadata(text: str | None) -> dict[str, object]:
     if not text:
         return {}
     try:
-        value = json.loads(text)
-    except ValueError:
+        value = parse_json(text, "run/metadata")
+    except UserFileError:
         return {}
     return value if isinstance(value, dict) else {}
+
+
+def _summary(text: str | None) -> dict[str, object]:
+    """The summary a run wrote at its end ({} if it did not get there)."""
+    if not text:
+        return {}
+    try:
+        value = parse_json(text, "its run/summary")
+    except UserFileError as exc:
+        raise RecordingReadError(str(exc)) from None
+    if not isinstance(value, dict):
+        raise RecordingReadError("its run/summary is not a JSON object")
+    return value
 
 
 @dataclass(frozen=True)
@@ -292,7 +314,7 @@ def read_recording(path: str | Path) -> RecordedRun:
     for chunk in chunks:
         by_entity[str(chunk.entity_path)].append(chunk)
 
-    series = {name: _temporal_series(c) for name, c in by_entity.items()}
+    series = {name: _temporal_series(c, name) for name, c in by_entity.items()}
     diagnostics = {
         key: DiagnosticSeries(series[entity][0], series[entity][2])
         for entity, key in _DIAGNOSTIC_ENTITIES.items()
@@ -366,7 +388,7 @@ def read_recording(path: str | Path) -> RecordedRun:
         else np.full((len(steps), 4), np.nan),
         events=events,
         metadata=metadata,
-        summary=json.loads(summary_text) if summary_text else {},
+        summary=_summary(summary_text),
         closed_cleanly=closed_cleanly,
         truncated=truncated_bytes > 0,
         truncated_bytes=truncated_bytes,
@@ -460,6 +482,18 @@ def summarize_recording(path: str | Path) -> dict[str, object]:
     Metrics need a uniform period: they use the median step period, and the last target of the
     run (a run with several targets is scored against its final one).
     """
+    try:
+        return _summarize(path)
+    except RecordingReadError:
+        raise
+    except (ValueError, TypeError, KeyError, IndexError, ArithmeticError) as exc:
+        # Files no writer of ours makes; what is wrong is said, not a traceback.
+        raise RecordingReadError(
+            f"not a recording reach-stack can read: {type(exc).__name__}: {exc}"
+        ) from None
+
+
+def _summarize(path: str | Path) -> dict[str, object]:
     run = read_recording(path)
     if run.metadata.get("source") == SIM_SOURCE:
         return _summarize_sim(path, run)
@@ -484,8 +518,13 @@ def summarize_recording(path: str | Path) -> dict[str, object]:
         "events": [f"{t:8.3f}s {lv}: {tx}" for t, lv, tx in run.events],
         "metadata": run.metadata,
     }
-    if len(run.step) >= 2:
-        dt = float(np.median(np.diff(run.t)))
+    dt = float(np.median(np.diff(run.t))) if len(run.step) >= 2 else math.nan
+    if len(run.step) >= 2 and not (math.isfinite(dt) and dt > 0):
+        out["notes"] = [
+            f"no metrics: the steps are not spaced in time (median period {dt:g} s, "
+            f"{len(run.step)} steps from {run.t[0]:g} to {run.t[-1]:g} s)"
+        ]
+    elif len(run.step) >= 2:
         qdot = run.qdot if run.qdot is not None else np.gradient(run.q, run.t, axis=0)
         tau = run.torque if run.torque is not None else np.zeros_like(run.q)
         trace = Trace(

@@ -26,6 +26,28 @@ CONTINUOUS_MODES = frozenset({Mode.VELOCITY, Mode.CURRENT})
 #: When a device's position last arrived (None if never).
 FeedbackTime = Callable[[int], "float | None"]
 
+#: A control loop commands once a period and reads the arm once a period: the watchdog must
+#: span this many periods, so that one late or lost tick does not trip it. Raising the
+#: watchdog to follow a long period would let a stalled controller's last current run that
+#: long unnoticed, so a period it cannot span is refused instead (`watchdog_too_short`).
+WATCHDOG_PERIODS = 2.0
+#: The option a person sets the limit with; the CLI shows it in place of the API's name.
+LIMIT_NAME = "SafetyConfig.watchdog_s"
+
+
+def watchdog_too_short(period_s: float, watchdog_s: float | None) -> str | None:
+    """Why a loop at `period_s` cannot run under a `watchdog_s` watchdog, or None if it can."""
+    if watchdog_s is None or watchdog_s >= WATCHDOG_PERIODS * period_s * (1 - 1e-9):
+        return None
+    need = WATCHDOG_PERIODS * period_s
+    return (
+        f"a {period_s:g} s control period needs a watchdog of at least {need:g} s (two "
+        f"periods, so one late or lost tick does not trip it), but {LIMIT_NAME} is "
+        f"{watchdog_s:g} s: the watchdog would trip between two commands. Give a shorter "
+        f"period, or a longer watchdog ({LIMIT_NAME} {need:g}) if a stalled controller's last "
+        f"command may run that long"
+    )
+
 
 class Watchdog:
     """Thread-safe: commands note what they sent from the caller's thread, the reader thread
@@ -73,23 +95,39 @@ class Watchdog:
     def expired(
         self, now: float, limit_s: float | None, feedback_t: FeedbackTime
     ) -> tuple[str, tuple[int, ...]] | None:
-        """(why, armed devices) if commands or feedback are older than `limit_s`, else None."""
+        """(why, armed devices) if commands or feedback are older than `limit_s`, else None.
+
+        Stale feedback is named first: a loop paced by the arm's state stops commanding when
+        the state stops, so "no command" alone would blame the controller for the link."""
         with self._lock:
             armed = dict(self._armed)
             last_command = self._last_command_t
         if limit_s is None or not armed:
             return None
-        if now - last_command > limit_s:
-            return f"no command for {now - last_command:.3f} s (limit {limit_s} s)", tuple(armed)
+        limit = f"watchdog {limit_s:g} s, {LIMIT_NAME}"
+        silent = now - last_command
         for dev, since in armed.items():
             fed = feedback_t(dev)
             last = max(since, fed if fed is not None else -math.inf)
             if now - last > limit_s:
+                also = (
+                    f"; no command for {silent:.3f} s either (a loop waits for the arm's state)"
+                    if silent > limit_s
+                    else ""
+                )
                 reason = (
-                    f"feedback from {joint_name(dev)} stale for {now - last:.3f} s "
-                    f"(limit {limit_s} s)"
+                    f"feedback from {joint_name(dev)} stale for {now - last:.3f} s ({limit})"
+                    f"{also}: the feedback stopped (the arm stopped reporting, the link is "
+                    "failing, or the arm reset)"
                 )
                 return reason, tuple(armed)
+        if silent > limit_s:
+            reason = (
+                f"no command for {silent:.3f} s ({limit}) while the arm's feedback kept "
+                "arriving: the controller did not command (a stalled or slow controller, a "
+                "loaded host, or a control period near the watchdog)"
+            )
+            return reason, tuple(armed)
         return None
 
     def trip(self, reason: str) -> None:

@@ -14,7 +14,7 @@ from pathlib import Path
 from types import FrameType
 
 from protocol.alpha5 import SERIAL_BAUD
-from protocol.viewer import add_viewer_option
+from protocol.viewer import add_viewer_option, viewer_options_problem
 from reach_sim_bridge.emulator.faults import FaultConfig, torque_scales
 from reach_sim_bridge.emulator.server import TURNAROUND_BYTES, SimConfig, SimServer, serve_forever
 from reach_sim_bridge.emulator.udp import DEFAULT_UDP_HOST, DEFAULT_UDP_PORT, parse_udp_address
@@ -194,7 +194,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="serve the arm this parameter file describes: a JSON object of ArmParams "
         "field names (any subset; arrays of four in E D C B order; the rest nominal; keys "
         "starting with _ ignored), as tools/identify.py writes. --randomize-params then "
-        "perturbs around it and --torque-scale multiplies its torque_scale",
+        "perturbs around it and --torque-scale multiplies its torque_scale. A file that cannot "
+        "be used (not a regular file, over 16 MB, not JSON, an unknown key) is one line and "
+        "exit 2",
     )
     arm.add_argument(
         "--dt",
@@ -278,9 +280,10 @@ def build_parser() -> argparse.ArgumentParser:
         "watch the arm's true state live in Rerun, beside --record (the file is still "
         "written) or alone: spawn [PORT] starts the native viewer (needs a display); connect "
         "[URL|PORT] streams to a running one (default rerun+http://127.0.0.1:9876/proxy); "
-        "serve [GRPC_PORT [WEB_PORT]] hosts a gRPC server (loopback, default 9876) and the web "
-        "viewer (default 9090) and prints the address to open (no display needed; ssh -L both "
-        "ports). A viewer that cannot start or goes away is named once and dropped; the "
+        "serve [GRPC_PORT [WEB_PORT]] hosts a gRPC server (default 9876) and the web viewer "
+        "(default 9090), both on loopback unless --viewer-bind, and prints the address to "
+        "open (no display needed; ssh -L both ports). "
+        "A viewer that cannot start or goes away is named once and dropped; the "
         "simulator runs on. A driver run served on 9876 at the same time needs other ports",
     )
     out.add_argument(
@@ -341,6 +344,9 @@ def config_from_args(args: argparse.Namespace) -> SimConfig:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    viewer_problem = viewer_options_problem(args)
+    if viewer_problem:
+        parser.error(viewer_problem)
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
     logging.basicConfig(
         level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr

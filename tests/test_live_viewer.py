@@ -9,6 +9,7 @@ on loopback, on ports picked free, and bounded in time.
 
 from __future__ import annotations
 
+import ipaddress
 import os
 import signal
 import socket
@@ -257,6 +258,9 @@ def test_serve_hosts_grpc_and_the_web_viewer_and_prints_the_address(tmp_path) ->
         assert len(said) == 1 and spec.web_url in said[0] and f"ssh -L {web}:" in said[0]
         assert wait_until(lambda: _listening(grpc), timeout=10)
         assert not _listening_beyond_loopback(grpc)
+        # Both servers on loopback only: a robot's telemetry is not served to the network.
+        assert _listen_addresses(grpc) == {"127.0.0.1"}
+        assert _listen_addresses(web) == {"127.0.0.1"}
         page = urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=10).read()
         assert b"<html" in page.lower()
         _log_run(rec, 30)
@@ -273,6 +277,79 @@ def test_serve_hosts_grpc_and_the_web_viewer_and_prints_the_address(tmp_path) ->
         rec.close()
     assert read_recording(pulled).step.tolist() == list(range(30))
     assert read_recording(path).step.tolist() == list(range(30))
+    assert _listen_addresses(web) == set()  # the web viewer went with the recorder
+
+
+def _listen_addresses(port: int) -> set[str]:
+    """The local addresses TCP sockets listen on at `port`, from /proc/net/tcp{,6}."""
+    found: set[str] = set()
+    for table, width in (("/proc/net/tcp", 8), ("/proc/net/tcp6", 32)):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            local, state = line.split()[1], line.split()[3]
+            hexaddr, hexport = local.split(":")
+            if state != "0A" or int(hexport, 16) != port:  # 0A: LISTEN
+                continue
+            raw = bytes.fromhex(hexaddr)
+            # /proc prints each 32-bit word of the address in host (little-endian) order
+            words = b"".join(raw[i : i + 4][::-1] for i in range(0, len(raw), 4))
+            found.add(
+                str(ipaddress.ip_address(words))
+                if width == 8
+                else str(ipaddress.IPv6Address(words))
+            )
+    return found
+
+
+def test_viewer_bind_listens_where_asked_and_only_with_serve() -> None:
+    from reach_driver.cli.parser import build_parser as driver_parser
+    from reach_sim_bridge.cli import build_parser as sim_parser
+
+    spec = (
+        driver_parser()
+        .parse_args(
+            [
+                "run",
+                "--controller",
+                "pid",
+                "--target",
+                "1",
+                "1",
+                "1",
+                "1",
+                "--seconds",
+                "1",
+                "--viewer",
+                "serve",
+                "9100",
+                "9101",
+                "--viewer-bind",
+                "0.0.0.0",
+            ]
+        )
+        .viewer
+    )
+    assert (spec.bind, spec.host, spec.port, spec.web_port) == ("0.0.0.0", "127.0.0.1", 9100, 9101)
+    assert (
+        sim_parser().parse_args(["--viewer-bind", "::1", "--viewer", "serve"]).viewer.bind == "::1"
+    )
+    for bad in (
+        ["--viewer", "connect", "--viewer-bind", "0.0.0.0"],
+        ["--viewer", "serve", "--viewer-bind", "localhost:9"],
+    ):
+        with pytest.raises(SystemExit):
+            sim_parser().parse_args(bad)
+
+
+def test_viewer_bind_without_serve_is_a_usage_error(capsys) -> None:
+    from reach_sim_bridge.cli import main as sim_main
+
+    with pytest.raises(SystemExit) as exc:
+        sim_main(["--no-pty", "--viewer-bind", "0.0.0.0"])
+    assert exc.value.code == 2 and "--viewer serve" in capsys.readouterr().err
 
 
 def _listening_beyond_loopback(port: int) -> bool:

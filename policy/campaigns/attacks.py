@@ -560,6 +560,89 @@ def nan_velocity(scale: float, tmp: str) -> Outcome:
     )
 
 
+def bad_inputs(scale: float, tmp: str) -> Outcome:
+    """Hostile command lines and files given to reach-driver and reach-sim: a period the
+    watchdog cannot span, --record at the arm's own port and at a device, corrupt weights,
+    deeply nested JSON, /dev/zero and a 1 GB file as --params. Each must end with one line
+    and exit 2 before anything is sent (a pty stands for the arm and counts what reaches it)."""
+    import contextlib
+    import io
+    import shutil
+
+    from policy.controllers.weights import LEARNED_WEIGHTS
+    from reach_driver.cli import main as driver_main
+
+    master, slave = os.openpty()
+    os.set_blocking(master, False)
+    port = os.path.join(tmp, "alpha5-bad-inputs")
+    os.symlink(os.ttyname(slave), port)
+    nested = Path(tmp, "nested.json")
+    nested.write_text("[" * 100_000 + "]" * 100_000)
+    huge = Path(tmp, "huge.json")
+    with open(huge, "wb") as f:
+        f.truncate(2**30)
+    weights = Path(tmp, "actor.npz")
+    shutil.copy(LEARNED_WEIGHTS, weights)
+    weights.with_suffix(".json").write_text("[]")
+    run = ["--port", port, "run", "--controller", "pid", "--target", "3", "1.5", "1.5", "3"]
+    run += ["--seconds", "1"]
+    cases: list[tuple[str, Callable[[], int]]] = [
+        ("--period 0.5", lambda: driver_main([*run, "--period", "0.5"])),
+        ("--record PORT", lambda: driver_main([*run, "--record", os.ttyname(slave)])),
+        ("--record /dev/null", lambda: driver_main([*run, "--record", os.devnull])),
+        (
+            "weights json a list",
+            lambda: driver_main([*run[:4], "ddpg", *run[5:], "--param", f"weights={weights}"]),
+        ),
+        (
+            "lambda params nested",
+            lambda: driver_main([*run[:4], "lambda", *run[5:], "--param", f"params={nested}"]),
+        ),
+        ("reach-sim --params /dev/zero", lambda: _reach_sim(["--params", "/dev/zero"])),
+        ("reach-sim --params 1 GB", lambda: _reach_sim(["--params", str(huge)])),
+    ]
+    before = _rss_mb()
+    clean = 0
+    try:
+        for _name, case in cases:
+            err = io.StringIO()
+            with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+                code = case()
+            text = err.getvalue()
+            clean += code == 2 and "Traceback" not in text
+        try:
+            leaked = len(os.read(master, 1 << 16))
+        except BlockingIOError:
+            leaked = 0
+    finally:
+        os.close(slave)
+        os.close(master)
+    grown = _rss_mb() - before
+    child_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+    return Outcome(
+        "bad-inputs",
+        f"{len(cases)} hostile options and files",
+        f"{clean} refused with exit 2 and no traceback, {leaked} bytes reached the arm's port, "
+        f"memory +{grown:.0f} MB (reach-sim at most {child_mb:.0f} MB)",
+        clean == len(cases) and leaked == 0 and grown < 100.0 and child_mb < 500.0,
+    )
+
+
+def _reach_sim(argv: list[str]) -> int:
+    """`reach-sim --no-pty ARGV` in a child (its stderr to ours), as an exit status; a child
+    that runs a minute is killed and counts as not refusing."""
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "reach_sim_bridge.cli", "--no-pty", *argv]
+    try:
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        return -1
+    sys.stderr.write(done.stderr)
+    return done.returncode
+
+
 def encode_packet_as(device: int, packet_id: PacketID, *values: float) -> Packet:
     return Packet(device, packet_id, pack_floats(*values))
 
@@ -576,4 +659,5 @@ ATTACKS: dict[str, Callable[[float, str], Outcome]] = {
     "hang-at-interrupt": hang_at_interrupt,
     "move-timeout": move_timeout,
     "nan-velocity": nan_velocity,
+    "bad-inputs": bad_inputs,
 }

@@ -195,7 +195,7 @@ def execute(args: Options) -> int:
     try:
         evaluation = run(args, console)
     except (ValueError, DriverError, CampaignError) as exc:
-        console.print(f"[red]error:[/red] {escape(str(exc))}")
+        console.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
         return 2
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(evaluation.to_dict(), indent=1), encoding="utf-8")

@@ -8,6 +8,7 @@ network has memory channels) with the configuration stored beside the weights.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 from typing import Any
@@ -58,6 +59,21 @@ class ObservationConfig:
         return cls(normalise=False, include_error=False, fine_error_scale=0.0)
 
     def __post_init__(self) -> None:
+        # A file states these: a string or null here would only fail at the first step.
+        for name in ("normalise", "include_error", "previous_action"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
+        for name in ("fine_error_scale", "qdot_scale", "integral_tau", "integral_error_scale"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(f"{name} must be a number, got {value!r}")
+            if not math.isfinite(value):
+                raise ValueError(f"{name} must be finite, got {value!r}")
+        if self.qdot_scale <= 0 or self.fine_error_scale < 0:
+            raise ValueError(
+                f"qdot_scale must be > 0 and fine_error_scale >= 0, got {self.qdot_scale}, "
+                f"{self.fine_error_scale}"
+            )
         if self.integral_tau < 0 or self.integral_error_scale <= 0:
             raise ValueError(
                 "integral_tau must be >= 0 and integral_error_scale > 0, got "
@@ -96,6 +112,8 @@ class ObservationConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ObservationConfig:
+        if not isinstance(data, dict):
+            raise ValueError(f"the observation config must be an object, got {data!r:.80}")
         unknown = set(data) - set(cls.__dataclass_fields__)
         if unknown:
             raise ValueError(f"unknown observation config keys: {sorted(unknown)}")

@@ -15,7 +15,7 @@ and reads the same format in `policy.rl.checkpoint`.
 
 from __future__ import annotations
 
-import json
+import io
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -25,6 +25,7 @@ import numpy as np
 
 from policy.controllers.observation import ObservationConfig
 from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, N_JOINTS
+from protocol.files import MAX_WEIGHTS_BYTES, read_bounded, read_json
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DISTILLED_WEIGHTS = WEIGHTS_DIR / "ddpg_distilled_actor.npz"
@@ -127,12 +128,49 @@ def read_provenance(path: str | Path) -> Provenance | None:
     """The provenance recorded beside the weights at `path` (.npz or .json), None if that
     json has none (files written before it was recorded); the weights are not read."""
     meta_path = Path(path).with_suffix(".json")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{meta_path} is not valid JSON: {exc}") from exc
+    meta = read_json(meta_path, "weights metadata")
+    if not isinstance(meta, dict):
+        raise ValueError(f"{meta_path}: expected a JSON object, got {type(meta).__name__}")
     block = meta.get("provenance")
-    return None if block is None else Provenance.from_dict(block)
+    try:
+        return None if block is None else Provenance.from_dict(block)
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise ValueError(f"{meta_path}: provenance: {type(exc).__name__}: {exc}") from None
+
+
+def _number(value: Any, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{name} must be a number, got {value!r:.80}")
+    return float(value)
+
+
+def _read_layers(path: Path) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+    """W0 b0 .. W(n-1) b(n-1) of an .npz: finite 2-D weights and 1-D biases that chain (a
+    ValueError naming the file otherwise, also for a truncated or non-npz file)."""
+    data = read_bounded(path, "actor weights", MAX_WEIGHTS_BYTES)
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+            n = sum(1 for key in npz.files if key.startswith("W"))
+            if n == 0 or any(
+                f"W{i}" not in npz.files or f"b{i}" not in npz.files for i in range(n)
+            ):
+                raise ValueError(f"expected arrays W0 b0 .. W{n - 1} b{n - 1}")
+            weights = tuple(np.asarray(npz[f"W{i}"], np.float64) for i in range(n))
+            biases = tuple(np.asarray(npz[f"b{i}"], np.float64) for i in range(n))
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+    except Exception as exc:  # a truncated zip: BadZipFile, EOFError, zlib.error, OSError...
+        raise ValueError(f"{path} is not a readable .npz: {type(exc).__name__}: {exc}") from None
+    for i, (w, b) in enumerate(zip(weights, biases, strict=True)):
+        if w.ndim != 2 or b.ndim != 1 or 0 in w.shape:
+            raise ValueError(
+                f"{path}: layer {i}: W must be 2-D and b 1-D, got shapes {w.shape}, {b.shape}"
+            )
+        if b.shape != (w.shape[0],) or (i and w.shape[1] != weights[i - 1].shape[0]):
+            raise ValueError(f"{path}: layer {i} shapes do not chain")
+        if not (np.all(np.isfinite(w)) and np.all(np.isfinite(b))):
+            raise ValueError(f"{path}: layer {i} holds NaN or infinite values")
+    return weights, biases
 
 
 def provenance_of(weights: Path, around: str) -> Callable[[], dict[str, Any]]:
@@ -162,39 +200,47 @@ class ActorWeights:
 
     @classmethod
     def load(cls, path: str | Path) -> ActorWeights:
-        """Read `path` (.npz) and the .json beside it; errors say which file is wrong."""
+        """Read `path` (.npz) and the .json beside it, every field checked here so that a
+        file that loads also runs: a ValueError (FileNotFoundError if absent) names the file
+        and what is wrong."""
         path = Path(path)
         meta_path = path.with_suffix(".json")
         if not path.is_file():
             raise FileNotFoundError(f"no actor weights at {path}")
         if not meta_path.is_file():
             raise FileNotFoundError(f"no metadata {meta_path} beside the weights {path}")
-        try:
-            meta = json.loads(meta_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{meta_path} is not valid JSON: {exc}") from exc
+        meta = read_json(meta_path, "weights metadata")
+        if not isinstance(meta, dict):
+            raise ValueError(f"{meta_path}: expected a JSON object, got {type(meta).__name__}")
         if meta.get("format") != FORMAT:
-            raise ValueError(f"{meta_path}: unknown weights format {meta.get('format')!r}")
-        with np.load(path) as data:
-            n = sum(1 for key in data.files if key.startswith("W"))
-            if n == 0 or any(
-                f"W{i}" not in data.files or f"b{i}" not in data.files for i in range(n)
-            ):
-                raise ValueError(f"{path}: expected arrays W0 b0 .. W{n - 1} b{n - 1}")
-            weights = tuple(np.asarray(data[f"W{i}"], np.float64) for i in range(n))
-            biases = tuple(np.asarray(data[f"b{i}"], np.float64) for i in range(n))
-        observation = ObservationConfig.from_dict(meta["observation"])
+            raise ValueError(f"{meta_path}: unknown weights format {meta.get('format')!r:.80}")
+        if meta.get("layers", LAYERS) != LAYERS:
+            raise ValueError(f"{meta_path}: layers must be {LAYERS}, got {meta['layers']!r:.80}")
+        weights, biases = _read_layers(path)
+        if "observation" not in meta:
+            raise ValueError(f"{meta_path}: no observation config (key 'observation')")
+        try:
+            observation = ObservationConfig.from_dict(meta["observation"])
+            limits = np.asarray(meta.get("current_limits_mA", DEFAULT_CURRENT_LIMITS_MA), float)
+            slope = _number(meta.get("leaky_relu_slope", LEAKY_RELU_SLOPE), "leaky_relu_slope")
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{meta_path}: {exc}") from None
+        if limits.shape != (N_JOINTS,) or not np.all(np.isfinite(limits)) or np.any(limits < 0):
+            raise ValueError(f"{meta_path}: current_limits_mA needs {N_JOINTS} finite values >= 0")
         if weights[0].shape[1] != observation.size or weights[-1].shape[0] != N_JOINTS:
             raise ValueError(
                 f"{path}: network maps {weights[0].shape[1]} -> {weights[-1].shape[0]}, "
                 f"the observation config needs {observation.size} -> {N_JOINTS}"
             )
-        for i, (w, b) in enumerate(zip(weights, biases, strict=True)):
-            if b.shape != (w.shape[0],) or (i and w.shape[1] != weights[i - 1].shape[0]):
-                raise ValueError(f"{path}: layer {i} shapes do not chain")
-        limits = np.asarray(meta.get("current_limits_mA", DEFAULT_CURRENT_LIMITS_MA), float)
-        slope = float(meta.get("leaky_relu_slope", LEAKY_RELU_SLOPE))
-        return cls(weights, biases, slope, observation, limits, meta)
+        try:
+            actor = cls(weights, biases, slope, observation, limits, meta)
+            _ = actor.control_hz, actor.provenance  # what the controller and `controllers` read
+            out = actor.forward(np.zeros(observation.size))
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise ValueError(f"{meta_path}: {type(exc).__name__}: {exc}") from None
+        if out.shape != (N_JOINTS,) or not np.all(np.isfinite(out)):
+            raise ValueError(f"{path}: the network's output at rest is not finite")
+        return actor
 
     def __post_init__(self) -> None:
         # float32, transposed and contiguous: what torch computed, at matmul speed

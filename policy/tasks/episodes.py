@@ -10,7 +10,6 @@ with like.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -21,6 +20,7 @@ import numpy as np
 from policy.controllers.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from policy.tasks.arm import PHYSICS_DT
 from protocol.alpha5 import JOINT_LETTERS, N_JOINTS
+from protocol.files import read_json
 from reach_driver.controllers import Controller, ControlState
 from reach_driver.metrics import (
     Metrics,
@@ -86,7 +86,7 @@ class Episode:
                 torque_scale=data.get("torque_scale", np.ones(N_JOINTS)),
                 name=str(data.get("name", "")),
             )
-        except ValueError as exc:
+        except (ValueError, TypeError) as exc:
             raise ValueError(f"{where}: {exc}") from exc
 
     def to_dict(self) -> dict[str, Any]:
@@ -101,12 +101,7 @@ class Episode:
 def load_episodes(path: str | Path) -> list[Episode]:
     """Episodes from a JSON list of {"start", "target", "torque_scale"?} objects."""
     path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ValueError(f"cannot read targets file {path}: {exc.strerror}") from exc
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path} is not valid JSON: {exc}") from exc
+    data = read_json(path, "targets file")  # a UserFileError (ValueError) says what is wrong
     if not isinstance(data, list) or not data:
         raise ValueError(f"{path}: expected a non-empty JSON list of episodes")
     return [Episode.from_dict(item, f"{path} episode {i}") for i, item in enumerate(data)]

@@ -19,10 +19,12 @@ from typing import Any
 from rich.console import Console
 from rich.markup import escape
 
+from protocol.viewer import viewer_options_problem
 from reach_driver.cli.commands import COMMANDS
 from reach_driver.cli.connect import safety_config
 from reach_driver.cli.exits import Exit, UsageError, for_operator, left_in_for_operator
 from reach_driver.cli.parser import build_parser, package_version
+from reach_driver.cli.recorder import output_path_problem
 from reach_driver.errors import (
     BadUrlError,
     DriverError,
@@ -80,6 +82,9 @@ def _configure_logging(args: argparse.Namespace) -> Callable[[], None]:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    viewer_problem = viewer_options_problem(args)
+    if viewer_problem:
+        parser.error(viewer_problem)
     if hasattr(args, "max_current"):
         try:
             safety_config(args)
@@ -88,6 +93,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     # Piped output is not squeezed to 80 columns: tables stay one line per joint.
     console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
     errors = Console(stderr=True, highlight=False)
+    if args.log_file:
+        problem = output_path_problem(
+            "--log-file", args.log_file, getattr(args, "port", None), devices=False
+        )
+        if problem:
+            errors.print(f"[red]error[/]: {escape(problem)}; nothing was sent", soft_wrap=True)
+            return int(Exit.USAGE)
     try:
         undo_logging = _configure_logging(args)
     except OSError as exc:

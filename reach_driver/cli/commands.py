@@ -23,7 +23,7 @@ from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS
 from reach_driver.cli.connect import connect
 from reach_driver.cli.exits import Exit, UsageError, for_operator, left_in_for_operator
 from reach_driver.cli.live import MoveView, RunView, chain
-from reach_driver.cli.recorder import CliRecorder
+from reach_driver.cli.recorder import CliRecorder, output_path_problem
 from reach_driver.cli.render import (
     blocking_faults,
     controllers_lines,
@@ -51,6 +51,7 @@ from reach_driver.kinematics import tool_position
 from reach_driver.link import EventKind, LinkState
 from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind
+from reach_driver.watchdog import watchdog_too_short
 
 
 def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
@@ -70,7 +71,16 @@ def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
         client.close()
 
 
+def _check_record(args: argparse.Namespace) -> None:
+    """Before the port is opened: `--record` must name a file, never the arm's port."""
+    if args.record:
+        problem = output_path_problem("--record", args.record, args.port, devices=True)
+        if problem:
+            raise UsageError(f"{problem}; nothing was sent")
+
+
 def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
+    _check_record(args)
     client = connect(args, console)
     viewer = getattr(args, "viewer", None)
     recorder: CliRecorder | None = None
@@ -405,6 +415,13 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             f"period {period:g} s needs a {1.0 / period:.3g} Hz heartbeat; with --pacing stream "
             "the period must be 1/255 s (3.9 ms) .. 1 s (--pacing poll allows down to 0.001 s)"
         )
+    # Before the arm is touched: a period the watchdog cannot span trips on the first command.
+    paced = 1.0 / round(1.0 / period) if args.pacing == Pacing.STREAM.value else period
+    too_short = watchdog_too_short(paced, args.watchdog)
+    if too_short is not None:
+        given = "--period" if args.period else f"controller {args.controller!r}'s own period"
+        raise UsageError(f"{given}: {too_short}")
+    _check_record(args)
     if mismatch:
         Console(stderr=True, highlight=False).print(f"[yellow]warning[/]: {escape(mismatch)}")
     recorder: CliRecorder | None = None
@@ -541,10 +558,12 @@ def cmd_inspect(args: argparse.Namespace, console: Console) -> Exit:
     try:
         summary: dict[str, Any] = summarize_recording(args.file)
     except (RecordingReadError, OSError) as exc:
-        console.print(f"[red]error[/]: cannot read {escape(args.file)}: {escape(str(exc))}")
+        console.print(
+            f"[red]error[/]: cannot read {escape(args.file)}: {escape(str(exc))}", soft_wrap=True
+        )
         return Exit.FAILED
-    if args.json:
-        console.print_json(json.dumps(summary, default=float))
+    if args.json:  # strict JSON: NaN and infinities are null
+        console.print_json(json.dumps(jsonable(summary), allow_nan=False))
         return Exit.OK
     print_recording(console, summary)
     return Exit.OK

@@ -13,6 +13,7 @@ from rich.markup import escape
 
 from protocol.alpha5 import JOINTS
 from reach_driver.chatter import ChatterConfig, HoldMode
+from reach_driver.cli.exits import for_operator
 from reach_driver.client import ArmClient
 from reach_driver.errors import BadUrlError
 from reach_driver.interfaces import open_transport
@@ -77,9 +78,10 @@ class EventPrinter:
             held = self._held.pop(key, 0)
             if held and last is not None:
                 suffix = f" ({held} more like this in the last {now - last:.1f} s, not shown)"
-        log.info("%s: %s%s", event.kind.value, event.message, suffix)
+        message = for_operator(event.message)
+        log.info("%s: %s%s", event.kind.value, message, suffix)
         self.console.print(
-            f"[{style}]{event.kind.value}[/]: {escape(event.message)}{suffix}", soft_wrap=True
+            f"[{style}]{event.kind.value}[/]: {escape(message)}{suffix}", soft_wrap=True
         )
 
 

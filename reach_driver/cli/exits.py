@@ -37,10 +37,12 @@ EXIT_TABLE: dict[Exit, str] = {
     Exit.OK: "done: the command finished; a run lasted --seconds (whether it got there: "
     "'reached'); monitor stopped by Ctrl-C or --seconds",
     Exit.FAILED: "failed: a run cut short (watchdog, lost link, fault, a non-finite reading, "
-    "a controller error), a "
-    "move that timed out, a fault before starting, an unreadable recording",
-    Exit.USAGE: "bad command line: unknown option, malformed value, no --port; a "
-    "controller whose extra is not installed (the line names the extra to install)",
+    "a controller error), a move that timed out, a fault before starting, an unreadable or "
+    "malformed recording (inspect)",
+    Exit.USAGE: "bad command line: unknown option, malformed value, no --port, a --period "
+    "the --watchdog cannot span, --record at the arm's port or a device, a controller's "
+    "weights or parameter file that cannot be used, a controller whose extra is not "
+    "installed (the line names the extra to install)",
     Exit.LIMIT: "refused by a limit: nothing was sent, nothing moved",
     Exit.NO_ARM: "no arm: wrong port, no permission, nothing answering, wrong baud",
     Exit.LINK_LOST: "the link was lost during a move (the message says since when and the "
@@ -69,6 +71,7 @@ def exit_table_text(indent: str = "  ") -> str:
 _API_ADVICE = {
     "call rearm() to command again": "the command stopped; read the lines above for why "
     "(a stalled controller, a loaded host, lost feedback), then run it again",
+    "SafetyConfig.watchdog_s": "--watchdog",
 }
 
 

@@ -126,9 +126,10 @@ VIEWER_HELP = (
     "watch live in Rerun, beside --record (the file is still written): spawn [PORT] starts "
     "the native viewer (needs a display); connect [URL|PORT] streams to a running one "
     "(default rerun+http://127.0.0.1:9876/proxy, what plain `rerun` listens on); serve "
-    "[GRPC_PORT [WEB_PORT]] hosts a gRPC server (loopback, default 9876) and the web viewer "
-    "(default 9090) here and prints the address to open: the way to watch on a machine "
-    "without a display (ssh -L both ports). A viewer that cannot start or goes away is "
+    "[GRPC_PORT [WEB_PORT]] hosts a gRPC server (default 9876) and the web viewer (default "
+    "9090) here, both on loopback unless --viewer-bind, and prints the address to open: "
+    "the way to watch on a machine without a display (ssh -L both ports). "
+    "A viewer that cannot start or goes away is "
     "named once and dropped; control never stops for it. Put it after positional arguments"
 )
 
@@ -176,7 +177,8 @@ def _add_connection_options(
         default=default(0.2),
         metavar="S",
         help="seconds without a command or fresh feedback before the arm is put in a safe "
-        "mode during velocity/current control (default 0.2)",
+        "mode during velocity/current control (default 0.2); at least two control periods "
+        "(`run` refuses a --period it cannot span)",
     )
     g.add_argument(
         "--safe-wait",
@@ -402,7 +404,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=_period,
         help="control period in arm seconds (default: the controller's own, e.g. the rate a "
         "policy was trained at, else 0.05); at least 0.001 s, and 1/255 .. 1 s with --pacing "
-        "stream (the arm's heartbeat is 1..255 Hz)",
+        "stream (the arm's heartbeat is 1..255 Hz); at most half of --watchdog",
     )
     run.add_argument(
         "--pacing",

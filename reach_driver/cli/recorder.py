@@ -12,6 +12,7 @@ and the exit status does not change.
 from __future__ import annotations
 
 import os
+import stat
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -27,6 +28,33 @@ from reach_driver.state import JointState
 
 if TYPE_CHECKING:
     from reach_driver.recording import RunRecorder, ViewerSpec
+
+
+def output_path_problem(option: str, path: str, port: str | None, *, devices: bool) -> str | None:
+    """Why `path` may not take a command's output (None if it may): the arm's own port (the
+    same file, through any link or name), or, with `devices`, any device: bytes written there
+    would go down a serial line, not into a file."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None  # a file to be made (a bad directory is the writer's to report)
+    if port and "://" not in port:
+        try:
+            arm = os.stat(port)
+        except OSError:
+            arm = None
+        same = arm is not None and (st.st_dev, st.st_ino) == (arm.st_dev, arm.st_ino)
+        if same or os.path.realpath(path) == os.path.realpath(port):
+            return (
+                f"{option} {path} is the arm's port (--port {port}, {os.path.realpath(port)}): "
+                "what it wrote would go down the arm's line; give a file"
+            )
+    if devices and (stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode)):
+        return (
+            f"{option} {path} is a device ({os.path.realpath(path)}), not a file: a recording "
+            "is written to a file"
+        )
+    return None
 
 
 def _free_space(path: Path) -> str:

@@ -431,6 +431,8 @@ def print_recording(console: Console, summary: dict[str, Any]) -> None:
     if isinstance(metrics, dict):
         console.print(metrics_table("metrics (docs/metrics.md)", metrics))
         console.print(escape(overshoot_line(summary.get("overshoot"))))
+    for note in summary.get("notes", []):
+        console.print(escape(str(note)), soft_wrap=True)
     diagnostics = summary.get("diagnostics")
     if isinstance(diagnostics, dict):
         console.print(recorded_diagnostics_table(diagnostics))

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from protocol.alpha5 import JOINT_LETTERS
+from protocol.files import UserFileError, read_json
 from reach_sim_bridge.model.motor import (
     ALPHA5_MOTORS,
     DEFAULT_CURRENT_LIMITS_MA,
@@ -321,15 +322,10 @@ def load_arm_params(path: str | Path) -> ArmParams:
 
 def read_params_json(path: str | Path) -> Any:
     """The JSON value of a parameter file (`ParamsFileError` if unreadable or not JSON)."""
-    path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ParamsFileError(f"cannot read arm parameters {path}: {exc.strerror or exc}") from exc
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ParamsFileError(f"{path} is not valid JSON: {exc}") from exc
+        return read_json(path, "arm parameters")
+    except UserFileError as exc:
+        raise ParamsFileError(str(exc)) from None
 
 
 def save_arm_params(
