@@ -555,3 +555,38 @@ def test_half_duplex_broadcast_requests_collide() -> None:
     assert [r.device_id for r in ask(fw, BROADCAST, PacketID.KM_END_POS)] == [E]  # one talker
     assert [r.key for r in ask(fw, D, PacketID.POSITION)] == [(D, PacketID.POSITION)]
     assert fw.errors.counts == {}
+
+
+def test_zero_velocity_after_a_stall_at_the_end_stop_bleeds_the_stall_current() -> None:
+    """A3-13: 600 mA into E's end stop, then the safe stop (ZERO_VELOCITY). The switch is
+    bumpless (the integral starts at the applied current) and the joint cannot move, so the
+    error stays zero; the anti-windup must bleed the integral instead of holding 600 mA."""
+    fw = Firmware(Alpha5Arm())
+    fw.handle(commands.current(E, 600.0))
+    run_until(fw, lambda: value(fw, E, PacketID.POSITION) >= 6.143 - 1e-3, limit_s=30.0)
+    fw.tick(1.0)  # stalled against the stop
+    assert value(fw, E, PacketID.CURRENT) == pytest.approx(600.0, abs=10.0)
+    fw.handle(commands.mode(E, Mode.ZERO_VELOCITY))
+    stop = value(fw, E, PacketID.POSITION)
+    fw.tick(2.0)  # ten bleed time constants of arm time
+    assert abs(value(fw, E, PacketID.CURRENT)) < 20.0
+    assert value(fw, E, PacketID.POSITION) == pytest.approx(stop, abs=0.01)  # still held
+    assert one(fw, E, PacketID.MODE).u8s() == [Mode.ZERO_VELOCITY]
+
+
+def test_velocity_into_the_limit_does_not_wind_up_and_d_still_holds_against_gravity() -> None:
+    """The bleed acts only on a push into a limit or a stall: D holding against gravity in
+    ZERO_VELOCITY keeps its integral (it does not sag), and a velocity command into C's
+    limit leaves no stored current once it sits at the limit."""
+    fw = Firmware(Alpha5Arm())
+    fw.handle(commands.velocity(D, 0.4))
+    fw.tick(0.5)
+    fw.handle(commands.mode(D, Mode.ZERO_VELOCITY))
+    fw.tick(0.5)
+    held = value(fw, D, PacketID.POSITION)
+    fw.tick(5.0)
+    assert value(fw, D, PacketID.POSITION) == pytest.approx(held, abs=0.002)
+    fw.handle(commands.velocity(C, -0.5))
+    run_until(fw, lambda: value(fw, C, PacketID.POSITION) <= 0.0175 + 1e-3, limit_s=30.0)
+    fw.tick(2.0)
+    assert abs(value(fw, C, PacketID.CURRENT)) < 1.0  # 40 mA kept pushing outward without it

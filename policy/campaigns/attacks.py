@@ -26,7 +26,9 @@ from typing import Any
 from protocol import DeviceID, Mode, Packet, PacketDecoder, PacketID, commands, encode_packet
 from protocol.payload import pack_floats
 from reach_driver import ArmClient, DriverError, LimitKind, SafetyConfig, open_transport
+from reach_sim_bridge.emulator.firmware import Firmware
 from reach_sim_bridge.emulator.server import SimConfig, SimServer
+from reach_sim_bridge.model.arm import Alpha5Arm
 
 E, D, C, B = DeviceID.E, DeviceID.D, DeviceID.C, DeviceID.B
 
@@ -643,6 +645,26 @@ def _reach_sim(argv: list[str]) -> int:
     return done.returncode
 
 
+def end_stop_hold(scale: float, tmp: str) -> Outcome:
+    """600 mA into E's end stop, then the safe stop (ZERO_VELOCITY): the virtual arm's
+    velocity loop must not keep the stall current (its integral starts at the applied
+    current, and the joint cannot move to unwind it). Firmware and arm alone, in arm time."""
+    fw = Firmware(Alpha5Arm())
+    fw.handle(commands.current(E, 600.0))
+    fw.tick(8.0)  # E from its start to the stop, then stalled there
+    stalled = float(fw.arm.current_mA[0])
+    fw.handle(commands.mode(E, Mode.ZERO_VELOCITY))
+    fw.tick(2.0)
+    after = float(fw.arm.current_mA[0])
+    return Outcome(
+        "end-stop-hold",
+        "1 safe stop after a stall",
+        f"E at q {fw.arm.q[0]:.3f} rad: {stalled:.0f} mA stalled, {after:.1f} mA 2 s (arm "
+        "time) into zero velocity",
+        abs(stalled) > 500.0 and abs(after) < 20.0,
+    )
+
+
 def encode_packet_as(device: int, packet_id: PacketID, *values: float) -> Packet:
     return Packet(device, packet_id, pack_floats(*values))
 
@@ -660,4 +682,5 @@ ATTACKS: dict[str, Callable[[float, str], Outcome]] = {
     "move-timeout": move_timeout,
     "nan-velocity": nan_velocity,
     "bad-inputs": bad_inputs,
+    "end-stop-hold": end_stop_hold,
 }

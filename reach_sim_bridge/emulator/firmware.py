@@ -5,7 +5,9 @@ setpoints, [max, min] limits, identity, hardware status flags and a heartbeat. I
 loops run once per physics step in sim time, cascaded like the arm's: position error ->
 velocity demand (clamped to the firmware rate limit and the velocity limits) -> PI velocity
 loop -> current (clamped to the current limits) -> motor. Current mode goes straight to the
-motor. The integral term of the velocity loop is what holds D and C against gravity.
+motor. The integral term of the velocity loop is what holds D and C against gravity. Its
+anti-windup (an assumption: model/README.md, "the firmware's velocity loop at an end stop")
+bleeds the integral while it only pushes a joint into a limit or a stall.
 
 Modes: STANDBY and DISABLE hold the joint where it was ("the device will not move"; the
 real 1754:1 gearbox barely back-drives, the model's soft friction creeps, so holding is
@@ -79,6 +81,13 @@ __all__ = [
 
 LINK_ERROR_FLAGS = HardwareStatus.SERIAL_ERROR | HardwareStatus.CRC_ERROR
 _MONITOR_STEPS = 5  # physics steps per monitor update (10 ms at the default 2 ms)
+#: Anti-windup bleed [A]: the velocity loop's integral decays with this time constant while
+#: it only pushes a joint into a limit or a stall (`Firmware._winding_up`). Real firmware's
+#: anti-windup is not documented; this is the emulator's assumption (model/README.md).
+WINDUP_BLEED_S = 0.2
+#: Below this speed (unit/s) in the direction of the push, a joint at the current limit
+#: counts as stalled [A].
+STALL_SPEED = 0.01
 
 # Packets that give a joint its own command, ending a Cartesian velocity (KM_END_VEL).
 _JOINT_COMMANDS = frozenset(
@@ -104,6 +113,7 @@ class Firmware(PacketHandlers):
         self._rng = random.Random(self.config.seed)
         self._noise = self.config.sensor_noise
         self._step = arm.dt
+        self._windup_keep = math.exp(-self._step / WINDUP_BLEED_S)  # per control step
         self._pending = 0.0
         self.errors = EventLog(log, logging.WARNING)
         self.ignored = EventLog(log, logging.INFO)
@@ -380,9 +390,30 @@ class Firmware(PacketHandlers):
         limits = d.current_limits
         ki = gains.velocity_i
         integral = min(max(integral, limits.lo / ki), limits.hi / ki)
+        wanted = gains.velocity_p * error + ki * integral
+        if integral and self._winding_up(d, pos, vel, ki * integral, wanted):
+            integral *= self._windup_keep
+            wanted = gains.velocity_p * error + ki * integral
         d.integral = integral
-        d.applied_mA = limits.clamp(gains.velocity_p * error + ki * integral)
+        d.applied_mA = limits.clamp(wanted)
         return d.applied_mA
+
+    @staticmethod
+    def _winding_up(d: Device, pos: float, vel: float, push_mA: float, wanted_mA: float) -> bool:
+        """Whether the integral term (`push_mA`) only pushes the joint into something it
+        cannot pass: the joint at or past a position limit with the push outward, or the
+        output at the current limit with the joint stalled (an end stop, an obstacle). The
+        error is then zero or cannot shrink, so without a bleed the integral would hold the
+        stall current for ever (a bumpless switch to ZERO_VELOCITY at an end stop starts it
+        there)."""
+        out = 1.0 if push_mA > 0.0 else -1.0
+        if not d.continuous:
+            lim = d.position_limits
+            if (out > 0.0 and pos >= lim.hi) or (out < 0.0 and pos <= lim.lo):
+                return True
+        edge = d.current_limits.hi if out > 0.0 else d.current_limits.lo
+        saturated = wanted_mA * out >= edge * out - 1e-9 and edge * out > 0.0
+        return saturated and vel * out < STALL_SPEED
 
     def _monitor_step(self, h: float) -> None:
         """Step the climate and supply model every `_MONITOR_STEPS` physics steps, and carry
