@@ -123,6 +123,9 @@ class ArmClient(ArmQueries):
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._stream: Stream | None = None
+        #: After a trip on stale feedback over a shared link: (device asked for its heartbeat
+        #: rate, seconds the feedback had stopped); reader thread only (`_stream_answer`).
+        self._stream_probe: tuple[int, float] | None = None
         self.watchdog = Watchdog()
         self.faults = FaultFlags()
         self._waiters = Waiters()
@@ -561,6 +564,11 @@ class ArmClient(ArmQueries):
                 event = self.faults.note(packet)
                 if event is not None:
                     self._emit(*event)
+        if self._stream_probe is not None and packet.key == (
+            self._stream_probe[0],
+            PacketID.HEARTBEAT_FREQUENCY,
+        ):
+            self._stream_answer(packet)
         self._waiters.offer(packet)
         self.listeners.dispatch(packet, t)
 
@@ -605,13 +613,79 @@ class ArmClient(ArmQueries):
         self.watchdog.trip(reason)
         self.stats.watchdog_trips += 1
         mode = self.guard.config.safe_mode
+        probe = self._stream_probe_frames(now, feedback_t)
         try:
-            self._write(self._safe_mode_frames(devices), internal=True)
+            self._write(self._safe_mode_frames(devices) + probe, internal=True)
             sent = f"put {', '.join(joint_name(d) for d in devices)} in {mode.name}"
         except LinkDownError:
             self.watchdog.mark_safe_pending()
             sent = f"could not send {mode.name} (link down): will on reconnect"
         self._emit(EventKind.WATCHDOG, f"{reason}; {sent}")
+
+    def _stream_probe_frames(
+        self, now: float, feedback_t: Callable[[int], float | None]
+    ) -> list[bytes]:
+        """Over a link other hosts share (UDP), a stream that stopped may have gone to
+        another client: ask a streamed device for its heartbeat rate, sent with the safe
+        mode; `_stream_answer` reads the reply. Nothing to ask otherwise."""
+        stream, limit = self._stream, self.guard.config.watchdog_s
+        if stream is None or limit is None or not self.transport.shared_by_other_hosts:
+            return []
+        for dev in stream.devices:
+            fed = feedback_t(dev)
+            if fed is not None and now - fed > limit:
+                self._stream_probe = (dev, now - fed)
+                return [commands.request(dev, [PacketID.HEARTBEAT_FREQUENCY]).encode()]
+        return []
+
+    def _stream_answer(self, packet: Packet) -> None:
+        """The arm answered the probe, so the link works: its stream went elsewhere (or was
+        turned off). Name that as the trip's reason instead of a failing link."""
+        assert self._stream_probe is not None
+        dev, stopped = self._stream_probe
+        self._stream_probe = None
+        reason = (
+            f"{self._stream_lost(dev, packet)}; this client's feedback had stopped for "
+            f"{stopped:.3f} s (watchdog "
+            f"{self.guard.config.watchdog_s:g} s)"
+        )
+        if self.watchdog.explain(reason):
+            self._emit(
+                EventKind.WATCHDOG,
+                f"{reason}; the armed joints were put in {self.guard.config.safe_mode.name}",
+                dev,
+            )
+
+    def stream_problem(self) -> str | None:
+        """Why this client's heartbeat stopped arriving, when the arm can tell: over a link
+        other hosts share (UDP), ask a streamed device for its rate (which also takes the
+        stream back). None when not knowable: no stream, a private link, no answer."""
+        stream = self._stream
+        if stream is None or not self.transport.shared_by_other_hosts:
+            return None
+        dev = stream.devices[0]
+        try:
+            reply = self.request(dev, [PacketID.HEARTBEAT_FREQUENCY])
+        except DriverError:
+            return None
+        return self._stream_lost(dev, reply[PacketID.HEARTBEAT_FREQUENCY])
+
+    def _stream_lost(self, device: int, rate: Packet) -> str:
+        """What an arm that answers us, reporting heartbeat `rate`, says about our stream."""
+        hz = rate.data[0] if rate.data else 0
+        url = self.transport.url
+        if hz:
+            return (
+                f"another client on this arm's UDP port took the stream: {joint_name(device)} "
+                f"still answers {url} and streams at {hz} Hz, but to another host (the arm "
+                "sends its heartbeat to the last host that wrote to it; one UDP arm serves one "
+                "commanding client: run no info, monitor or second run against it meanwhile)"
+            )
+        return (
+            f"the stream was turned off: {joint_name(device)} still answers {url} but its "
+            "heartbeat is 0 Hz (another client on this arm's UDP port stopped it, or the arm "
+            "reset)"
+        )
 
     # ----------------------------------------------------------------- link loss
 
@@ -642,6 +716,7 @@ class ArmClient(ArmQueries):
         """The supervisor reopened the link (reader thread): a fresh start for the check."""
         self.decoder.reset()
         self._check = None
+        self._stream_probe = None
 
     def _confirm_identity(self, packet: Packet, t: float) -> bool:
         """While PROBING: True once the link is UP again and `packet` may be used. With an

@@ -304,9 +304,10 @@ class _Run:
             while not loop._stop.is_set():
                 got = asm.take(loop.state_timeout_s)
                 if got is None:
+                    why = client.tripped or client.stream_problem()
                     raise DriverError(
                         f"feedback stopped: no complete state for {loop.state_timeout_s:.2f} s "
-                        f"(link {client.link_state.value}: {client.link_reason})"
+                        f"({why or f'link {client.link_state.value}: {client.link_reason}'})"
                     )
                 if ticks0 is None:
                     ticks0 = got.ticks

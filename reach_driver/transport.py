@@ -64,6 +64,9 @@ class Transport(abc.ABC):
     #: decoder drops any partial frame a previous host left on the line instead of gluing
     #: our first request to it. Not for datagrams: the arm ends each datagram's last frame.
     opens_with_delimiter: ClassVar[bool] = False
+    #: The arm sends its heartbeat to whoever wrote to it last (UDP: the last source address),
+    #: so any other client's packet takes the stream; serial and the tunnel are one host's.
+    shared_by_other_hosts: ClassVar[bool] = False
     #: The link library's exceptions, reported as `TransportError` by the templates.
     link_errors: ClassVar[tuple[type[BaseException], ...]] = (OSError,)
     #: How the templates' messages name a failed read and write ("read from URL failed: ...").

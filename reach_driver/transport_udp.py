@@ -30,6 +30,9 @@ class UdpTransport(Transport):
     # No 0x00 on open: a datagram cannot leave a partial frame behind (we split on frame
     # boundaries, and the arm, like reach-sim, ends each datagram's last frame).
     opens_with_delimiter: ClassVar[bool] = False
+    # The arm answers each request's sender but streams to the last host that wrote to it:
+    # a second client (even a read-only `info`) takes a running client's heartbeat.
+    shared_by_other_hosts: ClassVar[bool] = True
     link_errors: ClassVar[tuple[type[BaseException], ...]] = (OSError,)
     read_failed: ClassVar[str] = "receive on"
     write_failed: ClassVar[str] = "send to"

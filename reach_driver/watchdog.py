@@ -135,6 +135,15 @@ class Watchdog:
             self._tripped = reason
             self._armed.clear()
 
+    def explain(self, reason: str) -> bool:
+        """Replace the reason of a trip with a better-founded one (learnt after it); False if
+        it is no longer tripped."""
+        with self._lock:
+            if self._tripped is None:
+                return False
+            self._tripped = reason
+            return True
+
     def trip_on_link_loss(self) -> tuple[int, ...]:
         """With the feedback gone, armed joints obey their last command blind: trip and owe
         the safe mode (sent once the link is back). Returns the joints that were armed."""

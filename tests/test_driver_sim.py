@@ -393,3 +393,31 @@ def test_rs485_mode_talks_to_one_device_at_a_time(sim) -> None:
         state = arm.read_joints()
         assert not np.isnan(state.q).any()
         assert arm.transport.stats.writes - writes == 4  # a REQUEST each, never a broadcast
+
+
+def test_a_second_udp_client_taking_the_stream_is_named_and_the_arm_made_safe(sim) -> None:
+    """A3-6: over UDP the arm streams to the last host that wrote to it, so a second client
+    (here what `info` does: discover, identity, limits) takes the heartbeat of a running,
+    stream-paced controller. Its watchdog must still make the arm safe, and say that another
+    client took the stream rather than blame the controller or a dead link."""
+    url = udp_url(sim)
+    events: list = []
+    with ArmClient(open_transport(url), safety=SafetyConfig(watchdog_s=0.2)) as arm:
+        arm.on_event(events.append)
+
+        def step(packet, t) -> None:  # noqa: ANN001 - a controller paced by the heartbeat
+            if packet.key == (DeviceID.E, PacketID.POSITION) and arm.tripped is None:
+                arm.command_current(DeviceID.C, 0.0)
+
+        arm.subscribe(step)
+        arm.stream((PacketID.POSITION, PacketID.VELOCITY), 50)
+        assert wait_until(lambda: sim.firmware.mode(3) == Mode.CURRENT, timeout=10.0)
+        with ArmClient(open_transport(url)) as other:  # `info`: reads only
+            assert other.found_devices
+        assert wait_until(lambda: "another client" in (arm.tripped or ""), timeout=10.0), (
+            arm.tripped
+        )
+        assert wait_until(lambda: sim.firmware.mode(3) == Mode.ZERO_VELOCITY, timeout=10.0)
+        said = [e.message for e in events if e.kind is EventKind.WATCHDOG]
+        assert any("took the stream" in m and "UDP" in m for m in said), said
+        assert "no command" not in (arm.tripped or "")

@@ -517,6 +517,59 @@ def move_timeout(scale: float, tmp: str) -> Outcome:
     )
 
 
+TOOK_THE_STREAM = "another client on this arm's UDP port took the stream"
+
+
+def udp_second_client(scale: float, tmp: str) -> Outcome:
+    """`reach-driver info` from a second client while a `run` drives the arm over UDP: the
+    arm streams to the last host that wrote to it, so `info` takes the run's heartbeat. The
+    run must name that (not blame its controller or the link) and leave the arm safe. With
+    --watchdog 1 the run's keepalive (after 0.25 s of silence) takes the stream back before
+    anything trips: that run must go on (ended here by Ctrl-C)."""
+    server = _server(tmp)
+    assert server.udp_address is not None
+    url = f"udp://127.0.0.1:{server.udp_address[1]}"
+    said, held = [], True
+    try:
+        for watchdog_s in ("0.2", "1"):
+            argv = _pushing_run(url, server)
+            argv[argv.index("--watchdog") + 1] = watchdog_s
+            proc = _driver(*argv)
+            try:
+                if _wait(lambda: server.firmware.mode(5) == Mode.CURRENT, 60.0):
+                    _finish(_driver("--port", url, "info"))
+                    if watchdog_s == "1":
+                        server.wait_sim_time(server.sim_time + 1.0, timeout=30.0)
+                        went_on = proc.poll() is None and server.firmware.mode(5) == Mode.CURRENT
+                        proc.send_signal(signal.SIGINT)
+            finally:
+                out, err = _finish(proc)
+            safe = _safe(server) and CONFIRMED in out and "Traceback" not in err
+            if watchdog_s == "1":
+                ok = went_on and proc.returncode == 130 and safe
+                said.append(
+                    f"--watchdog 1: {'went on' if went_on else 'DIED'}, "
+                    f"Ctrl-C exit {proc.returncode}"
+                )
+            else:
+                named = TOOK_THE_STREAM in out + err
+                ok = named and proc.returncode == 1 and safe
+                said.append(
+                    f"--watchdog 0.2: exit {proc.returncode}, "
+                    f"{'the other client named' if named else 'NOT named'}, "
+                    f"{'safe (confirmed)' if safe else 'NOT safe'}"
+                )
+            held &= ok
+    finally:
+        server.stop()
+    return Outcome(
+        "udp-second-client",
+        "2 runs, an info each",
+        "; ".join(said) + f" ('{TOOK_THE_STREAM}', '{CONFIRMED}')",
+        held,
+    )
+
+
 def lie_about_velocity(server: SimServer, value: float) -> None:
     """While E is in current mode (a controller has acted), `server`'s E reports `value` as
     its velocity: a sensor or firmware fault the emulator has no switch for."""
@@ -683,4 +736,5 @@ ATTACKS: dict[str, Callable[[float, str], Outcome]] = {
     "nan-velocity": nan_velocity,
     "bad-inputs": bad_inputs,
     "end-stop-hold": end_stop_hold,
+    "udp-second-client": udp_second_client,
 }
