@@ -421,3 +421,21 @@ def test_a_second_udp_client_taking_the_stream_is_named_and_the_arm_made_safe(si
         said = [e.message for e in events if e.kind is EventKind.WATCHDOG]
         assert any("took the stream" in m and "UDP" in m for m in said), said
         assert "no command" not in (arm.tripped or "")
+
+
+def test_info_over_udp_says_when_another_client_was_streaming(sim, capsys) -> None:
+    """A3-6, the second client's side: `info` cannot avoid taking a UDP arm's stream (the
+    arm streams to the last host that wrote to it), so it says it found one running."""
+    url = udp_url(sim)
+    with ArmClient(open_transport(url)) as arm:
+        arm.stream((PacketID.POSITION,), 20, [DeviceID.E, DeviceID.D])
+        assert wait_until(lambda: arm.joint(DeviceID.D).position is not None, timeout=10.0)
+        assert main(["--port", url, "info", "--json"]) == Exit.OK
+        captured = capsys.readouterr()
+        json.loads(captured.out)  # the warning stays off stdout
+        err = " ".join(captured.err.split())
+        assert "E (0x05), D (0x04) streamed a heartbeat at 20 Hz" in err
+        assert "One UDP arm serves one commanding client" in err
+        arm.stop_stream()
+    assert main(["--port", url, "info"]) == Exit.OK
+    assert "streamed a heartbeat" not in capsys.readouterr().err

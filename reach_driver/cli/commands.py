@@ -51,12 +51,23 @@ from reach_driver.kinematics import tool_position
 from reach_driver.link import EventKind, LinkState
 from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind
+from reach_driver.state import joint_name
 from reach_driver.watchdog import watchdog_too_short
 
 
 def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
     client = connect(args, console)
     try:
+        # info only polls (it never asks for a heartbeat), but over UDP the arm streams to
+        # the last host that wrote to it: say so if another client had a stream running.
+        streaming = _streams_elsewhere(client)
+        if streaming:
+            _notes().print(
+                f"[yellow]warning[/]: {streaming}: another client may be driving this arm; "
+                "the arm now streams to this info instead (it sends its heartbeat to the last "
+                "host that wrote to it), and a run there stops by its watchdog, naming this. "
+                "One UDP arm serves one commanding client"
+            )
         # Where each joint is now, beside its limits: the start of any move or run.
         client.request_many(client.found_devices, [PacketID.POSITION], partial=True)
         client.read_diagnostics()  # Monitor readings and status, read_info's joints carry them
@@ -69,6 +80,24 @@ def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
         return Exit.OK
     finally:
         client.close()
+
+
+def _streams_elsewhere(client: ArmClient) -> str:
+    """Over a link other hosts share: which devices were streaming a heartbeat set up by
+    another client ("E (0x05), D (0x04) streamed a heartbeat at 50 Hz"), or ""."""
+    if not client.transport.shared_by_other_hosts:
+        return ""
+    rates = client.request_many(client.found_devices, [PacketID.HEARTBEAT_FREQUENCY], partial=True)
+    hz = {
+        d: r[PacketID.HEARTBEAT_FREQUENCY].data[0]
+        for d, r in rates.items()
+        if PacketID.HEARTBEAT_FREQUENCY in r and r[PacketID.HEARTBEAT_FREQUENCY].data
+    }
+    on = [d for d, f in hz.items() if f]
+    if not on:
+        return ""
+    names = ", ".join(joint_name(d) for d in on)
+    return f"{names} streamed a heartbeat at {max(hz[d] for d in on)} Hz"
 
 
 def _check_record(args: argparse.Namespace) -> None:
