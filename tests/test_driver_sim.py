@@ -412,8 +412,12 @@ def test_a_second_udp_client_taking_the_stream_is_named_and_the_arm_made_safe(si
         arm.subscribe(step)
         arm.stream((PacketID.POSITION, PacketID.VELOCITY), 50)
         assert wait_until(lambda: sim.firmware.mode(3) == Mode.CURRENT, timeout=10.0)
-        with ArmClient(open_transport(url)) as other:  # `info`: reads only
-            assert other.found_devices
+        with ArmClient(open_transport(url)) as other:  # `info`: reads only, then polls
+            # A command of the controller's in flight may land after any one request of the
+            # other client and take the stream back; while it keeps polling, it soon keeps it.
+            assert wait_until(
+                lambda: other.request(DeviceID.B, [PacketID.MODE]) and arm.tripped, timeout=10.0
+            )
         assert wait_until(lambda: "another client" in (arm.tripped or ""), timeout=10.0), (
             arm.tripped
         )
