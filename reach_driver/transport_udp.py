@@ -1,7 +1,9 @@
 """UDP link to Ethernet arms (and the virtual arm): `udp://HOST[:PORT]`, port 6789 by default.
 
 The socket stays unconnected so datagrams from any other source can be seen, dropped and
-counted (a connected socket would drop them silently). The arm answers to our source port.
+counted (a connected socket would drop them silently). The arm answers to our source port,
+and streams its heartbeat to whichever host wrote to it last: one commanding client per arm
+(a second one takes the stream; `ArmClient` names that when its watchdog trips).
 """
 
 from __future__ import annotations
