@@ -528,8 +528,10 @@ def udp_second_client(scale: float, tmp: str) -> Outcome:
     """`reach-driver info` from a second client while a `run` drives the arm over UDP: the
     arm streams to the last host that wrote to it, so `info` takes the run's heartbeat. The
     run must name that (not blame its controller or the link) and leave the arm safe. With
-    --watchdog 1 the run's keepalive (after 0.25 s of silence) takes the stream back before
-    anything trips: that run must go on (ended here by Ctrl-C)."""
+    --watchdog 1 the run's keepalive (after 0.25 s of silence) usually takes the stream back
+    before anything trips, and the run goes on (ended here by Ctrl-C); on a loaded host the
+    keepalive can come too late, and then the trip must name the other client as above. Both
+    are right; what must never happen is a trip blamed on the controller or an unsafe arm."""
     server = _server(tmp)
     assert server.udp_address is not None
     url = f"udp://127.0.0.1:{server.udp_address[1]}"
@@ -555,10 +557,14 @@ def udp_second_client(scale: float, tmp: str) -> Outcome:
                 out, err = _finish(proc)
             safe = _safe(server) and CONFIRMED in out and "Traceback" not in err
             if watchdog_s == "1":
-                ok = went_on and proc.returncode == 130 and safe
+                named = TOOK_THE_STREAM in out + err
+                ok = safe and (
+                    (went_on and proc.returncode == 130) or (named and proc.returncode == 1)
+                )
                 said.append(
-                    f"--watchdog 1: {'went on' if went_on else 'DIED'}, "
-                    f"Ctrl-C exit {proc.returncode}"
+                    "--watchdog 1: "
+                    + ("went on" if went_on else "tripped, " + ("named" if named else "NOT named"))
+                    + f", exit {proc.returncode}"
                 )
             else:
                 named = TOOK_THE_STREAM in out + err
