@@ -36,6 +36,7 @@ class Tick:
     serial: int
     currents: np.ndarray  # latest measured currents (NaN until reported)
     partial: bool  # some slot was missing and filled from the previous tick
+    seen: np.ndarray  # per slot, the tick its value last arrived in (-1: never)
 
 
 class StateAssembler:
@@ -66,6 +67,7 @@ class StateAssembler:
         self.have = np.zeros(2 * N, dtype=bool)
         self.prev_values = np.full(2 * N, np.nan)
         self.prev_times = np.full(2 * N, np.nan)
+        self.seen = np.full(2 * N, -1, dtype=np.int64)
         self.tick = -1
         self.tick_start = math.nan
         self.published_tick = -1
@@ -104,6 +106,7 @@ class StateAssembler:
             self.values[slot] = value
             self.times[slot] = t
             self.have[slot] = True
+            self.seen[slot] = self.tick
             self.sequence.append(slot)
             self.last_place = max(self.last_place, place)
             if self.published_tick == self.tick:
@@ -127,6 +130,9 @@ class StateAssembler:
         self.tick += 1
         self.tick_start = t
         self._starts.append(t)
+        # A `take` already waiting must learn this tick's grace end: when its last packet is
+        # lost, nothing else would wake it before its timeout.
+        self._cond.notify()
 
     def _publish(self) -> bool:
         """Hand out the current tick (called with the lock held); False if it cannot be
@@ -148,7 +154,15 @@ class StateAssembler:
             self.skipped += 1
         self.completed += 1
         self.published_tick = self.tick
-        self._latest = Tick(self.tick, values, times, self.completed, self.currents.copy(), partial)
+        self._latest = Tick(
+            self.tick,
+            values,
+            times,
+            self.completed,
+            self.currents.copy(),
+            partial,
+            self.seen.copy(),
+        )
         self._cond.notify()
         return True
 

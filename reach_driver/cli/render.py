@@ -373,7 +373,8 @@ def print_summary(console: Console, s: ControlSummary) -> None:
         f"{t.cpu_per_step_s * 1e6:.0f} us/step (process {t.process_cpu_per_step_s * 1e6:.0f})"
     )
     console.print(
-        f"saturated steps {s.saturated_steps}, barrier cuts {s.barrier_steps}, stopped by "
+        f"saturated steps {s.saturated_steps}, barrier cuts {s.barrier_steps}, implausible "
+        f"samples {s.implausible_samples}, stopped by "
         f"{escape(for_operator(s.stopped_by))}"
     )
 

@@ -51,6 +51,7 @@ def summary_dict(s: ControlSummary) -> dict[str, object]:
         "final_error": s.final_error.tolist(),
         "saturated_steps": s.saturated_steps,
         "barrier_steps": s.barrier_steps,
+        "implausible_samples": s.implausible_samples,
         "rate_hz": t.rate_hz,
         "arm_speed": t.arm_speed,
         "period_jitter_s": t.period_jitter_s,

@@ -1,0 +1,149 @@
+"""Feedback the control loop must not take as truth: one-tick position glitches (1e6, 6.2, -1
+rad) are held at the last good state, counted and reported; a glitch that lasts, or a
+velocity the arm stops sending, ends the run with the arm made safe. The virtual arm is
+made to lie by replacing what its firmware reports for E (a sensor fault it has no switch
+for); every run counts arm time in heartbeats."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from conftest import LOOPBACK, udp_url
+
+from protocol import DeviceID, Mode, PacketID
+from protocol.alpha5 import FACTORY_POSITION_LIMITS, JOINTS, MAX_JOINT_SPEED
+from reach_driver import ArmClient, ControlLoop, ControlState, open_transport
+
+E = DeviceID.E
+PERIOD = 0.05
+
+
+class Hold:
+    """A PD controller holding the angles it first saw; keeps every state it was given."""
+
+    def __init__(self) -> None:
+        self.states: list[ControlState] = []
+        self.q0: np.ndarray | None = None
+
+    def reset(self) -> None:
+        self.states.clear()
+        self.q0 = None
+
+    def act(self, state: ControlState, target: np.ndarray) -> np.ndarray:
+        self.states.append(state)
+        if self.q0 is None:
+            self.q0 = state.q.copy()
+        return 400.0 * (self.q0 - state.q) - 200.0 * state.qdot
+
+
+def glitch_position(server: Any, values: list[float], every_s: float = 1.0) -> list[float]:
+    """E's POSITION reads `values[k]` for one sample every `every_s` of arm time once E is
+    in current mode (cycling through them); returns the arm times of the glitches."""
+    firmware = server.firmware
+    honest = firmware._noisy_position
+    sent: list[float] = []
+    state = {"next": None}
+
+    def lying(d: Any) -> float:
+        if d.spec.device_id == E and firmware.mode(int(E)) == Mode.CURRENT:
+            now = firmware.time
+            if state["next"] is None:
+                state["next"] = now + every_s / 2
+            elif now >= state["next"]:
+                state["next"] += every_s
+                sent.append(now)
+                return values[(len(sent) - 1) % len(values)]
+        return honest(d)
+
+    firmware._noisy_position = lying
+    return sent
+
+
+def _client(server: Any) -> ArmClient:
+    return ArmClient(open_transport(udp_url(server))).start()
+
+
+def _plausible(states: list[ControlState]) -> None:
+    """Every state a controller saw lies in the envelope and moved no faster than physics."""
+    lo = np.array([FACTORY_POSITION_LIMITS[d][0] for d in JOINTS]) - 0.1
+    hi = np.array([FACTORY_POSITION_LIMITS[d][1] for d in JOINTS]) + 0.1
+    q = np.array([s.q for s in states])
+    t = np.array([s.t for s in states])
+    assert np.all((q >= lo) & (q <= hi)), q[~np.all((q >= lo) & (q <= hi), axis=1)]
+    steps = np.abs(np.diff(q, axis=0))
+    allowed = np.outer(np.diff(t), MAX_JOINT_SPEED) + 0.05
+    assert np.all(steps <= allowed), steps.max(axis=0)
+
+
+def test_one_tick_position_glitches_are_held_counted_and_reported(sim_factory) -> None:
+    server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+    sent = glitch_position(server, [1e6, 6.2, -1.0])
+    client = _client(server)
+    try:
+        controller = Hold()
+        q0 = client.read_joints().q
+        summary = ControlLoop(client, controller, PERIOD).run(q0, 3.2)
+    finally:
+        client.close()
+    assert len(sent) >= 3  # 1e6, 6.2 and -1 each went out once
+    assert summary.ok, summary.error
+    _plausible(controller.states)
+    assert summary.implausible_samples >= 1
+    assert any(e.startswith("implausible feedback:") for e in summary.events), summary.events
+    assert "E: position" in " ".join(summary.events)
+    assert summary.trace is not None and np.all(np.abs(summary.trace.q[:, 0]) < 10)
+
+
+def test_a_glitch_that_lasts_ends_the_run_with_the_arm_safe(sim_factory) -> None:
+    server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+    firmware = server.firmware
+    honest = firmware._noisy_position
+
+    def stuck(d: Any) -> float:  # E reads 6.2 rad for good once in current mode
+        if d.spec.device_id == E and firmware.mode(int(E)) == Mode.CURRENT:
+            return 6.2
+        return honest(d)
+
+    firmware._noisy_position = stuck
+    client = _client(server)
+    try:
+        controller = Hold()
+        summary = ControlLoop(client, controller, PERIOD).run(client.read_joints().q, 5.0)
+    finally:
+        client.close()
+    assert not summary.ok
+    assert "implausible feedback from E" in str(summary.error), summary.error
+    assert "6.2" in str(summary.error)
+    assert summary.loop_seconds < 1.0  # held for at most the stale limit, not the run
+    assert summary.left_in == "zero_velocity (confirmed by the arm)"
+    _plausible(controller.states)
+    assert server.firmware.mode(int(E)) == Mode.ZERO_VELOCITY
+
+
+def test_a_velocity_the_arm_stops_sending_ends_the_run_naming_it(sim_factory) -> None:
+    server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+    firmware = server.firmware
+    honest = firmware.report
+    start: dict[str, float] = {}
+
+    def no_velocity(device_id: int, packet_id: int) -> Any:
+        # E's VELOCITY stops 0.5 s into current mode; its POSITION keeps coming.
+        if device_id == E and firmware.mode(int(E)) == Mode.CURRENT:
+            start.setdefault("t", firmware.time)
+            if packet_id == PacketID.VELOCITY and firmware.time - start["t"] > 0.5:
+                return None
+        return honest(device_id, packet_id)
+
+    firmware.report = no_velocity
+    client = _client(server)
+    try:
+        summary = ControlLoop(client, Hold(), PERIOD).run(client.read_joints().q, 11.0)
+    finally:
+        client.close()
+    assert not summary.ok
+    # The watchdog (wall time) or the loop (arm time) trips first: either names both.
+    assert "E (0x05) velocity" in str(summary.error), summary.error
+    assert "stale" in str(summary.error)
+    assert summary.loop_seconds < 2.0
+    assert summary.left_in == "zero_velocity (confirmed by the arm)"
