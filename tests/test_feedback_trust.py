@@ -2,7 +2,7 @@
 rad) are held at the last good state, counted and reported; a glitch that lasts, or a
 velocity the arm stops sending, ends the run with the arm made safe. The virtual arm is
 made to lie by replacing what its firmware reports for E (a sensor fault it has no switch
-for); every run counts arm time in heartbeats."""
+for, `policy.campaigns.attacks`); every run counts arm time in heartbeats."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ from typing import Any
 import numpy as np
 from conftest import LOOPBACK, udp_url
 
-from protocol import DeviceID, Mode, PacketID
+from policy.campaigns.attacks import glitch_position, silence_velocity
+from protocol import DeviceID, Mode
 from protocol.alpha5 import FACTORY_POSITION_LIMITS, JOINTS, MAX_JOINT_SPEED
 from reach_driver import ArmClient, ControlLoop, ControlState, open_transport
 
@@ -35,29 +36,6 @@ class Hold:
         if self.q0 is None:
             self.q0 = state.q.copy()
         return 400.0 * (self.q0 - state.q) - 200.0 * state.qdot
-
-
-def glitch_position(server: Any, values: list[float], every_s: float = 1.0) -> list[float]:
-    """E's POSITION reads `values[k]` for one sample every `every_s` of arm time once E is
-    in current mode (cycling through them); returns the arm times of the glitches."""
-    firmware = server.firmware
-    honest = firmware._noisy_position
-    sent: list[float] = []
-    state = {"next": None}
-
-    def lying(d: Any) -> float:
-        if d.spec.device_id == E and firmware.mode(int(E)) == Mode.CURRENT:
-            now = firmware.time
-            if state["next"] is None:
-                state["next"] = now + every_s / 2
-            elif now >= state["next"]:
-                state["next"] += every_s
-                sent.append(now)
-                return values[(len(sent) - 1) % len(values)]
-        return honest(d)
-
-    firmware._noisy_position = lying
-    return sent
 
 
 def _client(server: Any) -> ArmClient:
@@ -123,19 +101,7 @@ def test_a_glitch_that_lasts_ends_the_run_with_the_arm_safe(sim_factory) -> None
 
 def test_a_velocity_the_arm_stops_sending_ends_the_run_naming_it(sim_factory) -> None:
     server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
-    firmware = server.firmware
-    honest = firmware.report
-    start: dict[str, float] = {}
-
-    def no_velocity(device_id: int, packet_id: int) -> Any:
-        # E's VELOCITY stops 0.5 s into current mode; its POSITION keeps coming.
-        if device_id == E and firmware.mode(int(E)) == Mode.CURRENT:
-            start.setdefault("t", firmware.time)
-            if packet_id == PacketID.VELOCITY and firmware.time - start["t"] > 0.5:
-                return None
-        return honest(device_id, packet_id)
-
-    firmware.report = no_velocity
+    silence_velocity(server, 0.5)  # E's VELOCITY stops 0.5 s into current mode
     client = _client(server)
     try:
         summary = ControlLoop(client, Hold(), PERIOD).run(client.read_joints().q, 11.0)

@@ -63,6 +63,7 @@ def summary_dict(s: ControlSummary) -> dict[str, object]:
         "partial_states": t.partial_states,
         "incomplete_ticks": t.incomplete_ticks,
         "left_in": s.left_in,
+        "events": list(s.events),
         "metrics": None if metrics is None else metrics.as_dict(),
         "overshoot": None if overshoot is None else overshoot.as_dict(),
     }
