@@ -83,6 +83,8 @@ class StateAssembler:
         self.skipped = 0  # published but superseded before the loop took them
         self.partial = 0  # published incomplete, after the grace
         self.incomplete = 0  # ticks never published
+        self.duplicates = 0  # packets equal to the one just before them, dropped
+        self._last: tuple[int, float] | None = None  # (slot, value) of the last packet
 
     def __call__(self, packet: Packet, t: float) -> None:
         pid = packet.packet_id
@@ -100,6 +102,12 @@ class StateAssembler:
                 self.currents[i] = value
                 return
             slot = 2 * i + (0 if pid == PacketID.POSITION else 1)
+            if self._last == (slot, value) and self.have[slot]:
+                # The same packet again, right after itself: a link or arm that sends every
+                # packet twice. A new tick's value comes after the rest of the tick's slots.
+                self.duplicates += 1
+                return
+            self._last = (slot, value)
             place = self.order.get(slot, -1)
             if self.tick < 0 or self.have[slot] or (0 <= place <= self.last_place):
                 self._new_tick(t)

@@ -52,12 +52,14 @@ from reach_driver.errors import (
     ControllerError,
     DriverError,
     Interrupted,
+    StreamRateError,
 )
 from reach_driver.link import EventKind, LinkState
 from reach_driver.plausibility import FeedbackCheck, PlausibilityConfig
 from reach_driver.records import ControlSummary, LoopTrace, StepHook, StepRecord, TimingStats
 from reach_driver.safety import LimitKind
 from reach_driver.state import joint_name
+from reach_driver.stream_rate import RateCheck, RateConfig
 from reach_driver.streaming import Stream
 from reach_driver.trace import FinalState, TraceRows
 from reach_driver.watchdog import watchdog_too_short
@@ -144,6 +146,7 @@ class ControlLoop:
         leave_safe: bool = True,
         measure_current: bool = True,
         plausibility: PlausibilityConfig | None = None,
+        stream_rate: RateConfig | None = None,
     ) -> None:
         self.client = client
         self.controller = controller
@@ -171,6 +174,7 @@ class ControlLoop:
         #: sample before the run stops: the watchdog's limit, else the state timeout.
         self.stale_limit_s = client.guard.config.watchdog_s or self.state_timeout_s
         self.plausibility = plausibility or PlausibilityConfig()
+        self.stream_rate = stream_rate or RateConfig()
         self.leave_safe = leave_safe
         self.measure_current = measure_current
         self._stop = threading.Event()
@@ -274,6 +278,7 @@ class _Run:
         self.bad_since = np.full(N, np.nan)  # arm time each joint turned implausible
         self.reported_t = -math.inf  # when implausible samples were last reported
         self.unreported = 0
+        self.rate = RateCheck(loop.hz, loop.stream_rate) if loop.pacing is Pacing.STREAM else None
         chatter = self.client.guard.config.chatter
         self.chatter = (
             None
@@ -398,6 +403,7 @@ class _Run:
             return  # implausible before any good sample: nothing to hold, no step
         now = time.monotonic()
         self.q, self.qdot = q, qdot
+        self._check_rate(t, q, qdot)
         self.step_walls.append(now)
         age = now - float(np.min(times))
         try:
@@ -518,6 +524,25 @@ class _Run:
             self.reported_t, self.unreported = t, 0
         return self.feedback.held(q, qdot, verdict)
 
+    def _check_rate(self, t: float, q: np.ndarray, qdot: np.ndarray) -> None:
+        """The arm must stream at the rate asked (`reach_driver.stream_rate`): else arm time,
+        the controller's step and the metrics are wrong, and the run stops before acting."""
+        rate, hz = self.rate, self.loop.hz
+        if rate is None:
+            return
+        rate.update(round(t * hz), q, qdot)
+        if not rate.off():
+            return
+        measured = rate.measured_hz
+        shown = "an unmeasurable rate" if measured is None else f"{measured:.3g} Hz"
+        true_t = t * (rate.ratio or math.nan)
+        raise StreamRateError(
+            f"the arm streams at {shown}, asked {hz} Hz (measured from its positions and "
+            f"velocities, tolerance {rate.config.tolerance:.0%}): at t = {t:.2f} s counted, "
+            f"{true_t:.2f} s of arm time had passed; the controller's time step and the run's "
+            "duration would be wrong. Check the arm's heartbeat frequency (HEARTBEAT_FREQUENCY)"
+        )
+
     def _check_fresh(self, t: float, ages: np.ndarray) -> None:
         """Every value a controller uses must be fresh: a joint's position or velocity not
         reported for `stale_limit_s` of arm time (held or extrapolated meanwhile) ends the run."""
@@ -637,6 +662,8 @@ class _Run:
             saturated_steps=self.saturated,
             barrier_steps=self.barrier,
             implausible_samples=self.implausible,
+            measured_hz=None if self.rate is None else self.rate.measured_hz,
+            duplicate_packets=asm.duplicates if asm is not None else 0,
             timing=timing,
             stopped_by=self.stopped_by,
             error=self.error,

@@ -14,7 +14,7 @@ from conftest import LOOPBACK, udp_url
 from policy.campaigns.attacks import glitch_position, silence_velocity
 from protocol import DeviceID, Mode
 from protocol.alpha5 import FACTORY_POSITION_LIMITS, JOINTS, MAX_JOINT_SPEED
-from reach_driver import ArmClient, ControlLoop, ControlState, open_transport
+from reach_driver import ArmClient, ControlLoop, ControlState, SafetyConfig, open_transport
 
 E = DeviceID.E
 PERIOD = 0.05
@@ -113,3 +113,80 @@ def test_a_velocity_the_arm_stops_sending_ends_the_run_naming_it(sim_factory) ->
     assert "stale" in str(summary.error)
     assert summary.loop_seconds < 2.0
     assert summary.left_in == "zero_velocity (confirmed by the arm)"
+
+
+class Reach:
+    """A PD controller to the target, saturating: the joints move, so the rate is measurable."""
+
+    def reset(self) -> None:
+        pass
+
+    def act(self, state: ControlState, target: np.ndarray) -> np.ndarray:
+        return np.clip(3000.0 * (target - state.q) - 300.0 * state.qdot, -500.0, 500.0)
+
+
+def stream_at(server: Any, factor: float) -> None:
+    """The arm streams at `factor` x the heartbeat frequency asked (a firmware that halves or
+    doubles it)."""
+    from protocol import Packet, PacketID
+
+    firmware = server.firmware
+    honest = firmware._handlers[PacketID.HEARTBEAT_FREQUENCY]
+
+    def wrong(targets: Any, packet: Packet) -> Any:
+        hz = packet.data[0]
+        return honest(
+            targets, Packet(packet.device_id, packet.packet_id, bytes((round(hz * factor),)))
+        )
+
+    firmware._handlers[PacketID.HEARTBEAT_FREQUENCY] = wrong
+
+
+def _reach_run(server: Any, seconds: float) -> Any:
+    # A 1 s watchdog: a loaded host's stall is not what these runs are about.
+    client = ArmClient(open_transport(udp_url(server)), safety=SafetyConfig(watchdog_s=1.0))
+    client.start()
+    try:
+        q0 = client.read_joints().q
+        target = q0 + np.array([0.4, 0.2, -0.2, 0.3])
+        return ControlLoop(client, Reach(), PERIOD).run(target, seconds)
+    finally:
+        client.close()
+
+
+def test_a_stream_at_the_rate_asked_is_measured_and_passes(sim_factory) -> None:
+    server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+    summary = _reach_run(server, 3.0)
+    assert summary.ok, summary.error
+    assert summary.measured_hz is not None and abs(summary.measured_hz - 20.0) < 2.0
+    assert summary.duplicate_packets == 0
+
+
+def test_an_arm_streaming_at_half_or_double_the_rate_asked_stops_the_run(sim_factory) -> None:
+    for factor, shown in ((0.5, "10"), (2.0, "40")):
+        server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+        stream_at(server, factor)
+        summary = _reach_run(server, 6.0)
+        assert not summary.ok
+        error = str(summary.error)
+        assert error.startswith("the arm streams at "), error
+        assert "asked 20 Hz" in error
+        measured = float(error.split("the arm streams at ")[1].split(" Hz")[0])
+        assert abs(measured / float(shown) - 1) < 0.15, error
+        assert summary.loop_seconds < 3.0
+        assert summary.left_in == "zero_velocity (confirmed by the arm)"
+        server.stop()
+
+
+def test_every_packet_twice_is_dropped_and_counted_not_blamed_on_the_feedback(
+    sim_factory,
+) -> None:
+    server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+    firmware = server.firmware
+    honest = firmware.steps  # what the server sends unprompted: the heartbeats
+    firmware.steps = lambda n: [p for p in honest(n) for _ in (0, 1)]
+    summary = _reach_run(server, 3.0)
+    assert summary.ok, summary.error
+    assert summary.duplicate_packets > 100  # 8 a tick, 60 ticks
+    assert summary.steps + summary.timing.skipped_states >= 55
+    assert summary.measured_hz is not None and abs(summary.measured_hz - 20.0) < 2.0

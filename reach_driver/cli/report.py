@@ -52,6 +52,8 @@ def summary_dict(s: ControlSummary) -> dict[str, object]:
         "saturated_steps": s.saturated_steps,
         "barrier_steps": s.barrier_steps,
         "implausible_samples": s.implausible_samples,
+        "measured_hz": s.measured_hz,
+        "duplicate_packets": s.duplicate_packets,
         "rate_hz": t.rate_hz,
         "arm_speed": t.arm_speed,
         "period_jitter_s": t.period_jitter_s,
