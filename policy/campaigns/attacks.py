@@ -641,6 +641,69 @@ def stale_velocity(scale: float, tmp: str) -> Outcome:
     )
 
 
+def stream_at(server: SimServer, factor: float) -> None:
+    """The arm streams at `factor` x the heartbeat frequency asked (a firmware that halves or
+    doubles it)."""
+    firmware = server.firmware
+    honest = firmware._handlers[PacketID.HEARTBEAT_FREQUENCY]
+
+    def wrong(targets: Any, packet: Packet) -> Any:
+        hz = bytes((max(1, min(255, round(packet.data[0] * factor))),))
+        return honest(targets, Packet(packet.device_id, packet.packet_id, hz))
+
+    firmware._handlers[PacketID.HEARTBEAT_FREQUENCY] = wrong
+
+
+def send_twice(server: SimServer) -> None:
+    """Every packet the arm sends unprompted (the heartbeats) goes out twice."""
+    firmware = server.firmware
+    honest = firmware.steps
+    firmware.steps = lambda n: [p for p in honest(n) for _ in (0, 1)]  # type: ignore[method-assign]
+
+
+def stream_rate(scale: float, tmp: str) -> Outcome:
+    """6 s `ddpg` runs against an arm that streams at half, then double, the rate asked (each
+    must stop naming both rates, the arm made safe), then one that sends every packet twice
+    (dropped and counted; the run completes)."""
+    results: list[str] = []
+    held = True
+    for factor in (0.5, 2.0, None):
+        server = _server(tmp)
+        if factor is None:
+            send_twice(server)
+        else:
+            stream_at(server, factor)
+        try:
+            proc, result = _ddpg_run(server, 6.0)
+            safe = _safe(server)
+        finally:
+            server.stop()
+        error = str(result.get("error"))
+        measured = result.get("measured_hz")
+        rate = f"{measured:.3g} Hz" if isinstance(measured, float) else "rate unmeasured"
+        if factor is None:
+            dups = int(result.get("duplicate_packets") or 0)
+            results.append(f"twice: exit {proc.returncode}, {dups} duplicates dropped, {rate}")
+            held &= proc.returncode == 0 and dups > 0 and safe
+        else:
+            stopped = float(result.get("loop_seconds") or 0)
+            results.append(f"x{factor:g}: exit {proc.returncode} at {stopped:.2f} s, {error[:38]}")
+            held &= (
+                proc.returncode == 1
+                and error.startswith("the arm streams at ")
+                and "asked 20 Hz" in error
+                and result.get("left_in") == "zero_velocity (confirmed by the arm)"
+                and safe
+            )
+        held &= not result["_traceback"]
+    return Outcome(
+        "stream-rate",
+        "3 runs: half rate, double rate, every packet twice",
+        "; ".join(results),
+        held,
+    )
+
+
 def nan_velocity(scale: float, tmp: str) -> Outcome:
     """The arm reports a NaN velocity for E mid-run (`ddpg`): one line naming it, the
     summary, how the arm was left, valid --json."""
@@ -773,5 +836,6 @@ ATTACKS: dict[str, Callable[[float, str], Outcome]] = {
     "nan-velocity": nan_velocity,
     "position-glitch": position_glitch,
     "stale-velocity": stale_velocity,
+    "stream-rate": stream_rate,
     "bad-inputs": bad_inputs,
 }
