@@ -55,8 +55,11 @@ class StateAssembler:
     `take` hands the tick out GRACE_FRACTION of a period after it began (the period in wall
     time is the median spacing of recent ticks), or GRACE_SPAN_FACTOR times the usual time a
     whole tick takes to arrive if that is longer. In an incomplete tick a missing position is
-    extrapolated from the previous one and its velocity, a missing velocity is held. A tick in
-    which every packet is lost is not counted. The latest CURRENT of each joint rides along.
+    extrapolated from the previous one and its velocity, a missing velocity is held, and each
+    slot's `seen` tick lets the loop refuse a value held too long. A tick in which every packet
+    is lost is not counted. A packet equal to the one just before it (same slot and value, the
+    slot already in) is a duplicate: dropped and counted, never a new tick. The latest CURRENT
+    of each joint rides along.
     """
 
     def __init__(self, period_s: float) -> None:

@@ -9,6 +9,12 @@ Two pacings, one code path for the virtual arm and a real one:
 - `Pacing.POLL`: the host paces the loop on its own clock and REQUESTs the state each period
   (for arms whose heartbeat cannot be set). Time is wall time.
 
+Before a controller sees a state, every joint's position and velocity must be fresh (reported
+within the stale limit, in arm time) and plausible (`reach_driver.plausibility`: an implausible
+sample is held at the last good one, counted and reported; one that lasts ends the run), and
+the stream must run at the rate asked (`reach_driver.stream_rate`, measured from the arm's
+kinematics; a wrong rate ends the run).
+
 Controller outputs are clipped to the current limits (counted as saturation) and then pass
 the client's soft barrier; a per-step hook receives a `StepRecord` (a recorder logs these).
 The joints enter current mode only with the first command, so they hold their previous mode

@@ -190,3 +190,9 @@ def test_every_packet_twice_is_dropped_and_counted_not_blamed_on_the_feedback(
     assert summary.duplicate_packets > 100  # 8 a tick, 60 ticks
     assert summary.steps + summary.timing.skipped_states >= 55
     assert summary.measured_hz is not None and abs(summary.measured_hz - 20.0) < 2.0
+
+
+def test_the_top_speed_the_check_allows_is_above_what_the_motors_can_do() -> None:
+    from reach_sim_bridge.model.motor import no_load_speed
+
+    assert np.all(no_load_speed(supply_voltage=30.0) < np.asarray(MAX_JOINT_SPEED))
