@@ -47,6 +47,11 @@ FACTORY_VELOCITY_LIMITS: dict[DeviceID, Range] = {
     DeviceID.B: (-0.8727, 0.8727),
     DeviceID.A: (-3.0, 3.0),
 }
+#: The fastest each joint can physically turn (rad/s), E D C B: above the motors' no-load
+#: speed at 24 V (1.18, 1.18, 1.18, 1.29 rad/s, `reach_sim_bridge.model.motor.no_load_speed`)
+#: with margin for a supply at its upper rating and outside forces. The driver's feedback
+#: check (`reach_driver.plausibility`) refuses a reported jump faster than this.
+MAX_JOINT_SPEED: tuple[float, float, float, float] = (2.0, 2.0, 2.0, 2.0)
 #: Default motor current limits (mA), E D C B, and the jaws'.
 DEFAULT_CURRENT_LIMITS_MA: tuple[float, float, float, float] = (600.0, 600.0, 600.0, 300.0)
 DEFAULT_JAW_CURRENT_LIMIT_MA = 300.0

@@ -36,6 +36,7 @@ from reach_driver.errors import (
     PortNotFoundError,
     PortPermissionError,
     RequestTimeoutError,
+    StreamRateError,
     TransportError,
     WatchdogTrippedError,
 )
@@ -57,6 +58,7 @@ __all__ = [
     "ArmIdentityError",
     "ArmState",
     "BadReadingError",
+    "StreamRateError",
     "BadUrlError",
     "ClientEvent",
     "ClientStats",

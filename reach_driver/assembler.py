@@ -36,6 +36,7 @@ class Tick:
     serial: int
     currents: np.ndarray  # latest measured currents (NaN until reported)
     partial: bool  # some slot was missing and filled from the previous tick
+    seen: np.ndarray  # per slot, the tick its value last arrived in (-1: never)
 
 
 class StateAssembler:
@@ -54,8 +55,11 @@ class StateAssembler:
     `take` hands the tick out GRACE_FRACTION of a period after it began (the period in wall
     time is the median spacing of recent ticks), or GRACE_SPAN_FACTOR times the usual time a
     whole tick takes to arrive if that is longer. In an incomplete tick a missing position is
-    extrapolated from the previous one and its velocity, a missing velocity is held. A tick in
-    which every packet is lost is not counted. The latest CURRENT of each joint rides along.
+    extrapolated from the previous one and its velocity, a missing velocity is held, and each
+    slot's `seen` tick lets the loop refuse a value held too long. A tick in which every packet
+    is lost is not counted. A packet equal to the one just before it (same slot and value, the
+    slot already in) is a duplicate: dropped and counted, never a new tick. The latest CURRENT
+    of each joint rides along.
     """
 
     def __init__(self, period_s: float) -> None:
@@ -66,6 +70,7 @@ class StateAssembler:
         self.have = np.zeros(2 * N, dtype=bool)
         self.prev_values = np.full(2 * N, np.nan)
         self.prev_times = np.full(2 * N, np.nan)
+        self.seen = np.full(2 * N, -1, dtype=np.int64)
         self.tick = -1
         self.tick_start = math.nan
         self.published_tick = -1
@@ -81,6 +86,8 @@ class StateAssembler:
         self.skipped = 0  # published but superseded before the loop took them
         self.partial = 0  # published incomplete, after the grace
         self.incomplete = 0  # ticks never published
+        self.duplicates = 0  # packets equal to the one just before them, dropped
+        self._last: tuple[int, float] | None = None  # (slot, value) of the last packet
 
     def __call__(self, packet: Packet, t: float) -> None:
         pid = packet.packet_id
@@ -98,12 +105,19 @@ class StateAssembler:
                 self.currents[i] = value
                 return
             slot = 2 * i + (0 if pid == PacketID.POSITION else 1)
+            if self._last == (slot, value) and self.have[slot]:
+                # The same packet again, right after itself: a link or arm that sends every
+                # packet twice. A new tick's value comes after the rest of the tick's slots.
+                self.duplicates += 1
+                return
+            self._last = (slot, value)
             place = self.order.get(slot, -1)
             if self.tick < 0 or self.have[slot] or (0 <= place <= self.last_place):
                 self._new_tick(t)
             self.values[slot] = value
             self.times[slot] = t
             self.have[slot] = True
+            self.seen[slot] = self.tick
             self.sequence.append(slot)
             self.last_place = max(self.last_place, place)
             if self.published_tick == self.tick:
@@ -127,6 +141,9 @@ class StateAssembler:
         self.tick += 1
         self.tick_start = t
         self._starts.append(t)
+        # A `take` already waiting must learn this tick's grace end: when its last packet is
+        # lost, nothing else would wake it before its timeout.
+        self._cond.notify()
 
     def _publish(self) -> bool:
         """Hand out the current tick (called with the lock held); False if it cannot be
@@ -148,7 +165,15 @@ class StateAssembler:
             self.skipped += 1
         self.completed += 1
         self.published_tick = self.tick
-        self._latest = Tick(self.tick, values, times, self.completed, self.currents.copy(), partial)
+        self._latest = Tick(
+            self.tick,
+            values,
+            times,
+            self.completed,
+            self.currents.copy(),
+            partial,
+            self.seen.copy(),
+        )
         self._cond.notify()
         return True
 

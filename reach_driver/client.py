@@ -257,6 +257,11 @@ class ArmClient(ArmQueries):
         q.subscription = self.listeners.add(q)
         return q
 
+    def note_event(self, kind: EventKind, message: str, device: int | None = None) -> None:
+        """Report something the caller found (the control loop: implausible feedback) as the
+        client's own events are: kept in `events`, logged, passed to the callbacks."""
+        self._emit(kind, message, device)
+
     def _emit(self, kind: EventKind, message: str, device: int | None = None) -> None:
         event = ClientEvent(kind, self.clock(), message, device)
         self.events.append(event)
@@ -602,9 +607,22 @@ class ArmClient(ArmQueries):
         return commands.request(device, [PacketID.MODE]).encode()
 
     def _watchdog(self, now: float) -> None:
-        def feedback_t(dev: int) -> float | None:
-            pos = self.table.get(dev).position
-            return None if pos is None else pos.t
+        def feedback_t(dev: int) -> tuple[float | None, str]:
+            # Position always; velocity too while it is streamed to this device (a controller
+            # uses both, and either may stop alone). The stalest is judged, and named.
+            joint = self.table.get(dev)
+            pos = joint.position
+            fed: tuple[float | None, str] = (None if pos is None else pos.t, "position")
+            stream, vel = self._stream, joint.velocity
+            if (
+                stream is not None
+                and PacketID.VELOCITY in stream.ids
+                and dev in stream.devices
+                and vel is not None
+                and (fed[0] is None or vel.t < fed[0])
+            ):
+                fed = (vel.t, "velocity")
+            return fed
 
         expired = self.watchdog.expired(now, self.guard.config.watchdog_s, feedback_t)
         if expired is None:

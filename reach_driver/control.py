@@ -9,6 +9,12 @@ Two pacings, one code path for the virtual arm and a real one:
 - `Pacing.POLL`: the host paces the loop on its own clock and REQUESTs the state each period
   (for arms whose heartbeat cannot be set). Time is wall time.
 
+Before a controller sees a state, every joint's position and velocity must be fresh (reported
+within the stale limit, in arm time) and plausible (`reach_driver.plausibility`: an implausible
+sample is held at the last good one, counted and reported; one that lasts ends the run), and
+the stream must run at the rate asked (`reach_driver.stream_rate`, measured from the arm's
+kinematics; a wrong rate ends the run).
+
 Controller outputs are clipped to the current limits (counted as saturation) and then pass
 the client's soft barrier; a per-step hook receives a `StepRecord` (a recorder logs these).
 The joints enter current mode only with the first command, so they hold their previous mode
@@ -52,11 +58,14 @@ from reach_driver.errors import (
     ControllerError,
     DriverError,
     Interrupted,
+    StreamRateError,
 )
-from reach_driver.link import LinkState
+from reach_driver.link import EventKind, LinkState
+from reach_driver.plausibility import FeedbackCheck, PlausibilityConfig
 from reach_driver.records import ControlSummary, LoopTrace, StepHook, StepRecord, TimingStats
 from reach_driver.safety import LimitKind
 from reach_driver.state import joint_name
+from reach_driver.stream_rate import RateCheck, RateConfig
 from reach_driver.streaming import Stream
 from reach_driver.trace import FinalState, TraceRows
 from reach_driver.watchdog import watchdog_too_short
@@ -142,6 +151,8 @@ class ControlLoop:
         state_timeout_s: float | None = None,
         leave_safe: bool = True,
         measure_current: bool = True,
+        plausibility: PlausibilityConfig | None = None,
+        stream_rate: RateConfig | None = None,
     ) -> None:
         self.client = client
         self.controller = controller
@@ -165,6 +176,11 @@ class ControlLoop:
             raise ValueError(too_short)
         self.on_step = on_step
         self.state_timeout_s = state_timeout_s or max(0.5, 10 * self.period_s)
+        #: How long (arm time) a joint's position or velocity may go without a fresh, plausible
+        #: sample before the run stops: the watchdog's limit, else the state timeout.
+        self.stale_limit_s = client.guard.config.watchdog_s or self.state_timeout_s
+        self.plausibility = plausibility or PlausibilityConfig()
+        self.stream_rate = stream_rate or RateConfig()
         self.leave_safe = leave_safe
         self.measure_current = measure_current
         self._stop = threading.Event()
@@ -263,6 +279,12 @@ class _Run:
         self.error: str | None = None
         self.stopped_by = "duration"
         self.assembler: StateAssembler | None = None
+        self.feedback = FeedbackCheck(loop.plausibility)
+        self.implausible = 0  # joint samples refused by the plausibility check
+        self.bad_since = np.full(N, np.nan)  # arm time each joint turned implausible
+        self.reported_t = -math.inf  # when implausible samples were last reported
+        self.unreported = 0
+        self.rate = RateCheck(loop.hz, loop.stream_rate) if loop.pacing is Pacing.STREAM else None
         chatter = self.client.guard.config.chatter
         self.chatter = (
             None
@@ -314,8 +336,10 @@ class _Run:
                     self.t0_wall = time.monotonic()
                     self.cpu0, self.pcpu0 = time.thread_time(), time.process_time()
                 t = (got.ticks - ticks0) / loop.hz
+                self._check_fresh(t, (got.ticks - got.seen) / loop.hz)
                 q, qdot = got.values[0::2], got.values[1::2]
                 if t >= self.seconds - 1e-9:
+                    q, qdot = self._plausible(t, q, qdot)
                     self.final = (t, q.copy(), qdot.copy(), got.currents)
                     break
                 self._act(t, q, qdot, got.times, _superseded(asm, got.serial), got.currents)
@@ -380,22 +404,15 @@ class _Run:
         if faults:
             named = "; ".join(f"{joint_name(d)}: {', '.join(f)}" for d, f in faults.items())
             raise ArmFaultError(f"the arm reports a fault at t = {t:.2f} s: {named}")
+        self.t = t
+        q, qdot = self._plausible(t, q, qdot)
+        if np.isnan(q).any():
+            return  # implausible before any good sample: nothing to hold, no step
         now = time.monotonic()
-        self.t, self.q, self.qdot = t, q, qdot
+        self.q, self.qdot = q, qdot
+        self._check_rate(t, q, qdot)
         self.step_walls.append(now)
         age = now - float(np.min(times))
-        for name, values, unit in (("position", q, "rad"), ("velocity", qdot, "rad/s")):
-            bad = ~np.isfinite(values)
-            if np.any(bad):
-                which = ", ".join(
-                    f"{joint_name(int(d))} {v}"
-                    for d, v in zip(JOINTS, values, strict=True)
-                    if not np.isfinite(v)
-                )
-                raise BadReadingError(
-                    f"the arm reported a non-finite {name} ({unit}) at t = {t:.2f} s: {which}; "
-                    "no controller was given it"
-                )
         try:
             raw = np.asarray(
                 loop.controller.act(ControlState(q.copy(), qdot.copy(), t), self.goal.copy()),
@@ -470,6 +487,85 @@ class _Run:
             verdict = self.chatter.update(t, q, qdot, sent, self.goal)
             if verdict is not None:
                 self._hold(verdict, q)
+
+    def _plausible(
+        self, t: float, q: np.ndarray, qdot: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The state a controller may see (`reach_driver.plausibility`): a non-finite reading
+        ends the run; an implausible joint is counted, reported (at most once a second) and
+        held at its last good sample; one implausible for `stale_limit_s` ends the run."""
+        for name, values, unit in (("position", q, "rad"), ("velocity", qdot, "rad/s")):
+            bad = ~np.isfinite(values)
+            if np.any(bad):
+                which = ", ".join(
+                    f"{joint_name(int(d))} {v}"
+                    for d, v in zip(JOINTS, values, strict=True)
+                    if not np.isfinite(v)
+                )
+                raise BadReadingError(
+                    f"the arm reported a non-finite {name} ({unit}) at t = {t:.2f} s: {which}; "
+                    "no controller was given it"
+                )
+        verdict = self.feedback.check(t, q, qdot)
+        self.bad_since = np.where(verdict.bad, np.fmin(self.bad_since, t), np.nan)
+        if not verdict.bad.any():
+            return q, qdot
+        self.implausible += int(np.count_nonzero(verdict.bad))
+        self.unreported += 1
+        why = "; ".join(verdict.why)
+        limit = self.loop.stale_limit_s
+        lasting = t - self.bad_since
+        if np.nanmax(lasting) >= limit - 1e-9:
+            i = int(np.nanargmax(lasting))
+            raise BadReadingError(
+                f"implausible feedback from {joint_name(int(JOINTS[i]))} for {lasting[i]:.2f} s "
+                f"of arm time (limit {limit:g} s, the stale limit) at t = {t:.2f} s: {why}; "
+                "the arm's encoder or link is not to be trusted"
+            )
+        if t - self.reported_t >= 1.0:
+            self.client.note_event(
+                EventKind.IMPLAUSIBLE,
+                f"{self.unreported} implausible sample(s), held at the last good state, "
+                f"latest at t = {t:.2f} s: {why}",
+            )
+            self.reported_t, self.unreported = t, 0
+        return self.feedback.held(q, qdot, verdict)
+
+    def _check_rate(self, t: float, q: np.ndarray, qdot: np.ndarray) -> None:
+        """The arm must stream at the rate asked (`reach_driver.stream_rate`): else arm time,
+        the controller's step and the metrics are wrong, and the run stops before acting."""
+        rate, hz = self.rate, self.loop.hz
+        if rate is None:
+            return
+        rate.update(round(t * hz), q, qdot)
+        if not rate.off():
+            return
+        measured = rate.measured_hz
+        shown = "an unmeasurable rate" if measured is None else f"{measured:.3g} Hz"
+        true_t = t * (rate.ratio or math.nan)
+        raise StreamRateError(
+            f"the arm streams at {shown}, asked {hz} Hz (measured from its positions and "
+            f"velocities, tolerance {rate.config.tolerance:.0%}): at t = {t:.2f} s counted, "
+            f"{true_t:.2f} s of arm time had passed; the controller's time step and the run's "
+            "duration would be wrong. Check the arm's heartbeat frequency (HEARTBEAT_FREQUENCY)"
+        )
+
+    def _check_fresh(self, t: float, ages: np.ndarray) -> None:
+        """Every value a controller uses must be fresh: a joint's position or velocity not
+        reported for `stale_limit_s` of arm time (held or extrapolated meanwhile) ends the run."""
+        limit = self.loop.stale_limit_s
+        stale = ages > limit + 1e-9
+        if not stale.any():
+            return
+        which = ", ".join(
+            f"{joint_name(int(JOINTS[k // 2]))} {'position' if k % 2 == 0 else 'velocity'} "
+            f"({ages[k]:.2f} s)"
+            for k in np.flatnonzero(stale)
+        )
+        raise BadReadingError(
+            f"stale feedback at t = {t:.2f} s: {which} not reported for longer than {limit:g} s "
+            "of arm time (the stale limit); the arm stopped sending it"
+        )
 
     def _hold(self, verdict: Verdict, q: np.ndarray) -> None:
         """The chatter guard fired: hold the arm, never ask the controller again."""
@@ -572,6 +668,9 @@ class _Run:
             wall_seconds=wall,
             saturated_steps=self.saturated,
             barrier_steps=self.barrier,
+            implausible_samples=self.implausible,
+            measured_hz=None if self.rate is None else self.rate.measured_hz,
+            duplicate_packets=asm.duplicates if asm is not None else 0,
             timing=timing,
             stopped_by=self.stopped_by,
             error=self.error,

@@ -90,6 +90,12 @@ class BadReadingError(DriverError):
     before any controller saw it."""
 
 
+class StreamRateError(DriverError):
+    """The arm streams at another rate than the loop asked for (measured from its own
+    kinematics, `reach_driver.stream_rate`): arm time and the controller's step would be
+    wrong, so the run ends."""
+
+
 class Interrupted(KeyboardInterrupt):
     """A signal asked the process to stop (SIGINT, SIGTERM, SIGHUP, SIGQUIT). A
     `KeyboardInterrupt`, so code that stops on Ctrl-C stops on these too; whatever was under

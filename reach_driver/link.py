@@ -25,6 +25,7 @@ class EventKind(str, Enum):
     FAULT_CLEARED = "fault cleared"
     IDENTITY = "different arm"
     LIMITS_REJECTED = "limits rejected"
+    IMPLAUSIBLE = "implausible feedback"
 
 
 @dataclass(frozen=True)

@@ -108,6 +108,9 @@ class ControlSummary:
     left_in: str = ""  # how the run left the arm (safe mode sent, or why it could not be)
     events: tuple[str, ...] = ()  # link, watchdog and fault events during the run
     chatter: Verdict | None = None  # set when the chatter guard ended the run (docs/chatter.md)
+    implausible_samples: int = 0  # joint samples refused as physically impossible (held)
+    measured_hz: float | None = None  # the stream's rate from the arm's kinematics (None: unmoved)
+    duplicate_packets: int = 0  # stream packets received twice in a row, dropped
 
     @property
     def ok(self) -> bool:

@@ -23,8 +23,9 @@ from reach_driver.state import joint_name
 CONTINUOUS_PACKETS = frozenset({PacketID.VELOCITY, PacketID.CURRENT})
 CONTINUOUS_MODES = frozenset({Mode.VELOCITY, Mode.CURRENT})
 
-#: When a device's position last arrived (None if never).
-FeedbackTime = Callable[[int], "float | None"]
+#: When a device's feedback last arrived (None if never): a time, or (time, quantity) for the
+#: stalest of the quantities a controller uses (position, velocity), so a trip names it.
+FeedbackTime = Callable[[int], "float | tuple[float | None, str] | None"]
 
 #: A control loop commands once a period and reads the arm once a period: the watchdog must
 #: span this many periods, so that one late or lost tick does not trip it. Raising the
@@ -107,7 +108,8 @@ class Watchdog:
         limit = f"watchdog {limit_s:g} s, {LIMIT_NAME}"
         silent = now - last_command
         for dev, since in armed.items():
-            fed = feedback_t(dev)
+            got = feedback_t(dev)
+            fed, quantity = (got[0], f" {got[1]}") if isinstance(got, tuple) else (got, "")
             last = max(since, fed if fed is not None else -math.inf)
             if now - last > limit_s:
                 also = (
@@ -116,7 +118,8 @@ class Watchdog:
                     else ""
                 )
                 reason = (
-                    f"feedback from {joint_name(dev)} stale for {now - last:.3f} s ({limit})"
+                    f"feedback from {joint_name(dev)}{quantity} stale for {now - last:.3f} s "
+                    f"({limit})"
                     f"{also}: the feedback stopped (the arm stopped reporting, the link is "
                     "failing, or the arm reset)"
                 )

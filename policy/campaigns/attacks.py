@@ -599,6 +599,181 @@ def lie_about_velocity(server: SimServer, value: float) -> None:
     firmware._noisy_velocity = lying  # type: ignore[method-assign]
 
 
+def glitch_position(server: SimServer, values: list[float], every_s: float = 1.0) -> list[float]:
+    """Once E is in current mode, its POSITION reads `values[k]` (in turn) for one sample
+    every `every_s` of arm time, the first half a period in: an encoder or frame glitch.
+    Returns the list the arm times of the glitches are appended to."""
+    firmware = server.firmware
+    honest = firmware._noisy_position
+    sent: list[float] = []
+    due: list[float] = []
+
+    def lying(d: Any) -> float:
+        if d.spec.device_id == E and firmware.mode(int(E)) == Mode.CURRENT:
+            now = firmware.time
+            if not due:
+                due.append(now + every_s / 2)
+            elif now >= due[0]:
+                due[0] += every_s
+                sent.append(now)
+                return values[(len(sent) - 1) % len(values)]
+        return honest(d)
+
+    firmware._noisy_position = lying  # type: ignore[method-assign]
+    return sent
+
+
+def silence_velocity(server: SimServer, after_s: float) -> None:
+    """E stops sending VELOCITY `after_s` of arm time into current mode; its POSITION (and
+    every other joint's) keeps coming."""
+    firmware = server.firmware
+    honest = firmware.report
+    start: list[float] = []
+
+    def silent(device_id: int, packet_id: int) -> Packet | None:
+        if device_id == E and firmware.mode(int(E)) == Mode.CURRENT:
+            if not start:
+                start.append(firmware.time)
+            if packet_id == PacketID.VELOCITY and firmware.time - start[0] > after_s:
+                return None
+        return honest(device_id, packet_id)
+
+    firmware.report = silent  # type: ignore[method-assign]
+
+
+def _ddpg_run(server: SimServer, seconds: float) -> tuple[subprocess.Popen[str], dict[str, Any]]:
+    """`reach-driver run --controller ddpg --json` to a target 0.3 rad (E) away."""
+    q = server.snapshot().q
+    target = [q[0] + 0.3, q[1] + 0.2, q[2] + 0.2, q[3] + 0.2]
+    argv = ["--port", str(server.link), "--watchdog", "1", "run", "--controller", "ddpg"]
+    proc = _driver(*argv, "--target", *map(str, target), "--seconds", str(seconds), "--json")
+    out, err = _finish(proc)
+    sys.stderr.write(err if "Traceback" in err else "")
+    try:
+        result = json.loads(out)
+    except ValueError:
+        result = {}
+    result["_target_e"] = target[0]
+    result["_traceback"] = "Traceback" in err
+    return proc, result
+
+
+def position_glitch(scale: float, tmp: str) -> Outcome:
+    """E reports 1e6, 6.2 and -1 rad for one sample a second during a 6 s `ddpg` run: each
+    is held, counted and reported; the real E stays at its target."""
+    server = _server(tmp)
+    sent = glitch_position(server, [1e6, 6.2, -1.0])
+    try:
+        proc, result = _ddpg_run(server, 6.0)
+        true_e = float(server.snapshot().q[0])
+        safe = _safe(server)
+    finally:
+        server.stop()
+    off = abs(true_e - result["_target_e"])
+    held = int(result.get("implausible_samples") or 0)
+    events = [e for e in result.get("events", []) if e.startswith("implausible feedback")]
+    return Outcome(
+        "position-glitch",
+        f"{len(sent)} one-sample glitches of E (1e6, 6.2, -1 rad)",
+        f"exit {proc.returncode}, {held} samples held, {len(events)} events, the real E "
+        f"{off * 1e3:.1f} mrad from its target at the end",
+        proc.returncode == 0
+        and safe
+        and held >= 1
+        and events != []
+        and off < 0.05
+        and not result["_traceback"],
+    )
+
+
+def stale_velocity(scale: float, tmp: str) -> Outcome:
+    """E stops sending its velocity 0.5 s into an 11 s `ddpg` run (its position keeps
+    coming): the run stops naming E's velocity, the arm made safe."""
+    server = _server(tmp)
+    silence_velocity(server, 0.5)
+    try:
+        proc, result = _ddpg_run(server, 11.0)
+        safe = _safe(server)
+    finally:
+        server.stop()
+    error = str(result.get("error"))
+    return Outcome(
+        "stale-velocity",
+        "E's velocity silent from 0.5 s of an 11 s run",
+        f"exit {proc.returncode} at {float(result.get('loop_seconds') or 0):.2f} s: "
+        f"{error[:70]}...; left in {result.get('left_in')}",
+        proc.returncode == 1
+        and safe
+        and "E (0x05) velocity" in error
+        and "stale" in error
+        and result.get("left_in") == "zero_velocity (confirmed by the arm)"
+        and not result["_traceback"],
+    )
+
+
+def stream_at(server: SimServer, factor: float) -> None:
+    """The arm streams at `factor` x the heartbeat frequency asked (a firmware that halves or
+    doubles it)."""
+    firmware = server.firmware
+    honest = firmware._handlers[PacketID.HEARTBEAT_FREQUENCY]
+
+    def wrong(targets: Any, packet: Packet) -> Any:
+        hz = bytes((max(1, min(255, round(packet.data[0] * factor))),))
+        return honest(targets, Packet(packet.device_id, packet.packet_id, hz))
+
+    firmware._handlers[PacketID.HEARTBEAT_FREQUENCY] = wrong
+
+
+def send_twice(server: SimServer) -> None:
+    """Every packet the arm sends unprompted (the heartbeats) goes out twice."""
+    firmware = server.firmware
+    honest = firmware.steps
+    firmware.steps = lambda n: [p for p in honest(n) for _ in (0, 1)]  # type: ignore[method-assign]
+
+
+def stream_rate(scale: float, tmp: str) -> Outcome:
+    """6 s `ddpg` runs against an arm that streams at half, then double, the rate asked (each
+    must stop naming both rates, the arm made safe), then one that sends every packet twice
+    (dropped and counted; the run completes)."""
+    results: list[str] = []
+    held = True
+    for factor in (0.5, 2.0, None):
+        server = _server(tmp)
+        if factor is None:
+            send_twice(server)
+        else:
+            stream_at(server, factor)
+        try:
+            proc, result = _ddpg_run(server, 6.0)
+            safe = _safe(server)
+        finally:
+            server.stop()
+        error = str(result.get("error"))
+        measured = result.get("measured_hz")
+        rate = f"{measured:.3g} Hz" if isinstance(measured, float) else "rate unmeasured"
+        if factor is None:
+            dups = int(result.get("duplicate_packets") or 0)
+            results.append(f"twice: exit {proc.returncode}, {dups} duplicates dropped, {rate}")
+            held &= proc.returncode == 0 and dups > 0 and safe
+        else:
+            stopped = float(result.get("loop_seconds") or 0)
+            results.append(f"x{factor:g}: exit {proc.returncode} at {stopped:.2f} s, {error[:38]}")
+            held &= (
+                proc.returncode == 1
+                and error.startswith("the arm streams at ")
+                and "asked 20 Hz" in error
+                and result.get("left_in") == "zero_velocity (confirmed by the arm)"
+                and safe
+            )
+        held &= not result["_traceback"]
+    return Outcome(
+        "stream-rate",
+        "3 runs: half rate, double rate, every packet twice",
+        "; ".join(results),
+        held,
+    )
+
+
 def nan_velocity(scale: float, tmp: str) -> Outcome:
     """The arm reports a NaN velocity for E mid-run (`ddpg`): one line naming it, the
     summary, how the arm was left, valid --json."""
@@ -749,6 +924,9 @@ ATTACKS: dict[str, Callable[[float, str], Outcome]] = {
     "hang-at-interrupt": hang_at_interrupt,
     "move-timeout": move_timeout,
     "nan-velocity": nan_velocity,
+    "position-glitch": position_glitch,
+    "stale-velocity": stale_velocity,
+    "stream-rate": stream_rate,
     "bad-inputs": bad_inputs,
     "end-stop-hold": end_stop_hold,
     "udp-second-client": udp_second_client,

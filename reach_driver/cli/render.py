@@ -373,7 +373,9 @@ def print_summary(console: Console, s: ControlSummary) -> None:
         f"{t.cpu_per_step_s * 1e6:.0f} us/step (process {t.process_cpu_per_step_s * 1e6:.0f})"
     )
     console.print(
-        f"saturated steps {s.saturated_steps}, barrier cuts {s.barrier_steps}, stopped by "
+        f"saturated steps {s.saturated_steps}, barrier cuts {s.barrier_steps}, implausible "
+        f"samples {s.implausible_samples}, duplicate packets {s.duplicate_packets}, stream "
+        f"{'unmeasured' if s.measured_hz is None else f'{s.measured_hz:.3g} Hz'}, stopped by "
         f"{escape(for_operator(s.stopped_by))}"
     )
 

@@ -51,6 +51,9 @@ def summary_dict(s: ControlSummary) -> dict[str, object]:
         "final_error": s.final_error.tolist(),
         "saturated_steps": s.saturated_steps,
         "barrier_steps": s.barrier_steps,
+        "implausible_samples": s.implausible_samples,
+        "measured_hz": s.measured_hz,
+        "duplicate_packets": s.duplicate_packets,
         "rate_hz": t.rate_hz,
         "arm_speed": t.arm_speed,
         "period_jitter_s": t.period_jitter_s,
@@ -62,6 +65,7 @@ def summary_dict(s: ControlSummary) -> dict[str, object]:
         "partial_states": t.partial_states,
         "incomplete_ticks": t.incomplete_ticks,
         "left_in": s.left_in,
+        "events": list(s.events),
         "metrics": None if metrics is None else metrics.as_dict(),
         "overshoot": None if overshoot is None else overshoot.as_dict(),
     }

@@ -1,0 +1,107 @@
+"""Is a state the arm reported physically possible? Checked before any controller sees it.
+
+A glitching encoder or a corrupted-but-valid frame can report an angle no joint can have
+(1e6 rad, -1 rad) or one it cannot have reached since the last sample (6.2 rad a period
+after 3.5 rad). Taken as truth, one such sample kicks a controller (a learned one most),
+so each joint's sample must lie inside the arm's physical envelope (the factory position
+limits with `envelope_margin`), must not have moved further since the joint's last good
+sample than `MAX_JOINT_SPEED` x the elapsed arm time + `jump_margin` (the sensor noise),
+and its velocity must not exceed that speed + `speed_margin`. A joint whose sample fails
+keeps its last good position and velocity for that tick (held, not extrapolated); the
+control loop counts it, reports it, and stops the run when a joint stays implausible for
+as long as feedback may be stale.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from protocol.alpha5 import FACTORY_POSITION_LIMITS, JOINTS, MAX_JOINT_SPEED
+
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class PlausibilityConfig:
+    """Margins of the feedback check (rad, rad/s): noise and calibration slack."""
+
+    envelope_margin: float = 0.1
+    jump_margin: float = 0.05
+    speed_margin: float = 0.5
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """One tick's check: which joints' samples are implausible, and why (per joint)."""
+
+    bad: np.ndarray  # bool per joint, E D C B
+    why: tuple[str, ...]  # "E: position 1e+06 rad outside [-0.0825, 6.243]", ...
+
+
+class FeedbackCheck:
+    """Checks each tick's joint states against the envelope, the top speed and the last good
+    sample (arm time), and gives the state a controller may see."""
+
+    def __init__(self, config: PlausibilityConfig | None = None) -> None:
+        self.config = cfg = config or PlausibilityConfig()
+        self.lo = np.array([FACTORY_POSITION_LIMITS[d][0] for d in JOINTS]) - cfg.envelope_margin
+        self.hi = np.array([FACTORY_POSITION_LIMITS[d][1] for d in JOINTS]) + cfg.envelope_margin
+        # A joint whose envelope is a whole turn may wrap (0 and 2 pi are one angle).
+        self.wraps = np.array(
+            [
+                FACTORY_POSITION_LIMITS[d][1] - FACTORY_POSITION_LIMITS[d][0] >= TWO_PI - 1e-6
+                for d in JOINTS
+            ]
+        )
+        self.top = np.asarray(MAX_JOINT_SPEED, dtype=float)
+        self.good_q = np.full(len(JOINTS), np.nan)
+        self.good_qdot = np.full(len(JOINTS), np.nan)
+        self.good_t = np.full(len(JOINTS), np.nan)
+
+    def check(self, t: float, q: np.ndarray, qdot: np.ndarray) -> Verdict:
+        """Judge the sample at arm time `t`; plausible joints become the new good ones."""
+        cfg = self.config
+        jump = np.abs(q - self.good_q)
+        jump = np.where(self.wraps, np.minimum(jump, TWO_PI - jump), jump)
+        allowed = self.top * (t - self.good_t) + cfg.jump_margin
+        why: list[str] = []
+        bad = np.zeros(len(JOINTS), dtype=bool)
+        for i, dev in enumerate(JOINTS):
+            name = dev.name
+            if not self.lo[i] <= q[i] <= self.hi[i]:
+                why.append(
+                    f"{name}: position {q[i]:.6g} rad outside [{self.lo[i]:.4g}, {self.hi[i]:.4g}]"
+                )
+            elif abs(qdot[i]) > self.top[i] + cfg.speed_margin:
+                why.append(
+                    f"{name}: velocity {qdot[i]:.6g} rad/s beyond "
+                    f"{self.top[i] + cfg.speed_margin:g}"
+                )
+            elif np.isfinite(self.good_t[i]) and jump[i] > allowed[i]:
+                why.append(
+                    f"{name}: position {q[i]:.6g} rad, {jump[i]:.4g} rad from "
+                    f"{self.good_q[i]:.6g} in {t - self.good_t[i]:.3g} s (at most {allowed[i]:.3g})"
+                )
+            else:
+                continue
+            bad[i] = True
+        ok = ~bad
+        self.good_q[ok], self.good_qdot[ok], self.good_t[ok] = q[ok], qdot[ok], t
+        return Verdict(bad, tuple(why))
+
+    def held(
+        self, q: np.ndarray, qdot: np.ndarray, verdict: Verdict
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The state a controller sees: each implausible joint at its last good sample."""
+        return (
+            np.where(verdict.bad, self.good_q, q),
+            np.where(verdict.bad, self.good_qdot, qdot),
+        )
+
+    @property
+    def has_good(self) -> bool:
+        """Whether every joint has had a good sample (else nothing can be held)."""
+        return bool(np.all(np.isfinite(self.good_t)))

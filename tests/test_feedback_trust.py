@@ -1,0 +1,198 @@
+"""Feedback the control loop must not take as truth: one-tick position glitches (1e6, 6.2, -1
+rad) are held at the last good state, counted and reported; a glitch that lasts, or a
+velocity the arm stops sending, ends the run with the arm made safe. The virtual arm is
+made to lie by replacing what its firmware reports for E (a sensor fault it has no switch
+for, `policy.campaigns.attacks`); every run counts arm time in heartbeats."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from conftest import LOOPBACK, udp_url
+
+from policy.campaigns.attacks import glitch_position, silence_velocity
+from protocol import DeviceID, Mode
+from protocol.alpha5 import FACTORY_POSITION_LIMITS, JOINTS, MAX_JOINT_SPEED
+from reach_driver import ArmClient, ControlLoop, ControlState, SafetyConfig, open_transport
+
+E = DeviceID.E
+PERIOD = 0.05
+
+
+class Hold:
+    """A PD controller holding the angles it first saw; keeps every state it was given."""
+
+    def __init__(self) -> None:
+        self.states: list[ControlState] = []
+        self.q0: np.ndarray | None = None
+
+    def reset(self) -> None:
+        self.states.clear()
+        self.q0 = None
+
+    def act(self, state: ControlState, target: np.ndarray) -> np.ndarray:
+        self.states.append(state)
+        if self.q0 is None:
+            self.q0 = state.q.copy()
+        return 400.0 * (self.q0 - state.q) - 200.0 * state.qdot
+
+
+def _client(server: Any) -> ArmClient:
+    return ArmClient(open_transport(udp_url(server))).start()
+
+
+def _plausible(states: list[ControlState]) -> None:
+    """Every state a controller saw lies in the envelope and moved no faster than physics."""
+    lo = np.array([FACTORY_POSITION_LIMITS[d][0] for d in JOINTS]) - 0.1
+    hi = np.array([FACTORY_POSITION_LIMITS[d][1] for d in JOINTS]) + 0.1
+    q = np.array([s.q for s in states])
+    t = np.array([s.t for s in states])
+    assert np.all((q >= lo) & (q <= hi)), q[~np.all((q >= lo) & (q <= hi), axis=1)]
+    steps = np.abs(np.diff(q, axis=0))
+    allowed = np.outer(np.diff(t), MAX_JOINT_SPEED) + 0.05
+    assert np.all(steps <= allowed), steps.max(axis=0)
+
+
+def test_one_tick_position_glitches_are_held_counted_and_reported(sim_factory) -> None:
+    server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+    sent = glitch_position(server, [1e6, 6.2, -1.0])
+    client = _client(server)
+    try:
+        controller = Hold()
+        q0 = client.read_joints().q
+        summary = ControlLoop(client, controller, PERIOD).run(q0, 3.2)
+    finally:
+        client.close()
+    assert len(sent) >= 3  # 1e6, 6.2 and -1 each went out once
+    assert summary.ok, summary.error
+    _plausible(controller.states)
+    assert summary.implausible_samples >= 1
+    assert any(e.startswith("implausible feedback:") for e in summary.events), summary.events
+    assert "E: position" in " ".join(summary.events)
+    assert summary.trace is not None and np.all(np.abs(summary.trace.q[:, 0]) < 10)
+
+
+def test_a_glitch_that_lasts_ends_the_run_with_the_arm_safe(sim_factory) -> None:
+    server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+    firmware = server.firmware
+    honest = firmware._noisy_position
+
+    def stuck(d: Any) -> float:  # E reads 6.2 rad for good once in current mode
+        if d.spec.device_id == E and firmware.mode(int(E)) == Mode.CURRENT:
+            return 6.2
+        return honest(d)
+
+    firmware._noisy_position = stuck
+    client = _client(server)
+    try:
+        controller = Hold()
+        summary = ControlLoop(client, controller, PERIOD).run(client.read_joints().q, 5.0)
+    finally:
+        client.close()
+    assert not summary.ok
+    assert "implausible feedback from E" in str(summary.error), summary.error
+    assert "6.2" in str(summary.error)
+    assert summary.loop_seconds < 1.0  # held for at most the stale limit, not the run
+    assert summary.left_in == "zero_velocity (confirmed by the arm)"
+    _plausible(controller.states)
+    assert server.firmware.mode(int(E)) == Mode.ZERO_VELOCITY
+
+
+def test_a_velocity_the_arm_stops_sending_ends_the_run_naming_it(sim_factory) -> None:
+    server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+    silence_velocity(server, 0.5)  # E's VELOCITY stops 0.5 s into current mode
+    client = _client(server)
+    try:
+        summary = ControlLoop(client, Hold(), PERIOD).run(client.read_joints().q, 11.0)
+    finally:
+        client.close()
+    assert not summary.ok
+    # The watchdog (wall time) or the loop (arm time) trips first: either names both.
+    assert "E (0x05) velocity" in str(summary.error), summary.error
+    assert "stale" in str(summary.error)
+    assert summary.loop_seconds < 2.0
+    assert summary.left_in == "zero_velocity (confirmed by the arm)"
+
+
+class Reach:
+    """A PD controller to the target, saturating: the joints move, so the rate is measurable."""
+
+    def reset(self) -> None:
+        pass
+
+    def act(self, state: ControlState, target: np.ndarray) -> np.ndarray:
+        return np.clip(3000.0 * (target - state.q) - 300.0 * state.qdot, -500.0, 500.0)
+
+
+def stream_at(server: Any, factor: float) -> None:
+    """The arm streams at `factor` x the heartbeat frequency asked (a firmware that halves or
+    doubles it)."""
+    from protocol import Packet, PacketID
+
+    firmware = server.firmware
+    honest = firmware._handlers[PacketID.HEARTBEAT_FREQUENCY]
+
+    def wrong(targets: Any, packet: Packet) -> Any:
+        hz = packet.data[0]
+        return honest(
+            targets, Packet(packet.device_id, packet.packet_id, bytes((round(hz * factor),)))
+        )
+
+    firmware._handlers[PacketID.HEARTBEAT_FREQUENCY] = wrong
+
+
+def _reach_run(server: Any, seconds: float) -> Any:
+    # A 1 s watchdog: a loaded host's stall is not what these runs are about.
+    client = ArmClient(open_transport(udp_url(server)), safety=SafetyConfig(watchdog_s=1.0))
+    client.start()
+    try:
+        q0 = client.read_joints().q
+        target = q0 + np.array([0.4, 0.2, -0.2, 0.3])
+        return ControlLoop(client, Reach(), PERIOD).run(target, seconds)
+    finally:
+        client.close()
+
+
+def test_a_stream_at_the_rate_asked_is_measured_and_passes(sim_factory) -> None:
+    server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+    summary = _reach_run(server, 3.0)
+    assert summary.ok, summary.error
+    assert summary.measured_hz is not None and abs(summary.measured_hz - 20.0) < 2.0
+    assert summary.duplicate_packets == 0
+
+
+def test_an_arm_streaming_at_half_or_double_the_rate_asked_stops_the_run(sim_factory) -> None:
+    for factor, shown in ((0.5, "10"), (2.0, "40")):
+        server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+        stream_at(server, factor)
+        summary = _reach_run(server, 6.0)
+        assert not summary.ok
+        error = str(summary.error)
+        assert error.startswith("the arm streams at "), error
+        assert "asked 20 Hz" in error
+        measured = float(error.split("the arm streams at ")[1].split(" Hz")[0])
+        assert abs(measured / float(shown) - 1) < 0.15, error
+        assert summary.loop_seconds < 3.0
+        assert summary.left_in == "zero_velocity (confirmed by the arm)"
+        server.stop()
+
+
+def test_every_packet_twice_is_dropped_and_counted_not_blamed_on_the_feedback(
+    sim_factory,
+) -> None:
+    server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+    firmware = server.firmware
+    honest = firmware.steps  # what the server sends unprompted: the heartbeats
+    firmware.steps = lambda n: [p for p in honest(n) for _ in (0, 1)]
+    summary = _reach_run(server, 3.0)
+    assert summary.ok, summary.error
+    assert summary.duplicate_packets > 100  # 8 a tick, 60 ticks
+    assert summary.steps + summary.timing.skipped_states >= 55
+    assert summary.measured_hz is not None and abs(summary.measured_hz - 20.0) < 2.0
+
+
+def test_the_top_speed_the_check_allows_is_above_what_the_motors_can_do() -> None:
+    from reach_sim_bridge.model.motor import no_load_speed
+
+    assert np.all(no_load_speed(supply_voltage=30.0) < np.asarray(MAX_JOINT_SPEED))
