@@ -641,7 +641,7 @@ class ArmClient(ArmQueries):
         self._emit(EventKind.WATCHDOG, f"{reason}; {sent}")
 
     def _stream_probe_frames(
-        self, now: float, feedback_t: Callable[[int], float | None]
+        self, now: float, feedback_t: Callable[[int], tuple[float | None, str]]
     ) -> list[bytes]:
         """Over a link other hosts share (UDP), a stream that stopped may have gone to
         another client: ask a streamed device for its heartbeat rate, sent with the safe
@@ -650,7 +650,7 @@ class ArmClient(ArmQueries):
         if stream is None or limit is None or not self.transport.shared_by_other_hosts:
             return []
         for dev in stream.devices:
-            fed = feedback_t(dev)
+            fed, _quantity = feedback_t(dev)
             if fed is not None and now - fed > limit:
                 self._stream_probe = (dev, now - fed)
                 return [commands.request(dev, [PacketID.HEARTBEAT_FREQUENCY]).encode()]

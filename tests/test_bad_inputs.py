@@ -10,6 +10,7 @@ import os
 import re
 import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -149,7 +150,7 @@ def _copy_actor(tmp_path: Path) -> tuple[Path, dict]:
     return npz, meta
 
 
-def _arrays(npz: Path) -> dict[str, np.ndarray]:
+def _arrays(npz: Path) -> dict[str, Any]:
     with np.load(npz) as data:
         return {k: data[k] for k in data.files}
 
@@ -274,7 +275,7 @@ def test_a_recording_whose_steps_all_sit_at_t0_reads_without_metrics(tmp_path, c
     _craft(path, STEADY, [0.0] * len(STEADY), None)
     assert main(["inspect", "--json", str(path)]) == Exit.OK
     data = _strict_json(capsys.readouterr().out)
-    assert data["steps"] == 20 and "metrics" not in data  # type: ignore[index]
+    assert data["steps"] == 20 and "metrics" not in data  # type: ignore[index,operator]
     assert "no metrics" in str(data["notes"])  # type: ignore[index]
     assert main(["inspect", str(path)]) == Exit.OK
     assert "no metrics" in capsys.readouterr().out
