@@ -649,6 +649,12 @@ class ArmClient(ArmQueries):
         stream, limit = self._stream, self.guard.config.watchdog_s
         if stream is None or limit is None or not self.transport.shared_by_other_hosts:
             return []
+        # another client takes the whole stream: only when no streamed device's position
+        # arrives any more (one quantity of one joint stopping is the arm's own fault)
+        for dev in stream.devices:
+            pos = self.table.get(dev).position
+            if pos is not None and now - pos.t <= limit:
+                return []
         for dev in stream.devices:
             fed, _quantity = feedback_t(dev)
             if fed is not None and now - fed > limit:
