@@ -177,6 +177,7 @@ class Figure:
 COLUMNS: tuple[tuple[str, str, Callable[[dict[str, float]], float]], ...] = (
     ("standard", "reached %", lambda e: 100.0 * e["reached"]),
     ("standard", "overshoot %", lambda e: e["overshoot_pct"]),
+    ("standard", "overshoot < 2 %", lambda e: 100.0 * (e["overshoot_pct"] < SMALL_OVERSHOOT_PCT)),
     ("standard", "MSSE mrad", lambda e: 1000.0 * e["msse"]),
     ("envelope", "reached %", lambda e: 100.0 * e["reached"]),
     ("envelope", "overshoot < 2 %", lambda e: 100.0 * (e["overshoot_pct"] < SMALL_OVERSHOOT_PCT)),
