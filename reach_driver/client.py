@@ -650,10 +650,12 @@ class ArmClient(ArmQueries):
         if stream is None or limit is None or not self.transport.shared_by_other_hosts:
             return []
         # another client takes the whole stream: only when no streamed device's position
-        # arrives any more (one quantity of one joint stopping is the arm's own fault)
+        # arrived in the last half watchdog (one quantity of one joint stopping while the
+        # others keep arriving is the arm's own fault; a stream that stopped leaves every
+        # device within a tick of the stalest one)
         for dev in stream.devices:
             pos = self.table.get(dev).position
-            if pos is not None and now - pos.t <= limit:
+            if pos is not None and now - pos.t <= limit / 2:
                 return []
         for dev in stream.devices:
             fed, _quantity = feedback_t(dev)

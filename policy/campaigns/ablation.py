@@ -55,7 +55,7 @@ INGREDIENTS: tuple[Ingredient, ...] = (
     Ingredient("no-away", "no cost for moving away from the goal", ("env.reward.away_weight=0",)),
     Ingredient("no-fine", "no narrow (4 mrad) precision term", ("env.reward.fine_weight=0",)),
     Ingredient(
-        "ddpg",
+        "ddpg-updates",
         "DDPG's single critic and updates instead of TD3's",
         ("twin_critics=false", "target_noise=0", "policy_delay=1"),
     ),

@@ -524,6 +524,16 @@ def ended(proc: subprocess.Popen[str]) -> Callable[[], bool]:
     return lambda: proc.poll() is not None
 
 
+#: the start of the stream-rate check's error (reach_driver/stream_rate.py)
+STREAMS_AT = "the arm streams at"
+
+
+def _last_error(text: str) -> str:
+    """The line a run ended on (its "run failed" or watchdog line), for an outcome's text."""
+    lines = [ln for ln in text.splitlines() if "failed" in ln or "watchdog" in ln]
+    return lines[-1][:160] if lines else "no error line"
+
+
 def udp_second_client(scale: float, tmp: str) -> Outcome:
     """`reach-driver info` from a second client while a `run` drives the arm over UDP: the
     arm streams to the last host that wrote to it, so `info` takes the run's heartbeat. The
@@ -556,22 +566,24 @@ def udp_second_client(scale: float, tmp: str) -> Outcome:
             finally:
                 out, err = _finish(proc)
             safe = _safe(server) and CONFIRMED in out and "Traceback" not in err
+            # the other client's requests make the run's ticks irregular: the stream-rate
+            # check may end the run first ("the arm streams at ..."), also about the stream
+            named = TOOK_THE_STREAM in out + err or STREAMS_AT in out + err
             if watchdog_s == "1":
-                named = TOOK_THE_STREAM in out + err
                 ok = safe and (
                     (went_on and proc.returncode == 130) or (named and proc.returncode == 1)
                 )
                 said.append(
                     "--watchdog 1: "
                     + ("went on" if went_on else "tripped, " + ("named" if named else "NOT named"))
+                    + ("" if named or went_on else f" ({_last_error(out + err)})")
                     + f", exit {proc.returncode}"
                 )
             else:
-                named = TOOK_THE_STREAM in out + err
                 ok = named and proc.returncode == 1 and safe
+                how = "the other client named" if named else "NOT named: " + _last_error(out + err)
                 said.append(
-                    f"--watchdog 0.2: exit {proc.returncode}, "
-                    f"{'the other client named' if named else 'NOT named'}, "
+                    f"--watchdog 0.2: exit {proc.returncode}, {how}, "
                     f"{'safe (confirmed)' if safe else 'NOT safe'}"
                 )
             held &= ok
