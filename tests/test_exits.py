@@ -6,18 +6,20 @@ documented exit status. Each test here failed on the code before its fix (docs/r
 from __future__ import annotations
 
 import json
-import os
 import re
 import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import LOOPBACK, WATCHDOG_S, default_sigint, udp_url, wait_until
+from conftest import LOOPBACK, WATCHDOG_S, udp_url, wait_until
 
-from policy.campaigns.attacks import HangingLink, lie_about_velocity
+from policy.campaigns.attacks import (
+    HangingLink,
+    driver_process,
+    finish_process,
+    lie_about_velocity,
+)
 from protocol import Mode
 from reach_driver import ArmClient, ControlLoop, ControlState, Interrupted, open_transport
 from reach_driver.cli import Exit, main
@@ -31,27 +33,6 @@ pytestmark = pytest.mark.sim(speed=1.0, udp=LOOPBACK)
 
 def _modes(sim) -> list[Mode]:
     return [sim.firmware.mode(d) for d in JOINT_IDS]
-
-
-def _driver(argv: list[str]) -> subprocess.Popen[str]:
-    """`reach-driver ARGV` from this tree, as a shell in the foreground starts it."""
-    return subprocess.Popen(
-        [sys.executable, "-m", "reach_driver", *argv],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-        preexec_fn=default_sigint,
-    )
-
-
-def _finish(proc: subprocess.Popen[str]) -> tuple[str, str]:
-    try:
-        return proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
 
 
 def _run_argv(port: str, sim, *extra: str) -> list[str]:
@@ -72,14 +53,14 @@ def test_every_signal_ends_a_run_with_the_arm_safe_the_summary_and_the_recording
     sim, tmp_path, sig
 ) -> None:
     record = tmp_path / "run.rrd"
-    proc = _driver([*_run_argv(str(sim.link), sim), "--record", str(record)])
+    proc = driver_process(*_run_argv(str(sim.link), sim), "--record", str(record))
     try:
         assert wait_until(lambda: sim.firmware.mode(5) == Mode.CURRENT, timeout=60.0), (
             "the run never commanded the arm"
         )
         proc.send_signal(sig)
     finally:
-        out, err = _finish(proc)
+        out, err = finish_process(proc)
     # Confirmed by the arm before the process exited: no waiting here.
     assert _modes(sim) == [Mode.ZERO_VELOCITY] * 4, (out, err)
     assert proc.returncode == 128 + sig, err
@@ -95,12 +76,12 @@ def test_every_signal_ends_a_run_with_the_arm_safe_the_summary_and_the_recording
 @pytest.mark.parametrize("sig", [signal.SIGHUP, signal.SIGQUIT], ids=lambda s: s.name)
 def test_a_signal_stops_a_move_where_it_is(sim, sig) -> None:
     target = sim.snapshot().q + np.array([-1.5, 0.0, 0.0, 0.0])  # seconds at the rate limit
-    proc = _driver(["--port", str(sim.link), "move", *map(str, target)])
+    proc = driver_process("--port", str(sim.link), "move", *map(str, target))
     try:
         assert wait_until(lambda: sim.firmware.mode(5) == Mode.POSITION, timeout=60.0)
         proc.send_signal(sig)
     finally:
-        out, err = _finish(proc)
+        out, err = finish_process(proc)
     assert _modes(sim) == [Mode.ZERO_VELOCITY] * 4, (out, err)
     assert proc.returncode == 128 + sig, err
     assert f"interrupted: by {sig.name}; arm left in zero_velocity (confirmed by the arm)" in err
@@ -126,7 +107,7 @@ def hanging_link(sim):
 def test_ctrl_c_while_the_arm_hangs_keeps_sending_the_safe_mode_until_confirmed(
     sim, hanging_link
 ) -> None:
-    proc = _driver(_run_argv(hanging_link.url, sim, "--safe-wait", "60"))
+    proc = driver_process(*_run_argv(hanging_link.url, sim, "--safe-wait", "60"))
     try:
         assert wait_until(lambda: sim.firmware.mode(5) == Mode.CURRENT, timeout=60.0)
         hanging_link.hang.set()
@@ -141,7 +122,7 @@ def test_ctrl_c_while_the_arm_hangs_keeps_sending_the_safe_mode_until_confirmed(
         assert sim.firmware.mode(5) == Mode.CURRENT  # still pushing: nothing got through
         hanging_link.hang.clear()  # the arm answers again
     finally:
-        out, err = _finish(proc)
+        out, err = finish_process(proc)
     assert _modes(sim) == [Mode.ZERO_VELOCITY] * 4, (out, err)
     assert proc.returncode == Exit.INTERRUPTED, err
     # (" after the link came back" when the hang lasted past the stale-link time)
@@ -153,13 +134,13 @@ def test_ctrl_c_while_the_arm_hangs_keeps_sending_the_safe_mode_until_confirmed(
 def test_ctrl_c_while_the_arm_hangs_past_the_wait_says_it_is_not_confirmed(
     sim, hanging_link
 ) -> None:
-    proc = _driver([*_run_argv(hanging_link.url, sim, "--safe-wait", "1"), "--json"])
+    proc = driver_process(*_run_argv(hanging_link.url, sim, "--safe-wait", "1"), "--json")
     try:
         assert wait_until(lambda: sim.firmware.mode(5) == Mode.CURRENT, timeout=60.0)
         hanging_link.hang.set()
         proc.send_signal(signal.SIGINT)
     finally:
-        out, err = _finish(proc)
+        out, err = finish_process(proc)
     assert sim.firmware.mode(5) == Mode.CURRENT  # the hang outlasted the wait
     assert proc.returncode == Exit.INTERRUPTED, err
     result = json.loads(out)

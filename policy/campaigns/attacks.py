@@ -340,7 +340,7 @@ REPO = Path(__file__).resolve().parents[2]
 JOINT_IDS = (5, 4, 3, 2)
 
 
-def _driver(*argv: str) -> subprocess.Popen[str]:
+def driver_process(*argv: str) -> subprocess.Popen[str]:
     """`reach-driver ARGV` from this tree in a child, Ctrl-C at its default (as a shell in the
     foreground starts it)."""
     return subprocess.Popen(
@@ -354,7 +354,7 @@ def _driver(*argv: str) -> subprocess.Popen[str]:
     )
 
 
-def _finish(proc: subprocess.Popen[str]) -> tuple[str, str]:
+def finish_process(proc: subprocess.Popen[str]) -> tuple[str, str]:
     try:
         return proc.communicate(timeout=60)
     finally:
@@ -385,12 +385,12 @@ def exit_signals(scale: float, tmp: str) -> Outcome:
     held = True
     try:
         for sig in (signal.SIGHUP, signal.SIGQUIT, signal.SIGTERM, signal.SIGINT):
-            proc = _driver(*_pushing_run(str(server.link), server))
+            proc = driver_process(*_pushing_run(str(server.link), server))
             try:
                 if _wait(lambda: server.firmware.mode(5) == Mode.CURRENT, 60.0):
                     proc.send_signal(sig)
             finally:
-                out, err = _finish(proc)
+                out, err = finish_process(proc)
             ok = _safe(server) and proc.returncode == 128 + sig and CONFIRMED in out
             held &= ok and "Traceback" not in err
             said.append(f"{sig.name} {proc.returncode}{'' if ok else ' NOT SAFE'}")
@@ -470,7 +470,7 @@ def hang_at_interrupt(scale: float, tmp: str) -> Outcome:
     link = HangingLink(server.udp_address)
     try:
         still_pushing = False
-        proc = _driver(*_pushing_run(link.url, server, "--safe-wait", "60"))
+        proc = driver_process(*_pushing_run(link.url, server, "--safe-wait", "60"))
         try:
             if _wait(lambda: server.firmware.mode(5) == Mode.CURRENT, 60.0):
                 link.hang.set()
@@ -481,7 +481,7 @@ def hang_at_interrupt(scale: float, tmp: str) -> Outcome:
                 still_pushing = server.firmware.mode(5) == Mode.CURRENT
                 link.hang.clear()
         finally:
-            out, err = _finish(proc)
+            out, err = finish_process(proc)
         resent = link.dropped_safe
     finally:
         link.close()
@@ -506,8 +506,10 @@ def move_timeout(scale: float, tmp: str) -> Outcome:
     server = _server(tmp)
     try:
         target = server.snapshot().q + [-1.5, 0.0, 0.0, 0.0]
-        proc = _driver("--port", str(server.link), "move", *map(str, target), "--timeout", "1")
-        out, err = _finish(proc)
+        proc = driver_process(
+            "--port", str(server.link), "move", *map(str, target), "--timeout", "1"
+        )
+        out, err = finish_process(proc)
         safe = _safe(server)
         e0 = server.snapshot().q[0]
         server.wait_sim_time(server.sim_time + 1.0, timeout=30.0)
@@ -556,13 +558,13 @@ def udp_second_client(scale: float, tmp: str) -> Outcome:
         for watchdog_s in ("0.2", "1"):
             argv = _pushing_run(url, server)
             argv[argv.index("--watchdog") + 1] = watchdog_s
-            proc = _driver(*argv)
+            proc = driver_process(*argv)
             try:
                 if _wait(lambda: server.firmware.mode(5) == Mode.CURRENT, 60.0):
                     for _ in range(1 if watchdog_s == "1" else 5):
                         # A run's command in flight may land after info's last request and
                         # take the stream back (the run goes on): then another info.
-                        _finish(_driver("--port", url, "info"))
+                        finish_process(driver_process("--port", url, "info"))
                         if watchdog_s == "1" or _wait(ended(proc), 2.0):
                             break
                     if watchdog_s == "1":
@@ -570,7 +572,7 @@ def udp_second_client(scale: float, tmp: str) -> Outcome:
                         went_on = proc.poll() is None and server.firmware.mode(5) == Mode.CURRENT
                         proc.send_signal(signal.SIGINT)
             finally:
-                out, err = _finish(proc)
+                out, err = finish_process(proc)
             safe = _safe(server) and CONFIRMED in out and "Traceback" not in err
             # the other client's requests make the run's ticks irregular: the stream-rate
             # check may end the run first ("the arm streams at ..."), also about the stream
@@ -664,8 +666,8 @@ def _ddpg_run(server: SimServer, seconds: float) -> tuple[subprocess.Popen[str],
     q = server.snapshot().q
     target = [q[0] + 0.3, q[1] + 0.2, q[2] + 0.2, q[3] + 0.2]
     argv = ["--port", str(server.link), "--watchdog", "1", "run", "--controller", "ddpg"]
-    proc = _driver(*argv, "--target", *map(str, target), "--seconds", str(seconds), "--json")
-    out, err = _finish(proc)
+    proc = driver_process(*argv, "--target", *map(str, target), "--seconds", str(seconds), "--json")
+    out, err = finish_process(proc)
     sys.stderr.write(err if "Traceback" in err else "")
     try:
         result = json.loads(out)
@@ -801,8 +803,8 @@ def nan_velocity(scale: float, tmp: str) -> Outcome:
         q = server.snapshot().q
         target = [q[0] + 0.3, q[1] + 0.2, q[2] + 0.2, q[3] + 0.2]
         argv = ["--port", str(server.link), "--watchdog", "1", "run", "--controller", "ddpg"]
-        proc = _driver(*argv, "--target", *map(str, target), "--seconds", "5", "--json")
-        out, err = _finish(proc)
+        proc = driver_process(*argv, "--target", *map(str, target), "--seconds", "5", "--json")
+        out, err = finish_process(proc)
         safe = _safe(server)
     finally:
         server.stop()
