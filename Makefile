@@ -13,7 +13,7 @@ $(PY):
 
 # What each target installs (pyproject.toml's extras): `make demo` the base install (driver,
 # reach-driver, recordings, pid and ddpg) and `sim` (MuJoCo, reach-sim); `make test` everything:
-# `dev`, `scale` and `all` (sim, mpc, train, scale).
+# `dev`, `scale` and `all` (sim, mpc, train, scale, export).
 #
 # torch comes only with `train` (in `all`), and on a stock index pip would pick a CUDA build
 # (several GB). So it is installed first, pinned and from TORCH_INDEX, and every later install

@@ -15,6 +15,8 @@ import struct
 import tempfile
 import warnings
 from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -482,12 +484,19 @@ def summarize_recording(path: str | Path) -> dict[str, object]:
     Metrics need a uniform period: they use the median step period, and the last target of the
     run (a run with several targets is scored against its final one).
     """
-    try:
+    with malformed_is_read_error():
         return _summarize(path)
+
+
+@contextmanager
+def malformed_is_read_error() -> Iterator[None]:
+    """Reading or using a file no writer of ours makes: a RecordingReadError saying what is
+    wrong, not a traceback."""
+    try:
+        yield
     except RecordingReadError:
         raise
     except (ValueError, TypeError, KeyError, IndexError, ArithmeticError) as exc:
-        # Files no writer of ours makes; what is wrong is said, not a traceback.
         raise RecordingReadError(
             f"not a recording reach-stack can read: {type(exc).__name__}: {exc}"
         ) from None

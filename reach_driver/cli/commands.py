@@ -598,6 +598,33 @@ def cmd_inspect(args: argparse.Namespace, console: Console) -> Exit:
     return Exit.OK
 
 
+def cmd_export(args: argparse.Namespace, console: Console) -> Exit:
+    from reach_driver.export import ExportError, export_recording
+    from reach_driver.rrd_summary import RecordingReadError
+
+    problem = output_path_problem("--to", args.to, None, devices=True)
+    if problem:
+        raise UsageError(problem)
+    try:
+        report = export_recording(args.file, args.to)
+    except (ExportError, RecordingReadError) as exc:
+        raise UsageError(f"cannot export {args.file}: {exc}") from None
+    except OSError as exc:
+        raise DriverError(f"cannot write {args.to}: {exc}; nothing was written") from None
+    what = f"{report.steps} steps"
+    if report.events:
+        what += f", {report.events} events"
+    console.print(f"wrote {escape(str(report.out))}: {what}", soft_wrap=True)
+    if report.truncated_bytes or not report.closed_cleanly:
+        cut = f" ({report.truncated_bytes} bytes of a cut message skipped)"
+        _notes().print(
+            f"note: {escape(args.file)} was not closed by its writer: exported what it "
+            f"holds{cut if report.truncated_bytes else ''}",
+            soft_wrap=True,
+        )
+    return Exit.OK
+
+
 COMMANDS: dict[str, Callable[[argparse.Namespace, Console], Exit]] = {
     "info": cmd_info,
     "monitor": cmd_monitor,
@@ -605,4 +632,5 @@ COMMANDS: dict[str, Callable[[argparse.Namespace, Console], Exit]] = {
     "run": cmd_run,
     "controllers": cmd_controllers,
     "inspect": cmd_inspect,
+    "export": cmd_export,
 }

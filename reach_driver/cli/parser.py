@@ -37,6 +37,8 @@ examples:
       --target 5.78 1.97 1.67 3.96 --seconds 20 --record run.rrd
   reach-driver controllers          # what each controller is; a learned one's training
   reach-driver inspect run.rrd
+  reach-driver export run.rrd --to run.mcap   # ROS 2 messages: ros2 bag, Foxglove
+  reach-driver export run.rrd --to run.csv    # one row per control step (.parquet too)
   reach-driver --port /tmp/alpha5 run --controller pid --target 3.1 1.5 1.5 3.0 \\
       --seconds 10 --viewer serve     # watch it live from a browser (or an SSH tunnel)
 
@@ -458,4 +460,25 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ins.add_argument("file", help="a recording written by `run --record`, or `reach-sim --record`")
     ins.add_argument("--json", action="store_true", help="print the summary as JSON")
+    exp = add(
+        "export",
+        parents=[offline],
+        help="write a recorded run (.rrd) as ROS 2 messages (.mcap) or a table (.csv, .parquet)",
+        description="Write the run in a recording for other tools, in the format --to's suffix "
+        "names. .mcap: ROS 2 messages (CDR, ros2msg schemas) for `ros2 bag` and Foxglove: "
+        "sensor_msgs/msg/JointState on /joint_states (measured position, velocity, current as "
+        "effort, mA), /joint_commands (commanded current as effort) and /joint_targets "
+        "(target as position), rcl_interfaces/msg/Log on /events; needs the export extra. "
+        ".csv or .parquet: one row per control step (step, t_s, then q, target, qdot, "
+        "current_cmd, current_meas and torque per joint E D C B, the unit in each column's "
+        "name; empty or NaN where the recording has no value). Stamps are the recording's arm "
+        "time. The file appears only when complete; one already there is replaced then.",
+    )
+    exp.add_argument("file", help="a recording written by `run --record`, or `reach-sim --record`")
+    exp.add_argument(
+        "--to",
+        required=True,
+        metavar="OUT.mcap|OUT.csv|OUT.parquet",
+        help="the file to write; its suffix says the format",
+    )
     return parser
