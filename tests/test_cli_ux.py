@@ -54,7 +54,7 @@ def _status(argv: list[str]) -> int:
 
 
 @pytest.mark.parametrize(
-    "command", ["", "info", "monitor", "move", "run", "controllers", "inspect"]
+    "command", ["", "info", "monitor", "move", "run", "controllers", "inspect", "workspace"]
 )
 def test_every_help_prints_without_a_traceback(command, capsys) -> None:
     assert _status([command, "--help"] if command else ["--help"]) == 0
