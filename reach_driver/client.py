@@ -64,11 +64,7 @@ from reach_driver.listeners import ListenerSet, PacketListener, PacketQueue, Sub
 from reach_driver.queries import ArmQueries, limit_verdict
 from reach_driver.requests import Requester, Waiters
 from reach_driver.safe_stop import SafeStop
-from reach_driver.safety import (
-    LimitKind,
-    SafetyConfig,
-    SafetyGuard,
-)
+from reach_driver.safety import SafetyConfig, SafetyGuard
 from reach_driver.state import ArmState, JointState, StateTable, joint_name
 from reach_driver.streaming import Stream
 from reach_driver.supervisor import LinkSupervisor
@@ -364,13 +360,7 @@ class ArmClient(ArmQueries):
         q = self.state.q
         if not np.all(np.isfinite(q)):
             q = self.read_joints((PacketID.POSITION,)).q
-        limits = np.array(
-            [
-                [lim.low, lim.high]
-                for lim in (self.guard.limit(d, LimitKind.POSITION) for d in JOINTS)
-            ]
-        )
-        return ik.solve_or_refuse((x, y, z), q, limits)
+        return ik.solve_or_refuse((x, y, z), q, np.array(self.guard.position_limits()))
 
     def command_xyz(self, x: float, y: float, z: float) -> np.ndarray:
         """Move the tool centre point to (x, y, z) mm: the driver's own inverse kinematics

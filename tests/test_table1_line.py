@@ -54,7 +54,7 @@ def test_two_episodes_missed_of_80_and_energy_two_percent_over_fail_their_items(
     assert got["reached and at rest"] is False
     assert got["energy [J] within 1% of the MPC's"] is False
     assert got["RMSE [rad] within 1% of the MPC's"] is True
-    # energy 10.2 J on average, 2 % over; the actor's mean overshoot is 0.75 %: below the paper's row and the MPC's 1.0 %
+    # energy 10.2 J on average, 2 % over; mean overshoot 0.75 %: below the paper's and the MPC's
     assert got["overshoot below the paper's RL row (1.43 %)"] is True
     assert not all(got.values())
 

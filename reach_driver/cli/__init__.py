@@ -90,8 +90,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             safety_config(args)
         except ValueError as exc:
             parser.error(str(exc))  # exit 2 with the usage line
-    # Piped output is not squeezed to 80 columns: tables stay one line per joint.
-    console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
+    # Piped output is never wrapped or cut: a line stays one line, a table is plain aligned
+    # text (reach_driver.cli.tables).
+    console = Console(highlight=False, soft_wrap=not sys.stdout.isatty())
     errors = Console(stderr=True, highlight=False)
     if args.log_file:
         problem = output_path_problem(

@@ -9,7 +9,7 @@ import math
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -20,7 +20,8 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from protocol import Mode, PacketID
 from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS
-from reach_driver.cli.connect import connect
+from reach_driver import ik
+from reach_driver.cli.connect import connect, safety_config
 from reach_driver.cli.exits import Exit, UsageError, for_operator, left_in_for_operator
 from reach_driver.cli.live import MoveView, RunView, chain
 from reach_driver.cli.recorder import CliRecorder, output_path_problem
@@ -29,15 +30,20 @@ from reach_driver.cli.render import (
     controllers_lines,
     diagnostics_table,
     info_json,
-    info_table,
+    info_tables,
     jsonable,
     monitor_json,
+    monitor_line,
     monitor_table,
     print_metrics,
     print_recording,
     print_summary,
+    workspace_json,
+    workspace_point_line,
+    workspace_tables,
 )
 from reach_driver.cli.report import summary_dict
+from reach_driver.cli.tables import fitted, show_table
 from reach_driver.client import ArmClient
 from reach_driver.control import ControlLoop, Pacing, control_period
 from reach_driver.controllers import (
@@ -50,7 +56,7 @@ from reach_driver.errors import ArmFaultError, DriverError, Interrupted
 from reach_driver.kinematics import tool_position
 from reach_driver.link import EventKind, LinkState
 from reach_driver.records import ControlSummary
-from reach_driver.safety import LimitKind
+from reach_driver.safety import LimitKind, SafetyGuard
 from reach_driver.state import joint_name
 from reach_driver.watchdog import watchdog_too_short
 
@@ -75,8 +81,8 @@ def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
         if args.json:
             console.print_json(json.dumps(info_json(args.port, joints)))
             return Exit.OK
-        console.print(info_table(args.port, joints))
-        console.print(diagnostics_table(args.port, joints))
+        for table in (*info_tables(args.port, joints), diagnostics_table(args.port, joints)):
+            show_table(console, table)
         return Exit.OK
     finally:
         client.close()
@@ -125,9 +131,6 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
             )
         end = time.monotonic() + args.seconds if args.seconds else math.inf
         _read_diagnostics(client)  # the first table (and a recording) starts with them
-        last_counts = client.table.count_snapshot()
-        last_t = time.monotonic()
-        rates: dict[tuple[int, int], float] = {}
         if viewer is not None or args.record:
             meta = {"command": "monitor", "port": args.port, "rate_hz": rate}
             recorder = CliRecorder(
@@ -135,25 +138,20 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
             )
             stream = _StateStream(client, recorder)
         if args.json:
-            return _monitor_json(client, console, end, last_counts, last_t, stream)
+            return _monitor_json(client, console, end, stream)
+        if not console.is_terminal:
+            return _monitor_lines(client, console, args.port, end, stream)
         with Live(
-            monitor_table(client, rates, args.port),
+            fitted(console, monitor_table(client, {}, args.port)),
             console=console,
             refresh_per_second=4,
             transient=False,
             auto_refresh=False,
         ) as live:
             try:
-                while time.monotonic() < end:
-                    _wait(min(0.5, max(0.0, end - time.monotonic())), stream)
-                    now = time.monotonic()
-                    counts = client.table.count_snapshot()
-                    rates = {
-                        k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()
-                    }
-                    _read_diagnostics(client)
-                    last_counts, last_t = counts, now
-                    live.update(monitor_table(client, rates, args.port), refresh=True)
+                for _, rates in _refreshes(client, end, stream, MONITOR_REFRESH_S):
+                    table = monitor_table(client, rates, args.port)
+                    live.update(fitted(console, table), refresh=True)
             except KeyboardInterrupt:
                 pass  # Ctrl-C is how a monitor is meant to end: exit 0
         return Exit.OK
@@ -163,6 +161,49 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
         if recorder is not None:
             recorder.close()
         client.close()
+
+
+#: How often `monitor` refreshes (reads the Monitor readings, which a --record keeps, and
+#: redraws its table or writes a --json line); piped, it writes a plain line every LINE_EVERY.
+MONITOR_REFRESH_S = 0.5
+MONITOR_LINE_EVERY = 2
+
+
+def _refreshes(
+    client: ArmClient, end: float, stream: _StateStream | None, every_s: float
+) -> Iterator[tuple[float, dict[tuple[int, int], float]]]:
+    """Every `every_s` until `end` (wall clock): the time, and each (device, packet id)'s
+    update rate (Hz) since the refresh before; the Monitor readings are read afresh each time."""
+    last_counts = client.table.count_snapshot()
+    last_t = time.monotonic()
+    while time.monotonic() < end:
+        _wait(min(every_s, max(0.0, end - time.monotonic())), stream)
+        now = time.monotonic()
+        counts = client.table.count_snapshot()
+        rates = {k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()}
+        last_counts, last_t = counts, now
+        _read_diagnostics(client)
+        yield now, rates
+
+
+def _monitor_lines(
+    client: ArmClient, console: Console, port: str, end: float, stream: _StateStream | None
+) -> Exit:
+    """`monitor` off a terminal (piped, redirected): a plain line a second, each flushed as
+    it is written, then the table as it stands at the end."""
+    start = time.monotonic()
+    rates: dict[tuple[int, int], float] = {}
+    try:
+        refreshes = _refreshes(client, end, stream, MONITOR_REFRESH_S)
+        for n, (now, rates) in enumerate(refreshes, start=1):
+            if n % MONITOR_LINE_EVERY:
+                continue
+            console.out(monitor_line(client, rates, now - start), highlight=False)
+            console.file.flush()  # a reader on a pipe gets each line as it comes
+    except KeyboardInterrupt:
+        pass  # Ctrl-C is how a monitor is meant to end: exit 0
+    show_table(console, monitor_table(client, rates, port))
+    return Exit.OK
 
 
 class _StateStream:
@@ -211,23 +252,12 @@ def _wait(seconds: float, stream: _StateStream | None, stop: threading.Event | N
 
 
 def _monitor_json(
-    client: ArmClient,
-    console: Console,
-    end: float,
-    last_counts: dict[tuple[int, int], int],
-    last_t: float,
-    stream: _StateStream | None = None,
+    client: ArmClient, console: Console, end: float, stream: _StateStream | None = None
 ) -> Exit:
     """`monitor --json`: a JSON object per refresh, one a line (JSON Lines)."""
-    start = last_t
+    start = time.monotonic()
     try:
-        while time.monotonic() < end:
-            _wait(min(0.5, max(0.0, end - time.monotonic())), stream)
-            now = time.monotonic()
-            counts = client.table.count_snapshot()
-            rates = {k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()}
-            last_counts, last_t = counts, now
-            _read_diagnostics(client)
+        for now, rates in _refreshes(client, end, stream, MONITOR_REFRESH_S):
             line = json.dumps(monitor_json(client, rates, now - start))
             console.out(line, highlight=False)
             console.file.flush()  # a reader on a pipe gets each line as it comes
@@ -581,6 +611,26 @@ def cmd_controllers(args: argparse.Namespace, console: Console) -> Exit:
     return Exit.OK
 
 
+def cmd_workspace(args: argparse.Namespace, console: Console) -> Exit:
+    """Where the tool reaches inside the limits `move --xyz` would use on an arm reporting
+    the factory ones (the same guard, the same solver); opens no port."""
+    margin = float(args.position_margin)
+    limits = np.array(SafetyGuard(safety_config(args)).position_limits())
+    env = ik.envelope(limits)
+    sol = None
+    if args.xyz is not None:
+        middle = limits.mean(axis=1)  # no arm, no present angles: start mid-range
+        sol = ik.nearest_reachable(args.xyz, middle, limits)
+    if args.json:
+        console.print_json(json.dumps(workspace_json(env, margin, args.xyz, sol)))
+    else:
+        for table in workspace_tables(env, margin):
+            show_table(console, table)
+        if sol is not None:
+            console.print(escape(workspace_point_line(args.xyz, sol)), soft_wrap=True)
+    return Exit.OK if sol is None or sol.reachable else Exit.LIMIT
+
+
 def cmd_inspect(args: argparse.Namespace, console: Console) -> Exit:
     from reach_driver.rrd_summary import RecordingReadError, summarize_recording
 
@@ -633,4 +683,5 @@ COMMANDS: dict[str, Callable[[argparse.Namespace, Console], Exit]] = {
     "controllers": cmd_controllers,
     "inspect": cmd_inspect,
     "export": cmd_export,
+    "workspace": cmd_workspace,
 }

@@ -44,7 +44,8 @@ EXIT_TABLE: dict[Exit, str] = {
     "weights or parameter file that cannot be used, a controller whose extra is not "
     "installed (the line names the extra to install); export: a missing or unreadable "
     "recording, a --to suffix it does not write, or .mcap without the export extra",
-    Exit.LIMIT: "refused by a limit: nothing was sent, nothing moved",
+    Exit.LIMIT: "refused by a limit: nothing was sent, nothing moved (workspace --xyz: the "
+    "point is out of reach)",
     Exit.NO_ARM: "no arm: wrong port, no permission, nothing answering, wrong baud",
     Exit.LINK_LOST: "the link was lost during a move (the message says since when and the "
     "last positions the arm reported)",

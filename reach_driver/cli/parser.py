@@ -36,6 +36,7 @@ examples:
   reach-driver --port /dev/ttyUSB0 run --controller ddpg-distilled \\
       --target 5.78 1.97 1.67 3.96 --seconds 20 --record run.rrd
   reach-driver controllers          # what each controller is; a learned one's training
+  reach-driver workspace --xyz 200 0 150   # where the tool reaches; angles for a point
   reach-driver inspect run.rrd
   reach-driver export run.rrd --to run.mcap   # ROS 2 messages: ros2 bag, Foxglove
   reach-driver export run.rrd --to run.csv    # one row per control step (.parquet too)
@@ -114,6 +115,13 @@ def _positive(text: str) -> float:
     value = float(text)
     if not value > 0 or not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+def _finite(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
     return value
 
 
@@ -337,7 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
     move.add_argument(
         "--xyz",
         nargs=3,
-        type=float,
+        type=_finite,
         metavar=("X", "Y", "Z"),
         help="instead of the angles: the tool centre point's target in mm, base frame; the "
         "driver's inverse kinematics turns it into joint positions inside the limits (B keeps "
@@ -453,6 +461,34 @@ def build_parser() -> argparse.ArgumentParser:
         help="a JSON list, one object per controller (name, target, kind, summary, "
         "provenance, error, extra: the extra to install when it is not installed)",
     )
+    ws = add(
+        "workspace",
+        parents=[offline],
+        help="where the tool can reach: the envelope, and the angles for a point (no arm needed)",
+        description="Print where the tool centre point can reach inside the position limits "
+        "(the factory ones, tightened by --position-margin): its distance from the base's z "
+        "axis, its height and its farthest reach (mm, base frame, as `move --xyz` takes "
+        "them), and the limits used. With --xyz: the joint angles E D C that put it there, "
+        "or, out of reach, the nearest reachable point and its angles (exit 3, as `move "
+        "--xyz` refuses it). B turns the tool about its own axis and never moves the point. "
+        "Needs no arm: the driver's own kinematics, the same `move --xyz` uses.",
+    )
+    ws.add_argument(
+        "--xyz",
+        nargs=3,
+        type=_finite,
+        metavar=("X", "Y", "Z"),
+        help="a tool centre point target in mm, base frame",
+    )
+    ws.add_argument(
+        "--position-margin",
+        type=float,
+        default=argparse.SUPPRESS,
+        metavar="RAD",
+        help="keep this far inside the factory position limits, as `move --position-margin` "
+        "(default 0)",
+    )
+    ws.add_argument("--json", action="store_true", help="print JSON instead of text")
     ins = add(
         "inspect",
         parents=[offline],
