@@ -281,6 +281,7 @@ class _Run:
         self.assembler: StateAssembler | None = None
         self.feedback = FeedbackCheck(loop.plausibility)
         self.implausible = 0  # joint samples refused by the plausibility check
+        self.held = np.zeros(N, dtype=bool)  # joints held at their last good sample this tick
         self.bad_since = np.full(N, np.nan)  # arm time each joint turned implausible
         self.reported_t = -math.inf  # when implausible samples were last reported
         self.unreported = 0
@@ -338,11 +339,13 @@ class _Run:
                 t = (got.ticks - ticks0) / loop.hz
                 self._check_fresh(t, (got.ticks - got.seen) / loop.hz)
                 q, qdot = got.values[0::2], got.values[1::2]
+                # joints whose position and velocity were both reported in this tick
+                fresh = (got.seen[0::2] == got.ticks) & (got.seen[1::2] == got.ticks)
                 if t >= self.seconds - 1e-9:
-                    q, qdot = self._plausible(t, q, qdot)
+                    q, qdot = self._plausible(t, q, qdot, fresh)
                     self.final = (t, q.copy(), qdot.copy(), got.currents)
                     break
-                self._act(t, q, qdot, got.times, _superseded(asm, got.serial), got.currents)
+                self._act(t, q, qdot, got.times, _superseded(asm, got.serial), got.currents, fresh)
             else:
                 self.stopped_by = "stop requested"
         finally:
@@ -398,6 +401,7 @@ class _Run:
         times: np.ndarray,
         late: Callable[[], bool],
         currents: np.ndarray | None,
+        fresh: np.ndarray | None = None,
     ) -> None:
         loop, client = self.loop, self.client
         faults = client.blocking_faults()
@@ -405,12 +409,13 @@ class _Run:
             named = "; ".join(f"{joint_name(d)}: {', '.join(f)}" for d, f in faults.items())
             raise ArmFaultError(f"the arm reports a fault at t = {t:.2f} s: {named}")
         self.t = t
-        q, qdot = self._plausible(t, q, qdot)
+        q, qdot = self._plausible(t, q, qdot, fresh)
         if np.isnan(q).any():
             return  # implausible before any good sample: nothing to hold, no step
         now = time.monotonic()
         self.q, self.qdot = q, qdot
-        self._check_rate(t, q, qdot)
+        usable = ~self.held if fresh is None else fresh & ~self.held
+        self._check_rate(t, q, qdot, usable)
         self.step_walls.append(now)
         age = now - float(np.min(times))
         try:
@@ -489,11 +494,13 @@ class _Run:
                 self._hold(verdict, q)
 
     def _plausible(
-        self, t: float, q: np.ndarray, qdot: np.ndarray
+        self, t: float, q: np.ndarray, qdot: np.ndarray, fresh: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """The state a controller may see (`reach_driver.plausibility`): a non-finite reading
-        ends the run; an implausible joint is counted, reported (at most once a second) and
-        held at its last good sample; one implausible for `stale_limit_s` ends the run."""
+        ends the run; an implausible joint (outside the envelope, too fast, a jump, a velocity
+        stuck while the joint moves otherwise; `fresh`: which velocities were reported now)
+        is counted, reported (at most once a second) and held at its last good sample; one
+        implausible for `stale_limit_s` ends the run."""
         for name, values, unit in (("position", q, "rad"), ("velocity", qdot, "rad/s")):
             bad = ~np.isfinite(values)
             if np.any(bad):
@@ -506,7 +513,8 @@ class _Run:
                     f"the arm reported a non-finite {name} ({unit}) at t = {t:.2f} s: {which}; "
                     "no controller was given it"
                 )
-        verdict = self.feedback.check(t, q, qdot)
+        verdict = self.feedback.check(t, q, qdot, fresh)
+        self.held = verdict.bad
         self.bad_since = np.where(verdict.bad, np.fmin(self.bad_since, t), np.nan)
         if not verdict.bad.any():
             return q, qdot
@@ -531,13 +539,14 @@ class _Run:
             self.reported_t, self.unreported = t, 0
         return self.feedback.held(q, qdot, verdict)
 
-    def _check_rate(self, t: float, q: np.ndarray, qdot: np.ndarray) -> None:
-        """The arm must stream at the rate asked (`reach_driver.stream_rate`): else arm time,
-        the controller's step and the metrics are wrong, and the run stops before acting."""
+    def _check_rate(self, t: float, q: np.ndarray, qdot: np.ndarray, usable: np.ndarray) -> None:
+        """The arm must stream at the rate asked (`reach_driver.stream_rate`, measured on the
+        `usable` joints: reported in this tick and plausible): else arm time, the
+        controller's step and the metrics are wrong, and the run stops before acting."""
         rate, hz = self.rate, self.loop.hz
         if rate is None:
             return
-        rate.update(round(t * hz), q, qdot)
+        rate.update(round(t * hz), q, qdot, usable)
         if not rate.off():
             return
         measured = rate.measured_hz

@@ -11,10 +11,12 @@ from typing import Any
 import numpy as np
 from conftest import LOOPBACK, udp_url
 
-from policy.campaigns.attacks import glitch_position, silence_velocity
+from policy.campaigns.attacks import glitch_position, silence_velocity, stick_velocity
 from protocol import DeviceID, Mode
 from protocol.alpha5 import FACTORY_POSITION_LIMITS, JOINTS, MAX_JOINT_SPEED
 from reach_driver import ArmClient, ControlLoop, ControlState, SafetyConfig, open_transport
+from reach_driver.plausibility import FeedbackCheck
+from reach_driver.stream_rate import RateCheck
 
 E = DeviceID.E
 PERIOD = 0.05
@@ -115,6 +117,67 @@ def test_a_velocity_the_arm_stops_sending_ends_the_run_naming_it(sim_factory) ->
     assert summary.left_in == "zero_velocity (confirmed by the arm)"
 
 
+def test_a_velocity_stuck_while_the_joint_moves_is_implausible_one_at_rest_is_not() -> None:
+    """A repeated velocity proves nothing (an arm at rest reports 0.0 for ever); one that
+    disagrees with how far the joint moved meanwhile is a stuck sensor."""
+    rng = np.random.default_rng(0)
+    q = np.array([3.0, 1.5, 1.5, 3.0])
+    still = np.zeros(4)
+    check = FeedbackCheck()  # at rest: exactly 0.0 for 30 s, positions with sensor noise
+    for k in range(600):
+        assert not check.check(k * PERIOD, q + rng.normal(0.0, 0.002, 4), still).bad.any()
+    check = FeedbackCheck()  # a steady 0.5 rad/s, reported identically, positions following
+    for k in range(20):
+        t = k * PERIOD
+        assert not check.check(t, q + 0.5 * t, np.full(4, 0.5)).bad.any()
+    check = FeedbackCheck()  # E's velocity stuck at 0 while E moves 0.5 rad/s
+    check.check(0.0, q, still)
+    moved = q + np.array([0.5 * PERIOD, 0.0, 0.0, 0.0])
+    verdict = check.check(PERIOD, moved, still)
+    assert verdict.bad.tolist() == [True, False, False, False]
+    assert verdict.why[0].startswith("E: velocity stuck at 0 rad/s"), verdict.why
+    check = FeedbackCheck()  # the same, but the velocity was held over a lost packet
+    check.check(0.0, q, still)
+    held = np.array([False, True, True, True])
+    assert not check.check(PERIOD, moved, still, fresh=held).bad.any()
+    check = FeedbackCheck()  # stuck at 0.8 rad/s once the joint has stopped
+    check.check(0.0, q, np.full(4, 0.8))
+    assert check.check(PERIOD, q, np.full(4, 0.8)).bad.all()
+
+
+def test_the_rate_is_measured_on_reported_plausible_changing_velocities_only() -> None:
+    """Of four joints moving or held, only E's samples measure the rate: D's velocity repeats
+    one value (stuck at 0.8 rad/s while D moves 0.5: read as the truth it made 20 Hz look
+    like 32), C is held at its last good sample (moved 0 while its held velocity says 0.5)."""
+    rate = RateCheck(20)
+    ok = np.array([True, True, False, True])
+    for k in range(40):
+        t = k / 20
+        q = np.array([1.0 + 0.5 * t, 1.0 + 0.5 * t, 1.0, 1.0])
+        qdot = np.array([0.5 + 0.001 * (k % 2), 0.8, 0.5, 0.0])
+        rate.update(k, q, qdot, ok)
+    assert rate.measured_hz is not None and abs(rate.measured_hz - 20.0) < 0.2
+
+
+def test_a_velocity_stuck_at_one_value_while_the_joint_moves_ends_the_run_naming_it(
+    sim_factory,
+) -> None:
+    """E's VELOCITY sticks at its value 0.2 s (arm time) into the run while E is still on
+    its way (the emulator's `StuckReading`): the packets keep coming, so nothing is stale, but
+    the run must stop naming the stuck velocity, with the arm safe, and the stuck value must
+    not pass for a wrong stream rate (it did: "the arm streams at 26.7 Hz")."""
+    server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+    stick_velocity(server, 0.2)
+    summary = _reach_run(server, 6.0, np.array([1.0, 0.2, -0.2, 0.3]))
+    assert not summary.ok
+    error = str(summary.error)
+    assert "implausible feedback from E (0x05)" in error, error
+    assert "E: velocity stuck at" in error
+    assert summary.loop_seconds < 3.0
+    assert summary.left_in == "zero_velocity (confirmed by the arm)"
+    assert summary.measured_hz is None or abs(summary.measured_hz - 20.0) < 2.0
+
+
 class Reach:
     """A PD controller to the target, saturating: the joints move, so the rate is measurable."""
 
@@ -142,13 +205,13 @@ def stream_at(server: Any, factor: float) -> None:
     firmware._handlers[PacketID.HEARTBEAT_FREQUENCY] = wrong
 
 
-def _reach_run(server: Any, seconds: float) -> Any:
+def _reach_run(server: Any, seconds: float, move: np.ndarray | None = None) -> Any:
     # A 1 s watchdog: a loaded host's stall is not what these runs are about.
     client = ArmClient(open_transport(udp_url(server)), safety=SafetyConfig(watchdog_s=1.0))
     client.start()
     try:
         q0 = client.read_joints().q
-        target = q0 + np.array([0.4, 0.2, -0.2, 0.3])
+        target = q0 + (np.array([0.4, 0.2, -0.2, 0.3]) if move is None else move)
         return ControlLoop(client, Reach(), PERIOD).run(target, seconds)
     finally:
         client.close()

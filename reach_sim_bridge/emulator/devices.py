@@ -14,7 +14,7 @@ from enum import Enum
 
 from protocol import DeviceID, HardwareStatus, Mode, alpha5
 from reach_sim_bridge.emulator.derating import CurrentDerating
-from reach_sim_bridge.emulator.faults import Leak
+from reach_sim_bridge.emulator.faults import Leak, StuckReading
 from reach_sim_bridge.emulator.monitor import MonitorConfig
 from reach_sim_bridge.model.sensors import SensorNoise
 
@@ -98,6 +98,7 @@ class FirmwareConfig:
     humidity_pct: float = 10.0  # in each housing at power-on
     monitor: MonitorConfig = MonitorConfig()  # climate and supply model, factory levels
     leaks: tuple[Leak, ...] = ()  # housings taking in water from the start
+    stuck: tuple[StuckReading, ...] = ()  # readings that stop changing (fault injection)
     # Thermal derating of each device's current limit (assumed constants; None: off).
     derating: CurrentDerating | None = CurrentDerating()
     # RS-485: one shared wire. A broadcast REQUEST that more than one device answers

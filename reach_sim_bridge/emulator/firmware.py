@@ -66,7 +66,7 @@ from reach_sim_bridge.emulator.devices import (
     Saved,
 )
 from reach_sim_bridge.emulator.events import EventLog
-from reach_sim_bridge.emulator.faults import Leak
+from reach_sim_bridge.emulator.faults import Leak, StuckReading
 from reach_sim_bridge.emulator.handlers import Handler, PacketHandlers, Rejected
 from reach_sim_bridge.emulator.monitor import MONITOR_FLAGS, Monitor
 from reach_sim_bridge.model import ik
@@ -184,6 +184,10 @@ class Firmware(PacketHandlers):
         )
         for leak in self.config.leaks:
             self.inject_leak(leak)
+        # (device, packet) -> (arm time it sticks from, the payload it is stuck at, once known)
+        self._stuck: dict[tuple[int, int], tuple[float, bytes | None]] = {}
+        for stuck in self.config.stuck:
+            self.inject_stuck(stuck)
         self._handlers: dict[int, Handler] = {
             PacketID.MODE: self._on_mode,
             PacketID.POSITION: self._on_position,
@@ -260,6 +264,18 @@ class Firmware(PacketHandlers):
         """Let water into one device's housing (replaces a leak already there): its humidity
         and pressure drift up and raise OVER_HUMIDITY and OVER_PRESSURE (monitor model)."""
         self.monitor.leak(self._by_id[int(leak.device_id)].slot, leak)
+
+    def inject_stuck(self, stuck: StuckReading) -> None:
+        """From `stuck.from_s` (arm time) on, the device reports that packet with the value
+        it reports at that moment (`faults.StuckReading`); replaces a stuck one there."""
+        device = self._by_id[int(stuck.device_id)]
+        if int(stuck.packet_id) not in self._reporters:
+            raise ValueError(f"device {device.spec.letter} reports no 0x{stuck.packet_id:02X}")
+        self._stuck[(int(stuck.device_id), int(stuck.packet_id))] = (stuck.from_s, None)
+
+    def unstick(self, device_id: int, packet_id: int) -> None:
+        """The reading follows the arm again."""
+        self._stuck.pop((device_id, packet_id), None)
 
     def stop_leak(self, device_id: int) -> None:
         """The housing is sealed again; what got in stays (readings stop drifting)."""
@@ -360,8 +376,13 @@ class Firmware(PacketHandlers):
     def report(self, device_id: int, packet_id: int) -> Packet | None:
         """The packet device `device_id` sends for a REQUEST of `packet_id` (None if none)."""
         dev = self._by_id[device_id]
+        stuck = self._stuck.get((device_id, packet_id)) if self._stuck else None
+        if stuck is not None and self.arm.time >= stuck[0] and stuck[1] is not None:
+            return Packet(dev.spec.device_id, packet_id, stuck[1])
         reporter = self._reporters.get(packet_id)
         data = reporter(dev) if reporter is not None else None
+        if stuck is not None and self.arm.time >= stuck[0] and data is not None:
+            self._stuck[(device_id, packet_id)] = (stuck[0], data)  # stuck at this one
         return None if data is None else Packet(dev.spec.device_id, packet_id, data)
 
     # -- control ----------------------------------------------------------------------------

@@ -31,7 +31,7 @@ from protocol import HardwareStatus, Packet, PacketDecoder
 from protocol.alpha5 import SERIAL_BAUD
 from protocol.decoder import DecoderStats
 from reach_sim_bridge.emulator.events import EventLog
-from reach_sim_bridge.emulator.faults import FaultConfig, LinkFaults
+from reach_sim_bridge.emulator.faults import FaultConfig, LinkFaults, StuckReading
 from reach_sim_bridge.emulator.firmware import Firmware, FirmwareConfig
 from reach_sim_bridge.emulator.pty import PtyEndpoint
 from reach_sim_bridge.emulator.udp import Address, UdpEndpoint, is_loopback
@@ -396,6 +396,12 @@ class SimServer(WireIO):
         """Raise a hardware fault flag on one device, as a failing joint would."""
         with self._lock:
             self.firmware.inject_fault(device_id, flag)
+
+    def inject_stuck(self, stuck: StuckReading) -> None:
+        """Make one device's reading stick at its value from `stuck.from_s` of arm time on
+        (`reach_sim_bridge.emulator.faults.StuckReading`)."""
+        with self._lock:
+            self.firmware.inject_stuck(stuck)
 
     def observe(self, fn: Callable[[Alpha5Arm, Firmware], T]) -> T:
         """Run `fn(arm, firmware)` between physics steps, for a consistent look at the state."""
