@@ -282,6 +282,7 @@ class _Run:
         self.feedback = FeedbackCheck(loop.plausibility)
         self.implausible = 0  # joint samples refused by the plausibility check
         self.held = np.zeros(N, dtype=bool)  # joints held at their last good sample this tick
+        self.unseen_s = 0.0  # arm time lost whole in a gap before this state (estimated)
         self.bad_since = np.full(N, np.nan)  # arm time each joint turned implausible
         self.reported_t = -math.inf  # when implausible samples were last reported
         self.unreported = 0
@@ -324,6 +325,7 @@ class _Run:
                 ids = TELEMETRY
             client.stream(ids, loop.hz, JOINTS)
             ticks0: int | None = None
+            lost_before = 0
             while not loop._stop.is_set():
                 got = asm.take(loop.state_timeout_s)
                 if got is None:
@@ -341,6 +343,9 @@ class _Run:
                 q, qdot = got.values[0::2], got.values[1::2]
                 # joints whose position and velocity were both reported in this tick
                 fresh = (got.seen[0::2] == got.ticks) & (got.seen[1::2] == got.ticks)
+                # ticks lost whole since the last state taken (a gap in the stream: not
+                # counted in t, so the checks comparing two samples allow for them)
+                self.unseen_s, lost_before = (got.lost - lost_before) / loop.hz, got.lost
                 if t >= self.seconds - 1e-9:
                     q, qdot = self._plausible(t, q, qdot, fresh)
                     self.final = (t, q.copy(), qdot.copy(), got.currents)
@@ -513,7 +518,7 @@ class _Run:
                     f"the arm reported a non-finite {name} ({unit}) at t = {t:.2f} s: {which}; "
                     "no controller was given it"
                 )
-        verdict = self.feedback.check(t, q, qdot, fresh)
+        verdict = self.feedback.check(t, q, qdot, fresh, self.unseen_s)
         self.held = verdict.bad
         self.bad_since = np.where(verdict.bad, np.fmin(self.bad_since, t), np.nan)
         if not verdict.bad.any():
@@ -546,7 +551,7 @@ class _Run:
         rate, hz = self.rate, self.loop.hz
         if rate is None:
             return
-        rate.update(round(t * hz), q, qdot, usable)
+        rate.update(round(t * hz), q, qdot, usable, resumed=self.unseen_s > 0.0)
         if not rate.off():
             return
         measured = rate.measured_hz
@@ -665,6 +670,8 @@ class _Run:
             process_cpu_per_step_s=self.pcpu / steps if steps else math.nan,
             partial_states=asm.partial if asm is not None else 0,
             incomplete_ticks=asm.incomplete if asm is not None else 0,
+            stream_gaps=asm.gaps if asm is not None else 0,
+            lost_ticks=asm.lost if asm is not None else 0,
         )
         # The state that ended the run is the last one the arm reported.
         final_q = self.final[1] if self.final is not None else self.q

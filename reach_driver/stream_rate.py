@@ -15,7 +15,9 @@ left out for a joint whose sample at either end was not reported in its tick (a 
 filled in by the state assembler: an extrapolated position moves by exactly velocity x
 period, whatever the rate) or was implausible (held at its last good sample: it moved 0 while
 its held velocity says otherwise), whose velocity came in exactly the same at both ends (a
-velocity stuck at one value, `reach_driver.plausibility`, says nothing of the time between).
+velocity stuck at one value, `reach_driver.plausibility`, says nothing of the time between),
+and for every joint across a gap in the stream (`resumed`: ticks lost whole, which the loop
+does not count, as when the stream went to another UDP client for a while).
 """
 
 from __future__ import annotations
@@ -50,12 +52,13 @@ class RateCheck:
         q: np.ndarray,
         qdot: np.ndarray,
         ok: np.ndarray | None = None,
+        resumed: bool = False,
     ) -> None:
         """Add the sample of heartbeat tick `ticks`; `ok` per joint: reported in this tick and
-        plausible (default all)."""
+        plausible (default all); `resumed`: ticks were lost whole since the last sample."""
         ok = np.ones(len(q), dtype=bool) if ok is None else np.asarray(ok, dtype=bool)
         prev, self.prev = self.prev, (ticks, q.copy(), qdot.copy(), ok.copy())
-        if prev is None or ticks <= prev[0]:
+        if prev is None or ticks <= prev[0] or resumed:
             return
         n0, q0, v0, ok0 = prev
         v = 0.5 * (v0 + qdot)

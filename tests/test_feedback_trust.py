@@ -6,13 +6,16 @@ for, `policy.campaigns.attacks`); every run counts arm time in heartbeats."""
 
 from __future__ import annotations
 
+import socket
+import threading
+import time
 from typing import Any
 
 import numpy as np
-from conftest import LOOPBACK, udp_url
+from conftest import FEEDBACK_TIMEOUT_S, LOOPBACK, udp_url, wait_until
 
 from policy.campaigns.attacks import glitch_position, silence_velocity, stick_velocity
-from protocol import DeviceID, Mode
+from protocol import DeviceID, Mode, PacketID, commands
 from protocol.alpha5 import FACTORY_POSITION_LIMITS, JOINTS, MAX_JOINT_SPEED
 from reach_driver import ArmClient, ControlLoop, ControlState, SafetyConfig, open_transport
 from reach_driver.plausibility import FeedbackCheck
@@ -159,6 +162,29 @@ def test_the_rate_is_measured_on_reported_plausible_changing_velocities_only() -
     assert rate.measured_hz is not None and abs(rate.measured_hz - 20.0) < 0.2
 
 
+def test_ticks_lost_whole_are_seen_as_a_gap_and_estimated() -> None:
+    """The assembler counts ticks by the order of their packets, so ticks lost whole leave no
+    trace there; a tick that begins 0.4 s after the one before, where ticks come every
+    0.05 s, follows a gap that could have held 7 of them (`Tick.lost`)."""
+    from protocol import Packet
+    from protocol.payload import pack_floats
+    from reach_driver.assembler import StateAssembler
+
+    asm = StateAssembler(PERIOD)
+    lost = []
+    t = 0.0
+    for k in range(12):
+        t += 0.4 if k == 8 else PERIOD
+        for i, dev in enumerate(JOINTS):
+            for pid in (PacketID.POSITION, PacketID.VELOCITY):
+                asm(Packet(dev, pid, pack_floats(1.0 + 0.01 * k + 0.001 * i)), t + 0.001 * i)
+        got = asm.take(0.0)
+        assert got is not None
+        lost.append(got.lost)
+    assert lost == [0] * 8 + [7] * 4
+    assert asm.gaps == 1
+
+
 def test_a_velocity_stuck_at_one_value_while_the_joint_moves_ends_the_run_naming_it(
     sim_factory,
 ) -> None:
@@ -205,14 +231,14 @@ def stream_at(server: Any, factor: float) -> None:
     firmware._handlers[PacketID.HEARTBEAT_FREQUENCY] = wrong
 
 
-def _reach_run(server: Any, seconds: float, move: np.ndarray | None = None) -> Any:
+def _reach_run(server: Any, seconds: float, move: np.ndarray | None = None, **loop: Any) -> Any:
     # A 1 s watchdog: a loaded host's stall is not what these runs are about.
     client = ArmClient(open_transport(udp_url(server)), safety=SafetyConfig(watchdog_s=1.0))
     client.start()
     try:
         q0 = client.read_joints().q
         target = q0 + (np.array([0.4, 0.2, -0.2, 0.3]) if move is None else move)
-        return ControlLoop(client, Reach(), PERIOD).run(target, seconds)
+        return ControlLoop(client, Reach(), PERIOD, **loop).run(target, seconds)
     finally:
         client.close()
 
@@ -259,3 +285,41 @@ def test_the_top_speed_the_check_allows_is_above_what_the_motors_can_do() -> Non
     from reach_sim_bridge.model.motor import no_load_speed
 
     assert np.all(no_load_speed(supply_voltage=30.0) < np.asarray(MAX_JOINT_SPEED))
+
+
+def test_a_second_udp_client_taking_the_stream_a_while_is_not_read_as_a_wrong_rate(
+    sim_factory,
+) -> None:
+    """The udp-second-client case (A3-6) where the run goes on: while a run drives E at full
+    speed, another client writes to the arm's UDP port for 0.3 s (what `info` does), so the
+    arm streams to it and the run's ticks are lost whole, which the loop does not count as
+    arm time. E's real motion across that gap was taken for position glitches (E held at its
+    last good sample) and the held samples for a 27-30 Hz stream of a 20 Hz one: the run
+    stopped on "the arm streams at 26.9 Hz". The gap is now seen (`stream_gaps`), the jump
+    check allows for the ticks it could have held and the rate check skips it."""
+    server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+    host, port = server.udp_address
+    took: list[float] = []
+
+    def other() -> None:  # once E is well under way, a request every 10 ms for 0.3 s
+        assert wait_until(lambda: server.firmware.mode(int(E)) == Mode.CURRENT, timeout=30.0)
+        time.sleep(0.2)
+        ask = commands.request(DeviceID.B, [PacketID.MODE]).encode()
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            end = time.monotonic() + 0.3
+            while time.monotonic() < end:
+                sock.sendto(ask, (host, port))
+                time.sleep(0.01)
+        took.append(server.sim_time)
+
+    thread = threading.Thread(target=other, daemon=True)
+    thread.start()
+    summary = _reach_run(
+        server, 3.0, np.array([1.5, 0.2, -0.2, 0.3]), state_timeout_s=FEEDBACK_TIMEOUT_S
+    )
+    thread.join(timeout=30.0)
+    assert took, "the other client never wrote"
+    assert summary.ok, summary.error
+    assert summary.timing.stream_gaps >= 1 and summary.timing.lost_ticks >= 4
+    assert summary.implausible_samples == 0, summary.events
+    assert summary.measured_hz is not None and abs(summary.measured_hz - 20.0) < 2.0

@@ -533,10 +533,6 @@ def ended(proc: subprocess.Popen[str]) -> Callable[[], bool]:
     return lambda: proc.poll() is not None
 
 
-#: the start of the stream-rate check's error (reach_driver/stream_rate.py)
-STREAMS_AT = "the arm streams at"
-
-
 def _last_error(text: str) -> str:
     """The line a run ended on (its "run failed" or watchdog line), for an outcome's text."""
     lines = [ln for ln in text.splitlines() if "failed" in ln or "watchdog" in ln]
@@ -575,9 +571,9 @@ def udp_second_client(scale: float, tmp: str) -> Outcome:
             finally:
                 out, err = finish_process(proc)
             safe = _safe(server) and CONFIRMED in out and "Traceback" not in err
-            # the other client's requests make the run's ticks irregular: the stream-rate
-            # check may end the run first ("the arm streams at ..."), also about the stream
-            named = TOOK_THE_STREAM in out + err or STREAMS_AT in out + err
+            # ticks lost whole while the stream was elsewhere are a gap the checks allow for:
+            # neither the stream-rate nor the plausibility check may end the run on them
+            named = TOOK_THE_STREAM in out + err
             if watchdog_s == "1":
                 ok = safe and (
                     (went_on and proc.returncode == 130) or (named and proc.returncode == 1)
@@ -767,7 +763,7 @@ def stuck_velocity(scale: float, tmp: str) -> Outcome:
     finally:
         server.stop()
     error = str(result.get("error"))
-    said = error.split(" at t = ")[0] + ": " + error.partition("E: ")[2].split(" (that")[0]
+    said = error.split(" at t = ")[0] + ": " + error.partition("E: ")[2].split(", that")[0] + ")"
     return Outcome(
         "stuck-velocity",
         "E's velocity stuck from 0.2 s of a 6 s run",
