@@ -287,6 +287,31 @@ def test_the_top_speed_the_check_allows_is_above_what_the_motors_can_do() -> Non
     assert np.all(no_load_speed(supply_voltage=30.0) < np.asarray(MAX_JOINT_SPEED))
 
 
+def _other_client(
+    server: Any, seconds: float, every_s: float = 0.01
+) -> tuple[threading.Thread, list[float]]:
+    """Another client on the arm's UDP port: once E is well under way (0.2 s into current
+    mode), a request every `every_s` for `seconds`, so the arm streams to it meanwhile
+    (A3-6; the run's own writes take the stream back until the next request)."""
+    host, port = server.udp_address
+    took: list[float] = []
+
+    def other() -> None:
+        assert wait_until(lambda: server.firmware.mode(int(E)) == Mode.CURRENT, timeout=30.0)
+        time.sleep(0.2)
+        ask = commands.request(DeviceID.B, [PacketID.MODE]).encode()
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                sock.sendto(ask, (host, port))
+                time.sleep(every_s)
+        took.append(server.sim_time)
+
+    thread = threading.Thread(target=other, daemon=True)
+    thread.start()
+    return thread, took
+
+
 def test_a_second_udp_client_taking_the_stream_a_while_is_not_read_as_a_wrong_rate(
     sim_factory,
 ) -> None:
@@ -298,22 +323,7 @@ def test_a_second_udp_client_taking_the_stream_a_while_is_not_read_as_a_wrong_ra
     stopped on "the arm streams at 26.9 Hz". The gap is now seen (`stream_gaps`), the jump
     check allows for the ticks it could have held and the rate check skips it."""
     server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
-    host, port = server.udp_address
-    took: list[float] = []
-
-    def other() -> None:  # once E is well under way, a request every 10 ms for 0.3 s
-        assert wait_until(lambda: server.firmware.mode(int(E)) == Mode.CURRENT, timeout=30.0)
-        time.sleep(0.2)
-        ask = commands.request(DeviceID.B, [PacketID.MODE]).encode()
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-            end = time.monotonic() + 0.3
-            while time.monotonic() < end:
-                sock.sendto(ask, (host, port))
-                time.sleep(0.01)
-        took.append(server.sim_time)
-
-    thread = threading.Thread(target=other, daemon=True)
-    thread.start()
+    thread, took = _other_client(server, 0.3)
     summary = _reach_run(
         server, 3.0, np.array([1.5, 0.2, -0.2, 0.3]), state_timeout_s=FEEDBACK_TIMEOUT_S
     )
@@ -323,3 +333,20 @@ def test_a_second_udp_client_taking_the_stream_a_while_is_not_read_as_a_wrong_ra
     assert summary.timing.stream_gaps >= 1 and summary.timing.lost_ticks >= 4
     assert summary.implausible_samples == 0, summary.events
     assert summary.measured_hz is not None and abs(summary.measured_hz - 20.0) < 2.0
+
+
+def test_a_second_udp_client_holding_the_stream_past_the_state_timeout_is_named(
+    sim_factory,
+) -> None:
+    """The loop's own state timeout (0.5 s without a state, before the 1 s watchdog) over
+    UDP asks the arm why (`ArmClient.stream_problem`): it names the other client, and the
+    arm is made safe."""
+    server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+    thread, _ = _other_client(server, 3.0, every_s=0.002)
+    summary = _reach_run(server, 6.0, np.array([1.5, 0.2, -0.2, 0.3]))
+    thread.join(timeout=30.0)
+    assert not summary.ok
+    error = str(summary.error)
+    assert error.startswith("feedback stopped: no complete state for 0.50 s"), error
+    assert "another client on this arm's UDP port took the stream" in error
+    assert summary.left_in == "zero_velocity (confirmed by the arm)"
