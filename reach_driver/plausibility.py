@@ -99,7 +99,8 @@ class FeedbackCheck:
         fresh: np.ndarray | None = None,
         unseen_s: float = 0.0,
     ) -> Verdict:
-        """Judge the sample at arm time `t`; plausible joints become the new good ones.
+        """Judge the sample at arm time `t`; plausible joints the arm reported in it become
+        the new good ones.
         `fresh` says per joint whether its velocity was reported for this sample (a value
         held over a lost packet repeats without being a repeat; default: all fresh);
         `unseen_s`: arm time that may have passed since the last sample on top of what `t`
@@ -136,7 +137,8 @@ class FeedbackCheck:
             else:
                 continue
             bad[i] = True
-        ok = ~bad
+        # the reference for the next jump: a sample the arm reported (not one filled in)
+        ok = ~bad if fresh is None else ~bad & fresh
         self.good_q[ok], self.good_qdot[ok], self.good_t[ok] = q[ok], qdot[ok], t
         self.unseen[ok] = 0.0
         return Verdict(bad, tuple(why))

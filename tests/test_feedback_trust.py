@@ -232,7 +232,9 @@ def stream_at(server: Any, factor: float) -> None:
 
 
 def _reach_run(server: Any, seconds: float, move: np.ndarray | None = None, **loop: Any) -> Any:
-    # A 1 s watchdog: a loaded host's stall is not what these runs are about.
+    # A 1 s watchdog and a 5 s wait for a state: a loaded host's stall is not what these runs
+    # are about (the state timeout's own test sets it back).
+    loop.setdefault("state_timeout_s", FEEDBACK_TIMEOUT_S)
     client = ArmClient(open_transport(udp_url(server)), safety=SafetyConfig(watchdog_s=1.0))
     client.start()
     try:
@@ -324,9 +326,7 @@ def test_a_second_udp_client_taking_the_stream_a_while_is_not_read_as_a_wrong_ra
     check allows for the ticks it could have held and the rate check skips it."""
     server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
     thread, took = _other_client(server, 0.3)
-    summary = _reach_run(
-        server, 3.0, np.array([1.5, 0.2, -0.2, 0.3]), state_timeout_s=FEEDBACK_TIMEOUT_S
-    )
+    summary = _reach_run(server, 3.0, np.array([1.5, 0.2, -0.2, 0.3]))
     thread.join(timeout=30.0)
     assert took, "the other client never wrote"
     assert summary.ok, summary.error
@@ -343,7 +343,7 @@ def test_a_second_udp_client_holding_the_stream_past_the_state_timeout_is_named(
     arm is made safe."""
     server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
     thread, _ = _other_client(server, 3.0, every_s=0.002)
-    summary = _reach_run(server, 6.0, np.array([1.5, 0.2, -0.2, 0.3]))
+    summary = _reach_run(server, 6.0, np.array([1.5, 0.2, -0.2, 0.3]), state_timeout_s=0.5)
     thread.join(timeout=30.0)
     assert not summary.ok
     error = str(summary.error)
