@@ -281,6 +281,8 @@ class _Run:
         self.assembler: StateAssembler | None = None
         self.feedback = FeedbackCheck(loop.plausibility)
         self.implausible = 0  # joint samples refused by the plausibility check
+        self.held = np.zeros(N, dtype=bool)  # joints held at their last good sample this tick
+        self.unseen_s = 0.0  # arm time lost whole in a gap before this state (estimated)
         self.bad_since = np.full(N, np.nan)  # arm time each joint turned implausible
         self.reported_t = -math.inf  # when implausible samples were last reported
         self.unreported = 0
@@ -323,6 +325,7 @@ class _Run:
                 ids = TELEMETRY
             client.stream(ids, loop.hz, JOINTS)
             ticks0: int | None = None
+            lost_before = 0
             while not loop._stop.is_set():
                 got = asm.take(loop.state_timeout_s)
                 if got is None:
@@ -338,11 +341,16 @@ class _Run:
                 t = (got.ticks - ticks0) / loop.hz
                 self._check_fresh(t, (got.ticks - got.seen) / loop.hz)
                 q, qdot = got.values[0::2], got.values[1::2]
+                # joints whose position and velocity were both reported in this tick
+                fresh = (got.seen[0::2] == got.ticks) & (got.seen[1::2] == got.ticks)
+                # ticks lost whole since the last state taken (a gap in the stream: not
+                # counted in t, so the checks comparing two samples allow for them)
+                self.unseen_s, lost_before = (got.lost - lost_before) / loop.hz, got.lost
                 if t >= self.seconds - 1e-9:
-                    q, qdot = self._plausible(t, q, qdot)
+                    q, qdot = self._plausible(t, q, qdot, fresh)
                     self.final = (t, q.copy(), qdot.copy(), got.currents)
                     break
-                self._act(t, q, qdot, got.times, _superseded(asm, got.serial), got.currents)
+                self._act(t, q, qdot, got.times, _superseded(asm, got.serial), got.currents, fresh)
             else:
                 self.stopped_by = "stop requested"
         finally:
@@ -398,6 +406,7 @@ class _Run:
         times: np.ndarray,
         late: Callable[[], bool],
         currents: np.ndarray | None,
+        fresh: np.ndarray | None = None,
     ) -> None:
         loop, client = self.loop, self.client
         faults = client.blocking_faults()
@@ -405,12 +414,13 @@ class _Run:
             named = "; ".join(f"{joint_name(d)}: {', '.join(f)}" for d, f in faults.items())
             raise ArmFaultError(f"the arm reports a fault at t = {t:.2f} s: {named}")
         self.t = t
-        q, qdot = self._plausible(t, q, qdot)
+        q, qdot = self._plausible(t, q, qdot, fresh)
         if np.isnan(q).any():
             return  # implausible before any good sample: nothing to hold, no step
         now = time.monotonic()
         self.q, self.qdot = q, qdot
-        self._check_rate(t, q, qdot)
+        usable = ~self.held if fresh is None else fresh & ~self.held
+        self._check_rate(t, q, qdot, usable)
         self.step_walls.append(now)
         age = now - float(np.min(times))
         try:
@@ -489,11 +499,13 @@ class _Run:
                 self._hold(verdict, q)
 
     def _plausible(
-        self, t: float, q: np.ndarray, qdot: np.ndarray
+        self, t: float, q: np.ndarray, qdot: np.ndarray, fresh: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """The state a controller may see (`reach_driver.plausibility`): a non-finite reading
-        ends the run; an implausible joint is counted, reported (at most once a second) and
-        held at its last good sample; one implausible for `stale_limit_s` ends the run."""
+        ends the run; an implausible joint (outside the envelope, too fast, a jump, a velocity
+        stuck while the joint moves otherwise; `fresh`: which velocities were reported now)
+        is counted, reported (at most once a second) and held at its last good sample; one
+        implausible for `stale_limit_s` ends the run."""
         for name, values, unit in (("position", q, "rad"), ("velocity", qdot, "rad/s")):
             bad = ~np.isfinite(values)
             if np.any(bad):
@@ -506,7 +518,8 @@ class _Run:
                     f"the arm reported a non-finite {name} ({unit}) at t = {t:.2f} s: {which}; "
                     "no controller was given it"
                 )
-        verdict = self.feedback.check(t, q, qdot)
+        verdict = self.feedback.check(t, q, qdot, fresh, self.unseen_s)
+        self.held = verdict.bad
         self.bad_since = np.where(verdict.bad, np.fmin(self.bad_since, t), np.nan)
         if not verdict.bad.any():
             return q, qdot
@@ -531,13 +544,14 @@ class _Run:
             self.reported_t, self.unreported = t, 0
         return self.feedback.held(q, qdot, verdict)
 
-    def _check_rate(self, t: float, q: np.ndarray, qdot: np.ndarray) -> None:
-        """The arm must stream at the rate asked (`reach_driver.stream_rate`): else arm time,
-        the controller's step and the metrics are wrong, and the run stops before acting."""
+    def _check_rate(self, t: float, q: np.ndarray, qdot: np.ndarray, usable: np.ndarray) -> None:
+        """The arm must stream at the rate asked (`reach_driver.stream_rate`, measured on the
+        `usable` joints: reported in this tick and plausible): else arm time, the
+        controller's step and the metrics are wrong, and the run stops before acting."""
         rate, hz = self.rate, self.loop.hz
         if rate is None:
             return
-        rate.update(round(t * hz), q, qdot)
+        rate.update(round(t * hz), q, qdot, usable, resumed=self.unseen_s > 0.0)
         if not rate.off():
             return
         measured = rate.measured_hz
@@ -656,6 +670,8 @@ class _Run:
             process_cpu_per_step_s=self.pcpu / steps if steps else math.nan,
             partial_states=asm.partial if asm is not None else 0,
             incomplete_ticks=asm.incomplete if asm is not None else 0,
+            stream_gaps=asm.gaps if asm is not None else 0,
+            lost_ticks=asm.lost if asm is not None else 0,
         )
         # The state that ended the run is the last one the arm reported.
         final_q = self.final[1] if self.final is not None else self.q

@@ -63,6 +63,8 @@ class TimingStats:
     process_cpu_per_step_s: float  # the whole process (reader thread included)
     partial_states: int = 0  # ticks handed out with a lost packet filled in
     incomplete_ticks: int = 0  # ticks never handed out (lost packets, or the loop was late)
+    stream_gaps: int = 0  # gaps in the stream (ticks lost whole, or the host stalled)
+    lost_ticks: int = 0  # ticks those gaps could have held: arm time not counted (at most)
 
 
 @dataclass(frozen=True)

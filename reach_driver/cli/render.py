@@ -430,7 +430,8 @@ def print_summary(console: Console, s: ControlSummary) -> None:
         f"p50 {t.state_age_p50_s * 1e3:.2f} / p99 {t.state_age_p99_s * 1e3:.2f} ms, latency "
         f"p50 {t.latency_p50_s * 1e3:.2f} / p99 {t.latency_p99_s * 1e3:.2f} ms, missed "
         f"deadlines {t.missed_deadlines}, skipped states {t.skipped_states}, partial states "
-        f"{t.partial_states}, incomplete ticks {t.incomplete_ticks}, CPU "
+        f"{t.partial_states}, incomplete ticks {t.incomplete_ticks}, stream gaps "
+        f"{t.stream_gaps} (up to {t.lost_ticks} ticks not counted), CPU "
         f"{t.cpu_per_step_s * 1e6:.0f} us/step (process {t.process_cpu_per_step_s * 1e6:.0f})"
     )
     console.print(

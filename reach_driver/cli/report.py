@@ -64,6 +64,8 @@ def summary_dict(s: ControlSummary) -> dict[str, object]:
         "skipped_states": t.skipped_states,
         "partial_states": t.partial_states,
         "incomplete_ticks": t.incomplete_ticks,
+        "stream_gaps": t.stream_gaps,
+        "lost_ticks": t.lost_ticks,
         "left_in": s.left_in,
         "events": list(s.events),
         "metrics": None if metrics is None else metrics.as_dict(),
