@@ -51,6 +51,7 @@ from reach_driver.controllers import (
     controller_report,
     describe_controllers,
     load_controller,
+    registered_list,
 )
 from reach_driver.errors import ArmFaultError, DriverError, Interrupted
 from reach_driver.kinematics import tool_position
@@ -461,8 +462,7 @@ def _report_link_lost(client: ArmClient, target: np.ndarray, move_started: float
 def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
     params = dict(args.param)
     if args.controller not in available_controllers():  # a typo is a bad command line (2)
-        known = ", ".join(available_controllers()) or "none (is reach-stack installed?)"
-        raise UsageError(f"unknown controller {args.controller!r}; registered: {known}")
+        raise UsageError(f"unknown controller {args.controller!r}; registered: {registered_list()}")
     try:
         controller = load_controller(args.controller, **params)
     except (OSError, ValueError) as exc:  # a missing weights file, a bad gain...
