@@ -26,6 +26,7 @@ from reach_driver.cli.exits import Exit, UsageError, for_operator, left_in_for_o
 from reach_driver.cli.live import MoveView, RunView, chain
 from reach_driver.cli.recorder import CliRecorder, output_path_problem
 from reach_driver.cli.render import (
+    as_typed,
     blocking_faults,
     controllers_lines,
     diagnostics_table,
@@ -572,14 +573,15 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
         if recorder is not None and recorder.failed:
             console.print(
                 f"[yellow]recording incomplete[/]: {escape(recorder.failed)}; what reached "
-                f"the file before that reads back with `reach-driver inspect "
+                f"the file before that reads back with `{escape(as_typed('reach-driver'))} inspect "
                 f"{escape(args.record)}`",
                 soft_wrap=True,
             )
         elif args.record:
+            record = escape(args.record)
             console.print(
-                f"recorded {escape(args.record)}: open it with `rerun {escape(args.record)}`, "
-                f"summarise it with `reach-driver inspect {escape(args.record)}`",
+                f"recorded {record}: open it with `{escape(as_typed('rerun'))} {record}`, "
+                f"summarise it with `{escape(as_typed('reach-driver'))} inspect {record}`",
                 soft_wrap=True,  # keep the commands copyable
             )
         if summary.error:
