@@ -32,6 +32,7 @@ from policy.campaigns.evaluation import (
 )
 from policy.campaigns.parallel import CampaignError, evaluate_parallel
 from reach_driver.cli.tables import show_table
+from reach_driver.controllers import registered_list
 from reach_driver.errors import DriverError
 from reach_driver.metrics import ALL_METRIC_KEYS, metric_label
 from reach_sim_bridge.model.params import load_arm_params
@@ -222,8 +223,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--controller",
         required=True,
-        help="controller entry-point name in reach_stack.controllers (ddpg-distilled, mpc, "
-        "pid, lambda; `reach-driver controllers` lists them)",
+        help=f"a registered controller: {registered_list()} (`reach-driver controllers` says "
+        "what each is)",
     )
     add_param_option(p, "--param horizon=15")
     src = p.add_mutually_exclusive_group(required=True)

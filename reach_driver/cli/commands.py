@@ -26,6 +26,7 @@ from reach_driver.cli.exits import Exit, UsageError, for_operator, left_in_for_o
 from reach_driver.cli.live import MoveView, RunView, chain
 from reach_driver.cli.recorder import CliRecorder, output_path_problem
 from reach_driver.cli.render import (
+    as_typed,
     blocking_faults,
     controllers_lines,
     diagnostics_table,
@@ -51,6 +52,7 @@ from reach_driver.controllers import (
     controller_report,
     describe_controllers,
     load_controller,
+    registered_list,
 )
 from reach_driver.errors import ArmFaultError, DriverError, Interrupted
 from reach_driver.kinematics import tool_position
@@ -461,8 +463,7 @@ def _report_link_lost(client: ArmClient, target: np.ndarray, move_started: float
 def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
     params = dict(args.param)
     if args.controller not in available_controllers():  # a typo is a bad command line (2)
-        known = ", ".join(available_controllers()) or "none (is reach-stack installed?)"
-        raise UsageError(f"unknown controller {args.controller!r}; registered: {known}")
+        raise UsageError(f"unknown controller {args.controller!r}; registered: {registered_list()}")
     try:
         controller = load_controller(args.controller, **params)
     except (OSError, ValueError) as exc:  # a missing weights file, a bad gain...
@@ -572,14 +573,15 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
         if recorder is not None and recorder.failed:
             console.print(
                 f"[yellow]recording incomplete[/]: {escape(recorder.failed)}; what reached "
-                f"the file before that reads back with `reach-driver inspect "
+                f"the file before that reads back with `{escape(as_typed('reach-driver'))} inspect "
                 f"{escape(args.record)}`",
                 soft_wrap=True,
             )
         elif args.record:
+            record = escape(args.record)
             console.print(
-                f"recorded {escape(args.record)}: open it with `rerun {escape(args.record)}`, "
-                f"summarise it with `reach-driver inspect {escape(args.record)}`",
+                f"recorded {record}: open it with `{escape(as_typed('rerun'))} {record}`, "
+                f"summarise it with `{escape(as_typed('reach-driver'))} inspect {record}`",
                 soft_wrap=True,  # keep the commands copyable
             )
         if summary.error:

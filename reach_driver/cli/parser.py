@@ -12,6 +12,7 @@ from protocol.alpha5 import TORQUE_PER_AMP_NM
 from protocol.viewer import add_viewer_option
 from reach_driver.cli.exits import exit_table_text
 from reach_driver.control import Pacing
+from reach_driver.controllers import registered_list
 from reach_driver.transport import DEFAULT_BAUD
 
 DESCRIPTION = """\
@@ -404,8 +405,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--controller",
         required=True,
-        help="a registered name, e.g. pid, mpc, ddpg-distilled (`reach-driver controllers` "
-        "lists them)",
+        help=f"a registered name: {registered_list()} (`reach-driver controllers` says what "
+        "each is)",
     )
     run.add_argument("--target", nargs=4, type=float, required=True, metavar=("E", "D", "C", "B"))
     run.add_argument("--seconds", type=_positive, required=True, help="loop (arm) seconds")

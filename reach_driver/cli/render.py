@@ -4,7 +4,10 @@ the registered controllers."""
 from __future__ import annotations
 
 import math
+import shutil
+import sys
 import textwrap
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -25,6 +28,21 @@ from reach_driver.metrics import METRIC_KEYS, metric_label
 from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind
 from reach_driver.state import MONITOR_READINGS, JointState, joint_name
+
+
+def as_typed(program: str) -> str:
+    """How the user types one of this install's programs (`rerun`, `reach-driver`): bare when
+    it is on PATH, else its path beside this interpreter (a venv not activated, as after
+    `make demo`), relative when under the working directory. Every hint names it this way."""
+    if shutil.which(program):
+        return program
+    beside = Path(sys.executable).with_name(program)
+    if not beside.is_file():
+        return program
+    try:
+        return str(beside.relative_to(Path.cwd()))
+    except ValueError:
+        return str(beside)
 
 
 def fmt(value: float | None, digits: int = 4) -> str:
