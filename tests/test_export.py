@@ -1,7 +1,7 @@
 """`reach-driver export`: a recorded run as ROS 2 messages in MCAP, read back by an independent
 ROS 2 decoder (mcap-ros2-support, with the vendored rosidl parser for the schemas), and as CSV
 and Parquet read back by pandas, each value equal to the recording's; bad input is one line,
-exit 2 and no file."""
+exit 1 (an unreadable recording, as inspect) or 2 (a bad --to) and no file."""
 
 from __future__ import annotations
 
@@ -295,7 +295,7 @@ def test_a_recording_cut_short_exports_what_it_holds_and_says_so(tmp_path, capsy
     _assert_mcap_matches(tmp_path / "cut.mcap", run)
 
 
-# -- bad input: one line, exit 2, no file --------------------------------------------------------
+# -- bad input: one line, exit 1 or 2, no file -----------------------------------------------------
 
 
 def _left(directory: Path) -> set[str]:
@@ -317,7 +317,7 @@ def _left(directory: Path) -> set[str]:
     ],
 )
 @pytest.mark.parametrize("suffix", [".mcap", ".csv", ".parquet"])
-def test_bad_input_is_one_line_exit_2_and_no_file(tmp_path, capsys, case, said, suffix) -> None:
+def test_bad_input_is_one_line_and_no_file(tmp_path, capsys, case, said, suffix) -> None:
     work = tmp_path / "work"
     work.mkdir()
     rrd, out = work / "run.rrd", work / f"out{suffix}"
@@ -362,7 +362,9 @@ def test_bad_input_is_one_line_exit_2_and_no_file(tmp_path, capsys, case, said, 
     device = os.stat("/dev/null")
     code = main(["export", str(rrd), "--to", str(out)])
     captured = capsys.readouterr()
-    assert code == Exit.USAGE, captured
+    # a recording that cannot be read fails as inspect's does (1); a bad --to is usage (2)
+    unreadable = case in ("missing", "junk", "not-ours", "ragged")
+    assert code == (Exit.FAILED if unreadable else Exit.USAGE), captured
     lines = [line for line in captured.err.splitlines() if line.strip()]
     assert len(lines) == 1 and "Traceback" not in captured.err, captured.err
     assert lines[0].startswith("error: ") and said in lines[0], lines[0]
@@ -375,7 +377,7 @@ def test_a_failed_export_leaves_an_existing_file_as_it_was(tmp_path, capsys) -> 
     (tmp_path / "junk.rrd").write_bytes(b"junk")
     out = tmp_path / "run.csv"
     out.write_text("what was there\n")
-    assert main(["export", str(tmp_path / "junk.rrd"), "--to", str(out)]) == Exit.USAGE
+    assert main(["export", str(tmp_path / "junk.rrd"), "--to", str(out)]) == Exit.FAILED
     assert out.read_text() == "what was there\n"
     assert _left(tmp_path) == {"junk.rrd", "run.csv"}
     capsys.readouterr()

@@ -659,7 +659,12 @@ def cmd_export(args: argparse.Namespace, console: Console) -> Exit:
         raise UsageError(problem)
     try:
         report = export_recording(args.file, args.to)
-    except (ExportError, RecordingReadError) as exc:
+    except RecordingReadError as exc:  # as inspect: the file, not the command line, is wrong
+        _notes().print(
+            f"[red]error[/]: cannot export {escape(args.file)}: {escape(str(exc))}", soft_wrap=True
+        )
+        return Exit.FAILED
+    except ExportError as exc:
         raise UsageError(f"cannot export {args.file}: {exc}") from None
     except OSError as exc:
         raise DriverError(f"cannot write {args.to}: {exc}; nothing was written") from None
