@@ -59,13 +59,11 @@ VIEWER_USAGE = (
 _PROBE_TIMEOUT_S = 1.0
 _VIEWER_CLOSE_S = 1.0  # the longest closing waits for a viewer that stopped answering
 _VIEWER_WATCH_S = 1.0  # how often the viewer stream is flushed, off the logging thread
-#: How often the viewer stream sends what was logged (a chunk per entity). A viewer takes in
-#: messages for about 10 ms a frame (rerun 0.41): one drawing slowly (a browser on software
-#: WebGL, a frame or two a second) fell ever further behind rerun's default 0.2 s chunks.
-import os as _os
-
-LIVE_FLUSH_S = float(_os.environ.get("REACH_LIVE_FLUSH_S", "0.5"))
-_NEWEST_FIRST = _os.environ.get("REACH_NEWEST_FIRST", "1") == "1"
+#: How often the viewer stream sends what was logged (a chunk per entity, every entity). A
+#: viewer takes in messages for about 10 ms a frame (rerun 0.41); one that draws a frame a
+#: second or less (a browser on software WebGL) fell ever further behind rerun's default
+#: 0.2 s chunks. Twice a second keeps a live arm moving and sends 2.5 times fewer messages.
+LIVE_FLUSH_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -419,7 +417,9 @@ def open_viewer(
                         "pick others (--viewer serve GRPC_PORT WEB_PORT) or --viewer connect"
                     )
             rec.set_sinks(
-                rr.GrpcServerSink(bind_ip=spec.bind, port=spec.port, newest_first=_NEWEST_FIRST),
+                # a viewer that joins late is sent the newest data first: the present at once,
+                # the run's start after it
+                rr.GrpcServerSink(bind_ip=spec.bind, port=spec.port, newest_first=True),
                 default_blueprint=blueprint,
             )
             web = _start_web_viewer(spec)

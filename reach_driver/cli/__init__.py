@@ -146,6 +146,7 @@ def _serve_on(kept: Sequence[RunRecorder], errors: Console, signals: Signals) ->
     stop = threading.Event()
     try:
         with signals.rerouted(stop.set):
+            sys.stdout.flush()  # the summary is out, even into a pipe, before the wait
             errors.print(
                 f"viewer: done; still serving it at {escape(where)} (Ctrl-C to stop)",
                 soft_wrap=True,
