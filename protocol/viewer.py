@@ -19,6 +19,12 @@ raises if any fails, so with one stream of two sinks a viewer that went away wou
 logging thread at each flush and end the file. `ViewerTee` logs to both; the viewer stream is
 flushed only on a thread of its own, and its first error is reported once and it is dropped,
 the file goes on.
+
+The viewer stream sends every LIVE_FLUSH_S (fewer, larger messages than rerun's default, which
+a slowly drawing viewer could not keep up with), and `serve` replays what a viewer that joins
+late missed newest first, so it shows the present at once. `--viewer-keep` (`add_viewer_option`
+with `keep`) is the command line's: its recorder leaves the stream open when the command is
+done, and `reach-driver` closes it on Ctrl-C.
 """
 
 from __future__ import annotations

@@ -46,9 +46,9 @@ JOINT_KEY = "E red, D green, C blue, B yellow"
 
 #: The vertical field of view of rerun's 3D eye (0.41 has no setting for it).
 EYE_FOV_Y_RAD = math.radians(55.0)
-#: The narrowest 3D view (width / height) the whole reach must still fit in; a wider one
-#: shows more around it.
-MIN_VIEW_ASPECT = 0.6
+#: The narrowest 3D view (width / height) the whole reach must still fit in: the blueprints'
+#: 3D view in a 4:3 window or any wider one (a wider view shows more around it).
+MIN_VIEW_ASPECT = 0.8
 #: Room left around the reach, as a fraction of the eye's distance.
 EYE_MARGIN = 0.05
 #: From where the eye looks at the arm: rerun's own default direction (from -y, a little to

@@ -37,8 +37,14 @@ Entity layout (read back by `reach_driver.rrd_summary`):
 
 Live viewing (`reach-driver run/move/monitor --viewer`): the same entities go to a second
 stream with the same recording id whose sink is a Rerun viewer (`protocol.viewer`, shared with
-`reach-sim`, says how and why). The viewer stream is never flushed on the control loop's
-thread; its first error is reported once and it is dropped, the file goes on.
+`reach-sim`, says how and why), with the same blueprint but a time panel that follows the
+newest data. The viewer stream is never flushed on the control loop's thread; its first error
+is reported once and it is dropped, the file goes on. `close(keep_viewer=True)` ends the file
+and leaves the viewer serving (`--viewer-keep`) until `close_viewer`.
+
+The default blueprint (`default_blueprint`; `protocol.viewer_layout` for what the simulator's
+shows alike): the 3D eye frames the arm's whole reach (`arm_bodies`, `arm_eye`), every plot
+spans the whole recording with its legend hidden (the titles name the colours).
 """
 
 from __future__ import annotations
@@ -213,7 +219,7 @@ def default_blueprint(live: bool = False) -> rrb.Blueprint:
             rrb.Vertical(
                 *(series_view(f"/{entity}", name) for entity, name in DIAGNOSTIC_VIEWS),
             ),
-            column_shares=[3, 4, 2, 2],
+            column_shares=[4, 4, 2, 2],
         ),
         time_panel(TIMELINE_TIME, live),
         rrb.BlueprintPanel(state="collapsed"),

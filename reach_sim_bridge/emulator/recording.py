@@ -28,7 +28,10 @@ Live viewing (`reach-sim --viewer spawn | connect URL | serve`): the same sample
 second stream with the same recording id whose sink is a viewer (`protocol.viewer`, the one
 copy the driver uses too), never flushed by the recorder and not bounded (a viewer keeps what
 its memory limit allows); its first error is reported once and it is dropped, the file and
-the simulator go on. Without `--record` the arm is streamed only.
+the simulator go on. Without `--record` the arm is streamed only. Its time panel follows the
+newest data; a file's plays from the start. Both blueprints frame the arm's whole reach
+(`arm_bodies`, from the model) and plot over the whole recording without legends
+(`protocol.viewer_layout`).
 """
 
 from __future__ import annotations
@@ -274,7 +277,7 @@ def _blueprint(eye: EyePose, live: bool = False) -> rrb.Blueprint:
                 series_view("/velocities", "velocities (rad/s)"),
                 series_view("/link/frames", "link: frames (count)"),
             ),
-            column_shares=[3, 4, 2],
+            column_shares=[4, 4, 2],
         ),
         time_panel(TIMELINE_TIME, live),
         rrb.BlueprintPanel(state="collapsed"),
