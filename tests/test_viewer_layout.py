@@ -62,18 +62,21 @@ def _surface(g: LinkGeom) -> np.ndarray:
     rot, center = _rotation(g.quat_xyzw), np.asarray(g.center)
     if g.shape == "cylinder":
         r, length = g.size
-        local = [
-            (r * math.cos(a), r * math.sin(a), s * length / 2)
-            for s in (-1, 1)
-            for a in np.linspace(0, 2 * math.pi, 16, endpoint=False)
-        ]
+        local = np.array(
+            [
+                (r * math.cos(a), r * math.sin(a), s * length / 2)
+                for s in (-1, 1)
+                for a in np.linspace(0, 2 * math.pi, 16, endpoint=False)
+            ]
+        )
     else:
-        local = [tuple(s * h for s, h in zip(signs, g.size, strict=True)) for signs in _signs()]
-    return center + np.array(local) @ rot.T
+        local = _signs() * np.asarray(g.size)
+    return center + local @ rot.T
 
 
-def _signs() -> list[tuple[int, int, int]]:
-    return list(itertools.product((-1, 1), repeat=3))
+def _signs() -> np.ndarray:
+    """The eight corners of a unit box, (8, 3)."""
+    return np.array(list(itertools.product((-1, 1), repeat=3)), dtype=float)
 
 
 def _driver_points(q: np.ndarray) -> np.ndarray:
@@ -97,14 +100,16 @@ def _sim_points(arm: Alpha5Arm, q: np.ndarray, jaw: float) -> np.ndarray:
     for g in [*drawn.cylinders, *drawn.boxes]:
         rot, center, size = d.geom_xmat[g].reshape(3, 3), d.geom_xpos[g], m.geom_size[g]
         if g in drawn.cylinders:
-            local = [
-                (size[0] * math.cos(a), size[0] * math.sin(a), s * size[1])
-                for s in (-1, 1)
-                for a in np.linspace(0, 2 * math.pi, 16, endpoint=False)
-            ]
+            local = np.array(
+                [
+                    (size[0] * math.cos(a), size[0] * math.sin(a), s * size[1])
+                    for s in (-1, 1)
+                    for a in np.linspace(0, 2 * math.pi, 16, endpoint=False)
+                ]
+            )
         else:
-            local = [tuple(s * h for s, h in zip(signs, size, strict=True)) for signs in _signs()]
-        out.append(center + np.array(local) @ rot.T)
+            local = _signs() * size
+        out.append(center + local @ rot.T)
     return np.vstack(out)
 
 
