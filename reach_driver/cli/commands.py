@@ -10,7 +10,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from rich.console import Console
@@ -62,6 +62,9 @@ from reach_driver.safety import LimitKind, SafetyGuard
 from reach_driver.state import joint_name
 from reach_driver.watchdog import watchdog_too_short
 
+if TYPE_CHECKING:
+    from reach_driver.recording import RunRecorder
+
 
 def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
     client = connect(args, console)
@@ -108,6 +111,15 @@ def _streams_elsewhere(client: ArmClient) -> str:
     return f"{names} streamed a heartbeat at {max(hz[d] for d in on)} Hz"
 
 
+def _kept(args: argparse.Namespace) -> list[RunRecorder] | None:
+    """With --viewer-keep: where a command's recorder leaves its live viewer serving for
+    `main` to wait on once the command is done (None: close it with the command)."""
+    if not getattr(args, "viewer_keep", False):
+        return None
+    kept: list[RunRecorder] = args.kept_viewers
+    return kept
+
+
 def _check_record(args: argparse.Namespace) -> None:
     """Before the port is opened: `--record` must name a file, never the arm's port."""
     if args.record:
@@ -136,7 +148,11 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
         if viewer is not None or args.record:
             meta = {"command": "monitor", "port": args.port, "rate_hz": rate}
             recorder = CliRecorder(
-                args.record, meta, viewer=viewer, diagnostics=lambda: client.state.joints
+                args.record,
+                meta,
+                viewer=viewer,
+                diagnostics=lambda: client.state.joints,
+                keep_into=_kept(args),
             )
             stream = _StateStream(client, recorder)
         if args.json:
@@ -315,7 +331,7 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 if viewer is not None:
                     ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT)
                     meta = {"command": "move", "port": args.port, "target": target.tolist()}
-                    recorder = CliRecorder(None, meta, viewer=viewer)
+                    recorder = CliRecorder(None, meta, viewer=viewer, keep_into=_kept(args))
                     stream = _StateStream(client, recorder, target)
                 client.stream(ids, 20, devices)
                 q0 = client.read_joints((PacketID.POSITION,)).q
@@ -507,7 +523,11 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
                 "seconds": args.seconds,
             }
             recorder = CliRecorder(
-                args.record, meta, viewer=viewer, diagnostics=lambda: client.state.joints
+                args.record,
+                meta,
+                viewer=viewer,
+                diagnostics=lambda: client.state.joints,
+                keep_into=_kept(args),
             )
             client.read_diagnostics()  # the run's recording opens with every device's readings
         view = RunView(Console(stderr=True, highlight=False), args.seconds, enabled=not args.quiet)

@@ -324,6 +324,7 @@ def build_parser() -> argparse.ArgumentParser:
         mon,
         VIEWER_HELP + ". With a viewer, states go to it at 20 Hz; the table still refreshes "
         "twice a second",
+        keep=True,
     )
 
     move = add(
@@ -379,7 +380,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="give up (exit 1, joints stopped) after this many seconds (default 60); the "
         "reply timeout is --reply-timeout here",
     )
-    add_viewer_option(move, VIEWER_HELP)
+    add_viewer_option(move, VIEWER_HELP, keep=True)
 
     run = add(
         "run",
@@ -442,7 +443,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.rrd",
         help="record the run for Rerun (a write error stops the recording, not the run: exit 6)",
     )
-    add_viewer_option(run, VIEWER_HELP)
+    add_viewer_option(run, VIEWER_HELP, keep=True)
 
     ctl = add(
         "controllers",

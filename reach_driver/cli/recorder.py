@@ -75,11 +75,14 @@ class CliRecorder:
         warn: Console | None = None,
         viewer: ViewerSpec | None = None,
         diagnostics: Callable[[], Mapping[int, JointState]] | None = None,
+        keep_into: list[RunRecorder] | None = None,
     ) -> None:
         """Opens the recording (and the viewer); fails (DriverError) before anything moves if
         the file cannot be written. A viewer that cannot be had only warns. `diagnostics`
         gives what the driver knows of each device (`ArmClient.state.joints`): its Monitor
-        readings and status flags are logged at each step or refresh that has newer ones."""
+        readings and status flags are logged at each step or refresh that has newer ones.
+        `keep_into` (`--viewer-keep`): closing ends the file but leaves a live viewer serving,
+        the recorder put in this list for the command line to close when it is done."""
         try:
             from reach_driver import recording
         except ImportError as exc:
@@ -92,6 +95,7 @@ class CliRecorder:
         self.failed: str | None = None
         self.steps = 0
         self._diagnostics = diagnostics
+        self._keep_into = keep_into
         try:
             self._rec: RunRecorder | None = recording.RunRecorder(
                 path,
@@ -191,6 +195,14 @@ class CliRecorder:
         if self._diagnostics is not None:
             rec.log_diagnostics(t, step, self._diagnostics())
 
+    def _close(self, rec: RunRecorder) -> None:
+        """End the file; the viewer too, unless it is to be kept serving."""
+        keep = self._keep_into is not None and rec.viewing
+        rec.close(keep_viewer=keep)
+        self._rec = None
+        if keep and self._keep_into is not None:
+            self._keep_into.append(rec)
+
     def close(self, text: str = "stop") -> None:
         """End a `monitor` or `move` stream (no summary)."""
         rec = self._rec
@@ -198,8 +210,7 @@ class CliRecorder:
             return
         try:
             rec.log_event(text)
-            rec.close()
-            self._rec = None
+            self._close(rec)
         except Exception as exc:
             self._fail(exc, "while closing")
 
@@ -243,7 +254,6 @@ class CliRecorder:
                         rec.log_event(said)
                 rec.log_summary(recorded)
             rec.log_event("stop")
-            rec.close()
-            self._rec = None
+            self._close(rec)
         except Exception as exc:
             self._fail(exc, "while closing")
