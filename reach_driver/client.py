@@ -123,6 +123,10 @@ class ArmClient(ArmQueries):
         #: rate, seconds the feedback had stopped); reader thread only (`_stream_answer`).
         self._stream_probe: tuple[int, float] | None = None
         self.watchdog = Watchdog()
+        #: When the reader thread last came back from a read, and how long it had been away
+        #: then (reader thread only): the watchdog tells a stalled process from a stalled loop.
+        self._reader_t: float | None = None
+        self._reader_gap_s = 0.0
         self.faults = FaultFlags()
         self._waiters = Waiters()
         self._requests = Requester(
@@ -540,6 +544,10 @@ class ArmClient(ArmQueries):
                     self._stop.wait(0.1)  # failed for good: nothing to reopen
                 continue
             now = self.clock()
+            # A read waits at most read_timeout_s: a longer absence means this process did
+            # not run (no CPU for it, or the GIL held elsewhere), the loop's thread no more.
+            self._reader_gap_s = now - self._reader_t if self._reader_t is not None else 0.0
+            self._reader_t = now
             if chunk:
                 for packet in self.decoder.feed(chunk):
                     self._dispatch(packet, now)
@@ -614,7 +622,9 @@ class ArmClient(ArmQueries):
                 fed = (vel.t, "velocity")
             return fed
 
-        expired = self.watchdog.expired(now, self.guard.config.watchdog_s, feedback_t)
+        expired = self.watchdog.expired(
+            now, self.guard.config.watchdog_s, feedback_t, away_s=self._reader_gap_s
+        )
         if expired is None:
             return
         reason, devices = expired

@@ -94,7 +94,7 @@ class Watchdog:
                 self._armed.pop(int(d), None)
 
     def expired(
-        self, now: float, limit_s: float | None, feedback_t: FeedbackTime
+        self, now: float, limit_s: float | None, feedback_t: FeedbackTime, away_s: float = 0.0
     ) -> tuple[str, tuple[int, ...]] | None:
         """(why, armed devices) if commands or feedback are older than `limit_s`, else None.
 
@@ -128,7 +128,7 @@ class Watchdog:
             reason = (
                 f"no command for {silent:.3f} s ({limit}) while the arm's feedback kept "
                 "arriving: the controller did not command (a stalled or slow controller, a "
-                "loaded host, or a control period near the watchdog)"
+                f"loaded host, or a control period near the watchdog) [reader away {away_s:.3f}]"
             )
             return reason, tuple(armed)
         return None

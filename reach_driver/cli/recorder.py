@@ -161,7 +161,15 @@ class CliRecorder:
                     torque_Nm=r.torque_Nm,
                 )
             )
-            rec.log_link(r.t, r.step, r.good_frames, r.bad_frames, r.state_age_s, r.latency_s)
+            rec.log_link(
+                r.t,
+                r.step,
+                r.good_frames,
+                r.bad_frames,
+                r.state_age_s,
+                r.latency_s,
+                r.loop_period_s,
+            )
             self._log_diagnostics(rec, r.t, r.step)
             self.steps += 1
         except Exception as exc:
