@@ -210,6 +210,9 @@ class ControlLoop:
             run.error = run.stopped_by = str(exc)
         except DriverError as exc:
             run.error = str(exc)
+            if isinstance(exc, WatchdogTrippedError) and run.tripped_gap is not None:
+                # where the loop's time went meanwhile (`reach_driver.loop_timing`)
+                run.error += f"; the loop meanwhile: {run.tripped_gap.describe()}"
             run.stopped_by = f"{type(exc).__name__}: {exc}"
         except KeyboardInterrupt as exc:  # Ctrl-C, or a signal the caller turned into one
             interrupted = exc
@@ -301,7 +304,7 @@ class _Run:
         self.pcpu0 = time.process_time()
         self.cpu = 0.0
         self.pcpu = 0.0
-        self.gap_log = GapLog()  # the gaps between commands, taken apart
+        self.gap_log = GapLog(self.client.reader_away)  # the gaps between commands
         self.tripped_gap: Gap | None = None  # the gap the watchdog ended
 
     # -- the loop ---------------------------------------------------------------------------
@@ -309,6 +312,7 @@ class _Run:
         loop = self.loop
         loop.controller.reset()
         self.gap_log.start()
+        self.client.loop_timing = lambda: self.gap_log.timing(loop.period_s)
         try:
             if loop.pacing is Pacing.STREAM:
                 self._run_stream()
@@ -316,6 +320,7 @@ class _Run:
                 self._run_poll()
         finally:
             self.gap_log.stop()
+            self.client.loop_timing = None
 
     def _run_stream(self) -> None:
         loop, client = self.loop, self.client

@@ -21,11 +21,14 @@ import math
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any
 
 import numpy as np
+
+from reach_driver.watchdog import LoopTiming
 
 #: How many of the longest gaps a run keeps, taken apart.
 KEPT_GAPS = 5
@@ -117,6 +120,14 @@ class Gap:
     gc_s: float  # garbage collection, any thread
     cpu_s: float  # the loop thread on a CPU
     runqueue_s: float | None  # the loop thread runnable, waiting for a CPU (None: unknown)
+    reader_away_s: float = 0.0  # the longest the reader thread was away from the link
+    reader_queued_s: float | None = None  # of which runnable, given no CPU (None: unknown)
+
+    @property
+    def process_stalled(self) -> bool:
+        """The reader was away for most of the wait: this process was not running (no CPU,
+        or the GIL held elsewhere), not the arm late."""
+        return self.reader_away_s > 0.5 * max(self.arm_wait_s, 1e-9) and self.reader_away_s > 0.05
 
     @property
     def other_s(self) -> float:
@@ -127,8 +138,13 @@ class Gap:
     def parts(self) -> dict[str, float]:
         """The gap's parts, largest first (the loop's own CPU and the run queue overlap the
         others, so they are named apart in `describe`)."""
+        waiting = (
+            "this process not running (the reader thread away too)"
+            if self.process_stalled
+            else "waiting for the arm's state"
+        )
         named = {
-            "waiting for the arm's state": self.arm_wait_s,
+            waiting: self.arm_wait_s,
             "waking for the state it had": self.wake_s,
             "the controller": self.controller_s,
             "the step hook (recorder, viewer, live view)": self.hook_s,
@@ -148,10 +164,16 @@ class Gap:
             if self.runqueue_s is None
             else f", runnable but given no CPU for {ms(self.runqueue_s)}"
         )
+        away = ""
+        if self.reader_away_s >= 0.05:
+            queued = self.reader_queued_s
+            of = "" if queued is None else f" ({ms(queued)} of it runnable, given no CPU)"
+            away = f"; the reader thread was away {ms(self.reader_away_s)}{of}"
+
         return (
             f"step {self.step} (t = {self.t:.2f} s) came {ms(self.gap_s)} after the previous "
             f"command: {parts or 'nothing measurable'}; the loop thread ran {ms(self.cpu_s)}"
-            f"{queue}"
+            f"{queue}{away}"
         )
 
     def as_dict(self) -> dict[str, object]:
@@ -166,6 +188,8 @@ class Gap:
             "gc_s": self.gc_s,
             "cpu_s": self.cpu_s,
             "runqueue_s": self.runqueue_s,
+            "reader_away_s": self.reader_away_s,
+            "reader_queued_s": self.reader_queued_s,
             "cause": self.cause(),
         }
 
@@ -201,7 +225,10 @@ class GapStats:
 class GapLog:
     """The loop's side: parts are added as they happen (`add_*`), `command` closes a gap."""
 
-    def __init__(self) -> None:
+    def __init__(self, reader_away: Callable[[], tuple[float, float | None]] | None = None) -> None:
+        """`reader_away`: the longest the link's reader was away since last asked
+        (`ArmClient.reader_away`)."""
+        self._reader_away = reader_away
         self.gaps: list[float] = []
         self._kept: list[tuple[float, int, Gap]] = []  # a min-heap of the longest
         self._last: float | None = None
@@ -241,6 +268,7 @@ class GapLog:
 
     def _gap(self, now: float, step: int, t: float, cpu: float, queue: float | None) -> Gap:
         assert self._last is not None
+        away, queued = self._reader_away() if self._reader_away is not None else (0.0, None)
         return Gap(
             step=step,
             t=t,
@@ -252,6 +280,8 @@ class GapLog:
             gc_s=self.pauses.total_s - self._gc0,
             cpu_s=cpu - self._cpu0,
             runqueue_s=None if queue is None or self._queue0 is None else queue - self._queue0,
+            reader_away_s=away,
+            reader_queued_s=queued,
         )
 
     def _keep(self, entry: Gap) -> None:
@@ -280,11 +310,21 @@ class GapLog:
             entry = self._gap(now, step, t, cpu, queue)
             self.gaps.append(entry.gap_s)
             self._keep(entry)
+        elif self._reader_away is not None:
+            self._reader_away()  # counted from the first command on
         self._last = now
         self._arm_wait = self._wake = self._controller = self._hook = 0.0
         self._gc0 = self.pauses.total_s
         self._cpu0 = cpu
         self._queue0 = queue
+
+    def timing(self, nominal_s: float) -> LoopTiming | None:
+        """The loop's timing so far, for the watchdog's message (any thread); None before
+        two commands."""
+        gaps = list(self.gaps)
+        if not gaps:
+            return None
+        return LoopTiming(nominal_s, float(np.percentile(gaps, 99)), max(gaps), len(gaps))
 
     def stats(self) -> GapStats:
         if not self.gaps:

@@ -35,6 +35,7 @@ import json
 import os
 import pty
 import re
+import shlex
 import signal
 import struct
 import subprocess
@@ -121,18 +122,20 @@ def _python(*args: str) -> list[str]:
     return [sys.executable, *args]
 
 
-def _env() -> dict[str, str]:
+def _env(tree: Path = ROOT) -> dict[str, str]:
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    env["PYTHONPATH"] = os.pathsep.join([str(tree), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     return env
 
 
 class Sim:
     """`reach-sim --link LINK --record sim.rrd [--udp ...]`, waited for until its link exists."""
 
-    def __init__(self, where: Path, name: str, udp: str | None, nice: int) -> None:
+    def __init__(
+        self, where: Path, name: str, udp: str | None, nice: int, prefix: list[str] | None = None
+    ) -> None:
         self.link = where / name
-        cmd = _python("-m", "reach_sim_bridge", "--link", str(self.link))
+        cmd = [*(prefix or []), *_python("-m", "reach_sim_bridge", "--link", str(self.link))]
         if udp:
             cmd += ["--udp", udp]
         cmd += ["--record", str(where / f"{name}.rrd")]
@@ -143,6 +146,7 @@ class Sim:
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
             preexec_fn=(lambda: os.nice(nice)) if nice else None,
+            start_new_session=True,  # started from a terminal of its own, as the README does
         )
         deadline = time.monotonic() + 60
         while not self.link.exists():
@@ -194,6 +198,7 @@ class Load:
                         stdin=subprocess.DEVNULL,
                         preexec_fn=pre,
                         env=_env(),
+                        start_new_session=True,  # another program, not part of the run
                     )
                 )
                 if out is not subprocess.DEVNULL:
@@ -270,6 +275,8 @@ class RunResult:
     failure: str | None  # the "run failed: ..." line, if any
     periods_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     summary: dict[str, object] = field(default_factory=dict)
+    tree: Path = ROOT
+    prefixed: bool = False
 
 
 WATCHDOG_LINE = re.compile(r"watchdog: (.*?)(?:; put |\n|$)")
@@ -285,6 +292,8 @@ def run_once(
     tty: bool,
     spy: str | None = None,
     sample: bool = False,
+    tree: Path = ROOT,
+    prefix: list[str] | None = None,
 ) -> RunResult:
     rec = where / f"run{index}.rrd"
     wrap = []
@@ -292,6 +301,8 @@ def run_once(
         out = str(where / f"run{index}.speedscope.json")
         wrap = [spy, "record", "--idle", "--threads", "--rate", "250", "--format", "speedscope"]
         wrap += ["--nonblocking", "-o", out, "--"]
+    if prefix:
+        wrap = [*prefix, *wrap]
     cmd = wrap + _python(
         "-m", "reach_driver", "--port", str(port), *README_RUN, "--seconds", f"{seconds:g}"
     )
@@ -304,7 +315,14 @@ def run_once(
         reader = threading.Thread(target=_drain, args=(master, 0.0, chunks), daemon=True)
         reader.start()
         proc = subprocess.Popen(
-            cmd, stdin=slave, stdout=slave, stderr=slave, env=_env(), cwd=where, close_fds=True
+            cmd,
+            stdin=slave,
+            stdout=slave,
+            stderr=slave,
+            env=_env(tree),
+            cwd=where,
+            close_fds=True,
+            start_new_session=True,  # a terminal's session, as a person's shell gives it
         )
         os.close(slave)
         watcher = _watch(proc.pid, where / f"run{index}.threads.json") if sample else None
@@ -315,7 +333,12 @@ def run_once(
         os.close(master)
     else:
         proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=_env(), cwd=where
+            cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            env=_env(tree),
+            cwd=where,
+            start_new_session=True,
         )
         watcher = _watch(proc.pid, where / f"run{index}.threads.json") if sample else None
         out, _ = proc.communicate()
@@ -354,6 +377,35 @@ def fmt(p: dict[str, float]) -> str:
     return " / ".join(f"{k} {v:.1f}" for k, v in p.items()) + " ms"
 
 
+def summarize(label: str, results: list[RunResult]) -> dict[str, object]:
+    """Print and return the figures of a set of runs: trips, failures, the pooled loop
+    period, and the largest part of each gap over 100 ms."""
+    pooled = np.concatenate([r.periods_ms for r in results]) if results else np.zeros(0)
+    trips = sum(1 for r in results if r.watchdog)
+    failed = sum(1 for r in results if r.exit_code != 0)
+    causes: dict[str, int] = {}
+    for r in results:
+        for g in r.summary.get("longest_gaps") or []:  # type: ignore[union-attr]
+            if isinstance(g, dict) and float(g.get("gap_s", 0)) > 0.1:
+                causes[str(g["cause"])] = causes.get(str(g["cause"]), 0) + 1
+    print(
+        f"\n{label + ': ' if label else ''}{trips} watchdog trip(s), {failed} run(s) not exit 0, "
+        f"of {len(results)}; loop period over {pooled.size} gaps: {fmt(percentiles(pooled))}"
+    )
+    if causes:
+        print(
+            "gaps over 100 ms, by their largest part: "
+            + "; ".join(f"{name} {n}" for name, n in sorted(causes.items(), key=lambda kv: -kv[1]))
+        )
+    return {
+        "runs": len(results),
+        "watchdog_trips": trips,
+        "not_ok": failed,
+        "loop_period_ms": percentiles(pooled),
+        "gap_causes": causes,
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter
@@ -369,6 +421,30 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, help="keep the runs' files here (default: a temp dir)")
     parser.add_argument("--json", type=Path, help="write the figures here")
     parser.add_argument("--py-spy", metavar="EXE", help="sample each run with this py-spy")
+    parser.add_argument(
+        "--prefix",
+        type=shlex.split,
+        metavar="COMMAND",
+        help="run each command under this (e.g. --prefix 'chrt -f 10', or 'nice -n 5')",
+    )
+    parser.add_argument(
+        "--sim-prefix",
+        type=shlex.split,
+        metavar="COMMAND",
+        help="run the arm's reach-sim under this (e.g. 'chrt -f 20': a virtual arm that keeps "
+        "time, as a real one does)",
+    )
+    parser.add_argument(
+        "--prefix-alternate",
+        action="store_true",
+        help="only every second run under --prefix (an A/B: A without, B with)",
+    )
+    parser.add_argument(
+        "--against",
+        type=Path,
+        metavar="TREE",
+        help="alternate the runs with this checkout's driver (an A/B under the same load)",
+    )
     parser.add_argument(
         "--threads-trace",
         action="store_true",
@@ -386,15 +462,28 @@ def main(argv: list[str] | None = None) -> int:
         f"{args.seconds:g} s{', on a pty' if args.tty else ''}); load: {what}; "
         f"{os.cpu_count()} CPUs"
     )
-    sim = Sim(where, "alpha5", "127.0.0.1:0", 0)
+    sim = Sim(where, "alpha5", "127.0.0.1:0", 0, args.sim_prefix)
     load = Load(args.load, where, args.nice)
     results: list[RunResult] = []
     try:
         time.sleep(1.0)  # let the load start up
         for k in range(1, args.runs + 1):
+            tree = args.against if args.against is not None and k % 2 == 0 else ROOT
+            prefix = args.prefix if not args.prefix_alternate or k % 2 == 0 else None
             r = run_once(
-                k, sim.link, where, args.seconds, viewer, args.tty, args.py_spy, args.threads_trace
+                k,
+                sim.link,
+                where,
+                args.seconds,
+                viewer,
+                args.tty,
+                args.py_spy,
+                args.threads_trace,
+                tree,
+                prefix,
             )
+            r.prefixed = bool(prefix)
+            r.tree = tree
             results.append(r)
             p = percentiles(r.periods_ms)
             longest = r.summary.get("longest_gaps") or []
@@ -404,31 +493,29 @@ def main(argv: list[str] | None = None) -> int:
                 cause = f"; longest {1e3 * float(g['gap_s']):.0f} ms: {g['cause']}"
             said = f" WATCHDOG: {r.watchdog}" if r.watchdog else ""
             failed = f" FAILED: {r.failure}" if r.failure and not r.watchdog else ""
+            ab = args.against is not None or args.prefix_alternate
+            which = ("B" if tree != ROOT or r.prefixed else "A") if ab else ""
             print(
-                f"run {k:3d} exit {r.exit_code} load {os.getloadavg()[0]:.1f} | {fmt(p)}"
+                f"run {k:3d}{which} exit {r.exit_code} load {os.getloadavg()[0]:.1f} | {fmt(p)}"
                 f"{cause}{said}{failed}",
                 flush=True,
             )
     finally:
         load.stop()
         sim.stop()
-    pooled = np.concatenate([r.periods_ms for r in results]) if results else np.zeros(0)
-    trips = [r for r in results if r.watchdog]
+    groups = {"": results}
+    if args.against is not None:
+        groups = {
+            f"A ({ROOT})": [r for r in results if r.tree == ROOT],
+            f"B ({args.against})": [r for r in results if r.tree != ROOT],
+        }
+    elif args.prefix_alternate:
+        groups = {
+            "A (as is)": [r for r in results if not r.prefixed],
+            f"B ({' '.join(args.prefix or [])})": [r for r in results if r.prefixed],
+        }
+    figures = {label: summarize(label, rs) for label, rs in groups.items()}
     failed = [r for r in results if r.exit_code != 0]
-    causes: dict[str, int] = {}
-    for r in results:
-        for g in r.summary.get("longest_gaps") or []:  # type: ignore[union-attr]
-            if isinstance(g, dict) and float(g.get("gap_s", 0)) > 0.1:
-                causes[str(g["cause"])] = causes.get(str(g["cause"]), 0) + 1
-    print(
-        f"\n{len(trips)} watchdog trip(s), {len(failed)} run(s) not exit 0, of {len(results)}; "
-        f"loop period over {pooled.size} gaps: {fmt(percentiles(pooled))}"
-    )
-    if causes:
-        print(
-            "gaps over 100 ms, by their largest part: "
-            + "; ".join(f"{name} {n}" for name, n in sorted(causes.items(), key=lambda kv: -kv[1]))
-        )
     if args.json:
         args.json.write_text(
             json.dumps(
@@ -438,11 +525,10 @@ def main(argv: list[str] | None = None) -> int:
                     "load": what,
                     "tty": args.tty,
                     "viewer": viewer,
-                    "watchdog_trips": len(trips),
-                    "not_ok": len(failed),
-                    "loop_period_ms": percentiles(pooled),
+                    "groups": figures,
                     "per_run": [
                         {
+                            "tree": str(r.tree),
                             "exit": r.exit_code,
                             "watchdog": r.watchdog,
                             "failure": r.failure,
