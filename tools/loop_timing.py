@@ -46,6 +46,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -341,9 +342,9 @@ def run_once(
             start_new_session=True,
         )
         watcher = _watch(proc.pid, where / f"run{index}.threads.json") if sample else None
-        out, _ = proc.communicate()
+        captured, _ = proc.communicate()
         code = proc.returncode
-        chunks = [out]
+        chunks = [captured]
         if watcher is not None:
             watcher.join(10)
     wall = time.monotonic() - started
@@ -377,6 +378,13 @@ def fmt(p: dict[str, float]) -> str:
     return " / ".join(f"{k} {v:.1f}" for k, v in p.items()) + " ms"
 
 
+def longest_gaps(r: RunResult) -> list[dict[str, Any]]:
+    """The run's longest gaps between commands, taken apart, as its recording's summary
+    holds them (`reach_driver.loop_timing.Gap.as_dict`), longest first."""
+    gaps = r.summary.get("longest_gaps")
+    return [g for g in gaps if isinstance(g, dict)] if isinstance(gaps, list) else []
+
+
 def summarize(label: str, results: list[RunResult]) -> dict[str, object]:
     """Print and return the figures of a set of runs: trips, failures, the pooled loop
     period, and the largest part of each gap over 100 ms."""
@@ -385,8 +393,8 @@ def summarize(label: str, results: list[RunResult]) -> dict[str, object]:
     failed = sum(1 for r in results if r.exit_code != 0)
     causes: dict[str, int] = {}
     for r in results:
-        for g in r.summary.get("longest_gaps") or []:  # type: ignore[union-attr]
-            if isinstance(g, dict) and float(g.get("gap_s", 0)) > 0.1:
+        for g in longest_gaps(r):
+            if float(g.get("gap_s", 0)) > 0.1:
                 causes[str(g["cause"])] = causes.get(str(g["cause"]), 0) + 1
     print(
         f"\n{label + ': ' if label else ''}{trips} watchdog trip(s), {failed} run(s) not exit 0, "
@@ -486,18 +494,18 @@ def main(argv: list[str] | None = None) -> int:
             r.tree = tree
             results.append(r)
             p = percentiles(r.periods_ms)
-            longest = r.summary.get("longest_gaps") or []
+            longest = longest_gaps(r)
             cause = ""
-            if isinstance(longest, list) and longest and isinstance(longest[0], dict):
+            if longest:
                 g = longest[0]
                 cause = f"; longest {1e3 * float(g['gap_s']):.0f} ms: {g['cause']}"
             said = f" WATCHDOG: {r.watchdog}" if r.watchdog else ""
-            failed = f" FAILED: {r.failure}" if r.failure and not r.watchdog else ""
+            note = f" FAILED: {r.failure}" if r.failure and not r.watchdog else ""
             ab = args.against is not None or args.prefix_alternate
             which = ("B" if tree != ROOT or r.prefixed else "A") if ab else ""
             print(
                 f"run {k:3d}{which} exit {r.exit_code} load {os.getloadavg()[0]:.1f} | {fmt(p)}"
-                f"{cause}{said}{failed}",
+                f"{cause}{said}{note}",
                 flush=True,
             )
     finally:
