@@ -59,8 +59,10 @@ from reach_driver.errors import (
     DriverError,
     Interrupted,
     StreamRateError,
+    WatchdogTrippedError,
 )
 from reach_driver.link import EventKind, LinkState
+from reach_driver.loop_timing import Gap, GapLog
 from reach_driver.plausibility import FeedbackCheck, PlausibilityConfig
 from reach_driver.records import ControlSummary, LoopTrace, StepHook, StepRecord, TimingStats
 from reach_driver.safety import LimitKind
@@ -208,6 +210,9 @@ class ControlLoop:
             run.error = run.stopped_by = str(exc)
         except DriverError as exc:
             run.error = str(exc)
+            if isinstance(exc, WatchdogTrippedError) and run.tripped_gap is not None:
+                # where the loop's time went meanwhile (`reach_driver.loop_timing`)
+                run.error += f"; the loop meanwhile: {run.tripped_gap.describe()}"
             run.stopped_by = f"{type(exc).__name__}: {exc}"
         except KeyboardInterrupt as exc:  # Ctrl-C, or a signal the caller turned into one
             interrupted = exc
@@ -301,15 +306,23 @@ class _Run:
         self.pcpu0 = time.process_time()
         self.cpu = 0.0
         self.pcpu = 0.0
+        self.gap_log = GapLog(self.client.reader_away)  # the gaps between commands
+        self.tripped_gap: Gap | None = None  # the gap the watchdog ended
 
     # -- the loop ---------------------------------------------------------------------------
     def execute(self) -> None:
         loop = self.loop
         loop.controller.reset()
-        if loop.pacing is Pacing.STREAM:
-            self._run_stream()
-        else:
-            self._run_poll()
+        self.gap_log.start()
+        self.client.loop_timing = lambda: self.gap_log.timing(loop.period_s)
+        try:
+            if loop.pacing is Pacing.STREAM:
+                self._run_stream()
+            else:
+                self._run_poll()
+        finally:
+            self.gap_log.stop()
+            self.client.loop_timing = None
 
     def _run_stream(self) -> None:
         loop, client = self.loop, self.client
@@ -327,7 +340,12 @@ class _Run:
             ticks0: int | None = None
             lost_before = 0
             while not loop._stop.is_set():
+                asked = time.monotonic()
                 got = asm.take(loop.state_timeout_s)
+                held = time.monotonic()
+                if got is not None:
+                    complete = float(np.nanmax(got.times)) if np.isfinite(got.times).any() else 0
+                    self.gap_log.add_state_wait(held - asked, complete, held)
                 if got is None:
                     why = client.tripped or client.stream_problem()
                     raise DriverError(
@@ -367,12 +385,15 @@ class _Run:
                 t = next_t - self.t0_wall
                 if t >= self.seconds - 1e-9:
                     break
-                delay = next_t - time.monotonic()
+                asked = time.monotonic()
+                delay = next_t - asked
                 if delay > 0:
                     time.sleep(delay)
                 replies = client.request_many(
                     JOINTS, TELEMETRY, timeout_s=max(0.8 * period, 0.005), retries=0, partial=True
                 )
+                held = time.monotonic()
+                self.gap_log.add_state_wait(held - asked, held, held)
                 values = np.full(2 * N, np.nan)
                 times = np.full(2 * N, np.nan)
                 for i, dev in enumerate(JOINTS):
@@ -432,6 +453,8 @@ class _Run:
             raise ControllerError(
                 f"the controller failed at t = {t:.2f} s: {type(exc).__name__}: {exc}"
             ) from exc
+        finally:
+            self.gap_log.add_controller(time.monotonic() - now)
         if raw.shape != (N,) or not np.all(np.isfinite(raw)):
             raise ControllerError(f"controller returned {raw!r}: need 4 finite currents in mA")
         clipped = np.clip(raw, self.i_lo, self.i_hi)
@@ -440,8 +463,14 @@ class _Run:
             # Only now: until the controller has acted the joints keep holding as they were.
             client.set_mode(JOINTS, Mode.CURRENT)
             self.mode_set = True
-        sent = client.command_currents(clipped)
+        try:
+            sent = client.command_currents(clipped)
+        except WatchdogTrippedError:
+            self.tripped_gap = self.gap_log.pending(time.monotonic(), self.step, t)
+            raise
         written = time.monotonic()
+        gap = self.gap_log.in_gap(written) if self.step else math.nan
+        self.gap_log.command(written, self.step, t)
         if t >= self.next_status_t:
             # Fire and forget: the reply updates the client's fault flags, checked each step.
             device = int(JOINTS[self.status_joint])
@@ -484,7 +513,9 @@ class _Run:
                 bad_frames=stats.bad_total,
                 current_mA=measured,
                 torque_Nm=torque,
+                loop_period_s=gap,
             )
+            hooked = time.monotonic()
             try:
                 loop.on_step(record)
             except Exception as exc:
@@ -492,6 +523,8 @@ class _Run:
                     f"the step hook (recorder or viewer) failed at t = {t:.2f} s: "
                     f"{type(exc).__name__}: {exc}"
                 ) from exc
+            finally:
+                self.gap_log.add_hook(time.monotonic() - hooked)
         self.step += 1
         if self.chatter is not None:
             verdict = self.chatter.update(t, q, qdot, sent, self.goal)
@@ -672,6 +705,7 @@ class _Run:
             incomplete_ticks=asm.incomplete if asm is not None else 0,
             stream_gaps=asm.gaps if asm is not None else 0,
             lost_ticks=asm.lost if asm is not None else 0,
+            gaps=self.gap_log.stats(),
         )
         # The state that ended the run is the last one the arm reported.
         final_q = self.final[1] if self.final is not None else self.q

@@ -20,6 +20,8 @@ Entity layout (read back by `reach_driver.rrd_summary`):
     link/frames           Scalars [good frames, bad frames]   counts since the run started
     link/state_age        Scalars [age of the oldest reading in the state]   ms
     link/latency          Scalars [state complete -> command written]   ms
+    link/loop_period      Scalars [time since the previous command]   ms (wall clock: what the
+                          watchdog judges; a stall of the host shows here)
     diagnostics/<key>     Scalars [E, D, C, B, A], one entity per Monitor reading, named with
                           its unit (`reach_driver.state.MONITOR_READINGS`: voltage_v,
                           temperature_c, humidity_pct, internal_pressure_bar (0x67),
@@ -105,6 +107,7 @@ LINK_VIEWS = (
     ("link/frames", "link: frames received (count)"),
     ("link/state_age", "link: state age (ms)"),
     ("link/latency", "link: latency, state to command (ms)"),
+    ("link/loop_period", "link: loop period, command to command (ms)"),
 )
 
 #: The devices of the diagnostics entities, in their order: the four joints, then the jaw.
@@ -363,6 +366,7 @@ class RunRecorder:
         rec.log("link/frames", rr.SeriesLines(names=["good frames", "bad frames"]), static=True)
         rec.log("link/state_age", rr.SeriesLines(names=["state age ms"]), static=True)
         rec.log("link/latency", rr.SeriesLines(names=["latency ms"]), static=True)
+        rec.log("link/loop_period", rr.SeriesLines(names=["loop period ms"]), static=True)
         for entity, _ in DIAGNOSTIC_VIEWS:
             rec.log(
                 entity,
@@ -446,15 +450,19 @@ class RunRecorder:
         bad: int,
         state_age_s: float,
         latency_s: float | None = None,
+        loop_period_s: float | None = None,
     ) -> None:
         """The link's health at one step: frame counts, state age and (if known) the latency
-        from the state being complete to the command being written, each its own entity."""
+        from the state being complete to the command being written and the wall time since the
+        previous command, each its own entity."""
         self._set_time(t, step)
         rec = self._rec
         rec.log("link/frames", rr.Scalars([float(good), float(bad)]))
         rec.log("link/state_age", rr.Scalars(state_age_s * 1e3))
         if latency_s is not None:
             rec.log("link/latency", rr.Scalars(latency_s * 1e3))
+        if loop_period_s is not None and np.isfinite(loop_period_s):
+            rec.log("link/loop_period", rr.Scalars(loop_period_s * 1e3))
 
     def log_diagnostics(self, t: float, step: int, joints: Mapping[int, JointState]) -> bool:
         """The devices' Monitor readings and HARDWARE_STATUS flags, those the driver has a

@@ -82,6 +82,8 @@ class RecordedRun:
     closed_cleanly: bool = True
     truncated: bool = False  # cut inside a message: read up to the last complete one
     truncated_bytes: int = 0  # the bytes of the incomplete message that were skipped
+    #: ms since the previous command, per step (NaN where not logged; None: not recorded)
+    loop_period_ms: np.ndarray | None = None
     #: The devices' Monitor readings and status flags, by MONITOR_READINGS key and STATUS_KEY
     #: (only those the recording holds: none in a recording made before they were logged).
     diagnostics: dict[str, DiagnosticSeries] = field(default_factory=dict)
@@ -443,6 +445,7 @@ def read_recording(path: str | Path) -> RecordedRun:
 
     events = _events(by_entity)
     summary_text = _static_text(by_entity.get("/run/summary", []))
+    period = aligned("/link/loop_period", 1)
     return RecordedRun(
         t=np.array([t_index[int(k)] for k in steps]),
         step=steps,
@@ -463,6 +466,7 @@ def read_recording(path: str | Path) -> RecordedRun:
         truncated=truncated_bytes > 0,
         truncated_bytes=truncated_bytes,
         diagnostics=diagnostics,
+        loop_period_ms=None if period is None else period[:, 0],
     )
 
 

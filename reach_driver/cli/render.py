@@ -452,6 +452,9 @@ def print_summary(console: Console, s: ControlSummary) -> None:
         f"{t.stream_gaps} (up to {t.lost_ticks} ticks not counted), CPU "
         f"{t.cpu_per_step_s * 1e6:.0f} us/step (process {t.process_cpu_per_step_s * 1e6:.0f})"
     )
+    gaps = t.gaps
+    longest = f"; longest: {gaps.longest[0].describe()}" if gaps.longest else ""
+    console.print(escape(f"{gaps.brief()}{longest}"))
     console.print(
         f"saturated steps {s.saturated_steps}, barrier cuts {s.barrier_steps}, implausible "
         f"samples {s.implausible_samples}, duplicate packets {s.duplicate_packets}, stream "
