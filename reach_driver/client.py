@@ -684,6 +684,11 @@ class ArmClient(ArmQueries):
         stream, limit = self._stream, self.guard.config.watchdog_s
         if stream is None or limit is None or not self.transport.shared_by_other_hosts:
             return []
+        # This reader away for most of the limit is the stale feedback's cause (the trip says
+        # the machine was busy): the stream kept coming, into the socket. An arm that answers
+        # the probe is then no evidence of another client, only that the link works.
+        if self._reader_gap_s > limit / 2:
+            return []
         # another client takes the whole stream: only when no streamed device's position
         # arrived in the last half watchdog (one quantity of one joint stopping while the
         # others keep arriving is the arm's own fault; a stream that stopped leaves every

@@ -417,28 +417,72 @@ def test_run_with_an_absent_viewer_warns_and_exits_ok(sim, tmp_path, capsys) -> 
     assert err.count("no Rerun viewer answers") == 1, err
 
 
-def test_monitor_streams_the_arm_to_a_viewer(sim, receiver, capsys) -> None:
+def test_monitor_streams_the_arm_to_a_viewer(sim, tmp_path, receiver, capsys) -> None:
     port, received, proc = receiver
-    argv = ["--port", str(sim.link), "-q", "monitor", "--seconds", "1"]
+    record = tmp_path / "monitor.rrd"
+    argv = ["--port", str(sim.link), "-q", "monitor", "--seconds", "1", "--record", str(record)]
     assert main([*argv, "--viewer", "connect", str(port)]) == 0
     assert "warning" not in capsys.readouterr().err
-    _stop(proc, received)
+    local = read_recording(record)
+    _stop(proc, received, local.step.tolist())
     live = read_recording(received)
-    assert len(live.step) >= 10  # 20 Hz for a second
+    # the whole second watched (up to the state it ended on), and all of it reached the viewer
+    assert len(local.step) >= 2 and local.t[-1] >= 1.0
+    assert live.step.tolist() == local.step.tolist()
     assert np.all(np.isfinite(live.q)) and np.all(np.isnan(live.target))
+
+
+def test_monitor_seconds_count_from_when_it_watches(sim, tmp_path, monkeypatch) -> None:
+    """Opening the recording and viewer (loading rerun) took seconds on a loaded host, all of
+    `--seconds 1`: the monitor recorded nothing. Its seconds start once it is watching."""
+    from reach_driver.cli import commands
+
+    opened = commands.CliRecorder
+
+    def slow_open(*args: object, **kwargs: object) -> object:
+        time.sleep(1.5)  # a host too busy to load rerun within the monitor's second
+        return opened(*args, **kwargs)
+
+    monkeypatch.setattr(commands, "CliRecorder", slow_open)
+    record = tmp_path / "monitor.rrd"
+    argv = ["--port", str(sim.link), "-q", "monitor", "--seconds", "1", "--record", str(record)]
+    assert main(argv) == 0
+    local = read_recording(record)
+    assert len(local.step) >= 2 and local.t[-1] >= 1.0, local.t
 
 
 def test_move_streams_the_arm_and_its_target_to_a_viewer(sim, receiver, capsys) -> None:
     port, received, proc = receiver
     q = sim.snapshot().q + np.array([0.1, 0.0, 0.0, 0.0])
-    argv = ["--port", str(sim.link), "-q", "move", *map(str, q)]
+    tolerance = 0.02
+    argv = ["--port", str(sim.link), "-q", "move", *map(str, q), "--tolerance", str(tolerance)]
     assert main([*argv, "--viewer", "connect", str(port)]) == 0
     assert "warning" not in capsys.readouterr().err
     _stop(proc, received)
     live = read_recording(received)
     assert len(live.step) >= 3 and np.all(np.isfinite(live.q))
     np.testing.assert_allclose(live.target[-1], q)
-    assert np.max(np.abs(live.q[-1] - q)) <= 0.02
+    assert np.max(np.abs(live.q[-1] - q)) <= tolerance  # the state the move ended on
+
+
+def test_move_streams_the_state_it_ended_on_whenever_the_last_tick_was(
+    sim, tmp_path, receiver, monkeypatch
+) -> None:
+    """The viewer's last frame of a move is the state that was judged reached, not the 20 Hz
+    tick before it (a loaded host's last tick came early and showed the arm short of its
+    tolerance). Here the stream ticks once only: the start, then the end."""
+    from reach_driver.cli import commands
+
+    monkeypatch.setattr(commands._StateStream, "PERIOD_S", 1e9)
+    port, received, proc = receiver
+    q = sim.snapshot().q + np.array([0.1, 0.0, 0.0, 0.0])
+    tolerance = 0.02
+    argv = ["--port", str(sim.link), "-q", "move", *map(str, q), "--tolerance", str(tolerance)]
+    assert main([*argv, "--viewer", "connect", str(port)]) == 0
+    _stop(proc, received, [0, 1])
+    live = read_recording(received)
+    assert live.step.tolist() == [0, 1]
+    assert np.max(np.abs(live.q[-1] - q)) <= tolerance
 
 
 # -- reach-sim --viewer --------------------------------------------------------------------------

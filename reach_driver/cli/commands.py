@@ -60,7 +60,7 @@ from reach_driver.kinematics import tool_position
 from reach_driver.link import EventKind, LinkState
 from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind, SafetyGuard
-from reach_driver.state import joint_name
+from reach_driver.state import ArmState, joint_name
 from reach_driver.watchdog import watchdog_too_short
 
 if TYPE_CHECKING:
@@ -144,7 +144,6 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
                 f"[yellow]--rate {args.rate} Hz is more than the line carries for "
                 f"{len(ids)} values of {len(devices)} devices: streaming at {rate} Hz[/yellow]"
             )
-        end = time.monotonic() + args.seconds if args.seconds else math.inf
         _read_diagnostics(client)  # the first table (and a recording) starts with them
         if viewer is not None or args.record:
             meta = {"command": "monitor", "port": args.port, "rate_hz": rate}
@@ -156,6 +155,9 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
                 keep_into=_kept(args),
             )
             stream = _StateStream(client, recorder)
+        # --seconds of watching, counted once the recording and the viewer are open: opening
+        # them (loading rerun) takes seconds on a loaded host, which must not eat the window
+        end = time.monotonic() + args.seconds if args.seconds else math.inf
         if args.json:
             return _monitor_json(client, console, end, stream)
         if not console.is_terminal:
@@ -178,6 +180,8 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
         return Exit.OK  # Ctrl-C before the first refresh ends a monitor just as well
     finally:
         if recorder is not None:
+            if stream is not None:
+                stream.last()  # the arm as the monitor ended
             recorder.close()
         client.close()
 
@@ -244,7 +248,16 @@ class _StateStream:
         if now - self._last < self.PERIOD_S:
             return
         self._last = now
-        state = self.client.state
+        self._log(now, self.client.state)
+
+    def last(self, state: ArmState | None = None) -> None:
+        """The state the command ended on (`state`, the one it judged; else the arm's latest),
+        whenever the last tick was: the viewer's last frame is where the arm ended up."""
+        now = time.monotonic()
+        self._last = now
+        self._log(now, state if state is not None else self.client.state)
+
+    def _log(self, now: float, state: ArmState) -> None:
         seen = np.isfinite(state.q)
         if not np.any(seen) or (not np.all(seen) and now - self.t0 < self.FIRST_FULL_S):
             return  # wait for every joint's first angle (a joint that never answers: 1 s)
@@ -402,6 +415,8 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                             )
                             break
                         _wait(0.05, stream, stop)
+                    if stream is not None:
+                        stream.last(state)  # the state that ended the move (reached or not)
                 if done:
                     console.print(f"[green]reached[/] within {args.tolerance} rad: {detail}")
                     if args.xyz is not None:

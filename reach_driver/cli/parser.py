@@ -308,7 +308,11 @@ def build_parser() -> argparse.ArgumentParser:
     mon.add_argument(
         "--rate", type=_rate, default=10, help="heartbeat rate, 1..255 Hz (default 10)"
     )
-    mon.add_argument("--seconds", type=_positive, help="stop after this many seconds")
+    mon.add_argument(
+        "--seconds",
+        type=_positive,
+        help="stop after watching this many seconds (counted once --record and --viewer are open)",
+    )
     mon.add_argument(
         "--json",
         action="store_true",
