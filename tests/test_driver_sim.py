@@ -444,7 +444,7 @@ def test_a_busy_host_that_did_not_read_the_udp_stream_is_not_blamed_on_another_c
         arm.subscribe(step)
         arm.stream((PacketID.POSITION, PacketID.VELOCITY), 50)
         assert wait_until(lambda: sim.firmware.mode(3) == Mode.CURRENT, timeout=10.0)
-        read, stalled = arm.transport.read, []
+        read, stalled = arm.transport.read, list[bool]()
 
         def stalling_read() -> bytes:
             if not stalled:

@@ -19,6 +19,7 @@ import time
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -439,7 +440,7 @@ def test_monitor_seconds_count_from_when_it_watches(sim, tmp_path, monkeypatch) 
 
     opened = commands.CliRecorder
 
-    def slow_open(*args: object, **kwargs: object) -> object:
+    def slow_open(*args: Any, **kwargs: Any) -> Any:
         time.sleep(1.5)  # a host too busy to load rerun within the monitor's second
         return opened(*args, **kwargs)
 
