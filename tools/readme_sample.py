@@ -48,7 +48,7 @@ END = "<!-- /sample -->"
 PROMPT = "$ "
 ELIDED = "..."
 #: Lines that report the host the run went on, not the run: shown as ELIDED.
-HOST_LINES = ("rate ", "saturated steps ", "torque = ")
+HOST_LINES = ("rate ", "loop period ", "saturated steps ", "torque = ")
 #: A number matches the one shown when |ran - shown| <= ABS + rel * |shown|, rel REL or, on a
 #: line whose label starts with a key of LOOSER, that. Measured at real time on a 2-core host
 #: at load 8-15 (70 runs): the figures spread by 2.5 % at most, but a host pause early in the
