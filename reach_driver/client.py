@@ -734,6 +734,17 @@ class ArmClient(ArmQueries):
             reply = self.request(dev, [PacketID.HEARTBEAT_FREQUENCY])
         except DriverError:
             return None
+        # The stream still reaching this client (a position within a few ticks of the reply)
+        # means the state was late, not taken: the loop's wait ran out while this host did
+        # not run it. The arm answering at its rate says nothing of another client then.
+        pos = self.table.get(dev).position
+        fresh_s = max(3.0 / stream.hz, 0.05)
+        if pos is not None and self.clock() - pos.t <= fresh_s:
+            return (
+                f"the stream still reaches this client ({joint_name(dev)}'s position is "
+                f"{1e3 * (self.clock() - pos.t):.0f} ms old): the state came late, not lost; "
+                "this host did not run the loop in time (a busy machine)"
+            )
         return self._stream_lost(dev, reply[PacketID.HEARTBEAT_FREQUENCY])
 
     def _stream_lost(self, device: int, rate: Packet) -> str:

@@ -462,6 +462,23 @@ def test_a_busy_host_that_did_not_read_the_udp_stream_is_not_blamed_on_another_c
     assert "this process itself had not run" in tripped and "busy" in tripped, tripped
 
 
+def test_a_late_state_with_the_stream_still_arriving_is_not_blamed_on_another_client(
+    sim,
+) -> None:
+    """The control loop's state wait running out while the stream still reaches this client
+    (the host did not run the loop in time) was explained as "another client on this arm's
+    UDP port took the stream", since the arm answers the rate probe. With the stream still
+    arriving here, the explanation says the state came late."""
+    url = udp_url(sim)
+    with ArmClient(open_transport(url)) as arm:
+        arm.stream((PacketID.POSITION, PacketID.VELOCITY), 50, [DeviceID.E, DeviceID.D])
+        assert wait_until(lambda: arm.joint(DeviceID.D).position is not None, timeout=10.0)
+        why = arm.stream_problem() or ""
+        assert "another client" not in why and "took the stream" not in why, why
+        assert "still reaches this client" in why and "late" in why, why
+        arm.stop_stream()
+
+
 def test_info_over_udp_says_when_another_client_was_streaming(sim, capsys) -> None:
     """A3-6, the second client's side: `info` cannot avoid taking a UDP arm's stream (the
     arm streams to the last host that wrote to it), so it says it found one running."""
