@@ -88,6 +88,11 @@ INGREDIENTS: tuple[Ingredient, ...] = (
         ("gamma=0.95",),
     ),
     Ingredient(
+        "critic-ln",
+        "LayerNorm in the critic's hidden layers (off in the recipe): a steadier value fit",
+        ("critic_layer_norm=true",),
+    ),
+    Ingredient(
         "potential",
         "potential-based shaping switched on (off in the recipe)",
         ("env.reward.potential_weight=2.0",),

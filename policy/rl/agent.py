@@ -39,7 +39,8 @@ class Agent:
         self.actor = Actor(obs_dim, act_dim, config.hidden)
         n_critics = 2 if config.twin_critics else 1
         self.critics = nn.ModuleList(
-            Critic(obs_dim, act_dim, config.hidden) for _ in range(n_critics)
+            Critic(obs_dim, act_dim, config.hidden, config.critic_layer_norm)
+            for _ in range(n_critics)
         )
         self.actor_target = copy.deepcopy(self.actor)
         self.critics_target = copy.deepcopy(self.critics)

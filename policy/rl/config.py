@@ -98,6 +98,8 @@ class DDPGConfig:
     target_noise_clip: float = 0.5
     #: TD3: actor and targets updated every `policy_delay` critic updates (1: DDPG)
     policy_delay: int = 1
+    #: LayerNorm after each hidden layer of the critics (the actor, which ships, is unchanged)
+    critic_layer_norm: bool = False
     #: DDPGfD / TD3+BC: expert episodes collected before training, kept in their own buffer
     demo_episodes: int = 0
     #: share of each batch drawn from the demonstrations

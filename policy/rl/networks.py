@@ -34,12 +34,18 @@ class Actor(nn.Module):
 class Critic(nn.Module):
     """(observation, action) -> Q, the action joined to the input layer."""
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden: tuple[int, int]) -> None:
+    def __init__(
+        self, obs_dim: int, act_dim: int, hidden: tuple[int, int], layer_norm: bool = False
+    ) -> None:
         super().__init__()
+        # LayerNorm after each hidden layer (`layer_norm`) keeps the features' scale fixed
+        # while the values it regresses drift, a known cure for critics that stall or diverge
         self.net = nn.Sequential(
             nn.Linear(obs_dim + act_dim, hidden[0]),
+            *([nn.LayerNorm(hidden[0])] if layer_norm else []),
             nn.LeakyReLU(LEAKY_RELU_SLOPE),
             nn.Linear(hidden[0], hidden[1]),
+            *([nn.LayerNorm(hidden[1])] if layer_norm else []),
             nn.LeakyReLU(LEAKY_RELU_SLOPE),
             nn.Linear(hidden[1], 1),
         )
