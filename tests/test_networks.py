@@ -19,6 +19,7 @@ def test_layer_norm_makes_q_blind_to_the_first_layers_scale() -> None:
         critic = Critic(20, 4, (32, 32), layer_norm=layer_norm)
         before = critic(obs, act).detach()
         first = critic.net[0]
+        assert isinstance(first, torch.nn.Linear)
         with torch.no_grad():
             first.weight.mul_(10.0)
             first.bias.mul_(10.0)
@@ -31,7 +32,9 @@ def test_an_agent_with_layer_norm_critics_updates_and_keeps_the_actor_format() -
         DDPGConfig.scratch(), critic_layer_norm=True, batch_size=16, hidden=(32, 32)
     )
     agent = Agent(cfg, 20)
-    assert any(isinstance(m, torch.nn.LayerNorm) for m in agent.critics[0].net)
+    critic = agent.critics[0]
+    assert isinstance(critic, Critic)
+    assert any(isinstance(m, torch.nn.LayerNorm) for m in critic.net)
     assert not any(isinstance(m, torch.nn.LayerNorm) for m in agent.actor.net)
     assert len(agent.actor.linears()) == 3  # what the weights file stores
     rng = np.random.default_rng(0)
