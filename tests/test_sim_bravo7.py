@@ -34,7 +34,9 @@ from reach_driver.interfaces import open_transport
 from reach_driver.safety import LimitKind, SafetyConfig
 from reach_sim_bridge.cli import build_parser, config_from_args, main
 from reach_sim_bridge.emulator.faults import Leak
+from reach_sim_bridge.emulator.firmware import Firmware
 from reach_sim_bridge.emulator.server import SimServer
+from reach_sim_bridge.model.arm import Alpha5Arm
 from reach_sim_bridge.model.bravo7 import Bravo7Arm
 
 A, B, C, D, E, F, G = (DeviceID(i) for i in range(1, 8))
@@ -262,6 +264,14 @@ def test_the_twins_reading_is_the_jaws_weight_in_air() -> None:
     jaws = np.cross([0.001, 0.0, -0.001], 0.64 * down)
     rod = np.cross([0.0, 0.0, 0.010 + arm.jaw_mm / 1000.0], 1e-4 * down)
     np.testing.assert_allclose(reading[3:], jaws + rod, atol=1e-9)
+
+
+def test_the_alpha_still_knows_no_force_torque_packet() -> None:
+    fw = Firmware(Alpha5Arm())
+    assert fw.handle(commands.force_torque_tare(E)) == []
+    assert fw.handle(commands.request(E, [PacketID.FORCE_TORQUE])) == []
+    assert fw.errors.snapshot() == {"unknown_packet": 1}
+    assert fw.ignored.snapshot() == {"unsupported_request": 1}
 
 
 # -- the line, the faults and the climate, as for the Alpha -------------------------------------

@@ -243,8 +243,9 @@ class Firmware(PacketHandlers):
             PacketID.RESET: self._on_reset,
             PacketID.KM_END_POS: self._on_end_pos,
             PacketID.KM_END_VEL: self._on_end_vel,
-            PacketID.FORCE_TORQUE: self._on_force_torque,
         }
+        if model.force_torque is not None:  # an arm without the sensor knows no 0xD8
+            self._handlers[PacketID.FORCE_TORQUE] = self._on_force_torque
         # A Cartesian velocity being followed: (linear m/s, angular rad/s), base frame.
         self._end_velocity: tuple[np.ndarray, np.ndarray] | None = None
         self._end_velocity_countdown = 0
@@ -279,10 +280,9 @@ class Firmware(PacketHandlers):
             PacketID.KM_END_VEL: self._end_twist,
         }
         #: What a device that is not an actuator (a router) reports.
-        self._other_reporters: dict[int, Callable[[Device], bytes | None]] = {
-            **common,
-            PacketID.FORCE_TORQUE: self._force_torque,
-        }
+        self._other_reporters: dict[int, Callable[[Device], bytes | None]] = dict(common)
+        if model.force_torque is not None:
+            self._other_reporters[PacketID.FORCE_TORQUE] = self._force_torque
         #: The force-torque reading taken as zero (the tare), sensor frame (N, N m).
         self._ft_tare = np.zeros(FORCE_TORQUE_VALUES)
         for stuck in self.config.stuck:
@@ -654,15 +654,12 @@ class Firmware(PacketHandlers):
 
     def _on_force_torque(self, targets: list[Device], packet: Packet) -> list[Packet]:
         sensor = self.model.force_torque
+        assert sensor is not None  # the handler is there only for an arm with the sensor
         if not any(d.spec.device_id == sensor for d in targets):
             self.ignored.record(
                 Ignored.NO_SENSOR.value,
-                f"FORCE_TORQUE to device 0x{int(packet.device_id):02X}: "
-                + (
-                    f"the sensor is read and tared at 0x{int(sensor):02X}"
-                    if sensor is not None
-                    else f"the {self.model.title} has no force-torque sensor"
-                ),
+                f"FORCE_TORQUE to device 0x{int(packet.device_id):02X}: the sensor is read "
+                f"and tared at 0x{int(sensor):02X}",
             )
             return []
         size = 4 * FORCE_TORQUE_VALUES
@@ -684,7 +681,7 @@ class Firmware(PacketHandlers):
 
     def _end_pose(self, d: Device) -> bytes | None:
         if d.spec.device_id != self.model.kinematics:
-            return None  # the base device does the kinematics
+            return None  # one device does the kinematics (the Alpha's base, E)
         return pack_floats(*self.arm.end_effector_pose())
 
     def _end_twist(self, d: Device) -> bytes | None:
@@ -699,14 +696,14 @@ class Firmware(PacketHandlers):
         a joint cannot take it; counted)."""
         kinematics = self.model.kinematics
         if not any(d.spec.device_id == kinematics for d in targets):
+            where = (
+                f"no device of the virtual {self.model.title} does kinematics"
+                if kinematics is None or int(kinematics) not in self._by_id
+                else f"only the base device (0x{int(kinematics):02X}) does kinematics"
+            )
             self.ignored.record(
                 Ignored.NOT_BASE.value,
-                f"{name} to device 0x{int(packet.device_id):02X}: only the base device "
-                + (
-                    f"(0x{int(kinematics):02X}) does kinematics"
-                    if kinematics
-                    else "does kinematics"
-                ),
+                f"{name} to device 0x{int(packet.device_id):02X}: {where}",
             )
             return None
         if len(packet.data) != 24:
