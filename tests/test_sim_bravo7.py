@@ -266,6 +266,14 @@ def test_the_twins_reading_is_the_jaws_weight_in_air() -> None:
     np.testing.assert_allclose(reading[3:], jaws + rod, atol=1e-9)
 
 
+def test_the_recorder_refuses_the_bravo(sim: SimServer, tmp_path: Path) -> None:
+    from reach_sim_bridge.emulator.recording import SimRecorder
+
+    with pytest.raises(ValueError, match="draws the Reach Alpha 5 only"):
+        SimRecorder(sim, tmp_path / "bravo.rrd")
+    assert not (tmp_path / "bravo.rrd").exists()
+
+
 def test_the_alpha_still_knows_no_force_torque_packet() -> None:
     fw = Firmware(Alpha5Arm())
     assert fw.handle(commands.force_torque_tare(E)) == []
