@@ -1,12 +1,13 @@
 """Codec for the Reach / Blueprint Lab (BPL) serial packet protocol, version 1. No I/O.
 
 Clean-room implementation from the published protocol facts summarised in docs/protocol.md.
-`protocol.alpha5` holds the arm's facts that the driver and the simulator both need
-(`protocol.bravo7` the same for the Reach Bravo 7), and
-`protocol.viewer` their live Rerun viewer plumbing (not imported here: it is not codec).
+`protocol.models` holds the arm models both the driver and the simulator need, one
+`ArmModel` per arm (`ALPHA5`, `BRAVO7`), built from each arm's facts in `protocol.alpha5` and
+`protocol.bravo7`; `protocol.viewer` their live Rerun viewer plumbing (not imported here: it
+is not codec).
 """
 
-from . import alpha5, bravo7, commands, payload
+from . import alpha5, bravo7, commands, models, payload
 from .crc import crc8
 from .decoder import DecoderStats, PacketDecoder
 from .errors import (
@@ -53,5 +54,6 @@ __all__ = [
     "crc8",
     "decode_packet",
     "encode_packet",
+    "models",
     "payload",
 ]

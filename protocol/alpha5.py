@@ -4,7 +4,7 @@ The codec needs none of this. It lives in `protocol` because that is the one pac
 driver and the simulator share (neither may import the other), and both must agree on which
 device is which joint, the factory limits, and how much torque an amp of motor current makes.
 Sources and derivations: docs/protocol.md (ids, slots) and reach_sim_bridge/model/README.md
-(motors, limits).
+(motors, limits). `protocol.models.ALPHA5` gathers them into the arm's model entry.
 
 Arrays of four are always in joint order E D C B (base yaw, shoulder, elbow, wrist roll).
 """

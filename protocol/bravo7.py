@@ -1,6 +1,6 @@
-"""The Reach Bravo 7's facts that both ends of the wire will need, each stated once.
+"""The Reach Bravo 7's facts that both ends of the wire need, each stated once.
 
-The Bravo counterpart of `protocol.alpha5` (nothing uses it yet but the Bravo 7 twin). Sources,
+The Bravo counterpart of `protocol.alpha5`, gathered into `protocol.models.BRAVO7`. Sources,
 and which values are assumptions because the vendor does not publish them:
 reach_sim_bridge/model/bravo7.md.
 
@@ -32,6 +32,13 @@ ALL_DEVICES: tuple[DeviceID, ...] = (*JOINTS, JAW)
 ROUTER = DeviceID.ROUTER
 #: The compute module in the base: kinematic (end-effector) demands and pose replies.
 COMPUTE = DeviceID.COMPUTE
+#: The device that reports the optional wrist force-torque sensor (FORCE_TORQUE, 0xD8) and
+#: is tared by six zeros written to it: the router [PR, DRV].
+FORCE_TORQUE_DEVICE = ROUTER
+
+#: The serial line (RS-232 or RS-485) when not on Ethernet, bits/s, 8N1: the protocol's rate,
+#: as the Alpha's (docs/protocol.md section 9). UDP port 6789 on Ethernet.
+SERIAL_BAUD = 115200
 
 Range = tuple[float, float]  # (minimum, maximum)
 
@@ -55,6 +62,11 @@ FACTORY_VELOCITY_LIMITS: dict[DeviceID, Range] = {
     **{d: (-0.5, 0.5) for d in JOINTS},
     DeviceID.A: (-3.0, 3.0),
 }
+#: The fastest each joint can physically turn (rad/s), G F E D C B: above the motors' no-load
+#: speed at 24 V (1.10 to 1.17 rad/s, bravo7.md "Motors") with the margin the Alpha's has
+#: (its 2.0 over 1.18 to 1.29) for a supply at its upper rating and outside forces. The
+#: driver's feedback check refuses a reported jump faster than this. Assumed.
+MAX_JOINT_SPEED: tuple[float, ...] = (2.0, 2.0, 2.0, 2.0, 2.0, 2.0)
 #: Default motor current limits (mA), G F E D C B, and the jaws'. Assumed: not published.
 DEFAULT_CURRENT_LIMITS_MA: tuple[float, ...] = (2000.0, 2000.0, 1500.0, 1500.0, 1500.0, 1000.0)
 DEFAULT_JAW_CURRENT_LIMIT_MA = 1000.0

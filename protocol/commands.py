@@ -109,3 +109,15 @@ def end_velocity(
         PacketID.KM_END_VEL,
         pack_floats(*(finite(n, v) for n, v in zip(names, values, strict=True))),
     )
+
+
+#: FORCE_TORQUE (0xD8) carries six float32: force x, y, z (N), then torque x, y, z (N m),
+#: in the sensor's frame (z along the sensor's axis). Sent to the device that reports it
+#: with all six zero, it tares the sensor (docs/protocol.md, "Force-torque").
+FORCE_TORQUE_VALUES = 6
+
+
+def force_torque_tare(device_id: int) -> Packet:
+    """FORCE_TORQUE of six zeros: the sensor takes its present reading as zero. Send it to
+    the device that reports the sensor (the Bravo's router, 0x0D)."""
+    return Packet(device_id, PacketID.FORCE_TORQUE, pack_floats(*(0.0,) * FORCE_TORQUE_VALUES))

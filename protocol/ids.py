@@ -66,7 +66,7 @@ class PacketID(IntEnum):
     OBSTACLE_AE = 0xAE
     COLLISION_AF = 0xAF
     COLLISION_B1 = 0xB1
-    FORCE_TORQUE = 0xD8
+    FORCE_TORQUE = 0xD8  # 6 x f32 [Fx Fy Fz N, Tx Ty Tz N m]; the vendor's ATI_FT
     RESET = 0xFD
     BOOTLOADER = 0xFF
 

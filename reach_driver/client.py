@@ -40,7 +40,7 @@ from protocol import (
     commands,
     decode_packet,
 )
-from protocol.alpha5 import ALL_DEVICES, JAW, JOINTS
+from protocol.models import ALPHA5, ArmModel
 from reach_driver import ik
 from reach_driver.errors import (
     ArmIdentityError,
@@ -92,19 +92,22 @@ class ArmClient(ArmQueries):
         *,
         safety: SafetyConfig | None = None,
         link: LinkConfig | None = None,
-        devices: Sequence[int] = ALL_DEVICES,
+        devices: Sequence[int] | None = None,
         request_timeout_s: float = 0.1,
         retries: int = 2,
         clock: Callable[[], float] = time.monotonic,
+        model: ArmModel = ALPHA5,
     ) -> None:
         self.transport = transport
-        self.guard = SafetyGuard(safety)
+        #: The arm model: its joints, their order and its factory limits.
+        self.model = model
+        self.guard = SafetyGuard(safety, model)
         self.link_config = link or LinkConfig()
-        self.devices = tuple(int(d) for d in devices)
+        self.devices = tuple(int(d) for d in (model.actuators if devices is None else devices))
         self.request_timeout_s = request_timeout_s
         self.retries = retries
         self.clock = clock
-        self.table = StateTable()
+        self.table = StateTable(model)
         self.decoder = PacketDecoder()
         self.listeners = ListenerSet()
         self.stats = ClientStats()
@@ -293,7 +296,7 @@ class ArmClient(ArmQueries):
         self,
         ids: Sequence[int] = (PacketID.POSITION, PacketID.VELOCITY),
         hz: int = 20,
-        devices: Sequence[int] = JOINTS,
+        devices: Sequence[int] | None = None,
     ) -> int:
         """Have each device send `ids` at `hz` (its heartbeat), re-applied after a reconnect;
         the rate used: capped, with a warning, to what a rate-limited line carries.
@@ -303,7 +306,8 @@ class ArmClient(ArmQueries):
         """
         if not 1 <= hz <= 255:
             raise ValueError(f"heartbeat frequency must be 1..255 Hz, got {hz}")
-        stream = Stream(tuple(int(i) for i in ids), int(hz), tuple(int(d) for d in devices))
+        devs = self.model.joints if devices is None else devices
+        stream = Stream(tuple(int(i) for i in ids), int(hz), tuple(int(d) for d in devs))
         wire = self.transport.wire_bytes_per_s
         if wire is not None and not stream.fits(wire):
             # The arm would queue what the line cannot carry and send it late, shown as fresh
@@ -361,8 +365,19 @@ class ArmClient(ArmQueries):
         self._positions([int(device)], [float(value)])
 
     def command_positions(self, q: Sequence[float] | np.ndarray) -> None:
-        """Positions of E D C B; all are checked before any is sent."""
-        self._positions(JOINTS, _four(q))
+        """Positions of every joint in the model's order (E D C B on the Alpha 5); all are
+        checked before any is sent."""
+        self._positions(self.model.joints, self._per_joint(q))
+
+    def _per_joint(self, values: Sequence[float] | np.ndarray) -> list[float]:
+        """One float per joint of the model, in its order (ValueError naming the order)."""
+        out = [float(v) for v in np.asarray(values, dtype=float).reshape(-1)]
+        if len(out) != self.model.n_joints:
+            order = " ".join(self.model.joint_letters)
+            raise ValueError(
+                f"expected {self.model.n_joints} values in joint order {order}, got {len(out)}"
+            )
+        return out
 
     def _positions(self, devices: Sequence[int], values: Sequence[float]) -> None:
         self._gate.check_positions(devices, values)
@@ -373,7 +388,13 @@ class ArmClient(ArmQueries):
         base frame, from the present angles, inside the position limits in force (the arm's,
         tightened by the safety config); B keeps its angle (it does not move the tool
         centre point). Sends nothing; `ik.UnreachableError` (a `LimitError`) if no angles
-        inside the limits get within `ik.TOLERANCE_MM`."""
+        inside the limits get within `ik.TOLERANCE_MM`. The driver's kinematics are the
+        Alpha 5's: another model gets a `LimitError` saying so."""
+        if self.model is not ALPHA5:
+            raise LimitError(
+                f"refused: the driver's inverse kinematics are the {ALPHA5.title}'s, not the "
+                f"{self.model.title}'s; command joint angles instead; nothing was sent"
+            )
         q = self.state.q
         if not np.all(np.isfinite(q)):
             q = self.read_joints((PacketID.POSITION,)).q
@@ -389,14 +410,15 @@ class ArmClient(ArmQueries):
         return q
 
     def command_jaw(self, mm: float) -> None:
-        self.command_position(JAW, mm)
+        self.command_position(self.model.jaw, mm)
 
     def command_velocity(self, device: int, value: float) -> float:
         return float(self.command_velocities_for([int(device)], [value])[0])
 
     def command_velocities(self, v: Sequence[float] | np.ndarray) -> np.ndarray:
-        """Velocities of E D C B after the soft barrier (what was actually sent)."""
-        return self.command_velocities_for(JOINTS, _four(v))
+        """Velocities of every joint in the model's order, after the soft barrier (what was
+        actually sent)."""
+        return self.command_velocities_for(self.model.joints, self._per_joint(v))
 
     def command_velocities_for(
         self, devices: Sequence[int], values: Sequence[float] | np.ndarray
@@ -407,8 +429,9 @@ class ArmClient(ArmQueries):
         return float(self._continuous(PacketID.CURRENT, [int(device)], [milliamps])[0])
 
     def command_currents(self, currents_mA: Sequence[float] | np.ndarray) -> np.ndarray:
-        """Currents of E D C B in mA after the soft barrier (what was actually sent)."""
-        return self._continuous(PacketID.CURRENT, JOINTS, _four(currents_mA))
+        """Currents of every joint in the model's order in mA, after the soft barrier (what
+        was actually sent)."""
+        return self._continuous(PacketID.CURRENT, self.model.joints, self._per_joint(currents_mA))
 
     def _continuous(
         self, pid: PacketID, devices: Sequence[int], values: Sequence[float] | np.ndarray
@@ -426,7 +449,7 @@ class ArmClient(ArmQueries):
 
     def safe_stop(self, devices: Sequence[int] | None = None) -> None:
         """Put joints (default: the four joints and the jaw) in the configured safe mode."""
-        self._send_safe_mode(tuple(devices or (*JOINTS, JAW)))
+        self._send_safe_mode(tuple(devices or self.model.actuators))
 
     def make_safe(
         self, devices: Sequence[int] | None = None, *, wait_s: float | None = None
@@ -435,7 +458,7 @@ class ArmClient(ArmQueries):
         their modes back; until all confirm it, send it again, for up to `wait_s` wall
         seconds (default `SafetyConfig.safe_wait_s`), waiting for a lost link meanwhile.
         Unconfirmed, the safe mode stays owed: this client sends it once the link is back."""
-        devs = tuple(int(d) for d in (devices or (*JOINTS, JAW)))
+        devs = tuple(int(d) for d in (devices or self.model.actuators))
         mode = self.guard.config.safe_mode
         wait = self.guard.config.safe_wait_s if wait_s is None else float(wait_s)
         start = time.monotonic()
@@ -610,7 +633,7 @@ class ArmClient(ArmQueries):
         packet from this device is waiting) and are plausible; else keep the ones in force,
         count it and say so. The state table keeps the raw reading either way."""
         dev, kind = int(packet.device_id), LIMIT_KIND_OF[int(packet.packet_id)]
-        value, problem = limit_verdict(packet, dev, kind)
+        value, problem = limit_verdict(packet, dev, kind, self.model)
         if value is None:
             return  # malformed: the state table counted it
         if problem is None and not self._waiters.wants(packet.key):
@@ -823,7 +846,7 @@ class ArmClient(ArmQueries):
         """A different arm answers: stop it, send it nothing else, fail the link for good."""
         self._check = None
         mode = self.guard.config.safe_mode
-        devices = (*JOINTS, JAW)
+        devices = self.model.actuators
         try:
             self._write(self._safe_mode_frames(devices), internal=True)
             sent = f"sent it {mode.name} and nothing else"
@@ -847,7 +870,7 @@ class ArmClient(ArmQueries):
         frames: list[bytes] = []
         owed = self.watchdog.take_safe_pending()
         if owed:
-            frames += self._safe_mode_frames((*JOINTS, JAW))
+            frames += self._safe_mode_frames(self.model.actuators)
         if self._stream is not None:
             frames += self._stream.start_frames()
         if frames:
@@ -865,10 +888,3 @@ class ArmClient(ArmQueries):
 
 def _mode_name(mode: Mode | int | None) -> str:
     return mode.name.lower() if isinstance(mode, Mode) else f"mode 0x{int(mode or 0):02X}"
-
-
-def _four(values: Sequence[float] | np.ndarray) -> list[float]:
-    out = [float(v) for v in np.asarray(values, dtype=float).reshape(-1)]
-    if len(out) != len(JOINTS):
-        raise ValueError(f"expected 4 values in joint order E D C B, got {len(out)}")
-    return out

@@ -48,6 +48,7 @@ import numpy as np
 
 from protocol import Mode, PacketID, commands
 from protocol.alpha5 import JAW, JOINTS, N_JOINTS
+from protocol.models import ALPHA5
 from reach_driver.assembler import StateAssembler
 from reach_driver.chatter import ChatterDetector, HoldMode, Verdict
 from reach_driver.client import ArmClient
@@ -156,6 +157,12 @@ class ControlLoop:
         plausibility: PlausibilityConfig | None = None,
         stream_rate: RateConfig | None = None,
     ) -> None:
+        if client.model is not ALPHA5:
+            # The loop, its state assembler, chatter guard and metrics are the Alpha 5's
+            # (four joints E D C B); refused rather than run on the wrong joints.
+            raise ValueError(
+                f"the control loop runs the {ALPHA5.title} only, not the {client.model.title}"
+            )
         self.client = client
         self.controller = controller
         self.pacing = Pacing(pacing)

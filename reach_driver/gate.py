@@ -176,7 +176,7 @@ class CommandGate:
     ) -> None:
         """Finite, inside the factory envelope, and (unless `widen`) inside the present limit."""
         self.check_device(device, f"{kind.value} limits")
-        problem = envelope_problem(device, kind, values)
+        problem = envelope_problem(device, kind, values, self.guard.model)
         if problem is not None:
             raise LimitError(f"refused: {problem}; {NOTHING_SENT}")
         if widen:
@@ -186,7 +186,7 @@ class CommandGate:
         assert present is not None  # check_device: the device has limits
         plo, phi = present
         if lo < plo - 1e-6 * max(1.0, abs(plo)) or hi > phi + 1e-6 * max(1.0, abs(phi)):
-            unit = kind.unit(device)
+            unit = kind.unit(device, self.guard.model)
             raise LimitError(
                 f"refused: {kind.value} limits [{lo:.4g}, {hi:.4g}] {unit} for "
                 f"{joint_name(device)} are wider than the present [{plo:.4g}, {phi:.4g}] "

@@ -5,7 +5,7 @@ A glitching encoder or a corrupted-but-valid frame can report an angle no joint 
 after 3.5 rad). Taken as truth, one such sample kicks a controller (a learned one most),
 so each joint's sample must lie inside the arm's physical envelope (the factory position
 limits with `envelope_margin`), must not have moved further since the joint's last good
-sample than `MAX_JOINT_SPEED` x the elapsed arm time + `jump_margin` (the sensor noise),
+sample than the model's `max_joint_speed` x the elapsed arm time + `jump_margin` (the sensor noise),
 and its velocity must not exceed that speed + `speed_margin`.
 
 A velocity can also be wrong while it looks fine: a sensor or firmware stuck at one value
@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.alpha5 import FACTORY_POSITION_LIMITS, JOINTS, MAX_JOINT_SPEED
+from protocol.models import ALPHA5, ArmModel
 
 TWO_PI = 2.0 * math.pi
 
@@ -61,35 +61,36 @@ class PlausibilityConfig:
 class Verdict:
     """One tick's check: which joints' samples are implausible, and why (per joint)."""
 
-    bad: np.ndarray  # bool per joint, E D C B
+    bad: np.ndarray  # bool per joint, in the model's joint order
     why: tuple[str, ...]  # "E: position 1e+06 rad outside [-0.0825, 6.243]", ...
 
 
 class FeedbackCheck:
     """Checks each tick's joint states against the envelope, the top speed and the last good
-    sample (arm time), and gives the state a controller may see."""
+    sample (arm time), and gives the state a controller may see. Arrays are in `model`'s
+    joint order."""
 
-    def __init__(self, config: PlausibilityConfig | None = None) -> None:
+    def __init__(self, config: PlausibilityConfig | None = None, model: ArmModel = ALPHA5) -> None:
         self.config = cfg = config or PlausibilityConfig()
-        self.lo = np.array([FACTORY_POSITION_LIMITS[d][0] for d in JOINTS]) - cfg.envelope_margin
-        self.hi = np.array([FACTORY_POSITION_LIMITS[d][1] for d in JOINTS]) + cfg.envelope_margin
+        self.model = model
+        joints = model.joints
+        self.names = model.joint_letters
+        limits = model.position_limits
+        self.lo = np.array([limits[d][0] for d in joints]) - cfg.envelope_margin
+        self.hi = np.array([limits[d][1] for d in joints]) + cfg.envelope_margin
         # A joint whose envelope is a whole turn may wrap (0 and 2 pi are one angle).
-        self.wraps = np.array(
-            [
-                FACTORY_POSITION_LIMITS[d][1] - FACTORY_POSITION_LIMITS[d][0] >= TWO_PI - 1e-6
-                for d in JOINTS
-            ]
-        )
-        self.top = np.asarray(MAX_JOINT_SPEED, dtype=float)
-        self.good_q = np.full(len(JOINTS), np.nan)
-        self.good_qdot = np.full(len(JOINTS), np.nan)
-        self.good_t = np.full(len(JOINTS), np.nan)
-        self.unseen = np.zeros(len(JOINTS))  # arm time passed unseen since the good sample
+        self.wraps = np.array([model.wraps(d) for d in joints])
+        self.top = np.asarray(model.max_joint_speed, dtype=float)
+        n = len(joints)
+        self.good_q = np.full(n, np.nan)
+        self.good_qdot = np.full(n, np.nan)
+        self.good_t = np.full(n, np.nan)
+        self.unseen = np.zeros(n)  # arm time passed unseen since the good sample
         # per joint, while its fresh velocity repeats exactly: that value and the (arm time,
         # position) of each sample since it first came, the oldest kept within the window
-        self.same_v = np.full(len(JOINTS), np.nan)
-        self.same_since: list[deque[tuple[float, float]]] = [deque() for _ in JOINTS]
-        self.stuck: list[tuple[float, str] | None] = [None for _ in JOINTS]  # (value, why)
+        self.same_v = np.full(n, np.nan)
+        self.same_since: list[deque[tuple[float, float]]] = [deque() for _ in joints]
+        self.stuck: list[tuple[float, str] | None] = [None for _ in joints]  # (value, why)
 
     def check(
         self,
@@ -114,9 +115,8 @@ class FeedbackCheck:
         jump = np.where(self.wraps, np.minimum(jump, TWO_PI - jump), jump)
         allowed = self.top * (t - self.good_t + self.unseen) + cfg.jump_margin
         why: list[str] = []
-        bad = np.zeros(len(JOINTS), dtype=bool)
-        for i, dev in enumerate(JOINTS):
-            name = dev.name
+        bad = np.zeros(len(self.names), dtype=bool)
+        for i, name in enumerate(self.names):
             if not self.lo[i] <= q[i] <= self.hi[i]:
                 why.append(
                     f"{name}: position {q[i]:.6g} rad outside [{self.lo[i]:.4g}, {self.hi[i]:.4g}]"

@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 from protocol import Mode, Packet, PacketDecoder, PacketID, ProtocolError, commands
-from protocol.alpha5 import JOINTS, Range
+from protocol.models import ALPHA5, ArmModel, Range
 from reach_driver.errors import GarbageError, LimitError, NoResponseError
 from reach_driver.gate import CommandGate
 from reach_driver.identity import IDENTITY_PACKETS, DeviceIdentity
@@ -38,6 +38,7 @@ class ArmQueries:
     """Requests and reads of `ArmClient` (see the module docstring)."""
 
     transport: Transport
+    model: ArmModel
     guard: SafetyGuard
     devices: tuple[int, ...]
     request_timeout_s: float
@@ -154,7 +155,7 @@ class ArmQueries:
         for d in devs:
             for kind in kinds:
                 reply = got.get(d, {}).get(kind.packet_id)
-                value, problem = limit_verdict(reply, d, kind)
+                value, problem = limit_verdict(reply, d, kind, self.model)
                 if value is not None and problem is None:  # adopted as it arrived
                     out.setdefault(d, {})[kind] = as_range(kind, value)
                 elif reply is not None or not self.guard.has_arm_limit(d, kind):
@@ -186,7 +187,7 @@ class ArmQueries:
         self._write([commands.limits(int(device), kind.packet_id, maximum, minimum).encode()])
         self.table.forget(int(device), kind.packet_id)
         reply = self.request(device, [kind.packet_id])[kind.packet_id]
-        value, problem = limit_verdict(reply, device, kind)
+        value, problem = limit_verdict(reply, device, kind, self.model)
         if value is None or problem is not None:
             raise LimitError(
                 f"{joint_name(device)} answered the {kind.value} limit write with "
@@ -239,13 +240,13 @@ class ArmQueries:
         return out
 
     def read_joints(self, ids: Sequence[int] = (PacketID.POSITION, PacketID.VELOCITY)) -> ArmState:
-        """Poll the four joints once (one write) and return the fresh state."""
-        self.request_many(JOINTS, ids)
+        """Poll the joints once (one write) and return the fresh state."""
+        self.request_many(self.model.joints, ids)
         return self.state
 
 
 def limit_verdict(
-    packet: Packet | None, device: int, kind: LimitKind
+    packet: Packet | None, device: int, kind: LimitKind, model: ArmModel = ALPHA5
 ) -> tuple[Range | None, str | None]:
     """(the limits a packet carries, why they are not plausible or None); (None, None) for
     no packet or a malformed one."""
@@ -256,4 +257,4 @@ def limit_verdict(
     except ProtocolError:
         return None, None
     assert isinstance(value, tuple)
-    return value, envelope_problem(device, kind, value)
+    return value, envelope_problem(device, kind, value, model)

@@ -15,14 +15,7 @@ from dataclasses import dataclass, field
 from enum import Enum
 
 from protocol import Mode, PacketID
-from protocol.alpha5 import (
-    FACTORY_CURRENT_LIMITS,
-    FACTORY_POSITION_LIMITS,
-    FACTORY_VELOCITY_LIMITS,
-    JAW,
-    JOINTS,
-    Range,
-)
+from protocol.models import ALPHA5, ArmModel, Range
 from reach_driver.chatter import ChatterConfig
 from reach_driver.errors import LimitError
 from reach_driver.state import joint_name
@@ -41,24 +34,28 @@ class LimitKind(str, Enum):
             LimitKind.CURRENT: PacketID.CURRENT_LIMITS,
         }[self]
 
-    def unit(self, device: int) -> str:
-        jaw = device == JAW
-        return {
-            LimitKind.POSITION: "mm" if jaw else "rad",
-            LimitKind.VELOCITY: "mm/s" if jaw else "rad/s",
-            LimitKind.CURRENT: "mA",
-        }[self]
+    def unit(self, device: int, model: ArmModel = ALPHA5) -> str:
+        if self is LimitKind.CURRENT:
+            return "mA"
+        position = model.unit(device)
+        return position if self is LimitKind.POSITION else f"{position}/s"
 
 
-#: Used only when the arm does not report a limit (reach_sim_bridge/model/README.md).
-DEFAULT_LIMITS: dict[LimitKind, Mapping[int, Range]] = {
-    kind: {int(d): r for d, r in table.items()}
-    for kind, table in (
-        (LimitKind.POSITION, FACTORY_POSITION_LIMITS),
-        (LimitKind.VELOCITY, FACTORY_VELOCITY_LIMITS),
-        (LimitKind.CURRENT, FACTORY_CURRENT_LIMITS),
-    )
-}
+def default_limits(model: ArmModel) -> dict[LimitKind, Mapping[int, Range]]:
+    """The model's factory limits per kind and device: used only when the arm does not
+    report a limit, and the envelope a reported one must lie in."""
+    return {
+        kind: {int(d): r for d, r in table.items()}
+        for kind, table in (
+            (LimitKind.POSITION, model.position_limits),
+            (LimitKind.VELOCITY, model.velocity_limits),
+            (LimitKind.CURRENT, model.current_limits),
+        )
+    }
+
+
+#: The Alpha 5's (reach_sim_bridge/model/README.md).
+DEFAULT_LIMITS = default_limits(ALPHA5)
 
 
 @dataclass(frozen=True)
@@ -131,20 +128,22 @@ def as_range(kind: LimitKind, values: Range) -> Range:
     return (lo, hi)
 
 
-def envelope_problem(device: int, kind: LimitKind, values: Range) -> str | None:
-    """Why a limit cannot be real for this device (not finite, empty, outside the factory
-    envelope of `protocol.alpha5`), or None when it is plausible."""
+def envelope_problem(
+    device: int, kind: LimitKind, values: Range, model: ArmModel = ALPHA5
+) -> str | None:
+    """Why a limit cannot be real for this device of `model` (not finite, empty, outside
+    the model's factory envelope), or None when it is plausible."""
     if not all(math.isfinite(v) for v in values):
         return f"{kind.value} limits {list(values)} are not finite"
     lo, hi = as_range(kind, values)
     if not lo < hi:
         return f"{kind.value} limits [{lo:.4g}, {hi:.4g}] are empty"
-    factory = DEFAULT_LIMITS[kind].get(int(device))
+    factory = default_limits(model)[kind].get(int(device))
     if factory is None:
         return f"{joint_name(device)} has no factory {kind.value} envelope"
     flo, fhi = factory
     if lo < flo - _slack(flo) or hi > fhi + _slack(fhi):
-        unit = kind.unit(device)
+        unit = kind.unit(device, model)
         return (
             f"{kind.value} limits [{lo:.4g}, {hi:.4g}] {unit} of {joint_name(device)} leave "
             f"the factory envelope [{flo:.4g}, {fhi:.4g}] {unit}"
@@ -153,10 +152,13 @@ def envelope_problem(device: int, kind: LimitKind, values: Range) -> str | None:
 
 
 class SafetyGuard:
-    """Checks commands against the effective limits; holds no connection of its own."""
+    """Checks commands against the effective limits of one arm model (its factory limits
+    until the arm reports its own); holds no connection of its own."""
 
-    def __init__(self, config: SafetyConfig | None = None) -> None:
+    def __init__(self, config: SafetyConfig | None = None, model: ArmModel = ALPHA5) -> None:
         self.config = config or SafetyConfig()
+        self.model = model
+        self._defaults = default_limits(model)
         self._arm: dict[tuple[LimitKind, int], Range] = {}
         self.barrier_cuts = 0
 
@@ -167,7 +169,7 @@ class SafetyGuard:
     def present_limit(self, device: int, kind: LimitKind) -> Range | None:
         """The arm's limit as adopted, else the documented default; None for no device."""
         dev = int(device)
-        return self._arm.get((kind, dev)) or DEFAULT_LIMITS[kind].get(dev)
+        return self._arm.get((kind, dev)) or self._defaults[kind].get(dev)
 
     def has_arm_limit(self, device: int, kind: LimitKind) -> bool:
         return (kind, int(device)) in self._arm
@@ -177,7 +179,7 @@ class SafetyGuard:
         base = self._arm.get((kind, dev))
         source = "arm"
         if base is None:
-            base = DEFAULT_LIMITS[kind].get(dev)
+            base = self._defaults[kind].get(dev)
             source = "default"
         if base is None:
             return EffectiveLimit(-math.inf, math.inf, "none")
@@ -203,8 +205,10 @@ class SafetyGuard:
         return EffectiveLimit(lo, hi, source + ("+config" if tightened else ""))
 
     def position_limits(self) -> list[tuple[float, float]]:
-        """[min, max] of E D C B in force (rad): what a tool position is solved within."""
-        return [(lim.low, lim.high) for lim in (self.limit(d, LimitKind.POSITION) for d in JOINTS)]
+        """[min, max] of each joint in force (rad), in the model's joint order: what a tool
+        position is solved within."""
+        joints = self.model.joints
+        return [(lim.low, lim.high) for lim in (self.limit(d, LimitKind.POSITION) for d in joints)]
 
     def check(self, device: int, kind: LimitKind, value: float) -> None:
         """Raise `LimitError` if `value` is outside the effective limit (never clips)."""
@@ -217,7 +221,7 @@ class SafetyGuard:
             )
         lim = self.limit(device, kind)
         if not lim.contains(value):
-            unit = kind.unit(device)
+            unit = kind.unit(device, self.model)
             raise LimitError(
                 f"refused: {kind.value} {value:.4g} {unit} for joint {joint_name(device)} is "
                 f"outside its {kind.value} limit [{lim.low:.4g}, {lim.high:.4g}] {unit} "

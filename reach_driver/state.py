@@ -15,7 +15,7 @@ from typing import Any, Generic, NamedTuple, TypeVar
 import numpy as np
 
 from protocol import DeviceID, HardwareStatus, Mode, Packet, PacketID, ProtocolError
-from protocol.alpha5 import JAW, JOINTS, Range
+from protocol.models import ALPHA5, ArmModel, Range
 
 T = TypeVar("T")
 
@@ -208,17 +208,20 @@ def packet_value(packet: Packet) -> object:
 
 @dataclass(frozen=True)
 class ArmState:
-    """A snapshot of every device; arrays are in joint order E D C B (NaN when unknown)."""
+    """A snapshot of every device; arrays are in the model's joint order (E D C B on the
+    Alpha 5; NaN when unknown)."""
 
     joints: Mapping[int, JointState]
     taken_at: float
+    model: ArmModel = ALPHA5
 
     def joint(self, device: int) -> JointState:
         return self.joints.get(device) or JointState(device)
 
     def _array(self, name: str) -> np.ndarray:
-        out = np.full(len(JOINTS), np.nan)
-        for i, dev in enumerate(JOINTS):
+        joints = self.model.joints
+        out = np.full(len(joints), np.nan)
+        for i, dev in enumerate(joints):
             reading = getattr(self.joint(dev), name)
             if reading is not None:
                 out[i] = reading.value
@@ -238,7 +241,7 @@ class ArmState:
 
     @property
     def jaw_mm(self) -> float:
-        reading = self.joint(JAW).position
+        reading = self.joint(self.model.jaw).position
         return float("nan") if reading is None else reading.value
 
     @property
@@ -249,8 +252,10 @@ class ArmState:
 
 @dataclass
 class StateTable:
-    """Thread-safe store the reader thread updates; counts updates per (device, packet)."""
+    """Thread-safe store the reader thread updates; counts updates per (device, packet).
+    Its snapshots read the arrays in `model`'s joint order."""
 
+    model: ArmModel = ALPHA5
     _joints: dict[int, JointState] = field(default_factory=dict)
     counts: dict[tuple[int, int], int] = field(default_factory=dict)
     bad_payloads: int = 0
@@ -285,7 +290,7 @@ class StateTable:
 
     def snapshot(self, now: float) -> ArmState:
         with self._lock:
-            return ArmState(dict(self._joints), now)
+            return ArmState(dict(self._joints), now, self.model)
 
     def clear(self) -> None:
         """Forget everything (a different arm answers: none of it describes this one)."""

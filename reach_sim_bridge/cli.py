@@ -1,4 +1,5 @@
-"""`reach-sim`: serve a virtual Reach Alpha 5 on a pty (and/or UDP) until interrupted."""
+"""`reach-sim`: serve a virtual Reach Alpha 5 (or, with `--arm bravo7`, a Reach Bravo 7) on a
+pty (and/or UDP) until interrupted."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from types import FrameType
 
-from protocol.alpha5 import SERIAL_BAUD
+from protocol.models import ALPHA5, ArmModelName, model_named
 from protocol.viewer import add_viewer_option, viewer_options_problem
 from reach_sim_bridge.emulator.faults import FaultConfig, torque_scales
 from reach_sim_bridge.emulator.server import TURNAROUND_BYTES, SimConfig, SimServer, serve_forever
@@ -30,6 +31,8 @@ Serve a simulated Reach Alpha 5 (MuJoCo physics + emulated joint firmware) speak
 Reach/BPL serial protocol. A pseudo-terminal is created and its path printed: open it like
 the arm's serial port (any baud rate; 8N1; raw). With --udp the arm also answers on UDP, as
 the Ethernet variants do. Devices 0x01 (jaws, mm) to 0x05 (base) and broadcast 0xFF.
+With --arm bravo7, a Reach Bravo 7: devices 0x01 (jaws) to 0x07 (base) and the router 0x0D,
+which answers the wrist's force-torque reading (0xD8; six zeros written to it tare it).
 Stop with Ctrl-C or SIGTERM (the --link symlink is removed)."""
 
 EPILOG = """\
@@ -46,6 +49,7 @@ examples:
   reach-sim --link /tmp/alpha5 --half-duplex     # RS-485: one talker at a time, 115200 baud
   reach-sim --params arm.json --randomize-params 3  # an identified arm, perturbed
   reach-sim --link /tmp/alpha5 --record sim.rrd --viewer serve 9877 9091  # watch it live
+  reach-sim --arm bravo7 --udp --link /tmp/bravo7  # a Bravo 7 on UDP 6789 and a pty
 """
 
 
@@ -166,19 +170,29 @@ def build_parser() -> argparse.ArgumentParser:
         "--half-duplex",
         action="store_true",
         help="the pty as one RS-485 wire (at --baud, default "
-        f"{SERIAL_BAUD}): the arm answers only once the host's bytes have landed and the line "
+        f"{ALPHA5.serial_baud}): the arm answers only once the host's bytes have landed and "
+        "the line "
         f"has been quiet {TURNAROUND_BYTES} byte times; host bytes sent while the arm is "
         "sending collide, and both frames are lost (counted as collisions); a broadcast "
         "REQUEST that several devices answer gets no answer. UDP is unaffected",
     )
     arm = p.add_argument_group("arm")
     arm.add_argument(
+        "--arm",
+        choices=[m.value for m in ArmModelName],
+        default=ALPHA5.name,
+        help="the arm served (default alpha5). bravo7: devices 0x01-0x07 (G base .. B wrist "
+        "roll, A jaws) and the router 0x0D with the wrist's force-torque reading; --params and "
+        "--randomize-params and --record/--viewer are the Alpha 5's only",
+    )
+    arm.add_argument(
         "--start",
-        nargs=4,
+        nargs="+",
         type=_float,
-        metavar=("E", "D", "C", "B"),
-        help="initial joint angles in rad, the arm's own angles (default: the "
-        "middle of each joint's range)",
+        metavar="RAD",
+        help="initial joint angles in rad, the arm's own angles, one per joint base to tip "
+        "(E D C B on the Alpha 5, G F E D C B on the Bravo 7; default: the middle of each "
+        "joint's range)",
     )
     arm.add_argument(
         "--jaw",
@@ -211,7 +225,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="JOINT=S",
-        help="scale the torque joint JOINT (E D C B) delivers by S in [0, 1]; "
+        help="scale the torque joint JOINT (E D C B; G F E D C B on the Bravo 7) delivers by "
+        "S in [0, 1]; "
         "repeatable. E=0.25 is the paper's 75%% torque loss",
     )
     faults.add_argument(
@@ -313,8 +328,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def config_from_args(args: argparse.Namespace) -> SimConfig:
     """The SimConfig the parsed options ask for (ValueError on inconsistent options)."""
+    model = model_named(getattr(args, "arm", ALPHA5.name))
     faults = FaultConfig(
-        torque_scale=torque_scales(args.torque_scale),
+        torque_scale=torque_scales(args.torque_scale, model),
         sensor_noise=args.sensor_noise,
         randomize_seed=args.randomize_params,
         corrupt_rate=args.corrupt_rate,
@@ -322,17 +338,23 @@ def config_from_args(args: argparse.Namespace) -> SimConfig:
         latency_ms=args.latency_ms,
     )
     start = None if args.start is None else tuple(args.start)
+    if start is not None and len(start) != model.n_joints:
+        raise ValueError(
+            f"--start takes {model.n_joints} angles ({' '.join(model.joint_letters)}) for the "
+            f"{model.title}, got {len(start)}"
+        )
     params: ArmParams | None = None
     if getattr(args, "params", None) is not None:
         params = load_arm_params(args.params)
     return SimConfig(
+        model=model,
         speed=args.speed,
         pty=not args.no_pty,
         link=args.link,
         udp=args.udp,
-        baud=SERIAL_BAUD if args.half_duplex and args.baud is None else args.baud,
+        baud=model.serial_baud if args.half_duplex and args.baud is None else args.baud,
         half_duplex=args.half_duplex,
-        start=start,  # type: ignore[arg-type]
+        start=start,
         jaw_mm=args.jaw,
         dt=args.dt,
         faults=faults,
@@ -355,8 +377,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.stats_interval = 10.0 if args.verbose else 0.0
     if args.stats_interval > 0.0:
         logging.getLogger("reach_sim_bridge.emulator.server").setLevel(min(level, logging.INFO))
+    viewer = getattr(args, "viewer", None)
     try:
         config = config_from_args(args)
+        if config.model is not ALPHA5 and (args.record is not None or viewer is not None):
+            raise ValueError(
+                f"--record and --viewer draw the {ALPHA5.title} only, not the {config.model.title}"
+            )
         server = SimServer(config)
     except ValueError as exc:
         parser.error(str(exc))
@@ -374,7 +401,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"reach-sim: error: {exc}", file=sys.stderr)
         return 1
     recorder = None
-    viewer = getattr(args, "viewer", None)
     if args.record is not None or viewer is not None:
         from reach_sim_bridge.emulator.recording import SimRecorder
 

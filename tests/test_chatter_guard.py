@@ -23,6 +23,7 @@ from reach_driver import ArmClient, ControlLoop, SafetyConfig, open_transport
 from reach_driver.chatter import ChatterConfig, ChatterDetector, HoldMode, Verdict
 from reach_driver.controllers import ControlState, load_controller
 from reach_sim_bridge.emulator.server import SimServer
+from reach_sim_bridge.model.arm import Alpha5Arm
 from reach_sim_bridge.model.sensors import SensorNoise
 
 LIMITS = np.array([600.0, 600.0, 600.0, 300.0])
@@ -312,6 +313,7 @@ def run_on_the_bad_arm(
     episode = bad_episode()
     seed = BAD_SEED + BAD_EPISODE
     server = sim_factory(speed=SPEED, start=episode.start, start_now=False)
+    assert isinstance(server.arm, Alpha5Arm)
     server.arm.randomize(BAD_CONFIG.param_spread, rng=BAD_CONFIG.perturbation_rng(seed))
     server.arm.reset(q=episode.start.copy())
     server.start()

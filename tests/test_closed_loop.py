@@ -185,6 +185,7 @@ def test_the_served_arm_gets_the_episodes_start_torque_scale_and_parameter_draw(
         pass
 
     def inspect(server: SimServer) -> None:
+        assert isinstance(server.arm, Alpha5Arm)
         seen["params"] = server.arm.params
         seen["q"] = server.snapshot().q
         seen["scale"] = np.array(server.arm.torque_scale)

@@ -18,6 +18,7 @@ from policy.rl.env import EnvConfig
 from policy.rl.scoring import params_arm_factory
 from reach_sim_bridge.cli import build_parser, config_from_args, main
 from reach_sim_bridge.emulator.server import SimServer
+from reach_sim_bridge.model.arm import Alpha5Arm
 from reach_sim_bridge.model.params import (
     ArmParams,
     ParamsFileError,
@@ -195,6 +196,7 @@ def test_reach_sim_serves_the_arm_of_the_file(tmp_path: Path) -> None:
     path = _write(tmp_path, {"frictionloss": friction, "torque_scale": [1, 1, 0.5, 1]})
     config = config_from_args(build_parser().parse_args(["--params", str(path)]))
     server = SimServer(config)
+    assert isinstance(server.arm, Alpha5Arm)
     assert server.arm.params.frictionloss == tuple(friction)
     assert np.allclose(server.arm.model.dof_frictionloss[:4], friction)
     # --torque-scale multiplies the file's own torque scale
@@ -204,6 +206,7 @@ def test_reach_sim_serves_the_arm_of_the_file(tmp_path: Path) -> None:
     assert SimServer(config).arm.torque_scale.tolist() == [1.0, 1.0, 0.25, 1.0]
     # a power cycle brings back the same arm
     server.power_cycle()
+    assert isinstance(server.arm, Alpha5Arm)
     assert server.arm.params.frictionloss == tuple(friction)
 
 
@@ -212,6 +215,7 @@ def test_reach_sim_perturbs_around_the_file_arm(tmp_path: Path) -> None:
     path = _write(tmp_path, {"frictionloss": heavy})
     args = ["--params", str(path), "--randomize-params", "4"]
     arm = SimServer(config_from_args(build_parser().parse_args(args))).arm
+    assert isinstance(arm, Alpha5Arm)
     got = np.asarray(arm.params.frictionloss)
     assert np.all(got >= 0.8 * np.asarray(heavy) - 1e-9)
     assert np.all(got <= 1.2 * np.asarray(heavy) + 1e-9)

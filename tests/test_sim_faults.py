@@ -67,17 +67,23 @@ def test_fault_config_and_torque_scale_parsing_refuse_bad_values() -> None:
         FaultConfig(torque_scale=(1.0, 1.0, 1.5, 1.0))
 
 
+def _alpha(server: SimServer) -> Alpha5Arm:
+    """The served twin, an Alpha 5 (the default model)."""
+    assert isinstance(server.arm, Alpha5Arm)
+    return server.arm
+
+
 def test_randomized_parameters_are_reproducible_and_torque_scale_applied() -> None:
     faults = FaultConfig(randomize_seed=7, torque_scale=(0.25, 1.0, 1.0, 1.0))
     config = SimConfig(pty=False, udp=("127.0.0.1", 0), faults=faults)
-    first, second = SimServer(config).arm.params, SimServer(config).arm.params
+    first, second = _alpha(SimServer(config)).params, _alpha(SimServer(config)).params
     nominal = ArmParams()
     assert first.damping == second.damping and first.armature == second.armature
     assert first.damping != nominal.damping and first.link_mass_kg != nominal.link_mass_kg
     assert first.torque_scale == (0.25, 1.0, 1.0, 1.0)
-    other = SimServer(
-        SimConfig(pty=False, udp=("127.0.0.1", 0), faults=FaultConfig(randomize_seed=8))
-    ).arm.params
+    other = _alpha(
+        SimServer(SimConfig(pty=False, udp=("127.0.0.1", 0), faults=FaultConfig(randomize_seed=8)))
+    ).params
     assert other.damping != first.damping
 
 

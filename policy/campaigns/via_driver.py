@@ -260,6 +260,7 @@ def run_episode_via_driver(
     )
     server = SimServer(sim_config)
     arm = server.arm
+    assert isinstance(arm, Alpha5Arm)  # the served model is the default, the Alpha 5
     check_inside_limits(arm.position_limits, episode.target, "target")
     if config.param_spread > 0:
         # Same draw as the direct runner's, before the arm starts.

@@ -1,9 +1,9 @@
-"""The five devices of the emulated firmware: what each one is (`DeviceSpec`, the Alpha 5's
-`ALPHA5_DEVICES`), how the firmware is configured (`FirmwareConfig`), what each keeps while it
-runs (`Device`, its `Limits` and what SAVE stored), and the reasons a packet is refused or
-ignored (`ErrorReason`, `Ignored`). Plain data: the behaviour is `Firmware`'s
-(`reach_sim_bridge.emulator.firmware`) and its packet handlers'
-(`reach_sim_bridge.emulator.handlers`).
+"""The devices of the emulated firmware: what each one is (`DeviceSpec`; the Alpha 5's
+`ALPHA5_DEVICES`, the Bravo 7's `BRAVO7_DEVICES`), how the firmware is configured
+(`FirmwareConfig`, for one arm model), what each keeps while it runs (`Device`, its `Limits`
+and what SAVE stored), and the reasons a packet is refused or ignored (`ErrorReason`,
+`Ignored`). Plain data: the behaviour is `Firmware`'s (`reach_sim_bridge.emulator.firmware`)
+and its packet handlers' (`reach_sim_bridge.emulator.handlers`).
 """
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ import math
 from dataclasses import dataclass
 from enum import Enum
 
-from protocol import DeviceID, HardwareStatus, Mode, alpha5
+from protocol import DeviceID, HardwareStatus, Mode
+from protocol.models import ALPHA5, BRAVO7, ArmModel
 from reach_sim_bridge.emulator.derating import CurrentDerating
 from reach_sim_bridge.emulator.faults import Leak, StuckReading
 from reach_sim_bridge.emulator.monitor import MonitorConfig
@@ -47,6 +48,8 @@ class Ignored(str, Enum):
     END_VELOCITY_STOPPED = "end_velocity_at_joint_limit"  # a Cartesian move ran into a limit
     COLLISION = "broadcast_collision"  # half duplex: several devices answered at once
     PADDING = "request_padding"  # 0x00 slots in a REQUEST (or misplaced in a HEARTBEAT_SET)
+    NOT_ACTUATOR = "not_an_actuator"  # motion or limits for a router or compute module
+    NO_SENSOR = "no_force_torque_sensor"  # FORCE_TORQUE to a device without the sensor
 
 
 @dataclass(frozen=True)
@@ -60,40 +63,78 @@ class LoopGains:
 
 @dataclass(frozen=True)
 class DeviceSpec:
-    """What differs between the five devices' firmware."""
+    """What differs between the devices' firmware. A device that is not an actuator (the
+    Bravo's router) has no unit, rate limit or loop."""
 
     device_id: DeviceID
     letter: str
-    unit: str  # "rad" or "mm"
+    unit: str  # "rad" or "mm" ("" for a device that does not move)
     rate_limit: float  # firmware limit in position/velocity modes (unit/s)
     gains: LoopGains
     serial_number: float
 
 
-def _rate(device: DeviceID) -> float:
+def _rate(model: ArmModel, device: DeviceID) -> float:
     """The factory velocity limit: the firmware's rate limit in position and velocity modes."""
-    return alpha5.FACTORY_VELOCITY_LIMITS[device][1]
+    return model.velocity_limits[device][1]
+
+
+def _actuator(
+    model: ArmModel, device: DeviceID, gains: LoopGains, serial_number: float
+) -> DeviceSpec:
+    return DeviceSpec(
+        device, device.name, model.unit(device), _rate(model, device), gains, serial_number
+    )
+
+
+def _other(device: DeviceID, serial_number: float) -> DeviceSpec:
+    return DeviceSpec(device, device.name, "", 0.0, LoopGains(0.0, 0.0, 0.0), serial_number)
 
 
 # Gains tuned against Alpha5Arm (tools/ and tests/test_sim_firmware.py check the result):
 # E/D/C have ~0.13 kg m^2 reflected inertia and 20.2 N m/A; B 0.008 kg m^2 and 7.1 N m/A;
 # the jaw ~725 kg reflected mass and 914 N/A (units mm, so mA per mm).
 ALPHA5_DEVICES: tuple[DeviceSpec, ...] = (
-    DeviceSpec(DeviceID.A, "A", "mm", _rate(DeviceID.A), LoopGains(3.0, 20.0, 150.0), 4101.0),
-    DeviceSpec(DeviceID.B, "B", "rad", _rate(DeviceID.B), LoopGains(5.0, 100.0, 2000.0), 4102.0),
-    DeviceSpec(DeviceID.C, "C", "rad", _rate(DeviceID.C), LoopGains(5.0, 1e3, 2e4), 4103.0),
-    DeviceSpec(DeviceID.D, "D", "rad", _rate(DeviceID.D), LoopGains(5.0, 1e3, 2e4), 4104.0),
-    DeviceSpec(DeviceID.E, "E", "rad", _rate(DeviceID.E), LoopGains(5.0, 1e3, 2e4), 4105.0),
+    _actuator(ALPHA5, DeviceID.A, LoopGains(3.0, 20.0, 150.0), 4101.0),
+    _actuator(ALPHA5, DeviceID.B, LoopGains(5.0, 100.0, 2000.0), 4102.0),
+    _actuator(ALPHA5, DeviceID.C, LoopGains(5.0, 1e3, 2e4), 4103.0),
+    _actuator(ALPHA5, DeviceID.D, LoopGains(5.0, 1e3, 2e4), 4104.0),
+    _actuator(ALPHA5, DeviceID.E, LoopGains(5.0, 1e3, 2e4), 4105.0),
 )
+
+# Gains tuned against Bravo7Arm (tests/test_sim_bravo7.py checks the result): every joint
+# has 0.3 to 1.2 kg m^2 at the output (0.288 of it reflected rotor), 25 to 27 N m/A, 20.6
+# N m s/rad of viscous and 9.5 N m of Coulomb friction; the jaw ~31 t reflected mass, 1.37
+# kN per mm/s of damping, 3.1 kN of friction and 8.2 N per mA (units mm, so mA per mm).
+BRAVO7_DEVICES: tuple[DeviceSpec, ...] = (
+    _actuator(BRAVO7, DeviceID.A, LoopGains(3.0, 300.0, 1500.0), 7101.0),
+    *(
+        _actuator(BRAVO7, device, LoopGains(5.0, 2e3, 2e4), 7100.0 + int(device))
+        for device in sorted(BRAVO7.joints)
+    ),
+    _other(DeviceID.ROUTER, 7113.0),
+)
+
+#: Each model's devices, as the virtual arm serves them (the Bravo's compute module is not
+#: emulated: no kinematics on the Bravo).
+DEVICE_SPECS: dict[str, tuple[DeviceSpec, ...]] = {
+    ALPHA5.name: ALPHA5_DEVICES,
+    BRAVO7.name: BRAVO7_DEVICES,
+}
+#: The number each model's emulated devices answer MODEL_NUMBER with: the emulator's own
+#: (the vendor's are not published).
+MODEL_NUMBERS: dict[str, float] = {ALPHA5.name: 5005.0, BRAVO7.name: 7007.0}
 
 
 @dataclass(frozen=True)
 class FirmwareConfig:
-    """Identity and environment the firmware reports, and its error-reporting timing."""
+    """The arm model emulated, the identity and environment the firmware reports, and its
+    error-reporting timing."""
 
-    devices: tuple[DeviceSpec, ...] = ALPHA5_DEVICES
+    model: ArmModel = ALPHA5
+    devices: tuple[DeviceSpec, ...] = ()  # () : the model's (`DEVICE_SPECS`)
     software_version: tuple[int, int, int] = (0, 1, 0)  # the emulator's own version
-    model_number: float = 5005.0  # emulator's own number: the vendor's are not published
+    model_number: float = 0.0  # 0: the model's (`MODEL_NUMBERS`)
     temperature_c: float = 20.0  # the water's: each housing starts at it (monitor model)
     humidity_pct: float = 10.0  # in each housing at power-on
     monitor: MonitorConfig = MonitorConfig()  # climate and supply model, factory levels
@@ -108,6 +149,15 @@ class FirmwareConfig:
     error_hold_s: float = 5.0  # link error flags clear after this long without errors
     sensor_noise: SensorNoise | None = None
     seed: int | None = None  # noise generator
+
+    def __post_init__(self) -> None:
+        if not self.devices:
+            specs = DEVICE_SPECS.get(self.model.name)
+            if specs is None:
+                raise ValueError(f"no emulated devices for the {self.model.title}: give devices")
+            object.__setattr__(self, "devices", specs)
+        if not self.model_number:
+            object.__setattr__(self, "model_number", MODEL_NUMBERS.get(self.model.name, 1.0))
 
 
 @dataclass
@@ -139,7 +189,7 @@ class Device:
     """One device's live firmware state."""
 
     spec: DeviceSpec
-    index: int  # 0..3 in E D C B for the joints, -1 for the jaw
+    index: int  # in the model's joint order for the joints, `JAW` for the jaw, `OTHER` else
     continuous: bool
     position_limits: Limits
     velocity_limits: Limits
@@ -162,3 +212,17 @@ class Device:
     peak_mA: float = 0.0  # the factory current limit, the derating's full limit
     thermal_load: float = 0.0  # the derating's I^2 t estimate (1: the rated rise)
     ceiling_mA: float = math.inf  # the derated current limit, either sign (inf: none)
+
+    @property
+    def is_actuator(self) -> bool:
+        """A joint or the jaw: a device with a motor and a loop."""
+        return self.index != OTHER
+
+    @property
+    def is_jaw(self) -> bool:
+        return self.index == JAW
+
+
+#: `Device.index` of the jaw, and of a device that is not an actuator (a router).
+JAW = -1
+OTHER = -2

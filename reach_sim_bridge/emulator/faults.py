@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.alpha5 import JOINT_LETTERS as JOINTS
+from protocol.models import ALPHA5, MODELS, ArmModel
 from reach_sim_bridge.model.sensors import (
     SensorNoise,
 )
@@ -23,7 +23,9 @@ from reach_sim_bridge.model.sensors import (
 class FaultConfig:
     """All faults at once; the defaults are a healthy arm on a perfect link."""
 
-    torque_scale: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)  # E D C B
+    #: per joint in the served model's order (E D C B on the Alpha 5); all ones (healthy)
+    #: fits any model
+    torque_scale: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)
     sensor_noise: SensorNoise | None = None
     randomize_seed: int | None = None
     corrupt_rate: float = 0.0  # probability that each outgoing byte is flipped
@@ -31,9 +33,15 @@ class FaultConfig:
     latency_ms: float = 0.0  # added to every outgoing frame (wall clock)
 
     def __post_init__(self) -> None:
-        if len(self.torque_scale) != 4:
-            raise ValueError(f"torque_scale needs 4 values (E D C B), got {self.torque_scale}")
-        for joint, scale in zip(JOINTS, self.torque_scale, strict=True):
+        n = len(self.torque_scale)
+        if n == 0:
+            raise ValueError("torque_scale needs one value per joint, got none")
+        # The joints' names for messages: those of the model with that many joints.
+        names = next(
+            (m.joint_letters for m in MODELS.values() if m.n_joints == n),
+            tuple(f"#{i + 1}" for i in range(n)),
+        )
+        for joint, scale in zip(names, self.torque_scale, strict=True):
             if not (math.isfinite(scale) and 0.0 <= scale <= 1.0):
                 raise ValueError(f"torque scale of joint {joint} must be in [0, 1], got {scale}")
         for name in ("corrupt_rate", "drop_rate"):
@@ -43,33 +51,47 @@ class FaultConfig:
         if not (math.isfinite(self.latency_ms) and self.latency_ms >= 0.0):
             raise ValueError(f"latency_ms must be a finite number >= 0, got {self.latency_ms}")
 
+    def torque_scale_for(self, model: ArmModel) -> tuple[float, ...]:
+        """The torque scale per joint of `model` (ValueError if it names another count)."""
+        if all(v == 1.0 for v in self.torque_scale):
+            return (1.0,) * model.n_joints
+        if len(self.torque_scale) != model.n_joints:
+            raise ValueError(
+                f"torque_scale has {len(self.torque_scale)} values; the {model.title} has "
+                f"{model.n_joints} joints ({' '.join(model.joint_letters)})"
+            )
+        return self.torque_scale
+
     @property
     def link_faults(self) -> bool:
         return self.corrupt_rate > 0.0 or self.drop_rate > 0.0 or self.latency_ms > 0.0
 
 
-def parse_torque_scale(text: str) -> tuple[int, float]:
-    """'D=0.25' -> (index of D in E D C B, 0.25); ValueError says what was wrong."""
+def parse_torque_scale(text: str, model: ArmModel = ALPHA5) -> tuple[int, float]:
+    """'D=0.25' -> (index of D in the model's joints, E D C B on the Alpha 5, 0.25);
+    ValueError says what was wrong."""
+    joints = model.joint_letters
     joint, sep, value = text.partition("=")
     joint = joint.strip().upper()
-    if not sep or joint not in JOINTS:
-        raise ValueError(f"expected JOINT=SCALE with JOINT one of {' '.join(JOINTS)}, got {text!r}")
+    if not sep or joint not in joints:
+        raise ValueError(f"expected JOINT=SCALE with JOINT one of {' '.join(joints)}, got {text!r}")
     try:
         scale = float(value)
     except ValueError:
         raise ValueError(f"torque scale for {joint} is not a number: {value!r}") from None
     if not (math.isfinite(scale) and 0.0 <= scale <= 1.0):
         raise ValueError(f"torque scale for {joint} must be in [0, 1], got {scale}")
-    return JOINTS.index(joint), scale
+    return joints.index(joint), scale
 
 
-def torque_scales(items: list[str]) -> tuple[float, float, float, float]:
-    """Fold repeated JOINT=S options into an E D C B tuple (later options win)."""
-    scales = [1.0, 1.0, 1.0, 1.0]
+def torque_scales(items: list[str], model: ArmModel = ALPHA5) -> tuple[float, ...]:
+    """Fold repeated JOINT=S options into a tuple in the model's joint order (E D C B on the
+    Alpha 5; later options win)."""
+    scales = [1.0] * model.n_joints
     for item in items:
-        index, scale = parse_torque_scale(item)
+        index, scale = parse_torque_scale(item, model)
         scales[index] = scale
-    return (scales[0], scales[1], scales[2], scales[3])
+    return tuple(scales)
 
 
 class LinkFaults:

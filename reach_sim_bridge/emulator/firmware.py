@@ -1,6 +1,8 @@
-"""Emulation of the Alpha 5's joint firmware on top of the MuJoCo arm.
+"""Emulation of an arm's joint firmware on top of the MuJoCo arm (the Alpha 5 by default).
 
-Each device (A jaws 0x01 .. E base 0x05) keeps the state the real firmware keeps: mode,
+The devices are the arm model's (`protocol.models`): on the Alpha 5, A jaws 0x01 .. E base
+0x05; on the Bravo 7, A jaws 0x01 .. G base 0x07 and the router 0x0D. Each actuator keeps
+the state the real firmware keeps: mode,
 setpoints, [max, min] limits, identity, hardware status flags and a heartbeat. Its control
 loops run once per physics step in sim time, cascaded like the arm's: position error ->
 velocity demand (clamped to the firmware rate limit and the velocity limits) -> PI velocity
@@ -27,6 +29,12 @@ packets) from `reach_sim_bridge.emulator.monitor`, whose OVER_TEMPERATURE, OVER_
 OVER_PRESSURE and LOW_SUPPLY_VOLTAGE flags are conditions: they hold while the reading is
 past its level. Any flag set is reported with HARDWARE_STATUS at 1 Hz.
 
+A device that is not an actuator (the Bravo's router) answers identity, Monitor, status and
+heartbeat packets and, when the model says it reports the wrist's force-torque sensor,
+FORCE_TORQUE (0xD8): the wrench the jaws put on the wrist (`Bravo7Arm.force_torque`), less
+the tare taken when six zeros are written to it. Motion and limit packets for it are
+ignored (counted).
+
 The devices' specs, configuration and live state are plain data in `devices`; what each
 packet from the host does is in `handlers` (`PacketHandlers`, which `Firmware` inherits).
 """
@@ -49,13 +57,15 @@ from protocol import (
     Packet,
     PacketID,
 )
-from protocol.alpha5 import JOINT_LETTERS
-from protocol.commands import HEARTBEAT_SLOTS
+from protocol.commands import FORCE_TORQUE_VALUES, HEARTBEAT_SLOTS
 from protocol.payload import pack_floats, pack_u8s
 from reach_sim_bridge.emulator.derating import CurrentDerating
 from reach_sim_bridge.emulator.devices import (
     ALPHA5_DEVICES,
+    BRAVO7_DEVICES,
     HOLDING_MODES,
+    JAW,
+    OTHER,
     Device,
     DeviceSpec,
     ErrorReason,
@@ -70,13 +80,14 @@ from reach_sim_bridge.emulator.faults import Leak, StuckReading
 from reach_sim_bridge.emulator.handlers import Handler, PacketHandlers, Rejected
 from reach_sim_bridge.emulator.monitor import MONITOR_FLAGS, Monitor
 from reach_sim_bridge.model import ik
-from reach_sim_bridge.model.arm import Alpha5Arm
+from reach_sim_bridge.model.arm import MotorArm
 
 log = logging.getLogger(__name__)
 
 # What configures a firmware, importable from here as well as from `devices`.
 __all__ = [
     "ALPHA5_DEVICES",
+    "BRAVO7_DEVICES",
     "DeviceSpec",
     "Firmware",
     "FirmwareConfig",
@@ -92,6 +103,21 @@ WINDUP_BLEED_S = 0.2
 #: Below this speed (unit/s) in the direction of the push, a joint at the current limit
 #: counts as stalled [A].
 STALL_SPEED = 0.01
+
+# Packets that move an actuator or set its limits: a device that is not one ignores them.
+_ACTUATOR_PACKETS = frozenset(
+    {
+        PacketID.MODE,
+        PacketID.POSITION,
+        PacketID.VELOCITY,
+        PacketID.CURRENT,
+        PacketID.INDEXED_POSITION,
+        PacketID.RELATIVE_POSITION,
+        PacketID.POSITION_LIMITS,
+        PacketID.VELOCITY_LIMITS,
+        PacketID.CURRENT_LIMITS,
+    }
+)
 
 # Packets that give a joint its own command, ending a Cartesian velocity (KM_END_VEL).
 _JOINT_COMMANDS = frozenset(
@@ -109,11 +135,17 @@ _JOINT_COMMANDS = frozenset(
 
 
 class Firmware(PacketHandlers):
-    """All five devices of one arm. Not thread-safe: one owner calls handle() and tick()."""
+    """All the devices of one arm. Not thread-safe: one owner calls handle() and tick()."""
 
-    def __init__(self, arm: Alpha5Arm, config: FirmwareConfig | None = None) -> None:
+    def __init__(self, arm: MotorArm, config: FirmwareConfig | None = None) -> None:
         self.arm = arm
-        self.config = config if config is not None else FirmwareConfig()
+        self.config = config if config is not None else FirmwareConfig(model=arm.arm_model)
+        model = self.model = self.config.model
+        if arm.arm_model.name != model.name:
+            raise ValueError(
+                f"the firmware is configured for the {model.title} but drives the "
+                f"{arm.arm_model.title}"
+            )
         self._rng = random.Random(self.config.seed)
         self._noise = self.config.sensor_noise
         self._step = arm.dt
@@ -124,27 +156,33 @@ class Firmware(PacketHandlers):
         self.packets_handled = 0
         self._devices: list[Device] = []
         self._by_id: dict[int, Device] = {}
-        self._joints: list[Device] = [None] * 4  # type: ignore[list-item]
+        self._joints: list[Device] = [None] * model.n_joints  # type: ignore[list-item]
         self._jaw: Device | None = None
-        continuous = bool(arm.params.wrist_continuous)
+        continuous = arm.continuous_joint
         arm_limits = arm.position_limits
         arm_currents = arm.current_limits_mA
         for spec in sorted(self.config.devices, key=lambda s: int(s.device_id)):
-            if spec.letter == "A":
-                index = -1
+            if spec.device_id == model.jaw:
+                index = JAW
                 lo, hi = arm.jaw_limits_mm
                 imax = arm.jaw_current_limit_mA
-            elif spec.letter in JOINT_LETTERS:
-                index = JOINT_LETTERS.index(spec.letter)
+            elif spec.device_id in model.joints:
+                index = model.index(spec.device_id)
                 lo, hi = float(arm_limits[index, 0]), float(arm_limits[index, 1])
                 imax = float(arm_currents[index])
+            elif spec.device_id in model.others:
+                index = OTHER
+                lo = hi = imax = 0.0
             else:
-                raise ValueError(f"device letter must be one of A B C D E, got {spec.letter!r}")
+                names = " ".join(d.name for d in model.devices)
+                raise ValueError(
+                    f"device {spec.device_id!r} is not one of the {model.title}'s ({names})"
+                )
             saved = Saved((lo, hi), (-spec.rate_limit, spec.rate_limit), (-imax, imax), 0)
             dev = Device(
                 spec=spec,
                 index=index,
-                continuous=continuous and spec.letter == "B",
+                continuous=continuous is not None and index == continuous,
                 position_limits=Limits(lo, hi),
                 velocity_limits=Limits(-spec.rate_limit, spec.rate_limit),
                 current_limits=Limits(-imax, imax),
@@ -155,17 +193,19 @@ class Firmware(PacketHandlers):
             self._by_id[int(spec.device_id)] = dev
             if index >= 0:
                 self._joints[index] = dev
-            else:
+            elif index == JAW:
                 self._jaw = dev
         if any(d is None for d in self._joints):
-            raise ValueError("the firmware needs devices for all of E D C B")
+            raise ValueError(
+                f"the firmware needs devices for all of {' '.join(model.joint_letters)}"
+            )
         for slot, dev in enumerate(self._devices):
             dev.position_target = self._position(dev)
             dev.slot = slot
         resistances = [
             float(arm.jaw_motor.resistance[0])
-            if d.index < 0
-            else float(arm.motor.resistance[d.index])
+            if d.is_jaw
+            else (float(arm.motor.resistance[d.index]) if d.index >= 0 else 0.0)
             for d in self._devices
         ]
         self.monitor = Monitor(
@@ -186,8 +226,6 @@ class Firmware(PacketHandlers):
             self.inject_leak(leak)
         # (device, packet) -> (arm time it sticks from, the payload it is stuck at, once known)
         self._stuck: dict[tuple[int, int], tuple[float, bytes | None]] = {}
-        for stuck in self.config.stuck:
-            self.inject_stuck(stuck)
         self._handlers: dict[int, Handler] = {
             PacketID.MODE: self._on_mode,
             PacketID.POSITION: self._on_position,
@@ -206,17 +244,13 @@ class Firmware(PacketHandlers):
             PacketID.KM_END_POS: self._on_end_pos,
             PacketID.KM_END_VEL: self._on_end_vel,
         }
+        if model.force_torque is not None:  # an arm without the sensor knows no 0xD8
+            self._handlers[PacketID.FORCE_TORQUE] = self._on_force_torque
         # A Cartesian velocity being followed: (linear m/s, angular rad/s), base frame.
         self._end_velocity: tuple[np.ndarray, np.ndarray] | None = None
         self._end_velocity_countdown = 0
-        self._reporters: dict[int, Callable[[Device], bytes | None]] = {
-            PacketID.MODE: lambda d: bytes((int(d.mode),)),
-            PacketID.POSITION: lambda d: pack_floats(self._noisy_position(d)),
-            PacketID.VELOCITY: lambda d: pack_floats(self._noisy_velocity(d)),
-            PacketID.CURRENT: lambda d: pack_floats(self._current(d)),
-            PacketID.POSITION_LIMITS: lambda d: _limits_payload(d.position_limits),
-            PacketID.VELOCITY_LIMITS: lambda d: _limits_payload(d.velocity_limits),
-            PacketID.CURRENT_LIMITS: lambda d: _limits_payload(d.current_limits),
+        # What every device reports, then what only an actuator does.
+        common: dict[int, Callable[[Device], bytes | None]] = {
             PacketID.SERIAL_NUMBER: lambda d: pack_floats(d.spec.serial_number),
             PacketID.MODEL_NUMBER: lambda d: pack_floats(self.config.model_number),
             PacketID.DEVICE_ID: lambda d: bytes((int(d.spec.device_id),)),
@@ -232,9 +266,27 @@ class Firmware(PacketHandlers):
             PacketID.VOLTAGE: lambda d: pack_floats(self.monitor.voltage_v),
             PacketID.HEARTBEAT_SET: lambda d: _heartbeat_payload(d.heartbeat_ids),
             PacketID.HEARTBEAT_FREQUENCY: lambda d: bytes((d.heartbeat_hz,)),
+        }
+        self._reporters: dict[int, Callable[[Device], bytes | None]] = {
+            **common,
+            PacketID.MODE: lambda d: bytes((int(d.mode),)),
+            PacketID.POSITION: lambda d: pack_floats(self._noisy_position(d)),
+            PacketID.VELOCITY: lambda d: pack_floats(self._noisy_velocity(d)),
+            PacketID.CURRENT: lambda d: pack_floats(self._current(d)),
+            PacketID.POSITION_LIMITS: lambda d: _limits_payload(d.position_limits),
+            PacketID.VELOCITY_LIMITS: lambda d: _limits_payload(d.velocity_limits),
+            PacketID.CURRENT_LIMITS: lambda d: _limits_payload(d.current_limits),
             PacketID.KM_END_POS: self._end_pose,
             PacketID.KM_END_VEL: self._end_twist,
         }
+        #: What a device that is not an actuator (a router) reports.
+        self._other_reporters: dict[int, Callable[[Device], bytes | None]] = dict(common)
+        if model.force_torque is not None:
+            self._other_reporters[PacketID.FORCE_TORQUE] = self._force_torque
+        #: The force-torque reading taken as zero (the tare), sensor frame (N, N m).
+        self._ft_tare = np.zeros(FORCE_TORQUE_VALUES)
+        for stuck in self.config.stuck:
+            self.inject_stuck(stuck)
 
     # -- public -----------------------------------------------------------------------------
     @property
@@ -265,11 +317,15 @@ class Firmware(PacketHandlers):
         and pressure drift up and raise OVER_HUMIDITY and OVER_PRESSURE (monitor model)."""
         self.monitor.leak(self._by_id[int(leak.device_id)].slot, leak)
 
+    def reporters(self, d: Device) -> dict[int, Callable[[Device], bytes | None]]:
+        """What device `d` can report, by packet id."""
+        return self._reporters if d.is_actuator else self._other_reporters
+
     def inject_stuck(self, stuck: StuckReading) -> None:
         """From `stuck.from_s` (arm time) on, the device reports that packet with the value
         it reports at that moment (`faults.StuckReading`); replaces a stuck one there."""
         device = self._by_id[int(stuck.device_id)]
-        if int(stuck.packet_id) not in self._reporters:
+        if int(stuck.packet_id) not in self.reporters(device):
             raise ValueError(f"device {device.spec.letter} reports no 0x{stuck.packet_id:02X}")
         self._stuck[(int(stuck.device_id), int(stuck.packet_id))] = (stuck.from_s, None)
 
@@ -312,6 +368,14 @@ class Firmware(PacketHandlers):
                 return []
             targets = [dev]
         pid = int(packet.packet_id)
+        if pid in _ACTUATOR_PACKETS and not all(d.is_actuator for d in targets):
+            if target != DeviceID.BROADCAST:
+                self.ignored.record(
+                    Ignored.NOT_ACTUATOR.value,
+                    f"packet 0x{pid:02X} for device 0x{target:02X}, which does not move",
+                )
+                return []
+            targets = [d for d in targets if d.is_actuator]  # a broadcast is for the actuators
         if (
             self._end_velocity is not None
             and pid in _JOINT_COMMANDS
@@ -340,9 +404,9 @@ class Firmware(PacketHandlers):
             return []
 
     def note_link_error(self, error: DecodeError) -> None:
-        """A frame the server could not decode: flag it on the base device (0x05), where the
-        host link enters the arm."""
-        base = self._by_id.get(int(DeviceID.E), self._devices[-1])
+        """A frame the server could not decode: flag it on the model's base device (0x05 on
+        the Alpha 5, the router 0x0D on the Bravo 7), where the host link enters the arm."""
+        base = self._by_id.get(int(self.model.base), self._devices[-1])
         flag = (
             HardwareStatus.CRC_ERROR
             if error.reason == DecodeReason.CRC
@@ -379,7 +443,7 @@ class Firmware(PacketHandlers):
         stuck = self._stuck.get((device_id, packet_id)) if self._stuck else None
         if stuck is not None and self.arm.time >= stuck[0] and stuck[1] is not None:
             return Packet(dev.spec.device_id, packet_id, stuck[1])
-        reporter = self._reporters.get(packet_id)
+        reporter = self.reporters(dev).get(packet_id)
         data = reporter(dev) if reporter is not None else None
         if stuck is not None and self.arm.time >= stuck[0] and data is not None:
             self._stuck[(device_id, packet_id)] = (stuck[0], data)  # stuck at this one
@@ -392,7 +456,7 @@ class Firmware(PacketHandlers):
             self._follow_end_velocity(h)
         q = arm.q.tolist()
         qd = arm.qdot.tolist()
-        currents = [self._loop(self._joints[i], q[i], qd[i], h) for i in range(4)]
+        currents = [self._loop(d, q[i], qd[i], h) for i, d in enumerate(self._joints)]
         jaw = self._jaw
         jaw_mA = 0.0 if jaw is None else self._loop(jaw, arm.jaw_mm, arm.jaw_velocity_mm_s, h)
         arm.step(currents, jaw_mA)
@@ -474,7 +538,10 @@ class Firmware(PacketHandlers):
         arm = self.arm
         joint_mA = arm.current_mA.tolist()
         jaw_mA = arm.jaw_current_mA
-        amps = [(jaw_mA if d.index < 0 else joint_mA[d.index]) / 1000.0 for d in self._devices]
+        amps = [
+            (jaw_mA if d.is_jaw else (joint_mA[d.index] if d.index >= 0 else 0.0)) / 1000.0
+            for d in self._devices
+        ]
         monitor = self.monitor
         monitor.step(h * _MONITOR_STEPS, amps, arm.motor.supply_voltage)
         if self._derating is not None:
@@ -499,6 +566,8 @@ class Firmware(PacketHandlers):
         a = self._derate_factor
         start = derating.start
         for d, amp in zip(self._devices, amps, strict=True):
+            if not d.peak_mA:
+                continue  # no motor: nothing to derate
             ratio = amp * 1000.0 / (derating.continuous_fraction * d.peak_mA)
             load = d.thermal_load
             load += (ratio * ratio - load) * a
@@ -545,13 +614,19 @@ class Firmware(PacketHandlers):
 
     # -- measurements -----------------------------------------------------------------------
     def _position(self, d: Device) -> float:
-        return self.arm.jaw_mm if d.index < 0 else float(self.arm.q[d.index])
+        if d.index >= 0:
+            return float(self.arm.q[d.index])
+        return self.arm.jaw_mm if d.is_jaw else 0.0
 
     def _velocity(self, d: Device) -> float:
-        return self.arm.jaw_velocity_mm_s if d.index < 0 else float(self.arm.qdot[d.index])
+        if d.index >= 0:
+            return float(self.arm.qdot[d.index])
+        return self.arm.jaw_velocity_mm_s if d.is_jaw else 0.0
 
     def _current(self, d: Device) -> float:
-        return self.arm.jaw_current_mA if d.index < 0 else float(self.arm.current_mA[d.index])
+        if d.index >= 0:
+            return float(self.arm.current_mA[d.index])
+        return self.arm.jaw_current_mA if d.is_jaw else 0.0
 
     def _noisy_position(self, d: Device) -> float:
         value = self._position(d)
@@ -565,13 +640,52 @@ class Firmware(PacketHandlers):
             value += self._rng.gauss(0.0, self._noise.velocity_std)
         return value
 
+    # -- the wrist's force-torque sensor ------------------------------------------------------
+    def _force_torque(self, d: Device) -> bytes | None:
+        if d.spec.device_id != self.model.force_torque:
+            return None
+        return pack_floats(*(self._ft_raw() - self._ft_tare).tolist())
+
+    def _ft_raw(self) -> np.ndarray:
+        reading = getattr(self.arm, "force_torque", None)
+        if reading is None:
+            raise RuntimeError(f"the {self.model.title}'s twin has no force-torque reading")
+        return np.asarray(reading(), dtype=float)
+
+    def _on_force_torque(self, targets: list[Device], packet: Packet) -> list[Packet]:
+        sensor = self.model.force_torque
+        assert sensor is not None  # the handler is there only for an arm with the sensor
+        if not any(d.spec.device_id == sensor for d in targets):
+            self.ignored.record(
+                Ignored.NO_SENSOR.value,
+                f"FORCE_TORQUE to device 0x{int(packet.device_id):02X}: the sensor is read "
+                f"and tared at 0x{int(sensor):02X}",
+            )
+            return []
+        size = 4 * FORCE_TORQUE_VALUES
+        if len(packet.data) != size:
+            raise Rejected(
+                ErrorReason.BAD_PAYLOAD,
+                f"FORCE_TORQUE payload must be {FORCE_TORQUE_VALUES} float32 ({size} bytes; "
+                f"six zeros tare the sensor), got {len(packet.data)}",
+            )
+        values = packet.floats()
+        if any(values):
+            raise Rejected(
+                ErrorReason.BAD_VALUE,
+                f"FORCE_TORQUE {values}: only six zeros (a tare) may be written",
+            )
+        self._ft_tare = self._ft_raw()
+        log.info("force-torque sensor tared at %s", np.round(self._ft_tare, 3).tolist())
+        return []
+
     def _end_pose(self, d: Device) -> bytes | None:
-        if d.spec.device_id != DeviceID.E:
-            return None  # the base device does the kinematics
+        if d.spec.device_id != self.model.kinematics:
+            return None  # one device does the kinematics (the Alpha's base, E)
         return pack_floats(*self.arm.end_effector_pose())
 
     def _end_twist(self, d: Device) -> bytes | None:
-        if d.spec.device_id != DeviceID.E:
+        if d.spec.device_id != self.model.kinematics:
             return None
         linear, angular = ik.tcp_velocity(self.arm, self.arm.q, self.arm.qdot)
         return pack_floats(*(linear * 1000.0).tolist(), *angular.tolist())
@@ -580,11 +694,16 @@ class Firmware(PacketHandlers):
     def _end_command(self, targets: list[Device], packet: Packet, name: str) -> list[float] | None:
         """The 6 floats of a KM_END_POS/KM_END_VEL for the base device (None: not for it, or
         a joint cannot take it; counted)."""
-        if not any(d.spec.device_id == DeviceID.E for d in targets):
+        kinematics = self.model.kinematics
+        if not any(d.spec.device_id == kinematics for d in targets):
+            where = (
+                f"no device of the virtual {self.model.title} does kinematics"
+                if kinematics is None or int(kinematics) not in self._by_id
+                else f"only the base device (0x{int(kinematics):02X}) does kinematics"
+            )
             self.ignored.record(
                 Ignored.NOT_BASE.value,
-                f"{name} to device 0x{int(packet.device_id):02X}: only the base device "
-                "(0x05) does kinematics",
+                f"{name} to device 0x{int(packet.device_id):02X}: {where}",
             )
             return None
         if len(packet.data) != 24:

@@ -26,7 +26,7 @@ from reach_sim_bridge.emulator.devices import (
     Saved,
 )
 from reach_sim_bridge.emulator.events import EventLog
-from reach_sim_bridge.model.arm import Alpha5Arm
+from reach_sim_bridge.model.arm import MotorArm
 
 # Control packets that switch the mode implicitly; DISABLE and PASSIVE ignore them.
 _LOCKED_MODES = frozenset({Mode.DISABLE, Mode.PASSIVE})
@@ -46,17 +46,22 @@ Handler = Callable[[list[Device], Packet], list[Packet]]
 class PacketHandlers:
     """The packet handlers of `Firmware` (see the module docstring)."""
 
-    arm: Alpha5Arm
+    arm: MotorArm
     config: FirmwareConfig
     errors: EventLog
     ignored: EventLog
     _reporters: dict[int, Callable[[Device], bytes | None]]
+    _other_reporters: dict[int, Callable[[Device], bytes | None]]
 
     if TYPE_CHECKING:
 
         def _position(self, d: Device) -> float: ...
 
         def report(self, device_id: int, packet_id: int) -> Packet | None: ...
+
+    def _reportable(self, packet_id: int) -> bool:
+        """Whether some device of the arm can report `packet_id`."""
+        return packet_id in self._reporters or packet_id in self._other_reporters
 
     # -- errors -----------------------------------------------------------------------------
     def _error(
@@ -211,7 +216,9 @@ class PacketHandlers:
     def _apply_drive_limit(self, d: Device) -> None:
         """The motor drive's symmetric limit follows the firmware's widest bound."""
         limit = max(abs(d.current_limits.lo), abs(d.current_limits.hi))
-        if d.index < 0:
+        if not d.is_actuator:
+            return
+        if d.is_jaw:
             self.arm.jaw_current_limit_mA = limit
         else:
             limits = self.arm.current_limits_mA.copy()
@@ -239,8 +246,9 @@ class PacketHandlers:
             d.heartbeat_ids = ()  # not saved across power cycles
             d.status = d.injected = HardwareStatus.NONE
             d.last_error_time = -math.inf
-            self._set_mode(d, Mode.STANDBY)
-            d.position_target = self._position(d)
+            if d.is_actuator:
+                self._set_mode(d, Mode.STANDBY)
+                d.position_target = self._position(d)
         return []
 
     def _on_request(self, targets: list[Device], packet: Packet) -> list[Packet]:
@@ -266,7 +274,7 @@ class PacketHandlers:
                 reply = self.report(int(d.spec.device_id), pid)
                 if reply is not None:
                     out.append(reply)
-                elif not broadcast or pid not in self._reporters:
+                elif not broadcast or not self._reportable(pid):
                     self.ignored.record(
                         Ignored.UNSUPPORTED_REQUEST.value,
                         f"device {d.spec.letter} has no 0x{pid:02X} to report",
@@ -293,7 +301,7 @@ class PacketHandlers:
                 Ignored.PADDING.value,
                 f"HEARTBEAT_SET {list(packet.data)}: zeros before ids skipped",
             )
-        unknown = [pid for pid in ids if pid not in self._reporters]
+        unknown = [pid for pid in ids if not self._reportable(pid)]
         if unknown:
             self.ignored.record(
                 Ignored.UNSUPPORTED_REQUEST.value,

@@ -54,6 +54,7 @@ import rerun.blueprint as rrb
 
 from protocol import HardwareStatus, Mode
 from protocol.alpha5 import JOINT_LETTERS as JOINTS
+from protocol.models import ALPHA5
 from protocol.viewer import (
     ViewerError,
     ViewerSpec,
@@ -306,6 +307,9 @@ class SimRecorder:
     ) -> None:
         if path is None and viewer is None:
             raise ValueError("SimRecorder needs a path, a viewer or both")
+        if server.config.model is not ALPHA5:
+            # Its views, names and skeleton are the Alpha 5's (four joints E D C B).
+            raise ValueError(f"SimRecorder draws the {ALPHA5.title} only")
         if not (math.isfinite(rate_hz) and rate_hz > 0):
             raise ValueError(f"recording rate must be positive, got {rate_hz}")
         if not (math.isfinite(idle_rate_hz) and 0 < idle_rate_hz <= rate_hz):

@@ -1,4 +1,5 @@
-"""Serving the virtual Alpha 5 on a pty and/or UDP, paced to the wall clock.
+"""Serving the virtual arm (the Alpha 5 by default, or the Bravo 7) on a pty and/or UDP,
+paced to the wall clock.
 
 One background thread owns the arm, the firmware and the endpoints: it advances physics to
 where the (scaled) wall clock says sim time should be, reads whatever arrived, lets the
@@ -28,8 +29,9 @@ from typing import TypeVar
 import numpy as np
 
 from protocol import HardwareStatus, Packet, PacketDecoder
-from protocol.alpha5 import SERIAL_BAUD
 from protocol.decoder import DecoderStats
+from protocol.models import ALPHA5, BRAVO7, ArmModel
+from reach_sim_bridge.emulator.devices import DEVICE_SPECS, MODEL_NUMBERS
 from reach_sim_bridge.emulator.events import EventLog
 from reach_sim_bridge.emulator.faults import FaultConfig, LinkFaults, StuckReading
 from reach_sim_bridge.emulator.firmware import Firmware, FirmwareConfig
@@ -45,7 +47,8 @@ from reach_sim_bridge.emulator.wire import (
     out_frame_max_age,
     out_queue_limit,
 )
-from reach_sim_bridge.model.arm import Alpha5Arm
+from reach_sim_bridge.model.arm import Alpha5Arm, MotorArm
+from reach_sim_bridge.model.bravo7 import Bravo7Arm
 from reach_sim_bridge.model.params import ArmParams
 
 T = TypeVar("T")
@@ -65,6 +68,12 @@ __all__ = [
     "serve_forever",
 ]
 
+#: The arms other than the Alpha 5 the simulator serves: (physics dt, seed) -> the twin.
+_TWINS: dict[str, Callable[[float, int | None], MotorArm]] = {
+    ALPHA5.name: lambda dt, seed: Alpha5Arm(dt=dt, seed=seed),
+    BRAVO7.name: lambda dt, seed: Bravo7Arm(dt=dt, seed=seed),
+}
+
 MAX_STEPS_PER_PASS = 25  # physics steps between two looks at the endpoints
 MAX_LAG_WALL_S = 0.25  # further behind than this, the sim slows down instead of catching up
 MIN_WAIT_S = 0.0005
@@ -77,6 +86,7 @@ DRAIN_READS = 16  # on stop, reads of each endpoint still acted on
 class SimConfig:
     """How to serve the virtual arm. At least one of `pty` and `udp` must be on."""
 
+    model: ArmModel = ALPHA5  # the arm served: the Alpha 5 or the Bravo 7
     speed: float = 1.0  # sim seconds per wall second
     pty: bool = True
     link: str | None = None  # stable symlink to the pty, removed on stop
@@ -84,17 +94,46 @@ class SimConfig:
     baud: int | None = None  # throttle the pty to this line rate (10 bits per byte)
     # The pty as one RS-485 wire (module docstring): needs the pty and its baud.
     half_duplex: bool = False
-    start: tuple[float, float, float, float] | None = None  # E D C B, rad; None = mid pose
+    start: tuple[float, ...] | None = None  # rad, the model's joint order; None = mid pose
     jaw_mm: float = 5.0
     dt: float = 0.002  # physics (and firmware loop) step, sim seconds
     faults: FaultConfig = field(default_factory=FaultConfig)
     firmware: FirmwareConfig = field(default_factory=FirmwareConfig)
     seed: int | None = None  # link faults and sensor noise
-    # The arm served (None: nominal); --randomize-params perturbs around it, and the
+    # The Alpha 5 served (None: nominal); --randomize-params perturbs around it, and the
     # faults' torque scale multiplies its own.
     params: ArmParams | None = None
 
     def __post_init__(self) -> None:
+        model = self.model
+        if model.name not in _TWINS:
+            known = ", ".join(_TWINS)
+            raise ValueError(f"no virtual {model.title}: the simulator serves {known}")
+        if model is not ALPHA5 and self.params is not None:
+            raise ValueError(
+                f"arm parameters (--params) describe an {ALPHA5.title}; the {model.title} "
+                "twin takes none"
+            )
+        if model is not ALPHA5 and self.faults.randomize_seed is not None:
+            raise ValueError(
+                f"--randomize-params perturbs the {ALPHA5.title}'s parameters; the "
+                f"{model.title} twin has none to perturb yet"
+            )
+        self.faults.torque_scale_for(model)  # one value per joint of this arm
+        firmware = self.firmware
+        if firmware.model.name != model.name:
+            # A firmware configuration left at its model's devices follows the model served.
+            if firmware.devices != DEVICE_SPECS.get(firmware.model.name):
+                raise ValueError(
+                    f"the firmware's devices are the {firmware.model.title}'s, the arm served "
+                    f"is the {model.title}"
+                )
+            number = firmware.model_number
+            if number == MODEL_NUMBERS.get(firmware.model.name):
+                number = 0.0
+            object.__setattr__(
+                self, "firmware", replace(firmware, model=model, devices=(), model_number=number)
+            )
         if not (math.isfinite(self.speed) and self.speed > 0.0):
             raise ValueError(f"speed must be a finite number > 0, got {self.speed}")
         if not self.pty and self.udp is None:
@@ -106,11 +145,15 @@ class SimConfig:
         if self.half_duplex and (not self.pty or self.baud is None):
             raise ValueError(
                 "half duplex times a shared serial wire: it needs the pty and its baud "
-                f"({SERIAL_BAUD} on the Alpha 5)"
+                f"({model.serial_baud} on the {model.title})"
             )
         if self.start is not None:
-            if len(self.start) != 4 or not all(math.isfinite(v) for v in self.start):
-                raise ValueError(f"start needs 4 finite angles E D C B (rad), got {self.start}")
+            n = model.n_joints
+            if len(self.start) != n or not all(math.isfinite(v) for v in self.start):
+                raise ValueError(
+                    f"start needs {n} finite angles {' '.join(model.joint_letters)} (rad), "
+                    f"got {self.start}"
+                )
         if self.udp is not None:
             host, port = self.udp
             if not 0 <= port <= 65535:
@@ -225,8 +268,14 @@ class SimServer(WireIO):
         self._udp_peer: Address | None = None
         self._pty_credit = self._udp_credit = float(INPUT_BURST)  # input units, each end
 
-    def _make_arm(self) -> Alpha5Arm:
+    def _make_arm(self) -> MotorArm:
         cfg = self.config
+        if cfg.model is not ALPHA5:
+            twin = _TWINS[cfg.model.name](cfg.dt, cfg.seed)
+            twin.torque_scale = np.asarray(cfg.faults.torque_scale_for(cfg.model))
+            start = None if cfg.start is None else np.asarray(cfg.start)
+            twin.reset(q=start, jaw_mm=cfg.jaw_mm)
+            return twin
         arm = Alpha5Arm(params=cfg.params, dt=cfg.dt, seed=cfg.faults.randomize_seed)
         if cfg.faults.randomize_seed is not None:
             params = arm.randomize()
@@ -278,7 +327,8 @@ class SimServer(WireIO):
         self._thread = threading.Thread(target=self._run, name="reach-sim", daemon=True)
         self._thread.start()
         log.info(
-            "virtual Alpha 5 serving%s%s at %gx real time",
+            "virtual %s serving%s%s at %gx real time",
+            cfg.model.title,
             f" pty {self.pty_path}" if self._pty else "",
             f" udp {self._udp.address[0]}:{self._udp.address[1]}" if self._udp else "",
             cfg.speed,
@@ -403,7 +453,7 @@ class SimServer(WireIO):
         with self._lock:
             self.firmware.inject_stuck(stuck)
 
-    def observe(self, fn: Callable[[Alpha5Arm, Firmware], T]) -> T:
+    def observe(self, fn: Callable[[MotorArm, Firmware], T]) -> T:
         """Run `fn(arm, firmware)` between physics steps, for a consistent look at the state."""
         with self._lock:
             return fn(self.arm, self.firmware)

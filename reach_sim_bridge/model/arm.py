@@ -1,9 +1,11 @@
-"""The simulated Alpha 5: MuJoCo physics of model/alpha5.xml driven by motor currents.
+"""The simulated arms: MuJoCo physics of an arm's MJCF driven by motor currents.
 
-The firmware emulation, the RL environment and MPC all step this one class, so the arm they
-see is the same. Commands are currents (mA); the motor model (reach_sim_bridge.model.motor) turns
-them into torque with the current limit and the back-EMF speed-torque envelope re-evaluated
-every physics step.
+`MotorArm` steps any arm model's joints and jaw (`protocol.models.ArmModel`) with currents;
+`Alpha5Arm` is the Alpha 5 of model/alpha5.xml with its run-time parameters (`ArmParams`),
+and `reach_sim_bridge.model.bravo7.Bravo7Arm` the Bravo 7. The firmware emulation, the RL
+environment and MPC all step these, so the arm they see is the same. Commands are currents
+(mA); the motor model (reach_sim_bridge.model.motor) turns them into torque with the current
+limit and the back-EMF speed-torque envelope re-evaluated every physics step.
 
 How the back-EMF clamp is integrated (why this shape): at the supply voltage the motor's
 torque falls along ``tau = k (V - Ke w) / R``, a damping of ~128 N m s/rad on E/D/C against an
@@ -30,28 +32,29 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from protocol.alpha5 import JOINT_LETTERS as JOINTS
+from protocol.models import ALPHA5, ArmModel
 from reach_sim_bridge.model.motor import MotorModel
 from reach_sim_bridge.model.params import LINK_BODIES, NOSLIP_ITERATIONS, ArmParams
 
-__all__ = ["MODEL_PATH", "Alpha5Arm", "ArmParams", "JOINTS"]
+__all__ = ["MODEL_PATH", "Alpha5Arm", "ArmParams", "JOINTS", "MotorArm"]
 
 MODEL_PATH = Path(__file__).resolve().parent / "alpha5.xml"
 
 FloatArray = NDArray[np.float64]
 
-_JAW = "A"
 _TCP_SITE = "tcp"
 _BUOYANCY_SUFFIX = "_buoyancy"
 _WRIST = 3  # index of B in E D C B
 COAST_ARMATURE = 1e6
-"""kg m^2: a joint with this armature (`Alpha5Arm.coast`) gains 2e-9 rad/s per N m per 2 ms
+"""kg m^2: a joint with this armature (`MotorArm.coast`) gains 2e-9 rad/s per N m per 2 ms
 step (the arm's own: 0.003-0.2). Not more: at 1e9 MuJoCo's solve lost precision, and a replay
 of a noise-free log through the true arm came out 0.3 mrad off instead of 4e-9 rad."""
 
 
 @dataclass(frozen=True)
 class _StepConstants:
-    """Per-actuator constants (E D C B A) that `Alpha5Arm.step` needs every call, derived once
+    """Per-actuator constants (the joints, then the jaw) that `MotorArm.step` needs every call,
+    derived once
     per setting of the motors: rebuilding them took most of a short call's time (a replay
     steps a few physics steps per call, tools/bench_sim.py)."""
 
@@ -93,7 +96,7 @@ class _StepConstants:
             torque=np.concatenate([arm.torque_scale * arm.torque_per_amp, jaw.torque_per_amp]),
             backemf=backemf,
             resistance=resistance,
-            supply=np.array([v] * 4 + [jaw.supply_voltage]),
+            supply=np.array([v] * arm.count + [jaw.supply_voltage]),
             v=v,
             limit_f=limit.tolist(),
             drive_f=drive.tolist(),
@@ -105,54 +108,396 @@ class _StepConstants:
         )
 
 
-class Alpha5Arm:
+def check_dt(dt: float) -> float:
+    """The physics step (s); ValueError unless in (0, 0.01]."""
+    if not (math.isfinite(dt) and 0.0 < dt <= 0.01):
+        raise ValueError(f"physics dt must be in (0, 0.01] s, got {dt}")
+    return float(dt)
+
+
+class MotorArm:
+    """An arm model's joints and jaw in MuJoCo, stepped with motor currents; state in the
+    arm's units. Arrays are in the model's joint order (`arm_model.joints`); the MJCF must
+    name its joints by device letter, joints first in that order, then the jaw."""
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        arm_model: ArmModel,
+        motor: MotorModel,
+        jaw_motor: MotorModel,
+        dt: float = 0.002,
+        seed: int | None = None,
+        link_bodies: Sequence[str] = (),
+    ) -> None:
+        self.arm_model = arm_model
+        self.model = model
+        self.model.opt.timestep = check_dt(dt)
+        self.data = mujoco.MjData(self.model)
+        self._scratch = mujoco.MjData(self.model)
+        self._rng = np.random.default_rng(seed)
+        n = arm_model.n_joints
+        self._n = n
+        m = self.model
+        names = (*arm_model.joint_letters, arm_model.jaw.name)
+        joint_ids = [m.joint(name).id for name in names]
+        self._qadr = np.array([m.jnt_qposadr[j] for j in joint_ids])
+        self._dofadr = np.array([m.jnt_dofadr[j] for j in joint_ids])
+        if self._qadr.tolist() != list(range(n + 1)) or self._dofadr.tolist() != list(range(n + 1)):
+            raise RuntimeError(f"the MJCF must order its joints {' '.join(names)}")
+        self._joint_ids = joint_ids
+        self._link_ids = np.array([m.body(name).id for name in link_bodies], dtype=int)
+        self._tcp = m.site(_TCP_SITE).id
+        self._jaw_range_m = m.jnt_range[joint_ids[n]].copy()
+        #: Index of the joint reported modulo 2 pi (a wrist turning without end stops).
+        self._wrap: int | None = None
+
+        # Live views into MuJoCo's buffers, used in the stepping loop.
+        self._qvel = self.data.qvel
+        self._ctrl = self.data.ctrl
+        self._damping = m.dof_damping
+        self._base_damping = m.dof_damping[self._dofadr].copy()
+
+        self.motor = motor
+        self.jaw_motor = jaw_motor
+        self._command_mA = np.zeros(n + 1)
+        self._step_constants: _StepConstants | None = None
+        self._outputs_pending: tuple[_StepConstants, FloatArray] | None = None
+        self._current_mA = np.zeros(n + 1)
+        self._tau = np.zeros(n + 1)
+
+    @property
+    def continuous_joint(self) -> int | None:
+        """Index of the joint that turns without end stops and is reported in [0, 2 pi)."""
+        return self._wrap
+
+    # -- state ------------------------------------------------------------------------------
+    def coast(self, joints: Sequence[int]) -> None:
+        """Until parameters are next applied, `joints` (indices in the joint order) keep their
+        speed through any torque: their armature is made `COAST_ARMATURE`. A replay that puts
+        them on a measured path at every tick wants that path between ticks, not their own
+        dynamics."""
+        n = self._n
+        for j in joints:
+            if not 0 <= int(j) < n:
+                order = " ".join(self.arm_model.joint_letters)
+                raise ValueError(f"joint index must be in 0..{n - 1} ({order}), got {j}")
+            dof = self._dofadr[int(j)]
+            self.model.dof_armature[dof] = COAST_ARMATURE
+            # coasting: nothing to brake them either (at this armature neither would show)
+            self.model.dof_frictionloss[dof] = 0.0
+            self.model.dof_damping[dof] = 0.0
+            self._base_damping[int(j)] = 0.0
+
+    def reset(
+        self,
+        q: ArrayLike | None = None,
+        qdot: ArrayLike | None = None,
+        jaw_mm: float = 5.0,
+    ) -> None:
+        """Put the arm at rest (or moving at qdot) at q; default q is mid-range of each joint."""
+        n = self._n
+        limits = self.position_limits
+        q_arr = limits.mean(axis=1) if q is None else self._vector(q, "q (rad)")
+        qdot_arr = np.zeros(n) if qdot is None else self._vector(qdot, "qdot (rad/s)")
+        check = np.ones(n, dtype=bool)
+        if self._wrap is not None:
+            check[self._wrap] = False
+        tol = 1e-9
+        outside = check & ((q_arr < limits[:, 0] - tol) | (q_arr > limits[:, 1] + tol))
+        if np.any(outside):
+            letters = self.arm_model.joint_letters
+            bad = [
+                f"{letters[i]}={q_arr[i]:.4f} not in [{limits[i, 0]:.4f}, {limits[i, 1]:.4f}]"
+                for i in np.flatnonzero(outside)
+            ]
+            raise ValueError("reset position outside the joint ranges: " + ", ".join(bad))
+        jaw = float(jaw_mm)
+        lo_mm, hi_mm = self._jaw_range_m * 1000.0
+        if not (math.isfinite(jaw) and lo_mm - tol <= jaw <= hi_mm + tol):
+            raise ValueError(f"jaw_mm must be in [{lo_mm:.1f}, {hi_mm:.1f}] mm, got {jaw_mm}")
+
+        d = self.data
+        mujoco.mj_resetData(self.model, d)
+        d.qpos[:n] = q_arr
+        d.qpos[n] = jaw / 1000.0
+        d.qvel[:n] = qdot_arr
+        self._damping[: n + 1] = self._base_damping
+        self._command_mA[:] = 0.0
+        mujoco.mj_forward(self.model, d)
+        self._update_outputs()
+
+    def step(self, currents_mA: ArrayLike, jaw_current_mA: float = 0.0, n: int = 1) -> None:
+        """Hold the commanded currents (the joints in order, then the jaw; mA) for n physics
+        steps."""
+        cmd = self._vector(currents_mA, "currents_mA")
+        jaw = float(jaw_current_mA)
+        if not math.isfinite(jaw):
+            raise ValueError(f"jaw_current_mA must be finite, got {jaw_current_mA}")
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise ValueError(f"n (physics steps) must be an integer >= 1, got {n!r}")
+        nj = self._n
+        na = nj + 1
+        self._command_mA[:nj] = cmd
+        self._command_mA[nj] = jaw
+
+        c = self._constants()
+        # A handful of actuators: plain floats (IEEE doubles, the same arithmetic as
+        # numpy's) are faster than arrays at this size.
+        v = c.v
+        amps = [
+            min(max(x, -lim), lim) / 1000.0
+            for x, lim in zip(self._command_mA.tolist(), c.limit_f, strict=True)
+        ]
+        ra = [r * a for r, a in zip(c.resistance_f, amps, strict=True)]
+        thr_hi = [(v - x) / ke for x, ke in zip(ra, c.backemf_f, strict=True)]  # supply limits
+        thr_lo = [(-v - x) / ke for x, ke in zip(ra, c.backemf_f, strict=True)]  # reverse too
+        f_cur = [k * a for k, a in zip(c.drive_f, amps, strict=True)]
+        f_volt, base, d_volt = c.f_volt, c.base, c.d_volt
+
+        m, d = self.model, self.data
+        qvel, ctrl, damping = self._qvel, self._ctrl, self._damping
+        regime = [2] * na  # forces a write of every actuator in the first step
+        actuators = range(na)
+        mj_step = mujoco.mj_step
+        for _ in range(int(n)):
+            w = qvel.tolist()
+            for j in actuators:
+                wj = w[j]
+                new = 1 if wj > thr_hi[j] else (-1 if wj < thr_lo[j] else 0)
+                if new != regime[j]:
+                    regime[j] = new
+                    if new == 0:
+                        ctrl[j] = f_cur[j]
+                        damping[j] = base[j]
+                    else:
+                        ctrl[j] = new * f_volt[j]
+                        damping[j] = d_volt[j]
+            mj_step(m, d)
+        damping[:na] = self._base_damping  # the model between calls is the nominal one
+        # The currents and torques are worked out when read (a replay never reads them), from
+        # the speeds and settings at this moment.
+        self._outputs_pending = (c, self.data.qvel[:na].copy())
+
+    def _constants(self) -> _StepConstants:
+        """The motors' constants for `step`, rebuilt only when a setting changed (checked by
+        value: the limits and the torque scale may be edited in place)."""
+        motors = (self.motor, self.jaw_motor)
+        key = (*(mm.state_key() for mm in motors), self._base_damping.tobytes())
+        c = self._step_constants
+        if (
+            c is None
+            or c.motors[0] is not motors[0]
+            or c.motors[1] is not motors[1]
+            or c.key != key
+        ):
+            c = self._step_constants = _StepConstants.of(motors, self._base_damping, key)
+        return c
+
+    def _outputs(self) -> None:
+        pending = self._outputs_pending
+        if pending is not None:
+            self._outputs_pending = None
+            self._update_outputs(*pending)
+
+    def _update_outputs(self, c: _StepConstants | None = None, w: FloatArray | None = None) -> None:
+        """Current drawn and torque delivered, from the motor model at the final speeds."""
+        self._outputs_pending = None
+        c = self._constants() if c is None else c
+        emf = c.backemf * (self.data.qvel[: self._n + 1] if w is None else w)
+        hi = np.minimum(c.limit, 1000.0 * (c.supply - emf) / c.resistance)
+        lo = np.maximum(c.neg_limit, 1000.0 * (-c.supply - emf) / c.resistance)
+        # Past the no-load speed lo > hi; the back-EMF bound wins (the motor brakes).
+        current = np.minimum(np.maximum(self._command_mA, lo), hi)
+        self._current_mA[:] = current
+        self._tau[:] = c.torque * current / 1000.0
+
+    def _vector(self, values: ArrayLike, name: str) -> FloatArray:
+        array = np.asarray(values, dtype=np.float64)
+        n = self._n
+        if array.shape != (n,):
+            order = " ".join(self.arm_model.joint_letters)
+            raise ValueError(
+                f"{name} needs {n} values in joint order {order}, got shape {array.shape}"
+            )
+        if not np.all(np.isfinite(array)):
+            raise ValueError(f"{name} must be finite, got {array.tolist()}")
+        return array
+
+    @property
+    def q(self) -> FloatArray:
+        """Joint angles (rad) as the arm reports them."""
+        q = self.data.qpos[: self._n].copy()
+        if self._wrap is not None:
+            q[self._wrap] %= 2.0 * math.pi
+        return q
+
+    @property
+    def qdot(self) -> FloatArray:
+        return self.data.qvel[: self._n].copy()
+
+    @property
+    def tau(self) -> FloatArray:
+        """Torque the motors delivered at the end of the last step (N m)."""
+        self._outputs()
+        return self._tau[: self._n].copy()
+
+    @property
+    def current_mA(self) -> FloatArray:
+        """Current drawn after the limit and back-EMF clamp (mA)."""
+        self._outputs()
+        return self._current_mA[: self._n].copy()
+
+    @property
+    def jaw_current_mA(self) -> float:
+        self._outputs()
+        return float(self._current_mA[self._n])
+
+    @property
+    def jaw_force(self) -> float:
+        """Force the jaw motor delivered along its slide (N)."""
+        self._outputs()
+        return float(self._tau[self._n])
+
+    @property
+    def jaw_mm(self) -> float:
+        return float(self.data.qpos[self._n] * 1000.0)
+
+    @property
+    def jaw_velocity_mm_s(self) -> float:
+        return float(self.data.qvel[self._n] * 1000.0)
+
+    @property
+    def time(self) -> float:
+        return float(self.data.time)
+
+    @property
+    def dt(self) -> float:
+        return float(self.model.opt.timestep)
+
+    @property
+    def torque_scale(self) -> FloatArray:
+        """Fraction of nominal torque per joint; edit in place or assign."""
+        return self.motor.torque_scale
+
+    @torque_scale.setter
+    def torque_scale(self, scale: Sequence[float] | ArrayLike) -> None:
+        self.motor.torque_scale = scale
+
+    @property
+    def current_limits_mA(self) -> FloatArray:
+        """Symmetric current limits per joint (mA); assign to change (CURRENT_LIMITS packet)."""
+        return self.motor.current_limits_mA
+
+    @current_limits_mA.setter
+    def current_limits_mA(self, limits: Sequence[float] | ArrayLike) -> None:
+        self.motor.current_limits_mA = limits
+
+    @property
+    def jaw_current_limit_mA(self) -> float:
+        return float(self.jaw_motor.current_limits_mA[0])
+
+    @jaw_current_limit_mA.setter
+    def jaw_current_limit_mA(self, limit: float) -> None:
+        self.jaw_motor.current_limits_mA = (limit,)
+
+    @property
+    def position_limits(self) -> FloatArray:
+        """[min, max] per joint (rad): the MJCF's ranges (the factory ones; the Alpha's B is
+        0..2pi)."""
+        return self.model.jnt_range[: self._n].copy()
+
+    @property
+    def jaw_limits_mm(self) -> tuple[float, float]:
+        return float(self._jaw_range_m[0] * 1000.0), float(self._jaw_range_m[1] * 1000.0)
+
+    # -- kinematics and statics -------------------------------------------------------------
+    def end_effector_pose(self) -> tuple[float, float, float, float, float, float]:
+        """Tool centre point in the base frame: x, y, z (mm), roll, pitch, yaw (rad, URDF
+        rpy convention R = Rz(yaw) Ry(pitch) Rx(roll))."""
+        mujoco.mj_kinematics(self.model, self.data)
+        return _pose(self.data.site_xpos[self._tcp], self.data.site_xmat[self._tcp])
+
+    def pose_at(self, q: ArrayLike) -> tuple[float, float, float, float, float, float]:
+        """`end_effector_pose()` with the joints at q (rad); the arm is not moved."""
+        s = self._at(q)
+        return _pose(s.site_xpos[self._tcp], s.site_xmat[self._tcp])
+
+    def tcp_kinematics(self, q: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The tool centre point with the joints at q (rad), for inverse kinematics:
+        position (m), rotation matrix (columns: the tool axes in the base frame), and the
+        position (m/rad) and rotation (rad/rad) Jacobians, 3 x n each, in the base frame."""
+        s = self._at(q)
+        n = self._n
+        jacp = np.zeros((3, self.model.nv))
+        jacr = np.zeros((3, self.model.nv))
+        mujoco.mj_jacSite(self.model, s, jacp, jacr, self._tcp)
+        rot = s.site_xmat[self._tcp].reshape(3, 3).copy()
+        return s.site_xpos[self._tcp].copy(), rot, jacp[:, :n].copy(), jacr[:, :n].copy()
+
+    def skeleton(self) -> FloatArray:
+        """World positions (m) of the base, each moving link's origin and the tool centre point:
+        a polyline that draws the arm (recordings)."""
+        mujoco.mj_kinematics(self.model, self.data)
+        points = [np.zeros(3)]
+        points.extend(self.data.xpos[i] for i in self._link_ids)
+        points.append(self.data.site_xpos[self._tcp])
+        return np.array(points, dtype=float)
+
+    def _at(self, q: ArrayLike) -> mujoco.MjData:
+        scratch = self._scratch
+        n = self._n
+        scratch.qpos[:n] = self._vector(q, "q (rad)")
+        scratch.qpos[n] = self.data.qpos[n]
+        scratch.qvel[:] = 0.0
+        mujoco.mj_forward(self.model, scratch)
+        return scratch
+
+    def gravity_torque(self, q: ArrayLike) -> FloatArray:
+        """Torque gravity and buoyancy exert on each joint at rest at q (N m); a controller
+        holds the arm still by applying its negative."""
+        s = self._at(q)
+        n = self._n
+        return (s.qfrc_gravcomp[:n] - s.qfrc_bias[:n]).copy()
+
+    def mass_matrix(self, q: ArrayLike) -> FloatArray:
+        """Joint-space inertia of the joints at q, armature included (kg m^2)."""
+        s = self._at(q)
+        n = self._n
+        full = np.zeros((self.model.nv, self.model.nv))
+        mujoco.mj_fullM(self.model, s, full)
+        return full[:n, :n].copy()
+
+
+class Alpha5Arm(MotorArm):
     """Four joints (E D C B) and the jaw, stepped with currents; state in the arm's units."""
 
     def __init__(
         self, params: ArmParams | None = None, dt: float = 0.002, seed: int | None = None
     ) -> None:
-        if not (math.isfinite(dt) and 0.0 < dt <= 0.01):
-            raise ValueError(f"physics dt must be in (0, 0.01] s, got {dt}")
-        self.model = mujoco.MjModel.from_xml_path(str(MODEL_PATH))
-        self.model.opt.timestep = dt
-        self.data = mujoco.MjData(self.model)
-        self._scratch = mujoco.MjData(self.model)
-        self._rng = np.random.default_rng(seed)
-
+        check_dt(dt)
+        p = params if params is not None else ArmParams()
+        super().__init__(
+            mujoco.MjModel.from_xml_path(str(MODEL_PATH)),
+            ALPHA5,
+            MotorModel(p.motors, p.supply_voltage, p.current_limits_mA, p.torque_scale),
+            MotorModel(p.jaw_motor, p.supply_voltage, (p.jaw_current_limit_mA,)),
+            dt,
+            seed,
+            LINK_BODIES,
+        )
         m = self.model
-        joint_ids = [m.joint(name).id for name in (*JOINTS, _JAW)]
-        self._qadr = np.array([m.jnt_qposadr[j] for j in joint_ids])
-        self._dofadr = np.array([m.jnt_dofadr[j] for j in joint_ids])
-        if self._qadr.tolist() != list(range(5)) or self._dofadr.tolist() != list(range(5)):
-            raise RuntimeError(f"{MODEL_PATH} must order its joints E D C B A")
-        self._wrist_joint = joint_ids[_WRIST]
-        self._link_ids = np.array([m.body(name).id for name in LINK_BODIES])
+        self._wrist_joint = self._joint_ids[_WRIST]
         self._buoy_ids = np.array([m.body(name + _BUOYANCY_SUFFIX).id for name in LINK_BODIES])
         self._buoy_gravcomp = m.body_gravcomp[self._buoy_ids].copy()
         if np.any(self._buoy_gravcomp <= 1.0):
             raise RuntimeError("buoyancy bodies need gravcomp > 1 (net upward force)")
         self._nominal_mass = m.body_mass[self._link_ids].copy()
         self._nominal_inertia = m.body_inertia[self._link_ids].copy()
-        self._tcp = m.site(_TCP_SITE).id
         self._collision_geoms = np.array([m.geom(name).id for name in ("m3_inline", *LINK_BODIES)])
-        self._jaw_range_m = m.jnt_range[joint_ids[4]].copy()
-
-        # Live views into MuJoCo's buffers, used in the stepping loop.
-        self._qvel = self.data.qvel
-        self._ctrl = self.data.ctrl
-        self._damping = m.dof_damping
-        self._base_damping = np.zeros(5)
-
-        p = params if params is not None else ArmParams()
-        self.motor = MotorModel(p.motors, p.supply_voltage, p.current_limits_mA, p.torque_scale)
-        self.jaw_motor = MotorModel(p.jaw_motor, p.supply_voltage, (p.jaw_current_limit_mA,))
+        self._base_damping[:] = 0.0
         self._params = p
         self.nominal_params = p  # what randomize() perturbs around
-        self._command_mA = np.zeros(5)
-        self._step_constants: _StepConstants | None = None
-        self._outputs_pending: tuple[_StepConstants, FloatArray] | None = None
-        self._current_mA = np.zeros(5)
-        self._tau = np.zeros(5)
         self.set_params(p)
         self.reset()
 
@@ -199,6 +544,7 @@ class Alpha5Arm:
         m.opt.gravity[:] = params.gravity
         m.opt.noslip_iterations = NOSLIP_ITERATIONS if params.friction_holds else 0
         m.jnt_limited[self._wrist_joint] = 0 if params.wrist_continuous else 1
+        self._wrap = _WRIST if params.wrist_continuous else None
         collide = 1 if params.self_collision else 0
         m.geom_contype[self._collision_geoms] = collide
         m.geom_conaffinity[self._collision_geoms] = collide
@@ -233,286 +579,6 @@ class Alpha5Arm:
         )
         self.set_params(params)
         return params
-
-    # -- state ------------------------------------------------------------------------------
-    def coast(self, joints: Sequence[int]) -> None:
-        """Until the next `set_params`, `joints` (indices in E D C B) keep their speed through
-        any torque: their armature is made `COAST_ARMATURE`. A replay that puts them on a
-        measured path at every tick wants that path between ticks, not their own dynamics."""
-        for j in joints:
-            if not 0 <= int(j) < 4:
-                raise ValueError(f"joint index must be in 0..3 (E D C B), got {j}")
-            dof = self._dofadr[int(j)]
-            self.model.dof_armature[dof] = COAST_ARMATURE
-            # coasting: nothing to brake them either (at this armature neither would show)
-            self.model.dof_frictionloss[dof] = 0.0
-            self.model.dof_damping[dof] = 0.0
-            self._base_damping[int(j)] = 0.0
-
-    def reset(
-        self,
-        q: ArrayLike | None = None,
-        qdot: ArrayLike | None = None,
-        jaw_mm: float = 5.0,
-    ) -> None:
-        """Put the arm at rest (or moving at qdot) at q; default q is mid-range of each joint."""
-        limits = self.position_limits
-        q_arr = limits.mean(axis=1) if q is None else self._vector(q, "q (rad)")
-        qdot_arr = np.zeros(4) if qdot is None else self._vector(qdot, "qdot (rad/s)")
-        check = slice(0, 3) if self._params.wrist_continuous else slice(0, 4)
-        tol = 1e-9
-        outside = (q_arr[check] < limits[check, 0] - tol) | (q_arr[check] > limits[check, 1] + tol)
-        if np.any(outside):
-            bad = [
-                f"{JOINTS[i]}={q_arr[i]:.4f} not in [{limits[i, 0]:.4f}, {limits[i, 1]:.4f}]"
-                for i in np.flatnonzero(outside)
-            ]
-            raise ValueError("reset position outside the joint ranges: " + ", ".join(bad))
-        jaw = float(jaw_mm)
-        lo_mm, hi_mm = self._jaw_range_m * 1000.0
-        if not (math.isfinite(jaw) and lo_mm - tol <= jaw <= hi_mm + tol):
-            raise ValueError(f"jaw_mm must be in [{lo_mm:.1f}, {hi_mm:.1f}] mm, got {jaw_mm}")
-
-        d = self.data
-        mujoco.mj_resetData(self.model, d)
-        d.qpos[:4] = q_arr
-        d.qpos[4] = jaw / 1000.0
-        d.qvel[:4] = qdot_arr
-        self._damping[:5] = self._base_damping
-        self._command_mA[:] = 0.0
-        mujoco.mj_forward(self.model, d)
-        self._update_outputs()
-
-    def step(self, currents_mA: ArrayLike, jaw_current_mA: float = 0.0, n: int = 1) -> None:
-        """Hold the commanded currents (E D C B, jaw; mA) for n physics steps."""
-        cmd = self._vector(currents_mA, "currents_mA")
-        jaw = float(jaw_current_mA)
-        if not math.isfinite(jaw):
-            raise ValueError(f"jaw_current_mA must be finite, got {jaw_current_mA}")
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-            raise ValueError(f"n (physics steps) must be an integer >= 1, got {n!r}")
-        self._command_mA[:4] = cmd
-        self._command_mA[4] = jaw
-
-        c = self._constants()
-        # Five actuators: plain floats (IEEE doubles, the same arithmetic as numpy's) are
-        # faster than arrays at this size.
-        v = c.v
-        amps = [
-            min(max(x, -lim), lim) / 1000.0
-            for x, lim in zip(self._command_mA.tolist(), c.limit_f, strict=True)
-        ]
-        ra = [r * a for r, a in zip(c.resistance_f, amps, strict=True)]
-        thr_hi = [(v - x) / ke for x, ke in zip(ra, c.backemf_f, strict=True)]  # supply limits
-        thr_lo = [(-v - x) / ke for x, ke in zip(ra, c.backemf_f, strict=True)]  # reverse too
-        f_cur = [k * a for k, a in zip(c.drive_f, amps, strict=True)]
-        f_volt, base, d_volt = c.f_volt, c.base, c.d_volt
-
-        m, d = self.model, self.data
-        qvel, ctrl, damping = self._qvel, self._ctrl, self._damping
-        regime = [2, 2, 2, 2, 2]  # forces a write of every actuator in the first step
-        mj_step = mujoco.mj_step
-        for _ in range(int(n)):
-            w = qvel.tolist()
-            for j in range(5):
-                wj = w[j]
-                new = 1 if wj > thr_hi[j] else (-1 if wj < thr_lo[j] else 0)
-                if new != regime[j]:
-                    regime[j] = new
-                    if new == 0:
-                        ctrl[j] = f_cur[j]
-                        damping[j] = base[j]
-                    else:
-                        ctrl[j] = new * f_volt[j]
-                        damping[j] = d_volt[j]
-            mj_step(m, d)
-        damping[:5] = self._base_damping  # the model between calls is the nominal one
-        # The currents and torques are worked out when read (a replay never reads them), from
-        # the speeds and settings at this moment.
-        self._outputs_pending = (c, self.data.qvel[:5].copy())
-
-    def _constants(self) -> _StepConstants:
-        """The motors' constants for `step`, rebuilt only when a setting changed (checked by
-        value: the limits and the torque scale may be edited in place)."""
-        motors = (self.motor, self.jaw_motor)
-        key = (*(mm.state_key() for mm in motors), self._base_damping.tobytes())
-        c = self._step_constants
-        if (
-            c is None
-            or c.motors[0] is not motors[0]
-            or c.motors[1] is not motors[1]
-            or c.key != key
-        ):
-            c = self._step_constants = _StepConstants.of(motors, self._base_damping, key)
-        return c
-
-    def _outputs(self) -> None:
-        pending = self._outputs_pending
-        if pending is not None:
-            self._outputs_pending = None
-            self._update_outputs(*pending)
-
-    def _update_outputs(self, c: _StepConstants | None = None, w: FloatArray | None = None) -> None:
-        """Current drawn and torque delivered, from the motor model at the final speeds."""
-        self._outputs_pending = None
-        c = self._constants() if c is None else c
-        emf = c.backemf * (self.data.qvel[:5] if w is None else w)
-        hi = np.minimum(c.limit, 1000.0 * (c.supply - emf) / c.resistance)
-        lo = np.maximum(c.neg_limit, 1000.0 * (-c.supply - emf) / c.resistance)
-        # Past the no-load speed lo > hi; the back-EMF bound wins (the motor brakes).
-        current = np.minimum(np.maximum(self._command_mA, lo), hi)
-        self._current_mA[:] = current
-        self._tau[:] = c.torque * current / 1000.0
-
-    @staticmethod
-    def _vector(values: ArrayLike, name: str) -> FloatArray:
-        array = np.asarray(values, dtype=np.float64)
-        if array.shape != (4,):
-            raise ValueError(
-                f"{name} needs 4 values in joint order E D C B, got shape {array.shape}"
-            )
-        if not np.all(np.isfinite(array)):
-            raise ValueError(f"{name} must be finite, got {array.tolist()}")
-        return array
-
-    @property
-    def q(self) -> FloatArray:
-        """Joint angles E D C B (rad) as the arm reports them."""
-        q = self.data.qpos[:4].copy()
-        if self._params.wrist_continuous:
-            q[_WRIST] %= 2.0 * math.pi
-        return q
-
-    @property
-    def qdot(self) -> FloatArray:
-        return self.data.qvel[:4].copy()
-
-    @property
-    def tau(self) -> FloatArray:
-        """Torque the motors delivered at the end of the last step (N m), E D C B."""
-        self._outputs()
-        return self._tau[:4].copy()
-
-    @property
-    def current_mA(self) -> FloatArray:
-        """Current drawn after the limit and back-EMF clamp (mA), E D C B."""
-        self._outputs()
-        return self._current_mA[:4].copy()
-
-    @property
-    def jaw_current_mA(self) -> float:
-        self._outputs()
-        return float(self._current_mA[4])
-
-    @property
-    def jaw_force(self) -> float:
-        """Force the jaw motor delivered along its slide (N)."""
-        self._outputs()
-        return float(self._tau[4])
-
-    @property
-    def jaw_mm(self) -> float:
-        return float(self.data.qpos[4] * 1000.0)
-
-    @property
-    def jaw_velocity_mm_s(self) -> float:
-        return float(self.data.qvel[4] * 1000.0)
-
-    @property
-    def time(self) -> float:
-        return float(self.data.time)
-
-    @property
-    def dt(self) -> float:
-        return float(self.model.opt.timestep)
-
-    @property
-    def torque_scale(self) -> FloatArray:
-        """Fraction of nominal torque per joint (E D C B); edit in place or assign."""
-        return self.motor.torque_scale
-
-    @torque_scale.setter
-    def torque_scale(self, scale: Sequence[float] | ArrayLike) -> None:
-        self.motor.torque_scale = scale
-
-    @property
-    def current_limits_mA(self) -> FloatArray:
-        """Symmetric current limits E D C B (mA); assign to change (CURRENT_LIMITS packet)."""
-        return self.motor.current_limits_mA
-
-    @current_limits_mA.setter
-    def current_limits_mA(self, limits: Sequence[float] | ArrayLike) -> None:
-        self.motor.current_limits_mA = limits
-
-    @property
-    def jaw_current_limit_mA(self) -> float:
-        return float(self.jaw_motor.current_limits_mA[0])
-
-    @jaw_current_limit_mA.setter
-    def jaw_current_limit_mA(self, limit: float) -> None:
-        self.jaw_motor.current_limits_mA = (limit,)
-
-    @property
-    def position_limits(self) -> FloatArray:
-        """[min, max] per joint E D C B (rad): the factory ranges; B is 0..2pi."""
-        return self.model.jnt_range[:4].copy()
-
-    @property
-    def jaw_limits_mm(self) -> tuple[float, float]:
-        return float(self._jaw_range_m[0] * 1000.0), float(self._jaw_range_m[1] * 1000.0)
-
-    # -- kinematics and statics -------------------------------------------------------------
-    def end_effector_pose(self) -> tuple[float, float, float, float, float, float]:
-        """Tool centre point in the base frame: x, y, z (mm), roll, pitch, yaw (rad, URDF
-        rpy convention R = Rz(yaw) Ry(pitch) Rx(roll))."""
-        mujoco.mj_kinematics(self.model, self.data)
-        return _pose(self.data.site_xpos[self._tcp], self.data.site_xmat[self._tcp])
-
-    def pose_at(self, q: ArrayLike) -> tuple[float, float, float, float, float, float]:
-        """`end_effector_pose()` with the joints at q (E D C B, rad); the arm is not moved."""
-        s = self._at(q)
-        return _pose(s.site_xpos[self._tcp], s.site_xmat[self._tcp])
-
-    def tcp_kinematics(self, q: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-        """The tool centre point with the joints at q (E D C B, rad), for inverse kinematics:
-        position (m), rotation matrix (columns: the tool axes in the base frame), and the
-        position (m/rad) and rotation (rad/rad) Jacobians, 3 x 4 each, in the base frame."""
-        s = self._at(q)
-        jacp = np.zeros((3, self.model.nv))
-        jacr = np.zeros((3, self.model.nv))
-        mujoco.mj_jacSite(self.model, s, jacp, jacr, self._tcp)
-        rot = s.site_xmat[self._tcp].reshape(3, 3).copy()
-        return s.site_xpos[self._tcp].copy(), rot, jacp[:, :4].copy(), jacr[:, :4].copy()
-
-    def skeleton(self) -> FloatArray:
-        """World positions (m) of the base, each moving link's origin and the tool centre point:
-        a polyline that draws the arm (recordings)."""
-        mujoco.mj_kinematics(self.model, self.data)
-        points = [np.zeros(3)]
-        points.extend(self.data.xpos[i] for i in self._link_ids)
-        points.append(self.data.site_xpos[self._tcp])
-        return np.array(points, dtype=float)
-
-    def _at(self, q: ArrayLike) -> mujoco.MjData:
-        scratch = self._scratch
-        scratch.qpos[:4] = self._vector(q, "q (rad)")
-        scratch.qpos[4] = self.data.qpos[4]
-        scratch.qvel[:] = 0.0
-        mujoco.mj_forward(self.model, scratch)
-        return scratch
-
-    def gravity_torque(self, q: ArrayLike) -> FloatArray:
-        """Torque gravity and buoyancy exert on E D C B at rest at q (N m); a controller
-        holds the arm still by applying its negative."""
-        s = self._at(q)
-        return (s.qfrc_gravcomp[:4] - s.qfrc_bias[:4]).copy()
-
-    def mass_matrix(self, q: ArrayLike) -> FloatArray:
-        """Joint-space inertia of E D C B at q, armature included (kg m^2)."""
-        s = self._at(q)
-        full = np.zeros((self.model.nv, self.model.nv))
-        mujoco.mj_fullM(self.model, s, full)
-        return full[:4, :4].copy()
 
 
 def _pose(pos_m: ArrayLike, xmat: ArrayLike) -> tuple[float, float, float, float, float, float]:

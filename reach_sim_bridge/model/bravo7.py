@@ -1,8 +1,9 @@
-"""The Reach Bravo 7 twin's MJCF (model/bravo7.xml) and what is needed to use it.
+"""The Reach Bravo 7 twin: its MJCF (model/bravo7.xml), stepped with motor currents.
 
-A first brick: the model loads, with buoyancy for a chosen water density, and reports the
-static torque gravity and buoyancy put on each joint. Nothing steps it with motor currents
-yet (the Alpha's `Alpha5Arm` does that for the Alpha 5). Sources: model/bravo7.md.
+`load()` gives the model with buoyancy for a chosen water density, `gravity_torque()` the
+static torque on each joint, and `Bravo7Arm` the arm the virtual Bravo (`reach-sim --arm
+bravo7`) steps: the Alpha's motor law (`MotorArm`) on the Bravo's joints, and the wrench its
+jaws put on the wrist, which the optional force-torque sensor reads. Sources: model/bravo7.md.
 """
 
 from __future__ import annotations
@@ -14,14 +15,24 @@ import mujoco
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from protocol.bravo7 import JOINT_LETTERS
+from protocol.bravo7 import (
+    DEFAULT_CURRENT_LIMITS_MA,
+    DEFAULT_JAW_CURRENT_LIMIT_MA,
+    JOINT_LETTERS,
+    NOMINAL_SUPPLY_V,
+)
+from protocol.models import BRAVO7
+from reach_sim_bridge.model.arm import MotorArm, check_dt
+from reach_sim_bridge.model.motor import BRAVO7_JAW_MOTOR, BRAVO7_MOTORS, MotorModel
 
 __all__ = [
     "BUOYANCY_GRAVCOMP",
+    "FT_SITE",
     "JOINTS",
     "LINK_BODIES",
     "LINK_VOLUME_L",
     "MODEL_PATH",
+    "Bravo7Arm",
     "gravity_torque",
     "load",
 ]
@@ -35,6 +46,11 @@ LINK_BODIES = ("link1", "link2", "link3", "link4", "link5", "link6", "link7")
 LINK_VOLUME_L = (0.74, 1.96, 0.44, 0.59, 0.39, 0.53, 0.16)
 #: gravcomp of the buoyancy bodies: a body of mass m_b pushes up with (g_c - 1) m_b g.
 BUOYANCY_GRAVCOMP = 1001.0
+#: The force-torque sensor's frame: at the wrist flange, z along the wrist axis towards the
+#: jaws (the vendor: "the Z axis is along the axis of the sensor"), x the flange's x [A].
+FT_SITE = "ft"
+#: The body whose load on the wrist the sensor reads: the jaws (link 7) and all below it.
+FT_BODY = "link7"
 
 FloatArray = NDArray[np.float64]
 
@@ -69,3 +85,74 @@ def gravity_torque(model: mujoco.MjModel, q: ArrayLike) -> FloatArray:
     mujoco.mj_forward(model, data)
     n = len(JOINTS)
     return np.asarray(data.qfrc_gravcomp[:n] - data.qfrc_bias[:n], dtype=np.float64)
+
+
+class Bravo7Arm(MotorArm):
+    """The Bravo 7's six joints (G F E D C B) and jaws, stepped with motor currents (mA)
+    through the motors' current limit and back-EMF envelope, as the Alpha's are; state in
+    the arm's units. Friction, damping and armature are the MJCF's (model/bravo7.md)."""
+
+    def __init__(
+        self,
+        water_density: float = 1000.0,
+        fluid_drag: bool = True,
+        dt: float = 0.002,
+        seed: int | None = None,
+        supply_voltage: float = NOMINAL_SUPPLY_V,
+    ) -> None:
+        check_dt(dt)
+        super().__init__(
+            load(water_density, fluid_drag),
+            BRAVO7,
+            MotorModel(BRAVO7_MOTORS, supply_voltage, DEFAULT_CURRENT_LIMITS_MA),
+            MotorModel(BRAVO7_JAW_MOTOR, supply_voltage, (DEFAULT_JAW_CURRENT_LIMIT_MA,)),
+            dt,
+            seed,
+            LINK_BODIES,
+        )
+        m = self.model
+        self.water_density = float(water_density)
+        self._ft_site = m.site(FT_SITE).id
+        root = m.body(FT_BODY).id
+        below = [root]
+        for body in range(root + 1, m.nbody):  # MuJoCo numbers a subtree after its root
+            if m.body_parentid[body] in below:
+                below.append(body)
+        self._ft_bodies = np.array(below)
+        self._ft_root = root
+        self.reset()
+
+    def force_torque(self) -> FloatArray:
+        """The wrench the jaws put on the wrist, as the force-torque sensor reads it: force
+        (N) then torque about the sensor's origin (N m), in the sensor's frame (`FT_SITE`).
+        At rest in air the force is the jaws' weight; in water, less their buoyancy.
+
+        From MuJoCo's interaction force between the wrist and the jaws' subtree at the last
+        physics step's accelerations (`mj_rnePostConstraint`), with the buoyancy bodies' lift
+        added (MuJoCo applies gravity compensation in joint space, not as a body force). The
+        water's drag on the jaws is not in it."""
+        m, d, s = self.model, self.data, self._scratch
+        s.qpos[:] = d.qpos
+        s.qvel[:] = d.qvel
+        mujoco.mj_kinematics(m, s)
+        mujoco.mj_comPos(m, s)
+        mujoco.mj_comVel(m, s)
+        s.qacc[:] = d.qacc
+        mujoco.mj_rnePostConstraint(m, s)
+        # cfrc_int: the spatial force (torque, force) the wrist exerts on the subtree, about
+        # the centre of mass of the kinematic tree.
+        origin = s.subtree_com[m.body_rootid[self._ft_root]]
+        torque = s.cfrc_int[self._ft_root, :3].copy()
+        force = s.cfrc_int[self._ft_root, 3:].copy()
+        gravity = np.asarray(m.opt.gravity)
+        for body in self._ft_bodies.tolist():
+            # gravity compensation (the buoyancy): a load the wrist does not carry
+            unheld = m.body_gravcomp[body] * m.body_mass[body] * gravity
+            if unheld.any():
+                force += unheld
+                torque += np.cross(s.xipos[body] - origin, unheld)
+        point = s.site_xpos[self._ft_site]
+        torque += np.cross(origin - point, force)
+        frame = s.site_xmat[self._ft_site].reshape(3, 3)
+        # What the jaws put on the sensor: the opposite of what the wrist puts on them.
+        return np.concatenate([frame.T @ -force, frame.T @ -torque])

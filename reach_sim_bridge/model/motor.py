@@ -9,9 +9,10 @@ it, and within the configured current limit. A per-joint torque scale models a d
 actuator (scale 0.25 is the paper's 75 % torque loss); it scales the delivered torque, not the
 current drawn, so the no-load speed is unchanged.
 
-Everything is vectorised over joints; arrays are in the order the motors were given
-(E D C B for the arm). The Reach Bravo 7's motors (`BRAVO7_MOTORS`, G F E D C B, and
-`BRAVO7_JAW_MOTOR`) are held beside the Alpha's as data; nothing steps them yet.
+Everything is vectorised over joints; arrays are in the order the motors were given (the
+arm model's joint order: E D C B for the Alpha 5). The joints' constants are the arm model's
+(`protocol.models.ArmModel.motors`, `MotorParams.of`); the jaws' are here. The Reach Bravo 7's
+motors are `BRAVO7_MOTORS` (G F E D C B) and `BRAVO7_JAW_MOTOR`.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from protocol import alpha5, bravo7
+from protocol.models import ALPHA5, BRAVO7, MotorConstants
 
 FloatArray = NDArray[np.float64]
 
@@ -72,6 +74,17 @@ class MotorParams:
         if any(v > 1.0 for v in self.efficiency):
             raise ValueError(f"motor efficiency is a fraction in (0, 1], got {self.efficiency}")
 
+    @classmethod
+    def of(cls, constants: MotorConstants) -> MotorParams:
+        """An arm model's joint motors (`protocol.models.ArmModel.motors`)."""
+        return cls(
+            resistance_ohm=constants.resistance_ohm,
+            torque_constant=constants.torque_constant_nm_per_a,
+            backemf_constant=constants.backemf_v_s_per_rad,
+            gear_ratio=constants.gear_ratio,
+            efficiency=constants.gear_efficiency,
+        )
+
     @property
     def count(self) -> int:
         return len(self.resistance_ohm)
@@ -88,13 +101,7 @@ class MotorParams:
 
 
 # Datasheet values (model/README.md, "Motors"), held once in protocol.alpha5.
-ALPHA5_MOTORS = MotorParams(
-    resistance_ohm=alpha5.MOTOR_RESISTANCE_OHM,
-    torque_constant=alpha5.MOTOR_TORQUE_CONSTANT_NM_PER_A,
-    backemf_constant=alpha5.MOTOR_BACKEMF_V_S_PER_RAD,
-    gear_ratio=alpha5.GEAR_RATIO,
-    efficiency=alpha5.GEAR_EFFICIENCY,
-)
+ALPHA5_MOTORS = MotorParams.of(ALPHA5.motors)
 
 # The jaw's lead screw is not published. Assumed: 20 mm lead, 40 % screw efficiency, so
 # the stall force at 24 V (~570 N) matches the rated 600 N jaw force and the no-load speed
@@ -114,13 +121,7 @@ JAW_MOTOR = MotorParams(
 
 # The Reach Bravo 7 (model/bravo7.md, "Motors"), held once in protocol.bravo7: six rotary
 # joints G F E D C B and the jaws, whose ratio is motor radians per mm of travel.
-BRAVO7_MOTORS = MotorParams(
-    resistance_ohm=bravo7.MOTOR_RESISTANCE_OHM,
-    torque_constant=bravo7.MOTOR_TORQUE_CONSTANT_NM_PER_A,
-    backemf_constant=bravo7.MOTOR_BACKEMF_V_S_PER_RAD,
-    gear_ratio=bravo7.GEAR_RATIO,
-    efficiency=bravo7.GEAR_EFFICIENCY,
-)
+BRAVO7_MOTORS = MotorParams.of(BRAVO7.motors)
 BRAVO7_JAW_MOTOR = MotorParams(
     resistance_ohm=(bravo7.JAW_MOTOR_RESISTANCE_OHM,),
     torque_constant=(bravo7.JAW_MOTOR_TORQUE_CONSTANT_NM_PER_A,),
