@@ -88,6 +88,11 @@ INGREDIENTS: tuple[Ingredient, ...] = (
         ("gamma=0.95",),
     ),
     Ingredient(
+        "gamma-0.9",
+        "discount 0.9 (a 0.5 s horizon at 20 Hz)",
+        ("gamma=0.9",),
+    ),
+    Ingredient(
         "critic-ln",
         "LayerNorm in the critic's hidden layers (off in the recipe): a steadier value fit",
         ("critic_layer_norm=true",),
