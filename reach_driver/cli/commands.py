@@ -20,8 +20,9 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from protocol import Mode, PacketID
-from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS
+from protocol.models import ALPHA5, ArmModel
 from reach_driver import ik
+from reach_driver.cli.arms import JointValues, angles_problem, given_model, in_scope
 from reach_driver.cli.connect import connect, safety_config
 from reach_driver.cli.exits import Exit, UsageError, for_operator, left_in_for_operator
 from reach_driver.cli.live import MoveView, RunView, chain
@@ -49,6 +50,7 @@ from reach_driver.cli.tables import fitted, show_table
 from reach_driver.client import ArmClient
 from reach_driver.control import ControlLoop, Pacing, control_period
 from reach_driver.controllers import (
+    ControllerModelError,
     available_controllers,
     controller_report,
     describe_controllers,
@@ -85,9 +87,10 @@ def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
         client.read_diagnostics()  # Monitor readings and status, read_info's joints carry them
         joints = client.read_info()
         if args.json:
-            console.print_json(json.dumps(info_json(args.port, joints)))
+            console.print_json(json.dumps(info_json(args.port, joints, client.model)))
             return Exit.OK
-        for table in (*info_tables(args.port, joints), diagnostics_table(args.port, joints)):
+        tables = info_tables(args.port, joints, client.model)
+        for table in (*tables, diagnostics_table(args.port, joints)):
             show_table(console, table)
         return Exit.OK
     finally:
@@ -121,6 +124,15 @@ def _kept(args: argparse.Namespace) -> list[RunRecorder] | None:
     return kept
 
 
+def _check_recordable(args: argparse.Namespace, model: ArmModel) -> None:
+    """Once the arm answered: --record and --viewer draw the Alpha 5 only so far."""
+    if model is not ALPHA5 and (getattr(args, "record", None) or getattr(args, "viewer", None)):
+        raise UsageError(
+            f"--record and --viewer record a {ALPHA5.title} only so far, not the "
+            f"{model.title} on {args.port}; nothing was sent"
+        )
+
+
 def _check_record(args: argparse.Namespace) -> None:
     """Before the port is opened: `--record` must name a file, never the arm's port."""
     if args.record:
@@ -136,6 +148,7 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
     recorder: CliRecorder | None = None
     stream: _StateStream | None = None
     try:
+        _check_recordable(args, client.model)
         devices = client.found_devices
         ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT, PacketID.MODE)
         rate = client.stream(ids, args.rate, devices)
@@ -311,16 +324,27 @@ def _notes() -> Console:
 
 
 def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
+    scope = in_scope(args)
+    try:
+        wanted = JointValues.parse(args.angles)
+    except ValueError as exc:
+        raise UsageError(f"move: {exc}") from None
     if args.xyz is not None and args.angles:
-        raise UsageError("move takes the four angles E D C B or --xyz X Y Z, not both")
-    if args.xyz is None and len(args.angles) != 4:
-        raise UsageError(
-            f"move needs the four angles E D C B (rad), got {len(args.angles)}; or --xyz X Y Z "
-            "(mm) for a tool position"
+        raise UsageError("move takes joint angles or --xyz X Y Z, not both")
+    if args.xyz is None:
+        problem = wanted.names_problem(scope) or (
+            None if wanted.named else angles_problem("move", len(wanted.values), scope, jaw=True)
         )
-    target = np.array(args.angles, dtype=float)
+        if problem:
+            raise UsageError(f"{problem}; or --xyz X Y Z (mm) for a tool position")
     client = connect(args, console)
-    devices = [*JOINTS, JAW] if args.jaw is not None else list(JOINTS)
+    try:
+        target, jaw = _move_target(args, wanted, client)
+    except BaseException:
+        client.close()
+        raise
+    model = client.model
+    devices = [*model.joints, model.jaw] if jaw is not None else list(model.joints)
     commanded = False
     recorder: CliRecorder | None = None
     stream: _StateStream | None = None
@@ -334,10 +358,10 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 if args.xyz is not None:  # joint targets by the driver's IK; out of reach: exit 3
                     target = client.solve_xyz(*args.xyz)
                 # Check everything first: a refused target must leave every joint where it is.
-                for dev, value in zip(JOINTS, target, strict=True):
+                for dev, value in zip(model.joints, target, strict=True):
                     client.guard.check(dev, LimitKind.POSITION, float(value))
-                if args.jaw is not None:
-                    client.guard.check(JAW, LimitKind.POSITION, args.jaw)
+                if jaw is not None:
+                    client.guard.check(model.jaw, LimitKind.POSITION, jaw)
                 faults = blocking_faults(client.read_status(), console)
                 if faults:
                     raise ArmFaultError(f"arm reports faults, not moving: {faults}")
@@ -354,13 +378,13 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 commanded = True
                 client.set_mode(devices, Mode.POSITION)
                 client.command_positions(target)
-                if args.jaw is not None:
-                    client.command_jaw(args.jaw)
+                if jaw is not None:
+                    client.command_jaw(jaw)
                 start_err = float(np.max(np.abs(target - q0))) or 1.0
                 move_started = client.clock()
                 deadline = time.monotonic() + args.move_timeout
                 notes = Console(stderr=True, highlight=False)
-                lines = MoveView(notes, enabled=not args.quiet)
+                lines = MoveView(notes, enabled=not args.quiet, letters=model.joint_letters)
                 with Progress(
                     TextColumn("[bold]move[/]"),
                     BarColumn(),
@@ -374,19 +398,19 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                     while True:
                         state = client.state
                         err = target - state.q
-                        jaw_err = abs(args.jaw - state.jaw_mm) if args.jaw is not None else 0.0
+                        jaw_err = abs(jaw - state.jaw_mm) if jaw is not None else 0.0
                         worst = float(np.max(np.abs(err)))
                         detail = " ".join(
-                            f"{j} {e:+.3f}" for j, e in zip(JOINT_LETTERS, err, strict=True)
+                            f"{j} {e:+.3f}" for j, e in zip(model.joint_letters, err, strict=True)
                         )
-                        if args.jaw is not None:
-                            detail += f" jaw {args.jaw - state.jaw_mm:+.2f} mm"
+                        if jaw is not None:
+                            detail += f" jaw {jaw - state.jaw_mm:+.2f} mm"
                         progress.update(
                             task,
                             completed=min(1.0, max(0.0, 1.0 - worst / start_err)),
                             detail=detail,
                         )
-                        jaw_left = args.jaw - state.jaw_mm if args.jaw is not None else None
+                        jaw_left = jaw - state.jaw_mm if jaw is not None else None
                         tool_err = _tool_error_mm(args, state.q)
                         done = (
                             worst <= args.tolerance
@@ -454,6 +478,33 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
         client.close()
 
 
+def _move_target(
+    args: argparse.Namespace, wanted: JointValues, client: ArmClient
+) -> tuple[np.ndarray, float | None]:
+    """The joint target (the model's order; NaN until --xyz is solved) and the jaw's (mm or
+    None) that `move` was given, checked against the arm that answered (UsageError, nothing
+    sent but requests); joints not named keep their present angle."""
+    model = client.model
+    _check_recordable(args, model)
+    on = f"the {model.title} on {args.port}"
+    jaw: float | None = args.jaw
+    if args.xyz is not None:
+        return np.full(model.n_joints, np.nan), jaw
+    problem = wanted.names_problem((model,), on) or (
+        None
+        if wanted.named
+        else angles_problem("move", len(wanted.values), (model,), jaw=True, on=on)
+    )
+    if problem:
+        raise UsageError(f"{problem}; nothing was sent")
+    if wanted.gives_jaw(model) and jaw is not None:
+        raise UsageError("the jaw is given twice (with the angles and --jaw); nothing was sent")
+    present = np.full(model.n_joints, np.nan)
+    if wanted.named:
+        present = client.read_joints((PacketID.POSITION,)).q
+    return wanted.target(model, present, jaw)
+
+
 def _tool_error_mm(args: argparse.Namespace, q: np.ndarray) -> float:
     """With --xyz: the distance (mm) of the reported angles' tool centre point from the
     target; 0 without."""
@@ -472,7 +523,7 @@ def _report_link_lost(client: ArmClient, target: np.ndarray, move_started: float
     state = client.state
     positions = []
     ages = []
-    for letter, dev in zip(JOINT_LETTERS, JOINTS, strict=True):
+    for letter, dev in zip(client.model.joint_letters, client.model.joints, strict=True):
         reading = state.joint(dev).position
         if reading is None:
             positions.append(f"{letter} -")
@@ -496,11 +547,13 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
     params = dict(args.param)
     if args.controller not in available_controllers():  # a typo is a bad command line (2)
         raise UsageError(f"unknown controller {args.controller!r}; registered: {registered_list()}")
-    try:
-        controller = load_controller(args.controller, **params)
-    except (OSError, ValueError) as exc:  # a missing weights file, a bad gain...
-        given = " ".join(f"{k}={v}" for k, v in params.items())
-        raise UsageError(f"controller {args.controller!r} with --param {given}: {exc}") from None
+    if "arm" in params:
+        raise UsageError("--param arm: the arm's model is --arm (or found at connect)")
+    problem = angles_problem("run --target", len(args.target), in_scope(args))
+    if problem:
+        raise UsageError(problem)
+    assumed = given_model(args) or ALPHA5
+    controller = _run_controller(args, params, assumed)
     period, mismatch = control_period(controller, args.period)
     if args.pacing == Pacing.STREAM.value and not 1 <= round(1.0 / period) <= 255:
         raise UsageError(
@@ -521,10 +574,26 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
     summary: ControlSummary | None = None
     error: str | None = None
     try:
+        model = client.model
+        problem = angles_problem(
+            "run --target", len(args.target), (model,), on=f"the {model.title} on {args.port}"
+        )
+        if problem:
+            raise UsageError(f"{problem}; nothing was sent")
+        _check_recordable(args, model)
+        if model is not assumed:  # found at connect: the controller for this arm
+            controller = _run_controller(args, params, model)
+            if control_period(controller, args.period)[0] != period:
+                raise UsageError(
+                    f"controller {args.controller!r} asks for another period on the "
+                    f"{model.title}: give --period; nothing was sent"
+                )
         target = np.array(args.target, dtype=float)
-        for dev, value in zip(JOINTS, target, strict=True):
+        for dev, value in zip(model.joints, target, strict=True):
             client.guard.check(dev, LimitKind.POSITION, float(value))
-        faults = blocking_faults(client.read_status(JOINTS), _notes() if args.json else console)
+        faults = blocking_faults(
+            client.read_status(model.joints), _notes() if args.json else console
+        )
         if faults:
             raise ArmFaultError(f"arm reports faults, not starting: {faults}")
         viewer = getattr(args, "viewer", None)
@@ -546,7 +615,12 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
                 keep_into=_kept(args),
             )
             client.read_diagnostics()  # the run's recording opens with every device's readings
-        view = RunView(Console(stderr=True, highlight=False), args.seconds, enabled=not args.quiet)
+        view = RunView(
+            Console(stderr=True, highlight=False),
+            args.seconds,
+            enabled=not args.quiet,
+            letters=model.joint_letters,
+        )
         hook = chain(recorder.on_step if recorder is not None else None, view.on_step)
         loop = ControlLoop(client, controller, period, pacing=args.pacing, on_step=hook)
         # Everything loaded so far (modules, the controller, rerun) lives as long as the run: a
@@ -633,6 +707,17 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
         if recorder is not None:
             recorder.finish(summary, error)  # a no-op once finished
         client.close()
+
+
+def _run_controller(args: argparse.Namespace, params: dict[str, Any], model: ArmModel) -> Any:
+    """`run`'s controller for an arm of `model`, or the one line (UsageError) why not."""
+    try:
+        return load_controller(args.controller, arm=model, **params)
+    except ControllerModelError as exc:
+        raise UsageError(f"{exc}; nothing was sent") from None
+    except (OSError, ValueError) as exc:  # a missing weights file, a bad gain...
+        given = " ".join(f"{k}={v}" for k, v in params.items())
+        raise UsageError(f"controller {args.controller!r} with --param {given}: {exc}") from None
 
 
 def _say_interrupted(signum: int | None, left_in: str) -> None:
