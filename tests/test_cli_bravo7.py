@@ -12,7 +12,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import LOOPBACK
+from conftest import LOOPBACK, WATCHDOG_S
 
 from protocol import Mode
 from protocol.models import ALPHA5, BRAVO7
@@ -207,3 +207,74 @@ def test_move_xyz_on_the_bravo_says_it_is_not_yet_there(sim, capsys) -> None:
     assert code in (Exit.LIMIT, Exit.USAGE), err
     assert "Reach Bravo 7" in err
     assert _untouched(sim)
+
+
+# -- 2: run ----------------------------------------------------------------------------------
+
+
+def test_run_pid_reaches_its_targets_on_the_bravo_over_a_pty(sim, capsys) -> None:
+    q0 = sim.snapshot().q
+    target = q0 + np.array([0.25, -0.3, 0.3, -0.35, 0.2, 0.45])
+    argv = ["--port", str(sim.link), "--watchdog", str(WATCHDOG_S), "run"]
+    argv += ["--controller", "pid", "--target", *map(str, target), "--seconds", "6", "--json"]
+    code = main([*argv, "-q"])
+    captured = capsys.readouterr()
+    assert code == Exit.OK, captured.err
+    out = json.loads(captured.out)
+    assert out["arm"] == "bravo7" and out["ok"], out["error"]
+    assert out["stopped_by"] == "duration"
+    assert len(out["final_q"]) == 6
+    assert np.max(np.abs(out["final_error"])) < 0.02, out["final_error"]
+    assert out["metrics"]["reached"], out["metrics"]
+    assert out["left_in"] == "zero_velocity (confirmed by the arm)"
+    # the arm, not only the driver: where it is and the mode it was left in
+    assert np.max(np.abs(sim.snapshot().q - target)) < 0.03
+    assert all(sim.firmware.mode(d) == Mode.ZERO_VELOCITY for d in JOINT_IDS)
+
+
+def test_run_prints_the_bravos_joints_and_torque_constants(sim, capsys) -> None:
+    target = sim.snapshot().q + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.2])
+    argv = ["--port", str(sim.link), "--watchdog", str(WATCHDOG_S), "run", "--controller"]
+    argv += ["pid", "--target", *map(str, target), "--seconds", "1", "-q"]
+    assert main(argv) == Exit.OK
+    out = capsys.readouterr().out
+    rows = [line.split()[0] for line in out.splitlines() if line.strip()[:2] in JOINT_ROWS]
+    assert rows[:6] == ["G", "F", "E", "D", "C", "B"]
+    assert "N m/A (G F E D C B)" in out
+    assert "arm left in zero_velocity (confirmed by the arm)" in out
+
+
+JOINT_ROWS = {"G ", "F ", "E ", "D ", "C ", "B "}
+
+
+@pytest.mark.parametrize(
+    ("run", "expected"),
+    [
+        (["--controller", "pid", "--target", "3", "1.5", "1.5", "3"], "run --target needs the six"),
+        (
+            ["--controller", "ddpg", "--target", "3", "1.5", "1.5", "3", "1.5", "3"],
+            "controller 'ddpg' drives the Reach Alpha 5 only, not the Reach Bravo 7",
+        ),
+        (
+            ["--controller", "pid", "--target", "3", "1.5", "1.5", "3", "1.5", "3"]
+            + ["--param", "kp=1,2,3,4"],
+            "kp needs one value or 6 (joint order G F E D C B)",
+        ),
+        (
+            ["--controller", "pid", "--target", "3", "1.5", "1.5", "3", "1.5", "3"]
+            + ["--record", "bravo.rrd"],
+            "--record and --viewer record a Reach Alpha 5 only so far",
+        ),
+    ],
+)
+def test_run_refuses_what_does_not_fit_the_bravo_before_anything_moves(
+    sim, run, expected, tmp_path, monkeypatch, capsys
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    code = _status(["--port", str(sim.link), "run", *run, "--seconds", "1"])
+    err = capsys.readouterr().err
+    assert code == Exit.USAGE, err
+    assert expected in err, err
+    assert "Traceback" not in err
+    assert _untouched(sim)
+    assert not (tmp_path / "bravo.rrd").exists()

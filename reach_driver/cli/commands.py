@@ -665,6 +665,7 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             out = summary_dict(summary)
             out.update(
                 exit=int(code),
+                arm=model.name,
                 controller=args.controller,
                 controller_report=report,
                 target=summary.target,
