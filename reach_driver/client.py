@@ -42,6 +42,7 @@ from protocol import (
 )
 from protocol.models import ALPHA5, MODELS, ArmModel
 from reach_driver import ik
+from reach_driver.drawing import DRAWINGS
 from reach_driver.errors import (
     ArmIdentityError,
     ArmModelError,
@@ -444,21 +445,28 @@ class ArmClient(ArmQueries):
         self.send(*(commands.position(int(d), v) for d, v in zip(devices, values, strict=True)))
 
     def solve_xyz(self, x: float, y: float, z: float) -> np.ndarray:
-        """Joint target E D C B (rad) putting the tool centre point at (x, y, z) mm in the
-        base frame, from the present angles, inside the position limits in force (the arm's,
-        tightened by the safety config); B keeps its angle (it does not move the tool
-        centre point). Sends nothing; `ik.UnreachableError` (a `LimitError`) if no angles
-        inside the limits get within `ik.TOLERANCE_MM`. The driver's kinematics are the
-        Alpha 5's: another model gets a `LimitError` saying so."""
-        if self.model is not ALPHA5:
+        """Joint target (rad, the model's order) putting the tool centre point at (x, y, z)
+        mm in the base frame, from the present angles, inside the position limits in force
+        (the arm's, tightened by the safety config); B keeps its angle (it does not move the
+        tool centre point). Sends nothing; `ik.UnreachableError` (a `LimitError`) if no
+        angles inside the limits get within `ik.TOLERANCE_MM`. The Alpha 5 by `ik`'s solver,
+        another model on its chain from its MJCF (`ik.solve_on_chain`: the Bravo 7's G F E D
+        C move, redundantly, the least from where they are); a model the driver has no
+        chain for gets a `LimitError` saying so."""
+        if self.model is not ALPHA5 and self.model.name not in DRAWINGS:
             raise LimitError(
-                f"refused: the driver's inverse kinematics are the {ALPHA5.title}'s, not the "
-                f"{self.model.title}'s; command joint angles instead; nothing was sent"
+                f"refused: the driver has no kinematics of the {self.model.title}; command "
+                "joint angles instead; nothing was sent"
             )
         q = self.state.q
         if not np.all(np.isfinite(q)):
             q = self.read_joints((PacketID.POSITION,)).q
-        return ik.solve_or_refuse((x, y, z), q, np.array(self.guard.position_limits()))
+        limits = np.array(self.guard.position_limits())
+        if self.model is ALPHA5:
+            return ik.solve_or_refuse((x, y, z), q, limits)
+        drawing = DRAWINGS[self.model.name]
+        letters = self.model.joint_letters
+        return ik.solve_on_chain_or_refuse(drawing, letters, (x, y, z), q, limits)
 
     def command_xyz(self, x: float, y: float, z: float) -> np.ndarray:
         """Move the tool centre point to (x, y, z) mm: the driver's own inverse kinematics

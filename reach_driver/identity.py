@@ -2,8 +2,8 @@
 device reported then (serial and model numbers, firmware version); and the check after a
 reconnect that the same arm answers.
 
-The model is read from which devices answer (`model_answering`): the Bravo 7's F and G
-(0x06, 0x07) and its router (0x0D) are not devices of an Alpha 5. Not from a device type:
+The model is read from which joints answer (`model_answering`): the Bravo 7's F and G
+(0x06, 0x07) are not devices of an Alpha 5. Not from a device type:
 0x67, which newer vendor software reads as DEVICE_TYPE, is the internal pressure in the
 protocol this stack follows (docs/protocol.md, "The 0x67 clash"), and the model numbers the
 vendor's devices report are not published.
@@ -36,11 +36,13 @@ class ModelCheck(str, Enum):
 
 
 def devices_to_ask(first: Sequence[int], models: Iterable[ArmModel]) -> tuple[int, ...]:
-    """`first` (the client's devices, asked as before), then every other device of `models`:
-    what discovery asks when the model is to be found."""
+    """`first` (the client's devices, asked as before), then every other joint and jaw of
+    `models`: what discovery asks when the model is to be found. Not the devices that do not
+    move (a router): the virtual Bravo's does not answer MODE, and each silent device costs
+    discovery its retries (on a half-duplex line one after the other)."""
     out = [int(d) for d in first]
     for model in models:
-        out += [int(d) for d in model.devices if int(d) not in out]
+        out += [int(d) for d in model.actuators if int(d) not in out]
     return tuple(out)
 
 

@@ -201,12 +201,29 @@ def test_max_current_counts_the_bravos_joints(sim, capsys) -> None:
     assert _untouched(sim)
 
 
-def test_move_xyz_on_the_bravo_says_it_is_not_yet_there(sim, capsys) -> None:
-    code = _status(["--port", str(sim.link), "move", "--xyz", "300", "0", "200"])
+def test_move_xyz_puts_the_bravos_tool_centre_point_there(sim, capsys) -> None:
+    from reach_sim_bridge.model.bravo7 import Bravo7Arm
+
+    twin = Bravo7Arm()  # the MJCF's own tool centre point: the sim's site, not the driver's
+    here = np.array(twin.pose_at(sim.snapshot().q)[:3])
+    goal = here + np.array([40.0, -30.0, 25.0])
+    argv = ["--port", str(sim.link), "move", "--xyz", *map(str, goal), "--timeout", "60"]
+    code = main([*argv, "-q"])
+    captured = capsys.readouterr()
+    assert code == Exit.OK, captured.err
+    assert "tool centre point" in captured.out
+    reached = np.array(twin.pose_at(sim.snapshot().q)[:3])
+    assert np.linalg.norm(reached - goal) < 5.0, (reached, goal)  # mm: 0.02 rad per joint
+
+
+def test_an_unreachable_point_is_refused_before_anything_moves(sim, capsys) -> None:
+    code = _status(["--port", str(sim.link), "move", "--xyz", "3000", "0", "0"])
     err = capsys.readouterr().err
-    assert code in (Exit.LIMIT, Exit.USAGE), err
-    assert "Reach Bravo 7" in err
+    assert code == Exit.LIMIT, err
+    assert "out of reach" in err and "nothing was sent" in err
     assert _untouched(sim)
+    assert _status(["--arm", "bravo7", "workspace"]) == Exit.USAGE
+    assert "workspace: not yet for the Reach Bravo 7" in capsys.readouterr().err
 
 
 # -- 2: run ----------------------------------------------------------------------------------
@@ -260,21 +277,58 @@ JOINT_ROWS = {"G ", "F ", "E ", "D ", "C ", "B "}
             + ["--param", "kp=1,2,3,4"],
             "kp needs one value or 6 (joint order G F E D C B)",
         ),
-        (
-            ["--controller", "pid", "--target", "3", "1.5", "1.5", "3", "1.5", "3"]
-            + ["--record", "bravo.rrd"],
-            "--record and --viewer record a Reach Alpha 5 only so far",
-        ),
     ],
 )
 def test_run_refuses_what_does_not_fit_the_bravo_before_anything_moves(
-    sim, run, expected, tmp_path, monkeypatch, capsys
+    sim, run, expected, capsys
 ) -> None:
-    monkeypatch.chdir(tmp_path)
     code = _status(["--port", str(sim.link), "run", *run, "--seconds", "1"])
     err = capsys.readouterr().err
     assert code == Exit.USAGE, err
     assert expected in err, err
     assert "Traceback" not in err
     assert _untouched(sim)
-    assert not (tmp_path / "bravo.rrd").exists()
+
+
+# -- 3: recordings ---------------------------------------------------------------------------
+
+
+def test_a_bravo_run_recorded_reads_back_with_inspect_and_export(sim, tmp_path, capsys) -> None:
+    record, table = tmp_path / "bravo.rrd", tmp_path / "bravo.csv"
+    target = sim.snapshot().q + np.array([0.2, -0.2, 0.2, -0.2, 0.2, 0.3])
+    argv = ["--port", str(sim.link), "--watchdog", str(WATCHDOG_S), "run", "--controller"]
+    argv += ["pid", "--target", *map(str, target), "--seconds", "4", "--json", "-q"]
+    assert main([*argv, "--record", str(record)]) == Exit.OK
+    ran = json.loads(capsys.readouterr().out)
+    assert main(["inspect", str(record), "--json"]) == Exit.OK
+    seen = json.loads(capsys.readouterr().out)
+    assert seen["arm"] == "bravo7" and seen["metadata"]["arm"] == "bravo7"
+    assert seen["joints"] == ["G", "F", "E", "D", "C", "B"]
+    assert seen["steps"] == ran["steps"] + 1  # and the state that ended the run
+    np.testing.assert_allclose(seen["final_target"], target, atol=1e-9)
+    np.testing.assert_allclose(seen["final_position"], ran["final_q"], atol=1e-9)
+    assert seen["metrics"]["reached"] == ran["metrics"]["reached"] is True
+    assert seen["diagnostics"]["devices"] == ["G", "F", "E", "D", "C", "B", "A"]
+    assert seen["diagnostics"]["final_status"]["G"] == ["ok"]
+    assert main(["inspect", str(record)]) == Exit.OK
+    assert "final state of the Reach Bravo 7 (rad)" in capsys.readouterr().out
+    assert main(["export", str(record), "--to", str(table)]) == Exit.OK
+    header = table.read_text().splitlines()[0].split(",")
+    assert header[2:8] == [f"q_{j}_rad" for j in "GFEDCB"]
+
+
+def test_a_bravo_recording_draws_the_bravo_from_its_mjcf(sim, tmp_path, capsys) -> None:
+    import warnings
+
+    from rerun.chunk import RrdReader
+
+    record = tmp_path / "bravo.rrd"
+    argv = ["--port", str(sim.link), "monitor", "--seconds", "0.5", "--json"]
+    assert main([*argv, "--record", str(record)]) == Exit.OK
+    capsys.readouterr()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        entities = {str(c.entity_path) for c in RrdReader(record).stream().to_chunks()}
+    chain = "/arm/link1/link2/link3/link4/link5/link6"
+    assert {chain, f"{chain}/tcp", "/target/link1", "/joints/G/position"} <= entities
+    assert "/arm/m2_1_1" not in entities  # not the Alpha's links

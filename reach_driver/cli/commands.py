@@ -57,6 +57,7 @@ from reach_driver.controllers import (
     load_controller,
     registered_list,
 )
+from reach_driver.drawing import drawing_for
 from reach_driver.errors import ArmFaultError, DriverError, Interrupted
 from reach_driver.kinematics import tool_position
 from reach_driver.link import EventKind, LinkState
@@ -124,15 +125,6 @@ def _kept(args: argparse.Namespace) -> list[RunRecorder] | None:
     return kept
 
 
-def _check_recordable(args: argparse.Namespace, model: ArmModel) -> None:
-    """Once the arm answered: --record and --viewer draw the Alpha 5 only so far."""
-    if model is not ALPHA5 and (getattr(args, "record", None) or getattr(args, "viewer", None)):
-        raise UsageError(
-            f"--record and --viewer record a {ALPHA5.title} only so far, not the "
-            f"{model.title} on {args.port}; nothing was sent"
-        )
-
-
 def _check_record(args: argparse.Namespace) -> None:
     """Before the port is opened: `--record` must name a file, never the arm's port."""
     if args.record:
@@ -148,7 +140,6 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
     recorder: CliRecorder | None = None
     stream: _StateStream | None = None
     try:
-        _check_recordable(args, client.model)
         devices = client.found_devices
         ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT, PacketID.MODE)
         rate = client.stream(ids, args.rate, devices)
@@ -166,6 +157,7 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
                 viewer=viewer,
                 diagnostics=lambda: client.state.joints,
                 keep_into=_kept(args),
+                model=client.model,
             )
             stream = _StateStream(client, recorder)
         # --seconds of watching, counted once the recording and the viewer are open: opening
@@ -369,7 +361,9 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 if viewer is not None:
                     ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT)
                     meta = {"command": "move", "port": args.port, "target": target.tolist()}
-                    recorder = CliRecorder(None, meta, viewer=viewer, keep_into=_kept(args))
+                    recorder = CliRecorder(
+                        None, meta, viewer=viewer, keep_into=_kept(args), model=model
+                    )
                     stream = _StateStream(client, recorder, target)
                 client.stream(ids, 20, devices)
                 q0 = client.read_joints((PacketID.POSITION,)).q
@@ -411,7 +405,7 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                             detail=detail,
                         )
                         jaw_left = jaw - state.jaw_mm if jaw is not None else None
-                        tool_err = _tool_error_mm(args, state.q)
+                        tool_err = _tool_error_mm(args, state.q, model)
                         done = (
                             worst <= args.tolerance
                             and jaw_err <= args.jaw_tolerance
@@ -485,7 +479,6 @@ def _move_target(
     None) that `move` was given, checked against the arm that answered (UsageError, nothing
     sent but requests); joints not named keep their present angle."""
     model = client.model
-    _check_recordable(args, model)
     on = f"the {model.title} on {args.port}"
     jaw: float | None = args.jaw
     if args.xyz is not None:
@@ -505,12 +498,13 @@ def _move_target(
     return wanted.target(model, present, jaw)
 
 
-def _tool_error_mm(args: argparse.Namespace, q: np.ndarray) -> float:
+def _tool_error_mm(args: argparse.Namespace, q: np.ndarray, model: ArmModel) -> float:
     """With --xyz: the distance (mm) of the reported angles' tool centre point from the
     target; 0 without."""
     if args.xyz is None:
         return 0.0
-    return float(np.linalg.norm(tool_position(q) * 1000.0 - np.asarray(args.xyz, dtype=float)))
+    point = tool_position(q) if model is ALPHA5 else drawing_for(model).tool_position(q)
+    return float(np.linalg.norm(point * 1000.0 - np.asarray(args.xyz, dtype=float)))
 
 
 def _report_link_lost(client: ArmClient, target: np.ndarray, move_started: float) -> None:
@@ -580,7 +574,6 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
         )
         if problem:
             raise UsageError(f"{problem}; nothing was sent")
-        _check_recordable(args, model)
         if model is not assumed:  # found at connect: the controller for this arm
             controller = _run_controller(args, params, model)
             if control_period(controller, args.period)[0] != period:
@@ -613,6 +606,7 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
                 viewer=viewer,
                 diagnostics=lambda: client.state.joints,
                 keep_into=_kept(args),
+                model=model,
             )
             client.read_diagnostics()  # the run's recording opens with every device's readings
         view = RunView(
@@ -743,6 +737,12 @@ def cmd_controllers(args: argparse.Namespace, console: Console) -> Exit:
 def cmd_workspace(args: argparse.Namespace, console: Console) -> Exit:
     """Where the tool reaches inside the limits `move --xyz` would use on an arm reporting
     the factory ones (the same guard, the same solver); opens no port."""
+    model = given_model(args) or ALPHA5
+    if model is not ALPHA5:
+        raise UsageError(
+            f"workspace: not yet for the {model.title} (its envelope is the {ALPHA5.title}'s "
+            "only so far); `move --xyz` solves a point on it"
+        )
     margin = float(args.position_margin)
     limits = np.array(SafetyGuard(safety_config(args)).position_limits())
     env = ik.envelope(limits)

@@ -17,7 +17,7 @@ from rich.table import Table
 
 from protocol import DeviceID, HardwareStatus, Mode, PacketID
 from protocol.alpha5 import JOINT_LETTERS
-from protocol.models import ALPHA5, ArmModel
+from protocol.models import ALPHA5, ArmModel, model_named
 from reach_driver.cli.exits import for_operator
 from reach_driver.cli.report import run_metrics, run_overshoot
 from reach_driver.cli.tables import show_table
@@ -503,7 +503,9 @@ def print_recording(console: Console, summary: dict[str, Any]) -> None:
         for line in summary.get("events", []):
             console.print(f"  {escape(str(line))}")
         return
-    joints = Table(title="final state (rad)")
+    arm = summary.get("arm", ALPHA5.name)
+    named = "" if arm == ALPHA5.name else f" of the {_model_title(str(arm))}"
+    joints = Table(title=f"final state{named} (rad)")
     for col in ("joint", "target", "position", "error"):
         joints.add_column(col, justify="right")
     for row in zip(
@@ -526,6 +528,13 @@ def print_recording(console: Console, summary: dict[str, Any]) -> None:
         show_table(console, recorded_diagnostics_table(diagnostics))
     for line in summary.get("events", []):
         console.print(f"  {escape(str(line))}")
+
+
+def _model_title(name: str) -> str:
+    try:
+        return model_named(name).title
+    except ValueError:
+        return name
 
 
 def recorded_diagnostics_table(diagnostics: dict[str, Any]) -> Table:
