@@ -40,7 +40,7 @@ from protocol import (
     commands,
     decode_packet,
 )
-from protocol.models import ALPHA5, MODELS, ArmModel
+from protocol.models import ALPHA5, MODELS, ArmModel, model_named
 from reach_driver import ik
 from reach_driver.drawing import DRAWINGS
 from reach_driver.errors import (
@@ -123,7 +123,8 @@ class ArmClient(ArmQueries):
         self.stats = ClientStats()
         self.events: deque[ClientEvent] = deque(maxlen=EVENT_HISTORY)
         self.found_devices: tuple[int, ...] = ()
-        #: Every device that answered discovery, the arm's others (a router) included.
+        #: Every device that answered discovery (with a model check: of every known model's
+        #: joints and jaws, an arm's that is not this client's model included).
         self.answering: tuple[int, ...] = ()
         #: What each device reported at connect; a reconnect must find the same.
         self.identity: dict[int, DeviceIdentity] = {}
@@ -190,10 +191,10 @@ class ArmClient(ArmQueries):
         again after every reconnect) and their limits.
 
         `model_check` DETECT finds the model from the devices that answer (every known
-        model's are asked) and takes it; CONFIRM raises `ArmModelError` if they are another
-        model's than the client's. Raises `NoResponseError` (or `GarbageError` when bytes
-        arrive but never decode, the sign of a wrong baud rate) if no device answers; the
-        link is closed again on any error.
+        model's joints and jaws are asked) and takes it; CONFIRM raises `ArmModelError` if
+        they are another model's than the client's. Raises `NoResponseError` (or
+        `GarbageError` when bytes arrive but never decode, the sign of a wrong baud rate) if
+        no device answers; the link is closed again on any error.
         """
         if self._thread is not None:
             return self
@@ -220,8 +221,8 @@ class ArmClient(ArmQueries):
         return self
 
     def _discover_model(self, check: ModelCheck) -> None:
-        """Discovery over every known model's devices; the model they are taken (DETECT) or
-        confirmed (CONFIRM) before anything but a REQUEST is sent."""
+        """Discovery over every known model's joints and jaws; the model they are taken
+        (DETECT) or confirmed (CONFIRM) before anything but a REQUEST is sent."""
         models = tuple(MODELS.values())
         self.answering = self.discover(devices_to_ask(self.devices, models))
         url = self.transport.url
@@ -453,10 +454,11 @@ class ArmClient(ArmQueries):
         another model on its chain from its MJCF (`ik.solve_on_chain`: the Bravo 7's G F E D
         C move, redundantly, the least from where they are); a model the driver has no
         chain for gets a `LimitError` saying so."""
-        if self.model is not ALPHA5 and self.model.name not in DRAWINGS:
+        if self.model.name not in DRAWINGS:
+            known = " and the ".join(f"{model_named(name).title}'s" for name in DRAWINGS)
             raise LimitError(
-                f"refused: the driver has no kinematics of the {self.model.title}; command "
-                "joint angles instead; nothing was sent"
+                f"refused: the driver's inverse kinematics are the {known}, not the "
+                f"{self.model.title}'s; command joint angles instead; nothing was sent"
             )
         q = self.state.q
         if not np.all(np.isfinite(q)):

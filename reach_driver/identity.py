@@ -29,7 +29,7 @@ class ModelCheck(str, Enum):
 
     #: Take the client's model as given and ask only its devices (the Python default).
     TRUST = "trust"
-    #: Ask every known model's devices and adopt the model whose devices answer.
+    #: Ask every known model's joints and jaws and adopt the model whose devices answer.
     DETECT = "detect"
     #: Ask them too; `ArmModelError` if the devices answering are another model's.
     CONFIRM = "confirm"

@@ -214,9 +214,9 @@ def _add_connection_options(
         "--max-current",
         metavar="MA[,MA,MA,MA]",
         default=default(None),
-        help="tighten the current limits the arm reports: one value for every joint or four "
-        "comma-separated (E,D,C,B), in mA; a controller's output is clipped to them (for "
-        "first runs on a real arm)",
+        help="tighten the current limits the arm reports: one value for every joint or one "
+        "per joint comma-separated (E,D,C,B on an Alpha 5; G,F,E,D,C,B on a Bravo 7), in mA; a "
+        "controller's output is clipped to them (for first runs on a real arm)",
     )
     g.add_argument(
         "--position-margin",
