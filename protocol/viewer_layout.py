@@ -29,20 +29,37 @@ from rerun import encodings
 
 Vec3 = tuple[float, float, float]
 
-#: Series colours, one per device in E D C B then the jaws (A): the plots of one value per
-#: device (errors, torques, velocities, diagnostics) colour them alike.
-JOINT_COLORS: tuple[tuple[int, int, int, int], ...] = (
-    (230, 90, 60, 255),  # E red
-    (90, 180, 80, 255),  # D green
-    (70, 130, 230, 255),  # C blue
-    (200, 170, 40, 255),  # B yellow
-)
+Color = tuple[int, int, int, int]
+#: Series colours by joint letter, the same on every arm: the plots of one value per device
+#: (errors, torques, velocities, diagnostics) colour them alike.
+LETTER_COLORS: dict[str, tuple[Color, str]] = {
+    "G": ((160, 90, 200, 255), "purple"),
+    "F": ((60, 180, 190, 255), "cyan"),
+    "E": ((230, 90, 60, 255), "red"),
+    "D": ((90, 180, 80, 255), "green"),
+    "C": ((70, 130, 230, 255), "blue"),
+    "B": ((200, 170, 40, 255), "yellow"),
+}
 JAW_COLOR = (150, 150, 150, 255)  # A grey
+
+
+def joint_colors(letters: Sequence[str]) -> tuple[Color, ...]:
+    """The series colours of joints `letters`, in their order."""
+    return tuple(LETTER_COLORS[j][0] for j in letters)
+
+
+def joint_key(letters: Sequence[str]) -> str:
+    """How the colour key of joints `letters` reads in a view's title: "E red, D green"."""
+    return ", ".join(f"{j} {LETTER_COLORS[j][1]}" for j in letters)
+
+
+#: The Alpha 5's: E D C B.
+JOINT_COLORS: tuple[Color, ...] = joint_colors("EDCB")
 #: The arm as reported (and q in a position plot), and the target (its ghost, its line).
 ARM_COLOR = (230, 150, 40, 255)
 TARGET_COLOR = (80, 170, 255, 255)
-#: How the colour key reads in a view's title.
-JOINT_KEY = "E red, D green, C blue, B yellow"
+#: How the Alpha 5's colour key reads in a view's title.
+JOINT_KEY = joint_key("EDCB")
 
 #: The vertical field of view of rerun's 3D eye (0.41 has no setting for it).
 EYE_FOV_Y_RAD = math.radians(55.0)

@@ -23,6 +23,7 @@ from reach_driver.controllers import (
 from reach_driver.errors import (
     ArmFaultError,
     ArmIdentityError,
+    ArmModelError,
     BadReadingError,
     BadUrlError,
     ControllerError,
@@ -40,6 +41,7 @@ from reach_driver.errors import (
     TransportError,
     WatchdogTrippedError,
 )
+from reach_driver.identity import ModelCheck
 from reach_driver.interfaces import open_transport
 from reach_driver.link import ClientEvent, EventKind, LinkConfig, LinkState
 from reach_driver.listeners import PacketQueue, Subscription
@@ -56,6 +58,7 @@ __all__ = [
     "HoldMode",
     "ArmFaultError",
     "ArmIdentityError",
+    "ArmModelError",
     "ArmState",
     "BadReadingError",
     "StreamRateError",
@@ -79,6 +82,7 @@ __all__ = [
     "LinkConfig",
     "LinkDownError",
     "LinkState",
+    "ModelCheck",
     "LoopTrace",
     "NoResponseError",
     "Pacing",

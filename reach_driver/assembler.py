@@ -10,14 +10,13 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from protocol import Packet, PacketID, ProtocolError
-from protocol.alpha5 import JOINTS, N_JOINTS
-
-N = N_JOINTS
+from protocol.models import ALPHA5
 
 GRACE_FRACTION = 0.25
 """An incomplete tick is handed to the loop this fraction of a period after it began ..."""
@@ -55,11 +54,11 @@ class StateAssembler:
     drifts (per-slot counts would undercount arm time under steady loss, and completing on
     "every slot refreshed" would leave part of every later state a tick stale after one loss).
 
-    A tick is published once all eight slots are in, or incomplete as soon as the last packet
-    in the order has come (the missing ones were lost); when it is the last one that is lost,
-    `take` hands the tick out GRACE_FRACTION of a period after it began (the period in wall
-    time is the median spacing of recent ticks), or GRACE_SPAN_FACTOR times the usual time a
-    whole tick takes to arrive if that is longer. In an incomplete tick a missing position is
+    A tick is published once every slot (two per joint) is in, or incomplete as soon as the last
+    packet in the order has come (the missing ones were lost); when it is the last one that is
+    lost, `take` hands the tick out GRACE_FRACTION of a period after it began (the period in
+    wall time is the median spacing of recent ticks), or GRACE_SPAN_FACTOR times the usual time
+    a whole tick takes to arrive if that is longer. In an incomplete tick a missing position is
     extrapolated from the previous one and its velocity, a missing velocity is held, and each
     slot's `seen` tick lets the loop refuse a value held too long. A tick in which every packet
     is lost is not counted. A packet equal to the one just before it (same slot and value, the
@@ -73,15 +72,16 @@ class StateAssembler:
     checks that compare two samples across it, never for counting arm time.
     """
 
-    def __init__(self, period_s: float) -> None:
+    def __init__(self, period_s: float, joints: Sequence[int] = ALPHA5.joints) -> None:
         self.period_s = period_s
-        self.currents = np.full(N, np.nan)
-        self.values = np.full(2 * N, np.nan)
-        self.times = np.full(2 * N, np.nan)
-        self.have = np.zeros(2 * N, dtype=bool)
-        self.prev_values = np.full(2 * N, np.nan)
-        self.prev_times = np.full(2 * N, np.nan)
-        self.seen = np.full(2 * N, -1, dtype=np.int64)
+        self.n = n = len(joints)  # slots: position and velocity of each joint, in its order
+        self.currents = np.full(n, np.nan)
+        self.values = np.full(2 * n, np.nan)
+        self.times = np.full(2 * n, np.nan)
+        self.have = np.zeros(2 * n, dtype=bool)
+        self.prev_values = np.full(2 * n, np.nan)
+        self.prev_times = np.full(2 * n, np.nan)
+        self.seen = np.full(2 * n, -1, dtype=np.int64)
         self.tick = -1
         self.tick_start = math.nan
         self.published_tick = -1
@@ -90,7 +90,7 @@ class StateAssembler:
         self.last_place = -1
         self._starts: deque[float] = deque(maxlen=17)
         self._spans: deque[float] = deque(maxlen=17)  # first to last packet of whole ticks
-        self._index = {int(d): i for i, d in enumerate(JOINTS)}
+        self._index = {int(d): i for i, d in enumerate(joints)}
         self._cond = threading.Condition()
         self._latest: Tick | None = None
         self.completed = 0  # states published
@@ -136,11 +136,11 @@ class StateAssembler:
             if self.published_tick == self.tick:
                 return
             if self.have.all():
-                if len(self.sequence) == 2 * N:
+                if len(self.sequence) == 2 * self.n:
                     self.order = {s: k for k, s in enumerate(self.sequence)}
                     self._spans.append(t - self.tick_start)
                 self._publish()
-            elif place == 2 * N - 1:
+            elif place == 2 * self.n - 1:
                 self._publish()  # the tick's last packet: the missing ones were lost
 
     def _new_tick(self, t: float) -> None:
@@ -172,7 +172,7 @@ class StateAssembler:
         partial = bool(missing.any())
         if partial:
             pos, vel = self.prev_values[0::2], self.prev_values[1::2]
-            fill = np.empty(2 * N)
+            fill = np.empty(2 * self.n)
             fill[0::2] = pos + vel * self.period_s
             fill[1::2] = vel
             values[missing] = fill[missing]

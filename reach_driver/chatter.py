@@ -30,12 +30,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import InitVar, dataclass
 from enum import Enum
 
 import numpy as np
 
-from protocol.alpha5 import JOINT_LETTERS, N_JOINTS
+from protocol.models import ALPHA5
 
 __all__ = ["ChatterConfig", "ChatterDetector", "HoldMode", "Verdict"]
 
@@ -78,19 +78,26 @@ class ChatterConfig:
 
 @dataclass(frozen=True)
 class Verdict:
-    """Why the detector fired: one joint's limit cycle, as measured over its reversals."""
+    """Why the detector fired: one joint's limit cycle, as measured over its reversals.
+    `letters` names the arm's joints (the Alpha 5's by default); not a field, so a verdict
+    reads as it always has."""
 
-    joint: int  # index in E D C B
+    joint: int  # index in the arm's joint order (E D C B on the Alpha 5)
     t: float  # loop time of the reversal that fired it (s)
     reversals: int
     span_s: float  # from the first counted reversal to the last
     max_error_rad: float  # largest |error| at the counted reversals
     mean_speed_rad_s: float  # mean |qdot| at them
     mean_current_mA: float  # mean |command| at them
+    letters: InitVar[tuple[str, ...]] = ALPHA5.joint_letters
+
+    def __post_init__(self, letters: tuple[str, ...]) -> None:
+        object.__setattr__(self, "_letters", tuple(letters))
 
     @property
     def letter(self) -> str:
-        return JOINT_LETTERS[self.joint]
+        letters: tuple[str, ...] = getattr(self, "_letters", ALPHA5.joint_letters)
+        return letters[self.joint]
 
     def describe(self) -> str:
         return (
@@ -134,14 +141,22 @@ class ChatterDetector:
     the same verdict on every later step, until `reset`)."""
 
     def __init__(
-        self, config: ChatterConfig, current_limits_mA: Sequence[float] | np.ndarray
+        self,
+        config: ChatterConfig,
+        current_limits_mA: Sequence[float] | np.ndarray,
+        letters: Sequence[str] = ALPHA5.joint_letters,
     ) -> None:
+        self.letters = tuple(letters)  # the arm's joints, in its order
+        n = len(self.letters)
         limits = np.abs(np.asarray(current_limits_mA, dtype=float).reshape(-1))
-        if limits.shape != (N_JOINTS,) or not np.all(np.isfinite(limits) & (limits > 0)):
-            raise ValueError(f"need 4 positive current limits (E D C B), got {current_limits_mA}")
+        if limits.shape != (n,) or not np.all(np.isfinite(limits) & (limits > 0)):
+            raise ValueError(
+                f"need {n} positive current limits ({' '.join(self.letters)}), got "
+                f"{current_limits_mA}"
+            )
         self.config = config
         self.threshold_mA = config.current_fraction * limits
-        self._joints = [_Joint() for _ in range(N_JOINTS)]
+        self._joints = [_Joint() for _ in range(n)]
         self._target: np.ndarray | None = None
         self.verdict: Verdict | None = None
         self.longest_s = 0.0
@@ -199,6 +214,7 @@ class ChatterDetector:
                     max_error_rad=joint.max_error,
                     mean_speed_rad_s=joint.speed_sum / joint.reversals,
                     mean_current_mA=joint.current_sum / joint.reversals,
+                    letters=self.letters,
                 )
                 return self.verdict
         return None

@@ -40,10 +40,12 @@ from protocol import (
     commands,
     decode_packet,
 )
-from protocol.models import ALPHA5, ArmModel
+from protocol.models import ALPHA5, MODELS, ArmModel, model_named
 from reach_driver import ik
+from reach_driver.drawing import DRAWINGS
 from reach_driver.errors import (
     ArmIdentityError,
+    ArmModelError,
     DriverError,
     LimitError,
     LinkDownError,
@@ -51,7 +53,14 @@ from reach_driver.errors import (
 )
 from reach_driver.faults import FaultFlags
 from reach_driver.gate import LIMIT_KIND_OF, CommandGate
-from reach_driver.identity import DeviceIdentity, IdentityCheck
+from reach_driver.identity import (
+    DeviceIdentity,
+    IdentityCheck,
+    ModelCheck,
+    devices_to_ask,
+    model_answering,
+    model_mismatch,
+)
 from reach_driver.link import (
     ClientEvent,
     ClientStats,
@@ -104,6 +113,7 @@ class ArmClient(ArmQueries):
         self.guard = SafetyGuard(safety, model)
         self.link_config = link or LinkConfig()
         self.devices = tuple(int(d) for d in (model.actuators if devices is None else devices))
+        self._devices_given = devices is not None
         self.request_timeout_s = request_timeout_s
         self.retries = retries
         self.clock = clock
@@ -113,6 +123,9 @@ class ArmClient(ArmQueries):
         self.stats = ClientStats()
         self.events: deque[ClientEvent] = deque(maxlen=EVENT_HISTORY)
         self.found_devices: tuple[int, ...] = ()
+        #: Every device that answered discovery (with a model check: of every known model's
+        #: joints and jaws, an arm's that is not this client's model included).
+        self.answering: tuple[int, ...] = ()
         #: What each device reported at connect; a reconnect must find the same.
         self.identity: dict[int, DeviceIdentity] = {}
         self._check: IdentityCheck | None = None  # reader thread only
@@ -140,15 +153,7 @@ class ArmClient(ArmQueries):
         self._requests = Requester(
             self._write, self._waiters, self.stats, transport.url, self._broadcast_ok
         )
-        self._gate = CommandGate(
-            self.guard,
-            self.watchdog,
-            self.table,
-            transport.url,
-            self._broadcast_ok,
-            self.devices,
-            faults=self.faults,
-        )
+        self._gate = self._make_gate()
         self.supervisor = LinkSupervisor(
             transport,
             self.link_config,
@@ -162,14 +167,34 @@ class ArmClient(ArmQueries):
             reset_decoder=self._reopened,
         )
 
+    def _make_gate(self) -> CommandGate:
+        return CommandGate(
+            self.guard,
+            self.watchdog,
+            self.table,
+            self.transport.url,
+            self._broadcast_ok,
+            self.devices,
+            faults=self.faults,
+        )
+
     # ----------------------------------------------------------------- lifecycle
 
-    def start(self, *, discover: bool = True, read_limits: bool = True) -> ArmClient:
+    def start(
+        self,
+        *,
+        discover: bool = True,
+        read_limits: bool = True,
+        model_check: ModelCheck = ModelCheck.TRUST,
+    ) -> ArmClient:
         """Open the link, start the reader, find the devices, read their identity (checked
         again after every reconnect) and their limits.
 
-        Raises `NoResponseError` (or `GarbageError` when bytes arrive but never decode, the
-        sign of a wrong baud rate) if no device answers; the link is closed again then.
+        `model_check` DETECT finds the model from the devices that answer (every known
+        model's joints and jaws are asked) and takes it; CONFIRM raises `ArmModelError` if
+        they are another model's than the client's. Raises `NoResponseError` (or
+        `GarbageError` when bytes arrive but never decode, the sign of a wrong baud rate) if
+        no device answers; the link is closed again on any error.
         """
         if self._thread is not None:
             return self
@@ -183,7 +208,10 @@ class ArmClient(ArmQueries):
         self._thread.start()
         try:
             if discover:
-                self.discover()
+                if model_check is ModelCheck.TRUST:
+                    self.answering = self.discover()
+                else:
+                    self._discover_model(model_check)
                 self.read_identity()
             if read_limits and self.found_devices:
                 self.read_limits()
@@ -191,6 +219,40 @@ class ArmClient(ArmQueries):
             self.close(safe=False)
             raise
         return self
+
+    def _discover_model(self, check: ModelCheck) -> None:
+        """Discovery over every known model's joints and jaws; the model they are taken
+        (DETECT) or confirmed (CONFIRM) before anything but a REQUEST is sent."""
+        models = tuple(MODELS.values())
+        self.answering = self.discover(devices_to_ask(self.devices, models))
+        url = self.transport.url
+        model = model_answering(self.answering, models)
+        if check is ModelCheck.CONFIRM:
+            problem = model_mismatch(url, self.model, self.answering, models)
+            if problem is not None:
+                raise ArmModelError(
+                    f"{problem}; nothing was sent", None if model is None else model.name
+                )
+        else:
+            if model is None:
+                raise ArmModelError(
+                    f"the devices answering on {url} are no known arm's: "
+                    f"{', '.join(joint_name(d) for d in self.answering)}; nothing was sent"
+                )
+            if model is not self.model:
+                self._use_model(model)
+        self.found_devices = tuple(d for d in self.devices if d in self.answering)
+
+    def _use_model(self, model: ArmModel) -> None:
+        """Take `model` at connect, before anything is commanded: the limits, the order of
+        the state's arrays, the gate's devices and (unless given) the devices asked."""
+        log.info("%s answers as a %s", self.transport.url, model.title)
+        self.model = model
+        self.guard = SafetyGuard(self.guard.config, model)
+        self.table.model = model
+        if not self._devices_given:
+            self.devices = tuple(int(d) for d in model.actuators)
+        self._gate = self._make_gate()
 
     def close(self, *, safe: bool = True) -> None:
         """Leave the arm safe (stop streaming, safe mode on joints under continuous command),
@@ -384,21 +446,29 @@ class ArmClient(ArmQueries):
         self.send(*(commands.position(int(d), v) for d, v in zip(devices, values, strict=True)))
 
     def solve_xyz(self, x: float, y: float, z: float) -> np.ndarray:
-        """Joint target E D C B (rad) putting the tool centre point at (x, y, z) mm in the
-        base frame, from the present angles, inside the position limits in force (the arm's,
-        tightened by the safety config); B keeps its angle (it does not move the tool
-        centre point). Sends nothing; `ik.UnreachableError` (a `LimitError`) if no angles
-        inside the limits get within `ik.TOLERANCE_MM`. The driver's kinematics are the
-        Alpha 5's: another model gets a `LimitError` saying so."""
-        if self.model is not ALPHA5:
+        """Joint target (rad, the model's order) putting the tool centre point at (x, y, z)
+        mm in the base frame, from the present angles, inside the position limits in force
+        (the arm's, tightened by the safety config); B keeps its angle (it does not move the
+        tool centre point). Sends nothing; `ik.UnreachableError` (a `LimitError`) if no
+        angles inside the limits get within `ik.TOLERANCE_MM`. The Alpha 5 by `ik`'s solver,
+        another model on its chain from its MJCF (`ik.solve_on_chain`: the Bravo 7's G F E D
+        C move, redundantly, the least from where they are); a model the driver has no
+        chain for gets a `LimitError` saying so."""
+        if self.model.name not in DRAWINGS:
+            known = " and the ".join(f"{model_named(name).title}'s" for name in DRAWINGS)
             raise LimitError(
-                f"refused: the driver's inverse kinematics are the {ALPHA5.title}'s, not the "
+                f"refused: the driver's inverse kinematics are the {known}, not the "
                 f"{self.model.title}'s; command joint angles instead; nothing was sent"
             )
         q = self.state.q
         if not np.all(np.isfinite(q)):
             q = self.read_joints((PacketID.POSITION,)).q
-        return ik.solve_or_refuse((x, y, z), q, np.array(self.guard.position_limits()))
+        limits = np.array(self.guard.position_limits())
+        if self.model is ALPHA5:
+            return ik.solve_or_refuse((x, y, z), q, limits)
+        drawing = DRAWINGS[self.model.name]
+        letters = self.model.joint_letters
+        return ik.solve_on_chain_or_refuse(drawing, letters, (x, y, z), q, limits)
 
     def command_xyz(self, x: float, y: float, z: float) -> np.ndarray:
         """Move the tool centre point to (x, y, z) mm: the driver's own inverse kinematics

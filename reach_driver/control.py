@@ -47,8 +47,7 @@ from enum import Enum
 import numpy as np
 
 from protocol import Mode, PacketID, commands
-from protocol.alpha5 import JAW, JOINTS, N_JOINTS
-from protocol.models import ALPHA5
+from protocol.models import ALPHA5, ArmModel
 from reach_driver.assembler import StateAssembler
 from reach_driver.chatter import ChatterDetector, HoldMode, Verdict
 from reach_driver.client import ArmClient
@@ -87,16 +86,17 @@ __all__ = [
     "preferred_period",
 ]
 
-N = N_JOINTS
 TELEMETRY = (PacketID.POSITION, PacketID.VELOCITY)
 # CURRENT first: a joint's heartbeat sends its ids in order, so the measured current is in
 # before the VELOCITY that completes the state.
 TELEMETRY_WITH_CURRENT = (PacketID.CURRENT, PacketID.POSITION, PacketID.VELOCITY)
 
 
-def telemetry_fits(ids: Sequence[int], hz: int, wire_bytes_per_s: float | None) -> bool:
-    """Whether the four joints' heartbeat of `ids` at `hz` fits the link (None: no limit)."""
-    return Stream(tuple(ids), hz, tuple(JOINTS)).fits(wire_bytes_per_s)
+def telemetry_fits(
+    ids: Sequence[int], hz: int, wire_bytes_per_s: float | None, model: ArmModel = ALPHA5
+) -> bool:
+    """Whether the joints' heartbeat of `ids` at `hz` fits the link (None: no limit)."""
+    return Stream(tuple(ids), hz, tuple(model.joints)).fits(wire_bytes_per_s)
 
 
 STATUS_PERIOD_S = 1.0
@@ -157,12 +157,6 @@ class ControlLoop:
         plausibility: PlausibilityConfig | None = None,
         stream_rate: RateConfig | None = None,
     ) -> None:
-        if client.model is not ALPHA5:
-            # The loop, its state assembler, chatter guard and metrics are the Alpha 5's
-            # (four joints E D C B); refused rather than run on the wrong joints.
-            raise ValueError(
-                f"the control loop runs the {ALPHA5.title} only, not the {client.model.title}"
-            )
         self.client = client
         self.controller = controller
         self.pacing = Pacing(pacing)
@@ -200,11 +194,16 @@ class ControlLoop:
         self._stop.set()
 
     def run(self, target: Sequence[float] | np.ndarray, seconds: float) -> ControlSummary:
-        """Drive towards `target` (E D C B, rad) for `seconds` of loop time."""
+        """Drive towards `target` (rad, in the arm's joint order: E D C B on the Alpha 5) for
+        `seconds` of loop time."""
+        model = self.client.model
         goal = np.asarray(target, dtype=float).reshape(-1)
-        if goal.shape != (N,):
-            raise ValueError(f"target needs 4 angles in joint order E D C B, got {goal.size}")
-        for dev, value in zip(JOINTS, goal, strict=True):
+        if goal.shape != (model.n_joints,):
+            raise ValueError(
+                f"target needs {model.n_joints} angles in joint order "
+                f"{' '.join(model.joint_letters)}, got {goal.size}"
+            )
+        for dev, value in zip(model.joints, goal, strict=True):
             self.client.guard.check(int(dev), LimitKind.POSITION, float(value))
         if seconds <= 0:
             raise ValueError(f"seconds must be positive, got {seconds}")
@@ -268,15 +267,19 @@ class _Run:
         self.client = loop.client
         self.goal = goal
         self.seconds = seconds
-        limits = [self.client.guard.limit(int(d), LimitKind.CURRENT) for d in JOINTS]
+        #: The arm's model (the client's): its joints are every array's order here.
+        self.model = self.client.model
+        self.joints = self.model.joints
+        n = self.n = self.model.n_joints
+        limits = [self.client.guard.limit(int(d), LimitKind.CURRENT) for d in self.joints]
         self.i_lo = np.array([lim.low for lim in limits])
         self.i_hi = np.array([lim.high for lim in limits])
         self.step = 0
         self.t = 0.0
-        self.q = np.full(N, np.nan)
-        self.qdot = np.full(N, np.nan)
+        self.q = np.full(n, np.nan)
+        self.qdot = np.full(n, np.nan)
         self.step_walls: list[float] = []
-        self.rows = TraceRows()  # one per state taken
+        self.rows = TraceRows(self.model.torque_per_amp_nm)  # one per state taken
         self.final: FinalState | None = None
         self.next_status_t = 0.0
         self.status_joint = 0
@@ -291,11 +294,11 @@ class _Run:
         self.error: str | None = None
         self.stopped_by = "duration"
         self.assembler: StateAssembler | None = None
-        self.feedback = FeedbackCheck(loop.plausibility)
+        self.feedback = FeedbackCheck(loop.plausibility, self.model)
         self.implausible = 0  # joint samples refused by the plausibility check
-        self.held = np.zeros(N, dtype=bool)  # joints held at their last good sample this tick
+        self.held = np.zeros(n, dtype=bool)  # joints held at their last good sample this tick
         self.unseen_s = 0.0  # arm time lost whole in a gap before this state (estimated)
-        self.bad_since = np.full(N, np.nan)  # arm time each joint turned implausible
+        self.bad_since = np.full(n, np.nan)  # arm time each joint turned implausible
         self.reported_t = -math.inf  # when implausible samples were last reported
         self.unreported = 0
         self.rate = RateCheck(loop.hz, loop.stream_rate) if loop.pacing is Pacing.STREAM else None
@@ -303,7 +306,11 @@ class _Run:
         self.chatter = (
             None
             if chatter is None
-            else ChatterDetector(chatter, np.maximum(np.abs(self.i_lo), np.abs(self.i_hi)))
+            else ChatterDetector(
+                chatter,
+                np.maximum(np.abs(self.i_lo), np.abs(self.i_hi)),
+                self.model.joint_letters,
+            )
         )
         self.verdict: Verdict | None = None
         self.held_in_position = False
@@ -333,17 +340,17 @@ class _Run:
 
     def _run_stream(self) -> None:
         loop, client = self.loop, self.client
-        self.assembler = asm = StateAssembler(loop.period_s)
+        self.assembler = asm = StateAssembler(loop.period_s, self.joints)
         subscription = client.subscribe(asm)
         try:
             ids = TELEMETRY_WITH_CURRENT if loop.measure_current else TELEMETRY
             wire = client.transport.wire_bytes_per_s
-            if ids is TELEMETRY_WITH_CURRENT and not telemetry_fits(ids, loop.hz, wire):
+            if ids is TELEMETRY_WITH_CURRENT and not telemetry_fits(ids, loop.hz, wire, self.model):
                 # A slow line cannot carry CURRENT too at this rate (115200 baud: 96 Hz):
                 # the arm's queue would drop frames and states would arrive stale.
                 log.warning("%d Hz exceeds the line with CURRENT: streaming without it", loop.hz)
                 ids = TELEMETRY
-            client.stream(ids, loop.hz, JOINTS)
+            client.stream(ids, loop.hz, self.joints)
             ticks0: int | None = None
             lost_before = 0
             while not loop._stop.is_set():
@@ -397,13 +404,17 @@ class _Run:
                 if delay > 0:
                     time.sleep(delay)
                 replies = client.request_many(
-                    JOINTS, TELEMETRY, timeout_s=max(0.8 * period, 0.005), retries=0, partial=True
+                    self.joints,
+                    TELEMETRY,
+                    timeout_s=max(0.8 * period, 0.005),
+                    retries=0,
+                    partial=True,
                 )
                 held = time.monotonic()
                 self.gap_log.add_state_wait(held - asked, held, held)
-                values = np.full(2 * N, np.nan)
-                times = np.full(2 * N, np.nan)
-                for i, dev in enumerate(JOINTS):
+                values = np.full(2 * self.n, np.nan)
+                times = np.full(2 * self.n, np.nan)
+                for i, dev in enumerate(self.joints):
                     js = client.joint(dev)
                     got = replies.get(int(dev), {})
                     for j, (pid, reading) in enumerate(
@@ -462,13 +473,15 @@ class _Run:
             ) from exc
         finally:
             self.gap_log.add_controller(time.monotonic() - now)
-        if raw.shape != (N,) or not np.all(np.isfinite(raw)):
-            raise ControllerError(f"controller returned {raw!r}: need 4 finite currents in mA")
+        if raw.shape != (self.n,) or not np.all(np.isfinite(raw)):
+            raise ControllerError(
+                f"controller returned {raw!r}: need {self.n} finite currents in mA"
+            )
         clipped = np.clip(raw, self.i_lo, self.i_hi)
         saturated = bool(np.any(clipped != raw))
         if not self.mode_set:
             # Only now: until the controller has acted the joints keep holding as they were.
-            client.set_mode(JOINTS, Mode.CURRENT)
+            client.set_mode(self.joints, Mode.CURRENT)
             self.mode_set = True
         try:
             sent = client.command_currents(clipped)
@@ -480,10 +493,10 @@ class _Run:
         self.gap_log.command(written, self.step, t)
         if t >= self.next_status_t:
             # Fire and forget: the reply updates the client's fault flags, checked each step.
-            device = int(JOINTS[self.status_joint])
+            device = int(self.joints[self.status_joint])
             client.write_frames([commands.request(device, [PacketID.HARDWARE_STATUS]).encode()])
-            self.status_joint = (self.status_joint + 1) % N
-            self.next_status_t = t + STATUS_PERIOD_S / N
+            self.status_joint = (self.status_joint + 1) % self.n
+            self.next_status_t = t + STATUS_PERIOD_S / self.n
         barrier = bool(np.any(sent != clipped))
         latency = written - float(np.max(times))
         self.ages.append(age)
@@ -498,7 +511,7 @@ class _Run:
             t,
             q.copy(),
             qdot.copy(),
-            np.full(N, np.nan) if measured is None else measured,
+            np.full(self.n, np.nan) if measured is None else measured,
             np.asarray(sent, dtype=float).copy(),
         )
         if loop.on_step is not None:
@@ -551,7 +564,7 @@ class _Run:
             if np.any(bad):
                 which = ", ".join(
                     f"{joint_name(int(d))} {v}"
-                    for d, v in zip(JOINTS, values, strict=True)
+                    for d, v in zip(self.joints, values, strict=True)
                     if not np.isfinite(v)
                 )
                 raise BadReadingError(
@@ -571,7 +584,8 @@ class _Run:
         if np.nanmax(lasting) >= limit - 1e-9:
             i = int(np.nanargmax(lasting))
             raise BadReadingError(
-                f"implausible feedback from {joint_name(int(JOINTS[i]))} for {lasting[i]:.2f} s "
+                f"implausible feedback from {joint_name(int(self.joints[i]))} for "
+                f"{lasting[i]:.2f} s "
                 f"of arm time (limit {limit:g} s, the stale limit) at t = {t:.2f} s: {why}; "
                 "the arm's encoder or link is not to be trusted"
             )
@@ -612,7 +626,7 @@ class _Run:
         if not stale.any():
             return
         which = ", ".join(
-            f"{joint_name(int(JOINTS[k // 2]))} {'position' if k % 2 == 0 else 'velocity'} "
+            f"{joint_name(int(self.joints[k // 2]))} {'position' if k % 2 == 0 else 'velocity'} "
             f"({ages[k]:.2f} s)"
             for k in np.flatnonzero(stale)
         )
@@ -635,7 +649,7 @@ class _Run:
                 log.warning("chatter guard: could not hold in position (%s)", exc)
                 how = f"could not hold in position ({exc}); the safe mode follows"
         if not self.held_in_position:
-            self.client.set_mode(JOINTS, Mode.ZERO_VELOCITY)
+            self.client.set_mode(self.joints, Mode.ZERO_VELOCITY)
         reason = f"chatter guard: {verdict.describe()} at t = {verdict.t:.2f} s; {how}"
         log.warning("%s", reason)
         raise _Guarded(reason)
@@ -657,11 +671,11 @@ class _Run:
                 log.warning("could not stop streaming: %s", exc)
         if self.held_in_position:
             # The guard's POSITION hold stays; the safe mode would release it.
-            jaw = client.make_safe([JAW])
+            jaw = client.make_safe([self.model.jaw])
             if not jaw.confirmed:
                 log.warning("the jaw's safe mode: %s", jaw.describe())
             try:
-                problem = client.mode_problem(JOINTS, Mode.POSITION)
+                problem = client.mode_problem(self.joints, Mode.POSITION)
             except DriverError as exc:
                 problem = str(exc)
             how = "(confirmed by the arm)" if not problem else f"(not confirmed: {problem})"
@@ -672,7 +686,7 @@ class _Run:
         if not self.loop.leave_safe:
             self.left_in = "as the controller left it (leave_safe off)"
             return
-        self.left_in = client.make_safe(JOINTS).describe()
+        self.left_in = client.make_safe(self.joints).describe()
 
     # -- results ----------------------------------------------------------------------------
     def trace(self) -> LoopTrace | None:
@@ -735,4 +749,5 @@ class _Run:
             left_in=self.left_in,
             events=self.events,
             chatter=self.verdict,
+            model=self.model,
         )

@@ -12,6 +12,11 @@ A factory may also say what it is, for `reach-driver controllers` (`describe_con
 first line of its docstring is its summary, and the decorators `learned(provenance)` and
 `engineered` mark how it was made; a learned one's `provenance()` says how it was trained
 (algorithm, demonstrations, teacher, env steps...), so nobody has to guess from its name.
+
+Which arms a factory's controllers drive it says with `drives(...)`: such a factory is called
+with `model=` (the arm's `ArmModel`, for its joint count and defaults). A factory that does
+not say drives the Alpha 5 alone and is called without it, as every factory was before the
+stack knew another arm.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from typing import Any, Protocol, TypeVar
 import numpy as np
 
 from protocol.extras import MissingExtra
+from protocol.models import ALPHA5, ArmModel, model_named
 from reach_driver.errors import DriverError, ExtraNotInstalledError
 
 GROUP = "reach_stack.controllers"
@@ -32,7 +38,8 @@ GROUP = "reach_stack.controllers"
 
 @dataclass(frozen=True)
 class ControlState:
-    """What a controller sees: arm angles and velocities (E D C B) and the loop's time (s)."""
+    """What a controller sees: arm angles and velocities in the arm's joint order (E D C B
+    on the Alpha 5, G F E D C B on the Bravo 7) and the loop's time (s)."""
 
     q: np.ndarray
     qdot: np.ndarray
@@ -40,7 +47,8 @@ class ControlState:
 
 
 class Controller(Protocol):
-    """Currents (mA, E D C B) from the state and the target angles; `reset()` between runs.
+    """Currents (mA, one per joint in the arm's order) from the state and the target angles;
+    `reset()` between runs.
 
     A controller trained at a fixed rate may also expose `period_s` (or `control_hz`), and
     one with something to say about a run (what a supervisor inside it did) `report()`, a
@@ -80,9 +88,14 @@ def registered_list() -> str:
     return ", ".join(available_controllers()) or "none (is reach-stack installed? pip install -e .)"
 
 
-def load_controller(name: str, **kwargs: Any) -> Controller:
-    """Build the controller registered as `name`; a clear `DriverError` if it cannot be
-    (`ExtraNotInstalledError` naming the extra to install if it needs a library that is not
+class ControllerModelError(DriverError):
+    """The controller asked for does not drive the arm's model (it says which it drives)."""
+
+
+def load_controller(name: str, *, arm: ArmModel = ALPHA5, **kwargs: Any) -> Controller:
+    """Build the controller registered as `name` for an `arm` of that model; a clear
+    `DriverError` if it cannot be (`ControllerModelError` if it does not drive that model,
+    `ExtraNotInstalledError` naming the extra to install if it needs a library that is not
     installed)."""
     ep = _entry_points().get(name)
     if ep is None:
@@ -96,6 +109,13 @@ def load_controller(name: str, **kwargs: Any) -> Controller:
             f"controller {name!r} is registered as {ep.value} but failed to load: "
             f"{type(exc).__name__}: {exc}"
         ) from exc
+    models = driven_models(factory)
+    if arm.name not in models:
+        raise ControllerModelError(
+            f"controller {name!r} drives the {_titles(models)} only, not the {arm.title}"
+        )
+    if _declares_models(factory):
+        kwargs = {**kwargs, "model": arm}
     try:
         controller = factory(**kwargs)
     except TypeError as exc:
@@ -107,6 +127,38 @@ def load_controller(name: str, **kwargs: Any) -> Controller:
 
 
 F = TypeVar("F", bound=Callable[..., Any])
+
+
+def drives(*models: ArmModel) -> Callable[[F], F]:
+    """Mark a factory as building controllers for these arm models: it is called with
+    `model=` (the arm's). The factory itself is unchanged."""
+
+    def mark(factory: F) -> F:
+        factory.arm_models = tuple(m.name for m in models)  # type: ignore[attr-defined]
+        return factory
+
+    return mark
+
+
+def _declares_models(factory: object) -> bool:
+    return isinstance(getattr(factory, "arm_models", None), tuple)
+
+
+def _titles(names: tuple[str, ...]) -> str:
+    titles = []
+    for name in names:
+        try:
+            titles.append(model_named(name).title)
+        except ValueError:
+            titles.append(name)
+    return ", ".join(titles)
+
+
+def driven_models(factory: object) -> tuple[str, ...]:
+    """The names of the arm models a factory's controllers drive (`drives`); the Alpha 5's
+    alone for a factory that does not say."""
+    models = getattr(factory, "arm_models", None)
+    return models if isinstance(models, tuple) else (ALPHA5.name,)
 
 
 class ControllerKind(str, Enum):

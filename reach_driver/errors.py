@@ -56,6 +56,16 @@ class ArmIdentityError(LinkDownError):
     it; the link stays failed: close the client and start a new one to use that arm."""
 
 
+class ArmModelError(DriverError):
+    """The devices answering at connect are another arm model's than the one named (or no
+    known model's): nothing but REQUESTs was sent. `answering` names the model they are
+    (its `ArmModel.name`), None for none known."""
+
+    def __init__(self, message: str, answering: str | None = None) -> None:
+        super().__init__(message)
+        self.answering = answering
+
+
 class RequestTimeoutError(DriverError, TimeoutError):
     """A device did not answer a REQUEST within its timeout and retries."""
 

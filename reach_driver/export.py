@@ -41,8 +41,8 @@ from typing import IO
 
 import numpy as np
 
-from protocol.alpha5 import JOINT_LETTERS
 from protocol.extras import MissingExtra, needs_extra
+from protocol.models import ALPHA5
 from reach_driver.errors import ExtraNotInstalledError
 from reach_driver.rrd_summary import (
     SIM_SOURCE,
@@ -87,15 +87,16 @@ QUANTITIES: tuple[tuple[str, str, str], ...] = (
 )
 
 
-def table_columns() -> list[str]:
+def table_columns(letters: Sequence[str] = ALPHA5.joint_letters) -> list[str]:
     """The columns of the CSV and Parquet exports: `step`, `t_s`, then each quantity per joint
-    (`q_E_rad`, `q_D_rad`, ..., `torque_B_Nm`)."""
-    return ["step", "t_s"] + [f"{n}_{j}_{u}" for n, u, _ in QUANTITIES for j in JOINT_LETTERS]
+    of the arm recorded (`q_E_rad`, `q_D_rad`, ..., `torque_B_Nm` on an Alpha 5)."""
+    return ["step", "t_s"] + [f"{n}_{j}_{u}" for n, u, _ in QUANTITIES for j in letters]
 
 
 def step_table(run: RecordedRun) -> dict[str, np.ndarray]:
     """One row per control step, by `table_columns()`; NaN where the recording has no value."""
     steps = len(run.step)
+    letters = run.model.joint_letters
     out: dict[str, np.ndarray] = {
         "step": np.asarray(run.step, dtype=np.int64),
         "t_s": np.asarray(run.t, dtype=float),
@@ -103,11 +104,11 @@ def step_table(run: RecordedRun) -> dict[str, np.ndarray]:
     for name, unit, attr in QUANTITIES:
         values = getattr(run, attr)
         block = (
-            np.full((steps, len(JOINT_LETTERS)), np.nan)
+            np.full((steps, len(letters)), np.nan)
             if values is None
             else np.asarray(values, dtype=float)
         )
-        for i, j in enumerate(JOINT_LETTERS):
+        for i, j in enumerate(letters):
             out[f"{name}_{j}_{unit}"] = block[:, i]
     return out
 
@@ -296,7 +297,7 @@ def stamp_ns(t: float, what: str) -> int:
 def ros_messages(run: RecordedRun) -> list[tuple[int, Topic, bytes]]:
     """(log time ns, topic, CDR message) of the run, in time order (at one time: the step's
     state, command and target, then events)."""
-    names = list(JOINT_LETTERS)
+    names = list(run.model.joint_letters)
     out: list[tuple[int, Topic, bytes]] = []
     for row in range(len(run.step)):
         ns = stamp_ns(float(run.t[row]), f"step {int(run.step[row])}")

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from protocol.alpha5 import FACTORY_POSITION_LIMITS, JOINT_LETTERS, JOINTS
+from reach_driver.drawing import ArmDrawing
 from reach_driver.errors import LimitError
 from reach_driver.kinematics import tool_jacobian, tool_position, tool_positions
 
@@ -282,6 +283,129 @@ def solve_or_refuse(
         f"limits; the nearest reachable point is {xyz_text(sol.point_mm)} mm, "
         f"{sol.error_mm:.1f} mm away, at {angles_text(sol.q)} (`reach-driver workspace` "
         "shows the whole envelope); nothing was sent",
+        sol.error_mm,
+        sol.q,
+        sol.point_mm,
+    )
+
+
+# -- another model's chain (`reach_driver.drawing`) -------------------------------------------
+#
+# The Bravo 7 has five joints that move the tool centre point (G F E D C; B turns the tool
+# about its axis) for three coordinates: redundant. The same damped least squares, on all five
+# with a Jacobian by finite differences of the chain generated from the MJCF, steps from the
+# present angles by the least joint motion each time; then from seeds facing the target (and
+# away), the shoulder and elbow across their ranges, the wrist as it is. What no start reaches
+# within TOLERANCE_MM is refused naming the nearest point the attempts got to, which is not
+# searched for over the whole workspace as the Alpha's is.
+
+
+@dataclass(frozen=True)
+class ChainSolution:
+    """A solution on another model's chain: angles in its joint order, the tool centre point
+    they give (mm) and its distance from the target."""
+
+    q: np.ndarray
+    point_mm: np.ndarray
+    error_mm: float
+
+    @property
+    def reachable(self) -> bool:
+        return self.error_mm <= TOLERANCE_MM
+
+
+def _chain_jacobian(drawing: ArmDrawing, q: np.ndarray, moving: Sequence[int]) -> np.ndarray:
+    """3 x len(moving) position Jacobian (m/rad) by central differences."""
+    h = 1e-6
+    cols = []
+    for i in moving:
+        up, down = q.copy(), q.copy()
+        up[i] += h
+        down[i] -= h
+        cols.append((drawing.tool_position(up) - drawing.tool_position(down)) / (2.0 * h))
+    return np.stack(cols, axis=1)
+
+
+def _refine_chain(
+    drawing: ArmDrawing, target_m: np.ndarray, q0: np.ndarray, limits: np.ndarray
+) -> ChainSolution:
+    moving = list(drawing.positioning)
+    q = np.clip(np.asarray(q0, dtype=float), limits[:, 0], limits[:, 1])
+    checkpoint = math.inf
+    for it in range(1, MAX_ITERATIONS + 1):
+        e = target_m - drawing.tool_position(q)
+        err_mm = float(np.linalg.norm(e)) * 1000.0
+        if err_mm < _CONVERGED_MM:
+            break
+        if it % 10 == 0:
+            if err_mm > 0.99 * checkpoint:
+                break
+            checkpoint = err_mm
+        j = _chain_jacobian(drawing, q, moving)
+        step = j.T @ np.linalg.solve(j @ j.T + DAMPING * DAMPING * np.eye(3), e)
+        biggest = float(np.max(np.abs(step)))
+        if biggest > MAX_STEP_RAD:
+            step *= MAX_STEP_RAD / biggest
+        q[moving] = np.clip(q[moving] + step, limits[moving, 0], limits[moving, 1])
+    point = drawing.tool_position(q) * 1000.0
+    return ChainSolution(q, point, float(np.linalg.norm(point - target_m * 1000.0)))
+
+
+def solve_on_chain(
+    drawing: ArmDrawing,
+    xyz_mm: Sequence[float],
+    q0: Sequence[float] | np.ndarray,
+    limits: np.ndarray,
+) -> ChainSolution:
+    """Angles (the model's order) putting the tool centre point of `drawing`'s arm at `xyz_mm`
+    (base frame, mm) inside `limits` (n x 2), from `q0`; the best attempt (check
+    `reachable`)."""
+    target = np.asarray(xyz_mm, dtype=float).reshape(-1)
+    if target.shape != (3,) or not np.all(np.isfinite(target)):
+        raise ValueError(f"target must be 3 finite numbers x y z in mm, got {xyz_mm!r}")
+    start = np.asarray(q0, dtype=float).reshape(-1)
+    lim = np.asarray(limits, dtype=float)
+    if start.shape != (len(drawing.links),) or not np.all(np.isfinite(start)):
+        raise ValueError(f"start angles must be {len(drawing.links)} finite numbers, got {q0!r}")
+    target_m = target / 1000.0
+    starts = [start]
+    facing = math.atan2(float(target_m[1]), float(target_m[0]))
+    span = lim[:, 1] - lim[:, 0]
+    for yaw in (facing, facing + math.pi):
+        for i, j in ((1, 1), (0, 1), (2, 1), (1, 0), (1, 2)):
+            seed = start.copy()
+            seed[0] = _bearing(np.array(yaw), *lim[0])
+            seed[1] = lim[1, 0] + span[1] * (1 + 3 * i) / 8.0
+            seed[2] = lim[2, 0] + span[2] * (1 + 3 * j) / 8.0
+            starts.append(seed)
+    best: ChainSolution | None = None
+    for seed in starts:
+        sol = _refine_chain(drawing, target_m, seed, lim)
+        if sol.reachable:
+            return sol
+        if best is None or sol.error_mm < best.error_mm:
+            best = sol
+    assert best is not None
+    return best
+
+
+def solve_on_chain_or_refuse(
+    drawing: ArmDrawing,
+    letters: Sequence[str],
+    xyz_mm: Sequence[float],
+    q0: Sequence[float] | np.ndarray,
+    limits: np.ndarray,
+) -> np.ndarray:
+    """`solve_on_chain`'s angles, or `UnreachableError` naming the nearest point its attempts
+    got to, its angles and how far it is."""
+    sol = solve_on_chain(drawing, xyz_mm, q0, limits)
+    if sol.reachable:
+        return sol.q
+    angles = " ".join(f"{j} {v:.3f}" for j, v in zip(letters, sol.q, strict=True))
+    raise UnreachableError(
+        f"refused: tool target {xyz_text(xyz_mm)} mm is out of reach inside the position "
+        f"limits from the present angles: the nearest the solver got is {xyz_text(sol.point_mm)} "
+        f"mm, {sol.error_mm:.1f} mm away, at {angles} rad; nothing was sent",
         sol.error_mm,
         sol.q,
         sol.point_mm,

@@ -8,6 +8,7 @@ simulator, so it carries the kinematic chain itself: origins and axes of the ven
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -36,6 +37,30 @@ CHAIN: tuple[JointFrame, ...] = (
     JointFrame("C", "m2", "m2_1_3", (-0.04, 0.0, -0.1453), np.pi, (0.0, 1.0, 0.0)),
     JointFrame("B", "m2_1_3", "m1", (0.02, 0.0, 0.033), 2.09439, (0.0, 0.0, -1.0)),
 )
+
+
+class ChainFrame(NamedTuple):
+    """One revolute joint of a chain generated from an MJCF (reach_driver.drawing): the link
+    it moves, that link's origin and rotation in the frame of the link before it, and the
+    joint's axis in the link's own frame."""
+
+    joint: str
+    link: str
+    pos: tuple[float, float, float]
+    quat_xyzw: tuple[float, float, float, float]
+    axis: tuple[float, float, float]
+
+
+def quat_rotation(quat_xyzw: tuple[float, float, float, float] | np.ndarray) -> np.ndarray:
+    """Rotation matrix of a unit quaternion (x, y, z, w)."""
+    x, y, z, w = np.asarray(quat_xyzw, dtype=float)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def axis_rotation(axis: tuple[float, float, float] | np.ndarray, angle: float) -> np.ndarray:

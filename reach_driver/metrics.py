@@ -12,12 +12,13 @@ driver may not import `policy`; evaluation and training import it from here.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, JOINT_LETTERS, TORQUE_PER_AMP_NM
+from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA
+from protocol.models import ALPHA5, ArmModel
 
 OVERSHOOT_MIN_STEP_RAD = 0.05
 """Joints whose step is smaller than this are left out of the overshoot (ratio is noise)."""
@@ -86,7 +87,8 @@ def metric_label(key: str) -> str:
 
 @dataclass(frozen=True)
 class Trace:
-    """A uniformly sampled episode: arrays of N+1 rows, row 0 at t = 0 (arm order E D C B)."""
+    """A uniformly sampled episode: arrays of N+1 rows, row 0 at t = 0, columns in the arm's
+    joint order (`model`'s: E D C B on the Alpha 5)."""
 
     dt: float
     q: np.ndarray  # (N+1, 4) rad
@@ -98,7 +100,9 @@ class Trace:
     physics rate by the runner; without it |tau qdot| at the samples stands in for it."""
     command_mA: np.ndarray | None = None
     """(N+1, 4) current commanded over the period ending at each sample (mA); without it the
-    rest metric counts reversals of tau / TORQUE_PER_AMP_NM instead."""
+    rest metric counts reversals of tau / the model's torque per amp instead."""
+    model: ArmModel = ALPHA5
+    """The arm: its torque per amp and current limits, for the rest metric."""
 
     def __post_init__(self) -> None:
         if not self.dt > 0:
@@ -230,11 +234,12 @@ ARRIVAL_SPEED_RAD_S = 0.1
 class OvershootAnatomy:
     """How the worst joint's overshoot (the one `overshoot_pct` reports) came about."""
 
-    joint: int  # arm order E D C B
+    joint: int  # in the arm's joint order (E D C B on the Alpha 5)
     pct: float  # as overshoot_pct
     past_rad: float  # how far past its goal it went
     peak_s: float  # when
     crossing_speed: float  # |qdot| at the first sample past the goal (rad/s)
+    letters: tuple[str, ...] = ALPHA5.joint_letters  # the arm's joints
 
     @property
     def arrival(self) -> bool:
@@ -244,7 +249,7 @@ class OvershootAnatomy:
     def as_dict(self) -> dict[str, object]:
         """For summaries and JSON: the joint by its letter, and `arrival`."""
         return {
-            "joint": JOINT_LETTERS[self.joint],
+            "joint": self.letters[self.joint],
             "pct": self.pct,
             "past_rad": self.past_rad,
             "peak_s": self.peak_s,
@@ -254,7 +259,11 @@ class OvershootAnatomy:
 
 
 def overshoot_anatomy(
-    q: np.ndarray, qdot: np.ndarray, target: np.ndarray, dt: float
+    q: np.ndarray,
+    qdot: np.ndarray,
+    target: np.ndarray,
+    dt: float,
+    letters: Sequence[str] = ALPHA5.joint_letters,
 ) -> OvershootAnatomy | None:
     """The worst joint's overshoot in radians, its time and the speed it first crossed its goal
     at; None when no joint with a step of OVERSHOOT_MIN_STEP_RAD or more went past its goal."""
@@ -268,7 +277,7 @@ def overshoot_anatomy(
         if worst is None or pct > worst.pct:
             first = int(np.argmax(past > 0))
             speed = abs(float(qdot[first, j]))
-            worst = OvershootAnatomy(j, pct, float(past[k]), k * dt, speed)
+            worst = OvershootAnatomy(j, pct, float(past[k]), k * dt, speed, tuple(letters))
     return worst
 
 
@@ -403,14 +412,15 @@ def rest(trace: Trace, settling_time_s: float | None = None) -> Rest:
     """The rest metric of ``trace`` (docs/metrics.md, "Rest")."""
     if settling_time_s is None:
         settling_time_s = settling_time(trace.q, trace.target, trace.dt)
+    model = trace.model
     if trace.command_mA is not None:
         command = np.asarray(trace.command_mA, dtype=float)
     else:
-        command = np.asarray(trace.tau, dtype=float) / np.asarray(TORQUE_PER_AMP_NM) * 1000.0
+        command = np.asarray(trace.tau, dtype=float) / np.asarray(model.torque_per_amp_nm) * 1e3
     k = rest_window(trace.q.shape[0], trace.dt, settling_time_s)
     return Rest(
         speed_rms=rest_speed_rms(trace.qdot, k),
-        reversals=command_reversals(command, k),
+        reversals=command_reversals(command, k, model.current_limits_mA),
         energy_after_settling_j=energy_after_clocks(
             trace, energy_clocks(trace.q, trace.target, trace.dt, settling_time_s)
         ),

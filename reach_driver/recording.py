@@ -2,10 +2,12 @@
 
 A recording is the durable record of a run: joint positions against targets, errors,
 velocities, commanded and measured currents, torques, mode changes, link statistics and a 3D
-arm drawn from the MJCF's link geoms (`reach_driver.arm_geometry`) posed by the driver's
-kinematics, with the target pose as a translucent ghost. It is written incrementally and
-flushed on a short period, so what was logged before Ctrl-C or a crash stays readable
-(`reach-driver inspect FILE.rrd`, `rerun FILE.rrd`).
+arm drawn from its MJCF's link geoms (`reach_driver.drawing`: the Alpha 5's or the Bravo 7's)
+posed by the angles it reported, with the target pose as a translucent ghost. Its joints are
+the arm model's (`run/metadata` names the model, `arm`, and its joints, `joint_names`); the
+layout below is the Alpha 5's, E D C B (the Bravo 7's: G F E D C B, links link1..link6). It is
+written incrementally and flushed on a short period, so what was logged before Ctrl-C or a
+crash stays readable (`reach-driver inspect FILE.rrd`, `rerun FILE.rrd`).
 
 Timelines: `arm_time` (a duration: the arm's clock in seconds, the one the viewer opens on)
 and `step` (the control step index).
@@ -65,7 +67,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from protocol import HardwareStatus
-from protocol.alpha5 import ALL_DEVICES, JOINT_LETTERS
+from protocol.models import ALPHA5, ArmModel
 from protocol.viewer import (
     ViewerError,
     ViewerSpec,
@@ -77,25 +79,26 @@ from protocol.viewer import (
 from protocol.viewer_layout import (
     ARM_COLOR,
     JAW_COLOR,
-    JOINT_COLORS,
-    JOINT_KEY,
     TARGET_COLOR,
     ArmBody,
     Ball,
     EyePose,
     arm_view,
     framing_eye,
+    joint_colors,
+    joint_key,
     reach,
     series_view,
     time_panel,
 )
-from reach_driver.arm_geometry import GEOMS, LinkGeom
-from reach_driver.kinematics import CHAIN, TCP_OFFSET_M, joint_transform, link_poses
+from reach_driver.arm_geometry import LinkGeom
+from reach_driver.drawing import ArmDrawing, drawing_for
 from reach_driver.state import MONITOR_READINGS, JointState, Reading, joint_name
 
 TIMELINE_TIME = "arm_time"
 TIMELINE_STEP = "step"
-BASE_LINK = "m3_inline"
+ALPHA5_DRAWING = drawing_for(ALPHA5)
+BASE_LINK = ALPHA5_DRAWING.base_link
 
 _BASE_COLOR = (90, 90, 90, 255)
 _GHOST_COLOR = (*TARGET_COLOR[:3], 70)
@@ -110,8 +113,14 @@ LINK_VIEWS = (
     ("link/loop_period", "link: loop period, command to command (ms)"),
 )
 
-#: The devices of the diagnostics entities, in their order: the four joints, then the jaw.
-DIAGNOSTIC_LETTERS = tuple(d.name for d in ALL_DEVICES)
+
+def diagnostic_letters(model: ArmModel) -> tuple[str, ...]:
+    """The devices of a model's diagnostics entities, in their order: joints, then the jaw."""
+    return tuple(d.name for d in model.actuators)
+
+
+#: The Alpha 5's: E D C B A.
+DIAGNOSTIC_LETTERS = diagnostic_letters(ALPHA5)
 STATUS_ENTITY = "diagnostics/status"
 #: (entity, view title) of the diagnostics' views: one per Monitor reading, then the flags.
 DIAGNOSTIC_VIEWS = (
@@ -122,7 +131,7 @@ DIAGNOSTIC_VIEWS = (
 
 @dataclass(frozen=True)
 class StepSample:
-    """What the loop knew and did at one control step (arrays in E D C B order)."""
+    """What the loop knew and did at one control step (arrays in the arm's joint order)."""
 
     t: float
     step: int
@@ -134,11 +143,11 @@ class StepSample:
     torque_Nm: np.ndarray | None = None
 
 
-def _link_paths(root: str) -> list[str]:
+def _link_paths(root: str, drawing: ArmDrawing = ALPHA5_DRAWING) -> list[str]:
     """Entity paths of the moving links, nested so each Transform3D composes with its parent."""
     paths, path = [], root
-    for frame in CHAIN:
-        path = f"{path}/{frame.child_link}"
+    for link in drawing.links:
+        path = f"{path}/{link}"
         paths.append(path)
     return paths
 
@@ -160,16 +169,16 @@ def _geom_balls(g: LinkGeom) -> list[tuple[np.ndarray, float]]:
     return [(center, float(np.linalg.norm(g.size)))]
 
 
-def arm_bodies() -> list[ArmBody]:
+def arm_bodies(drawing: ArmDrawing = ALPHA5_DRAWING) -> list[ArmBody]:
     """The drawn arm (the MJCF's geoms on the kinematic chain, the tool centre point's dot) as
     `protocol.viewer_layout` bodies, posed at zero angles: the base, then each joint's link."""
-    poses = [(np.zeros(3), np.eye(3)), *link_poses(np.zeros(len(CHAIN)))]
-    names = [BASE_LINK, *(frame.child_link for frame in CHAIN)]
+    poses = [(np.zeros(3), np.eye(3)), *drawing.link_poses(np.zeros(len(drawing.links)))]
+    names = [drawing.base_link, *drawing.links]
     bodies = []
     for i, (name, (pos, rot)) in enumerate(zip(names, poses, strict=True)):
-        local = [b for g in GEOMS if g.link == name for b in _geom_balls(g)]
+        local = [b for g in drawing.link_geoms(name) for b in _geom_balls(g)]
         if i == len(names) - 1:
-            local.append((np.array([0.0, 0.0, TCP_OFFSET_M]), _TCP_RADIUS_M))
+            local.append((drawing.tcp, _TCP_RADIUS_M))
         balls = tuple(
             Ball(tuple(float(v) for v in pos + rot @ c), float(r))  # type: ignore[arg-type]
             for c, r in local
@@ -177,25 +186,26 @@ def arm_bodies() -> list[ArmBody]:
         if i == 0:
             bodies.append(ArmBody(None, None, None, balls))
             continue
-        axis = rot @ np.asarray(CHAIN[i - 1].axis, dtype=float)
+        axis = rot @ np.asarray(drawing.axes[i - 1], dtype=float)
         pivot = tuple(float(v) for v in pos)
         direction = tuple(float(v) for v in axis)
         bodies.append(ArmBody(i - 1, pivot, direction, balls))  # type: ignore[arg-type]
     return bodies
 
 
-def arm_eye() -> EyePose:
+def arm_eye(drawing: ArmDrawing = ALPHA5_DRAWING) -> EyePose:
     """The 3D view's eye: every pose of the arm (and of its ghost) in view."""
-    return framing_eye(reach(arm_bodies()))
+    return framing_eye(reach(arm_bodies(drawing)))
 
 
-def default_blueprint(live: bool = False) -> rrb.Blueprint:
+def default_blueprint(live: bool = False, model: ArmModel = ALPHA5) -> rrb.Blueprint:
     """Opens on the arm-time timeline (seconds): the 3D arm and its ghost, errors and events;
     per joint its position vs target (rad) beside its currents (mA); torques, velocities and
     the link's counts, state age and latency, each on its own scale; the devices' Monitor
     readings and status flags. The eye frames the arm's whole reach; every plot spans the
     whole run, its legend hidden (colours: `protocol.viewer_layout`, the titles say them).
     `live`: for a viewer watching the run as it goes, which follows the newest data."""
+    letters = model.joint_letters
     joint_rows = [
         rrb.Horizontal(
             series_view(f"/joints/{j}/position", f"{j}: position, q orange vs target blue (rad)"),
@@ -203,13 +213,14 @@ def default_blueprint(live: bool = False) -> rrb.Blueprint:
                 f"/joints/{j}/current", f"{j}: current, commanded orange vs measured grey (mA)"
             ),
         )
-        for j in JOINT_LETTERS
+        for j in letters
     ]
+    eye = arm_eye(drawing_for(model))
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
-                arm_view("arm (m), target pose as a ghost", ["/arm/**", "/target/**"], arm_eye()),
-                series_view("/errors", f"errors: target - q (rad); {JOINT_KEY}"),
+                arm_view("arm (m), target pose as a ghost", ["/arm/**", "/target/**"], eye),
+                series_view("/errors", f"errors: target - q (rad); {joint_key(letters)}"),
                 rrb.TextLogView(origin="/events", name="events"),
                 row_shares=[4, 2, 1],
             ),
@@ -284,9 +295,15 @@ class RunRecorder:
         viewer: ViewerSpec | None = None,
         warn: Callable[[str], None] | None = None,
         announce: Callable[[str], None] | None = None,
+        model: ArmModel = ALPHA5,
     ) -> None:
         if path is None and viewer is None:
             raise ValueError("RunRecorder needs a path, a viewer or both")
+        #: The arm recorded: its joints name the entities, its drawing is the 3D arm.
+        self.model = model
+        self.drawing = drawing_for(model)
+        self._letters = model.joint_letters
+        self._devices = model.actuators  # of the diagnostics entities
         self.path = None if path is None else Path(path)
         self.viewer = viewer
         self.viewer_failed: str | None = None
@@ -296,11 +313,11 @@ class RunRecorder:
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             file_rec = rr.RecordingStream(app_id, recording_id=recording_id)
-            file_rec.save(str(self.path), default_blueprint=default_blueprint())
+            file_rec.save(str(self.path), default_blueprint=default_blueprint(model=model))
         view_rec: rr.RecordingStream | None = None
         if viewer is not None:
             try:
-                live = default_blueprint(live=True)
+                live = default_blueprint(live=True, model=model)
                 view_rec = open_viewer(viewer, app_id, recording_id, live, announce)
             except ViewerError as exc:
                 self._viewer_error(exc, opening=True)
@@ -309,8 +326,8 @@ class RunRecorder:
         self._flush_period_s = flush_period_s
         self._last_flush = time.monotonic()
         self._last_target: np.ndarray | None = None
-        self._arm_links = _link_paths("arm")
-        self._ghost_links = _link_paths("target")
+        self._arm_links = _link_paths("arm", self.drawing)
+        self._ghost_links = _link_paths("target", self.drawing)
         self._closed = False
         self._t, self._step = 0.0, 0
         # Diagnostics: the arrival times last logged per reading, the flags last named.
@@ -337,17 +354,18 @@ class RunRecorder:
     def _log_static_scene(self, metadata: Mapping[str, object]) -> None:
         rec = self._rec
         rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        log_link_geoms(rec, "arm", [g for g in GEOMS if g.link == BASE_LINK], _BASE_COLOR)
-        tcp = [[0.0, 0.0, TCP_OFFSET_M]]
+        drawing = self.drawing
+        log_link_geoms(rec, "arm", drawing.link_geoms(drawing.base_link), _BASE_COLOR)
+        tcp = [drawing.tcp.tolist()]
         for links, color in ((self._arm_links, ARM_COLOR), (self._ghost_links, _GHOST_COLOR)):
-            for path, frame in zip(links, CHAIN, strict=True):
-                log_link_geoms(rec, path, [g for g in GEOMS if g.link == frame.child_link], color)
+            for path, link in zip(links, drawing.links, strict=True):
+                log_link_geoms(rec, path, drawing.link_geoms(link), color)
             rec.log(
                 f"{links[-1]}/tcp",
                 rr.Points3D(tcp, radii=_TCP_RADIUS_M, colors=[color]),
                 static=True,
             )
-        for j in JOINT_LETTERS:
+        for j in self._letters:
             rec.log(
                 f"joints/{j}/position",
                 rr.SeriesLines(names=["q", "target"], colors=[ARM_COLOR, TARGET_COLOR]),
@@ -360,9 +378,10 @@ class RunRecorder:
                 ),
                 static=True,
             )
-        names = [f"{j}" for j in JOINT_LETTERS]
+        names = [f"{j}" for j in self._letters]
+        colors = list(joint_colors(self._letters))
         for entity in ("errors", "velocities", "torques"):
-            rec.log(entity, rr.SeriesLines(names=names, colors=list(JOINT_COLORS)), static=True)
+            rec.log(entity, rr.SeriesLines(names=names, colors=colors), static=True)
         rec.log("link/frames", rr.SeriesLines(names=["good frames", "bad frames"]), static=True)
         rec.log("link/state_age", rr.SeriesLines(names=["state age ms"]), static=True)
         rec.log("link/latency", rr.SeriesLines(names=["latency ms"]), static=True)
@@ -370,10 +389,12 @@ class RunRecorder:
         for entity, _ in DIAGNOSTIC_VIEWS:
             rec.log(
                 entity,
-                rr.SeriesLines(names=list(DIAGNOSTIC_LETTERS), colors=[*JOINT_COLORS, JAW_COLOR]),
+                rr.SeriesLines(
+                    names=list(diagnostic_letters(self.model)), colors=[*colors, JAW_COLOR]
+                ),
                 static=True,
             )
-        meta = {"joint_names": list(JOINT_LETTERS), **dict(metadata)}
+        meta = {"joint_names": list(self._letters), "arm": self.model.name, **dict(metadata)}
         rec.log("run/metadata", rr.TextDocument(json.dumps(meta, default=str)), static=True)
 
     def _set_time(self, t: float, step: int) -> None:
@@ -382,8 +403,8 @@ class RunRecorder:
         self._rec.set_time(TIMELINE_STEP, sequence=int(step))
 
     def _log_pose(self, links: Sequence[str], q: np.ndarray) -> None:
-        for path, frame, angle in zip(links, CHAIN, q, strict=True):
-            translation, rotation = joint_transform(frame, float(angle))
+        for i, (path, angle) in enumerate(zip(links, q, strict=True)):
+            translation, rotation = self.drawing.joint_transform(i, float(angle))
             self._rec.log(path, rr.Transform3D(translation=translation, mat3x3=rotation))
 
     # -- per step ---------------------------------------------------------------------------
@@ -398,8 +419,9 @@ class RunRecorder:
             rec.log("run/target", rr.Scalars(target))
             self._last_target = target.copy()
         cmd = np.asarray(s.current_cmd_mA, dtype=float)
-        meas = np.full(4, np.nan) if s.current_meas_mA is None else np.asarray(s.current_meas_mA)
-        for i, j in enumerate(JOINT_LETTERS):
+        n = len(self._letters)
+        meas = np.full(n, np.nan) if s.current_meas_mA is None else np.asarray(s.current_meas_mA)
+        for i, j in enumerate(self._letters):
             rec.log(f"joints/{j}/position", rr.Scalars([q[i], target[i]]))
             rec.log(f"joints/{j}/current", rr.Scalars([cmd[i], meas[i]]))
         rec.log("errors", rr.Scalars(target - q))
@@ -424,7 +446,8 @@ class RunRecorder:
         self._set_time(t, step)
         rec = self._rec
         q = np.asarray(q, dtype=float)
-        tgt = np.full(4, np.nan) if target is None else np.asarray(target, dtype=float)
+        n = len(self._letters)
+        tgt = np.full(n, np.nan) if target is None else np.asarray(target, dtype=float)
         if target is not None and (
             self._last_target is None or not np.array_equal(tgt, self._last_target)
         ):
@@ -432,7 +455,7 @@ class RunRecorder:
             rec.log("run/target", rr.Scalars(tgt))
             self._last_target = tgt.copy()
         meas = np.asarray(current_mA, dtype=float)
-        for i, j in enumerate(JOINT_LETTERS):
+        for i, j in enumerate(self._letters):
             rec.log(f"joints/{j}/position", rr.Scalars([q[i], tgt[i]]))
             rec.log(f"joints/{j}/current", rr.Scalars([np.nan, meas[i]]))
         if target is not None:
@@ -472,7 +495,7 @@ class RunRecorder:
         logged = False
         for entity, name in (*fields, (STATUS_ENTITY, "status")):
             readings: list[Reading[Any] | None] = [
-                getattr(joints.get(int(d)) or JointState(int(d)), name) for d in ALL_DEVICES
+                getattr(joints.get(int(d)) or JointState(int(d)), name) for d in self._devices
             ]
             stamps = [None if r is None else r.t for r in readings]
             if all(v is None for v in stamps) or stamps == self._diag_logged.get(entity):
@@ -490,7 +513,7 @@ class RunRecorder:
         return logged
 
     def _name_flag_changes(self, readings: Sequence[Reading[Any] | None]) -> None:
-        for dev, reading in zip(ALL_DEVICES, readings, strict=True):
+        for dev, reading in zip(self._devices, readings, strict=True):
             if reading is None:
                 continue
             flags = HardwareStatus(reading.value)

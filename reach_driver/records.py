@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from protocol.models import ALPHA5, ArmModel
 from reach_driver.chatter import Verdict
 from reach_driver.loop_timing import GapStats
 
@@ -118,6 +119,7 @@ class ControlSummary:
     implausible_samples: int = 0  # joint samples refused as physically impossible (held)
     measured_hz: float | None = None  # the stream's rate from the arm's kinematics (None: unmoved)
     duplicate_packets: int = 0  # stream packets received twice in a row, dropped
+    model: ArmModel = ALPHA5  # the arm run: its joints are the arrays' order
 
     @property
     def ok(self) -> bool:

@@ -4,7 +4,9 @@ Uses rerun's chunk reader (`rerun.chunk.RrdReader`), which also reads a file who
 killed before it could write its footer: a crashed run's recording still summarises. A file
 cut inside a message (a full disk, a kill mid-write) is refused by that reader as a whole, so
 it is read up to its last complete message instead (`RecordedRun.truncated`); a run killed
-before its first step is still recognised by the metadata written when it opened.
+before its first step is still recognised by the metadata written when it opened. The arm
+recorded, and so its joints, is the one the metadata names (`arm`; a recording without it is
+an Alpha 5's, as every recording was before the driver drove another arm).
 """
 
 from __future__ import annotations
@@ -26,14 +28,14 @@ import pyarrow as pa
 from rerun.chunk import RrdReader
 
 from protocol import HardwareStatus
-from protocol.alpha5 import JOINT_LETTERS
 from protocol.files import UserFileError, parse_json
+from protocol.models import ALPHA5, MODELS, ArmModel, model_named
 from reach_driver.metrics import Trace, compute_metrics, overshoot_anatomy
 from reach_driver.recording import (
-    DIAGNOSTIC_LETTERS,
     STATUS_ENTITY,
     TIMELINE_STEP,
     TIMELINE_TIME,
+    diagnostic_letters,
 )
 from reach_driver.state import MONITOR_READINGS
 
@@ -53,7 +55,7 @@ class DiagnosticSeries:
     """One diagnostics entity read back: a row per time it was logged."""
 
     t: np.ndarray  # arm time of each row (s)
-    values: np.ndarray  # (rows, 5) in DIAGNOSTIC_LETTERS order (E D C B A), NaN: not reported
+    values: np.ndarray  # (rows, devices): joints then jaw (E D C B A), NaN: not reported
 
 
 #: `RecordedRun.diagnostics`' keys: each Monitor reading's, and this one for the status flags.
@@ -66,7 +68,8 @@ _DIAGNOSTIC_ENTITIES = {
 
 @dataclass
 class RecordedRun:
-    """Per-step series of one recorded run, sorted by step (arrays in E D C B order)."""
+    """Per-step series of one recorded run, sorted by step (arrays in the joint order of the
+    arm recorded, `model`: E D C B on the Alpha 5)."""
 
     t: np.ndarray
     step: np.ndarray
@@ -87,6 +90,7 @@ class RecordedRun:
     #: The devices' Monitor readings and status flags, by MONITOR_READINGS key and STATUS_KEY
     #: (only those the recording holds: none in a recording made before they were logged).
     diagnostics: dict[str, DiagnosticSeries] = field(default_factory=dict)
+    model: ArmModel = ALPHA5  # the arm recorded
 
     @property
     def duration_s(self) -> float:
@@ -243,6 +247,24 @@ def _metadata(text: str | None) -> dict[str, object]:
     return value if isinstance(value, dict) else {}
 
 
+def recorded_model(metadata: dict[str, object]) -> ArmModel:
+    """The arm a recording's metadata names (`arm`); without it, the model whose joints it
+    names (`joint_names`), else the Alpha 5. RecordingReadError for a model not known."""
+    name = metadata.get("arm")
+    if name is not None:
+        try:
+            return model_named(str(name))
+        except ValueError as exc:
+            raise RecordingReadError(
+                f"recorded on an arm this stack does not know: {exc}"
+            ) from None
+    names = metadata.get("joint_names")
+    for model in MODELS.values():
+        if isinstance(names, list) and tuple(names) == model.joint_letters:
+            return model
+    return ALPHA5
+
+
 def _summary(text: str | None) -> dict[str, object]:
     """The summary a run wrote at its end ({} if it did not get there)."""
     if not text:
@@ -392,12 +414,15 @@ def read_recording(path: str | Path) -> RecordedRun:
         for entity, key in _DIAGNOSTIC_ENTITIES.items()
         if entity in series and len(series[entity][1])
     }
-    positions = [series.get(f"/joints/{j}/position") for j in JOINT_LETTERS]
     meta_text = _static_text(by_entity.get("/run/metadata", []))
     metadata = _metadata(meta_text)
+    model = recorded_model(metadata)
+    letters = model.joint_letters
+    n = len(letters)
+    positions = [series.get(f"/joints/{j}/position") for j in letters]
     if any(p is None or len(p[1]) == 0 for p in positions) and "joint_names" in metadata:
         # Written when the recorder opened: a run that ended (was killed) before its first step.
-        empty = np.zeros((0, len(JOINT_LETTERS)))
+        empty = np.zeros((0, n))
         return RecordedRun(
             t=np.zeros(0),
             step=np.zeros(0, dtype=int),
@@ -413,13 +438,14 @@ def read_recording(path: str | Path) -> RecordedRun:
             truncated=truncated_bytes > 0,
             truncated_bytes=truncated_bytes,
             diagnostics=diagnostics,
+            model=model,
         )
     if any(p is None or len(p[1]) == 0 for p in positions):
         raise RecordingReadError(
             f"{path} holds no joint positions: not a run recorded by reach-stack "
             f"(entities: {sorted(by_entity)[:8]})"
         )
-    # Align every series on the steps all four joints have (a crash may cut the last step).
+    # Align every series on the steps all joints have (a crash may cut the last step).
     common = set(positions[0][1].tolist())  # type: ignore[index]
     for p in positions[1:]:
         common &= set(p[1].tolist())  # type: ignore[index]
@@ -438,8 +464,8 @@ def read_recording(path: str | Path) -> RecordedRun:
                 out[row] = v[i]
         return out
 
-    pos = [aligned(f"/joints/{j}/position", 2) for j in JOINT_LETTERS]
-    cur = [aligned(f"/joints/{j}/current", 2) for j in JOINT_LETTERS]
+    pos = [aligned(f"/joints/{j}/position", 2) for j in letters]
+    cur = [aligned(f"/joints/{j}/current", 2) for j in letters]
     t_all, s_all, _ = positions[0]  # type: ignore[misc]
     t_index = {int(k): float(tt) for tt, k in zip(t_all, s_all, strict=True)}
 
@@ -451,14 +477,14 @@ def read_recording(path: str | Path) -> RecordedRun:
         step=steps,
         q=np.stack([p[:, 0] for p in pos if p is not None], axis=1),
         target=np.stack([p[:, 1] for p in pos if p is not None], axis=1),
-        qdot=aligned("/velocities", 4),
-        torque=aligned("/torques", 4),
+        qdot=aligned("/velocities", n),
+        torque=aligned("/torques", n),
         current_cmd=np.stack([c[:, 0] for c in cur if c is not None], axis=1)
         if all(c is not None for c in cur)
-        else np.full((len(steps), 4), np.nan),
+        else np.full((len(steps), n), np.nan),
         current_meas=np.stack([c[:, 1] for c in cur if c is not None], axis=1)
         if all(c is not None for c in cur)
-        else np.full((len(steps), 4), np.nan),
+        else np.full((len(steps), n), np.nan),
         events=events,
         metadata=metadata,
         summary=_summary(summary_text),
@@ -467,6 +493,7 @@ def read_recording(path: str | Path) -> RecordedRun:
         truncated_bytes=truncated_bytes,
         diagnostics=diagnostics,
         loop_period_ms=None if period is None else period[:, 0],
+        model=model,
     )
 
 
@@ -483,11 +510,13 @@ def _column_stats(values: np.ndarray) -> dict[str, list[float | None]]:
 
 def diagnostics_summary(run: RecordedRun) -> dict[str, object] | None:
     """What `inspect` says of the diagnostics: per Monitor reading its rows and, per device
-    (E D C B A), the last value and the range; each device's last status flags by name
-    ("ok" when none, None if it never reported). None when the recording has none."""
+    (the joints, then the jaw: E D C B A on the Alpha 5), the last value and the range; each
+    device's last status flags by name ("ok" when none, None if it never reported). None when
+    the recording has none."""
     if not run.diagnostics:
         return None
-    out: dict[str, object] = {"devices": list(DIAGNOSTIC_LETTERS)}
+    letters = diagnostic_letters(run.model)
+    out: dict[str, object] = {"devices": list(letters)}
     for m in MONITOR_READINGS:
         series = run.diagnostics.get(m.key)
         if series is not None:
@@ -497,7 +526,7 @@ def diagnostics_summary(run: RecordedRun) -> dict[str, object] | None:
         last = _column_stats(status.values)["final"]
         out["final_status"] = {
             letter: None if v is None else HardwareStatus(int(v)).flag_names() or ["ok"]
-            for letter, v in zip(DIAGNOSTIC_LETTERS, last, strict=True)
+            for letter, v in zip(letters, last, strict=True)
         }
     return out
 
@@ -522,7 +551,8 @@ def _summarize_sim(path: str | Path, run: RecordedRun) -> dict[str, object]:
             modes[joint] = mode
     faults = [f"{t:8.3f}s {lv}: {tx}" for t, lv, tx in run.events if tx.startswith("faults:")]
     final_faults = _last_event(run.events, "faults:")
-    empty = [None] * len(JOINT_LETTERS)
+    letters = run.model.joint_letters
+    empty = [None] * len(letters)
     part = run.metadata.get("part")
     out: dict[str, object] = {
         "file": str(path),
@@ -531,10 +561,10 @@ def _summarize_sim(path: str | Path, run: RecordedRun) -> dict[str, object]:
         "duration_s": run.duration_s,
         "start_s": float(run.t[0]) if len(run.t) else None,  # sim time of the first sample
         "end_s": float(run.t[-1]) if len(run.t) else None,
-        "joints": list(JOINT_LETTERS),
+        "joints": list(letters),
         "final_position": _finite_or_none(run.q[-1]) if len(run.step) else empty,
         "final_setpoint": _finite_or_none(run.target[-1]) if len(run.step) else empty,
-        "final_modes": [modes.get(j) for j in JOINT_LETTERS],
+        "final_modes": [modes.get(j) for j in letters],
         "final_faults": final_faults or "none",
         "faults": faults,
         "part": part,  # 0 for the first file written; a later part starts mid-run
@@ -583,13 +613,14 @@ def _summarize(path: str | Path) -> dict[str, object]:
         final_position: list[float | None] = run.q[-1].tolist()
         final_error: list[float | None] = (run.target[-1] - run.q[-1]).tolist()
     else:  # ended before its first step: nothing to show but how it started
-        final_target = final_position = final_error = [None] * len(JOINT_LETTERS)
+        final_target = final_position = final_error = [None] * run.model.n_joints
     out: dict[str, object] = {
         "file": str(path),
         "kind": "run",
+        "arm": run.model.name,
         "steps": int(len(run.step)),
         "duration_s": run.duration_s,
-        "joints": list(JOINT_LETTERS),
+        "joints": list(run.model.joint_letters),
         "final_target": final_target,
         "final_position": final_position,
         "final_error": final_error,
@@ -614,10 +645,12 @@ def _summarize(path: str | Path) -> dict[str, object]:
             qdot=np.nan_to_num(qdot),
             tau=np.nan_to_num(tau),
             target=run.target[-1],
+            model=run.model,
         )
         out["control_period_s"] = dt
         out["metrics"] = compute_metrics(trace).as_dict()
-        anatomy = overshoot_anatomy(trace.q, trace.qdot, trace.target, dt)
+        letters = run.model.joint_letters
+        anatomy = overshoot_anatomy(trace.q, trace.qdot, trace.target, dt, letters)
         out["overshoot"] = None if anatomy is None else anatomy.as_dict()
     diagnostics = diagnostics_summary(run)
     if diagnostics is not None:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import cast
 
 import mujoco
 import numpy as np
@@ -29,8 +28,6 @@ from protocol.models import (
 )
 from protocol.payload import pack_floats
 from reach_driver import ArmClient
-from reach_driver.control import ControlLoop
-from reach_driver.controllers import Controller
 from reach_driver.errors import LimitError
 from reach_driver.interfaces import open_transport
 from reach_driver.plausibility import FeedbackCheck
@@ -261,12 +258,6 @@ def test_the_client_commands_the_models_joints() -> None:
             client.solve_xyz(100.0, 0.0, 100.0)
     finally:
         client.close(safe=False)
-
-
-def test_what_is_still_the_alphas_only_refuses_another_model() -> None:
-    client = ArmClient(open_transport("loop://"), model=BRAVO7)
-    with pytest.raises(ValueError, match="runs the Reach Alpha 5 only, not the Reach Bravo 7"):
-        ControlLoop(client, cast(Controller, None))
 
 
 # -- the emulator ------------------------------------------------------------------------------

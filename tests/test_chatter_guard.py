@@ -86,6 +86,27 @@ def test_a_sustained_cycle_near_the_goal_fires_and_names_the_joint() -> None:
     assert det.update(0.0, TARGET, np.zeros(4), np.zeros(4), TARGET) is None
 
 
+def test_on_a_bravo_the_verdict_names_its_joint_and_reads_as_before() -> None:
+    from dataclasses import asdict
+
+    from protocol.models import BRAVO7
+
+    det = ChatterDetector(ChatterConfig(), BRAVO7.current_limits_mA, BRAVO7.joint_letters)
+    target = np.full(6, 1.5)
+    verdict = None
+    for k, (e, v, u) in enumerate(zip(*chatter(200), strict=True)):
+        q, qdot, cmd = target.copy(), np.zeros(6), np.zeros(6)
+        q[1], qdot[1], cmd[1] = target[1] - e, v, 3 * u  # F: 30 % of 2000 mA is 600
+        verdict = det.update(k * DT, q, qdot, cmd, target)
+        if verdict is not None:
+            break
+    assert verdict is not None and verdict.joint == 1 and verdict.letter == "F"
+    assert verdict.describe().startswith("joint F reversed 101 times")
+    assert "letters" not in asdict(verdict)  # the JSON of a verdict is what it was
+    with pytest.raises(ValueError, match="need 6 positive current limits"):
+        ChatterDetector(ChatterConfig(), LIMITS, BRAVO7.joint_letters)
+
+
 def test_a_slower_cycle_fires_too_but_not_one_slower_than_the_gap() -> None:
     e, v, u = chatter(120)
     every_other = [np.repeat(a, 2) for a in (e, v, u)]  # a reversal each 0.1 s

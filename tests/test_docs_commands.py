@@ -1,10 +1,11 @@
 """Every command in the ```sh blocks of README.md, docs/hil.md and docs/usage.md still works.
 
 `reach-driver` commands run against a virtual arm (its pty or UDP address put where the text
-names a port, durations cut short, run in order in one directory so `inspect run.rrd` finds
-the recording `run --record run.rrd` wrote); a command with `...` in it, `reach-sim` (a
-server), `rerun` (a viewer) and the tools (minutes of work) are parsed by their own parser or
-asked for `--help`; `make` targets must exist. A command that no longer parses fails.
+names a port; a virtual Bravo 7 where the port names a `bravo7`; durations cut short, run in
+order in one directory so `inspect run.rrd` finds the recording `run --record run.rrd` wrote);
+a command with `...` in it, `reach-sim` (a server), `rerun` (a viewer) and the tools (minutes of
+work) are parsed by their own parser or asked for `--help`; `make` targets must exist. A command
+that no longer parses fails.
 """
 
 from __future__ import annotations
@@ -99,14 +100,30 @@ def arm(tmp_path_factory):
     assert server.error is None
 
 
+@pytest.fixture(scope="module")
+def bravo(arm):
+    """A virtual Bravo 7 beside `arm`, for the commands whose port names a `bravo7`."""
+    from protocol.models import BRAVO7
+
+    _, work = arm
+    server = SimServer(SimConfig(speed=8.0, link=str(work / "bravo7"), model=BRAVO7))
+    server.start()
+    yield server
+    server.stop()
+    assert server.error is None
+
+
 def _for_the_virtual_arm(argv: list[str], server: SimServer) -> list[str]:
     """The port pointed at the virtual arm, long runs cut short, monitor bounded."""
     out = list(argv)
-    assert server.udp_address is not None
-    host, port = server.udp_address
     if "--port" in out:
         i = out.index("--port") + 1
-        out[i] = f"udp://{host}:{port}" if out[i].startswith("udp://") else str(server.link)
+        if out[i].startswith("udp://"):
+            assert server.udp_address is not None
+            host, port = server.udp_address
+            out[i] = f"udp://{host}:{port}"
+        else:
+            out[i] = str(server.link)
     if "--seconds" in out:
         out[out.index("--seconds") + 1] = SHORT_SECONDS
     if "monitor" in out and "--seconds" not in out:
@@ -115,7 +132,7 @@ def _for_the_virtual_arm(argv: list[str], server: SimServer) -> list[str]:
 
 
 @pytest.mark.parametrize(("doc", "command"), ALL, ids=[f"{d}: {c}" for d, c in ALL])
-def test_documented_command_works(doc, command, arm, monkeypatch, capsys) -> None:
+def test_documented_command_works(doc, command, arm, request, monkeypatch, capsys) -> None:
     server, work = arm
     words = shlex.split(command)
     program = _program(words[0])
@@ -132,6 +149,9 @@ def test_documented_command_works(doc, command, arm, monkeypatch, capsys) -> Non
             head = args[: args.index("...")]
             _parses(build_parser(), head + _required(head))
             return
+        port = args[args.index("--port") + 1] if "--port" in args else ""
+        if "bravo7" in port:
+            server = request.getfixturevalue("bravo")
         argv = _for_the_virtual_arm(args, server)
         _parses(build_parser(), argv)
         code = main(argv)

@@ -8,6 +8,7 @@ import pytest
 from conftest import LOOPBACK, udp_url
 
 from policy.controllers.pid import PIDController, PIDGains, make_controller
+from protocol.models import BRAVO7
 from reach_driver import (
     ArmClient,
     ControlLoop,
@@ -92,6 +93,22 @@ def test_the_entry_point_builds_a_pid_and_unknown_names_are_listed() -> None:
         load_controller("no-such-controller")
     with pytest.raises(DriverError, match="rejected its parameters"):
         load_controller("pid", bogus=1)
+
+
+def test_the_entry_point_builds_the_bravos_pid_with_its_own_gains_and_limits() -> None:
+    from policy.controllers.pid import DEFAULT_GAINS
+
+    pid = load_controller("pid", arm=BRAVO7)
+    assert isinstance(pid, PIDController)
+    np.testing.assert_array_equal(pid.gains.kp, DEFAULT_GAINS["bravo7"].kp)
+    np.testing.assert_array_equal(pid.limits, [2000, 2000, 1500, 1500, 1500, 1000])
+    q = np.full(6, 1.0)
+    out = pid.act(ControlState(q, np.zeros(6), 0.0), q + np.array([3.0, -3.0, 3.0, 0.0, 0.0, 3.0]))
+    np.testing.assert_array_equal(out, [2000, -2000, 1500, 0, 0, 1000])
+    with pytest.raises(ValueError, match=r"kp needs one value or 6 \(joint order G F E D C B\)"):
+        load_controller("pid", arm=BRAVO7, kp=[1000, 1000, 1000, 300])
+    alpha = load_controller("pid")  # the Alpha 5's, as before
+    assert isinstance(alpha, PIDController) and alpha.limits.tolist() == [600, 600, 600, 300]
 
 
 @pytest.mark.slow

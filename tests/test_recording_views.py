@@ -90,6 +90,44 @@ def test_geoms_posed_by_the_driver_sit_where_mujoco_puts_them() -> None:
             assert abs(abs(float(axis @ expected)) - 1.0) < 1e-6
 
 
+def test_the_bravo7_drawing_is_the_mjcfs_and_poses_where_mujoco_does() -> None:
+    """reach_driver/bravo7_drawing.py is what tools/gen_arm_geometry.py makes of bravo7.xml;
+    posed by the driver at any angles, each link's geoms and the tool centre point sit where
+    MuJoCo puts them (to the 1e-6 the file is written to)."""
+    from protocol.models import BRAVO7
+    from reach_driver.drawing import drawing_for
+    from reach_sim_bridge.model.bravo7 import Bravo7Arm
+
+    chain, geoms, tcp = geometry.extract_bravo7()
+    text = (ROOT / "reach_driver/bravo7_drawing.py").read_text()
+    assert geometry.render_bravo7(chain, geoms, tcp) == text
+    drawing = drawing_for(BRAVO7)
+    assert drawing.links == ("link1", "link2", "link3", "link4", "link5", "link6")
+    arm = Bravo7Arm()
+    m, d = arm.model, arm.data
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        q = rng.uniform(0.1, 3.1, 6)
+        d.qpos[:] = 0.0
+        d.qpos[:6], d.qpos[6] = q, 0.005  # the jaws at their default 5 mm
+        mujoco.mj_kinematics(m, d)
+        poses = dict(zip(drawing.links, drawing.link_poses(q), strict=True))
+        poses[drawing.base_link] = (np.zeros(3), np.eye(3))
+        drawn = 0
+        for g in drawing.geoms:
+            pos, rot = poses[g.link]
+            world = pos + rot @ np.asarray(g.center)
+            # the jaws' unnamed fingers are named by body and geom id (geometry.extract_bravo7)
+            gid = int(g.name.rsplit("_", 1)[1]) if g.name.startswith("jaw_") else m.geom(g.name).id
+            np.testing.assert_allclose(world, d.geom_xpos[gid], atol=1e-5)
+            drawn += 1
+        assert drawn == m.ngeom  # every geom of the arm is drawn
+        pos, rot = poses["link6"]
+        np.testing.assert_allclose(
+            pos + rot @ drawing.tcp, d.site_xpos[m.site("tcp").id], atol=1e-5
+        )
+
+
 # -- the run recording ----------------------------------------------------------------------
 
 

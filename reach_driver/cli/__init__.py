@@ -1,4 +1,4 @@
-"""`reach-driver`: talk to a Reach Alpha 5 (or the virtual arm) from the command line.
+"""`reach-driver`: talk to a Reach Alpha 5 or Bravo 7 (or a virtual one) from the command line.
 
 `parser` holds the options and help, `commands` the subcommands, `render` how they print,
 `report` and `recorder` what a run's summary becomes; `main` maps errors to exit statuses.
@@ -26,6 +26,7 @@ from reach_driver.cli.exits import Exit, UsageError, for_operator, left_in_for_o
 from reach_driver.cli.parser import build_parser, package_version
 from reach_driver.cli.recorder import output_path_problem
 from reach_driver.errors import (
+    ArmModelError,
     BadUrlError,
     DriverError,
     ExtraNotInstalledError,
@@ -192,6 +193,9 @@ def _run(args: argparse.Namespace, console: Console, errors: Console) -> int:
     except ExtraNotInstalledError as exc:  # e.g. --controller mpc without CasADi
         _say(errors, "error", str(exc))
         return int(Exit.USAGE)
+    except ArmModelError as exc:  # --arm names another model than the one answering
+        _say(errors, "wrong arm", str(exc))
+        return int(Exit.NO_ARM)
     except (PortNotFoundError, PortPermissionError, GarbageError, NoResponseError) as exc:
         _say(errors, "no arm", str(exc))
         return int(Exit.NO_ARM)

@@ -20,8 +20,9 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from protocol import Mode, PacketID
-from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS
+from protocol.models import ALPHA5, ArmModel
 from reach_driver import ik
+from reach_driver.cli.arms import JointValues, angles_problem, given_model, in_scope
 from reach_driver.cli.connect import connect, safety_config
 from reach_driver.cli.exits import Exit, UsageError, for_operator, left_in_for_operator
 from reach_driver.cli.live import MoveView, RunView, chain
@@ -49,12 +50,14 @@ from reach_driver.cli.tables import fitted, show_table
 from reach_driver.client import ArmClient
 from reach_driver.control import ControlLoop, Pacing, control_period
 from reach_driver.controllers import (
+    ControllerModelError,
     available_controllers,
     controller_report,
     describe_controllers,
     load_controller,
     registered_list,
 )
+from reach_driver.drawing import drawing_for
 from reach_driver.errors import ArmFaultError, DriverError, Interrupted
 from reach_driver.kinematics import tool_position
 from reach_driver.link import EventKind, LinkState
@@ -85,9 +88,10 @@ def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
         client.read_diagnostics()  # Monitor readings and status, read_info's joints carry them
         joints = client.read_info()
         if args.json:
-            console.print_json(json.dumps(info_json(args.port, joints)))
+            console.print_json(json.dumps(info_json(args.port, joints, client.model)))
             return Exit.OK
-        for table in (*info_tables(args.port, joints), diagnostics_table(args.port, joints)):
+        tables = info_tables(args.port, joints, client.model)
+        for table in (*tables, diagnostics_table(args.port, joints)):
             show_table(console, table)
         return Exit.OK
     finally:
@@ -153,6 +157,7 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
                 viewer=viewer,
                 diagnostics=lambda: client.state.joints,
                 keep_into=_kept(args),
+                model=client.model,
             )
             stream = _StateStream(client, recorder)
         # --seconds of watching, counted once the recording and the viewer are open: opening
@@ -311,16 +316,27 @@ def _notes() -> Console:
 
 
 def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
+    scope = in_scope(args)
+    try:
+        wanted = JointValues.parse(args.angles)
+    except ValueError as exc:
+        raise UsageError(f"move: {exc}") from None
     if args.xyz is not None and args.angles:
-        raise UsageError("move takes the four angles E D C B or --xyz X Y Z, not both")
-    if args.xyz is None and len(args.angles) != 4:
-        raise UsageError(
-            f"move needs the four angles E D C B (rad), got {len(args.angles)}; or --xyz X Y Z "
-            "(mm) for a tool position"
+        raise UsageError("move takes joint angles or --xyz X Y Z, not both")
+    if args.xyz is None:
+        problem = wanted.names_problem(scope) or (
+            None if wanted.named else angles_problem("move", len(wanted.values), scope, jaw=True)
         )
-    target = np.array(args.angles, dtype=float)
+        if problem:
+            raise UsageError(f"{problem}; or --xyz X Y Z (mm) for a tool position")
     client = connect(args, console)
-    devices = [*JOINTS, JAW] if args.jaw is not None else list(JOINTS)
+    try:
+        target, jaw = _move_target(args, wanted, client)
+    except BaseException:
+        client.close()
+        raise
+    model = client.model
+    devices = [*model.joints, model.jaw] if jaw is not None else list(model.joints)
     commanded = False
     recorder: CliRecorder | None = None
     stream: _StateStream | None = None
@@ -334,10 +350,10 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 if args.xyz is not None:  # joint targets by the driver's IK; out of reach: exit 3
                     target = client.solve_xyz(*args.xyz)
                 # Check everything first: a refused target must leave every joint where it is.
-                for dev, value in zip(JOINTS, target, strict=True):
+                for dev, value in zip(model.joints, target, strict=True):
                     client.guard.check(dev, LimitKind.POSITION, float(value))
-                if args.jaw is not None:
-                    client.guard.check(JAW, LimitKind.POSITION, args.jaw)
+                if jaw is not None:
+                    client.guard.check(model.jaw, LimitKind.POSITION, jaw)
                 faults = blocking_faults(client.read_status(), console)
                 if faults:
                     raise ArmFaultError(f"arm reports faults, not moving: {faults}")
@@ -345,7 +361,9 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 if viewer is not None:
                     ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT)
                     meta = {"command": "move", "port": args.port, "target": target.tolist()}
-                    recorder = CliRecorder(None, meta, viewer=viewer, keep_into=_kept(args))
+                    recorder = CliRecorder(
+                        None, meta, viewer=viewer, keep_into=_kept(args), model=model
+                    )
                     stream = _StateStream(client, recorder, target)
                 client.stream(ids, 20, devices)
                 q0 = client.read_joints((PacketID.POSITION,)).q
@@ -354,13 +372,13 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 commanded = True
                 client.set_mode(devices, Mode.POSITION)
                 client.command_positions(target)
-                if args.jaw is not None:
-                    client.command_jaw(args.jaw)
+                if jaw is not None:
+                    client.command_jaw(jaw)
                 start_err = float(np.max(np.abs(target - q0))) or 1.0
                 move_started = client.clock()
                 deadline = time.monotonic() + args.move_timeout
                 notes = Console(stderr=True, highlight=False)
-                lines = MoveView(notes, enabled=not args.quiet)
+                lines = MoveView(notes, enabled=not args.quiet, letters=model.joint_letters)
                 with Progress(
                     TextColumn("[bold]move[/]"),
                     BarColumn(),
@@ -374,20 +392,20 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                     while True:
                         state = client.state
                         err = target - state.q
-                        jaw_err = abs(args.jaw - state.jaw_mm) if args.jaw is not None else 0.0
+                        jaw_err = abs(jaw - state.jaw_mm) if jaw is not None else 0.0
                         worst = float(np.max(np.abs(err)))
                         detail = " ".join(
-                            f"{j} {e:+.3f}" for j, e in zip(JOINT_LETTERS, err, strict=True)
+                            f"{j} {e:+.3f}" for j, e in zip(model.joint_letters, err, strict=True)
                         )
-                        if args.jaw is not None:
-                            detail += f" jaw {args.jaw - state.jaw_mm:+.2f} mm"
+                        if jaw is not None:
+                            detail += f" jaw {jaw - state.jaw_mm:+.2f} mm"
                         progress.update(
                             task,
                             completed=min(1.0, max(0.0, 1.0 - worst / start_err)),
                             detail=detail,
                         )
-                        jaw_left = args.jaw - state.jaw_mm if args.jaw is not None else None
-                        tool_err = _tool_error_mm(args, state.q)
+                        jaw_left = jaw - state.jaw_mm if jaw is not None else None
+                        tool_err = _tool_error_mm(args, state.q, model)
                         done = (
                             worst <= args.tolerance
                             and jaw_err <= args.jaw_tolerance
@@ -454,12 +472,39 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
         client.close()
 
 
-def _tool_error_mm(args: argparse.Namespace, q: np.ndarray) -> float:
+def _move_target(
+    args: argparse.Namespace, wanted: JointValues, client: ArmClient
+) -> tuple[np.ndarray, float | None]:
+    """The joint target (the model's order; NaN until --xyz is solved) and the jaw's (mm or
+    None) that `move` was given, checked against the arm that answered (UsageError, nothing
+    sent but requests); joints not named keep their present angle."""
+    model = client.model
+    on = f"the {model.title} on {args.port}"
+    jaw: float | None = args.jaw
+    if args.xyz is not None:
+        return np.full(model.n_joints, np.nan), jaw
+    problem = wanted.names_problem((model,), on) or (
+        None
+        if wanted.named
+        else angles_problem("move", len(wanted.values), (model,), jaw=True, on=on)
+    )
+    if problem:
+        raise UsageError(f"{problem}; nothing was sent")
+    if wanted.gives_jaw(model) and jaw is not None:
+        raise UsageError("the jaw is given twice (with the angles and --jaw); nothing was sent")
+    present = np.full(model.n_joints, np.nan)
+    if wanted.named:
+        present = client.read_joints((PacketID.POSITION,)).q
+    return wanted.target(model, present, jaw)
+
+
+def _tool_error_mm(args: argparse.Namespace, q: np.ndarray, model: ArmModel) -> float:
     """With --xyz: the distance (mm) of the reported angles' tool centre point from the
     target; 0 without."""
     if args.xyz is None:
         return 0.0
-    return float(np.linalg.norm(tool_position(q) * 1000.0 - np.asarray(args.xyz, dtype=float)))
+    point = tool_position(q) if model is ALPHA5 else drawing_for(model).tool_position(q)
+    return float(np.linalg.norm(point * 1000.0 - np.asarray(args.xyz, dtype=float)))
 
 
 def _report_link_lost(client: ArmClient, target: np.ndarray, move_started: float) -> None:
@@ -472,7 +517,7 @@ def _report_link_lost(client: ArmClient, target: np.ndarray, move_started: float
     state = client.state
     positions = []
     ages = []
-    for letter, dev in zip(JOINT_LETTERS, JOINTS, strict=True):
+    for letter, dev in zip(client.model.joint_letters, client.model.joints, strict=True):
         reading = state.joint(dev).position
         if reading is None:
             positions.append(f"{letter} -")
@@ -496,11 +541,13 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
     params = dict(args.param)
     if args.controller not in available_controllers():  # a typo is a bad command line (2)
         raise UsageError(f"unknown controller {args.controller!r}; registered: {registered_list()}")
-    try:
-        controller = load_controller(args.controller, **params)
-    except (OSError, ValueError) as exc:  # a missing weights file, a bad gain...
-        given = " ".join(f"{k}={v}" for k, v in params.items())
-        raise UsageError(f"controller {args.controller!r} with --param {given}: {exc}") from None
+    if "arm" in params:
+        raise UsageError("--param arm: the arm's model is --arm (or found at connect)")
+    problem = angles_problem("run --target", len(args.target), in_scope(args))
+    if problem:
+        raise UsageError(problem)
+    assumed = given_model(args) or ALPHA5
+    controller = _run_controller(args, params, assumed)
     period, mismatch = control_period(controller, args.period)
     if args.pacing == Pacing.STREAM.value and not 1 <= round(1.0 / period) <= 255:
         raise UsageError(
@@ -521,10 +568,25 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
     summary: ControlSummary | None = None
     error: str | None = None
     try:
+        model = client.model
+        problem = angles_problem(
+            "run --target", len(args.target), (model,), on=f"the {model.title} on {args.port}"
+        )
+        if problem:
+            raise UsageError(f"{problem}; nothing was sent")
+        if model is not assumed:  # found at connect: the controller for this arm
+            controller = _run_controller(args, params, model)
+            if control_period(controller, args.period)[0] != period:
+                raise UsageError(
+                    f"controller {args.controller!r} asks for another period on the "
+                    f"{model.title}: give --period; nothing was sent"
+                )
         target = np.array(args.target, dtype=float)
-        for dev, value in zip(JOINTS, target, strict=True):
+        for dev, value in zip(model.joints, target, strict=True):
             client.guard.check(dev, LimitKind.POSITION, float(value))
-        faults = blocking_faults(client.read_status(JOINTS), _notes() if args.json else console)
+        faults = blocking_faults(
+            client.read_status(model.joints), _notes() if args.json else console
+        )
         if faults:
             raise ArmFaultError(f"arm reports faults, not starting: {faults}")
         viewer = getattr(args, "viewer", None)
@@ -544,9 +606,15 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
                 viewer=viewer,
                 diagnostics=lambda: client.state.joints,
                 keep_into=_kept(args),
+                model=model,
             )
             client.read_diagnostics()  # the run's recording opens with every device's readings
-        view = RunView(Console(stderr=True, highlight=False), args.seconds, enabled=not args.quiet)
+        view = RunView(
+            Console(stderr=True, highlight=False),
+            args.seconds,
+            enabled=not args.quiet,
+            letters=model.joint_letters,
+        )
         hook = chain(recorder.on_step if recorder is not None else None, view.on_step)
         loop = ControlLoop(client, controller, period, pacing=args.pacing, on_step=hook)
         # Everything loaded so far (modules, the controller, rerun) lives as long as the run: a
@@ -591,6 +659,7 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
             out = summary_dict(summary)
             out.update(
                 exit=int(code),
+                arm=model.name,
                 controller=args.controller,
                 controller_report=report,
                 target=summary.target,
@@ -635,6 +704,17 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
         client.close()
 
 
+def _run_controller(args: argparse.Namespace, params: dict[str, Any], model: ArmModel) -> Any:
+    """`run`'s controller for an arm of `model`, or the one line (UsageError) why not."""
+    try:
+        return load_controller(args.controller, arm=model, **params)
+    except ControllerModelError as exc:
+        raise UsageError(f"{exc}; nothing was sent") from None
+    except (OSError, ValueError) as exc:  # a missing weights file, a bad gain...
+        given = " ".join(f"{k}={v}" for k, v in params.items())
+        raise UsageError(f"controller {args.controller!r} with --param {given}: {exc}") from None
+
+
 def _say_interrupted(signum: int | None, left_in: str) -> None:
     """The last line on stderr of a move or run a signal ended."""
     if signum is not None:
@@ -657,6 +737,12 @@ def cmd_controllers(args: argparse.Namespace, console: Console) -> Exit:
 def cmd_workspace(args: argparse.Namespace, console: Console) -> Exit:
     """Where the tool reaches inside the limits `move --xyz` would use on an arm reporting
     the factory ones (the same guard, the same solver); opens no port."""
+    model = given_model(args) or ALPHA5
+    if model is not ALPHA5:
+        raise UsageError(
+            f"workspace: not yet for the {model.title} (its envelope is the {ALPHA5.title}'s "
+            "only so far); `move --xyz` solves a point on it"
+        )
     margin = float(args.position_margin)
     limits = np.array(SafetyGuard(safety_config(args)).position_limits())
     env = ik.envelope(limits)

@@ -11,11 +11,19 @@ from collections.abc import Callable
 from rich.console import Console
 from rich.markup import escape
 
-from protocol.alpha5 import JOINTS
+from protocol.models import ALPHA5
 from reach_driver.chatter import ChatterConfig, HoldMode
-from reach_driver.cli.exits import for_operator
+from reach_driver.cli.arms import (
+    current_values,
+    currents_by_device,
+    currents_problem,
+    given_model,
+    in_scope,
+)
+from reach_driver.cli.exits import UsageError, for_operator
 from reach_driver.client import ArmClient
-from reach_driver.errors import BadUrlError
+from reach_driver.errors import ArmModelError, BadUrlError
+from reach_driver.identity import ModelCheck, device_list
 from reach_driver.interfaces import open_transport
 from reach_driver.link import ClientEvent, EventKind
 from reach_driver.safety import SafetyConfig
@@ -29,15 +37,42 @@ def connect(args: argparse.Namespace, console: Console) -> ArmClient:
             "no port: give --port (device, pyserial URL or udp://HOST) or set $REACH_PORT"
         )
     safety = safety_config(args)  # checked by main() already
+    given = given_model(args)
     transport = open_transport(args.port, baud=args.baud, rs485=args.rs485)
     client = ArmClient(
-        transport, safety=safety, request_timeout_s=args.timeout, retries=args.retries
+        transport,
+        safety=safety,
+        request_timeout_s=args.timeout,
+        retries=args.retries,
+        model=given or ALPHA5,
     )
 
     # Events and warnings go to stderr so `info --json` stays parseable.
     notes = Console(stderr=True, highlight=False)
     client.on_event(EventPrinter(notes))
-    client.start()
+    try:
+        client.start(model_check=ModelCheck.DETECT if given is None else ModelCheck.CONFIRM)
+    except ArmModelError as exc:
+        which = f"--arm {exc.answering}" if exc.answering else "the --arm of the arm that answers"
+        raise ArmModelError(
+            f"{exc}; give {which}, or leave --arm out to take the arm that answers",
+            exc.answering,
+        ) from None
+    currents = current_values(args.max_current)
+    problem = (
+        currents_problem(currents, (client.model,), f"the {client.model.title}")
+        if currents
+        else None
+    )
+    if problem is not None:
+        client.close()
+        raise UsageError(f"{problem}; nothing was sent")
+    if given is None and client.model is not ALPHA5:
+        log.info("arm: %s (%s answer)", client.model.title, device_list(client.answering))
+        notes.print(
+            f"arm: {escape(client.model.title)} ({escape(device_list(client.answering))} answer)",
+            soft_wrap=True,
+        )
     for warning in client.warnings:
         log.warning("%s", warning)
         notes.print(f"[yellow]warning[/]: {escape(warning)}")
@@ -86,19 +121,14 @@ class EventPrinter:
 
 
 def safety_config(args: argparse.Namespace) -> SafetyConfig:
-    currents: dict[int, float] = {}
-    if args.max_current:
-        try:
-            given = [float(v) for v in args.max_current.split(",")]
-        except ValueError:
-            raise ValueError(f"--max-current takes mA values, got {args.max_current!r}") from None
-        if len(given) not in (1, 4) or not all(math.isfinite(v) and v > 0 for v in given):
-            raise ValueError(
-                "--max-current takes one positive value or four comma-separated (E,D,C,B), "
-                f"got {args.max_current!r}"
-            )
-        values = given * 4 if len(given) == 1 else given
-        currents = {int(d): v for d, v in zip(JOINTS, values, strict=True)}
+    """The safety options as a config for whichever model of those in scope the arm is
+    (`reach_driver.cli.arms`); ValueError for a bad value."""
+    models = in_scope(args)
+    given = current_values(args.max_current)
+    problem = currents_problem(given, models) if given else None
+    if problem is not None:
+        raise ValueError(problem)
+    currents = currents_by_device(given, models)
     if not (math.isfinite(args.position_margin) and args.position_margin >= 0):
         raise ValueError(f"--position-margin must be >= 0 rad, got {args.position_margin}")
     return SafetyConfig(

@@ -46,7 +46,8 @@ EXIT_TABLE: dict[Exit, str] = {
     "write, or .mcap without the export extra",
     Exit.LIMIT: "refused by a limit: nothing was sent, nothing moved (workspace --xyz: the "
     "point is out of reach)",
-    Exit.NO_ARM: "no arm: wrong port, no permission, nothing answering, wrong baud",
+    Exit.NO_ARM: "no arm: wrong port, no permission, nothing answering, wrong baud; or "
+    "another arm than --arm names (wrong arm)",
     Exit.LINK_LOST: "the link was lost during a move (the message says since when and the "
     "last positions the arm reported)",
     Exit.RECORDING_INCOMPLETE: "a run completed but its --record file is incomplete (e.g. a "

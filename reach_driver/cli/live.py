@@ -22,7 +22,7 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-from protocol.alpha5 import JOINT_LETTERS
+from protocol.models import ALPHA5
 from reach_driver.cli.render import measured
 from reach_driver.cli.tables import fitted
 from reach_driver.records import StepHook, StepRecord
@@ -48,18 +48,26 @@ def chain(*hooks: StepHook | None) -> StepHook | None:
     return each
 
 
-def _signed(values: Sequence[float] | np.ndarray | None, digits: int) -> list[str]:
+def _signed(values: Sequence[float] | np.ndarray | None, digits: int, n: int) -> list[str]:
     if values is None:
-        return ["-"] * 4
+        return ["-"] * n
     return ["-" if not math.isfinite(v) else f"{v:+.{digits}f}" for v in values]
 
 
 class RunView:
     """The live view of a `run`: `on_step` for the loop, a context manager around it."""
 
-    def __init__(self, console: Console, seconds: float, *, enabled: bool = True) -> None:
+    def __init__(
+        self,
+        console: Console,
+        seconds: float,
+        *,
+        enabled: bool = True,
+        letters: Sequence[str] = ALPHA5.joint_letters,
+    ) -> None:
         self.console = console
         self.seconds = seconds
+        self.letters = tuple(letters)  # the arm's joints, in its order
         self.enabled = enabled
         self.live_mode = enabled and console.is_terminal
         self._latest: StepRecord | None = None
@@ -102,12 +110,13 @@ class RunView:
     # -- plain lines ------------------------------------------------------------------------
     def line(self, r: StepRecord) -> str:
         err = r.target - r.q
+        n = len(self.letters)
         current = r.current_mA if r.current_mA is not None else r.command_mA
         source = "I" if r.current_mA is not None else "cmd"
         parts = [
             f"t {r.t:5.1f}/{self.seconds:g} s",
             "error [rad] "
-            + " ".join(f"{j} {e}" for j, e in zip(JOINT_LETTERS, _signed(err, 3), strict=True)),
+            + " ".join(f"{j} {e}" for j, e in zip(self.letters, _signed(err, 3, n), strict=True)),
             f"max |e| {float(np.nanmax(np.abs(err))):.3f}",
             f"{source} [mA] " + " ".join(measured(v, ".0f") for v in current),
             f"loop {measured(self.rate_hz(), '.1f')} Hz",  # one step is no rate yet
@@ -137,14 +146,15 @@ class RunView:
             "command [mA]",
         ):
             table.add_column(escape(column), justify="right")
-        currents = _signed(r.current_mA, 0)
+        n = len(self.letters)
+        currents = _signed(r.current_mA, 0, n)
         for row in zip(
-            JOINT_LETTERS,
+            self.letters,
             [f"{v:.4f}" for v in r.q],
             [f"{v:.4f}" for v in r.target],
-            _signed(err, 4),
+            _signed(err, 4, n),
             currents,
-            _signed(r.command_mA, 0),
+            _signed(r.command_mA, 0, n),
             strict=True,
         ):
             table.add_row(*row)
@@ -194,8 +204,15 @@ class MoveView:
     """`move`'s progress: a line a second of the remaining error (off a terminal), or
     nothing (on one the caller shows a progress bar)."""
 
-    def __init__(self, console: Console, *, enabled: bool = True) -> None:
+    def __init__(
+        self,
+        console: Console,
+        *,
+        enabled: bool = True,
+        letters: Sequence[str] = ALPHA5.joint_letters,
+    ) -> None:
         self.console = console
+        self.letters = tuple(letters)
         self.enabled = enabled and not console.is_terminal
         self._next = -math.inf
         self._started = time.monotonic()
@@ -205,7 +222,8 @@ class MoveView:
         if not self.enabled or (now < self._next and not force):
             return
         self._next = now + LINE_EVERY_S
-        text = " ".join(f"{j} {e}" for j, e in zip(JOINT_LETTERS, _signed(err, 3), strict=True))
+        signed = _signed(err, 3, len(self.letters))
+        text = " ".join(f"{j} {e}" for j, e in zip(self.letters, signed, strict=True))
         jaw = f" jaw {jaw_err:+.2f} mm" if jaw_err is not None else ""
         self.console.print(
             f"move {now - self._started:5.1f} s | error [rad] {text}{jaw} | max |e| "

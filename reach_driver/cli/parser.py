@@ -9,6 +9,7 @@ from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
 from protocol.alpha5 import TORQUE_PER_AMP_NM
+from protocol.models import ArmModelName
 from protocol.viewer import add_viewer_option
 from reach_driver.cli.exits import exit_table_text
 from reach_driver.control import Pacing
@@ -16,16 +17,17 @@ from reach_driver.controllers import registered_list
 from reach_driver.transport import DEFAULT_BAUD
 
 DESCRIPTION = """\
-Talk to a Reach Alpha 5 arm, or the virtual arm (reach-sim), over the Reach/BPL serial
-protocol.
+Talk to a Reach Alpha 5 or Bravo 7 arm, or a virtual one (reach-sim), over the Reach/BPL
+serial protocol. The arm's model is found from the devices that answer (--arm names it).
 
 --port takes a serial device (/dev/ttyUSB0), any pyserial URL (loop://, rfc2217://...),
 udp://HOST[:PORT] for Ethernet arms (port 6789 by default) or can://INTERFACE/CHANNEL for
 an arm behind a CAN gateway (see docs/can-tunnel.md). It defaults to $REACH_PORT.
 
-Joint angles are the arm's own, in radians, in the order E D C B (base, shoulder, elbow,
-wrist); the jaw is in mm. Safety is always on: commands outside the limits the arm reports
-are refused before anything is sent, and Ctrl-C leaves the arm in a safe mode.
+Joint angles are the arm's own, in radians, base to tip: E D C B on an Alpha 5 (base,
+shoulder, elbow, wrist), G F E D C B on a Bravo 7; the jaw is in mm. Safety is always on:
+commands outside the limits the arm reports are refused before anything is sent, and Ctrl-C
+leaves the arm in a safe mode.
 """
 
 EPILOG = """\
@@ -156,6 +158,14 @@ def _add_connection_options(
         "(default: $REACH_PORT)",
     )
     g.add_argument(
+        "--arm",
+        choices=[m.value for m in ArmModelName],
+        default=default(None),
+        help="the arm's model; by default it is found from the devices that answer (0x06 "
+        "and 0x07 answering: a Bravo 7). Given, an arm whose devices say otherwise is "
+        "refused before anything but a request is sent (exit 4)",
+    )
+    g.add_argument(
         "--baud",
         type=int,
         default=default(DEFAULT_BAUD),
@@ -204,9 +214,9 @@ def _add_connection_options(
         "--max-current",
         metavar="MA[,MA,MA,MA]",
         default=default(None),
-        help="tighten the current limits the arm reports: one value for every joint or four "
-        "comma-separated (E,D,C,B), in mA; a controller's output is clipped to them (for "
-        "first runs on a real arm)",
+        help="tighten the current limits the arm reports: one value for every joint or one "
+        "per joint comma-separated (E,D,C,B on an Alpha 5; G,F,E,D,C,B on a Bravo 7), in mA; a "
+        "controller's output is clipped to them (for first runs on a real arm)",
     )
     g.add_argument(
         "--position-margin",
@@ -334,8 +344,9 @@ def build_parser() -> argparse.ArgumentParser:
     move = add(
         "move",
         parents=[common_move],
-        help="position-mode move of E D C B (rad) and optionally the jaw (mm)",
-        description="Move the four joints to absolute angles (rad, as the arm reports them) "
+        help="position-mode move of the joints (rad) and optionally the jaw (mm)",
+        description="Move the joints (E D C B on an Alpha 5, G F E D C B on a Bravo 7) to "
+        "absolute angles (rad, as the arm reports them) "
         "in position mode and wait until every joint is within --tolerance. Targets outside "
         "the limits are refused before anything moves (exit 3). If the link goes down during the "
         "move it stops waiting at once and exits 5, saying since when and the last positions "
@@ -344,9 +355,11 @@ def build_parser() -> argparse.ArgumentParser:
     move.add_argument(
         "angles",
         nargs="*",
-        type=float,
         metavar="ANGLE",
-        help="the four angles E D C B in rad: base angle, shoulder, elbow, wrist (or --xyz)",
+        help="the four angles E D C B in rad: base angle, shoulder, elbow, wrist (or --xyz); "
+        "on a Bravo 7 the six G F E D C B. The jaw's opening (mm) may follow them (as "
+        "--jaw), or name the joints to move, the others staying where they are: G=1.2 A=5 "
+        "(A: the jaw, mm)",
     )
     move.add_argument(
         "--xyz",
@@ -413,7 +426,14 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"a registered name: {registered_list()} (`reach-driver controllers` says what "
         "each is)",
     )
-    run.add_argument("--target", nargs=4, type=float, required=True, metavar=("E", "D", "C", "B"))
+    run.add_argument(
+        "--target",
+        nargs="+",
+        type=float,
+        required=True,
+        metavar="ANGLE",
+        help="the joint angles to reach, rad: E D C B on an Alpha 5, G F E D C B on a Bravo 7",
+    )
     run.add_argument("--seconds", type=_positive, required=True, help="loop (arm) seconds")
     run.add_argument(
         "--period",

@@ -30,6 +30,7 @@ import numpy as np
 from rich.console import Console
 from rich.markup import escape
 
+from protocol.models import ALPHA5, ArmModel
 from reach_driver.cli.report import summary_dict
 from reach_driver.errors import DriverError
 from reach_driver.records import ControlSummary, StepRecord
@@ -93,13 +94,15 @@ class CliRecorder:
         viewer: ViewerSpec | None = None,
         diagnostics: Callable[[], Mapping[int, JointState]] | None = None,
         keep_into: list[RunRecorder] | None = None,
+        model: ArmModel = ALPHA5,
     ) -> None:
         """Opens the recording (and the viewer); fails (DriverError) before anything moves if
         the file cannot be written. A viewer that cannot be had only warns. `diagnostics`
         gives what the driver knows of each device (`ArmClient.state.joints`): its Monitor
         readings and status flags are logged at each step or refresh that has newer ones.
         `keep_into` (`--viewer-keep`): closing ends the file but leaves a live viewer serving,
-        the recorder put in this list for the command line to close when it is done."""
+        the recorder put in this list for the command line to close when it is done. `model`:
+        the arm recorded (its joints, its drawing)."""
         try:
             from reach_driver import recording
         except ImportError as exc:
@@ -125,6 +128,7 @@ class CliRecorder:
                     f"[yellow]warning[/]: {escape(msg)}", soft_wrap=True
                 ),
                 announce=lambda msg: self._warn.print(escape(msg), soft_wrap=True),
+                model=model,
             )
             self._rec.log_event("start")
         except Exception as exc:  # rerun raises RuntimeError for sink errors, Python OSError
@@ -305,7 +309,7 @@ class CliRecorder:
                         q=tr.q[-1],
                         qdot=tr.qdot[-1],
                         target=summary.target,
-                        current_cmd_mA=np.zeros(4),
+                        current_cmd_mA=np.zeros(len(summary.target)),
                         current_meas_mA=tr.current_mA[-1],
                         torque_Nm=tr.torque_Nm[-1],
                     )

@@ -16,7 +16,8 @@ from rich.markup import escape
 from rich.table import Table
 
 from protocol import DeviceID, HardwareStatus, Mode, PacketID
-from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS, TORQUE_PER_AMP_NM
+from protocol.alpha5 import JOINT_LETTERS
+from protocol.models import ALPHA5, ArmModel, model_named
 from reach_driver.cli.exits import for_operator
 from reach_driver.cli.report import run_metrics, run_overshoot
 from reach_driver.cli.tables import show_table
@@ -99,7 +100,7 @@ def _whole(reading: Any) -> int | None:
     return int(round(float(reading.value)))
 
 
-def info_json(port: str, joints: dict[int, JointState]) -> dict[str, Any]:
+def info_json(port: str, joints: dict[int, JointState], model: ArmModel = ALPHA5) -> dict[str, Any]:
     out = {}
     for dev, js in joints.items():
         out[DeviceID(dev).name] = {
@@ -119,37 +120,38 @@ def info_json(port: str, joints: dict[int, JointState]) -> dict[str, Any]:
             "blocking_flags": flag_labels(blocking_flags(js.status.value)) if js.status else [],
             "diagnostics": diagnostics_json(js),
         }
-    return jsonable({"port": port, "devices": out}, digits6=True)
+    return jsonable({"port": port, "arm": model.name, "devices": out}, digits6=True)
 
 
-def _unit(dev: int, joint: str, jaw: str) -> str:
-    return jaw if dev == JAW else joint
-
-
-def info_tables(port: str, joints: dict[int, JointState]) -> tuple[Table, Table]:
-    """Two tables that each fit 80 columns: who answers, and where and within what limits."""
-    ids = Table(title=f"Reach arm on {escape(port)}: {len(joints)} device(s)")
+def info_tables(
+    port: str, joints: dict[int, JointState], model: ArmModel = ALPHA5
+) -> tuple[Table, Table]:
+    """Two tables that each fit 80 columns: who answers, and where and within what limits.
+    The Alpha 5's title says "Reach arm", as it always has; another model's names it."""
+    arm = "Reach arm" if model is ALPHA5 else model.title
+    ids = Table(title=f"{arm} on {escape(port)}: {len(joints)} device(s)")
     for column in ("device", "mode", "version", "serial no.", "model no.", "status"):
         ids.add_column(column)
     limits = Table(
         title="position and limits",
-        caption="joints E D C B in rad and rad/s, the jaw A in mm and mm/s",
+        caption=f"joints {' '.join(model.joint_letters)} in rad and rad/s, the jaw "
+        f"{model.jaw.name} in {model.jaw_unit} and {model.jaw_unit}/s",
         show_edge=False,
     )
     for column in ("device", "position", "position limits", "velocity limit", "current limit"):
         limits.add_column(column, justify="right", no_wrap=True)
     for dev, js in joints.items():
-        serial, model = _whole(js.serial_number), _whole(js.model_number)
+        serial, number = _whole(js.serial_number), _whole(js.model_number)
         ids.add_row(
             joint_name(dev),
             mode_name(js),
             escape(str(js.software_version.value)) if js.software_version else "-",
             "-" if serial is None else str(serial),
-            "-" if model is None else str(model),
+            "-" if number is None else str(number),
             status_text(js),
         )
-        pos_unit = _unit(dev, "rad", "mm")
-        vel_unit = _unit(dev, "rad/s", "mm/s")
+        pos_unit = model.unit(dev)
+        vel_unit = f"{pos_unit}/s"
         limits.add_row(
             joint_name(dev),
             f"{fmt(js.position.value)} {pos_unit}" if js.position else "-",
@@ -171,7 +173,7 @@ def monitor_json(
     now = client.clock()
     state = client.state
     devices = {}
-    for dev in (*JOINTS, JAW):
+    for dev in client.model.actuators:
         js = state.joint(dev)
         devices[DeviceID(dev).name] = {
             "mode": mode_name(js) if js.mode is not None else None,
@@ -266,7 +268,7 @@ def monitor_table(client: ArmClient, rates: dict[tuple[int, int], float], port: 
     for m in MONITOR_READINGS:
         table.add_column(m.column, justify="right")
     table.add_column("status")
-    for dev in (*JOINTS, JAW):
+    for dev in client.model.actuators:
         js = state.joint(dev)
         age = js.position.age(now) * 1e3 if js.position else math.nan
         table.add_row(
@@ -307,7 +309,7 @@ def monitor_line(client: ArmClient, rates: dict[tuple[int, int], float], t: floa
     """`monitor` off a terminal: a plain line of every device's angle, current, update rate,
     mode and status flags and the link's frames; the table at the end has the rest."""
     state = client.state
-    devices = (*JOINTS, JAW)
+    devices = client.model.actuators
     joints = [state.joint(dev) for dev in devices]
     names = [DeviceID(dev).name for dev in devices]
     position = " ".join(
@@ -424,9 +426,9 @@ def print_metrics(console: Console, s: ControlSummary) -> None:
     tr = s.trace
     assert tr is not None
     measured = int(np.isfinite(tr.current_mA[1:]).all(axis=1).sum())
-    kt = "/".join(f"{k:.3g}" for k in TORQUE_PER_AMP_NM)
+    kt = "/".join(f"{k:.3g}" for k in s.model.torque_per_amp_nm)
     source = "commanded" if measured == 0 else "measured"
-    note = f"torque = {source} current x {kt} N m/A (E D C B)"
+    note = f"torque = {source} current x {kt} N m/A ({' '.join(s.model.joint_letters)})"
     if 0 < measured < tr.samples - 1:
         note += f" (commanded on the {tr.samples - 1 - measured} samples without a reading)"
     if tr.filled:
@@ -438,7 +440,8 @@ def print_summary(console: Console, s: ControlSummary) -> None:
     table = Table(title=f"run: {s.steps} steps, {s.loop_seconds:.2f} s loop time")
     for column in ("joint", "target [rad]", "final [rad]", "error [rad]"):
         table.add_column(escape(column), justify="right")
-    for j, tgt, q, e in zip(JOINT_LETTERS, s.target, s.final_q, s.final_error, strict=True):
+    letters = s.model.joint_letters
+    for j, tgt, q, e in zip(letters, s.target, s.final_q, s.final_error, strict=True):
         table.add_row(j, fmt(tgt), fmt(q), fmt(e))
     show_table(console, table)
     t = s.timing
@@ -500,7 +503,9 @@ def print_recording(console: Console, summary: dict[str, Any]) -> None:
         for line in summary.get("events", []):
             console.print(f"  {escape(str(line))}")
         return
-    joints = Table(title="final state (rad)")
+    arm = summary.get("arm", ALPHA5.name)
+    named = "" if arm == ALPHA5.name else f" of the {_model_title(str(arm))}"
+    joints = Table(title=f"final state{named} (rad)")
     for col in ("joint", "target", "position", "error"):
         joints.add_column(col, justify="right")
     for row in zip(
@@ -523,6 +528,13 @@ def print_recording(console: Console, summary: dict[str, Any]) -> None:
         show_table(console, recorded_diagnostics_table(diagnostics))
     for line in summary.get("events", []):
         console.print(f"  {escape(str(line))}")
+
+
+def _model_title(name: str) -> str:
+    try:
+        return model_named(name).title
+    except ValueError:
+        return name
 
 
 def recorded_diagnostics_table(diagnostics: dict[str, Any]) -> Table:

@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 
+from protocol.models import ALPHA5, ArmModel
 from reach_driver.metrics import (
     Metrics,
     OvershootAnatomy,
@@ -21,7 +22,7 @@ def run_metrics(summary: ControlSummary) -> Metrics | None:
     tr = summary.trace
     if tr is None or tr.samples < 2:
         return None
-    return compute_metrics(trace_for_metrics(tr, summary.target))
+    return compute_metrics(trace_for_metrics(tr, summary.target, summary.model))
 
 
 def run_overshoot(summary: ControlSummary) -> OvershootAnatomy | None:
@@ -29,11 +30,12 @@ def run_overshoot(summary: ControlSummary) -> OvershootAnatomy | None:
     tr = summary.trace
     if tr is None or tr.samples < 2:
         return None
-    return overshoot_anatomy(tr.q, tr.qdot, summary.target, tr.dt)
+    letters = summary.model.joint_letters
+    return overshoot_anatomy(tr.q, tr.qdot, summary.target, tr.dt, letters)
 
 
-def trace_for_metrics(tr: LoopTrace, target: np.ndarray) -> Trace:
-    return Trace(dt=tr.dt, q=tr.q, qdot=tr.qdot, tau=tr.torque_Nm, target=target)
+def trace_for_metrics(tr: LoopTrace, target: np.ndarray, model: ArmModel = ALPHA5) -> Trace:
+    return Trace(dt=tr.dt, q=tr.q, qdot=tr.qdot, tau=tr.torque_Nm, target=target, model=model)
 
 
 def summary_dict(s: ControlSummary) -> dict[str, object]:

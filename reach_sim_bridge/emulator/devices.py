@@ -124,6 +124,14 @@ DEVICE_SPECS: dict[str, tuple[DeviceSpec, ...]] = {
 #: The number each model's emulated devices answer MODEL_NUMBER with: the emulator's own
 #: (the vendor's are not published).
 MODEL_NUMBERS: dict[str, float] = {ALPHA5.name: 5005.0, BRAVO7.name: 7007.0}
+#: Each model's monitor model where it is not the default. The Bravo 7's supply source [A]:
+#: 0.5 ohm, so its joints at their default current limits together (9.5 A, 9.6 with the
+#: electronics) keep the bus at 19.2 V, above the 18 V LOW_SUPPLY_VOLTAGE level, as the
+#: Alpha's 2.4 A keep it at 21.6 V through the default 1 ohm (docs/protocol.md, 3a); through
+#: 1 ohm it would flag its own supply whenever it drew 6 A.
+MONITOR_CONFIGS: dict[str, MonitorConfig] = {
+    BRAVO7.name: MonitorConfig(source_resistance_ohm=0.5),
+}
 
 
 @dataclass(frozen=True)
@@ -137,7 +145,9 @@ class FirmwareConfig:
     model_number: float = 0.0  # 0: the model's (`MODEL_NUMBERS`)
     temperature_c: float = 20.0  # the water's: each housing starts at it (monitor model)
     humidity_pct: float = 10.0  # in each housing at power-on
-    monitor: MonitorConfig = MonitorConfig()  # climate and supply model, factory levels
+    #: Climate and supply model, factory levels: the model's (`MONITOR_CONFIGS`) unless
+    #: another than the default is given.
+    monitor: MonitorConfig = MonitorConfig()
     leaks: tuple[Leak, ...] = ()  # housings taking in water from the start
     stuck: tuple[StuckReading, ...] = ()  # readings that stop changing (fault injection)
     # Thermal derating of each device's current limit (assumed constants; None: off).
@@ -158,6 +168,8 @@ class FirmwareConfig:
             object.__setattr__(self, "devices", specs)
         if not self.model_number:
             object.__setattr__(self, "model_number", MODEL_NUMBERS.get(self.model.name, 1.0))
+        if self.monitor == MonitorConfig() and self.model.name in MONITOR_CONFIGS:
+            object.__setattr__(self, "monitor", MONITOR_CONFIGS[self.model.name])
 
 
 @dataclass

@@ -127,3 +127,165 @@ GEOMS: tuple[LinkGeom, ...] = (
 {rows}
 )
 '''
+
+
+# -- the Bravo 7 -------------------------------------------------------------------------------
+
+#: The Bravo 7's drawn bodies: the base (welded to the world), the links its joints G F E D C B
+#: move, and the bodies drawn in the last link's frame (the jaws, link 7, fixed to link 6, and
+#: the push rod's fingers at the default opening).
+BRAVO7_BASE = "link0"
+BRAVO7_LINKS = ("link1", "link2", "link3", "link4", "link5", "link6")
+BRAVO7_FIXED = ("link7", "jaw")
+BRAVO7_TCP = "tcp"
+
+
+class ChainRow(TypedDict):
+    """One joint as reach_driver.bravo7_drawing.FRAMES holds it (`ChainFrame`): the link it
+    moves, that link's origin and rotation in its parent's frame (the world's for the first)
+    and its axis."""
+
+    joint: str
+    link: str
+    pos: tuple[float, ...]
+    quat_xyzw: tuple[float, ...]
+    axis: tuple[float, ...]
+
+
+def _r6(values: np.ndarray) -> tuple[float, ...]:
+    return tuple(round(float(v), 6) + 0.0 for v in values)  # + 0.0: no "-0.0"
+
+
+def _mat(quat_wxyz: np.ndarray) -> np.ndarray:
+    out = np.zeros(9)
+    mujoco.mju_quat2Mat(out, quat_wxyz)
+    return out.reshape(3, 3)
+
+
+def _xyzw(quat_wxyz: np.ndarray) -> tuple[float, ...]:
+    w, x, y, z = quat_wxyz
+    return _r6(np.array([x, y, z, w]))
+
+
+def extract_bravo7(
+    mjcf: Path | None = None,
+) -> tuple[list[ChainRow], list[GeomRow], tuple[float, ...]]:
+    """The Bravo 7 as the driver draws it: its chain (the base's fixed pose folded into the
+    first joint's frame), every cylinder and box geom in its link's frame (the base's in the
+    world's, the jaws' in link 6's) and the tool centre point in link 6's frame."""
+    from reach_sim_bridge.model.bravo7 import MODEL_PATH as BRAVO7_PATH
+
+    m = mujoco.MjModel.from_xml_path(str(mjcf or BRAVO7_PATH))
+    base = m.body(BRAVO7_BASE).id
+    base_pos, base_quat = m.body_pos[base].copy(), m.body_quat[base].copy()
+    assert m.body_parentid[base] == 0, "the base is welded to the world"
+    # Each drawn body's pose in its drawing frame: the world (base), its own (links), link 6.
+    frame_of: dict[int, tuple[str, np.ndarray, np.ndarray]] = {base: ("world", base_pos, base_quat)}
+    chain: list[ChainRow] = []
+    parent = base
+    for link in BRAVO7_LINKS:
+        body = m.body(link).id
+        assert m.body_parentid[body] == parent, f"{link} hangs off the link before it"
+        joint = int(m.body_jntadr[body])
+        assert m.body_jntnum[body] == 1 and not np.any(m.jnt_pos[joint]), link
+        pos, quat = m.body_pos[body].copy(), m.body_quat[body].copy()
+        if parent == base:  # the base's fixed pose, folded in
+            pos, quat = base_pos + _mat(base_quat) @ pos, _quat_mul(base_quat, quat)
+        chain.append(
+            {
+                "joint": m.joint(joint).name,
+                "link": link,
+                "pos": _r6(pos),
+                "quat_xyzw": _xyzw(quat),
+                "axis": _r6(m.jnt_axis[joint]),
+            }
+        )
+        frame_of[body] = (link, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+        parent = body
+    last = BRAVO7_LINKS[-1]
+    for name in BRAVO7_FIXED:  # each hangs off the body before it, in link 6's frame
+        body = m.body(name).id
+        _, ppos, pquat = frame_of[int(m.body_parentid[body])]
+        pos = m.body_pos[body].copy()
+        if m.body_jntnum[body]:  # the push rod's slide, at the jaws' default opening
+            joint = int(m.body_jntadr[body])
+            pos = pos + _mat(m.body_quat[body]) @ (m.jnt_axis[joint] * JAW_DEFAULT_MM / 1000.0)
+        frame_of[body] = (
+            last,
+            ppos + _mat(pquat) @ pos,
+            _quat_mul(pquat, m.body_quat[body]),
+        )
+    geoms: list[GeomRow] = []
+    for g in range(m.ngeom):
+        shape = _SHAPES.get(int(m.geom_type[g]))
+        body = int(m.geom_bodyid[g])
+        if shape is None or body not in frame_of:
+            continue
+        link, fpos, fquat = frame_of[body]
+        pos = fpos + _mat(fquat) @ m.geom_pos[g]
+        quat = _quat_mul(fquat, m.geom_quat[g])
+        size = m.geom_size[g]
+        geoms.append(
+            {
+                "name": m.geom(g).name or f"{m.body(body).name}_{shape}_{g}",
+                "link": BRAVO7_BASE if link == "world" else link,
+                "shape": shape,
+                "center": _r6(pos),
+                "quat_xyzw": _xyzw(quat),
+                "size": _r6(np.array([size[0], 2.0 * size[1]]))
+                if shape == "cylinder"
+                else _r6(size[:3]),
+            }
+        )
+    site = m.site(BRAVO7_TCP).id
+    _, fpos, fquat = frame_of[int(m.site_bodyid[site])]
+    tcp = _r6(fpos + _mat(fquat) @ m.site_pos[site])
+    return chain, geoms, tcp
+
+
+def render_bravo7(chain: list[ChainRow], geoms: list[GeomRow], tcp: tuple[float, ...]) -> str:
+    """The source of reach_driver/bravo7_drawing.py."""
+    frames = "\n".join(
+        "    ChainFrame(\n"
+        + "".join(
+            f"        {_literal(value)},\n"
+            for value in (c["joint"], c["link"], c["pos"], c["quat_xyzw"], c["axis"])
+        )
+        + "    ),"
+        for c in chain
+    )
+    rows = "\n".join(
+        "    LinkGeom(\n"
+        + "".join(
+            f"        {_literal(value)},\n"
+            for value in (g["name"], g["link"], g["shape"], g["center"], g["quat_xyzw"], g["size"])
+        )
+        + "    ),"
+        for g in geoms
+    )
+    return f'''"""The Reach Bravo 7 as the driver draws it (reach_driver.drawing): its joint frames,
+link geoms and tool centre point.
+
+GENERATED by tools/gen_arm_geometry.py from reach_sim_bridge/model/bravo7.xml: do not edit;
+tests/test_recording_views.py checks it matches. Each joint's frame is its link's origin and
+rotation in the frame of the link before it (the base's fixed pose folded into the first);
+each geom is in its link's frame ("{BRAVO7_BASE}", the base, in the world's), posed as MuJoCo
+compiles the MJCF. The jaws and their fingers are in link 6's frame at the jaws' default
+opening ({JAW_DEFAULT_MM:g} mm): the driver's recordings do not track the jaw.
+"""
+
+from __future__ import annotations
+
+from reach_driver.arm_geometry import LinkGeom
+from reach_driver.kinematics import ChainFrame
+
+BASE_LINK = "{BRAVO7_BASE}"
+FRAMES: tuple[ChainFrame, ...] = (
+{frames}
+)
+#: The tool centre point in the last link's frame (m): the MJCF's `tcp` site.
+TCP: tuple[float, float, float] = {tcp!r}
+GEOMS: tuple[LinkGeom, ...] = (
+{rows}
+)
+'''
