@@ -491,19 +491,6 @@ def _cost_at(replay: Replay, params: ArmParams, seg: Segment) -> float:
     return float(r @ r)
 
 
-@pytest.mark.parametrize("scale", [1.0, 0.25])
-def test_the_coarse_start_tells_a_weak_drive(scale: float) -> None:
-    """A D at 25 % torque fights its own load with a quarter of its drive; started from full
-    torque its fit once put 12.6 N m of Coulomb friction there (validation R^2 0.71). The
-    grid is tried at full and at a quarter torque."""
-    d = JOINT_LETTERS.index("D")
-    truth = params_with(ArmParams(), [("torque_scale", d)], [scale])
-    segs = [_record(truth, d, "relay", 3.0, amplitude_factor=1.0 / scale)]
-    start = coarse_start(Replay(window_s=1.0), segs, ArmParams(), default_refs(d, False))
-    assert start.torque_scale[d] == scale
-    assert start.torque_scale[:d] + start.torque_scale[d + 1 :] == (1.0, 1.0, 1.0)
-
-
 def test_a_joint_is_fitted_beside_a_weak_one_it_does_not_know_yet() -> None:
     """C excited while a D at 25 % torque holds the arm (on about 90 mA), fitted from the
     nominal arm, as `fit_arm` fits C before D. Driven between ticks by its logged current, a nominal
