@@ -206,3 +206,36 @@ def joint_inertia(params: ArmParams, joint: int) -> float:
     """Joint `joint`'s (E D C B index) inertia at `FACTORY_MIDDLE` with the others still: its
     armature plus its links' (kg m^2)."""
     return float(Alpha5Arm(params=params).mass_matrix(np.array(FACTORY_MIDDLE))[joint, joint])
+
+
+CORRELATION_LAGS = 150
+"""`correlation_time` sums the autocorrelation up to this many rows (3 s at 50 Hz)."""
+
+
+def correlation_time(blocks: Sequence[FloatArray], max_lag: int = CORRELATION_LAGS) -> float:
+    """The residuals' integrated autocorrelation time, in rows: 1 + 2 x the sum of their
+    autocorrelation over the lags before it first drops to zero, averaged over `blocks` (one
+    per segment) by length; 1 for white residuals. The residual variance times it is what
+    the Fisher information and the 1-sigma uncertainties divide by: a model error that
+    stays for half a second is one piece of evidence, not 25. Without it a wrist at 30 %
+    torque had its scale fitted to +-1.5 % and came out 12 % off."""
+    total, weight = 0.0, 0
+    for block in blocks:
+        x = np.asarray(block, dtype=float)
+        x = x[np.isfinite(x)]
+        n = x.size
+        if n < 4:
+            continue
+        x = x - x.mean()
+        var = float(x @ x)
+        if var <= 0:
+            continue
+        tau = 1.0
+        for k in range(1, min(max_lag, n - 1)):
+            rho = float(x[:-k] @ x[k:]) / var
+            if rho <= 0:
+                break
+            tau += 2.0 * rho
+        total += tau * n
+        weight += n
+    return total / weight if weight else 1.0

@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from protocol.alpha5 import JOINT_LETTERS
-from reach_sim_bridge.fit.identifiability import Fisher, marginal_information
+from reach_sim_bridge.fit.identifiability import Fisher, correlation_time, marginal_information
 from reach_sim_bridge.fit.replay import (
     DELAY,
     VELOCITY_WEIGHT_S,
@@ -43,6 +43,8 @@ class FitResult:
     segments: tuple[Segment, ...] = ()  # as fitted: with their window starts when fitted
     #: what the data say about `refs` and the probed parameters at the optimum
     fisher: Fisher | None = None
+    #: the residuals' correlation time (rows) the uncertainties were inflated by
+    correlation_rows: float = 1.0
 
     def table(self) -> dict[str, dict[str, float]]:
         return {
@@ -342,7 +344,18 @@ def fit_joint(
     # Uncertainty at the optimum (the last Jacobian is at x unless the step was refused).
     jac = jacobian(x, r)
     dof = max(r.size - x.size, 1)
-    sigma2 = cost / dof
+    # residuals correlated in time carry fewer independent samples than rows: the variance
+    # per row times the correlation time, in rows (`correlation_time`)
+    p_end, d_end = unpack(x)
+    segs_end = starts_at(x)
+    blocks = []
+    for seg in segs_end:
+        one = replay.residuals(p_end, d_end, [seg], velocity_weight)
+        windows = 0 if seg.start_fix is None else seg.start_fix.shape[0]
+        rows = (one.size - 2 * windows) // (2 if velocity_weight > 0 else 1)
+        blocks.append(one[:rows])
+    tau = correlation_time(blocks)
+    sigma2 = cost / dof * tau
     physical = physical_of(x)
     # d physical / dx, to carry the uncertainty over to the physical values
     grad = np.diag(np.where(is_log[:n_par], physical, 1.0))
@@ -368,6 +381,7 @@ def fit_joint(
         costs=tuple(costs),
         segments=tuple(starts_at(x)),
         fisher=fisher,
+        correlation_rows=tau,
     )
 
 
