@@ -323,17 +323,23 @@ def anchor_scales(
 
 
 def unanchored(joint: int, result: FitResult) -> ScaleVerdict:
-    """The verdict on a torque scale nothing anchors: E and B carry no load, and C or D
-    without the other has nothing to weigh the wrist against. The twin takes the datasheet
-    torque; the sigma is what the links' own inertia (which does not scale) gives."""
+    """The verdict on a torque scale nothing anchors: E and B carry no load worth the name,
+    and C or D without the other has nothing to weigh the wrist against. The twin takes the
+    datasheet torque; the sigma is what the Fisher information gives from the little that does
+    not scale (the links' own inertia, B's small load), which the fit does not lean on."""
     letter = JOINT_LETTERS[joint]
     scale_ref = ("torque_scale", joint)
     fisher = result.fisher
     sigma = (
         fisher.sigma({scale_ref: 1.0}) if fisher is not None and scale_ref in fisher.refs else None
     )
-    if letter in ("E", "B"):
-        why = f"{letter} carries no gravity load: nothing weighs its torque against a known one"
+    if letter == "E":
+        why = "E turns about the vertical: no load weighs its torque against a known one"
+    elif letter == "B":
+        why = (
+            "B's only load is the wrist's weight a few millimetres off its roll axis (mN m, "
+            "a model assumption): too small to weigh its torque against"
+        )
     else:
         other = "D" if letter == "C" else "C"
         why = f"{other} was not identified: nothing weighs the wrist at a known torque"
