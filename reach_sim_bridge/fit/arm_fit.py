@@ -14,11 +14,13 @@ import numpy as np
 from protocol.alpha5 import JOINT_LETTERS
 from reach_sim_bridge.fit.identifiability import (
     INERTIA,
-    NET_WEIGHT,
+    LOAD_RMS,
     Fisher,
     ScaleStatus,
     ScaleVerdict,
     joint_inertia,
+    joint_load,
+    load_exponents,
 )
 from reach_sim_bridge.fit.joint_fit import (
     LOAD,
@@ -33,6 +35,7 @@ from reach_sim_bridge.fit.replay import (
     VELOCITY_WEIGHT_S,
     ParamRef,
     Replay,
+    param_value,
     params_with,
     ref_name,
 )
@@ -279,11 +282,20 @@ def anchor_scales(
     drive is taken at its datasheet torque per amp (the anchor: a worn drive is one joint's);
     the weaker is fitted again with its torque scale free and the wrist held at what the
     stronger weighed (an absolute load in N m), from its fit scaled to the ratio
-    (`equivalent`). Returns the arm, the weaker joint's new fit and both verdicts."""
+    (`equivalent`). Where the two weights do not tell which drive is the weaker (the ratio
+    within two of its sigmas of 1, and that sigma over `IDENTIFIED_SIGMA`) neither scale is
+    known: a D at 70 % torque, weighed on two short relays at 1x sensor noise, once looked
+    the stronger. Returns the arm, the weaker joint's new fit and both verdicts."""
     b = WRIST_LOAD[1]
     w_c = wrist_weight(results[C].params)
     w_d = wrist_weight(results[D].params)
     ratio = w_d / max(w_c, 1e-9)  # s_C / s_D
+    # each weight as its own fit saw it, that fit's scale taken as known
+    sigma_ratio = math.hypot(
+        _net_sigma(results[C], WRIST_LOAD, given=[("torque_scale", C)]),
+        _net_sigma(results[D], WRIST_LOAD, given=[("torque_scale", D)]),
+    )
+    told = abs(math.log(ratio)) > 2 * sigma_ratio or sigma_ratio <= IDENTIFIED_SIGMA
     weak, strong = (D, C) if ratio >= 1.0 else (C, D)
     held = params_with(params, [WRIST_LOAD], [results[strong].params.link_mass_kg[b]])
     loads = [D_LOAD] if weak == D else []
@@ -294,23 +306,34 @@ def anchor_scales(
     weighed = (
         f"at full torque {letters[0]} weighs the wrist at "
         f"{wrist_weight(results[strong].params):.3f} kg, {letters[1]} at "
-        f"{wrist_weight(results[weak].params):.3f} kg"
+        f"{wrist_weight(results[weak].params):.3f} kg, their ratio to "
+        f"+-{100 * sigma_ratio:.1f} %"
     )
-    anchor = ScaleVerdict(
-        strong,
-        ScaleStatus.ANCHOR,
-        1.0,
-        None,
-        f"the stronger of C and D ({weighed}): taken at its datasheet torque per amp (an "
-        "assumption: a worn drive is one joint's)",
-    )
+    if told:
+        anchor = ScaleVerdict(
+            strong,
+            ScaleStatus.ANCHOR,
+            1.0,
+            None,
+            f"the stronger of C and D ({weighed}): taken at its datasheet torque per amp "
+            "(an assumption: a worn drive is one joint's)",
+        )
+    else:
+        anchor = ScaleVerdict(
+            strong,
+            ScaleStatus.UNIDENTIFIABLE,
+            1.0,
+            sigma_ratio,
+            f"which of C and D is the weaker cannot be told ({weighed}); the twin takes "
+            f"{letters[0]}'s datasheet torque (1)",
+        )
     fisher = result.fisher
     scale_ref = ("torque_scale", weak)
     own = fisher.sigma({scale_ref: 1.0}) if fisher is not None else math.inf
-    wrist = _net_sigma(results[strong], WRIST_LOAD)
-    sigma = math.hypot(own, wrist)
+    wrist = _net_sigma(results[strong], WRIST_LOAD, given=[("torque_scale", strong)])
+    sigma = math.hypot(own, wrist) if told else max(math.hypot(own, wrist), sigma_ratio)
     value = result.params.torque_scale[weak]
-    found = sigma <= IDENTIFIED_SIGMA
+    found = told and sigma <= IDENTIFIED_SIGMA
     verdict = ScaleVerdict(
         weak,
         ScaleStatus.IDENTIFIED if found else ScaleStatus.UNIDENTIFIABLE,
@@ -352,83 +375,92 @@ def unanchored(joint: int, result: FitResult) -> ScaleVerdict:
     )
 
 
-def _net_sigma(result: FitResult, load: ParamRef) -> float:
-    """Relative 1-sigma of a fitted load's net weight (its effective mass's, times m / net)."""
+def _net_sigma(result: FitResult, load: ParamRef, given: Sequence[ParamRef] = ()) -> float:
+    """Relative 1-sigma of a fitted load's net weight (its effective mass's, times m / net),
+    with the parameters `given` known (the anchor's own torque scale)."""
     fisher = result.fisher
     if fisher is None or load not in fisher.refs:
         return math.inf
     m = result.params.link_mass_kg[load[1]]
     net = m - buoyant_kg(result.params, load[1])
-    return fisher.sigma({load: 1.0}) * m / max(net, 1e-9)
+    return fisher.sigma({load: 1.0}, given) * m / max(net, 1e-9)
 
 
 def parameter_verdicts(fit: ArmFit) -> tuple[dict[str, Estimate], dict[str, Unidentified]]:
     """What the fit can report, per parameter name: the identified ones with their 1-sigma,
     and for the rest the twin's value and the combination known. A joint whose torque scale
     is unidentifiable has its armature, damping and Coulomb friction known only over that
-    scale; a load (an effective link mass) is known only as a net weight in water (mass and
-    displaced volume act together), over the scale of the joint that weighed it where that
-    scale is unidentifiable."""
+    scale (the armature with the links' inertia: `INERTIA`). A load (an effective link mass)
+    is never known by itself: mass and displaced volume act together, and how the weight
+    splits between D's link and the wrist rests on the C link's datasheet weight; what the
+    data fix is the joint's load (`LOAD_RMS`), over its scale where that is unidentifiable."""
     known: dict[str, Estimate] = {}
     unknown: dict[str, Unidentified] = {}
     for j, result in sorted(fit.results.items()):
         verdict = fit.scales.get(j)
         scale_ref: ParamRef = ("torque_scale", j)
         free = verdict is not None and verdict.status is ScaleStatus.UNIDENTIFIABLE
+        s_twin = verdict.value if verdict is not None and free else 1.0
+        # an anchored scale is known (the anchor's assumption); a fitted one is estimated
+        given = [] if free or scale_ref in result.refs else [scale_ref]
         fisher = result.fisher
         s_name = ref_name(scale_ref)
+        letter = JOINT_LETTERS[j]
+        over = f"/{s_name}" if free else ""
         if verdict is not None and verdict.status is ScaleStatus.IDENTIFIED:
             known[s_name] = Estimate(verdict.value, (verdict.sigma or 0.0) * verdict.value)
         elif verdict is not None and free:
             unknown[s_name] = Unidentified(verdict.value, verdict.reason)
+        loads = [r for r in result.refs if r[0] == LOAD]
+        if loads:
+            value = joint_load(result.params, j)
+            exps = load_exponents(result.params, j, loads)
+            if free:
+                exps[scale_ref] = -1.0
+            combo = Combination(
+                f"{LOAD_RMS}[{letter}]{over}",
+                value / s_twin,
+                _rel(fisher, exps, given) * value / s_twin,
+            )
+            for ref in loads:
+                unknown[ref_name(ref)] = Unidentified(
+                    param_value(result.params, 0.0, ref),
+                    f"an effective mass: mass and displaced volume act together, and what "
+                    f"{letter} carries is known as a whole",
+                    combo,
+                )
         for ref, value, sigma in zip(result.refs, result.values, result.sigma, strict=True):
-            if ref == scale_ref:
+            if ref == scale_ref or ref[0] == LOAD:
                 continue
             name = ref_name(ref)
-            over = f"/{s_name}" if free else ""
             exps = {ref: 1.0, **({scale_ref: -1.0} if free else {})}
-            if ref[0] == LOAD:
-                b = ref[1]
-                m = result.params.link_mass_kg[b]
-                net = m - buoyant_kg(result.params, b)
-                exps[ref] = m / max(net, 1e-9)  # d log(net) = m / net d log(m)
-                unknown[name] = Unidentified(
-                    value,
-                    "an effective mass: mass and displaced volume act together (the volume is "
-                    "the datasheet's)",
-                    Combination(
-                        f"{NET_WEIGHT}[{JOINT_LETTERS[b]}]{over}",
-                        net / (verdict.value if free and verdict else 1.0),
-                        _rel(fisher, exps) * net,
-                    ),
-                )
-            elif free and ref[0] == "armature":
-                assert verdict is not None
+            if free and ref[0] == "armature":
                 total = joint_inertia(result.params, j)
                 exps[ref] = value / total  # d log(total) = armature / total d log(armature)
                 unknown[name] = Unidentified(
                     value,
                     f"known only with the links' inertia, over {s_name} (unidentifiable)",
                     Combination(
-                        f"{INERTIA}[{JOINT_LETTERS[j]}]{over}",
-                        total / verdict.value,
-                        _rel(fisher, exps) * total / verdict.value,
+                        f"{INERTIA}[{letter}]{over}",
+                        total / s_twin,
+                        _rel(fisher, exps) * total / s_twin,
                     ),
                 )
             elif free:
-                assert verdict is not None
                 unknown[name] = Unidentified(
                     value,
                     f"known only over {s_name} (unidentifiable)",
-                    Combination(f"{name}{over}", value / verdict.value, _rel(fisher, exps) * value),
+                    Combination(f"{name}{over}", value / s_twin, _rel(fisher, exps) * value),
                 )
             else:
                 known[name] = Estimate(value, sigma)
     return known, unknown
 
 
-def _rel(fisher: Fisher | None, exps: dict[ParamRef, float]) -> float:
+def _rel(
+    fisher: Fisher | None, exps: dict[ParamRef, float], given: Sequence[ParamRef] = ()
+) -> float:
     """Relative 1-sigma of a product of parameters (inf without the information)."""
     if fisher is None or any(r not in fisher.refs for r in exps):
         return math.inf
-    return fisher.sigma(exps)
+    return fisher.sigma(exps, [g for g in given if g in fisher.refs])
