@@ -151,8 +151,10 @@ def fit_metadata(
         },
         quality_fitted=outcome.fitted_quality,
         quality_nominal=outcome.nominal_quality,
-        sigma_note="1 sigma from sqrt(diag(s^2 (J^T J)^-1)) at the optimum; residuals are "
-        "correlated in time, so these understate the true uncertainty",
+        sigma_note="1 sigma from sqrt(diag(s^2 (J^T J)^-1)) at the optimum, s^2 the residual "
+        "variance times the residuals' correlation time in rows; it assumes the model exact. "
+        "Parameters the data cannot fix are under 'unidentifiable' with the combination they "
+        "do fix; each joint's torque scale's verdict under 'torque_scales'",
         arm_seconds=None if session is None else session.arm_seconds + session.move_seconds,
         log=None if log_path is None else str(log_path),
         fit_seconds=outcome.fit_seconds,
