@@ -42,6 +42,11 @@ fitted load (an effective link mass) is known as. The split of D's load between 
 and the wrist rests on the C link's weight, held at the datasheet's, so a link's net weight
 alone is not what the data fix (D's link came out 19 % and 50 % off on envelope arms whose
 masses and volumes were 10-20 % off the datasheet's)."""
+DRAG = "drag_nm"
+"""The name of a joint's friction torque at `DRAG_SPEED`: Coulomb friction plus damping times
+that speed, what damping behind a large Coulomb friction is known as."""
+DRAG_SPEED = 0.35
+"""rad/s: the excitation's fastest relay swing."""
 LOAD_SWEEP_RAD = 0.35
 """`joint_load` turns the joint this far either way (the excitation's window)."""
 
@@ -198,7 +203,8 @@ class ScaleVerdict:
 def combination_value(params: ArmParams, name: str) -> float:
     """An arm's value of a parameter or a combination as the fit names them (`ref_name`'s
     `field[L]`; `net_weight_kg[L]`, the link's mass less the water it displaces;
-    `inertia_kgm2[L]`, `joint_inertia`; `load_nm[L]`, `joint_load`; one over another, `a/b`),
+    `inertia_kgm2[L]`, `joint_inertia`; `load_nm[L]`, `joint_load`; `drag_nm[L]`, the friction
+    torque at `DRAG_SPEED`; one over another, `a/b`),
     e.g. the true arm's, to score what a fit reported."""
     value = 1.0
     for k, term in enumerate(name.split("/")):
@@ -210,6 +216,8 @@ def combination_value(params: ArmParams, name: str) -> float:
             v = joint_inertia(params, j)
         elif field == LOAD_RMS:
             v = joint_load(params, j)
+        elif field == DRAG:
+            v = params.frictionloss[j] + params.damping[j] * DRAG_SPEED
         else:
             v = float(getattr(params, field)[j])
         value = value * v if k == 0 else value / v

@@ -77,7 +77,8 @@ def _parameter_lines(outcome: FitOutcome, nominal: ArmParams, truth: ArmParams |
         "",
         "Per joint, the directions of its fit's Fisher information in log-parameters, best "
         "determined first: the product of the parameters to the powers given, and its "
-        "relative 1 sigma (which understates: the residuals are correlated in time).",
+        "relative 1 sigma (the residuals' correlation in time counted; the model assumed "
+        "exact).",
         "",
     ]
     for j, r in sorted(outcome.results.items()):
