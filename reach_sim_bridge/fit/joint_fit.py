@@ -405,6 +405,13 @@ by a tie-break between 1 and 0.25: an arm with 3.5 N m of friction on E and D at
 came out with E, D and C at a quarter torque and a quarter of their friction."""
 
 
+DRIVE_MARGIN = 0.5
+"""`coarse_start` starts from another scale's grid point only where, expressed at the start's
+own scale, it has at most this share of the cost of the own scale's best: the weak joints'
+came out at 0.10-0.45 of it; a healthy C once started from half torque's at 0.57 and
+Levenberg-Marquardt stopped 20 % off in friction, in a basin the full-torque start avoids."""
+
+
 def equivalent(
     params: ArmParams, joint: int, scale: float, loads: Sequence[ParamRef] = ()
 ) -> ArmParams:
@@ -433,10 +440,11 @@ def coarse_start(
     scales: Sequence[float] = DRIVE_SCALES,
 ) -> ArmParams:
     """`base`, or `base` with `refs` set to the best point of `COARSE_GRID` (around the nominal
-    arm's values) tried at each torque scale in `scales` if one fits the segments better,
-    expressed at `base`'s torque scale (`equivalent`): where Levenberg-Marquardt starts.
-    From the nominal arm alone a frictionless joint under 3x sensor noise was fitted at 7x
-    its damping (and once at 20x its armature): the residual far from the arm is no guide."""
+    arm's values) tried at each torque scale in `scales`, expressed at `base`'s torque scale
+    (`at_own_scale`), if one fits the segments better there: where Levenberg-Marquardt
+    starts. From the nominal arm alone a frictionless joint under 3x sensor noise was fitted
+    at 7x its damping (and once at 20x its armature): the residual far from the arm is no
+    guide."""
     nominal = ArmParams()
     joint = segments[0].joint
     axes: list[list[tuple[ParamRef, float]]] = []
@@ -446,19 +454,72 @@ def coarse_start(
         ref_value = getattr(nominal, name)[j]
         axes.append([((name, j), max(f * ref_value, FRICTION_FLOOR)) for f in COARSE_GRID[name]])
     loads = [r for r in refs if r[0] == LOAD]
+    poses = np.concatenate([s.q[:: max(1, s.ticks // 40)] for s in segments])
 
     def cost(p: ArmParams) -> float:
         res = replay.residuals(p, 0.0, segments, velocity_weight)
         return float(res @ res)
 
-    best_cost, best = cost(base), base  # unless a grid point does better
+    own = base.torque_scale[joint]
+    starts: list[tuple[float, ArmParams, bool]] = [(cost(base), base, True)]
     for scale in scales:
         at_scale = params_with(base, [("torque_scale", joint)], [scale])
+        found: tuple[float, ArmParams] | None = None
         for point in itertools.product(*axes):
             trial = params_with(at_scale, [ref for ref, _ in point], [v for _, v in point])
             c = cost(trial)
-            if c < best_cost:
-                best_cost, best = c, trial
-    if best is base:
-        return base
-    return equivalent(best, joint, base.torque_scale[joint], loads)
+            if found is None or c < found[0]:
+                found = (c, trial)
+        if found is None:
+            continue
+        if scale == own:
+            starts.append((found[0], found[1], True))
+        else:
+            there = at_own_scale(replay, found[1], joint, own, loads, poses)
+            starts.append((cost(there), there, False))
+    # a point from another scale's grid only where it halves the cost of this scale's best
+    best_cost, best, _ = min((x for x in starts if x[2]), key=lambda x: x[0])
+    for c, there, _ in (x for x in starts if not x[2]):
+        if c < DRIVE_MARGIN * best_cost:
+            best_cost, best = c, there
+    return best
+
+
+def at_own_scale(
+    replay: Replay,
+    params: ArmParams,
+    joint: int,
+    scale: float,
+    loads: Sequence[ParamRef],
+    poses: FloatArray,
+) -> ArmParams:
+    """`params` with `joint`'s drive at torque scale `scale`, moving the joint as before: its
+    armature, damping and friction scaled as in `equivalent`, and its fitted `loads` (link
+    masses) set so that its gravity-buoyancy torque over the scale at `poses` is as before,
+    in least squares. Why not `equivalent`'s loads: the links a joint carries that are not
+    fitted (the C link, for C and D) do not scale, so the fitted ones must carry their share
+    (a C grid point at a quarter torque, its wrist alone scaled, started the fit at 18 times
+    the cost of the point itself and stopped 20 % off in friction)."""
+    out = equivalent(params, joint, scale)
+    if not loads:
+        return out
+    arm = replay.arm
+    ratio = scale / params.torque_scale[joint]
+
+    def torque(p: ArmParams) -> FloatArray:
+        arm.set_params(p)
+        return np.array([float(arm.gravity_torque(q)[joint]) for q in poses])
+
+    target = torque(params) * ratio
+    here = torque(out)
+    # the torque is linear in each link's net weight: one column per fitted load
+    cols = []
+    for ref in loads:
+        m = out.link_mass_kg[ref[1]]
+        cols.append(torque(params_with(out, [ref], [m + 0.1])) - here)
+    step, *_ = np.linalg.lstsq(np.column_stack(cols) / 0.1, target - here, rcond=None)
+    masses = [
+        max(out.link_mass_kg[r[1]] + float(d), buoyant_kg(out, r[1]) + FRICTION_FLOOR)
+        for r, d in zip(loads, step, strict=True)
+    ]
+    return params_with(out, loads, masses)
