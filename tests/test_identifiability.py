@@ -107,13 +107,18 @@ def test_a_scale_nothing_anchors_is_reported_unidentifiable(tmp_path: Path) -> N
 def test_the_coarse_start_spans_weak_drives_without_choosing_one() -> None:
     """A D at 25 % torque fights its own load with a quarter of its drive; from a grid at full
     torque alone its fit once put 12.6 N m of Coulomb friction there. The grid is tried at
-    several torque scales, and the point found is given at the start's own scale, as the arm
-    it moves like (its parameters and load over the scale): not a scale chosen by the grid."""
+    several torque scales, and the point found at another is given at the start's own scale,
+    as the arm it moves like (its parameters and load over the scale), beside the own
+    scale's: the fit starts from both, and no scale is chosen by the grid."""
     truth = replace(ArmParams(), torque_scale=(1.0, 0.25, 1.0, 1.0))
     segs = excite_virtual(truth, [D], [Wave("relay", "P1", 3.0, "fit", speed=0.35)])
-    start = coarse_start(Replay(window_s=1.0), segs, ArmParams(), default_refs(D, False))
-    assert start.torque_scale == (1.0, 1.0, 1.0, 1.0)
-    assert start.frictionloss[D] == pytest.approx(0.7 / 0.25, rel=0.01)  # the grid's 1 x 0.7
+    starts = coarse_start(Replay(window_s=1.0), segs, ArmParams(), default_refs(D, False))
+    assert len(starts) == 2
+    assert all(s.torque_scale == (1.0, 1.0, 1.0, 1.0) for s in starts)
+    assert starts[1].frictionloss[D] == pytest.approx(0.7 / 0.25, rel=0.01)  # the grid's 1 x 0.7
+    replay = Replay(window_s=1.0)
+    cost = [float(r @ r) for r in (replay.residuals(s, 0.0, segs) for s in starts)]
+    assert cost[1] < cost[0] / 10  # the weak drive's grid point, carried over, fits best
 
 
 def test_an_equivalent_arm_moves_alike() -> None:

@@ -145,7 +145,7 @@ def test_the_coarse_start_finds_the_frictions_decade(friction: float) -> None:
         armature=(0.18,) * 3 + ArmParams().armature[3:],
     )
     segs = [_record(truth, 0, "relay", 3.0)]
-    start = coarse_start(Replay(window_s=1.0), segs, ArmParams(), default_refs(0, False))
+    start = coarse_start(Replay(window_s=1.0), segs, ArmParams(), default_refs(0, False))[0]
     # the grid's nearest friction (0 -> the floor, 6.6 -> 10 x 0.7) and armature (2 x 0.12)
     assert start.frictionloss[0] == pytest.approx(max(friction, FRICTION_FLOOR), rel=0.1)
     assert start.armature[0] == pytest.approx(0.24)

@@ -174,21 +174,32 @@ def fit_arm(
         # Offsets start at zero (the timestamps' word): tuned on an arm still far from
         # this one they would soak up its errors, the very trade-off they are to avoid.
         ready = [replace(x, offset_s=0.0) for x in segs]
+        starts = [base]
         if coarse:
             # the wrist is D's load too, but D's grid leaves it (x3 the rollouts) to D's fit
             grid = [r for r in refs if not (r == WRIST_LOAD and j == D)]
-            base = coarse_start(replay, ready, base, grid)
-        result = fit_joint(
-            replay,
-            ready,
-            base,
-            0.0,
-            refs,
-            max_iter=max_iter,
-            on_iteration=note,
-            # window starts only in the polish: fitted beside an arm still far from this
-            # one they soak up its errors as the offsets would (and mislead the offsets)
-            fit_starts=False,
+            starts = coarse_start(replay, ready, base, refs, grid=grid)
+        # from each start (`coarse_start`), the one that ends lower kept
+        tried = [
+            fit_joint(
+                replay,
+                ready,
+                start,
+                0.0,
+                refs,
+                max_iter=max_iter,
+                on_iteration=note,
+                # window starts only in the polish: fitted beside an arm still far from this
+                # one they soak up its errors as the offsets would (and mislead the offsets)
+                fit_starts=False,
+            )
+            for start in starts
+        ]
+        result = min(tried, key=lambda r: r.costs[-1])
+        result = replace(
+            result,
+            iterations=sum(r.iterations for r in tried),
+            rollouts=sum(r.rollouts for r in tried),
         )
         ready = tune_offsets(replay, result.params, ready)
         if fit_starts:

@@ -405,13 +405,6 @@ by a tie-break between 1 and 0.25: an arm with 3.5 N m of friction on E and D at
 came out with E, D and C at a quarter torque and a quarter of their friction."""
 
 
-DRIVE_MARGIN = 0.5
-"""`coarse_start` starts from another scale's grid point only where, expressed at the start's
-own scale, it has at most this share of the cost of the own scale's best: the weak joints'
-came out at 0.10-0.45 of it; a healthy C once started from half torque's at 0.57 and
-Levenberg-Marquardt stopped 20 % off in friction, in a basin the full-torque start avoids."""
-
-
 def equivalent(
     params: ArmParams, joint: int, scale: float, loads: Sequence[ParamRef] = ()
 ) -> ArmParams:
@@ -438,17 +431,24 @@ def coarse_start(
     refs: Sequence[ParamRef],
     velocity_weight: float = VELOCITY_WEIGHT_S,
     scales: Sequence[float] = DRIVE_SCALES,
-) -> ArmParams:
-    """`base`, or `base` with `refs` set to the best point of `COARSE_GRID` (around the nominal
-    arm's values) tried at each torque scale in `scales`, expressed at `base`'s torque scale
-    (`at_own_scale`), if one fits the segments better there: where Levenberg-Marquardt
-    starts. From the nominal arm alone a frictionless joint under 3x sensor noise was fitted
-    at 7x its damping (and once at 20x its armature): the residual far from the arm is no
-    guide."""
+    grid: Sequence[ParamRef] | None = None,
+) -> list[ArmParams]:
+    """Where Levenberg-Marquardt starts: `base`, or `base` with `refs` set to the best point
+    of `COARSE_GRID` (around the nominal arm's values) at `base`'s torque scale if it fits
+    the segments better; then the best of the grid tried at the other torque scales in
+    `scales`, expressed at `base`'s (`at_own_scale`). Both, for `fit_arm` to start from
+    each: neither start's cost says which basin holds the arm (a healthy C started from the
+    half-torque grid's point, at 0.57 of the cost of the full-torque one's, stopped 20 % off
+    in friction; a D behind 4.3 N m of friction started from the full-torque one's, 1.8 x
+    the other's, stayed at 300 times the true arm's cost). `grid`: the refs to grid (default
+    all of `refs`); the rest keep `base`'s values, a load among them carried over to `base`'s
+    scale all the same. From the nominal arm alone a frictionless joint under 3x sensor
+    noise was fitted at 7x its damping (and once at 20x its armature): the residual far from
+    the arm is no guide."""
     nominal = ArmParams()
     joint = segments[0].joint
     axes: list[list[tuple[ParamRef, float]]] = []
-    for name, j in refs:
+    for name, j in refs if grid is None else grid:
         if name not in COARSE_GRID:  # the delay, a torque scale: kept as in `base`
             continue
         ref_value = getattr(nominal, name)[j]
@@ -477,12 +477,10 @@ def coarse_start(
         else:
             there = at_own_scale(replay, found[1], joint, own, loads, poses)
             starts.append((cost(there), there, False))
-    # a point from another scale's grid only where it halves the cost of this scale's best
-    best_cost, best, _ = min((x for x in starts if x[2]), key=lambda x: x[0])
-    for c, there, _ in (x for x in starts if not x[2]):
-        if c < DRIVE_MARGIN * best_cost:
-            best_cost, best = c, there
-    return best
+    return [
+        min((x for x in starts if x[2]), key=lambda x: x[0])[1],
+        *[p for _, p, _ in sorted((x for x in starts if not x[2]), key=lambda x: x[0])[:1]],
+    ]
 
 
 def at_own_scale(
