@@ -5,7 +5,7 @@ PIP    := $(PY) -m pip
 STAMP  := $(VENV)/.installed
 BSTAMP := $(VENV)/.installed-bench
 
-.PHONY: install test lint typecheck pytest bench demo clean
+.PHONY: install test lint typecheck pytest bench demo readme-sample clean
 
 $(PY):
 	python3 -m venv $(VENV)
@@ -13,7 +13,7 @@ $(PY):
 
 # What each target installs (pyproject.toml's extras): `make demo` the base install (driver,
 # reach-driver, recordings, pid and ddpg) and `sim` (MuJoCo, reach-sim); `make test` everything:
-# `dev`, `scale` and `all` (sim, mpc, train, scale).
+# `dev`, `scale` and `all` (sim, mpc, train, scale, export).
 #
 # torch comes only with `train` (in `all`), and on a stock index pip would pick a CUDA build
 # (several GB). So it is installed first, pinned and from TORCH_INDEX, and every later install
@@ -77,6 +77,11 @@ bench: $(BSTAMP)
 # e.g. make demo DEMO_ARGS="--speed 4 --scenario 3"
 demo: $(DSTAMP)
 	$(PY) tools/demo.py $(DEMO_ARGS)
+
+# README.md's sample output, from a real run of the command it shows against the virtual arm
+# (real time, a few seconds); tests/test_readme_sample.py checks it still holds.
+readme-sample: $(DSTAMP)
+	$(PY) tools/readme_sample.py --write
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache

@@ -1,12 +1,13 @@
 """What to install for a feature whose optional dependency is missing, said in one line.
 
-`pip install reach-stack` brings the codec, the driver and its command line, recordings and
-the controllers that need no solver or simulator; the heavy libraries come with extras by role
+`pip install reach-stack` brings the codec, the driver and its command line, recordings and the
+controllers that need no solver or simulator; the heavy libraries come with extras by role
 (pyproject.toml): MuJoCo with `sim`, CasADi with `mpc`, torch and Gymnasium with `train`, Ray
-with `scale`. A module that needs one imports it inside `needs_extra(feature, extra)`, so a
-user without it reads "the mpc controller needs CasADi: pip install 'reach-stack[mpc]'"
-(`MissingExtra`) instead of a traceback ending in "No module named 'casadi'". A script's own
-imports go inside `script_needs_extra`, which ends the program with that line (exit 2).
+with `scale`, and the MCAP writer of `reach-driver export` with `export`. A module that needs
+one imports it inside `needs_extra(feature, extra)`, so a user without it reads "the mpc
+controller needs CasADi: pip install 'reach-stack[mpc]'" (`MissingExtra`) instead of a
+traceback ending in "No module named 'casadi'". A script's own imports go inside
+`script_needs_extra`, which ends the program with that line (exit 2).
 
 None of this is the codec. It lives in `protocol` for the reason `protocol.viewer` does: the
 driver, the simulator and the controllers all name a missing extra, and this is the one package
@@ -30,6 +31,7 @@ OPTIONAL_MODULES: dict[str, str] = {
     "torch": "PyTorch",
     "gymnasium": "Gymnasium",
     "ray": "Ray",
+    "mcap": "the mcap library",
 }
 
 

@@ -19,6 +19,12 @@ raises if any fails, so with one stream of two sinks a viewer that went away wou
 logging thread at each flush and end the file. `ViewerTee` logs to both; the viewer stream is
 flushed only on a thread of its own, and its first error is reported once and it is dropped,
 the file goes on.
+
+The viewer stream sends every LIVE_FLUSH_S (fewer, larger messages than rerun's default, which
+a slowly drawing viewer could not keep up with), and `serve` replays what a viewer that joins
+late missed newest first, so it shows the present at once. `--viewer-keep` (`add_viewer_option`
+with `keep`) is the command line's: its recorder leaves the stream open when the command is
+done, and `reach-driver` closes it on Ctrl-C.
 """
 
 from __future__ import annotations
@@ -59,6 +65,11 @@ VIEWER_USAGE = (
 _PROBE_TIMEOUT_S = 1.0
 _VIEWER_CLOSE_S = 1.0  # the longest closing waits for a viewer that stopped answering
 _VIEWER_WATCH_S = 1.0  # how often the viewer stream is flushed, off the logging thread
+#: How often the viewer stream sends what was logged (a chunk per entity, every entity). A
+#: viewer takes in messages for about 10 ms a frame (rerun 0.41); one that draws a frame a
+#: second or less (a browser on software WebGL) fell ever further behind rerun's default
+#: 0.2 s chunks. Twice a second keeps a live arm moving and sends 2.5 times fewer messages.
+LIVE_FLUSH_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -218,9 +229,19 @@ BIND_HELP = (
 )
 
 
-def add_viewer_option(parser: argparse._ActionsContainer, help_text: str) -> None:
+KEEP_HELP = (
+    "with --viewer serve: when the command is done (the arm left safe, the summary printed, "
+    "the recording closed, the port released), go on serving what it streamed until Ctrl-C, "
+    "so a viewer can still open or reread it; the exit status is the command's own"
+)
+
+
+def add_viewer_option(
+    parser: argparse._ActionsContainer, help_text: str, keep: bool = False
+) -> None:
     """`--viewer MODE [VALUE...]` on a parser or an argument group (None when not given), and
-    `--viewer-bind ADDR` beside it."""
+    `--viewer-bind ADDR` beside it; with `keep`, `--viewer-keep` too (a command that ends by
+    itself: serving on after it is worth asking for)."""
     parser.add_argument(
         "--viewer",
         nargs="+",
@@ -232,12 +253,22 @@ def add_viewer_option(parser: argparse._ActionsContainer, help_text: str) -> Non
     parser.add_argument(
         "--viewer-bind", action=ViewerBindAction, metavar="ADDR", default=None, help=BIND_HELP
     )
+    if keep:
+        parser.add_argument("--viewer-keep", action="store_true", help=KEEP_HELP)
 
 
 def viewer_options_problem(args: argparse.Namespace) -> str | None:
-    """A `--viewer-bind` given without `--viewer serve` (for the parser's error), or None."""
-    if getattr(args, "viewer_bind", None) is not None and getattr(args, "viewer", None) is None:
+    """A `--viewer-bind` or `--viewer-keep` given without `--viewer serve` (for the parser's
+    error), or None."""
+    viewer = getattr(args, "viewer", None)
+    if getattr(args, "viewer_bind", None) is not None and viewer is None:
         return "--viewer-bind is for --viewer serve, which was not given"
+    if getattr(args, "viewer_keep", False) and (viewer is None or viewer.mode != "serve"):
+        given = "was not given" if viewer is None else f"not --viewer {viewer.mode}"
+        return (
+            f"--viewer-keep is for --viewer serve, {given} (a spawned or connected viewer "
+            "outlives the command anyway)"
+        )
     return None
 
 
@@ -250,7 +281,12 @@ def _answers(host: str, port: int, timeout: float = _PROBE_TIMEOUT_S) -> bool:
 
 
 def _free(host: str, port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+    """Whether a server could listen on `port`: nothing listens there. Closed connections
+    lingering in TIME_WAIT (a browser that watched the last run) do not count: the servers
+    bind with SO_REUSEADDR, as this probe does."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind((host, port))
         except OSError:
@@ -346,7 +382,11 @@ def open_viewer(
     it; serve: a GrpcServerSink on loopback and the web viewer, their address announced."""
     import rerun as rr
 
-    rec = rr.RecordingStream(app_id, recording_id=recording_id)
+    rec = rr.RecordingStream(
+        app_id,
+        recording_id=recording_id,
+        batcher_config=rr.ChunkBatcherConfig(flush_tick=LIVE_FLUSH_S),
+    )
     say = announce or (lambda _msg: None)
     try:
         if spec.mode == "connect":
@@ -383,7 +423,10 @@ def open_viewer(
                         "pick others (--viewer serve GRPC_PORT WEB_PORT) or --viewer connect"
                     )
             rec.set_sinks(
-                rr.GrpcServerSink(bind_ip=spec.bind, port=spec.port), default_blueprint=blueprint
+                # a viewer that joins late is sent the newest data first: the present at once,
+                # the run's start after it
+                rr.GrpcServerSink(bind_ip=spec.bind, port=spec.port, newest_first=True),
+                default_blueprint=blueprint,
             )
             web = _start_web_viewer(spec)
             setattr(rec, _STOP_WEB, weakref.finalize(rec, _stop_process, web))

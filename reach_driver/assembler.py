@@ -24,6 +24,10 @@ GRACE_FRACTION = 0.25
 GRACE_SPAN_FACTOR = 1.5
 """... or, if later, this many times as long as a whole tick usually takes to arrive (a slow
 line, or joints whose heartbeats are not in phase)."""
+GAP_FACTOR = 2.5
+"""A tick that begins more than this many usual tick spacings after the one before it comes
+after a gap: whole ticks were lost (the stream went to another UDP client for a while) or the
+host stalled; `Tick.lost` counts the ticks the gap could have held."""
 
 
 @dataclass(frozen=True)
@@ -37,6 +41,7 @@ class Tick:
     currents: np.ndarray  # latest measured currents (NaN until reported)
     partial: bool  # some slot was missing and filled from the previous tick
     seen: np.ndarray  # per slot, the tick its value last arrived in (-1: never)
+    lost: int = 0  # ticks that gaps before this one could have held, in all (GAP_FACTOR)
 
 
 class StateAssembler:
@@ -60,6 +65,12 @@ class StateAssembler:
     is lost is not counted. A packet equal to the one just before it (same slot and value, the
     slot already in) is a duplicate: dropped and counted, never a new tick. The latest CURRENT
     of each joint rides along.
+
+    Ticks lost whole leave no trace in the order, so they are not counted as arm time. When a
+    tick begins after a gap (more than GAP_FACTOR usual spacings, in wall time, after the one
+    before it), the ticks the gap could have held are added to `Tick.lost`: an upper estimate
+    (a host that stalled and then read the stream late makes a gap that lost nothing), for the
+    checks that compare two samples across it, never for counting arm time.
     """
 
     def __init__(self, period_s: float) -> None:
@@ -87,6 +98,8 @@ class StateAssembler:
         self.partial = 0  # published incomplete, after the grace
         self.incomplete = 0  # ticks never published
         self.duplicates = 0  # packets equal to the one just before them, dropped
+        self.lost = 0  # ticks gaps in the stream could have held (`Tick.lost`)
+        self.gaps = 0  # such gaps
         self._last: tuple[int, float] | None = None  # (slot, value) of the last packet
 
     def __call__(self, packet: Packet, t: float) -> None:
@@ -138,6 +151,12 @@ class StateAssembler:
         self.have[:] = False
         self.sequence = []
         self.last_place = -1
+        if len(self._starts) >= 3 and self.tick >= 0:
+            spacing = float(np.median(np.diff(np.asarray(self._starts))))
+            gap = t - self.tick_start
+            if spacing > 0 and gap > GAP_FACTOR * spacing:
+                self.lost += max(1, round(gap / spacing) - 1)
+                self.gaps += 1
         self.tick += 1
         self.tick_start = t
         self._starts.append(t)
@@ -173,6 +192,7 @@ class StateAssembler:
             self.currents.copy(),
             partial,
             self.seen.copy(),
+            self.lost,
         )
         self._cond.notify()
         return True

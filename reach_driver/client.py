@@ -61,19 +61,16 @@ from reach_driver.link import (
     LinkState,
 )
 from reach_driver.listeners import ListenerSet, PacketListener, PacketQueue, Subscription
+from reach_driver.loop_timing import SchedStat
 from reach_driver.queries import ArmQueries, limit_verdict
 from reach_driver.requests import Requester, Waiters
 from reach_driver.safe_stop import SafeStop
-from reach_driver.safety import (
-    LimitKind,
-    SafetyConfig,
-    SafetyGuard,
-)
+from reach_driver.safety import SafetyConfig, SafetyGuard
 from reach_driver.state import ArmState, JointState, StateTable, joint_name
 from reach_driver.streaming import Stream
 from reach_driver.supervisor import LinkSupervisor
 from reach_driver.transport import Transport
-from reach_driver.watchdog import Watchdog
+from reach_driver.watchdog import LoopTiming, Watchdog
 
 log = logging.getLogger(__name__)
 
@@ -127,6 +124,14 @@ class ArmClient(ArmQueries):
         #: rate, seconds the feedback had stopped); reader thread only (`_stream_answer`).
         self._stream_probe: tuple[int, float] | None = None
         self.watchdog = Watchdog()
+        #: When the reader thread last came back from a read, and how long it had been away
+        #: then (reader thread only): the watchdog tells a stalled process from a stalled loop.
+        self._reader_t: float | None = None
+        self._reader_gap_s = 0.0
+        self._reader_away_max_s = 0.0  # the longest absence since `reader_away()` last asked
+        self._reader_away_queue_s: float | None = None  # of which runnable, given no CPU
+        #: Set by a running `ControlLoop`: how it keeps time, for the watchdog to name.
+        self.loop_timing: Callable[[], LoopTiming | None] | None = None
         self.faults = FaultFlags()
         self._waiters = Waiters()
         self._requests = Requester(
@@ -236,6 +241,14 @@ class ArmClient(ArmQueries):
     def tripped(self) -> str | None:
         """Why the watchdog tripped, or None while it has not (or after `rearm()`)."""
         return self.watchdog.tripped
+
+    def reader_away(self) -> tuple[float, float | None]:
+        """The longest the reader thread was away from the link (between two returns from a
+        read, which waits at most the transport's read timeout) since the last call, and how
+        much of it it was runnable but given no CPU (None: unknown). More than the read
+        timeout means this process was not running."""
+        away, self._reader_away_max_s = self._reader_away_max_s, 0.0
+        return away, self._reader_away_queue_s
 
     def blocking_faults(self) -> dict[int, list[str]]:
         """Status flags, by device, that say a joint must not be driven (motor, driver,
@@ -364,13 +377,7 @@ class ArmClient(ArmQueries):
         q = self.state.q
         if not np.all(np.isfinite(q)):
             q = self.read_joints((PacketID.POSITION,)).q
-        limits = np.array(
-            [
-                [lim.low, lim.high]
-                for lim in (self.guard.limit(d, LimitKind.POSITION) for d in JOINTS)
-            ]
-        )
-        return ik.solve_or_refuse((x, y, z), q, limits)
+        return ik.solve_or_refuse((x, y, z), q, np.array(self.guard.position_limits()))
 
     def command_xyz(self, x: float, y: float, z: float) -> np.ndarray:
         """Move the tool centre point to (x, y, z) mm: the driver's own inverse kinematics
@@ -538,22 +545,43 @@ class ArmClient(ArmQueries):
             self._emit(EventKind.LINK_DOWN, f"reader thread crashed: {exc!r}")
 
     def _read_loop(self) -> None:
-        while not self._stop.is_set():
-            if self.supervisor.state is LinkState.DOWN:
-                self.supervisor.reconnect_attempt()
-                continue
-            try:
-                chunk = self.transport.read()
-            except TransportError as exc:
-                self._link_lost(str(exc))
-                if self.supervisor.state is LinkState.FAILED:
-                    self._stop.wait(0.1)  # failed for good: nothing to reopen
-                continue
-            now = self.clock()
-            if chunk:
-                for packet in self.decoder.feed(chunk):
-                    self._dispatch(packet, now)
-            self.supervisor.duties(self.clock(), self._watchdog)
+        sched = SchedStat()  # this thread's run-queue time: away for want of a CPU?
+        queue0: float | None = None
+        try:
+            while not self._stop.is_set():
+                if self.supervisor.state is LinkState.DOWN:
+                    self.supervisor.reconnect_attempt()
+                    continue
+                try:
+                    chunk = self.transport.read()
+                except TransportError as exc:
+                    self._link_lost(str(exc))
+                    if self.supervisor.state is LinkState.FAILED:
+                        self._stop.wait(0.1)  # failed for good: nothing to reopen
+                    continue
+                now = self.clock()
+                queue0 = self._came_back(now, sched, queue0)
+                if chunk:
+                    for packet in self.decoder.feed(chunk):
+                        self._dispatch(packet, now)
+                self.supervisor.duties(self.clock(), self._watchdog)
+        finally:
+            sched.close()
+
+    def _came_back(self, now: float, sched: SchedStat, queue0: float | None) -> float | None:
+        """The reader is back from a read at `now`. A read waits at most the transport's read
+        timeout: a longer absence means this process did not run (no CPU for this thread, or
+        the GIL held elsewhere), the loop's thread no more. Keeps the longest absence, and
+        how much of it this thread spent runnable but given no CPU; returns the run-queue
+        total now."""
+        self._reader_gap_s = now - self._reader_t if self._reader_t is not None else 0.0
+        self._reader_t = now
+        got = sched.read()
+        queue = None if got is None else got[1]
+        if self._reader_gap_s > self._reader_away_max_s:
+            self._reader_away_max_s = self._reader_gap_s
+            self._reader_away_queue_s = None if queue is None or queue0 is None else queue - queue0
+        return queue
 
     def _dispatch(self, packet: Packet, t: float) -> None:
         self.stats.packets += 1
@@ -624,7 +652,14 @@ class ArmClient(ArmQueries):
                 fed = (vel.t, "velocity")
             return fed
 
-        expired = self.watchdog.expired(now, self.guard.config.watchdog_s, feedback_t)
+        timing = self.loop_timing
+        expired = self.watchdog.expired(
+            now,
+            self.guard.config.watchdog_s,
+            feedback_t,
+            away_s=self._reader_gap_s,
+            loop=None if timing is None else timing(),
+        )
         if expired is None:
             return
         reason, devices = expired
@@ -648,6 +683,11 @@ class ArmClient(ArmQueries):
         mode; `_stream_answer` reads the reply. Nothing to ask otherwise."""
         stream, limit = self._stream, self.guard.config.watchdog_s
         if stream is None or limit is None or not self.transport.shared_by_other_hosts:
+            return []
+        # This reader away for most of the limit is the stale feedback's cause (the trip says
+        # the machine was busy): the stream kept coming, into the socket. An arm that answers
+        # the probe is then no evidence of another client, only that the link works.
+        if self._reader_gap_s > limit / 2:
             return []
         # another client takes the whole stream: only when no streamed device's position
         # arrived in the last half watchdog (one quantity of one joint stopping while the

@@ -59,8 +59,10 @@ from reach_driver.errors import (
     DriverError,
     Interrupted,
     StreamRateError,
+    WatchdogTrippedError,
 )
 from reach_driver.link import EventKind, LinkState
+from reach_driver.loop_timing import Gap, GapLog
 from reach_driver.plausibility import FeedbackCheck, PlausibilityConfig
 from reach_driver.records import ControlSummary, LoopTrace, StepHook, StepRecord, TimingStats
 from reach_driver.safety import LimitKind
@@ -208,6 +210,9 @@ class ControlLoop:
             run.error = run.stopped_by = str(exc)
         except DriverError as exc:
             run.error = str(exc)
+            if isinstance(exc, WatchdogTrippedError) and run.tripped_gap is not None:
+                # where the loop's time went meanwhile (`reach_driver.loop_timing`)
+                run.error += f"; the loop meanwhile: {run.tripped_gap.describe()}"
             run.stopped_by = f"{type(exc).__name__}: {exc}"
         except KeyboardInterrupt as exc:  # Ctrl-C, or a signal the caller turned into one
             interrupted = exc
@@ -281,6 +286,8 @@ class _Run:
         self.assembler: StateAssembler | None = None
         self.feedback = FeedbackCheck(loop.plausibility)
         self.implausible = 0  # joint samples refused by the plausibility check
+        self.held = np.zeros(N, dtype=bool)  # joints held at their last good sample this tick
+        self.unseen_s = 0.0  # arm time lost whole in a gap before this state (estimated)
         self.bad_since = np.full(N, np.nan)  # arm time each joint turned implausible
         self.reported_t = -math.inf  # when implausible samples were last reported
         self.unreported = 0
@@ -299,15 +306,23 @@ class _Run:
         self.pcpu0 = time.process_time()
         self.cpu = 0.0
         self.pcpu = 0.0
+        self.gap_log = GapLog(self.client.reader_away)  # the gaps between commands
+        self.tripped_gap: Gap | None = None  # the gap the watchdog ended
 
     # -- the loop ---------------------------------------------------------------------------
     def execute(self) -> None:
         loop = self.loop
         loop.controller.reset()
-        if loop.pacing is Pacing.STREAM:
-            self._run_stream()
-        else:
-            self._run_poll()
+        self.gap_log.start()
+        self.client.loop_timing = lambda: self.gap_log.timing(loop.period_s)
+        try:
+            if loop.pacing is Pacing.STREAM:
+                self._run_stream()
+            else:
+                self._run_poll()
+        finally:
+            self.gap_log.stop()
+            self.client.loop_timing = None
 
     def _run_stream(self) -> None:
         loop, client = self.loop, self.client
@@ -323,8 +338,14 @@ class _Run:
                 ids = TELEMETRY
             client.stream(ids, loop.hz, JOINTS)
             ticks0: int | None = None
+            lost_before = 0
             while not loop._stop.is_set():
+                asked = time.monotonic()
                 got = asm.take(loop.state_timeout_s)
+                held = time.monotonic()
+                if got is not None:
+                    complete = float(np.nanmax(got.times)) if np.isfinite(got.times).any() else 0
+                    self.gap_log.add_state_wait(held - asked, complete, held)
                 if got is None:
                     why = client.tripped or client.stream_problem()
                     raise DriverError(
@@ -338,11 +359,16 @@ class _Run:
                 t = (got.ticks - ticks0) / loop.hz
                 self._check_fresh(t, (got.ticks - got.seen) / loop.hz)
                 q, qdot = got.values[0::2], got.values[1::2]
+                # joints whose position and velocity were both reported in this tick
+                fresh = (got.seen[0::2] == got.ticks) & (got.seen[1::2] == got.ticks)
+                # ticks lost whole since the last state taken (a gap in the stream: not
+                # counted in t, so the checks comparing two samples allow for them)
+                self.unseen_s, lost_before = (got.lost - lost_before) / loop.hz, got.lost
                 if t >= self.seconds - 1e-9:
-                    q, qdot = self._plausible(t, q, qdot)
+                    q, qdot = self._plausible(t, q, qdot, fresh)
                     self.final = (t, q.copy(), qdot.copy(), got.currents)
                     break
-                self._act(t, q, qdot, got.times, _superseded(asm, got.serial), got.currents)
+                self._act(t, q, qdot, got.times, _superseded(asm, got.serial), got.currents, fresh)
             else:
                 self.stopped_by = "stop requested"
         finally:
@@ -359,12 +385,15 @@ class _Run:
                 t = next_t - self.t0_wall
                 if t >= self.seconds - 1e-9:
                     break
-                delay = next_t - time.monotonic()
+                asked = time.monotonic()
+                delay = next_t - asked
                 if delay > 0:
                     time.sleep(delay)
                 replies = client.request_many(
                     JOINTS, TELEMETRY, timeout_s=max(0.8 * period, 0.005), retries=0, partial=True
                 )
+                held = time.monotonic()
+                self.gap_log.add_state_wait(held - asked, held, held)
                 values = np.full(2 * N, np.nan)
                 times = np.full(2 * N, np.nan)
                 for i, dev in enumerate(JOINTS):
@@ -398,6 +427,7 @@ class _Run:
         times: np.ndarray,
         late: Callable[[], bool],
         currents: np.ndarray | None,
+        fresh: np.ndarray | None = None,
     ) -> None:
         loop, client = self.loop, self.client
         faults = client.blocking_faults()
@@ -405,12 +435,13 @@ class _Run:
             named = "; ".join(f"{joint_name(d)}: {', '.join(f)}" for d, f in faults.items())
             raise ArmFaultError(f"the arm reports a fault at t = {t:.2f} s: {named}")
         self.t = t
-        q, qdot = self._plausible(t, q, qdot)
+        q, qdot = self._plausible(t, q, qdot, fresh)
         if np.isnan(q).any():
             return  # implausible before any good sample: nothing to hold, no step
         now = time.monotonic()
         self.q, self.qdot = q, qdot
-        self._check_rate(t, q, qdot)
+        usable = ~self.held if fresh is None else fresh & ~self.held
+        self._check_rate(t, q, qdot, usable)
         self.step_walls.append(now)
         age = now - float(np.min(times))
         try:
@@ -422,6 +453,8 @@ class _Run:
             raise ControllerError(
                 f"the controller failed at t = {t:.2f} s: {type(exc).__name__}: {exc}"
             ) from exc
+        finally:
+            self.gap_log.add_controller(time.monotonic() - now)
         if raw.shape != (N,) or not np.all(np.isfinite(raw)):
             raise ControllerError(f"controller returned {raw!r}: need 4 finite currents in mA")
         clipped = np.clip(raw, self.i_lo, self.i_hi)
@@ -430,8 +463,14 @@ class _Run:
             # Only now: until the controller has acted the joints keep holding as they were.
             client.set_mode(JOINTS, Mode.CURRENT)
             self.mode_set = True
-        sent = client.command_currents(clipped)
+        try:
+            sent = client.command_currents(clipped)
+        except WatchdogTrippedError:
+            self.tripped_gap = self.gap_log.pending(time.monotonic(), self.step, t)
+            raise
         written = time.monotonic()
+        gap = self.gap_log.in_gap(written) if self.step else math.nan
+        self.gap_log.command(written, self.step, t)
         if t >= self.next_status_t:
             # Fire and forget: the reply updates the client's fault flags, checked each step.
             device = int(JOINTS[self.status_joint])
@@ -474,7 +513,9 @@ class _Run:
                 bad_frames=stats.bad_total,
                 current_mA=measured,
                 torque_Nm=torque,
+                loop_period_s=gap,
             )
+            hooked = time.monotonic()
             try:
                 loop.on_step(record)
             except Exception as exc:
@@ -482,6 +523,8 @@ class _Run:
                     f"the step hook (recorder or viewer) failed at t = {t:.2f} s: "
                     f"{type(exc).__name__}: {exc}"
                 ) from exc
+            finally:
+                self.gap_log.add_hook(time.monotonic() - hooked)
         self.step += 1
         if self.chatter is not None:
             verdict = self.chatter.update(t, q, qdot, sent, self.goal)
@@ -489,11 +532,13 @@ class _Run:
                 self._hold(verdict, q)
 
     def _plausible(
-        self, t: float, q: np.ndarray, qdot: np.ndarray
+        self, t: float, q: np.ndarray, qdot: np.ndarray, fresh: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """The state a controller may see (`reach_driver.plausibility`): a non-finite reading
-        ends the run; an implausible joint is counted, reported (at most once a second) and
-        held at its last good sample; one implausible for `stale_limit_s` ends the run."""
+        ends the run; an implausible joint (outside the envelope, too fast, a jump, a velocity
+        stuck while the joint moves otherwise; `fresh`: which velocities were reported now)
+        is counted, reported (at most once a second) and held at its last good sample; one
+        implausible for `stale_limit_s` ends the run."""
         for name, values, unit in (("position", q, "rad"), ("velocity", qdot, "rad/s")):
             bad = ~np.isfinite(values)
             if np.any(bad):
@@ -506,7 +551,8 @@ class _Run:
                     f"the arm reported a non-finite {name} ({unit}) at t = {t:.2f} s: {which}; "
                     "no controller was given it"
                 )
-        verdict = self.feedback.check(t, q, qdot)
+        verdict = self.feedback.check(t, q, qdot, fresh, self.unseen_s)
+        self.held = verdict.bad
         self.bad_since = np.where(verdict.bad, np.fmin(self.bad_since, t), np.nan)
         if not verdict.bad.any():
             return q, qdot
@@ -531,13 +577,14 @@ class _Run:
             self.reported_t, self.unreported = t, 0
         return self.feedback.held(q, qdot, verdict)
 
-    def _check_rate(self, t: float, q: np.ndarray, qdot: np.ndarray) -> None:
-        """The arm must stream at the rate asked (`reach_driver.stream_rate`): else arm time,
-        the controller's step and the metrics are wrong, and the run stops before acting."""
+    def _check_rate(self, t: float, q: np.ndarray, qdot: np.ndarray, usable: np.ndarray) -> None:
+        """The arm must stream at the rate asked (`reach_driver.stream_rate`, measured on the
+        `usable` joints: reported in this tick and plausible): else arm time, the
+        controller's step and the metrics are wrong, and the run stops before acting."""
         rate, hz = self.rate, self.loop.hz
         if rate is None:
             return
-        rate.update(round(t * hz), q, qdot)
+        rate.update(round(t * hz), q, qdot, usable, resumed=self.unseen_s > 0.0)
         if not rate.off():
             return
         measured = rate.measured_hz
@@ -656,6 +703,9 @@ class _Run:
             process_cpu_per_step_s=self.pcpu / steps if steps else math.nan,
             partial_states=asm.partial if asm is not None else 0,
             incomplete_ticks=asm.incomplete if asm is not None else 0,
+            stream_gaps=asm.gaps if asm is not None else 0,
+            lost_ticks=asm.lost if asm is not None else 0,
+            gaps=self.gap_log.stats(),
         )
         # The state that ended the run is the last one the arm reported.
         final_q = self.final[1] if self.final is not None else self.q

@@ -74,15 +74,19 @@ def available_controllers() -> list[str]:
     return sorted(_entry_points())
 
 
+def registered_list() -> str:
+    """The registered names as help and errors list them ("ddpg, mpc, pid"): read from the
+    entry points, so no text names a stale set."""
+    return ", ".join(available_controllers()) or "none (is reach-stack installed? pip install -e .)"
+
+
 def load_controller(name: str, **kwargs: Any) -> Controller:
     """Build the controller registered as `name`; a clear `DriverError` if it cannot be
     (`ExtraNotInstalledError` naming the extra to install if it needs a library that is not
     installed)."""
-    eps = _entry_points()
-    ep = eps.get(name)
+    ep = _entry_points().get(name)
     if ep is None:
-        known = ", ".join(sorted(eps)) or "none (is reach-stack installed? pip install -e .)"
-        raise DriverError(f"unknown controller {name!r}; registered: {known}")
+        raise DriverError(f"unknown controller {name!r}; registered: {registered_list()}")
     try:
         factory = ep.load()
     except MissingExtra as exc:  # e.g. mpc without CasADi: say what to install

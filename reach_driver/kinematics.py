@@ -75,6 +75,34 @@ def tool_position(q: np.ndarray) -> np.ndarray:
     return pos + rot @ np.array([0.0, 0.0, TCP_OFFSET_M])
 
 
+def _axis_rotations(axis: tuple[float, float, float], angles: np.ndarray) -> np.ndarray:
+    """`axis_rotation` for N angles at once: N x 3 x 3."""
+    x, y, z = axis
+    c, s = np.cos(angles), np.sin(angles)
+    C = 1.0 - c
+    return np.stack(
+        [
+            np.stack([c + x * x * C, x * y * C - z * s, x * z * C + y * s], axis=-1),
+            np.stack([y * x * C + z * s, c + y * y * C, y * z * C - x * s], axis=-1),
+            np.stack([z * x * C - y * s, z * y * C + x * s, c + z * z * C], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def tool_positions(q: np.ndarray) -> np.ndarray:
+    """`tool_position` of N poses at once (N x 4 angles E D C B -> N x 3, m): what a search
+    over the workspace evaluates (reach_driver.ik)."""
+    qs = np.atleast_2d(np.asarray(q, dtype=float))
+    pos = np.zeros((len(qs), 3))
+    rot = np.broadcast_to(np.eye(3), (len(qs), 3, 3))
+    for i, frame in enumerate(CHAIN):
+        yaw = axis_rotation((0.0, 0.0, 1.0), frame.yaw)
+        pos = pos + rot @ np.asarray(frame.xyz, dtype=float)
+        rot = rot @ (yaw @ _axis_rotations(frame.axis, qs[:, i]))
+    return pos + rot @ np.array([0.0, 0.0, TCP_OFFSET_M])
+
+
 def tool_jacobian(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(tool centre point (m), 3 x 4 position Jacobian (m/rad)) at angles E D C B.
 

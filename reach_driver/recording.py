@@ -20,6 +20,8 @@ Entity layout (read back by `reach_driver.rrd_summary`):
     link/frames           Scalars [good frames, bad frames]   counts since the run started
     link/state_age        Scalars [age of the oldest reading in the state]   ms
     link/latency          Scalars [state complete -> command written]   ms
+    link/loop_period      Scalars [time since the previous command]   ms (wall clock: what the
+                          watchdog judges; a stall of the host shows here)
     diagnostics/<key>     Scalars [E, D, C, B, A], one entity per Monitor reading, named with
                           its unit (`reach_driver.state.MONITOR_READINGS`: voltage_v,
                           temperature_c, humidity_pct, internal_pressure_bar (0x67),
@@ -37,8 +39,14 @@ Entity layout (read back by `reach_driver.rrd_summary`):
 
 Live viewing (`reach-driver run/move/monitor --viewer`): the same entities go to a second
 stream with the same recording id whose sink is a Rerun viewer (`protocol.viewer`, shared with
-`reach-sim`, says how and why). The viewer stream is never flushed on the control loop's
-thread; its first error is reported once and it is dropped, the file goes on.
+`reach-sim`, says how and why), with the same blueprint but a time panel that follows the
+newest data. The viewer stream is never flushed on the control loop's thread; its first error
+is reported once and it is dropped, the file goes on. `close(keep_viewer=True)` ends the file
+and leaves the viewer serving (`--viewer-keep`) until `close_viewer`.
+
+The default blueprint (`default_blueprint`; `protocol.viewer_layout` for what the simulator's
+shows alike): the 3D eye frames the arm's whole reach (`arm_bodies`, `arm_eye`), every plot
+spans the whole recording with its legend hidden (the titles name the colours).
 """
 
 from __future__ import annotations
@@ -66,26 +74,40 @@ from protocol.viewer import (
     open_viewer,
     viewer_failure,
 )
+from protocol.viewer_layout import (
+    ARM_COLOR,
+    JAW_COLOR,
+    JOINT_COLORS,
+    JOINT_KEY,
+    TARGET_COLOR,
+    ArmBody,
+    Ball,
+    EyePose,
+    arm_view,
+    framing_eye,
+    reach,
+    series_view,
+    time_panel,
+)
 from reach_driver.arm_geometry import GEOMS, LinkGeom
-from reach_driver.kinematics import CHAIN, TCP_OFFSET_M, joint_transform
+from reach_driver.kinematics import CHAIN, TCP_OFFSET_M, joint_transform, link_poses
 from reach_driver.state import MONITOR_READINGS, JointState, Reading, joint_name
 
 TIMELINE_TIME = "arm_time"
 TIMELINE_STEP = "step"
 BASE_LINK = "m3_inline"
 
-_ARM_COLOR = (230, 150, 40, 255)
 _BASE_COLOR = (90, 90, 90, 255)
-_GHOST_COLOR = (80, 170, 255, 70)
-_TARGET_COLOR = (80, 170, 255, 255)
+_GHOST_COLOR = (*TARGET_COLOR[:3], 70)
 _MEASURED_COLOR = (120, 120, 120, 255)
-_JOINT_COLORS = [(230, 90, 60, 255), (90, 180, 80, 255), (70, 130, 230, 255), (200, 170, 40, 255)]
+_TCP_RADIUS_M = 0.006
 
 #: (entity, view title) of every time-series view of the default blueprint; titles carry units.
 LINK_VIEWS = (
     ("link/frames", "link: frames received (count)"),
     ("link/state_age", "link: state age (ms)"),
     ("link/latency", "link: latency, state to command (ms)"),
+    ("link/loop_period", "link: loop period, command to command (ms)"),
 )
 
 #: The devices of the diagnostics entities, in their order: the four joints, then the jaw.
@@ -121,46 +143,88 @@ def _link_paths(root: str) -> list[str]:
     return paths
 
 
-def _series_view(origin: str, name: str) -> rrb.TimeSeriesView:
-    return rrb.TimeSeriesView(origin=origin, name=name)
+def _quat_rotate(quat_xyzw: Sequence[float], v: Sequence[float]) -> np.ndarray:
+    x, y, z, w = quat_xyzw
+    u, vec = np.array([x, y, z]), np.asarray(v, dtype=float)
+    return vec + 2.0 * np.cross(u, np.cross(u, vec) + w * vec)
 
 
-def default_blueprint() -> rrb.Blueprint:
+def _geom_balls(g: LinkGeom) -> list[tuple[np.ndarray, float]]:
+    """Balls (link frame) enclosing a geom: a cylinder's end discs (their hull is within the
+    hull of the two balls), a box's corners."""
+    center = np.asarray(g.center, dtype=float)
+    if g.shape == "cylinder":
+        radius, length = g.size
+        half = _quat_rotate(g.quat_xyzw, (0.0, 0.0, length / 2.0))
+        return [(center - half, radius), (center + half, radius)]
+    return [(center, float(np.linalg.norm(g.size)))]
+
+
+def arm_bodies() -> list[ArmBody]:
+    """The drawn arm (the MJCF's geoms on the kinematic chain, the tool centre point's dot) as
+    `protocol.viewer_layout` bodies, posed at zero angles: the base, then each joint's link."""
+    poses = [(np.zeros(3), np.eye(3)), *link_poses(np.zeros(len(CHAIN)))]
+    names = [BASE_LINK, *(frame.child_link for frame in CHAIN)]
+    bodies = []
+    for i, (name, (pos, rot)) in enumerate(zip(names, poses, strict=True)):
+        local = [b for g in GEOMS if g.link == name for b in _geom_balls(g)]
+        if i == len(names) - 1:
+            local.append((np.array([0.0, 0.0, TCP_OFFSET_M]), _TCP_RADIUS_M))
+        balls = tuple(
+            Ball(tuple(float(v) for v in pos + rot @ c), float(r))  # type: ignore[arg-type]
+            for c, r in local
+        )
+        if i == 0:
+            bodies.append(ArmBody(None, None, None, balls))
+            continue
+        axis = rot @ np.asarray(CHAIN[i - 1].axis, dtype=float)
+        pivot = tuple(float(v) for v in pos)
+        direction = tuple(float(v) for v in axis)
+        bodies.append(ArmBody(i - 1, pivot, direction, balls))  # type: ignore[arg-type]
+    return bodies
+
+
+def arm_eye() -> EyePose:
+    """The 3D view's eye: every pose of the arm (and of its ghost) in view."""
+    return framing_eye(reach(arm_bodies()))
+
+
+def default_blueprint(live: bool = False) -> rrb.Blueprint:
     """Opens on the arm-time timeline (seconds): the 3D arm and its ghost, errors and events;
     per joint its position vs target (rad) beside its currents (mA); torques, velocities and
     the link's counts, state age and latency, each on its own scale; the devices' Monitor
-    readings and status flags."""
+    readings and status flags. The eye frames the arm's whole reach; every plot spans the
+    whole run, its legend hidden (colours: `protocol.viewer_layout`, the titles say them).
+    `live`: for a viewer watching the run as it goes, which follows the newest data."""
     joint_rows = [
         rrb.Horizontal(
-            _series_view(f"/joints/{j}/position", f"{j}: position q vs target (rad)"),
-            _series_view(f"/joints/{j}/current", f"{j}: current, commanded vs measured (mA)"),
+            series_view(f"/joints/{j}/position", f"{j}: position, q orange vs target blue (rad)"),
+            series_view(
+                f"/joints/{j}/current", f"{j}: current, commanded orange vs measured grey (mA)"
+            ),
         )
         for j in JOINT_LETTERS
     ]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
-                rrb.Spatial3DView(
-                    origin="/",
-                    contents=["/arm/**", "/target/**"],
-                    name="arm (m), target pose as a ghost",
-                ),
-                _series_view("/errors", "errors: target - q (rad)"),
+                arm_view("arm (m), target pose as a ghost", ["/arm/**", "/target/**"], arm_eye()),
+                series_view("/errors", f"errors: target - q (rad); {JOINT_KEY}"),
                 rrb.TextLogView(origin="/events", name="events"),
                 row_shares=[4, 2, 1],
             ),
             rrb.Vertical(*joint_rows),
             rrb.Vertical(
-                _series_view("/torques", "torques (N m)"),
-                _series_view("/velocities", "velocities (rad/s)"),
-                *(_series_view(f"/{entity}", name) for entity, name in LINK_VIEWS),
+                series_view("/torques", "torques (N m)"),
+                series_view("/velocities", "velocities (rad/s)"),
+                *(series_view(f"/{entity}", name) for entity, name in LINK_VIEWS),
             ),
             rrb.Vertical(
-                *(_series_view(f"/{entity}", name) for entity, name in DIAGNOSTIC_VIEWS),
+                *(series_view(f"/{entity}", name) for entity, name in DIAGNOSTIC_VIEWS),
             ),
-            column_shares=[3, 4, 2, 2],
+            column_shares=[4, 4, 2, 2],
         ),
-        rrb.TimePanel(timeline=TIMELINE_TIME, state="collapsed"),
+        time_panel(TIMELINE_TIME, live),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
     )
@@ -228,16 +292,16 @@ class RunRecorder:
         self.viewer_failed: str | None = None
         self._warn = warn or (lambda msg: print(f"warning: {msg}", file=sys.stderr))
         recording_id = f"{app_id}-{time.time_ns()}"
-        blueprint = default_blueprint()
         file_rec: rr.RecordingStream | None = None
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             file_rec = rr.RecordingStream(app_id, recording_id=recording_id)
-            file_rec.save(str(self.path), default_blueprint=blueprint)
+            file_rec.save(str(self.path), default_blueprint=default_blueprint())
         view_rec: rr.RecordingStream | None = None
         if viewer is not None:
             try:
-                view_rec = open_viewer(viewer, app_id, recording_id, blueprint, announce)
+                live = default_blueprint(live=True)
+                view_rec = open_viewer(viewer, app_id, recording_id, live, announce)
             except ViewerError as exc:
                 self._viewer_error(exc, opening=True)
         self._rec = ViewerTee(file_rec, view_rec, self._viewer_error)
@@ -275,31 +339,40 @@ class RunRecorder:
         rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         log_link_geoms(rec, "arm", [g for g in GEOMS if g.link == BASE_LINK], _BASE_COLOR)
         tcp = [[0.0, 0.0, TCP_OFFSET_M]]
-        for links, color in ((self._arm_links, _ARM_COLOR), (self._ghost_links, _GHOST_COLOR)):
+        for links, color in ((self._arm_links, ARM_COLOR), (self._ghost_links, _GHOST_COLOR)):
             for path, frame in zip(links, CHAIN, strict=True):
                 log_link_geoms(rec, path, [g for g in GEOMS if g.link == frame.child_link], color)
-            rec.log(f"{links[-1]}/tcp", rr.Points3D(tcp, radii=0.006, colors=[color]), static=True)
+            rec.log(
+                f"{links[-1]}/tcp",
+                rr.Points3D(tcp, radii=_TCP_RADIUS_M, colors=[color]),
+                static=True,
+            )
         for j in JOINT_LETTERS:
             rec.log(
                 f"joints/{j}/position",
-                rr.SeriesLines(names=["q", "target"], colors=[_ARM_COLOR, _TARGET_COLOR]),
+                rr.SeriesLines(names=["q", "target"], colors=[ARM_COLOR, TARGET_COLOR]),
                 static=True,
             )
             rec.log(
                 f"joints/{j}/current",
                 rr.SeriesLines(
-                    names=["commanded", "measured"], colors=[_ARM_COLOR, _MEASURED_COLOR]
+                    names=["commanded", "measured"], colors=[ARM_COLOR, _MEASURED_COLOR]
                 ),
                 static=True,
             )
         names = [f"{j}" for j in JOINT_LETTERS]
         for entity in ("errors", "velocities", "torques"):
-            rec.log(entity, rr.SeriesLines(names=names, colors=_JOINT_COLORS), static=True)
+            rec.log(entity, rr.SeriesLines(names=names, colors=list(JOINT_COLORS)), static=True)
         rec.log("link/frames", rr.SeriesLines(names=["good frames", "bad frames"]), static=True)
         rec.log("link/state_age", rr.SeriesLines(names=["state age ms"]), static=True)
         rec.log("link/latency", rr.SeriesLines(names=["latency ms"]), static=True)
+        rec.log("link/loop_period", rr.SeriesLines(names=["loop period ms"]), static=True)
         for entity, _ in DIAGNOSTIC_VIEWS:
-            rec.log(entity, rr.SeriesLines(names=list(DIAGNOSTIC_LETTERS)), static=True)
+            rec.log(
+                entity,
+                rr.SeriesLines(names=list(DIAGNOSTIC_LETTERS), colors=[*JOINT_COLORS, JAW_COLOR]),
+                static=True,
+            )
         meta = {"joint_names": list(JOINT_LETTERS), **dict(metadata)}
         rec.log("run/metadata", rr.TextDocument(json.dumps(meta, default=str)), static=True)
 
@@ -377,15 +450,19 @@ class RunRecorder:
         bad: int,
         state_age_s: float,
         latency_s: float | None = None,
+        loop_period_s: float | None = None,
     ) -> None:
         """The link's health at one step: frame counts, state age and (if known) the latency
-        from the state being complete to the command being written, each its own entity."""
+        from the state being complete to the command being written and the wall time since the
+        previous command, each its own entity."""
         self._set_time(t, step)
         rec = self._rec
         rec.log("link/frames", rr.Scalars([float(good), float(bad)]))
         rec.log("link/state_age", rr.Scalars(state_age_s * 1e3))
         if latency_s is not None:
             rec.log("link/latency", rr.Scalars(latency_s * 1e3))
+        if loop_period_s is not None and np.isfinite(loop_period_s):
+            rec.log("link/loop_period", rr.Scalars(loop_period_s * 1e3))
 
     def log_diagnostics(self, t: float, step: int, joints: Mapping[int, JointState]) -> bool:
         """The devices' Monitor readings and HARDWARE_STATUS flags, those the driver has a
@@ -453,7 +530,9 @@ class RunRecorder:
             self._rec.file.flush(timeout_sec=2.0)
         self._last_flush = time.monotonic()
 
-    def close(self) -> None:
+    def close(self, keep_viewer: bool = False) -> None:
+        """End the file; and the viewer stream, unless `keep_viewer`: then it goes on serving
+        what it was sent until `close_viewer` (`--viewer-keep`)."""
         if self._closed:
             return
         self._closed = True
@@ -462,7 +541,12 @@ class RunRecorder:
                 self._rec.file.flush(timeout_sec=5.0)
                 self._rec.file.disconnect()
         finally:
-            self._rec.close_viewer()
+            if not keep_viewer:
+                self._rec.close_viewer()
+
+    def close_viewer(self) -> None:
+        """Drop the viewer stream (a kept one: its server and web viewer stop)."""
+        self._rec.close_viewer()
 
     def abandon(self) -> None:
         """Stop writing without flushing: after a write error, when a flush would only wait for

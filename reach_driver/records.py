@@ -8,11 +8,12 @@ on to the loop.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from reach_driver.chatter import Verdict
+from reach_driver.loop_timing import GapStats
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,8 @@ class StepRecord:
     bad_frames: int
     current_mA: np.ndarray | None = None  # measured with the state (None when not streamed)
     torque_Nm: np.ndarray | None = None  # over the period ending at this state (see LoopTrace)
+    #: Wall seconds since the previous command (NaN at the first): what the watchdog judges.
+    loop_period_s: float = float("nan")
 
 
 StepHook = Callable[[StepRecord], None]
@@ -63,6 +66,10 @@ class TimingStats:
     process_cpu_per_step_s: float  # the whole process (reader thread included)
     partial_states: int = 0  # ticks handed out with a lost packet filled in
     incomplete_ticks: int = 0  # ticks never handed out (lost packets, or the loop was late)
+    stream_gaps: int = 0  # gaps in the stream (ticks lost whole, or the host stalled)
+    lost_ticks: int = 0  # ticks those gaps could have held: arm time not counted (at most)
+    #: The gaps between commands (what the watchdog judges): percentiles, the longest taken apart.
+    gaps: GapStats = field(default_factory=GapStats)
 
 
 @dataclass(frozen=True)

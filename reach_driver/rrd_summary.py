@@ -9,12 +9,15 @@ before its first step is still recognised by the metadata written when it opened
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import shutil
 import struct
 import tempfile
 import warnings
 from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,6 +36,9 @@ from reach_driver.recording import (
     TIMELINE_TIME,
 )
 from reach_driver.state import MONITOR_READINGS
+
+#: rerun's PlayState component values (rerun.blueprint.components.PlayState).
+_PLAY_STATES = {1: "Paused", 2: "Playing", 3: "Following"}
 
 #: `run/metadata`'s "source" in a simulator recording (reach_sim_bridge.emulator.recording).
 SIM_SOURCE = "reach-sim"
@@ -76,6 +82,8 @@ class RecordedRun:
     closed_cleanly: bool = True
     truncated: bool = False  # cut inside a message: read up to the last complete one
     truncated_bytes: int = 0  # the bytes of the incomplete message that were skipped
+    #: ms since the previous command, per step (NaN where not logged; None: not recorded)
+    loop_period_ms: np.ndarray | None = None
     #: The devices' Monitor readings and status flags, by MONITOR_READINGS key and STATUS_KEY
     #: (only those the recording holds: none in a recording made before they were logged).
     diagnostics: dict[str, DiagnosticSeries] = field(default_factory=dict)
@@ -248,11 +256,28 @@ def _summary(text: str | None) -> dict[str, object]:
     return value
 
 
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class BlueprintEye:
+    """A 3D view's pinned eye (EyeControls3D), world coordinates."""
+
+    position: Vec3
+    look_target: Vec3
+    eye_up: Vec3
+
+
 @dataclass(frozen=True)
 class BlueprintView:
     kind: str  # rerun's view class: "TimeSeries", "3D", "TextLog", ...
     name: str
     origin: str
+    legend_visible: bool | None = None  # a plot's PlotLegend: None when left to the viewer
+    #: a plot's time axis range, the kind of each end ("Infinite", "Absolute",
+    #: "CursorRelative"); None when left to the viewer (the span of the plot's own data)
+    time_range: tuple[str, str] | None = None
+    eye: BlueprintEye | None = None  # a 3D view's eye; None when left to the viewer
 
 
 @dataclass(frozen=True)
@@ -261,27 +286,65 @@ class RecordingBlueprint:
 
     timeline: str | None  # the time panel's timeline
     views: list[BlueprintView]
+    play_state: str | None = None  # the time panel's: "Following", ...; None: the viewer's
+
+
+def _boundary_kinds(column: pa.Array) -> tuple[str, str]:
+    """The kinds of a TimeAxis:view_range's ends (a struct of two dense unions)."""
+    ranges = column.flatten()
+    kinds = []
+    for end in ("start", "end"):
+        union = ranges.field(end)
+        names = {code: union.type.field(i).name for i, code in enumerate(union.type.type_codes)}
+        kinds.append(names[union.type_codes.to_pylist()[-1]])
+    return kinds[0], kinds[1]
+
+
+def _vec3(column: pa.Array) -> Vec3:
+    x, y, z = _flat(column.to_pylist())[-1]
+    return (float(x), float(y), float(z))
 
 
 def read_blueprint(path: str | Path) -> RecordingBlueprint:
-    """The default blueprint a recording carries (its views and the timeline it opens on)."""
+    """The default blueprint a recording carries: its views (with the properties reach-stack
+    sets: legends, time axes, the 3D eye), the timeline it opens on and its play state."""
     reader = RrdReader(Path(path))
     stores = reader.blueprints()
     timeline: str | None = None
+    play_state: str | None = None
     views: list[BlueprintView] = []
     if not stores:
         return RecordingBlueprint(None, [])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         chunks = reader.stream(store=stores[0]).to_chunks()
+    props: dict[str, dict[str, object]] = defaultdict(dict)  # view entity -> property
+    view_paths: list[str] = []
     for chunk in chunks:
         batch = chunk.to_record_batch()
         names = batch.schema.names
+        entity = str(chunk.entity_path)
+        owner = entity.rsplit("/", 1)[0]
         if "TimePanelBlueprint:timeline" in names:
             values = _flat(batch.column("TimePanelBlueprint:timeline").to_pylist())
             timeline = str(values[-1]) if values and values[-1] is not None else timeline
+        if "TimePanelBlueprint:play_state" in names:
+            states = _flat(batch.column("TimePanelBlueprint:play_state").to_pylist())
+            if states and states[-1] is not None:
+                play_state = _PLAY_STATES.get(int(states[-1]), str(states[-1]))
+        if "PlotLegend:visible" in names:
+            props[owner]["legend"] = bool(_flat(batch.column("PlotLegend:visible").to_pylist())[-1])
+        if "TimeAxis:view_range" in names:
+            props[owner]["range"] = _boundary_kinds(batch.column("TimeAxis:view_range"))
+        if "EyeControls3D:position" in names:
+            props[owner]["eye"] = BlueprintEye(
+                _vec3(batch.column("EyeControls3D:position")),
+                _vec3(batch.column("EyeControls3D:look_target")),
+                _vec3(batch.column("EyeControls3D:eye_up")),
+            )
         if "ViewBlueprint:class_identifier" in names:
             kinds = _flat(batch.column("ViewBlueprint:class_identifier").to_pylist())
+            view_paths.extend([entity] * len(kinds))
             titles = (
                 _flat(batch.column("ViewBlueprint:display_name").to_pylist())
                 if "ViewBlueprint:display_name" in names
@@ -296,8 +359,17 @@ def read_blueprint(path: str | Path) -> RecordingBlueprint:
                 BlueprintView(str(k), str(n or ""), str(o or ""))
                 for k, n, o in zip(kinds, titles, origins, strict=True)
             )
+    views = [
+        dataclasses.replace(
+            view,
+            legend_visible=props[where].get("legend"),  # type: ignore[arg-type]
+            time_range=props[where].get("range"),  # type: ignore[arg-type]
+            eye=props[where].get("eye"),  # type: ignore[arg-type]
+        )
+        for view, where in zip(views, view_paths, strict=True)
+    ]
     views.sort(key=lambda v: (v.origin, v.name))
-    return RecordingBlueprint(timeline, views)
+    return RecordingBlueprint(timeline, views, play_state)
 
 
 def read_recording(path: str | Path) -> RecordedRun:
@@ -373,6 +445,7 @@ def read_recording(path: str | Path) -> RecordedRun:
 
     events = _events(by_entity)
     summary_text = _static_text(by_entity.get("/run/summary", []))
+    period = aligned("/link/loop_period", 1)
     return RecordedRun(
         t=np.array([t_index[int(k)] for k in steps]),
         step=steps,
@@ -393,6 +466,7 @@ def read_recording(path: str | Path) -> RecordedRun:
         truncated=truncated_bytes > 0,
         truncated_bytes=truncated_bytes,
         diagnostics=diagnostics,
+        loop_period_ms=None if period is None else period[:, 0],
     )
 
 
@@ -482,12 +556,19 @@ def summarize_recording(path: str | Path) -> dict[str, object]:
     Metrics need a uniform period: they use the median step period, and the last target of the
     run (a run with several targets is scored against its final one).
     """
-    try:
+    with malformed_is_read_error():
         return _summarize(path)
+
+
+@contextmanager
+def malformed_is_read_error() -> Iterator[None]:
+    """Reading or using a file no writer of ours makes: a RecordingReadError saying what is
+    wrong, not a traceback."""
+    try:
+        yield
     except RecordingReadError:
         raise
     except (ValueError, TypeError, KeyError, IndexError, ArithmeticError) as exc:
-        # Files no writer of ours makes; what is wrong is said, not a traceback.
         raise RecordingReadError(
             f"not a recording reach-stack can read: {type(exc).__name__}: {exc}"
         ) from None

@@ -20,6 +20,7 @@ from protocol.alpha5 import (
     FACTORY_POSITION_LIMITS,
     FACTORY_VELOCITY_LIMITS,
     JAW,
+    JOINTS,
     Range,
 )
 from reach_driver.chatter import ChatterConfig
@@ -200,6 +201,10 @@ class SafetyGuard:
             mid = 0.5 * (lo + hi)
             lo = hi = mid
         return EffectiveLimit(lo, hi, source + ("+config" if tightened else ""))
+
+    def position_limits(self) -> list[tuple[float, float]]:
+        """[min, max] of E D C B in force (rad): what a tool position is solved within."""
+        return [(lim.low, lim.high) for lim in (self.limit(d, LimitKind.POSITION) for d in JOINTS)]
 
     def check(self, device: int, kind: LimitKind, value: float) -> None:
         """Raise `LimitError` if `value` is outside the effective limit (never clips)."""

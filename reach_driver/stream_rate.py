@@ -9,6 +9,15 @@ by its velocity x the true elapsed time. Over the samples where a joint moves cl
 (|velocity| >= `min_speed`, well above sensor noise), the least-squares ratio of the position
 change to velocity x the asked period is the true tick period over the asked one. Once the
 motion seen adds up to `min_travel` rad, a ratio off 1 by more than `tolerance` is judged.
+
+Only what the arm really reported between two consecutive ticks measures it. An interval is
+left out for a joint whose sample at either end was not reported in its tick (a lost packet
+filled in by the state assembler: an extrapolated position moves by exactly velocity x
+period, whatever the rate) or was implausible (held at its last good sample: it moved 0 while
+its held velocity says otherwise), whose velocity came in exactly the same at both ends (a
+velocity stuck at one value, `reach_driver.plausibility`, says nothing of the time between),
+and for every joint across a gap in the stream (`resumed`: ticks lost whole, which the loop
+does not count, as when the stream went to another UDP client for a while).
 """
 
 from __future__ import annotations
@@ -32,23 +41,33 @@ class RateCheck:
     def __init__(self, asked_hz: float, config: RateConfig | None = None) -> None:
         self.asked_hz = asked_hz
         self.config = config or RateConfig()
-        self.prev: tuple[int, np.ndarray, np.ndarray] | None = None
+        self.prev: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
         self.sxy = 0.0
         self.sxx = 0.0
         self.travel = 0.0
 
-    def update(self, ticks: int, q: np.ndarray, qdot: np.ndarray) -> None:
-        """Add the sample of heartbeat tick `ticks` (a plausible, fresh state)."""
-        prev, self.prev = self.prev, (ticks, q.copy(), qdot.copy())
-        if prev is None or ticks <= prev[0]:
+    def update(
+        self,
+        ticks: int,
+        q: np.ndarray,
+        qdot: np.ndarray,
+        ok: np.ndarray | None = None,
+        resumed: bool = False,
+    ) -> None:
+        """Add the sample of heartbeat tick `ticks`; `ok` per joint: reported in this tick and
+        plausible (default all); `resumed`: ticks were lost whole since the last sample."""
+        ok = np.ones(len(q), dtype=bool) if ok is None else np.asarray(ok, dtype=bool)
+        prev, self.prev = self.prev, (ticks, q.copy(), qdot.copy(), ok.copy())
+        if prev is None or ticks <= prev[0] or resumed:
             return
-        n0, q0, v0 = prev
+        n0, q0, v0, ok0 = prev
         v = 0.5 * (v0 + qdot)
         x = v * (ticks - n0) / self.asked_hz  # the motion if a tick is the asked period
         dq = q - q0
         dq = (dq + math.pi) % (2 * math.pi) - math.pi  # a wrapping joint: the short way
         use = (np.abs(v0) >= self.config.min_speed) & (np.abs(qdot) >= self.config.min_speed)
         use &= np.sign(v0) == np.sign(qdot)  # no reversal inside the interval
+        use &= ok0 & ok & (v0 != qdot)  # reported, plausible, and not one repeated value
         self.sxy += float(np.sum(dq[use] * x[use]))
         self.sxx += float(np.sum(x[use] ** 2))
         self.travel += float(np.sum(np.abs(x[use])))

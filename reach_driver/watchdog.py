@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 
 from protocol import Mode, Packet, PacketID
 from reach_driver.state import joint_name
@@ -34,6 +35,31 @@ FeedbackTime = Callable[[int], "float | tuple[float | None, str] | None"]
 WATCHDOG_PERIODS = 2.0
 #: The option a person sets the limit with; the CLI shows it in place of the API's name.
 LIMIT_NAME = "SafetyConfig.watchdog_s"
+
+
+@dataclass(frozen=True)
+class LoopTiming:
+    """How a running control loop has kept time so far (wall seconds between commands)."""
+
+    nominal_s: float
+    p99_s: float
+    max_s: float
+    gaps: int
+
+    @property
+    def busy(self) -> bool:
+        """The loop has been late often enough to show in its p99: the host is busy."""
+        return self.gaps >= 20 and self.p99_s > BUSY_P99 * self.nominal_s
+
+    def describe(self) -> str:
+        return (
+            f"p99 {self.p99_s * 1e3:.1f} ms, max {self.max_s * 1e3:.1f} ms over {self.gaps} "
+            f"periods of {self.nominal_s * 1e3:.0f} ms"
+        )
+
+
+#: A loop period p99 this many times the nominal one means a busy host.
+BUSY_P99 = 1.2
 
 
 def watchdog_too_short(period_s: float, watchdog_s: float | None) -> str | None:
@@ -94,12 +120,21 @@ class Watchdog:
                 self._armed.pop(int(d), None)
 
     def expired(
-        self, now: float, limit_s: float | None, feedback_t: FeedbackTime
+        self,
+        now: float,
+        limit_s: float | None,
+        feedback_t: FeedbackTime,
+        away_s: float = 0.0,
+        loop: LoopTiming | None = None,
     ) -> tuple[str, tuple[int, ...]] | None:
         """(why, armed devices) if commands or feedback are older than `limit_s`, else None.
 
         Stale feedback is named first: a loop paced by the arm's state stops commanding when
-        the state stops, so "no command" alone would blame the controller for the link."""
+        the state stops, so "no command" alone would blame the controller for the link.
+        `away_s`: how long the checking (reader) thread had been away before `now`; when that
+        is most of the limit, this process was not running at all, and the trip says so
+        rather than blame the controller or the arm. `loop`: the running loop's timing, named
+        in a "no command" trip so a busy machine shows as one."""
         with self._lock:
             armed = dict(self._armed)
             last_command = self._last_command_t
@@ -107,6 +142,13 @@ class Watchdog:
             return None
         limit = f"watchdog {limit_s:g} s, {LIMIT_NAME}"
         silent = now - last_command
+        stalled = away_s > limit_s / 2
+        process = (
+            f"; this process itself had not run for {away_s:.3f} s (the machine was busy: "
+            f"raise {LIMIT_NAME} or reduce the load)"
+            if stalled
+            else ""
+        )
         for dev, since in armed.items():
             got = feedback_t(dev)
             fed, quantity = (got[0], f" {got[1]}") if isinstance(got, tuple) else (got, "")
@@ -121,15 +163,30 @@ class Watchdog:
                     f"feedback from {joint_name(dev)}{quantity} stale for {now - last:.3f} s "
                     f"({limit})"
                     f"{also}: the feedback stopped (the arm stopped reporting, the link is "
-                    "failing, or the arm reset)"
+                    f"failing, or the arm reset){process}"
                 )
                 return reason, tuple(armed)
         if silent > limit_s:
-            reason = (
-                f"no command for {silent:.3f} s ({limit}) while the arm's feedback kept "
-                "arriving: the controller did not command (a stalled or slow controller, a "
-                "loaded host, or a control period near the watchdog)"
-            )
+            head = f"no command for {silent:.3f} s ({limit})"
+            timing = "" if loop is None else f" (loop period {loop.describe()})"
+            if stalled:
+                reason = (
+                    f"{head}: this process did not run for {away_s:.3f} s of it, its reader "
+                    f"thread no more than the controller: the machine was busy{timing}; raise "
+                    f"{LIMIT_NAME} or reduce the load"
+                )
+            elif loop is not None and loop.busy:
+                reason = (
+                    f"{head} while the arm's feedback kept arriving: the controller did not "
+                    f"command for {silent:.3f} s: the machine was busy{timing}; raise "
+                    f"{LIMIT_NAME} or reduce the load"
+                )
+            else:
+                reason = (
+                    f"{head} while the arm's feedback kept arriving: the controller did not "
+                    f"command{timing} (a stalled or slow controller, a busy machine, or a "
+                    f"control period near the watchdog: raise {LIMIT_NAME} or reduce the load)"
+                )
             return reason, tuple(armed)
         return None
 

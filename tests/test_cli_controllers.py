@@ -3,9 +3,12 @@ trained, as a table in 80 columns or as JSON; a plugin that fails to load is lis
 
 from __future__ import annotations
 
+import argparse
 import json
+import re
 import sys
 import types
+from collections.abc import Callable
 from importlib.metadata import EntryPoint
 from pathlib import Path
 from typing import Any
@@ -129,3 +132,36 @@ def test_help_says_a_broken_plugin_does_not_change_the_exit_status(capsys) -> No
         main(["controllers", "--help"])
     assert done.value.code == 0
     assert "exit status is still 0" in " ".join(capsys.readouterr().out.split())
+
+
+def _controller_help(parser: argparse.ArgumentParser) -> str:
+    (action,) = [a for a in parser._actions if "--controller" in a.option_strings]
+    return action.help or ""
+
+
+def _parsers() -> dict[str, Callable[[], argparse.ArgumentParser]]:
+    from policy.campaigns.evaluate_command import build_parser as evaluate_parser
+    from policy.campaigns.robustness.command import build_parser as robustness_parser
+    from reach_driver.cli.parser import build_parser as driver_parser
+
+    def run_parser() -> argparse.ArgumentParser:
+        sub = [a for a in driver_parser()._actions if isinstance(a, argparse._SubParsersAction)]
+        return sub[0].choices["run"]
+
+    return {
+        "reach-driver run": run_parser,
+        "tools/evaluate.py": evaluate_parser,
+        "tools/robustness.py": robustness_parser,
+    }
+
+
+@pytest.mark.parametrize(
+    "program", ["reach-driver run", "tools/evaluate.py", "tools/robustness.py"]
+)
+def test_each_help_names_the_registered_controllers(program, monkeypatch) -> None:
+    """--controller's help lists what is registered, read from the entry points: every shipped
+    controller, and one another package registers, with no hand-kept list to go stale."""
+    named = set(re.findall(r"[\w-]+", _controller_help(_parsers()[program]())))
+    assert registered() <= named, f"{program} --help leaves out {registered() - named}"
+    with_entry_point(monkeypatch, "someone-elses", "their_package.ctrl:make_controller")
+    assert "someone-elses" in _controller_help(_parsers()[program]())

@@ -54,7 +54,8 @@ def _status(argv: list[str]) -> int:
 
 
 @pytest.mark.parametrize(
-    "command", ["", "info", "monitor", "move", "run", "controllers", "inspect"]
+    "command",
+    ["", "info", "monitor", "move", "run", "controllers", "inspect", "export", "workspace"],
 )
 def test_every_help_prints_without_a_traceback(command, capsys) -> None:
     assert _status([command, "--help"] if command else ["--help"]) == 0
@@ -285,6 +286,23 @@ def test_off_a_terminal_the_view_is_a_line_a_second_and_one_at_the_end() -> None
     assert quiet.console.file.getvalue() == ""  # type: ignore[attr-defined]
 
 
+def test_the_first_progress_line_says_what_is_not_measured_yet_without_nan() -> None:
+    from dataclasses import replace
+
+    from rich.console import Console
+
+    from reach_driver.cli.live import RunView
+
+    out = io.StringIO()
+    view = RunView(Console(file=out, width=100), seconds=20)
+    first = _record(0, 0.0, 0.0)
+    view.on_step(replace(first, current_mA=np.array([98.0, np.nan, -51.0, 9.0])))
+    line = out.getvalue().splitlines()[0]
+    assert "nan" not in line.lower(), line
+    assert "loop -- Hz" in line  # one step gives no rate yet
+    assert "I [mA] 98 -- -51 9 |" in line  # D's current not read yet
+
+
 def test_run_shows_progress_while_it_goes_and_still_records(sim, tmp_path, capsys) -> None:
     target = sim.snapshot().q + np.array([0.2, -0.1, 0.1, 0.2])
     record = tmp_path / "run.rrd"
@@ -404,16 +422,19 @@ def test_info_json_has_whole_serial_numbers_and_rounded_floats(sim, capsys) -> N
 def test_info_fits_80_columns_with_units_on_every_column(sim, capsys) -> None:
     from rich.console import Console
 
-    from reach_driver.cli.render import info_table
+    from reach_driver.cli.render import info_tables
+    from reach_driver.cli.tables import show_table
     from reach_driver.client import ArmClient
     from reach_driver.interfaces import open_transport
 
     with ArmClient(open_transport(str(sim.link))) as client:
         client.request_many(client.found_devices, [PacketID.POSITION], partial=True)
         joints = client.read_info()
-    console = Console(record=True, width=80, file=io.StringIO())
-    console.print(info_table(str(sim.link), joints))
+    console = Console(record=True, width=80, file=io.StringIO(), force_terminal=True)
+    for table in info_tables(str(sim.link), joints):
+        show_table(console, table)
     text = console.export_text()
+    assert "┃" in text  # drawn as tables: each fits a terminal of 80 columns
     assert max(len(line) for line in text.splitlines()) <= 80
     cells: tuple[str, ...] = (
         "E (0x05)",

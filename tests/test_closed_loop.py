@@ -6,6 +6,8 @@ corrupted bytes, the arm restarting, a stalled controller, a bad target) and thr
 from __future__ import annotations
 
 import json
+import os
+import re
 import subprocess
 import sys
 import threading
@@ -499,13 +501,25 @@ def test_evaluate_via_driver_writes_metrics_and_loop_timing(tmp_path: Path) -> N
 def test_demo_runs_ddpg_through_the_cli_and_writes_a_recording(tmp_path: Path) -> None:
     record = tmp_path / "demo.rrd"
     demo = [sys.executable, str(ROOT / "tools" / "demo.py"), "--speed", "4", "--seconds", "4"]
+    # As `make demo` runs it: the venv not activated, so its programs are not on PATH
+    path = [d for d in os.environ["PATH"].split(os.pathsep) if not (Path(d) / "rerun").exists()]
+    env = {**os.environ, "PATH": os.pathsep.join(path)}
     proc = subprocess.run(
-        [*demo, "--record", str(record)], capture_output=True, text=True, timeout=300, cwd=ROOT
+        [*demo, "--record", str(record)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+        env=env,
     )
     out = proc.stdout
     assert proc.returncode == 0, out + proc.stderr
-    assert "scenario 1" in out and "RMSE" in out and f"rerun {record}" in out
-    assert "reach-driver inspect" in out
+    assert "scenario 1" in out and "RMSE" in out
+    # The viewer is named one way, as the user types it here: the venv's rerun, by its path
+    viewers = set(re.findall(rf"([^\s`]*rerun) {re.escape(str(record))}", out))
+    assert len(viewers) == 1 and (ROOT / viewers.pop()).is_file(), out
+    inspect = set(re.findall(rf"([^\s`]*reach-driver) inspect {re.escape(str(record))}", out))
+    assert len(inspect) == 1 and (ROOT / inspect.pop()).is_file(), out
     # the run ends on the first state taken at or after 4 s: a host pause (50 ms of wall time
     # is 200 ms of arm time at 4x) may skip the heartbeats around it, each counted
     summary: dict[str, Any] = summarize_recording(record)

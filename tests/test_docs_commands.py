@@ -1,4 +1,4 @@
-"""Every command in README.md's and docs/hil.md's ```sh blocks still works.
+"""Every command in the ```sh blocks of README.md, docs/hil.md and docs/usage.md still works.
 
 `reach-driver` commands run against a virtual arm (its pty or UDP address put where the text
 names a port, durations cut short, run in order in one directory so `inspect run.rrd` finds
@@ -25,7 +25,7 @@ from reach_driver.cli.parser import build_parser
 from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = ("README.md", "docs/hil.md")
+DOCS = ("README.md", "docs/hil.md", "docs/usage.md")
 SHORT_SECONDS = "1"
 MONITOR_SECONDS = "0.5"
 
@@ -53,6 +53,7 @@ ALL = [(doc, cmd) for doc in DOCS for cmd in sh_commands(ROOT / doc)]
 def test_the_docs_have_commands_to_check() -> None:
     assert len([c for d, c in ALL if d == "README.md"]) >= 8
     assert len([c for d, c in ALL if d == "docs/hil.md"]) >= 6
+    assert len([c for d, c in ALL if d == "docs/usage.md"]) >= 15
 
 
 def _program(word: str) -> str:

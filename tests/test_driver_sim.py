@@ -427,6 +427,41 @@ def test_a_second_udp_client_taking_the_stream_is_named_and_the_arm_made_safe(si
         assert "no command" not in (arm.tripped or "")
 
 
+def test_a_busy_host_that_did_not_read_the_udp_stream_is_not_blamed_on_another_client(
+    sim,
+) -> None:
+    """A host too loaded to read the stream for longer than the watchdog trips it over UDP
+    with no other client anywhere: the arm still answers the probe (it streams, to us), which
+    was named "another client on this arm's UDP port took the stream". The trip says the
+    machine was busy; the arm is made safe as ever. The stall is the reader's, simulated."""
+    url = udp_url(sim)
+    with ArmClient(open_transport(url), safety=SafetyConfig(watchdog_s=0.2)) as arm:
+
+        def step(packet, t) -> None:  # noqa: ANN001 - a controller paced by the heartbeat
+            if packet.key == (DeviceID.E, PacketID.POSITION) and arm.tripped is None:
+                arm.command_current(DeviceID.C, 0.0)
+
+        arm.subscribe(step)
+        arm.stream((PacketID.POSITION, PacketID.VELOCITY), 50)
+        assert wait_until(lambda: sim.firmware.mode(3) == Mode.CURRENT, timeout=10.0)
+        read, stalled = arm.transport.read, list[bool]()
+
+        def stalling_read() -> bytes:
+            if not stalled:
+                stalled.append(True)
+                time.sleep(0.5)  # the host did not run this reader for 2.5 watchdogs
+            return read()
+
+        arm.transport.read = stalling_read  # type: ignore[method-assign]
+        assert wait_until(lambda: arm.tripped is not None, timeout=10.0)
+        assert wait_until(lambda: sim.firmware.mode(3) == Mode.ZERO_VELOCITY, timeout=10.0)
+        # any answer to a probe comes before the answer to this later request
+        arm.request(DeviceID.E, [PacketID.HEARTBEAT_FREQUENCY])
+        tripped = arm.tripped or ""
+    assert "another client" not in tripped and "took the stream" not in tripped, tripped
+    assert "this process itself had not run" in tripped and "busy" in tripped, tripped
+
+
 def test_info_over_udp_says_when_another_client_was_streaming(sim, capsys) -> None:
     """A3-6, the second client's side: `info` cannot avoid taking a UDP arm's stream (the
     arm streams to the last host that wrote to it), so it says it found one running."""

@@ -228,6 +228,33 @@ def test_random_starts_and_goals_in_workspace_and_seeded() -> None:
     np.testing.assert_allclose(env.arm.q, starts[3])
 
 
+def test_goal_every_draws_new_goals_within_the_episode_from_where_the_arm_is() -> None:
+    env = ReachAlphaEnv(EnvConfig(goal_every_s=1.0, max_step=0.3))
+    env.reset(seed=5)
+    goals = [env.target.copy()]
+    memory_before = None
+    for k in range(1, 61):
+        env.step(np.full(4, 0.05))
+        if k % 20 == 19:
+            memory_before = env.memory.prev_action.copy()
+        if k % 20 == 0:
+            assert not np.array_equal(env.target, goals[-1]), f"no new goal at step {k}"
+            np.testing.assert_allclose(env.start, env.arm.q)
+            inside = np.clip(env.start, WORKSPACE_LOW, WORKSPACE_HIGH)
+            assert np.all(np.abs(env.target - inside) <= 0.3 + 1e-12)
+            assert memory_before is not None and np.any(env.memory.prev_action != 0)
+            goals.append(env.target.copy())
+        else:
+            np.testing.assert_array_equal(env.target, goals[-1])
+    assert len(goals) == 4
+    with pytest.raises(ValueError, match="goal_every_s"):
+        EnvConfig(goal_every_s=0.0)
+    # evaluation always runs one goal per episode
+    from policy.rl.batched import eval_envs
+
+    assert eval_envs(EnvConfig(goal_every_s=1.0), 1)[0].config.goal_every_s is None
+
+
 def test_action_scaled_to_current_limits() -> None:
     env = ReachAlphaEnv(EnvConfig())
     env.reset(seed=0, options={"start": [3.0, 1.7, 1.7, 1.6], "target": [3.0, 1.7, 1.7, 1.6]})

@@ -57,14 +57,14 @@ else:
 
 
 def without_heavy(
-    tmp_path: Path, *argv: str, code: str | None = None
+    tmp_path: Path, *argv: str, code: str | None = None, refuse: tuple[str, ...] = HEAVY
 ) -> tuple[subprocess.CompletedProcess[str], list[str]]:
-    """`python -m MODULE ARGV` (or `python -c code`) with the heavy libraries refused; the
-    finished process and the heavy modules it tried to import."""
+    """`python -m MODULE ARGV` (or `python -c code`) with the heavy libraries (or those in
+    `refuse`) refused; the finished process and the refused modules it tried to import."""
     tried = tmp_path / "tried.txt"
     tried.write_text("")
     script = tmp_path / "blocked.py"
-    head = f"HEAVY = {HEAVY!r}\nCODE = {code!r}\n"
+    head = f"HEAVY = {refuse!r}\nCODE = {code!r}\n"
     script.write_text(head + BLOCKER)
     args = ["-c", *argv] if code is not None else list(argv)
     proc = subprocess.run(
@@ -205,6 +205,30 @@ def test_a_recorded_run_and_its_inspection_import_nothing_heavy(sim, tmp_path) -
     assert tried == []
 
 
+def test_export_to_mcap_without_its_extra_names_it_and_csv_needs_none(tmp_path) -> None:
+    """The recording is not even read: the line comes at once, and no file is made."""
+    from reach_driver.recording import RunRecorder, StepSample
+
+    record = tmp_path / "run.rrd"
+    with RunRecorder(record) as rec:
+        for k in range(3):
+            rec.log_step(StepSample(0.05 * k, k, np.ones(4), np.zeros(4), np.ones(4), np.zeros(4)))
+    mcap = ("mcap", *HEAVY)
+    argv = ["export", str(record), "--to", str(tmp_path / "run.mcap")]
+    proc, tried = without_heavy(tmp_path, "reach_driver", *argv, refuse=mcap)
+    assert proc.returncode == 2
+    assert one_error_line(proc) == (
+        "error: reach-driver export to .mcap needs the mcap library: "
+        "pip install 'reach-stack[export]'"
+    )
+    assert tried == ["mcap"] and not (tmp_path / "run.mcap").exists()
+    for suffix in ("csv", "parquet"):
+        argv = ["export", str(record), "--to", str(tmp_path / f"run.{suffix}")]
+        proc, tried = without_heavy(tmp_path, "reach_driver", *argv, refuse=mcap)
+        assert proc.returncode == 0, proc.stderr
+        assert tried == [] and (tmp_path / f"run.{suffix}").stat().st_size > 0
+
+
 # -- the extras themselves (pyproject.toml) --------------------------------------------------
 
 
@@ -246,9 +270,10 @@ def test_the_base_install_has_no_heavy_library_and_each_extra_brings_its_own() -
     assert _closure(extras, "mpc") == {"mujoco", "casadi"}
     assert _closure(extras, "train") == {"mujoco", "torch", "gymnasium"}
     assert _closure(extras, "scale") == {"mujoco", "ray"}
-    roles = ("sim", "mpc", "train", "scale")
+    assert _closure(extras, "export") == {"mcap"}
+    roles = ("sim", "mpc", "train", "scale", "export")
     assert _closure(extras, "all") == set().union(*(_closure(extras, r) for r in roles))
-    assert set(OPTIONAL_MODULES) == set(HEAVY)  # each one an extra brings
+    assert set(OPTIONAL_MODULES) == {*HEAVY, "mcap"}  # each one an extra brings
     assert {"dev", "bench"} <= set(extras)
 
 

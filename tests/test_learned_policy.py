@@ -67,11 +67,41 @@ def test_memory_observation_needs_its_memory() -> None:
         build_observation(np.ones(4), np.zeros(4), np.ones(4), MEMORY_OBS)
 
 
-def test_controller_feeds_the_network_what_the_env_fed_it() -> None:
+WINDOW_OBS = ObservationConfig(previous_action=True, integral_tau=1.0, history=3)
+
+
+def test_the_window_holds_the_last_speeds_read_and_actions_taken_newest_first() -> None:
+    assert WINDOW_OBS.size == 28 + 3 * 8
+    memory = InputMemory(WINDOW_OBS, 0.05)
+    q, q_req = np.ones(4), np.full(4, 2.0)
+    speeds = [np.array([0.12, -0.24, 0.6, 9.0]) * (k + 1) for k in range(4)]
+    actions = [np.array([0.1, -0.2, 0.3, 1.5]) * (k + 1) for k in range(4)]
+    obs = memory.observe(q, speeds[0], q_req)
+    assert not obs[28:].any()  # nothing read before the first period
+    for k in range(4):
+        memory.acted(actions[k])
+        obs = memory.observe(q, speeds[(k + 1) % 4], q_req)
+    window = obs[28:].reshape(3, 8)
+    # newest first: the speed read at period 3 and the action taken on it, then 2, then 1
+    for row, k in enumerate((3, 2, 1)):
+        np.testing.assert_allclose(window[row, :4], np.clip(speeds[k] / 1.2, -2, 2), rtol=1e-6)
+        np.testing.assert_allclose(window[row, 4:], np.clip(actions[k], -1, 1), rtol=1e-6)
+    low, high = policy_env.observation_bounds(WINDOW_OBS)
+    assert np.all(obs >= low) and np.all(obs <= high)
+    memory.reset()
+    assert not memory.window.any()
+    with pytest.raises(ValueError, match="history"):
+        ObservationConfig(previous_action=True, history=-1)
+    with pytest.raises(ValueError, match="history"):
+        ObservationConfig(previous_action=True, history=2.5)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("obs_config", [MEMORY_OBS, WINDOW_OBS], ids=["memory", "window"])
+def test_controller_feeds_the_network_what_the_env_fed_it(obs_config: ObservationConfig) -> None:
     """Step the env with the actor's own actions; the controller, given the readings the env
     observed, sends exactly those actions (times the limits) at every step."""
-    weights = random_weights(MEMORY_OBS)
-    env = ReachAlphaEnv(EnvConfig(observation=MEMORY_OBS, sensor_noise=True))
+    weights = random_weights(obs_config)
+    env = ReachAlphaEnv(EnvConfig(observation=obs_config, sensor_noise=True))
     controller = LearnedController(weights)
     obs, _ = env.reset(seed=3)
     controller.reset()

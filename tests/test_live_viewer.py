@@ -19,12 +19,14 @@ import time
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import rerun_cli
 from conftest import WATCHDOG_S, recorded_steps, wait_until
 
+from protocol import Mode
 from protocol.viewer import ViewerSpec, parse_viewer
 from reach_driver.cli import Exit, main
 from reach_driver.recording import RunRecorder, StepSample
@@ -416,28 +418,72 @@ def test_run_with_an_absent_viewer_warns_and_exits_ok(sim, tmp_path, capsys) -> 
     assert err.count("no Rerun viewer answers") == 1, err
 
 
-def test_monitor_streams_the_arm_to_a_viewer(sim, receiver, capsys) -> None:
+def test_monitor_streams_the_arm_to_a_viewer(sim, tmp_path, receiver, capsys) -> None:
     port, received, proc = receiver
-    argv = ["--port", str(sim.link), "-q", "monitor", "--seconds", "1"]
+    record = tmp_path / "monitor.rrd"
+    argv = ["--port", str(sim.link), "-q", "monitor", "--seconds", "1", "--record", str(record)]
     assert main([*argv, "--viewer", "connect", str(port)]) == 0
     assert "warning" not in capsys.readouterr().err
-    _stop(proc, received)
+    local = read_recording(record)
+    _stop(proc, received, local.step.tolist())
     live = read_recording(received)
-    assert len(live.step) >= 10  # 20 Hz for a second
+    # the whole second watched (up to the state it ended on), and all of it reached the viewer
+    assert len(local.step) >= 2 and local.t[-1] >= 1.0
+    assert live.step.tolist() == local.step.tolist()
     assert np.all(np.isfinite(live.q)) and np.all(np.isnan(live.target))
+
+
+def test_monitor_seconds_count_from_when_it_watches(sim, tmp_path, monkeypatch) -> None:
+    """Opening the recording and viewer (loading rerun) took seconds on a loaded host, all of
+    `--seconds 1`: the monitor recorded nothing. Its seconds start once it is watching."""
+    from reach_driver.cli import commands
+
+    opened = commands.CliRecorder
+
+    def slow_open(*args: Any, **kwargs: Any) -> Any:
+        time.sleep(1.5)  # a host too busy to load rerun within the monitor's second
+        return opened(*args, **kwargs)
+
+    monkeypatch.setattr(commands, "CliRecorder", slow_open)
+    record = tmp_path / "monitor.rrd"
+    argv = ["--port", str(sim.link), "-q", "monitor", "--seconds", "1", "--record", str(record)]
+    assert main(argv) == 0
+    local = read_recording(record)
+    assert len(local.step) >= 2 and local.t[-1] >= 1.0, local.t
 
 
 def test_move_streams_the_arm_and_its_target_to_a_viewer(sim, receiver, capsys) -> None:
     port, received, proc = receiver
     q = sim.snapshot().q + np.array([0.1, 0.0, 0.0, 0.0])
-    argv = ["--port", str(sim.link), "-q", "move", *map(str, q)]
+    tolerance = 0.02
+    argv = ["--port", str(sim.link), "-q", "move", *map(str, q), "--tolerance", str(tolerance)]
     assert main([*argv, "--viewer", "connect", str(port)]) == 0
     assert "warning" not in capsys.readouterr().err
     _stop(proc, received)
     live = read_recording(received)
     assert len(live.step) >= 3 and np.all(np.isfinite(live.q))
     np.testing.assert_allclose(live.target[-1], q)
-    assert np.max(np.abs(live.q[-1] - q)) <= 0.02
+    assert np.max(np.abs(live.q[-1] - q)) <= tolerance  # the state the move ended on
+
+
+def test_move_streams_the_state_it_ended_on_whenever_the_last_tick_was(
+    sim, tmp_path, receiver, monkeypatch
+) -> None:
+    """The viewer's last frame of a move is the state that was judged reached, not the 20 Hz
+    tick before it (a loaded host's last tick came early and showed the arm short of its
+    tolerance). Here the stream ticks once only: the start, then the end."""
+    from reach_driver.cli import commands
+
+    monkeypatch.setattr(commands._StateStream, "PERIOD_S", 1e9)
+    port, received, proc = receiver
+    q = sim.snapshot().q + np.array([0.1, 0.0, 0.0, 0.0])
+    tolerance = 0.02
+    argv = ["--port", str(sim.link), "-q", "move", *map(str, q), "--tolerance", str(tolerance)]
+    assert main([*argv, "--viewer", "connect", str(port)]) == 0
+    _stop(proc, received, [0, 1])
+    live = read_recording(received)
+    assert live.step.tolist() == [0, 1]
+    assert np.max(np.abs(live.q[-1] - q)) <= tolerance
 
 
 # -- reach-sim --viewer --------------------------------------------------------------------------
@@ -547,3 +593,164 @@ def test_reach_sim_viewer_serve_prints_the_address_and_streams_only(tmp_path) ->
         out, err = proc.communicate(timeout=30)
     assert proc.returncode == 0, err
     assert "recording" not in out and list(tmp_path.glob("*.rrd")) == []
+
+
+def test_a_viewer_joining_late_is_sent_the_present_first(tmp_path) -> None:
+    """--viewer serve replays what a late viewer missed newest first (after the static scene
+    and the blueprint): it shows the arm as it is now at once, and the run's start after."""
+    import rerun as rr
+
+    from protocol.viewer import open_viewer
+    from reach_driver.recording import default_blueprint
+
+    grpc, web = _free_port(), _free_port()
+    spec = parse_viewer(["serve", str(grpc), str(web)])
+    rec = open_viewer(spec, "reach-stack", "late-joiner", default_blueprint(live=True))
+    pulled = tmp_path / "pulled.rrd"
+    client: subprocess.Popen[bytes] | None = None
+    try:
+        rec.log("run/metadata", rr.TextDocument("{}"), static=True)
+        for batch in range(4):  # four sends, as four half seconds of a run
+            for k in range(batch * 10, batch * 10 + 10):
+                rec.set_time("step", sequence=k)
+                rec.log("joints/E/position", rr.Scalars([float(k), 0.0]))
+            rec.flush(timeout_sec=10.0)
+        client = subprocess.Popen(
+            [RERUN, spec.url, "--save", str(pulled)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        assert wait_until(
+            lambda: (
+                _steps_in_order(pulled, "/joints/E/position")
+                and sorted(_steps_in_order(pulled, "/joints/E/position")) == list(range(40))
+            ),
+            30,
+            poll_s=0.1,
+        )
+    finally:
+        if client is not None:
+            _stop(client)
+        from protocol.viewer import drop_viewer
+
+        drop_viewer(rec)
+    order = _steps_in_order(pulled, "/joints/E/position")
+    assert order[:10] == list(range(30, 40)), order  # the newest send first
+    assert sorted(order) == list(range(40))  # and all of it
+
+
+def _steps_in_order(path: Path, entity: str) -> list[int]:
+    """The steps of `entity`'s rows in the order they reached the file."""
+    import warnings
+
+    from rerun.chunk import RrdReader
+
+    if not path.exists():
+        return []
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            chunks = RrdReader(path).stream().to_chunks()
+    except Exception:  # still being written
+        return []
+    steps: list[int] = []
+    for c in chunks:
+        if str(c.entity_path) == entity and not c.is_static:
+            steps.extend(int(s) for s in c.to_record_batch().column("step").to_pylist())
+    return steps
+
+
+def _lingering(port: int) -> bool:
+    """Whether a TCP connection on local `port` is in TIME_WAIT (/proc/net/tcp state 06)."""
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            local, state = line.split()[1], line.split()[3]
+            if state == "06" and int(local.split(":")[1], 16) == port:
+                return True
+    return False
+
+
+def test_serve_on_ports_a_finished_viewer_lingers_on_starts(tmp_path) -> None:
+    """A browser that watched the last run leaves its closed connection in TIME_WAIT on the
+    web viewer's port for a minute: that port is free to serve again (it was called 'in
+    use', and the next run watched nothing)."""
+    web = _free_port()
+    with socket.socket() as server:
+        server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        server.bind(("127.0.0.1", web))
+        server.listen()
+        client = socket.create_connection(("127.0.0.1", web))
+        conn, _ = server.accept()
+        conn.close()  # the server closes first, as a web server does: its end lingers
+        client.close()
+    assert wait_until(lambda: _lingering(web), timeout=10), "no TIME_WAIT to test against"
+    warnings: list[str] = []
+    spec = parse_viewer(["serve", str(_free_port()), str(web)])
+    with RunRecorder(tmp_path / "run.rrd", viewer=spec, warn=warnings.append) as rec:
+        assert warnings == [] and rec.viewing
+        _log_run(rec, 3)
+    assert read_recording(tmp_path / "run.rrd").step.tolist() == [0, 1, 2]
+
+
+# -- --viewer-keep -------------------------------------------------------------------------------
+
+
+def test_viewer_keep_serves_the_finished_run_until_ctrl_c(sim, tmp_path) -> None:
+    """With --viewer-keep the run ends as ever (arm safe, summary out, the file closed, the
+    port released), then its viewer goes on serving the whole run until Ctrl-C; the exit
+    status is the run's own."""
+    from policy.campaigns.attacks import driver_process
+
+    grpc, web = _free_port(), _free_port()
+    record, pulled = tmp_path / "run.rrd", tmp_path / "pulled.rrd"
+    target = sim.snapshot().q + np.array([0.1, 0.0, 0.0, 0.0])
+    proc = driver_process(
+        *["--port", str(sim.link), "-q", "--watchdog", str(WATCHDOG_S), "run"],
+        *["--controller", "pid", "--target", *map(str, target), "--seconds", "1"],
+        *["--record", str(record), "--viewer", "serve", str(grpc), str(web), "--viewer-keep"],
+    )
+    client: subprocess.Popen[bytes] | None = None
+    try:
+        assert proc.stderr is not None and proc.stdout is not None
+        said = [proc.stderr.readline() for _ in range(2)]  # the address, then the keeping
+        assert spec_line(said[0], grpc, web) and "still serving" in said[1], said
+        assert f"http://127.0.0.1:{web}/" in said[1] and "Ctrl-C" in said[1]
+        assert proc.poll() is None  # waiting
+        assert all(sim.firmware.mode(d) == Mode.ZERO_VELOCITY for d in (5, 4, 3, 2))
+        run = read_recording(record)  # closed, as any run's
+        assert run.closed_cleanly and run.summary["steps"]
+        assert _listening(grpc) and _listening(web)
+        client = subprocess.Popen(
+            [RERUN, f"rerun+http://127.0.0.1:{grpc}/proxy", "--save", str(pulled)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        steps = run.step.tolist()
+        assert wait_until(lambda: _holds_steps(pulled, steps), 30, poll_s=0.1), "not all served"
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if client is not None:
+            _stop(client)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+    assert proc.returncode == Exit.OK, err  # not 130: Ctrl-C ended the serving, not the run
+    assert "arm left in zero_velocity" in out and "interrupted" not in err
+    assert _listen_addresses(grpc) == set() and _listen_addresses(web) == set()
+
+
+def spec_line(line: str, grpc: int, web: int) -> bool:
+    return f"http://127.0.0.1:{web}/?url=rerun%2Bhttp://127.0.0.1:{grpc}/proxy" in line
+
+
+@pytest.mark.parametrize("words", [[], ["--viewer", "connect", "9000"]])
+def test_viewer_keep_without_serve_is_a_usage_error(words: list[str], capsys) -> None:
+    argv = ["--port", "loop://", "run", "--controller", "pid", "--target", "1", "1", "1", "1"]
+    with pytest.raises(SystemExit) as exc:
+        main([*argv, "--seconds", "1", *words, "--viewer-keep"])
+    assert exc.value.code == 2 and "--viewer-keep is for --viewer serve" in capsys.readouterr().err

@@ -34,7 +34,8 @@ FORBIDDEN = re.compile(
             re.escape("/work" + "/"),
             r"(?<![\w/.-])/home/\w+",
             # The background notes by name: their facts live in docs/ and model/README.md.
-            r"\b(alpha5-model|bpl-protocol|paper-benchmark|tooling-notes)" + re.escape(".md"),
+            r"\b(alpha5-model|bravo7-model|bpl-protocol|paper-benchmark|tooling-notes)"
+            + re.escape(".md"),
         ]
     )
 )

@@ -6,11 +6,12 @@ import logging
 
 import pytest
 
-from protocol import Packet, PacketDecoder, PacketID, commands
+from protocol import DeviceID, Packet, PacketDecoder, PacketID, commands
 from reach_sim_bridge.emulator.events import EventLog
 from reach_sim_bridge.emulator.faults import (
     FaultConfig,
     LinkFaults,
+    StuckReading,
     parse_torque_scale,
     torque_scales,
 )
@@ -127,3 +128,30 @@ def test_firmware_errors_are_logged(caplog: pytest.LogCaptureFixture) -> None:
     assert any(
         "bad_payload" in r.getMessage() and "empty MODE" in r.getMessage() for r in caplog.records
     )
+
+
+def test_a_stuck_reading_keeps_its_value_from_its_arm_time_on() -> None:
+    """`StuckReading`: from its arm time on, E's VELOCITY (answers and heartbeats alike)
+    carries the value it had then, while the joint moves on and its POSITION follows."""
+    E = DeviceID.E
+    fw = Firmware(Alpha5Arm())
+    fw.handle(commands.heartbeat_set(E, [PacketID.VELOCITY]))
+    fw.handle(commands.heartbeat_frequency(E, 50))
+    fw.handle(commands.velocity(E, 0.3))
+    fw.inject_stuck(StuckReading(E, PacketID.VELOCITY, from_s=0.5))
+    fw.tick(0.5)
+
+    def velocity() -> float:
+        return fw.handle(commands.request(E, [PacketID.VELOCITY]))[0].as_float()
+
+    stuck = velocity()
+    assert stuck == pytest.approx(0.3, abs=0.05)
+    fw.handle(commands.velocity(E, -0.3))
+    q0 = float(fw.arm.q[0])
+    beats = [p.as_float() for p in fw.tick(1.0) if p.key == (E, PacketID.VELOCITY)]
+    assert len(beats) == 50 and set(beats) == {stuck}
+    assert velocity() == stuck
+    assert float(fw.arm.qdot[0]) == pytest.approx(-0.3, abs=0.02)  # the joint moved on
+    assert float(fw.arm.q[0]) < q0 - 0.2
+    fw.unstick(E, PacketID.VELOCITY)
+    assert velocity() == pytest.approx(-0.3, abs=0.02)

@@ -590,3 +590,47 @@ def test_velocity_into_the_limit_does_not_wind_up_and_d_still_holds_against_grav
     run_until(fw, lambda: value(fw, C, PacketID.POSITION) <= 0.0175 + 1e-3, limit_s=30.0)
     fw.tick(2.0)
     assert abs(value(fw, C, PacketID.CURRENT)) < 1.0  # 40 mA kept pushing outward without it
+
+
+def test_a_stall_at_full_current_derates_the_limit_and_rest_restores_it() -> None:
+    """Thermal derating (reach_sim_bridge/emulator/derating.py, assumed constants): E held
+    at 600 mA against its end stop for a minute of arm time heats its winding estimate, so
+    the firmware lowers the limit and the CURRENT it reports falls to the continuous 400 mA
+    while the set limit stays as set; the housing's TEMPERATURE has risen with it. After
+    half a minute at rest the full 600 mA is back."""
+    fw = Firmware(Alpha5Arm())
+    fw.handle(commands.current(E, 600.0))
+    fw.tick(5.0)  # from its start into the stop
+    assert value(fw, E, PacketID.POSITION) == pytest.approx(6.143, abs=0.01)
+    assert value(fw, E, PacketID.CURRENT) == pytest.approx(600.0, abs=5.0)
+    fw.tick(55.0)
+    assert value(fw, E, PacketID.CURRENT) == pytest.approx(400.0, abs=5.0)  # derated
+    assert one(fw, E, PacketID.CURRENT_LIMITS).floats() == pytest.approx([600.0, -600.0])
+    hot = value(fw, E, PacketID.TEMPERATURE)
+    assert hot > 22.0  # 20 degC water; D, not pushed, stays cool
+    assert value(fw, D, PacketID.TEMPERATURE) < 21.0
+    assert value(fw, D, PacketID.CURRENT) < 200.0  # only its gravity load: not derated
+    fw.handle(commands.current(E, 0.0))
+    fw.tick(30.0)  # rest: the estimate cools below the derating's start
+    assert value(fw, E, PacketID.TEMPERATURE) < hot
+    fw.handle(commands.current(E, 600.0))
+    fw.tick(0.5)
+    assert value(fw, E, PacketID.CURRENT) == pytest.approx(600.0, abs=5.0)
+
+
+def test_the_derated_limit_caps_the_velocity_loop_and_derating_can_be_turned_off() -> None:
+    """The derated limit caps the velocity loop's output as it caps current mode: with a
+    continuous rating of 60 mA on E (a knob of `CurrentDerating`), a minute at 600 mA leaves
+    E unable to draw the ~95 mA that 0.5 rad/s needs, so it moves slower, at 60 mA.
+    `FirmwareConfig(derating=None)` is the underated firmware."""
+    from reach_sim_bridge.emulator.derating import CurrentDerating
+
+    weak = FirmwareConfig(derating=CurrentDerating(continuous_fraction=0.1))
+    for config, speed, current in ((weak, 0.2, 60.0), (FirmwareConfig(derating=None), 0.49, 95)):
+        fw = Firmware(Alpha5Arm(), config)
+        fw.handle(commands.current(E, 600.0))
+        fw.tick(60.0)
+        fw.handle(commands.velocity(E, -0.5))  # out of the stop
+        fw.tick(2.0)
+        assert -value(fw, E, PacketID.VELOCITY) == pytest.approx(speed, abs=0.05)
+        assert -value(fw, E, PacketID.CURRENT) == pytest.approx(current, abs=5.0)

@@ -20,7 +20,14 @@ from collections.abc import Iterator
 import pytest
 
 from protocol import DeviceID, Packet, PacketDecoder, PacketID, commands
-from reach_sim_bridge.emulator.server import SimConfig, SimServer, out_queue_limit
+from reach_sim_bridge.emulator.server import (
+    TURNAROUND_BYTES,
+    SimConfig,
+    SimServer,
+    out_frame_max_age,
+    out_queue_limit,
+)
+from reach_sim_bridge.emulator.wire import OUT_QUEUE_S
 
 A, B, C, D, E = DeviceID.A, DeviceID.B, DeviceID.C, DeviceID.D, DeviceID.E
 BROADCAST = DeviceID.BROADCAST
@@ -333,6 +340,93 @@ def test_request_flood_at_baud_keeps_the_queue_bounded_and_answers_after_it() ->
         finally:
             reader.close()
         assert srv.error is None
+
+
+class VirtualLine:
+    """The --baud line of a server that is not started, driven on a virtual clock: host
+    bytes arrive when told, the arm acts on them as they land (no physics), and the frames it
+    puts on the line are kept with the time their last byte lands. Exact and independent of
+    the host's load, for bounds in line time."""
+
+    def __init__(self, **config: object) -> None:
+        self.srv = SimServer(SimConfig(**config))  # type: ignore[arg-type]
+        self.now = 0.0
+        self.out: list[tuple[float, Packet]] = []
+        self._wire: tuple[float, bytes] | None = None
+
+    def send(self, *packets: Packet) -> None:
+        self.srv._arrive(b"".join(p.encode() for p in packets), self.now)
+
+    def run(self, until: float, step: float = 0.0002) -> None:
+        srv = self.srv
+        while self.now < until:
+            srv._earn(step)
+            srv._take_input(self.now)
+            while True:  # as the server's flush: one frame on the line at a time
+                if self._wire is None:
+                    self._wire = srv._pty_next(self.now)
+                    if self._wire is None:
+                        break
+                landed, frame = self._wire
+                if landed > self.now:
+                    break
+                self.out.append((landed, PacketDecoder().feed(frame)[0]))
+                self._wire = None
+            self.now += step
+
+    @property
+    def host_done(self) -> float:
+        """When the host's last byte has landed."""
+        return self.srv._rx_free
+
+
+def test_a_reply_held_back_by_a_half_duplex_host_too_long_is_dropped_not_sent_stale() -> None:
+    """The reply queue is bounded in time, not only in bytes: on a half-duplex wire the arm
+    cannot talk while the host does, so a host that keeps the line 0.6 s left its replies
+    queued (330 bytes, well inside the byte bound) and sent them 0.6 s stale, ahead of the
+    answer to its next request. Older than out_frame_max_age (0.4 s at 115200) they are
+    dropped and counted, and the next request is answered as soon as the wire is the arm's:
+    the turnaround and the reply's own bytes."""
+    baud = 115200
+    line = VirtualLine(baud=baud, half_duplex=True)
+    stale = [commands.request(E, [PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT])] * 10
+    nobody = commands.request(DeviceID.F, [PacketID.POSITION])  # no such device: no reply
+    filler = [nobody] * int(0.6 * baud / 10 / len(nobody.encode()))
+    probe = commands.request(C, [PacketID.POSITION_LIMITS])
+    line.send(*stale, *filler, probe)
+    line.run(line.host_done + 0.1)
+    assert line.out, "nothing was answered"
+    first_t, first = line.out[0]
+    assert first.key == (C, PacketID.POSITION_LIMITS), [p for _, p in line.out[:3]]
+    assert len(line.out) == 1
+    reply_s = (TURNAROUND_BYTES + len(first.encode())) * 10 / baud
+    assert first_t - line.host_done == pytest.approx(reply_s, abs=0.001)
+    assert line.srv.stats().replies_dropped == 30
+    assert out_frame_max_age(baud) == pytest.approx(0.4, abs=0.001)
+
+
+def test_after_broadcast_requests_at_half_the_line_rate_the_next_request_is_answered() -> None:
+    """Issue 46's case: broadcast POSITION requests at half of a 115200 baud line for 2 s
+    (each asks five replies, 3.5 times what the line carries back) left the next request
+    unanswered for over 3 s. The queue holds OUT_QUEUE_S of wire time and drops the
+    oldest, so the next request is answered within that (plus its own bytes)."""
+    baud = 115200
+    line = VirtualLine(baud=baud)
+    ask = commands.request(BROADCAST, [PacketID.POSITION])
+    every = 2 * len(ask.encode()) * 10 / baud  # half the line's rate
+    while line.now < 2.0:
+        line.send(ask)
+        line.run(line.now + every)
+    asked = line.now
+    probe = commands.request(C, [PacketID.POSITION_LIMITS])
+    line.send(probe)
+    line.run(asked + 1.0)
+    answered = [t for t, p in line.out if p.key == (C, PacketID.POSITION_LIMITS)]
+    assert answered, "the request after the flood was never answered"
+    assert answered[0] - asked <= OUT_QUEUE_S + 0.01
+    stats = line.srv.stats()
+    assert stats.replies_dropped > 0
+    assert stats.queued_peak_bytes <= out_queue_limit(baud)
 
 
 # -- hole 3: a flood and the physics ---------------------------------------------------------

@@ -39,19 +39,6 @@ def driver_command() -> list[str]:
     return [found] if found else [sys.executable, "-m", "reach_driver.cli"]
 
 
-def _shown(name: str) -> str:
-    """How the user should type a venv tool: bare if it is on PATH, else its path."""
-    if shutil.which(name):
-        return name
-    beside = Path(sys.executable).with_name(name)
-    if not beside.is_file():
-        return name
-    try:
-        return str(beside.relative_to(Path.cwd()))
-    except ValueError:
-        return str(beside)
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="demo.py",
@@ -62,8 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
             "scenario 1 target, print the run's metrics and write a Rerun recording."
         ),
         epilog=(
-            "Open the recording with `rerun demo.rrd`, or summarise it with "
-            "`reach-driver inspect demo.rrd`. The same run against a real arm: docs/hil.md."
+            "The run ends by naming the recording's viewer and `reach-driver inspect` as you "
+            "type them here. The same run against a real arm: docs/hil.md."
         ),
     )
     p.add_argument(
@@ -158,12 +145,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         + " ".join(f"{e:+.4f}" for e in true_error)
         + f"  (max {np.max(np.abs(true_error)):.4f})"
     )
-    if code == 0:
-        print(
-            f"\nrecording: {args.record}\n  view it:      {_shown('rerun')} {args.record}\n"
-            f"  summarise it: {_shown('reach-driver')} inspect {args.record}"
-        )
-    return code
+    return code  # the run named the recording and its viewer, as the user types them
 
 
 if __name__ == "__main__":

@@ -50,6 +50,7 @@ from policy.campaigns.selection import (
     selection_table,
     weights_of,
 )
+from reach_driver.cli.tables import show_table
 from reach_sim_bridge.model.sensors import SensorNoise
 
 
@@ -98,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    console = Console(width=None if sys.stdout.isatty() else 150)
+    console = Console()
     try:
         paths = [weights_of(c) for c in args.candidates]
         episodes = random_episodes(args.episodes, args.seed)
@@ -136,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
         f"perturb {args.perturb}; * = chosen"
     )
     table = selection_table(title, args.reference, reference, rows, best, args.screen)
-    console.print(table)
+    show_table(console, table)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(
         json.dumps(

@@ -31,6 +31,7 @@ from rich.table import Table
 from policy.campaigns.evaluation import DirectArm, RunConfig, evaluate, random_episodes
 from policy.rl.expert import PDExpert
 from policy.tasks.arm import ArmLike, nominal_arm
+from reach_driver.cli.tables import show_table
 from reach_sim_bridge.model.sensors import SensorNoise
 
 DEFAULT_SEED = 11
@@ -160,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{s['settling_time_s']:.3f}",
             f"{s['reached']:.2f}",
         )
-    console.print(table)
+    show_table(console, table)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(
         json.dumps(

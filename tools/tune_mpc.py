@@ -30,6 +30,7 @@ from rich.table import Table
 
 from policy.campaigns.evaluation import RunConfig, evaluate, random_episodes
 from policy.controllers.mpc import MPCConfig, MPCController
+from reach_driver.cli.tables import show_table
 from reach_sim_bridge.model.sensors import SensorNoise
 
 DEFAULT_SEED = 11
@@ -158,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{t['p99'] * 1e3:.1f}",
             style="bold green" if row is best else None,
         )
-    console.print(table)
+    show_table(console, table)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(
         json.dumps(

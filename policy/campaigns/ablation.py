@@ -60,6 +60,34 @@ INGREDIENTS: tuple[Ingredient, ...] = (
         ("twin_critics=false", "target_noise=0", "policy_delay=1"),
     ),
     Ingredient(
+        "wide-gate",
+        "the calm-arrival terms gated from 0.15 rad out (the recipe: 0.05), where braking starts",
+        ("env.reward.near_scale=0.15",),
+    ),
+    Ingredient(
+        "away-x5",
+        "five times the cost of moving away from the goal (away_weight 10, the recipe 2)",
+        ("env.reward.away_weight=10",),
+    ),
+    Ingredient(
+        "window",
+        "a window of the last 4 periods' speed readings and actions in the input (off in the "
+        "recipe): in-episode adaptation to the arm",
+        ("env.observation.history=4",),
+    ),
+    Ingredient(
+        "goals-5s",
+        "a new goal every 5 s within each training episode (the recipe: one per 20 s episode): "
+        "four arrivals per episode instead of one",
+        ("env.goal_every_s=5.0",),
+    ),
+    Ingredient(
+        "gamma-0.95",
+        "discount 0.95 (a 1 s horizon at 20 Hz; the recipe 0.99, 5 s): values a fifth the size, "
+        "an arrival's overshoot a larger share of them",
+        ("gamma=0.95",),
+    ),
+    Ingredient(
         "potential",
         "potential-based shaping switched on (off in the recipe)",
         ("env.reward.potential_weight=2.0",),

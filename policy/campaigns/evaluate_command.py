@@ -31,6 +31,8 @@ from policy.campaigns.evaluation import (
     random_episodes,
 )
 from policy.campaigns.parallel import CampaignError, evaluate_parallel
+from reach_driver.cli.tables import show_table
+from reach_driver.controllers import registered_list
 from reach_driver.errors import DriverError
 from reach_driver.metrics import ALL_METRIC_KEYS, metric_label
 from reach_sim_bridge.model.params import load_arm_params
@@ -99,7 +101,7 @@ def summary_table(evaluation: Evaluation) -> Table:
     table.add_column("#", justify="right")
     for key in ALL_METRIC_KEYS:
         table.add_column(escape(metric_label(key).replace(" [", "\n[")), justify="right")
-    table.add_column("rmse_floor\n[rad]", justify="right")
+    table.add_column(escape("rmse_floor\n[rad]"), justify="right")
     for i, r in enumerate(evaluation.results):
         m = r.metrics.as_dict()
         cells = [_fmt(m[k]) for k in ALL_METRIC_KEYS] + [_fmt(r.rmse_floor)]
@@ -202,7 +204,7 @@ def execute(args: Options) -> int:
     if args.record is not None:
         record_evaluation(evaluation, args.record)
     if not args.quiet:
-        Console().print(summary_table(evaluation))
+        show_table(Console(), summary_table(evaluation))
         console.print(f"wrote {args.out}" + (f" and {args.record}" if args.record else ""))
     return 0
 
@@ -221,8 +223,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--controller",
         required=True,
-        help="controller entry-point name in reach_stack.controllers (ddpg-distilled, mpc, "
-        "pid, lambda; `reach-driver controllers` lists them)",
+        help=f"a registered controller: {registered_list()} (`reach-driver controllers` says "
+        "what each is)",
     )
     add_param_option(p, "--param horizon=15")
     src = p.add_mutually_exclusive_group(required=True)

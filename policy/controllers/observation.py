@@ -27,6 +27,9 @@ WORKSPACE_HALF_RANGE = 0.5 * (WORKSPACE_HIGH - WORKSPACE_LOW)
 #: the arm's own angles stay within 0..2pi and its speed within ~1.2 rad/s).
 Q_BOUNDS = (-0.5, 2.0 * np.pi + 0.5)
 QDOT_BOUND = 5.0
+#: the window's speeds (over `qdot_scale`) are clipped to this: a reading past twice the
+#: no-load speed is noise or a glitch, not information about the arm
+WINDOW_SPEED_BOUND = 2.0
 
 
 @dataclass(frozen=True)
@@ -53,6 +56,11 @@ class ObservationConfig:
     integral_tau: float = 0.0
     #: rad: where the integral channel's squashing bends (a steady 3 mrad reads 0.29)
     integral_error_scale: float = 0.01
+    #: a window of the last `history` control periods: for each, the speed read then (over
+    #: `qdot_scale`) and the action taken on it (8 entries per period, the newest first),
+    #: so the network can see how this arm answers its commands (friction, a weak joint,
+    #: latency) and adapt within an episode. 0 disables
+    history: int = 0
 
     @classmethod
     def paper(cls) -> ObservationConfig:
@@ -74,12 +82,16 @@ class ObservationConfig:
                 f"qdot_scale must be > 0 and fine_error_scale >= 0, got {self.qdot_scale}, "
                 f"{self.fine_error_scale}"
             )
+        if isinstance(self.history, bool) or not isinstance(self.history, int):
+            raise ValueError(f"history must be a whole number of periods, got {self.history!r}")
+        if not 0 <= self.history <= 50:
+            raise ValueError(f"history must be 0-50 periods, got {self.history}")
         if self.integral_tau < 0 or self.integral_error_scale <= 0:
             raise ValueError(
                 "integral_tau must be >= 0 and integral_error_scale > 0, got "
                 f"{self.integral_tau}, {self.integral_error_scale}"
             )
-        if (self.previous_action or self.integral_tau > 0) and not (
+        if (self.previous_action or self.integral_tau > 0 or self.history) and not (
             self.include_error and self.fine_error_scale > 0
         ):
             raise ValueError("the memory channels follow the error channels: enable those too")
@@ -100,8 +112,9 @@ class ObservationConfig:
 
     @property
     def memory_groups(self) -> int:
-        """Groups of 4 that carry the past (`InputMemory`): previous action, error integral."""
-        return int(self.previous_action) + int(self.integral_tau > 0)
+        """Groups of 4 that carry the past (`InputMemory`): previous action, error integral,
+        and two per period of the window (speed, action)."""
+        return int(self.previous_action) + int(self.integral_tau > 0) + 2 * self.history
 
     @property
     def has_memory(self) -> bool:
@@ -212,6 +225,7 @@ class InputMemory:
     The integral is a leaky mean (time constant `integral_tau`, period `dt`) of the squashed
     error of the readings the policy saw; nothing is reset but by `reset()`, at the start of
     an episode or a run, so the network, not a rule, decides what a target change means.
+    The window (`history`) shifts in the speed read and the action taken each period.
     """
 
     def __init__(self, config: ObservationConfig, dt: float) -> None:
@@ -220,21 +234,30 @@ class InputMemory:
         self.config = config
         self.dt = float(dt)
         self.leak = float(np.exp(-dt / config.integral_tau)) if config.integral_tau > 0 else 0.0
-        self.prev_action = np.zeros(N_JOINTS)
-        self.integral = np.zeros(N_JOINTS)
+        self.reset()
 
     def reset(self) -> None:
         self.prev_action = np.zeros(N_JOINTS)
         self.integral = np.zeros(N_JOINTS)
+        #: the window, newest first: row k is (speed read, action taken) k + 1 periods ago
+        self.window = np.zeros((self.config.history, 2 * N_JOINTS))
+        self._speed = np.zeros(N_JOINTS)  # this period's speed reading, until `acted`
 
     def observe(self, q: np.ndarray, qdot: np.ndarray, q_req: np.ndarray) -> np.ndarray:
         if self.config.integral_tau > 0:
             error = np.tanh((np.asarray(q_req) - np.asarray(q)) / self.config.integral_error_scale)
             self.integral = self.leak * self.integral + (1.0 - self.leak) * error
+        if self.config.history:
+            speed = np.asarray(qdot, dtype=np.float64) / self.config.qdot_scale
+            self._speed = np.clip(speed, -WINDOW_SPEED_BOUND, WINDOW_SPEED_BOUND)
         return build_observation(q, qdot, q_req, self.config, self)
 
     def acted(self, action: np.ndarray) -> None:
         self.prev_action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        if self.config.history:
+            self.window[1:] = self.window[:-1]
+            self.window[0, :N_JOINTS] = self._speed
+            self.window[0, N_JOINTS:] = self.prev_action
 
     def channels(self) -> np.ndarray:
         parts = []
@@ -242,6 +265,8 @@ class InputMemory:
             parts.append(self.prev_action)
         if self.config.integral_tau > 0:
             parts.append(self.integral)
+        if self.config.history:
+            parts.append(self.window.ravel())
         return np.concatenate(parts) if parts else np.zeros(0)
 
 
@@ -266,9 +291,12 @@ def observation_bounds(config: ObservationConfig) -> tuple[np.ndarray, np.ndarra
         if config.fine_error_scale > 0:
             lows.append(-np.ones(N_JOINTS))
             highs.append(np.ones(N_JOINTS))
-    for _ in range(config.memory_groups):  # previous action, integral: both in [-1, 1]
+    for _ in range(int(config.previous_action) + int(config.integral_tau > 0)):  # in [-1, 1]
         lows.append(-np.ones(N_JOINTS))
         highs.append(np.ones(N_JOINTS))
+    for _ in range(config.history):  # a speed (clipped), then an action in [-1, 1]
+        lows += [np.full(N_JOINTS, -WINDOW_SPEED_BOUND), -np.ones(N_JOINTS)]
+        highs += [np.full(N_JOINTS, WINDOW_SPEED_BOUND), np.ones(N_JOINTS)]
     low = np.concatenate(lows).astype(np.float32)
     high = np.concatenate(highs).astype(np.float32)
     return low, high

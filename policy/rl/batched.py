@@ -55,6 +55,7 @@ def eval_envs(
         param_perturbation=param_perturbation,
         torque_scale=torque_scale or (1.0, 1.0, 1.0, 1.0),
         envelope_fraction=1.0 if envelope else 0.0,
+        goal_every_s=None,
     )
     envs = [ReachAlphaEnv(cfg, arm_factory=arm_factory) for _ in range(episodes)]
     for env in envs:

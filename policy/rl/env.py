@@ -135,8 +135,15 @@ class EnvConfig:
     #: `param_perturbation`, `torque_scale(_low)`, `noise_scale` and `latency_periods` for
     #: that episode; 0 disables, 1 trains on envelope arms only
     envelope_fraction: float = 0.0
+    #: draw a new goal every this many seconds within the episode (from where the arm is,
+    #: as the first goal is drawn from the start; the memory channels run on, as they do at
+    #: run time when a target sequence moves on), so an episode holds several arrivals
+    #: instead of one; None: one goal per episode (evaluation always uses one)
+    goal_every_s: float | None = None
 
     def __post_init__(self) -> None:
+        if self.goal_every_s is not None and not self.goal_every_s > 0:
+            raise ValueError(f"goal_every_s must be > 0 or None, got {self.goal_every_s}")
         if not 0.0 <= self.envelope_fraction <= 1.0:
             raise ValueError(f"envelope_fraction must be in [0, 1], got {self.envelope_fraction}")
         if not 0.0 <= self.latency_periods <= 10.0:
@@ -445,12 +452,8 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
             self.arm.set_params(perturbed)  # type: ignore[attr-defined]
         elif self.variant is not None:  # back to the nominal arm after an envelope one
             self.arm.set_params(self._nominal_params)  # type: ignore[attr-defined]
-        low, high = self.workspace_low, self.workspace_high
-        start = self.np_random.uniform(low, high)
-        target = self.np_random.uniform(low, high)
-        if cfg.max_step is not None:
-            step = self.np_random.uniform(-cfg.max_step, cfg.max_step, size=N_JOINTS)
-            target = np.clip(start + step, low, high)
+        start = self.np_random.uniform(self.workspace_low, self.workspace_high)
+        target = self._draw_goal(start)
         scale = np.asarray(cfg.torque_scale, dtype=np.float64)
         if cfg.torque_scale_low is not None:
             scale = self.np_random.uniform(np.asarray(cfg.torque_scale_low), scale)
@@ -503,6 +506,10 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         )
         self.prev_action = action
         self.memory.acted(action)
+        every = self.config.goal_every_s
+        if every is not None and self.steps % max(1, round(every * self.config.control_hz)) == 0:
+            self.start = q.copy()
+            self.target = self._draw_goal(self.start)
         info = self._info(in_bounds)
         info["reward_terms"] = terms
         if power is not None:
@@ -511,6 +518,14 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         return self._observe(), float(sum(terms.values())), False, False, info
 
     # -- helpers -------------------------------------------------------------------------
+    def _draw_goal(self, start: np.ndarray) -> np.ndarray:
+        """A goal in the workspace (within `max_step` of `start` per joint, if set)."""
+        low, high = self.workspace_low, self.workspace_high
+        if self.config.max_step is None:
+            return self.np_random.uniform(low, high)
+        step = self.np_random.uniform(-self.config.max_step, self.config.max_step, size=N_JOINTS)
+        return np.clip(start + step, low, high)
+
     def draw_variant(self) -> Variant:
         """A feasible arm of the envelope around the nominal one, from the env's generator."""
         seed = int(self.np_random.integers(0, 2**31 - 1))

@@ -14,7 +14,7 @@ import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from types import FrameType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rich.console import Console
 from rich.markup import escape
@@ -38,6 +38,9 @@ from reach_driver.errors import (
     PortPermissionError,
     TransportError,
 )
+
+if TYPE_CHECKING:
+    from reach_driver.recording import RunRecorder
 
 __all__ = ["Exit", "build_parser", "main"]
 
@@ -90,8 +93,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             safety_config(args)
         except ValueError as exc:
             parser.error(str(exc))  # exit 2 with the usage line
-    # Piped output is not squeezed to 80 columns: tables stay one line per joint.
-    console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
+    # Piped output is never wrapped or cut: a line stays one line, a table is plain aligned
+    # text (reach_driver.cli.tables).
+    console = Console(highlight=False, soft_wrap=not sys.stdout.isatty())
     errors = Console(stderr=True, highlight=False)
     if args.log_file:
         problem = output_path_problem(
@@ -107,6 +111,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(Exit.USAGE)
     signals = Signals()
     args.signals = signals  # move and run take the signals over while they command the arm
+    args.kept_viewers = []  # --viewer-keep: live viewers left serving when the command is done
     signals.install()
     log.info(
         "reach-driver %s: %s", package_version(), " ".join(sys.argv[1:] if argv is None else argv)
@@ -116,11 +121,43 @@ def main(argv: Sequence[str] | None = None) -> int:
         code = _run(args, console, errors)
         if signals.first is not None and args.command in ("move", "run"):
             code = Exit.for_signal(signals.first)  # also one that came while it reported
+        _serve_on(args.kept_viewers, errors, signals)
         return code
     finally:
+        for kept in args.kept_viewers:
+            kept.close_viewer()
         log.info("exit %d", code)
         signals.restore()
         undo_logging()
+
+
+#: A signal that ended the command this way leaves no one to stop --viewer-keep's serving
+#: (the terminal went away) or asked for the process to end: the viewer is closed at once.
+_NO_KEEP_AFTER = (signal.SIGHUP, signal.SIGTERM, signal.SIGQUIT)
+
+
+def _serve_on(kept: Sequence[RunRecorder], errors: Console, signals: Signals) -> None:
+    """`--viewer-keep`: the command is done (the arm left safe, everything printed, the port
+    closed); its live viewers go on serving until a signal (Ctrl-C), which changes nothing
+    of the exit status, or until they fail (the recorder has said so)."""
+    live = [rec for rec in kept if rec.viewing and rec.viewer is not None]
+    if not live or signals.first in _NO_KEEP_AFTER:
+        return
+    where = ", ".join(rec.viewer.web_url for rec in live if rec.viewer is not None)
+    stop = threading.Event()
+    try:
+        with signals.rerouted(stop.set):
+            sys.stdout.flush()  # the summary is out, even into a pipe, before the wait
+            errors.print(
+                f"viewer: done; still serving it at {escape(where)} (Ctrl-C to stop)",
+                soft_wrap=True,
+            )
+            log.info("--viewer-keep: serving at %s until a signal", where)
+            while not stop.wait(0.25) and any(rec.viewing for rec in live):
+                pass
+    except KeyboardInterrupt:  # one that came before the handlers were rerouted
+        pass
+    log.info("--viewer-keep: stopped serving")
 
 
 def _say(errors: Console, label: str, message: str, style: str = "red") -> None:
@@ -218,6 +255,24 @@ class Signals:
         if self.received:
             stop()  # one came before: do not start
         yield
+
+    @contextmanager
+    def rerouted(self, stop: Callable[[], None]) -> Iterator[None]:
+        """Within: every handled signal calls `stop`, whatever came before, and is not counted
+        in `received` (what ends `--viewer-keep`'s serving says nothing of the command)."""
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+        previous = {
+            sig: signal.signal(sig, lambda _signum, _frame: stop())
+            for sig in self.HANDLED
+            if signal.getsignal(sig) is not signal.SIG_IGN
+        }
+        try:
+            yield
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
 
     def _on_signal(self, signum: int, frame: FrameType | None) -> None:
         first = not self.received

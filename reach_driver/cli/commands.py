@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import gc
 import json
 import math
 import signal
 import threading
 import time
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from rich.console import Console
@@ -20,24 +21,31 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from protocol import Mode, PacketID
 from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS
-from reach_driver.cli.connect import connect
+from reach_driver import ik
+from reach_driver.cli.connect import connect, safety_config
 from reach_driver.cli.exits import Exit, UsageError, for_operator, left_in_for_operator
 from reach_driver.cli.live import MoveView, RunView, chain
 from reach_driver.cli.recorder import CliRecorder, output_path_problem
 from reach_driver.cli.render import (
+    as_typed,
     blocking_faults,
     controllers_lines,
     diagnostics_table,
     info_json,
-    info_table,
+    info_tables,
     jsonable,
     monitor_json,
+    monitor_line,
     monitor_table,
     print_metrics,
     print_recording,
     print_summary,
+    workspace_json,
+    workspace_point_line,
+    workspace_tables,
 )
 from reach_driver.cli.report import summary_dict
+from reach_driver.cli.tables import fitted, show_table
 from reach_driver.client import ArmClient
 from reach_driver.control import ControlLoop, Pacing, control_period
 from reach_driver.controllers import (
@@ -45,14 +53,18 @@ from reach_driver.controllers import (
     controller_report,
     describe_controllers,
     load_controller,
+    registered_list,
 )
 from reach_driver.errors import ArmFaultError, DriverError, Interrupted
 from reach_driver.kinematics import tool_position
 from reach_driver.link import EventKind, LinkState
 from reach_driver.records import ControlSummary
-from reach_driver.safety import LimitKind
-from reach_driver.state import joint_name
+from reach_driver.safety import LimitKind, SafetyGuard
+from reach_driver.state import ArmState, joint_name
 from reach_driver.watchdog import watchdog_too_short
+
+if TYPE_CHECKING:
+    from reach_driver.recording import RunRecorder
 
 
 def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
@@ -75,8 +87,8 @@ def cmd_info(args: argparse.Namespace, console: Console) -> Exit:
         if args.json:
             console.print_json(json.dumps(info_json(args.port, joints)))
             return Exit.OK
-        console.print(info_table(args.port, joints))
-        console.print(diagnostics_table(args.port, joints))
+        for table in (*info_tables(args.port, joints), diagnostics_table(args.port, joints)):
+            show_table(console, table)
         return Exit.OK
     finally:
         client.close()
@@ -98,6 +110,15 @@ def _streams_elsewhere(client: ArmClient) -> str:
         return ""
     names = ", ".join(joint_name(d) for d in on)
     return f"{names} streamed a heartbeat at {max(hz[d] for d in on)} Hz"
+
+
+def _kept(args: argparse.Namespace) -> list[RunRecorder] | None:
+    """With --viewer-keep: where a command's recorder leaves its live viewer serving for
+    `main` to wait on once the command is done (None: close it with the command)."""
+    if not getattr(args, "viewer_keep", False):
+        return None
+    kept: list[RunRecorder] = args.kept_viewers
+    return kept
 
 
 def _check_record(args: argparse.Namespace) -> None:
@@ -123,37 +144,35 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
                 f"[yellow]--rate {args.rate} Hz is more than the line carries for "
                 f"{len(ids)} values of {len(devices)} devices: streaming at {rate} Hz[/yellow]"
             )
-        end = time.monotonic() + args.seconds if args.seconds else math.inf
         _read_diagnostics(client)  # the first table (and a recording) starts with them
-        last_counts = client.table.count_snapshot()
-        last_t = time.monotonic()
-        rates: dict[tuple[int, int], float] = {}
         if viewer is not None or args.record:
             meta = {"command": "monitor", "port": args.port, "rate_hz": rate}
             recorder = CliRecorder(
-                args.record, meta, viewer=viewer, diagnostics=lambda: client.state.joints
+                args.record,
+                meta,
+                viewer=viewer,
+                diagnostics=lambda: client.state.joints,
+                keep_into=_kept(args),
             )
             stream = _StateStream(client, recorder)
+        # --seconds of watching, counted once the recording and the viewer are open: opening
+        # them (loading rerun) takes seconds on a loaded host, which must not eat the window
+        end = time.monotonic() + args.seconds if args.seconds else math.inf
         if args.json:
-            return _monitor_json(client, console, end, last_counts, last_t, stream)
+            return _monitor_json(client, console, end, stream)
+        if not console.is_terminal:
+            return _monitor_lines(client, console, args.port, end, stream)
         with Live(
-            monitor_table(client, rates, args.port),
+            fitted(console, monitor_table(client, {}, args.port)),
             console=console,
             refresh_per_second=4,
             transient=False,
             auto_refresh=False,
         ) as live:
             try:
-                while time.monotonic() < end:
-                    _wait(min(0.5, max(0.0, end - time.monotonic())), stream)
-                    now = time.monotonic()
-                    counts = client.table.count_snapshot()
-                    rates = {
-                        k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()
-                    }
-                    _read_diagnostics(client)
-                    last_counts, last_t = counts, now
-                    live.update(monitor_table(client, rates, args.port), refresh=True)
+                for _, rates in _refreshes(client, end, stream, MONITOR_REFRESH_S):
+                    table = monitor_table(client, rates, args.port)
+                    live.update(fitted(console, table), refresh=True)
             except KeyboardInterrupt:
                 pass  # Ctrl-C is how a monitor is meant to end: exit 0
         return Exit.OK
@@ -161,8 +180,53 @@ def cmd_monitor(args: argparse.Namespace, console: Console) -> Exit:
         return Exit.OK  # Ctrl-C before the first refresh ends a monitor just as well
     finally:
         if recorder is not None:
+            if stream is not None:
+                stream.last()  # the arm as the monitor ended
             recorder.close()
         client.close()
+
+
+#: How often `monitor` refreshes (reads the Monitor readings, which a --record keeps, and
+#: redraws its table or writes a --json line); piped, it writes a plain line every LINE_EVERY.
+MONITOR_REFRESH_S = 0.5
+MONITOR_LINE_EVERY = 2
+
+
+def _refreshes(
+    client: ArmClient, end: float, stream: _StateStream | None, every_s: float
+) -> Iterator[tuple[float, dict[tuple[int, int], float]]]:
+    """Every `every_s` until `end` (wall clock): the time, and each (device, packet id)'s
+    update rate (Hz) since the refresh before; the Monitor readings are read afresh each time."""
+    last_counts = client.table.count_snapshot()
+    last_t = time.monotonic()
+    while time.monotonic() < end:
+        _wait(min(every_s, max(0.0, end - time.monotonic())), stream)
+        now = time.monotonic()
+        counts = client.table.count_snapshot()
+        rates = {k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()}
+        last_counts, last_t = counts, now
+        _read_diagnostics(client)
+        yield now, rates
+
+
+def _monitor_lines(
+    client: ArmClient, console: Console, port: str, end: float, stream: _StateStream | None
+) -> Exit:
+    """`monitor` off a terminal (piped, redirected): a plain line a second, each flushed as
+    it is written, then the table as it stands at the end."""
+    start = time.monotonic()
+    rates: dict[tuple[int, int], float] = {}
+    try:
+        refreshes = _refreshes(client, end, stream, MONITOR_REFRESH_S)
+        for n, (now, rates) in enumerate(refreshes, start=1):
+            if n % MONITOR_LINE_EVERY:
+                continue
+            console.out(monitor_line(client, rates, now - start), highlight=False)
+            console.file.flush()  # a reader on a pipe gets each line as it comes
+    except KeyboardInterrupt:
+        pass  # Ctrl-C is how a monitor is meant to end: exit 0
+    show_table(console, monitor_table(client, rates, port))
+    return Exit.OK
 
 
 class _StateStream:
@@ -184,7 +248,16 @@ class _StateStream:
         if now - self._last < self.PERIOD_S:
             return
         self._last = now
-        state = self.client.state
+        self._log(now, self.client.state)
+
+    def last(self, state: ArmState | None = None) -> None:
+        """The state the command ended on (`state`, the one it judged; else the arm's latest),
+        whenever the last tick was: the viewer's last frame is where the arm ended up."""
+        now = time.monotonic()
+        self._last = now
+        self._log(now, state if state is not None else self.client.state)
+
+    def _log(self, now: float, state: ArmState) -> None:
         seen = np.isfinite(state.q)
         if not np.any(seen) or (not np.all(seen) and now - self.t0 < self.FIRST_FULL_S):
             return  # wait for every joint's first angle (a joint that never answers: 1 s)
@@ -211,23 +284,12 @@ def _wait(seconds: float, stream: _StateStream | None, stop: threading.Event | N
 
 
 def _monitor_json(
-    client: ArmClient,
-    console: Console,
-    end: float,
-    last_counts: dict[tuple[int, int], int],
-    last_t: float,
-    stream: _StateStream | None = None,
+    client: ArmClient, console: Console, end: float, stream: _StateStream | None = None
 ) -> Exit:
     """`monitor --json`: a JSON object per refresh, one a line (JSON Lines)."""
-    start = last_t
+    start = time.monotonic()
     try:
-        while time.monotonic() < end:
-            _wait(min(0.5, max(0.0, end - time.monotonic())), stream)
-            now = time.monotonic()
-            counts = client.table.count_snapshot()
-            rates = {k: (n - last_counts.get(k, 0)) / (now - last_t) for k, n in counts.items()}
-            last_counts, last_t = counts, now
-            _read_diagnostics(client)
+        for now, rates in _refreshes(client, end, stream, MONITOR_REFRESH_S):
             line = json.dumps(monitor_json(client, rates, now - start))
             console.out(line, highlight=False)
             console.file.flush()  # a reader on a pipe gets each line as it comes
@@ -283,7 +345,7 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                 if viewer is not None:
                     ids = (PacketID.POSITION, PacketID.VELOCITY, PacketID.CURRENT)
                     meta = {"command": "move", "port": args.port, "target": target.tolist()}
-                    recorder = CliRecorder(None, meta, viewer=viewer)
+                    recorder = CliRecorder(None, meta, viewer=viewer, keep_into=_kept(args))
                     stream = _StateStream(client, recorder, target)
                 client.stream(ids, 20, devices)
                 q0 = client.read_joints((PacketID.POSITION,)).q
@@ -353,6 +415,8 @@ def cmd_move(args: argparse.Namespace, console: Console) -> Exit:
                             )
                             break
                         _wait(0.05, stream, stop)
+                    if stream is not None:
+                        stream.last(state)  # the state that ended the move (reached or not)
                 if done:
                     console.print(f"[green]reached[/] within {args.tolerance} rad: {detail}")
                     if args.xyz is not None:
@@ -431,8 +495,7 @@ def _report_link_lost(client: ArmClient, target: np.ndarray, move_started: float
 def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
     params = dict(args.param)
     if args.controller not in available_controllers():  # a typo is a bad command line (2)
-        known = ", ".join(available_controllers()) or "none (is reach-stack installed?)"
-        raise UsageError(f"unknown controller {args.controller!r}; registered: {known}")
+        raise UsageError(f"unknown controller {args.controller!r}; registered: {registered_list()}")
     try:
         controller = load_controller(args.controller, **params)
     except (OSError, ValueError) as exc:  # a missing weights file, a bad gain...
@@ -476,12 +539,21 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
                 "seconds": args.seconds,
             }
             recorder = CliRecorder(
-                args.record, meta, viewer=viewer, diagnostics=lambda: client.state.joints
+                args.record,
+                meta,
+                viewer=viewer,
+                diagnostics=lambda: client.state.joints,
+                keep_into=_kept(args),
             )
             client.read_diagnostics()  # the run's recording opens with every device's readings
         view = RunView(Console(stderr=True, highlight=False), args.seconds, enabled=not args.quiet)
         hook = chain(recorder.on_step if recorder is not None else None, view.on_step)
         loop = ControlLoop(client, controller, period, pacing=args.pacing, on_step=hook)
+        # Everything loaded so far (modules, the controller, rerun) lives as long as the run: a
+        # full collection during it would scan all of it with every thread stopped (34 ms on
+        # a busy 2-core host); frozen, the collector sees only what the run allocates.
+        gc.collect()
+        gc.freeze()
         signum: int | None = None
         with args.signals.taken(loop.stop):  # a signal ends the loop like any other end
             try:
@@ -542,14 +614,15 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
         if recorder is not None and recorder.failed:
             console.print(
                 f"[yellow]recording incomplete[/]: {escape(recorder.failed)}; what reached "
-                f"the file before that reads back with `reach-driver inspect "
+                f"the file before that reads back with `{escape(as_typed('reach-driver'))} inspect "
                 f"{escape(args.record)}`",
                 soft_wrap=True,
             )
         elif args.record:
+            record = escape(args.record)
             console.print(
-                f"recorded {escape(args.record)}: open it with `rerun {escape(args.record)}`, "
-                f"summarise it with `reach-driver inspect {escape(args.record)}`",
+                f"recorded {record}: open it with `{escape(as_typed('rerun'))} {record}`, "
+                f"summarise it with `{escape(as_typed('reach-driver'))} inspect {record}`",
                 soft_wrap=True,  # keep the commands copyable
             )
         if summary.error:
@@ -581,6 +654,26 @@ def cmd_controllers(args: argparse.Namespace, console: Console) -> Exit:
     return Exit.OK
 
 
+def cmd_workspace(args: argparse.Namespace, console: Console) -> Exit:
+    """Where the tool reaches inside the limits `move --xyz` would use on an arm reporting
+    the factory ones (the same guard, the same solver); opens no port."""
+    margin = float(args.position_margin)
+    limits = np.array(SafetyGuard(safety_config(args)).position_limits())
+    env = ik.envelope(limits)
+    sol = None
+    if args.xyz is not None:
+        middle = limits.mean(axis=1)  # no arm, no present angles: start mid-range
+        sol = ik.nearest_reachable(args.xyz, middle, limits)
+    if args.json:
+        console.print_json(json.dumps(workspace_json(env, margin, args.xyz, sol)))
+    else:
+        for table in workspace_tables(env, margin):
+            show_table(console, table)
+        if sol is not None:
+            console.print(escape(workspace_point_line(args.xyz, sol)), soft_wrap=True)
+    return Exit.OK if sol is None or sol.reachable else Exit.LIMIT
+
+
 def cmd_inspect(args: argparse.Namespace, console: Console) -> Exit:
     from reach_driver.rrd_summary import RecordingReadError, summarize_recording
 
@@ -598,6 +691,38 @@ def cmd_inspect(args: argparse.Namespace, console: Console) -> Exit:
     return Exit.OK
 
 
+def cmd_export(args: argparse.Namespace, console: Console) -> Exit:
+    from reach_driver.export import ExportError, export_recording
+    from reach_driver.rrd_summary import RecordingReadError
+
+    problem = output_path_problem("--to", args.to, None, devices=True)
+    if problem:
+        raise UsageError(problem)
+    try:
+        report = export_recording(args.file, args.to)
+    except RecordingReadError as exc:  # as inspect: the file, not the command line, is wrong
+        _notes().print(
+            f"[red]error[/]: cannot export {escape(args.file)}: {escape(str(exc))}", soft_wrap=True
+        )
+        return Exit.FAILED
+    except ExportError as exc:
+        raise UsageError(f"cannot export {args.file}: {exc}") from None
+    except OSError as exc:
+        raise DriverError(f"cannot write {args.to}: {exc}; nothing was written") from None
+    what = f"{report.steps} steps"
+    if report.events:
+        what += f", {report.events} events"
+    console.print(f"wrote {escape(str(report.out))}: {what}", soft_wrap=True)
+    if report.truncated_bytes or not report.closed_cleanly:
+        cut = f" ({report.truncated_bytes} bytes of a cut message skipped)"
+        _notes().print(
+            f"note: {escape(args.file)} was not closed by its writer: exported what it "
+            f"holds{cut if report.truncated_bytes else ''}",
+            soft_wrap=True,
+        )
+    return Exit.OK
+
+
 COMMANDS: dict[str, Callable[[argparse.Namespace, Console], Exit]] = {
     "info": cmd_info,
     "monitor": cmd_monitor,
@@ -605,4 +730,6 @@ COMMANDS: dict[str, Callable[[argparse.Namespace, Console], Exit]] = {
     "run": cmd_run,
     "controllers": cmd_controllers,
     "inspect": cmd_inspect,
+    "export": cmd_export,
+    "workspace": cmd_workspace,
 }

@@ -38,12 +38,14 @@ EXIT_TABLE: dict[Exit, str] = {
     "'reached'); monitor stopped by Ctrl-C or --seconds",
     Exit.FAILED: "failed: a run cut short (watchdog, lost link, fault, a non-finite reading, "
     "a controller error), a move that timed out, a fault before starting, an unreadable or "
-    "malformed recording (inspect)",
+    "malformed recording (inspect, export), an export whose file could not be written",
     Exit.USAGE: "bad command line: unknown option, malformed value, no --port, a --period "
     "the --watchdog cannot span, --record at the arm's port or a device, a controller's "
     "weights or parameter file that cannot be used, a controller whose extra is not "
-    "installed (the line names the extra to install)",
-    Exit.LIMIT: "refused by a limit: nothing was sent, nothing moved",
+    "installed (the line names the extra to install); export: a --to suffix it does not "
+    "write, or .mcap without the export extra",
+    Exit.LIMIT: "refused by a limit: nothing was sent, nothing moved (workspace --xyz: the "
+    "point is out of reach)",
     Exit.NO_ARM: "no arm: wrong port, no permission, nothing answering, wrong baud",
     Exit.LINK_LOST: "the link was lost during a move (the message says since when and the "
     "last positions the arm reported)",

@@ -16,13 +16,15 @@ from collections.abc import Sequence
 from types import TracebackType
 
 import numpy as np
-from rich.console import Console, Group
+from rich.console import Console, Group, RenderableType
 from rich.live import Live
 from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
 from protocol.alpha5 import JOINT_LETTERS
+from reach_driver.cli.render import measured
+from reach_driver.cli.tables import fitted
 from reach_driver.records import StepHook, StepRecord
 
 log = logging.getLogger("reach_driver.cli.live")
@@ -107,8 +109,8 @@ class RunView:
             "error [rad] "
             + " ".join(f"{j} {e}" for j, e in zip(JOINT_LETTERS, _signed(err, 3), strict=True)),
             f"max |e| {float(np.nanmax(np.abs(err))):.3f}",
-            f"{source} [mA] " + " ".join(f"{v:.0f}" for v in current),
-            f"loop {self.rate_hz():.1f} Hz",
+            f"{source} [mA] " + " ".join(measured(v, ".0f") for v in current),
+            f"loop {measured(self.rate_hz(), '.1f')} Hz",  # one step is no rate yet
             f"frames {r.good_frames} ok {r.bad_frames} bad",
             f"state age {r.state_age_s * 1e3:.1f} ms",
         ]
@@ -135,31 +137,35 @@ class RunView:
             "command [mA]",
         ):
             table.add_column(escape(column), justify="right")
-        measured = _signed(r.current_mA, 0)
+        currents = _signed(r.current_mA, 0)
         for row in zip(
             JOINT_LETTERS,
             [f"{v:.4f}" for v in r.q],
             [f"{v:.4f}" for v in r.target],
             _signed(err, 4),
-            measured,
+            currents,
             _signed(r.command_mA, 0),
             strict=True,
         ):
             table.add_row(*row)
         health = "[green]good[/]" if r.bad_frames == 0 else f"[yellow]{r.bad_frames} bad[/]"
         table.caption = (
-            f"loop {self.rate_hz():.1f} Hz | frames {r.good_frames} ok, {health} | state age "
-            f"{r.state_age_s * 1e3:.1f} ms | latency {r.latency_s * 1e3:.1f} ms"
+            f"loop {measured(self.rate_hz(), '.1f')} Hz | frames {r.good_frames} ok, {health} "
+            f"| state age {r.state_age_s * 1e3:.1f} ms | latency {r.latency_s * 1e3:.1f} ms"
             + (" | [yellow]saturated[/]" if r.saturated else "")
             + (" | [yellow]barrier[/]" if r.barrier else "")
         )
         return table
 
+    def _shown(self) -> RenderableType:
+        shown = self.render()
+        return fitted(self.console, shown) if isinstance(shown, Table) else shown
+
     # -- around the run ---------------------------------------------------------------------
     def __enter__(self) -> RunView:
         if self.live_mode:
             self._live = Live(
-                get_renderable=lambda: Group(self.render()),
+                get_renderable=lambda: Group(self._shown()),
                 console=self.console,
                 refresh_per_second=REFRESH_HZ,
                 transient=True,  # the summary that follows says it all

@@ -12,6 +12,7 @@ from protocol.alpha5 import TORQUE_PER_AMP_NM
 from protocol.viewer import add_viewer_option
 from reach_driver.cli.exits import exit_table_text
 from reach_driver.control import Pacing
+from reach_driver.controllers import registered_list
 from reach_driver.transport import DEFAULT_BAUD
 
 DESCRIPTION = """\
@@ -36,7 +37,10 @@ examples:
   reach-driver --port /dev/ttyUSB0 run --controller ddpg-distilled \\
       --target 5.78 1.97 1.67 3.96 --seconds 20 --record run.rrd
   reach-driver controllers          # what each controller is; a learned one's training
+  reach-driver workspace --xyz 200 0 150   # where the tool reaches; angles for a point
   reach-driver inspect run.rrd
+  reach-driver export run.rrd --to run.mcap   # ROS 2 messages: ros2 bag, Foxglove
+  reach-driver export run.rrd --to run.csv    # one row per control step (.parquet too)
   reach-driver --port /tmp/alpha5 run --controller pid --target 3.1 1.5 1.5 3.0 \\
       --seconds 10 --viewer serve     # watch it live from a browser (or an SSH tunnel)
 
@@ -112,6 +116,13 @@ def _positive(text: str) -> float:
     value = float(text)
     if not value > 0 or not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+def _finite(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
     return value
 
 
@@ -297,7 +308,11 @@ def build_parser() -> argparse.ArgumentParser:
     mon.add_argument(
         "--rate", type=_rate, default=10, help="heartbeat rate, 1..255 Hz (default 10)"
     )
-    mon.add_argument("--seconds", type=_positive, help="stop after this many seconds")
+    mon.add_argument(
+        "--seconds",
+        type=_positive,
+        help="stop after watching this many seconds (counted once --record and --viewer are open)",
+    )
     mon.add_argument(
         "--json",
         action="store_true",
@@ -313,6 +328,7 @@ def build_parser() -> argparse.ArgumentParser:
         mon,
         VIEWER_HELP + ". With a viewer, states go to it at 20 Hz; the table still refreshes "
         "twice a second",
+        keep=True,
     )
 
     move = add(
@@ -335,7 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
     move.add_argument(
         "--xyz",
         nargs=3,
-        type=float,
+        type=_finite,
         metavar=("X", "Y", "Z"),
         help="instead of the angles: the tool centre point's target in mm, base frame; the "
         "driver's inverse kinematics turns it into joint positions inside the limits (B keeps "
@@ -368,7 +384,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="give up (exit 1, joints stopped) after this many seconds (default 60); the "
         "reply timeout is --reply-timeout here",
     )
-    add_viewer_option(move, VIEWER_HELP)
+    add_viewer_option(move, VIEWER_HELP, keep=True)
 
     run = add(
         "run",
@@ -394,8 +410,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--controller",
         required=True,
-        help="a registered name, e.g. pid, mpc, ddpg-distilled (`reach-driver controllers` "
-        "lists them)",
+        help=f"a registered name: {registered_list()} (`reach-driver controllers` says what "
+        "each is)",
     )
     run.add_argument("--target", nargs=4, type=float, required=True, metavar=("E", "D", "C", "B"))
     run.add_argument("--seconds", type=_positive, required=True, help="loop (arm) seconds")
@@ -431,7 +447,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.rrd",
         help="record the run for Rerun (a write error stops the recording, not the run: exit 6)",
     )
-    add_viewer_option(run, VIEWER_HELP)
+    add_viewer_option(run, VIEWER_HELP, keep=True)
 
     ctl = add(
         "controllers",
@@ -451,6 +467,34 @@ def build_parser() -> argparse.ArgumentParser:
         help="a JSON list, one object per controller (name, target, kind, summary, "
         "provenance, error, extra: the extra to install when it is not installed)",
     )
+    ws = add(
+        "workspace",
+        parents=[offline],
+        help="where the tool can reach: the envelope, and the angles for a point (no arm needed)",
+        description="Print where the tool centre point can reach inside the position limits "
+        "(the factory ones, tightened by --position-margin): its distance from the base's z "
+        "axis, its height and its farthest reach (mm, base frame, as `move --xyz` takes "
+        "them), and the limits used. With --xyz: the joint angles E D C that put it there, "
+        "or, out of reach, the nearest reachable point and its angles (exit 3, as `move "
+        "--xyz` refuses it). B turns the tool about its own axis and never moves the point. "
+        "Needs no arm: the driver's own kinematics, the same `move --xyz` uses.",
+    )
+    ws.add_argument(
+        "--xyz",
+        nargs=3,
+        type=_finite,
+        metavar=("X", "Y", "Z"),
+        help="a tool centre point target in mm, base frame",
+    )
+    ws.add_argument(
+        "--position-margin",
+        type=float,
+        default=argparse.SUPPRESS,
+        metavar="RAD",
+        help="keep this far inside the factory position limits, as `move --position-margin` "
+        "(default 0)",
+    )
+    ws.add_argument("--json", action="store_true", help="print JSON instead of text")
     ins = add(
         "inspect",
         parents=[offline],
@@ -458,4 +502,25 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ins.add_argument("file", help="a recording written by `run --record`, or `reach-sim --record`")
     ins.add_argument("--json", action="store_true", help="print the summary as JSON")
+    exp = add(
+        "export",
+        parents=[offline],
+        help="write a recorded run (.rrd) as ROS 2 messages (.mcap) or a table (.csv, .parquet)",
+        description="Write the run in a recording for other tools, in the format --to's suffix "
+        "names. .mcap: ROS 2 messages (CDR, ros2msg schemas) for `ros2 bag` and Foxglove: "
+        "sensor_msgs/msg/JointState on /joint_states (measured position, velocity, current as "
+        "effort, mA), /joint_commands (commanded current as effort) and /joint_targets "
+        "(target as position), rcl_interfaces/msg/Log on /events; needs the export extra. "
+        ".csv or .parquet: one row per control step (step, t_s, then q, target, qdot, "
+        "current_cmd, current_meas and torque per joint E D C B, the unit in each column's "
+        "name; empty or NaN where the recording has no value). Stamps are the recording's arm "
+        "time. The file appears only when complete; one already there is replaced then.",
+    )
+    exp.add_argument("file", help="a recording written by `run --record`, or `reach-sim --record`")
+    exp.add_argument(
+        "--to",
+        required=True,
+        metavar="OUT.mcap|OUT.csv|OUT.parquet",
+        help="the file to write; its suffix says the format",
+    )
     return parser

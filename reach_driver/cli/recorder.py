@@ -1,6 +1,13 @@
 """`run --record` / `--viewer`: the control loop's steps and summary into a Rerun recording,
 a live viewer, or both.
 
+Recording never holds up control: `run`'s steps are handed to a thread of their own
+(`WRITER_THREAD`) through a bounded queue and logged there, so the loop's thread goes back to
+waiting for the arm's next state as soon as its command is out; a step that finds the queue
+full is counted and left out, never waited for (the recording then says it is incomplete).
+Measured on a busy 2-core host: with the logging on the loop's thread, the loop thread was
+preempted inside it and the next command waited (tools/loop_timing.py, docs/reliability.md).
+
 Recording never stops control: the first write error (a full disk, a removed drive, rerun's
 file sink gone) is reported once, recording stops there, and the run goes on as planned; what
 was written before the error stays readable (`reach-driver inspect`). `failed` says why, so
@@ -12,7 +19,9 @@ and the exit status does not change.
 from __future__ import annotations
 
 import os
+import queue
 import stat
+import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -57,6 +66,14 @@ def output_path_problem(option: str, path: str, port: str | None, *, devices: bo
     return None
 
 
+#: The thread that logs `run`'s steps (never the control loop's).
+WRITER_THREAD = "reach-driver recorder"
+#: Steps that may wait for the writer (50 s at 20 Hz) before one is left out.
+QUEUE_STEPS = 1000
+#: How long the end of a run waits for the writer to log what is queued.
+DRAIN_WAIT_S = 30.0
+
+
 def _free_space(path: Path) -> str:
     try:
         st = os.statvfs(path.parent if str(path.parent) else ".")
@@ -75,11 +92,14 @@ class CliRecorder:
         warn: Console | None = None,
         viewer: ViewerSpec | None = None,
         diagnostics: Callable[[], Mapping[int, JointState]] | None = None,
+        keep_into: list[RunRecorder] | None = None,
     ) -> None:
         """Opens the recording (and the viewer); fails (DriverError) before anything moves if
         the file cannot be written. A viewer that cannot be had only warns. `diagnostics`
         gives what the driver knows of each device (`ArmClient.state.joints`): its Monitor
-        readings and status flags are logged at each step or refresh that has newer ones."""
+        readings and status flags are logged at each step or refresh that has newer ones.
+        `keep_into` (`--viewer-keep`): closing ends the file but leaves a live viewer serving,
+        the recorder put in this list for the command line to close when it is done."""
         try:
             from reach_driver import recording
         except ImportError as exc:
@@ -91,7 +111,11 @@ class CliRecorder:
         self._warn = warn or Console(stderr=True, highlight=False)
         self.failed: str | None = None
         self.steps = 0
+        self.dropped = 0  # steps left out: the writer had QUEUE_STEPS waiting
         self._diagnostics = diagnostics
+        self._keep_into = keep_into
+        self._queue: queue.Queue[StepRecord | None] | None = None
+        self._writer: threading.Thread | None = None
         try:
             self._rec: RunRecorder | None = recording.RunRecorder(
                 path,
@@ -144,6 +168,38 @@ class CliRecorder:
                 pass
 
     def on_step(self, r: StepRecord) -> None:
+        """The control loop's hook: hands the step to the writer thread and returns."""
+        if self._rec is None:
+            return
+        if self._queue is None:
+            self._queue = queue.Queue(maxsize=QUEUE_STEPS)
+            self._writer = threading.Thread(target=self._write_steps, name=WRITER_THREAD)
+            self._writer.daemon = True  # never keeps a dying process alive
+            self._writer.start()
+        try:
+            self._queue.put_nowait(r)
+        except queue.Full:
+            self.dropped += 1
+
+    def _write_steps(self) -> None:
+        assert self._queue is not None
+        while (r := self._queue.get()) is not None:
+            self._log_step(r)
+
+    def _drain(self) -> None:
+        """Let the writer log what is queued, and stop it (before the summary is logged)."""
+        writer, self._writer = self._writer, None
+        if writer is None or self._queue is None:
+            return
+        self._queue.put(None)
+        writer.join(DRAIN_WAIT_S)
+        if writer.is_alive():  # a sink that hangs: give up on the rest, keep what is there
+            self._fail(
+                TimeoutError(f"the recorder did not finish within {DRAIN_WAIT_S:g} s"),
+                f"at the end ({self.steps} steps recorded)",
+            )
+
+    def _log_step(self, r: StepRecord) -> None:
         rec = self._rec
         if rec is None:
             return
@@ -161,7 +217,15 @@ class CliRecorder:
                     torque_Nm=r.torque_Nm,
                 )
             )
-            rec.log_link(r.t, r.step, r.good_frames, r.bad_frames, r.state_age_s, r.latency_s)
+            rec.log_link(
+                r.t,
+                r.step,
+                r.good_frames,
+                r.bad_frames,
+                r.state_age_s,
+                r.latency_s,
+                r.loop_period_s,
+            )
             self._log_diagnostics(rec, r.t, r.step)
             self.steps += 1
         except Exception as exc:
@@ -191,15 +255,23 @@ class CliRecorder:
         if self._diagnostics is not None:
             rec.log_diagnostics(t, step, self._diagnostics())
 
+    def _close(self, rec: RunRecorder) -> None:
+        """End the file; the viewer too, unless it is to be kept serving."""
+        keep = self._keep_into is not None and rec.viewing
+        rec.close(keep_viewer=keep)
+        self._rec = None
+        if keep and self._keep_into is not None:
+            self._keep_into.append(rec)
+
     def close(self, text: str = "stop") -> None:
         """End a `monitor` or `move` stream (no summary)."""
+        self._drain()
         rec = self._rec
         if rec is None:
             return
         try:
             rec.log_event(text)
-            rec.close()
-            self._rec = None
+            self._close(rec)
         except Exception as exc:
             self._fail(exc, "while closing")
 
@@ -209,10 +281,19 @@ class CliRecorder:
         error: str | None,
         controller_report: dict[str, Any] | None = None,
     ) -> None:
+        self._drain()
         rec = self._rec
         if rec is None:
             return
         recording = self._recording
+        if self.dropped:
+            lost = (
+                f"{self.dropped} step(s) were left out of {self.path or 'the live view'}: the "
+                f"recorder fell {QUEUE_STEPS} steps behind the loop (a host too busy to write)"
+            )
+            self._warn.print(f"[yellow]warning[/]: {escape(lost)}", soft_wrap=True)
+            if self.path is not None:
+                self.failed = lost
         try:
             if summary is not None and summary.trace is not None and summary.steps:
                 # The state that ended the run, so the recording scores like the printed metrics.
@@ -243,7 +324,6 @@ class CliRecorder:
                         rec.log_event(said)
                 rec.log_summary(recorded)
             rec.log_event("stop")
-            rec.close()
-            self._rec = None
+            self._close(rec)
         except Exception as exc:
             self._fail(exc, "while closing")

@@ -4,11 +4,14 @@ the registered controllers."""
 from __future__ import annotations
 
 import math
+import shutil
+import sys
 import textwrap
+from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rich.console import Console, Group
+from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
@@ -16,13 +19,30 @@ from protocol import DeviceID, HardwareStatus, Mode, PacketID
 from protocol.alpha5 import JAW, JOINT_LETTERS, JOINTS, TORQUE_PER_AMP_NM
 from reach_driver.cli.exits import for_operator
 from reach_driver.cli.report import run_metrics, run_overshoot
+from reach_driver.cli.tables import show_table
 from reach_driver.client import ArmClient
 from reach_driver.controllers import ControllerInfo, ControllerKind
 from reach_driver.faults import blocking_flags, flag_labels, status_bytes
+from reach_driver.ik import Envelope, Solution, xyz_text
 from reach_driver.metrics import METRIC_KEYS, metric_label
 from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind
 from reach_driver.state import MONITOR_READINGS, JointState, joint_name
+
+
+def as_typed(program: str) -> str:
+    """How the user types one of this install's programs (`rerun`, `reach-driver`): bare when
+    it is on PATH, else its path beside this interpreter (a venv not activated, as after
+    `make demo`), relative when under the working directory. Every hint names it this way."""
+    if shutil.which(program):
+        return program
+    beside = Path(sys.executable).with_name(program)
+    if not beside.is_file():
+        return program
+    try:
+        return str(beside.relative_to(Path.cwd()))
+    except ValueError:
+        return str(beside)
 
 
 def fmt(value: float | None, digits: int = 4) -> str:
@@ -106,7 +126,7 @@ def _unit(dev: int, joint: str, jaw: str) -> str:
     return jaw if dev == JAW else joint
 
 
-def info_table(port: str, joints: dict[int, JointState]) -> Group:
+def info_tables(port: str, joints: dict[int, JointState]) -> tuple[Table, Table]:
     """Two tables that each fit 80 columns: who answers, and where and within what limits."""
     ids = Table(title=f"Reach arm on {escape(port)}: {len(joints)} device(s)")
     for column in ("device", "mode", "version", "serial no.", "model no.", "status"):
@@ -137,7 +157,7 @@ def info_table(port: str, joints: dict[int, JointState]) -> Group:
             _with_unit(limit_range(js, LimitKind.VELOCITY), vel_unit),
             _with_unit(limit_range(js, LimitKind.CURRENT), "mA"),
         )
-    return Group(ids, limits)
+    return ids, limits
 
 
 def _with_unit(text: str, unit: str) -> str:
@@ -271,6 +291,63 @@ def monitor_table(client: ArmClient, rates: dict[tuple[int, int], float], port: 
     return table
 
 
+#: What a line says for a value not measured yet (never "nan").
+UNMEASURED = "--"
+
+
+def measured(value: float | None, spec: str) -> str:
+    """`value` formatted by `spec`, or UNMEASURED if there is none yet (None, NaN, inf)."""
+    if value is None or not math.isfinite(value):
+        return UNMEASURED
+    text = f"{value:{spec}}"
+    return text[1:] if text.startswith("-") and float(text) == 0 else text  # no "-0"
+
+
+def monitor_line(client: ArmClient, rates: dict[tuple[int, int], float], t: float) -> str:
+    """`monitor` off a terminal: a plain line of every device's angle, current, update rate,
+    mode and status flags and the link's frames; the table at the end has the rest."""
+    state = client.state
+    devices = (*JOINTS, JAW)
+    joints = [state.joint(dev) for dev in devices]
+    names = [DeviceID(dev).name for dev in devices]
+    position = " ".join(
+        f"{n} {measured(js.position.value if js.position else None, '.4f')}"
+        for n, js in zip(names, joints, strict=True)
+    )
+    current = " ".join(
+        f"{n} {measured(js.current.value if js.current else None, '.0f')}"
+        for n, js in zip(names, joints, strict=True)
+    )
+    rate = " ".join(
+        f"{n} {measured(rates.get((int(dev), int(PacketID.POSITION))), '.0f')}"
+        for n, dev in zip(names, devices, strict=True)
+    )
+    modes = {mode_name(js) for js in joints}
+    mode = (
+        modes.pop()
+        if len(modes) == 1
+        else " ".join(f"{n} {mode_name(js)}" for n, js in zip(names, joints, strict=True))
+    )
+    flagged = []
+    for n, js in zip(names, joints, strict=True):
+        by_byte = status_bytes(js.status.value) if js.status is not None else {}
+        named = [f"{b}: {', '.join(flags)}" for b, flags in by_byte.items() if flags]
+        if named:
+            flagged.append(f"{n} {' '.join(named)}")
+    ds = client.decoder_stats
+    parts = [
+        f"t {t:5.1f} s",
+        f"link {client.link_state.value}",
+        f"position [rad, A mm] {position}",
+        f"current [mA] {current}",
+        f"rate [Hz] {rate}",
+        f"mode {mode}",
+        f"status {'; '.join(flagged) if flagged else 'ok'}",
+        f"frames {ds.good_frames} ok {ds.bad_total} bad",
+    ]
+    return " | ".join(parts)
+
+
 def blocking_faults(flags: dict[int, list[str]], console: Console | None) -> str:
     """Status flags that must stop a move, as text ('' if none), by the one policy in
     `reach_driver.faults`: the others (link errors the arm saw on the line, a service
@@ -297,21 +374,22 @@ def blocking_faults(flags: dict[int, list[str]], console: Console | None) -> str
 # One name and unit per metric, for every table that shows one (run, inspect). Belongs next to
 # reach_driver.metrics.METRIC_KEYS; a key without a label is shown by its key.
 def metrics_table(title: str, values: dict[str, Any]) -> Table:
-    """One row of metrics, in METRIC_KEYS order (then any others), labelled with units."""
+    """The metrics a row each, in METRIC_KEYS order (then any others): name with unit, value,
+    and the key --json gives it. Three columns, so it fits 80 however many metrics there are."""
     keys = [k for k in METRIC_KEYS if k in values] + [k for k in values if k not in METRIC_KEYS]
     table = Table(title=title)
-    cells = []
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    table.add_column("--json key")
     for key in keys:
-        table.add_column(escape(metric_label(key)), justify="right")
         value = values[key]
         if isinstance(value, bool):
-            cells.append("yes" if value else "[red]no[/]")
+            cell = "yes" if value else "[red]no[/]"
         elif isinstance(value, (int, float)):
-            cells.append(f"{float(value):.4g}")
+            cell = f"{float(value):.4g}"
         else:
-            cells.append(escape(str(value)))
-    table.add_row(*cells)
-    table.caption = "--json keys: " + ", ".join(keys)
+            cell = escape(str(value))
+        table.add_row(escape(metric_label(key)), cell, escape(key))
     return table
 
 
@@ -337,8 +415,9 @@ def print_metrics(console: Console, s: ControlSummary) -> None:
     if metrics is None:
         console.print("metrics: none (fewer than two states were seen)")
         return
-    console.print(
-        metrics_table("metrics (docs/metrics.md; from the reported angles)", metrics.as_dict())
+    show_table(
+        console,
+        metrics_table("metrics (docs/metrics.md; from the reported angles)", metrics.as_dict()),
     )
     anatomy = run_overshoot(s)
     console.print(escape(overshoot_line(None if anatomy is None else anatomy.as_dict())))
@@ -361,7 +440,7 @@ def print_summary(console: Console, s: ControlSummary) -> None:
         table.add_column(escape(column), justify="right")
     for j, tgt, q, e in zip(JOINT_LETTERS, s.target, s.final_q, s.final_error, strict=True):
         table.add_row(j, fmt(tgt), fmt(q), fmt(e))
-    console.print(table)
+    show_table(console, table)
     t = s.timing
     console.print(
         f"rate {t.rate_hz:.1f} Hz (x{t.arm_speed:.2f} arm speed), period jitter "
@@ -369,9 +448,13 @@ def print_summary(console: Console, s: ControlSummary) -> None:
         f"p50 {t.state_age_p50_s * 1e3:.2f} / p99 {t.state_age_p99_s * 1e3:.2f} ms, latency "
         f"p50 {t.latency_p50_s * 1e3:.2f} / p99 {t.latency_p99_s * 1e3:.2f} ms, missed "
         f"deadlines {t.missed_deadlines}, skipped states {t.skipped_states}, partial states "
-        f"{t.partial_states}, incomplete ticks {t.incomplete_ticks}, CPU "
+        f"{t.partial_states}, incomplete ticks {t.incomplete_ticks}, stream gaps "
+        f"{t.stream_gaps} (up to {t.lost_ticks} ticks not counted), CPU "
         f"{t.cpu_per_step_s * 1e6:.0f} us/step (process {t.process_cpu_per_step_s * 1e6:.0f})"
     )
+    gaps = t.gaps
+    longest = f"; longest: {gaps.longest[0].describe()}" if gaps.longest else ""
+    console.print(escape(f"{gaps.brief()}{longest}"))
     console.print(
         f"saturated steps {s.saturated_steps}, barrier cuts {s.barrier_steps}, implausible "
         f"samples {s.implausible_samples}, duplicate packets {s.duplicate_packets}, stream "
@@ -428,16 +511,16 @@ def print_recording(console: Console, summary: dict[str, Any]) -> None:
         strict=True,
     ):
         joints.add_row(row[0], *(f"{float(v):+.4f}" for v in row[1:]))
-    console.print(joints)
+    show_table(console, joints)
     metrics = summary.get("metrics")
     if isinstance(metrics, dict):
-        console.print(metrics_table("metrics (docs/metrics.md)", metrics))
+        show_table(console, metrics_table("metrics (docs/metrics.md)", metrics))
         console.print(escape(overshoot_line(summary.get("overshoot"))))
     for note in summary.get("notes", []):
         console.print(escape(str(note)), soft_wrap=True)
     diagnostics = summary.get("diagnostics")
     if isinstance(diagnostics, dict):
-        console.print(recorded_diagnostics_table(diagnostics))
+        show_table(console, recorded_diagnostics_table(diagnostics))
     for line in summary.get("events", []):
         console.print(f"  {escape(str(line))}")
 
@@ -495,10 +578,65 @@ def print_sim_recording(console: Console, summary: dict[str, Any], clean: str) -
             "-" if q is None else f"{float(q):+.4f}",
             "-" if sp is None else f"{float(sp):+.4f}",
         )
-    console.print(joints)
+    show_table(console, joints)
     console.print(f"faults at the end: {escape(str(summary.get('final_faults', 'none')))}")
     for line in summary.get("events", []):
         console.print(f"  {escape(str(line))}")
+
+
+def workspace_tables(env: Envelope, margin: float) -> tuple[Table, Table]:
+    """`workspace`: the envelope (mm) and the position limits it was found within."""
+    reach = Table(title="where the tool centre point reaches (mm, base frame, as move --xyz)")
+    for column in ("", "min", "max"):
+        reach.add_column(column, justify="left" if not column else "right")
+    reach.add_row("distance from the base's z axis", *(f"{v:.1f}" for v in env.radius_mm))
+    reach.add_row("height z", *(f"{v:.1f}" for v in env.z_mm))
+    reach.add_row("distance from the base's origin", "-", f"{env.reach_mm:.1f}")
+    reach.caption = "E sets the bearing; B turns the tool about its own axis, never moving it"
+    source = "factory" + (f" less --position-margin {margin:g}" if margin else "")
+    limits = Table(title=f"position limits used ({source})")
+    for column in ("joint", "min [rad]", "max [rad]", "min [deg]", "max [deg]"):
+        limits.add_column(escape(column), justify="right")
+    for letter, (lo, hi) in zip(JOINT_LETTERS, env.limits, strict=True):
+        limits.add_row(
+            letter, f"{lo:.4f}", f"{hi:.4f}", f"{math.degrees(lo):.1f}", f"{math.degrees(hi):.1f}"
+        )
+    return reach, limits
+
+
+def workspace_point_line(xyz: tuple[float, float, float], sol: Solution) -> str:
+    """`workspace --xyz`: the angles for the point, or the nearest reachable point's."""
+    angles = " ".join(f"{j} {v:.4f}" for j, v in zip(JOINT_LETTERS, sol.q[:3], strict=False))
+    if sol.reachable:
+        return f"{xyz_text(xyz)} mm is reachable at {angles} rad (B any angle)"
+    return (
+        f"{xyz_text(xyz)} mm is out of reach; the nearest reachable point is "
+        f"{xyz_text(sol.point_mm)} mm, {sol.error_mm:.1f} mm away, at {angles} rad (B any angle)"
+    )
+
+
+def workspace_json(
+    env: Envelope, margin: float, xyz: tuple[float, float, float] | None, sol: Solution | None
+) -> dict[str, Any]:
+    """`workspace --json`: the envelope, the limits and, with --xyz, the point."""
+    out: dict[str, Any] = {
+        "radius_mm": list(env.radius_mm),
+        "z_mm": list(env.z_mm),
+        "reach_mm": env.reach_mm,
+        "position_limits_rad": {
+            j: list(lim) for j, lim in zip(JOINT_LETTERS, env.limits.tolist(), strict=True)
+        },
+        "position_margin_rad": margin,
+    }
+    if xyz is not None and sol is not None:
+        out["target"] = {
+            "xyz_mm": list(xyz),
+            "reachable": sol.reachable,
+            "point_mm": [round(float(v), 3) + 0.0 for v in sol.point_mm],  # no 1e-14
+            "distance_mm": sol.error_mm,
+            "angles_rad": dict(zip(JOINT_LETTERS[:3], sol.q[:3], strict=True)),
+        }
+    return jsonable(out, digits6=True)
 
 
 #: `reach-driver controllers` fits a terminal of this width

@@ -13,7 +13,8 @@ from dataclasses import dataclass
 from enum import Enum
 
 from protocol import DeviceID, HardwareStatus, Mode, alpha5
-from reach_sim_bridge.emulator.faults import Leak
+from reach_sim_bridge.emulator.derating import CurrentDerating
+from reach_sim_bridge.emulator.faults import Leak, StuckReading
 from reach_sim_bridge.emulator.monitor import MonitorConfig
 from reach_sim_bridge.model.sensors import SensorNoise
 
@@ -97,6 +98,9 @@ class FirmwareConfig:
     humidity_pct: float = 10.0  # in each housing at power-on
     monitor: MonitorConfig = MonitorConfig()  # climate and supply model, factory levels
     leaks: tuple[Leak, ...] = ()  # housings taking in water from the start
+    stuck: tuple[StuckReading, ...] = ()  # readings that stop changing (fault injection)
+    # Thermal derating of each device's current limit (assumed constants; None: off).
+    derating: CurrentDerating | None = CurrentDerating()
     # RS-485: one shared wire. A broadcast REQUEST that more than one device answers
     # collides on it; the host gets none of the answers (counted as `broadcast_collision`).
     half_duplex: bool = False
@@ -155,3 +159,6 @@ class Device:
     heartbeat_hz: int = 0
     heartbeat_phase: float = 0.0
     slot: int = 0  # index in the firmware's device list (and the monitor's)
+    peak_mA: float = 0.0  # the factory current limit, the derating's full limit
+    thermal_load: float = 0.0  # the derating's I^2 t estimate (1: the rated rise)
+    ceiling_mA: float = math.inf  # the derated current limit, either sign (inf: none)

@@ -1,8 +1,9 @@
 """Faults the virtual arm can be asked to show: weak actuators, noisy sensors, a bad link.
 
 The physical faults (torque scale, parameter randomisation) are applied to the arm model;
-sensor noise (`reach_sim_bridge.model.sensors`) is applied to what the firmware reports; link
-faults (drop, corrupt, latency) are applied to the outgoing byte stream by the server.
+sensor noise (`reach_sim_bridge.model.sensors`) and stuck readings (`StuckReading`) are
+applied to what the firmware reports; link faults (drop, corrupt, latency) are applied to the
+outgoing byte stream by the server; a leak (`Leak`) to a housing's climate.
 """
 
 from __future__ import annotations
@@ -128,3 +129,21 @@ class Leak:
     def outside_pressure_bar(self) -> float:
         """Absolute water pressure at the housing (bar)."""
         return ATMOSPHERE_BAR + BAR_PER_METRE * self.depth_m
+
+
+@dataclass(frozen=True)
+class StuckReading:
+    """A sensor, or the firmware reading it, stuck: from arm time `from_s` on, device
+    `device_id` reports `packet_id` (a REQUEST's answer and its heartbeat alike) with the
+    very value it reported then, whatever the arm does. The packets keep coming, well formed
+    and on time; only their value no longer changes (a velocity estimate that froze while
+    the joint moves on, say). Injected with `Firmware.inject_stuck`, or from the start in
+    `FirmwareConfig.stuck`."""
+
+    device_id: int
+    packet_id: int
+    from_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.from_s) and self.from_s >= 0.0):
+            raise ValueError(f"a stuck reading starts at an arm time >= 0 s, got {self.from_s}")

@@ -7,7 +7,10 @@ velocity demand (clamped to the firmware rate limit and the velocity limits) -> 
 loop -> current (clamped to the current limits) -> motor. Current mode goes straight to the
 motor. The integral term of the velocity loop is what holds D and C against gravity. Its
 anti-windup (an assumption: model/README.md, "the firmware's velocity loop at an end stop")
-bleeds the integral while it only pushes a joint into a limit or a stall.
+bleeds the integral while it only pushes a joint into a limit or a stall. Every mode's current
+is also capped by the device's thermal derating (`reach_sim_bridge.emulator.derating`, also
+an assumption): sustained current above the continuous rating lowers the limit, rest restores
+it.
 
 Modes: STANDBY and DISABLE hold the joint where it was ("the device will not move"; the
 real 1754:1 gearbox barely back-drives, the model's soft friction creeps, so holding is
@@ -49,6 +52,7 @@ from protocol import (
 from protocol.alpha5 import JOINT_LETTERS
 from protocol.commands import HEARTBEAT_SLOTS
 from protocol.payload import pack_floats, pack_u8s
+from reach_sim_bridge.emulator.derating import CurrentDerating
 from reach_sim_bridge.emulator.devices import (
     ALPHA5_DEVICES,
     HOLDING_MODES,
@@ -62,7 +66,7 @@ from reach_sim_bridge.emulator.devices import (
     Saved,
 )
 from reach_sim_bridge.emulator.events import EventLog
-from reach_sim_bridge.emulator.faults import Leak
+from reach_sim_bridge.emulator.faults import Leak, StuckReading
 from reach_sim_bridge.emulator.handlers import Handler, PacketHandlers, Rejected
 from reach_sim_bridge.emulator.monitor import MONITOR_FLAGS, Monitor
 from reach_sim_bridge.model import ik
@@ -145,6 +149,7 @@ class Firmware(PacketHandlers):
                 velocity_limits=Limits(-spec.rate_limit, spec.rate_limit),
                 current_limits=Limits(-imax, imax),
                 saved=saved,
+                peak_mA=imax,
             )
             self._devices.append(dev)
             self._by_id[int(spec.device_id)] = dev
@@ -171,8 +176,18 @@ class Firmware(PacketHandlers):
             self.config.humidity_pct,
         )
         self._monitor_countdown = 0
+        self._derating = self.config.derating
+        self._derate_factor = (
+            0.0
+            if self._derating is None
+            else self._derating.step_factor(self._step * _MONITOR_STEPS)
+        )
         for leak in self.config.leaks:
             self.inject_leak(leak)
+        # (device, packet) -> (arm time it sticks from, the payload it is stuck at, once known)
+        self._stuck: dict[tuple[int, int], tuple[float, bytes | None]] = {}
+        for stuck in self.config.stuck:
+            self.inject_stuck(stuck)
         self._handlers: dict[int, Handler] = {
             PacketID.MODE: self._on_mode,
             PacketID.POSITION: self._on_position,
@@ -250,9 +265,30 @@ class Firmware(PacketHandlers):
         and pressure drift up and raise OVER_HUMIDITY and OVER_PRESSURE (monitor model)."""
         self.monitor.leak(self._by_id[int(leak.device_id)].slot, leak)
 
+    def inject_stuck(self, stuck: StuckReading) -> None:
+        """From `stuck.from_s` (arm time) on, the device reports that packet with the value
+        it reports at that moment (`faults.StuckReading`); replaces a stuck one there."""
+        device = self._by_id[int(stuck.device_id)]
+        if int(stuck.packet_id) not in self._reporters:
+            raise ValueError(f"device {device.spec.letter} reports no 0x{stuck.packet_id:02X}")
+        self._stuck[(int(stuck.device_id), int(stuck.packet_id))] = (stuck.from_s, None)
+
+    def unstick(self, device_id: int, packet_id: int) -> None:
+        """The reading follows the arm again."""
+        self._stuck.pop((device_id, packet_id), None)
+
     def stop_leak(self, device_id: int) -> None:
         """The housing is sealed again; what got in stays (readings stop drifting)."""
         self.monitor.leak(self._by_id[device_id].slot, None)
+
+    def current_ceiling(self, device_id: int) -> float:
+        """The derated current limit of one device (mA, either sign; inf while it is cool
+        enough not to derate). The wire shows it only as the CURRENT the joint draws."""
+        return self._by_id[device_id].ceiling_mA
+
+    def thermal_load(self, device_id: int) -> float:
+        """The derating's I^2 t estimate of one device (1.0: the winding's rated rise)."""
+        return self._by_id[device_id].thermal_load
 
     def setpoints(self, device_id: int) -> tuple[Mode, float, float]:
         """(mode, position target, current applied in mA) of one device, for recordings."""
@@ -340,8 +376,13 @@ class Firmware(PacketHandlers):
     def report(self, device_id: int, packet_id: int) -> Packet | None:
         """The packet device `device_id` sends for a REQUEST of `packet_id` (None if none)."""
         dev = self._by_id[device_id]
+        stuck = self._stuck.get((device_id, packet_id)) if self._stuck else None
+        if stuck is not None and self.arm.time >= stuck[0] and stuck[1] is not None:
+            return Packet(dev.spec.device_id, packet_id, stuck[1])
         reporter = self._reporters.get(packet_id)
         data = reporter(dev) if reporter is not None else None
+        if stuck is not None and self.arm.time >= stuck[0] and data is not None:
+            self._stuck[(device_id, packet_id)] = (stuck[0], data)  # stuck at this one
         return None if data is None else Packet(dev.spec.device_id, packet_id, data)
 
     # -- control ----------------------------------------------------------------------------
@@ -358,9 +399,16 @@ class Firmware(PacketHandlers):
 
     def _loop(self, d: Device, pos: float, vel: float, h: float) -> float:
         mode = d.mode
+        limits = d.current_limits
+        lo, hi, cap = limits.lo, limits.hi, d.ceiling_mA
+        if hi > cap:  # thermally derated
+            hi = cap
+        if lo < -cap:
+            lo = -cap
         if mode == Mode.CURRENT:
             d.integral = 0.0
-            d.applied_mA = d.current_limits.clamp(d.current_target)
+            target = d.current_target
+            d.applied_mA = hi if target > hi else (lo if target < lo else target)
             return d.applied_mA
         if mode in HOLDING_MODES:
             err = d.position_target - pos
@@ -387,31 +435,32 @@ class Firmware(PacketHandlers):
         error = demand - vel
         integral = d.integral + error * h
         # Anti-windup: the integral alone never asks for more than the current limit.
-        limits = d.current_limits
         ki = gains.velocity_i
-        integral = min(max(integral, limits.lo / ki), limits.hi / ki)
+        integral = min(max(integral, lo / ki), hi / ki)
         wanted = gains.velocity_p * error + ki * integral
-        if integral and self._winding_up(d, pos, vel, ki * integral, wanted):
+        if integral and self._winding_up(d, pos, vel, ki * integral, wanted, lo, hi):
             integral *= self._windup_keep
             wanted = gains.velocity_p * error + ki * integral
         d.integral = integral
-        d.applied_mA = limits.clamp(wanted)
+        d.applied_mA = hi if wanted > hi else (lo if wanted < lo else wanted)
         return d.applied_mA
 
     @staticmethod
-    def _winding_up(d: Device, pos: float, vel: float, push_mA: float, wanted_mA: float) -> bool:
+    def _winding_up(
+        d: Device, pos: float, vel: float, push_mA: float, wanted_mA: float, lo: float, hi: float
+    ) -> bool:
         """Whether the integral term (`push_mA`) only pushes the joint into something it
         cannot pass: the joint at or past a position limit with the push outward, or the
-        output at the current limit with the joint stalled (an end stop, an obstacle). The
-        error is then zero or cannot shrink, so without a bleed the integral would hold the
-        stall current for ever (a bumpless switch to ZERO_VELOCITY at an end stop starts it
-        there)."""
+        output at the current limit in force (`lo`, `hi`, derating included) with the joint
+        stalled (an end stop, an obstacle). The error is then zero or cannot shrink, so
+        without a bleed the integral would hold the stall current for ever (a bumpless switch
+        to ZERO_VELOCITY at an end stop starts it there)."""
         out = 1.0 if push_mA > 0.0 else -1.0
         if not d.continuous:
             lim = d.position_limits
             if (out > 0.0 and pos >= lim.hi) or (out < 0.0 and pos <= lim.lo):
                 return True
-        edge = d.current_limits.hi if out > 0.0 else d.current_limits.lo
+        edge = hi if out > 0.0 else lo
         saturated = wanted_mA * out >= edge * out - 1e-9 and edge * out > 0.0
         return saturated and vel * out < STALL_SPEED
 
@@ -428,6 +477,8 @@ class Firmware(PacketHandlers):
         amps = [(jaw_mA if d.index < 0 else joint_mA[d.index]) / 1000.0 for d in self._devices]
         monitor = self.monitor
         monitor.step(h * _MONITOR_STEPS, amps, arm.motor.supply_voltage)
+        if self._derating is not None:
+            self._derate(self._derating, amps)
         for d, modelled in zip(self._devices, monitor.flags, strict=True):
             now = d.status & MONITOR_FLAGS
             flags = modelled | (d.injected & MONITOR_FLAGS)
@@ -440,6 +491,26 @@ class Firmware(PacketHandlers):
                     "device %s: monitor flags now %s",
                     d.spec.letter,
                     ", ".join(flags.flag_names()) or "clear",
+                )
+
+    def _derate(self, derating: CurrentDerating, amps: list[float]) -> None:
+        """Advance each device's I^2 t estimate with the current it drew (A) and set its
+        derated limit (`reach_sim_bridge.emulator.derating`)."""
+        a = self._derate_factor
+        start = derating.start
+        for d, amp in zip(self._devices, amps, strict=True):
+            ratio = amp * 1000.0 / (derating.continuous_fraction * d.peak_mA)
+            load = d.thermal_load
+            load += (ratio * ratio - load) * a
+            d.thermal_load = load
+            was = d.ceiling_mA
+            d.ceiling_mA = math.inf if load <= start else derating.ceiling(load, d.peak_mA)
+            if (was == math.inf) != (d.ceiling_mA == math.inf):
+                log.info(
+                    "device %s: current limit %s (thermal load %.2f)",
+                    d.spec.letter,
+                    "derated" if d.ceiling_mA != math.inf else "restored",
+                    load,
                 )
 
     def _housekeeping(self, h: float, out: list[Packet]) -> None:

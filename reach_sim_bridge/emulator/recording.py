@@ -28,7 +28,10 @@ Live viewing (`reach-sim --viewer spawn | connect URL | serve`): the same sample
 second stream with the same recording id whose sink is a viewer (`protocol.viewer`, the one
 copy the driver uses too), never flushed by the recorder and not bounded (a viewer keeps what
 its memory limit allows); its first error is reported once and it is dropped, the file and
-the simulator go on. Without `--record` the arm is streamed only.
+the simulator go on. Without `--record` the arm is streamed only. Its time panel follows the
+newest data; a file's plays from the start. Both blueprints frame the arm's whole reach
+(`arm_bodies`, from the model) and plot over the whole recording without legends
+(`protocol.viewer_layout`).
 """
 
 from __future__ import annotations
@@ -59,6 +62,20 @@ from protocol.viewer import (
     open_viewer,
     viewer_failure,
 )
+from protocol.viewer_layout import (
+    ARM_COLOR,
+    JOINT_COLORS,
+    JOINT_KEY,
+    TARGET_COLOR,
+    ArmBody,
+    Ball,
+    EyePose,
+    arm_view,
+    framing_eye,
+    reach,
+    series_view,
+    time_panel,
+)
 from reach_sim_bridge.emulator.firmware import Firmware
 from reach_sim_bridge.emulator.server import SimServer
 from reach_sim_bridge.model.arm import Alpha5Arm
@@ -77,11 +94,11 @@ _MIN_ROWS_PER_FLUSH = 50  # samples: fewer per flush and the chunk overhead domi
 # The footer rerun writes on closing a file indexes every chunk (~1.1 kB each, measured with
 # rerun 0.41): a part is rotated when its size plus the footer still to come reaches its cap.
 _FOOTER_BYTES_PER_CHUNK = 1200
-_CHUNKS_AT_OPEN = 60  # the blueprint's and the static scene's
+_CHUNKS_AT_OPEN = 80  # the blueprint's and the static scene's (77, measured with rerun 0.41)
 _PER_SAMPLE_ENTITIES = 13  # joints x 8, torques, velocities, links, jaw, link/frames
 
-_ARM_COLOR = (230, 150, 40, 255)
 _BASE_COLOR = (90, 90, 90, 255)
+_APPLIED_COLOR = (120, 120, 120, 255)
 _LINKS = ("m3_inline", "m2_1_1", "m2", "m2_1_3", "m1", "jaw")
 
 
@@ -117,7 +134,7 @@ def _geoms(model: mujoco.MjModel) -> _Geoms:
         radii=model.geom_size[cylinders, 0].copy(),
         lengths=2.0 * model.geom_size[cylinders, 1].copy(),
         half_sizes=model.geom_size[boxes].copy(),
-        colors=[_BASE_COLOR if model.geom_bodyid[g] == base else _ARM_COLOR for g in cylinders],
+        colors=[_BASE_COLOR if model.geom_bodyid[g] == base else ARM_COLOR for g in cylinders],
     )
 
 
@@ -178,37 +195,91 @@ def part_path(path: Path, n: int) -> Path:
     return path if n == 0 else path.with_name(f"{path.stem}.{n}{path.suffix}")
 
 
-def _blueprint() -> rrb.Blueprint:
+def _balls(model: mujoco.MjModel, data: mujoco.MjData, body: int, grow: float) -> tuple[Ball, ...]:
+    """Balls enclosing a body's drawn geoms (world, as `data` poses them): a cylinder's two
+    end discs, a box's corners; each grown by `grow` (a slide's travel)."""
+    cyl, box = int(mujoco.mjtGeom.mjGEOM_CYLINDER), int(mujoco.mjtGeom.mjGEOM_BOX)
+    out: list[Ball] = []
+    for g in range(model.ngeom):
+        if model.geom_bodyid[g] != body or model.geom_type[g] not in (cyl, box):
+            continue
+        center = data.geom_xpos[g]
+        if model.geom_type[g] == cyl:
+            radius, half = model.geom_size[g, :2]
+            axis = data.geom_xmat[g].reshape(3, 3)[:, 2] * half
+            ends = [(center - axis, radius), (center + axis, radius)]
+        else:
+            ends = [(center, float(np.linalg.norm(model.geom_size[g])))]
+        out.extend(Ball(tuple(float(v) for v in c), float(r) + grow) for c, r in ends)  # type: ignore[arg-type]
+    return tuple(out)
+
+
+def arm_bodies(model: mujoco.MjModel) -> list[ArmBody]:
+    """The drawn links (_LINKS) as `protocol.viewer_layout` bodies, posed at the model's zero
+    angles; the jaw's slide counted as its fingers' travel."""
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    ids = [model.body(name).id for name in _LINKS]
+    hinge = int(mujoco.mjtJoint.mjJNT_HINGE)
+    bodies = []
+    for b in ids:
+        parent = int(model.body_parentid[b])
+        while parent not in ids and parent != 0:
+            parent = int(model.body_parentid[parent])
+        joints = range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b])
+        pivot = axis = None
+        grow = 0.0
+        for j in joints:
+            if model.jnt_type[j] == hinge:
+                pivot = tuple(float(v) for v in data.xanchor[j])
+                axis = tuple(float(v) for v in data.xaxis[j])
+            else:
+                grow += float(np.max(np.abs(model.jnt_range[j])))
+        bodies.append(
+            ArmBody(
+                None if parent == 0 else ids.index(parent),
+                pivot,  # type: ignore[arg-type]
+                axis,  # type: ignore[arg-type]
+                _balls(model, data, b, grow),
+            )
+        )
+    return bodies
+
+
+def _blueprint(eye: EyePose, live: bool = False) -> rrb.Blueprint:
+    """The true arm with its eye on every pose (`eye`), per joint its position vs the
+    firmware's setpoint beside its currents, torques, velocities and the link's frames; every
+    plot over the whole recording, legends hidden. `live`: following the newest data."""
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
-                rrb.Spatial3DView(origin="/", contents=["/arm/**"], name="arm, true state (m)"),
+                arm_view("arm, true state (m)", ["/arm/**"], eye),
                 rrb.TextLogView(origin="/events", name="events (modes, faults)"),
                 row_shares=[4, 1],
             ),
             rrb.Vertical(
                 *[
                     rrb.Horizontal(
-                        rrb.TimeSeriesView(
-                            origin=f"/joints/{j}/position",
-                            name=f"{j}: true position vs setpoint (rad)",
+                        series_view(
+                            f"/joints/{j}/position",
+                            f"{j}: true position orange vs setpoint blue (rad)",
                         ),
-                        rrb.TimeSeriesView(
-                            origin=f"/joints/{j}/current",
-                            name=f"{j}: current, applied vs drawn (mA)",
+                        series_view(
+                            f"/joints/{j}/current",
+                            f"{j}: current, applied grey vs drawn orange (mA)",
                         ),
                     )
                     for j in JOINTS
                 ]
             ),
             rrb.Vertical(
-                rrb.TimeSeriesView(origin="/torques", name="torques delivered (N m)"),
-                rrb.TimeSeriesView(origin="/velocities", name="velocities (rad/s)"),
-                rrb.TimeSeriesView(origin="/link/frames", name="link: frames (count)"),
+                series_view("/torques", f"torques delivered (N m); {JOINT_KEY}"),
+                series_view("/velocities", "velocities (rad/s)"),
+                series_view("/link/frames", "link: frames (count)"),
             ),
-            column_shares=[3, 4, 2],
+            column_shares=[4, 4, 2],
         ),
-        rrb.TimePanel(timeline=TIMELINE_TIME, state="collapsed"),
+        time_panel(TIMELINE_TIME, live),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
     )
@@ -263,6 +334,7 @@ class SimRecorder:
         self._thread: threading.Thread | None = None
         self._recording_id = f"reach-sim-{time.time_ns()}"
         self._geoms = server.observe(lambda arm, _fw: _geoms(arm.model))
+        self._eye = server.observe(lambda arm, _fw: framing_eye(reach(arm_bodies(arm.model))))
         self._sample = _sampler(self._geoms)
         self._lock = threading.Lock()  # the stream, across rotation and outside flushes
         self._modes: tuple[Mode, ...] | None = None
@@ -271,7 +343,8 @@ class SimRecorder:
         self._out = ViewerTee(None, None, self._viewer_error)
         if viewer is not None:
             try:
-                view = open_viewer(viewer, "reach-sim", self._recording_id, _blueprint(), announce)
+                live = _blueprint(self._eye, live=True)
+                view = open_viewer(viewer, "reach-sim", self._recording_id, live, announce)
             except ViewerError as exc:
                 self._viewer_error(exc, opening=True)
             else:
@@ -306,7 +379,7 @@ class SimRecorder:
             recording_id=self._recording_id,
             batcher_config=rr.ChunkBatcherConfig(flush_tick=timedelta(seconds=IDLE_FLUSH_S + 5.0)),
         )
-        rec.save(str(self.path), default_blueprint=_blueprint())
+        rec.save(str(self.path), default_blueprint=_blueprint(self._eye))
         self._log_scene(rec)
         # Each part states the modes and faults it starts with.
         self._modes = None
@@ -328,16 +401,26 @@ class SimRecorder:
                 "arm/jaw",
                 rr.Boxes3D(
                     half_sizes=g.half_sizes,
-                    colors=[_ARM_COLOR] * len(g.boxes),
+                    colors=[ARM_COLOR] * len(g.boxes),
                     fill_mode="solid",
                 ),
                 static=True,
             )
         for j in JOINTS:
-            rec.log(f"joints/{j}/position", rr.SeriesLines(names=["q", "setpoint"]), static=True)
-            rec.log(f"joints/{j}/current", rr.SeriesLines(names=["applied", "drawn"]), static=True)
+            rec.log(
+                f"joints/{j}/position",
+                rr.SeriesLines(names=["q", "setpoint"], colors=[ARM_COLOR, TARGET_COLOR]),
+                static=True,
+            )
+            rec.log(
+                f"joints/{j}/current",
+                rr.SeriesLines(names=["applied", "drawn"], colors=[_APPLIED_COLOR, ARM_COLOR]),
+                static=True,
+            )
         for entity in ("torques", "velocities"):
-            rec.log(entity, rr.SeriesLines(names=list(JOINTS)), static=True)
+            rec.log(
+                entity, rr.SeriesLines(names=list(JOINTS), colors=list(JOINT_COLORS)), static=True
+            )
         rec.log(
             "link/frames",
             rr.SeriesLines(names=["frames in", "bad frames", "frames out"]),

@@ -31,7 +31,7 @@ from protocol import HardwareStatus, Packet, PacketDecoder
 from protocol.alpha5 import SERIAL_BAUD
 from protocol.decoder import DecoderStats
 from reach_sim_bridge.emulator.events import EventLog
-from reach_sim_bridge.emulator.faults import FaultConfig, LinkFaults
+from reach_sim_bridge.emulator.faults import FaultConfig, LinkFaults, StuckReading
 from reach_sim_bridge.emulator.firmware import Firmware, FirmwareConfig
 from reach_sim_bridge.emulator.pty import PtyEndpoint
 from reach_sim_bridge.emulator.udp import Address, UdpEndpoint, is_loopback
@@ -42,6 +42,7 @@ from reach_sim_bridge.emulator.wire import (
     TURNAROUND_BYTES,
     Counters,
     WireIO,
+    out_frame_max_age,
     out_queue_limit,
 )
 from reach_sim_bridge.model.arm import Alpha5Arm
@@ -59,6 +60,7 @@ __all__ = [
     "ServerStats",
     "SimConfig",
     "SimServer",
+    "out_frame_max_age",
     "out_queue_limit",
     "serve_forever",
 ]
@@ -139,8 +141,8 @@ class ServerStats:
     dropped_frames: int  # by the drop-rate fault
     corrupted_bytes: int  # by the corrupt-rate fault
     lost_bytes: int  # the pty buffer was full (no client reading)
-    stream_dropped: int  # heartbeat/status frames dropped from the full --baud queue
-    replies_dropped: int  # the oldest replies, pushed out of the full --baud queue
+    stream_dropped: int  # heartbeat/status frames dropped: --baud queue full, or too old
+    replies_dropped: int  # the oldest replies, pushed out of the full --baud queue or too old
     queued_bytes: int  # waiting for the pty now
     queued_peak_bytes: int  # the most waiting with --baud (at most out_queue_limit(baud))
     input_dropped_bytes: int  # UDP bytes dropped unread: no input credit left
@@ -214,6 +216,7 @@ class SimServer(WireIO):
         self._pty_partial = b""
         self._line_rate = None if cfg.baud is None else cfg.baud / BITS_PER_BYTE
         self._out_limit = None if cfg.baud is None else out_queue_limit(cfg.baud)
+        self._out_age = None if cfg.baud is None else out_frame_max_age(cfg.baud)
         self._rx_free = 0.0  # when the serial line is next idle, each way
         self._tx_free = 0.0
         self._turnaround = 0.0 if cfg.baud is None else TURNAROUND_BYTES * BITS_PER_BYTE / cfg.baud
@@ -393,6 +396,12 @@ class SimServer(WireIO):
         """Raise a hardware fault flag on one device, as a failing joint would."""
         with self._lock:
             self.firmware.inject_fault(device_id, flag)
+
+    def inject_stuck(self, stuck: StuckReading) -> None:
+        """Make one device's reading stick at its value from `stuck.from_s` of arm time on
+        (`reach_sim_bridge.emulator.faults.StuckReading`)."""
+        with self._lock:
+            self.firmware.inject_stuck(stuck)
 
     def observe(self, fn: Callable[[Alpha5Arm, Firmware], T]) -> T:
         """Run `fn(arm, firmware)` between physics steps, for a consistent look at the state."""

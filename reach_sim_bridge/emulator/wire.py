@@ -19,10 +19,16 @@ Nothing a client sends can take that thread from the physics or make memory grow
 - Output queue with --baud. Frames wait for the emulated line in two queues, replies ahead
   of the stream (heartbeats, status), together at most `out_queue_limit(baud)` bytes
   (OUT_QUEUE_S of wire time). When full, the oldest stream frames make room, then, for a
-  reply, the oldest replies (a stream frame finding only replies is dropped). Drops are
-  whole frames, counted in `stats()`. So a reply goes out within about OUT_QUEUE_S, unless
-  newer replies push it out under a request flood, and the stream is never staler than
-  that. Without --baud the pty's own buffer is the line (when full: lost_bytes).
+  reply, the oldest replies (a stream frame finding only replies is dropped). A frame is
+  also bounded in time: one older than `out_frame_max_age(baud)` (twice the queue's wire
+  time, 0.4 s at 115200) when the line could start it is dropped, as its requester has
+  given up; a full-duplex line drains the queue within its wire time, so this bites where
+  the line does not drain: a half-duplex wire the host keeps talking on, or a stream frame
+  that replies keep overtaking. Drops are whole frames, counted in `stats()`
+  (`replies_dropped`, `stream_dropped`). So a reply goes out within OUT_QUEUE_S of wire
+  time (unless newer replies push it out under a request flood) and is never older than
+  the age limit, nor is the stream. Without --baud the pty's own buffer is the line (when
+  full: lost_bytes).
 
 Half duplex (`SimConfig(half_duplex=True)`, `reach-sim --half-duplex`): the pty is one RS-485
 wire shared by the host and the arm, timed at `baud`, as the server sees the bytes:
@@ -69,6 +75,12 @@ def out_queue_limit(baud: int) -> int:
     return max(int(OUT_QUEUE_S * baud / BITS_PER_BYTE), MIN_OUT_QUEUE_BYTES)
 
 
+def out_frame_max_age(baud: int) -> float:
+    """Seconds a frame may wait for the line at `baud` before it is dropped: twice the
+    queue's wire time (a full queue drains in one)."""
+    return 2.0 * out_queue_limit(baud) * BITS_PER_BYTE / baud
+
+
 class Counters:
     """The server's running counts since the last power cycle (`SimServer.stats()` reads them)."""
 
@@ -112,6 +124,7 @@ class WireIO:
     _pty_partial: bytes
     _line_rate: float | None
     _out_limit: int | None
+    _out_age: float | None
     _rx_free: float
     _tx_free: float
     _turnaround: float
@@ -297,13 +310,16 @@ class WireIO:
         has crossed the line, frame). The line starts a frame when it is free, the waiting
         reply if one was ready by then, else the oldest stream frame."""
         replies, stream = self._pty_replies, self._pty_stream
-        first = self._pty_first_ready()
-        if first is None or first > now:
-            return None
         rate = self._line_rate
-        start = first if rate is None else max(self._tx_free, first)
-        if self.config.half_duplex:
-            start = max(start, now)  # the wire is the host's until now: no sending in the past
+        while True:
+            first = self._pty_first_ready()
+            if first is None or first > now:
+                return None
+            start = first if rate is None else max(self._tx_free, first)
+            if self.config.half_duplex:
+                start = max(start, now)  # the wire is the host's until now: no sending in the past
+            if not self._expire(start):
+                break
         queue = replies if replies and replies[0][0] <= start else stream
         _, frame = queue.popleft()
         self._pty_queued -= len(frame)
@@ -311,6 +327,25 @@ class WireIO:
             return start, frame
         self._tx_free = start + len(frame) / rate
         return self._tx_free, frame
+
+    def _expire(self, start: float) -> bool:
+        """Drop the frames that would start on the line at `start` older than the age limit
+        (counted); whether any was."""
+        age = self._out_age
+        if age is None:
+            return False
+        oldest = start - age
+        c = self._counters
+        dropped = False
+        for queue, stream in ((self._pty_replies, False), (self._pty_stream, True)):
+            while queue and queue[0][0] < oldest:
+                self._pty_queued -= len(queue.popleft()[1])
+                dropped = True
+                if stream:
+                    c.stream_dropped += 1
+                else:
+                    c.replies_dropped += 1
+        return dropped
 
     def _pty_next_due(self) -> float | None:
         """When the pty output next needs the loop (None: nothing to send)."""

@@ -10,7 +10,8 @@ actuator (scale 0.25 is the paper's 75 % torque loss); it scales the delivered t
 current drawn, so the no-load speed is unchanged.
 
 Everything is vectorised over joints; arrays are in the order the motors were given
-(E D C B for the arm).
+(E D C B for the arm). The Reach Bravo 7's motors (`BRAVO7_MOTORS`, G F E D C B, and
+`BRAVO7_JAW_MOTOR`) are held beside the Alpha's as data; nothing steps them yet.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from protocol import alpha5
+from protocol import alpha5, bravo7
 
 FloatArray = NDArray[np.float64]
 
@@ -109,6 +110,23 @@ JAW_MOTOR = MotorParams(
     backemf_constant=(alpha5.MOTOR_BACKEMF_V_S_PER_RAD[_B],),
     gear_ratio=(JAW_GEAR_RATIO * 2.0 * math.pi / JAW_SCREW_LEAD_M,),
     efficiency=(alpha5.GEAR_EFFICIENCY[_B] * JAW_SCREW_EFFICIENCY,),
+)
+
+# The Reach Bravo 7 (model/bravo7.md, "Motors"), held once in protocol.bravo7: six rotary
+# joints G F E D C B and the jaws, whose ratio is motor radians per mm of travel.
+BRAVO7_MOTORS = MotorParams(
+    resistance_ohm=bravo7.MOTOR_RESISTANCE_OHM,
+    torque_constant=bravo7.MOTOR_TORQUE_CONSTANT_NM_PER_A,
+    backemf_constant=bravo7.MOTOR_BACKEMF_V_S_PER_RAD,
+    gear_ratio=bravo7.GEAR_RATIO,
+    efficiency=bravo7.GEAR_EFFICIENCY,
+)
+BRAVO7_JAW_MOTOR = MotorParams(
+    resistance_ohm=(bravo7.JAW_MOTOR_RESISTANCE_OHM,),
+    torque_constant=(bravo7.JAW_MOTOR_TORQUE_CONSTANT_NM_PER_A,),
+    backemf_constant=(bravo7.JAW_MOTOR_BACKEMF_V_S_PER_RAD,),
+    gear_ratio=(bravo7.JAW_GEAR_RATIO_RAD_PER_MM * 1000.0,),  # motor rad per metre
+    efficiency=(bravo7.JAW_GEAR_EFFICIENCY,),
 )
 
 DEFAULT_CURRENT_LIMITS_MA = alpha5.DEFAULT_CURRENT_LIMITS_MA

@@ -36,6 +36,7 @@ from policy.campaigns.robustness.report import (
     update_doc,
 )
 from policy.campaigns.robustness.summary import check_factors, overshoot_by, summaries
+from reach_driver.controllers import registered_list
 from reach_driver.errors import DriverError
 from reach_sim_bridge.model.params import ArmParams, load_arm_params
 
@@ -277,7 +278,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--controller",
         nargs="+",
         metavar="NAME",
-        help="ddpg-distilled ddpg-distilled-pure mpc pid ...",
+        help=f"one or more registered controllers: {registered_list()}",
     )
     p.add_argument(
         "--label",
