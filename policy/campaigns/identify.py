@@ -24,7 +24,10 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections import Counter
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from enum import Enum
 from pathlib import Path
 
 import numpy as np
@@ -308,6 +311,48 @@ def reported_errors(truth: ArmParams, twin: FittedTwin) -> dict[str, dict[str, d
             rows[name] = {"as": "value" if combo == name else combo, "fitted": got}
             rows[name].update({"true": true, "error": error})
         out[letter] = rows
+    return out
+
+
+TOLERANCE = 0.10
+"""Issue 46's: a parameter reported within 10 % of the arm's, or reported unidentifiable with
+the combination the data fix within 10 %."""
+
+
+class Verdict(Enum):
+    """How one parameter of one fit stands against its arm (`verdict`)."""
+
+    VALUE = "value within 10 %"
+    COMBINATION = "unidentifiable, combination within 10 %"
+    NO_VALUE = "unidentifiable, no value claimed"
+    WRONG_VALUE = "WRONG: value off > 10 %"
+    WRONG_COMBINATION = "WRONG: combination off > 10 %"
+
+    @property
+    def wrong(self) -> bool:
+        """Confidently wrong: a value or a combination claimed known, off by more than 10 %."""
+        return self in (Verdict.WRONG_VALUE, Verdict.WRONG_COMBINATION)
+
+
+def verdict(entry: dict) -> Verdict:
+    """One `reported_errors` entry against `TOLERANCE`. A torque scale reported unidentifiable
+    claims no value (what the data fix of it are the joint's other combinations)."""
+    if entry["error"] is None:
+        return Verdict.NO_VALUE
+    within = abs(entry["error"]) <= TOLERANCE
+    if entry["as"] == "value":
+        return Verdict.VALUE if within else Verdict.WRONG_VALUE
+    return Verdict.COMBINATION if within else Verdict.WRONG_COMBINATION
+
+
+def verdict_counts(rows: Iterable[dict]) -> dict[str, Counter[Verdict]]:
+    """Per parameter (the `ArmParams` field: torque_scale, armature, damping, frictionloss,
+    link_mass_kg for a load), how many of the fits in `rows` (`fit_row`s) stand how."""
+    out: dict[str, Counter[Verdict]] = {}
+    for row in rows:
+        for joint in row.get("joints", {}).values():
+            for name, entry in joint.get("reported", {}).items():
+                out.setdefault(name.split("[")[0], Counter())[verdict(entry)] += 1
     return out
 
 

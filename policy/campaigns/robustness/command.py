@@ -20,7 +20,11 @@ from policy.campaigns.evaluation import add_param_option, parse_controller_param
 from policy.campaigns.parallel import CampaignError
 from policy.campaigns.robustness.arms import Plan, export_arms, plan, read_fitted
 from policy.campaigns.robustness.campaign import campaign
-from policy.campaigns.robustness.identification import identify_arms, identify_table
+from policy.campaigns.robustness.identification import (
+    identify_arms,
+    identify_table,
+    verdict_table,
+)
 from policy.campaigns.robustness.progress import ProgressLog
 from policy.campaigns.robustness.report import (
     COMPARISON,
@@ -114,6 +118,7 @@ def identify(opts: Options, console: Console) -> None:
         address=opts.address,
     )
     Console().print(escape(identify_table(rows)), soft_wrap=True)
+    Console().print(escape("\n" + verdict_table(rows)), soft_wrap=True)
     failed = [r["arm"] for r in rows if "joints" not in r]
     if failed:
         raise ValueError(f"{len(failed)} arms not identified: {', '.join(failed)}")

@@ -14,9 +14,12 @@ from rich.console import Console
 from policy.campaigns.identify import (
     IdentifyJob,
     IdentifyResult,
+    Verdict,
     fit_row,
     run_identify_job,
     run_row,
+    verdict,
+    verdict_counts,
 )
 from policy.campaigns.parallel import run_on_ray
 from policy.campaigns.robustness.arms import Arm, arm_file, arm_noise, arm_params, envelope_meta
@@ -173,5 +176,49 @@ def identify_table(rows: Sequence[dict[str, Any]]) -> str:
         lines.append(
             f"| {r['arm']} | {weak or 'all 1'} | {scales} | {100 * worst:+.1f} % ({which}) "
             f"| {energy} | {rms} |"
+        )
+    return "\n".join(lines)
+
+
+ENERGY_TOLERANCE = 0.05
+"""Issue 46's: a PID's energy on the fitted twin within 5 % of its energy on the arm."""
+
+
+def verdict_table(rows: Sequence[dict[str, Any]]) -> str:
+    """Issue 46's target over the fits, per parameter (markdown): how many are reported within
+    10 % of the arm's, reported unidentifiable with the combination the data fix within 10 %,
+    or confidently wrong (`policy.campaigns.identify.verdict`); then each wrong one, and how
+    many fitted twins put the PID's energy within 5 % of the arm's (worst episode, with
+    `--check-controller pid`)."""
+    kinds = list(Verdict)
+    counts = verdict_counts(rows)
+    lines = [
+        "| parameter | " + " | ".join(k.value for k in kinds) + " |",
+        "|---|" + "---|" * len(kinds),
+    ]
+    for name in sorted(counts):
+        lines.append(f"| {name} | " + " | ".join(str(counts[name][k]) for k in kinds) + " |")
+    total = {k: sum(c[k] for c in counts.values()) for k in kinds}
+    lines.append("| all | " + " | ".join(str(total[k]) for k in kinds) + " |")
+    for r in rows:
+        for letter, joint in r.get("joints", {}).items():
+            for name, e in joint.get("reported", {}).items():
+                if verdict(e).wrong:
+                    what = name if e["as"] == "value" else f"{name} as {e['as']}"
+                    lines.append(
+                        f"- {r['arm']} {letter}: {what} {e['fitted']:.4g}, "
+                        f"true {e['true']:.4g} ({100 * e['error']:+.1f} %)"
+                    )
+    gaps = [
+        g["fitted"]["energy_error_max"]
+        for r in rows
+        for g in r.get("controller_gap") or []
+        if g["controller"] == "pid"
+    ]
+    if gaps:
+        ok = sum(g <= ENERGY_TOLERANCE for g in gaps)
+        lines.append(
+            f"- PID energy within 5 % of the arm's on {ok} of {len(gaps)} fitted twins "
+            f"(worst {100 * max(gaps):.1f} %)"
         )
     return "\n".join(lines)
