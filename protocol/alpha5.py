@@ -39,6 +39,11 @@ FACTORY_POSITION_LIMITS: dict[DeviceID, Range] = {
     DeviceID.B: (0.0, 2.0 * math.pi),
     DeviceID.A: (0.0, 15.0),
 }
+#: The middle of the factory envelope, E D C B (rad): where an identification starts and
+#: ends, and the pose its reports give a joint's inertia at.
+FACTORY_MIDDLE: tuple[float, ...] = tuple(
+    0.5 * (FACTORY_POSITION_LIMITS[d][0] + FACTORY_POSITION_LIMITS[d][1]) for d in JOINTS
+)
 #: Factory velocity limits per device (rad/s; mm/s for the jaws).
 FACTORY_VELOCITY_LIMITS: dict[DeviceID, Range] = {
     DeviceID.E: (-0.5236, 0.5236),

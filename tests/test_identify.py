@@ -145,7 +145,7 @@ def test_the_coarse_start_finds_the_frictions_decade(friction: float) -> None:
         armature=(0.18,) * 3 + ArmParams().armature[3:],
     )
     segs = [_record(truth, 0, "relay", 3.0)]
-    start = coarse_start(Replay(window_s=1.0), segs, ArmParams(), default_refs(0, False))
+    start = coarse_start(Replay(window_s=1.0), segs, ArmParams(), default_refs(0, False))[0]
     # the grid's nearest friction (0 -> the floor, 6.6 -> 10 x 0.7) and armature (2 x 0.12)
     assert start.frictionloss[0] == pytest.approx(max(friction, FRICTION_FLOOR), rel=0.1)
     assert start.armature[0] == pytest.approx(0.24)
@@ -411,6 +411,20 @@ def test_twin_gap_pairs_the_same_episodes_on_three_arms() -> None:
     assert "pid" in twin_gap.markdown([g]) and g.summary()["fitted"]["meets_targets"]
 
 
+def test_a_twin_two_ticks_off_in_settling_meets_the_target() -> None:
+    """Settling times lie on the control ticks: a fitted twin settling at 4.30 s where the arm
+    settles at 4.40 s is 0.1 s off, within the target (the float difference is 0.1 + 5e-16)."""
+    ep = twin_gap.EpisodeGap(
+        0,
+        {"hidden": 15.17, "fitted": 14.84, "nominal": 11.85},
+        {"hidden": 4.40, "fitted": 4.30, "nominal": 1.95},
+        {"hidden": True, "fitted": True, "nominal": True},
+    )
+    g = twin_gap.ControllerGap("pid", (ep,))
+    assert g.worst_settling("fitted") == 0.1
+    assert g.meets_targets("fitted") and not g.meets_targets("nominal")
+
+
 #: A twin `tools/identify.py` fitted (four joints, `--scale 1`, through the driver on `reach-sim
 #: --params` of `ArmParams().randomized(11)`; docs/identification.md, "Near-nominal arms").
 IDENTIFIED = ROOT / "tests" / "data" / "identified_seed11.json"
@@ -489,19 +503,6 @@ def test_no_fit_gives_a_joint_more_friction_than_moved_it() -> None:
 def _cost_at(replay: Replay, params: ArmParams, seg: Segment) -> float:
     r = replay.residuals(params, 0.004, [seg])
     return float(r @ r)
-
-
-@pytest.mark.parametrize("scale", [1.0, 0.25])
-def test_the_coarse_start_tells_a_weak_drive(scale: float) -> None:
-    """A D at 25 % torque fights its own load with a quarter of its drive; started from full
-    torque its fit once put 12.6 N m of Coulomb friction there (validation R^2 0.71). The
-    grid is tried at full and at a quarter torque."""
-    d = JOINT_LETTERS.index("D")
-    truth = params_with(ArmParams(), [("torque_scale", d)], [scale])
-    segs = [_record(truth, d, "relay", 3.0, amplitude_factor=1.0 / scale)]
-    start = coarse_start(Replay(window_s=1.0), segs, ArmParams(), default_refs(d, False))
-    assert start.torque_scale[d] == scale
-    assert start.torque_scale[:d] + start.torque_scale[d + 1 :] == (1.0, 1.0, 1.0)
 
 
 def test_a_joint_is_fitted_beside_a_weak_one_it_does_not_know_yet() -> None:

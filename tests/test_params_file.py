@@ -25,7 +25,15 @@ from reach_sim_bridge.model.params import (
     load_arm_params,
     save_arm_params,
 )
-from reach_sim_bridge.model.twin import Estimate, FitMetadata, FittedTwin, read_twin, write_twin
+from reach_sim_bridge.model.twin import (
+    Combination,
+    Estimate,
+    FitMetadata,
+    FittedTwin,
+    Unidentified,
+    read_twin,
+    write_twin,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -86,6 +94,14 @@ def test_a_fitted_twin_round_trips(tmp_path: Path) -> None:
     fit = FitMetadata(
         method="test",
         parameters={"armature[E]": Estimate(0.13, 1e-4), "delay_s": Estimate(0.004, 1e-4)},
+        unidentifiable={
+            "torque_scale[B]": Unidentified(1.0, "nothing anchors it"),
+            "frictionloss[B]": Unidentified(
+                0.3, "over the scale", Combination("frictionloss[B]/torque_scale[B]", 0.3, 0.01)
+            ),
+        },
+        torque_scales={"B": {"status": "unidentifiable", "twin_value": 1.0}},
+        identifiability={"B": {"parameters": ["frictionloss[B]"], "directions": []}},
         delay_s=0.0031,
         command_step_s=0.002,
         delay_offsets_ms={"E0-relay-P1": 0.25},

@@ -17,10 +17,11 @@ from typing import Any
 import numpy as np
 import pytest
 
+from policy.campaigns.identify import fit_row
 from policy.campaigns.robustness.arms import arm_episode, arm_twin, plan, subsample
 from policy.campaigns.robustness.campaign import make_jobs, run_jobs
 from policy.campaigns.robustness.command import Options, execute
-from policy.campaigns.robustness.identification import identify_rows
+from policy.campaigns.robustness.identification import identify_rows, verdict_table
 from policy.campaigns.robustness.report import (
     COMPARISON,
     NEW_BLOCKS,
@@ -523,3 +524,34 @@ def test_an_arm_the_simulator_refuses_is_reported_not_raised() -> None:
     assert not result.ok and result.returncode == SIM_FAILED
     assert result.fitted_json is None
     assert "armature" in " ".join(result.tail)
+
+
+def test_the_target_is_counted_per_parameter_and_names_what_is_confidently_wrong() -> None:
+    """Issue 46's target over a campaign's fits: each parameter reported within 10 % of the
+    arm's, or unidentifiable with its known combination within 10 %; a value or a combination
+    claimed and off by more is confidently wrong, and named."""
+    hidden = ArmParams(frictionloss=(2.0, 0.7, 0.7, 0.075), torque_scale=(0.5, 1, 1, 1))
+    fitted = dict(hidden.to_json_dict(), torque_scale=[1.0] * 4)
+    fitted["frictionloss"] = [4.0, 0.84, 0.7, 0.075]  # E: 2 / 0.5; D 20 % high, as a value
+    fitted["_fit"] = {
+        "torque_scales": {x: {"status": "anchor", "twin_value": 1.0} for x in "DCB"},
+        "unidentifiable": {
+            "torque_scale[E]": {"twin_value": 1.0, "reason": "nothing weighs it"},
+            "frictionloss[E]": {
+                "twin_value": 4.0,
+                "reason": "over the scale",
+                "known": {"name": "frictionloss[E]/torque_scale[E]", "value": 4.1, "sigma": 0.01},
+            },
+        },
+        "controller_gap": [
+            {"controller": "pid", "fitted": {"energy_error_max": 0.07}, "nominal": {}}
+        ],
+    }
+    fitted["_fit"]["torque_scales"]["E"] = {"status": "unidentifiable", "twin_value": 1.0}
+    table = verdict_table([fit_row("arm-1", hidden.to_json_dict(), fitted)])
+    lines = {line.split(" | ")[0]: line.split(" | ")[1:] for line in table.splitlines()}
+    # columns: value, combination, no value, wrong value, wrong combination
+    assert lines["| frictionloss"] == ["2", "1", "0", "1", "0 |"]
+    assert lines["| torque_scale"] == ["3", "0", "1", "0", "0 |"]
+    assert "- arm-1 D: frictionloss[D] 0.84, true 0.7 (+20.0 %)" in table
+    assert "PID energy within 5 % of the arm's on 0 of 1 fitted twins (worst 7.0 %)" in table

@@ -11,15 +11,13 @@ from typing import Any
 
 import numpy as np
 
-from protocol.alpha5 import FACTORY_POSITION_LIMITS, JOINTS, N_JOINTS, TORQUE_PER_AMP_NM
+from protocol.alpha5 import FACTORY_MIDDLE, N_JOINTS, TORQUE_PER_AMP_NM
 from reach_driver.controllers import ControlState
 from reach_sim_bridge.model.params import ArmParams
 
 K_MA = np.asarray(TORQUE_PER_AMP_NM) / 1000.0  # N m per mA, E D C B
 #: The middle of the factory envelope: the pose every identification starts and ends at.
-HOME = np.array(
-    [0.5 * (FACTORY_POSITION_LIMITS[d][0] + FACTORY_POSITION_LIMITS[d][1]) for d in JOINTS]
-)
+HOME = np.array(FACTORY_MIDDLE)
 #: Fitting poses P1, P2 and the validation pose P3 (offsets from HOME, rad): D and C at other
 #: angles load them differently with gravity.
 POSE_OFFSETS = {

@@ -1,25 +1,52 @@
-"""The whole arm's fit: the joints one by one in `JOINT_ORDER` (`fit_arm`), the wrist's weight
-shared between C and D, the command step and the per-segment delay offsets (`tune_offsets`)."""
+"""The whole arm's fit: the joints one by one in `JOINT_ORDER`, each at its full torque
+(`fit_arm`), then the torque scales where something anchors them (`anchor_scales`: the
+wrist's weight, which C and D both carry), the command step and the per-segment delay
+offsets (`tune_offsets`)."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from protocol.alpha5 import JOINT_LETTERS
-from reach_sim_bridge.fit.joint_fit import FitResult, coarse_start, default_refs, fit_joint
-from reach_sim_bridge.fit.replay import VELOCITY_WEIGHT_S, ParamRef, Replay, params_with
+from reach_sim_bridge.fit.identifiability import (
+    DRAG,
+    DRAG_SPEED,
+    INERTIA,
+    LOAD_RMS,
+    Fisher,
+    ScaleStatus,
+    ScaleVerdict,
+    joint_inertia,
+    joint_load,
+    load_exponents,
+)
+from reach_sim_bridge.fit.joint_fit import (
+    LOAD,
+    FitResult,
+    buoyant_kg,
+    coarse_start,
+    default_refs,
+    equivalent,
+    fit_joint,
+)
+from reach_sim_bridge.fit.replay import (
+    VELOCITY_WEIGHT_S,
+    ParamRef,
+    Replay,
+    param_value,
+    params_with,
+    ref_name,
+)
 from reach_sim_bridge.fit.segments import Segment, segment_delays
 from reach_sim_bridge.model.params import ArmParams
+from reach_sim_bridge.model.twin import Combination, Estimate, Unidentified
 
 WRIST_LOAD: ParamRef = ("link_mass_kg", JOINT_LETTERS.index("B"))
 """The wrist link's mass: most of C's load, and part of D's."""
-WEAK_RATIO = 0.8
-"""`fit_arm` takes C for a weak drive (its torque scale the ratio) when D carries the wrist at
-less than this share of the weight C's fit gave it (the envelope's heaviest and lightest
-wrists differ by 2.6x in net weight, a drive at 25 % torque by 4x)."""
 
 
 def wrist_weight(params: ArmParams, mass: float | None = None) -> float:
@@ -30,8 +57,8 @@ def wrist_weight(params: ArmParams, mass: float | None = None) -> float:
 
 
 JOINT_ORDER = ("E", "B", "C", "D")
-"""Fitting order: E and B carry no gravity load; C's load (the wrist link) is fitted before
-D, whose load includes it."""
+"""Fitting order: the first joint fitted chooses the command step (`fit_arm`); C and D are
+compared once both are fitted (`anchor_scales`)."""
 
 
 OFFSET_SPAN_S = 0.01
@@ -85,14 +112,15 @@ def tune_offsets(
 
 @dataclass(frozen=True)
 class ArmFit:
-    """`fit_arm`'s result: the arm, each joint's fit, the segments with their delay offsets,
-    the command step chosen, and the median delay the replay used."""
+    """`fit_arm`'s result: the arm, each joint's fit, its torque scale's verdict, the segments
+    with their delay offsets, the command step chosen, and the median delay the replay used."""
 
     params: ArmParams
     results: dict[int, FitResult]
     segments: tuple[Segment, ...]  # the fitting segments, offsets tuned on the fitted arm
     quantum_s: float
     delay_s: float  # median over every command of every fitting segment
+    scales: dict[int, ScaleVerdict] = field(default_factory=dict)
 
 
 def fit_arm(
@@ -105,52 +133,58 @@ def fit_arm(
     quanta: Sequence[float] = QUANTA_S,
     fit_starts: bool = True,
 ) -> ArmFit:
-    """Fit every joint that has "fit" segments, in `JOINT_ORDER`, each from the arm found so
-    far, with the delay held out of the physical fit (it trades off against the armature):
+    """Fit every joint that has "fit" segments, in `JOINT_ORDER`, each at its full torque
+    (what the data fix is its parameters over its torque scale), with the delay held out of
+    the physical fit (it trades off against the armature):
 
     1. Levenberg-Marquardt over the joint's physical parameters with the delays fixed at what
        the driver's timestamps measured per command (`link_delays`; offsets zero);
     2. each segment's delay offset is tuned on the fitted joint (`tune_offsets`) and the fit
        polished from there.
 
-    With `fit_starts` the polish fits each window's starting state too (`fit_joint`).
+    With `fit_starts` the polish fits each window's starting state too (`fit_joint`). Then
+    the torque scales (`anchor_scales`): C and D both weigh the wrist, each over its own
+    scale, which ties their scales together; E's and B's nothing ties.
 
     On the first joint the arm's command step is chosen among `quanta` (the one whose
     re-tuned median window error is smallest; a fresh fit if it is not the first tried)."""
     params = start if start is not None else ArmParams()
+    fitted = [
+        JOINT_LETTERS.index(x)
+        for x in JOINT_ORDER
+        if any(s.joint == JOINT_LETTERS.index(x) and s.role == "fit" for s in segments)
+    ]
+    params = params_with(params, [("torque_scale", j) for j in fitted], [1.0] * len(fitted))
     results: dict[int, FitResult] = {}
     by_joint: dict[int, list[Segment]] = {}
-    wrist_c: float | None = None  # the wrist link's mass as C's fit saw it
     quanta = tuple(quanta) or (replay.quantum_s,)
     replay.quantum_s = float(quanta[0])
-    first = True
-    for letter in JOINT_ORDER:
-        j = JOINT_LETTERS.index(letter)
-        segs = [s for s in segments if s.joint == j and s.role == "fit"]
-        if not segs:
-            continue
 
-        def note(it: int, cost: float, j: int = j) -> None:
+    def one(
+        base: ArmParams, j: int, refs: list[ParamRef], coarse: bool = True
+    ) -> tuple[FitResult, list[Segment]]:
+        segs = [s for s in segments if s.joint == j and s.role == "fit"]
+        scale = ("torque_scale", j)
+        probe = [] if scale in refs else [scale]
+
+        def note(it: int, cost: float) -> None:
             if on_iteration is not None:
                 on_iteration(j, it, cost)
 
-        def one(
-            base: ArmParams,
-            segs: list[Segment] = segs,
-            j: int = j,
-            refs: list[ParamRef] | None = None,
-            coarse: bool = True,
-        ) -> tuple[FitResult, list[Segment]]:
-            refs = refs or default_refs(j, fit_delay=False)
-            # Offsets start at zero (the timestamps' word): tuned on an arm still far from
-            # this one they would soak up its errors, the very trade-off they are to avoid.
-            ready = [replace(x, offset_s=0.0) for x in segs]
-            if coarse:
-                base = coarse_start(replay, ready, base, refs)
-            result = fit_joint(
+        # Offsets start at zero (the timestamps' word): tuned on an arm still far from
+        # this one they would soak up its errors, the very trade-off they are to avoid.
+        ready = [replace(x, offset_s=0.0) for x in segs]
+        starts = [base]
+        if coarse:
+            # the wrist is D's load too, but D's grid leaves it (x3 the rollouts) to D's fit
+            grid = [r for r in refs if not (r == WRIST_LOAD and j == D)]
+            starts = coarse_start(replay, ready, base, refs, grid=grid)
+        # from each start (`coarse_start`), the one that ends lower kept
+        tried = [
+            fit_joint(
                 replay,
                 ready,
-                base,
+                start,
                 0.0,
                 refs,
                 max_iter=max_iter,
@@ -159,32 +193,62 @@ def fit_arm(
                 # one they soak up its errors as the offsets would (and mislead the offsets)
                 fit_starts=False,
             )
-            ready = tune_offsets(replay, result.params, ready)
-            if fit_starts:
-                ready = replay.with_starts(ready)
-            weights = replay.window_weights(result.params, 0.0, ready)
-            polished = fit_joint(
-                replay,
-                ready,
-                result.params,
-                0.0,
-                refs,
-                max_iter=max(3, max_iter // 2),
-                on_iteration=note,
-                weights=weights,
-                fit_starts=fit_starts,
-            )
-            return replace(
-                polished,
-                iterations=result.iterations + polished.iterations,
-                rollouts=result.rollouts + polished.rollouts,
-                costs=result.costs + polished.costs,
-            ), list(polished.segments)
+            for start in starts
+        ]
+        result = min(tried, key=lambda r: r.costs[-1])
+        result = replace(
+            result,
+            iterations=sum(r.iterations for r in tried),
+            rollouts=sum(r.rollouts for r in tried),
+        )
+        ready = tune_offsets(replay, result.params, ready)
+        if fit_starts:
+            ready = replay.with_starts(ready)
+        weights = replay.window_weights(result.params, 0.0, ready)
+        polished = fit_joint(
+            replay,
+            ready,
+            result.params,
+            0.0,
+            refs,
+            max_iter=max(3, max_iter // 2),
+            on_iteration=note,
+            weights=weights,
+            fit_starts=fit_starts,
+            probe=probe,
+        )
+        return replace(
+            polished,
+            iterations=result.iterations + polished.iterations,
+            rollouts=result.rollouts + polished.rollouts,
+            costs=result.costs + polished.costs,
+        ), list(polished.segments)
 
+    def segs_of(j: int) -> list[Segment]:
+        return [s for s in segments if s.joint == j and s.role == "fit"]
+
+    first = True
+    for j in fitted:
         refs_j = default_refs(j, fit_delay=False)
-        if letter == "D" and wrist_c is not None:
-            refs_j.append(WRIST_LOAD)  # the wrist's weight as D carries it
-        result, ready = one(params, refs=refs_j)
+        base = params
+        if j == D:
+            # D weighs the wrist over its own scale, from the nominal wrist: whatever C's fit
+            # found is C's drive as much as the wrist (`anchor_scales` compares the two)
+            refs_j.append(WRIST_LOAD)
+            base = params_with(params, [WRIST_LOAD], [ArmParams().link_mass_kg[WRIST_LOAD[1]]])
+        result, ready = one(base, j, refs_j)
+        if j == D and C in results:
+            # How D's load splits between its link and the wrist has more than one basin
+            # behind a large friction (6.4 N m: D weighed the wrist 18 % light, at a cost 45 %
+            # above the true split's, and no step left it): D is fitted again from the wrist as
+            # C weighed it, and the fit that replays D's motions better is kept.
+            b = WRIST_LOAD[1]
+            again = params_with(result.params, [WRIST_LOAD], [results[C].params.link_mass_kg[b]])
+            other, other_ready = one(again, j, refs_j, coarse=False)
+            if replay_cost(replay, other.params, segs_of(j)) < replay_cost(
+                replay, result.params, segs_of(j)
+            ):
+                result, ready = other, other_ready
         if first and len(quanta) > 1:
 
             def plain_cost(p: ArmParams, segs: list[Segment]) -> float:
@@ -197,7 +261,7 @@ def fit_arm(
                 replay.quantum_s = float(q)
                 trial = tune_offsets(replay, result.params, ready)
                 if plain_cost(result.params, trial) < best[0]:
-                    res_q, ready_q = one(params, refs=refs_j)
+                    res_q, ready_q = one(base, j, refs_j)
                     cost_q = plain_cost(res_q.params, ready_q)
                     if cost_q < best[0]:
                         best = (cost_q, float(q), res_q, ready_q)
@@ -207,29 +271,256 @@ def fit_arm(
         params = result.params
         results[j] = result
         by_joint[j] = ready
-        if letter == "C":
-            wrist_c = params.link_mass_kg[WRIST_LOAD[1]]
-        if letter == "D" and wrist_c is not None:
-            # C's drive and the wrist's weight are one unknown to C's fit; D carries the
-            # wrist without C's drive. A C that saw the wrist heavier than D does is weak.
-            scale = wrist_weight(params) / max(wrist_weight(params, wrist_c), 1e-9)
-            c = JOINT_LETTERS.index("C")
-            if 0.0 < scale < WEAK_RATIO:
-                refs_c = [*default_refs(c, fit_delay=False)[:3], ("torque_scale", c)]
-                scaled = [v * scale for v in results[c].values[:3]]
-                refit, ready_c = one(
-                    params_with(params, refs_c, [*scaled, scale]),
-                    [x for x in segments if x.joint == c and x.role == "fit"],
-                    c,
-                    refs_c,
-                )
-                params, results[c], by_joint[c] = refit.params, refit, ready_c
-            else:  # C keeps the wrist it saw; D is fitted again with it
-                held = params_with(params, [WRIST_LOAD], [wrist_c])
-                result, ready = one(held, coarse=False)
-                params, results[j], by_joint[j] = result.params, result, ready
-        if on_joint is not None:
+        if on_joint is not None and not (j == D and C in results):
             on_joint(j, result)
+    scales: dict[int, ScaleVerdict] = {}
+    if C in results and D in results:
+        params, weak, scales = anchor_scales(params, results, lambda p, j, r: one(p, j, r, False))
+        results[weak.joint], by_joint[weak.joint] = weak, list(weak.segments)
+        if on_joint is not None:
+            on_joint(D, results[D])
+            if weak.joint == C:
+                on_joint(C, weak)
+    for j in fitted:
+        if j not in scales:
+            scales[j] = unanchored(j, results[j])
     tuned = [x for j in sorted(by_joint) for x in by_joint[j]]
     delays = np.concatenate([segment_delays(s) for s in tuned]) if tuned else np.zeros(1)
-    return ArmFit(params, results, tuple(tuned), replay.quantum_s, float(np.median(delays)))
+    return ArmFit(params, results, tuple(tuned), replay.quantum_s, float(np.median(delays)), scales)
+
+
+DAMPING_SHARE = 0.1
+"""Viscous damping whose torque at `DRAG_SPEED` is under this share of the joint's Coulomb
+friction is reported unidentifiable: the motions barely depend on it, and model errors the
+sigma does not count go into it (a C behind 5.9 N m of friction came out 15 % off at a 2.6 %
+sigma; behind 6.6 N m, -91 % to +211 %)."""
+
+
+def replay_cost(replay: Replay, params: ArmParams, segments: Sequence[Segment]) -> float:
+    """`segments`' squared residual on `params`, the delay offsets tuned to it and the windows
+    started from the readings: to compare fits that weighted and started them each its own
+    way."""
+    r = replay.residuals(params, 0.0, tune_offsets(replay, params, segments))
+    return float(r @ r)
+
+
+IDENTIFIED_SIGMA = 0.03
+"""A torque scale the data give to within this (relative, 1 sigma) is reported as identified,
+a looser one as unidentifiable beside what is known. Tight because the Fisher information's
+sigma understates (the residuals are correlated in time)."""
+
+C = JOINT_LETTERS.index("C")
+D = JOINT_LETTERS.index("D")
+D_LOAD: ParamRef = ("link_mass_kg", D)
+"""The link D moves: D's own load beside the wrist's."""
+
+
+def anchor_scales(
+    params: ArmParams,
+    results: dict[int, FitResult],
+    refit: Callable[[ArmParams, int, list[ParamRef]], tuple[FitResult, list[Segment]]],
+) -> tuple[ArmParams, FitResult, dict[int, ScaleVerdict]]:
+    """C's and D's torque scales from the wrist both weigh: each fit at full torque found the
+    wrist's net weight over its own scale, so D's over C's is C's scale over D's. The stronger
+    drive is taken at its datasheet torque per amp (the anchor: a worn drive is one joint's);
+    the weaker is fitted again with its torque scale free and the wrist held at what the
+    stronger weighed (an absolute load in N m), from its fit scaled to the ratio
+    (`equivalent`). Where the two weights do not tell which drive is the weaker (the ratio
+    within two of its sigmas of 1, and that sigma over `IDENTIFIED_SIGMA`) neither scale is
+    known: a D at 70 % torque, weighed on two short relays at 1x sensor noise, once looked
+    the stronger. Returns the arm, the weaker joint's new fit and both verdicts."""
+    b = WRIST_LOAD[1]
+    w_c = wrist_weight(results[C].params)
+    w_d = wrist_weight(results[D].params)
+    ratio = w_d / max(w_c, 1e-9)  # s_C / s_D
+    # each weight as its own fit saw it, that fit's scale taken as known
+    sigma_ratio = math.hypot(
+        _net_sigma(results[C], WRIST_LOAD, given=[("torque_scale", C)]),
+        _net_sigma(results[D], WRIST_LOAD, given=[("torque_scale", D)]),
+    )
+    told = abs(math.log(ratio)) > 2 * sigma_ratio or sigma_ratio <= IDENTIFIED_SIGMA
+    weak, strong = (D, C) if ratio >= 1.0 else (C, D)
+    held = params_with(params, [WRIST_LOAD], [results[strong].params.link_mass_kg[b]])
+    loads = [D_LOAD] if weak == D else []
+    base = equivalent(held, weak, min(ratio, 1.0 / ratio), loads)
+    refs = [*default_refs(weak, fit_delay=False)[:3], *loads, ("torque_scale", weak)]
+    result, _ = refit(base, weak, refs)
+    letters = JOINT_LETTERS[strong], JOINT_LETTERS[weak]
+    weighed = (
+        f"at full torque {letters[0]} weighs the wrist at "
+        f"{wrist_weight(results[strong].params):.3f} kg, {letters[1]} at "
+        f"{wrist_weight(results[weak].params):.3f} kg, their ratio to "
+        f"+-{100 * sigma_ratio:.1f} %"
+    )
+    if told:
+        anchor = ScaleVerdict(
+            strong,
+            ScaleStatus.ANCHOR,
+            1.0,
+            None,
+            f"the stronger of C and D ({weighed}): taken at its datasheet torque per amp "
+            "(an assumption: a worn drive is one joint's)",
+        )
+    else:
+        anchor = ScaleVerdict(
+            strong,
+            ScaleStatus.UNIDENTIFIABLE,
+            1.0,
+            sigma_ratio,
+            f"which of C and D is the weaker cannot be told ({weighed}); the twin takes "
+            f"{letters[0]}'s datasheet torque (1)",
+        )
+    fisher = result.fisher
+    scale_ref = ("torque_scale", weak)
+    own = fisher.sigma({scale_ref: 1.0}) if fisher is not None else math.inf
+    wrist = _net_sigma(results[strong], WRIST_LOAD, given=[("torque_scale", strong)])
+    sigma = math.hypot(own, wrist) if told else max(math.hypot(own, wrist), sigma_ratio)
+    value = result.params.torque_scale[weak]
+    found = told and sigma <= IDENTIFIED_SIGMA
+    verdict = ScaleVerdict(
+        weak,
+        ScaleStatus.IDENTIFIED if found else ScaleStatus.UNIDENTIFIABLE,
+        value,
+        sigma,
+        f"fitted against the wrist's weight as {letters[0]} weighed it ({weighed})"
+        + ("" if found else f"; to +-{100 * sigma:.0f} % only"),
+    )
+    return result.params, result, {strong: anchor, weak: verdict}
+
+
+def unanchored(joint: int, result: FitResult) -> ScaleVerdict:
+    """The verdict on a torque scale nothing anchors: E and B carry no load worth the name,
+    and C or D without the other has nothing to weigh the wrist against. The twin takes the
+    datasheet torque; the sigma is what the Fisher information gives from the little that does
+    not scale (the links' own inertia, B's small load), which the fit does not lean on."""
+    letter = JOINT_LETTERS[joint]
+    scale_ref = ("torque_scale", joint)
+    fisher = result.fisher
+    sigma = (
+        fisher.sigma({scale_ref: 1.0}) if fisher is not None and scale_ref in fisher.refs else None
+    )
+    if letter == "E":
+        why = "E turns about the vertical: no load weighs its torque against a known one"
+    elif letter == "B":
+        why = (
+            "B's only load is the wrist's weight a few millimetres off its roll axis (mN m, "
+            "a model assumption): too small to weigh its torque against"
+        )
+    else:
+        other = "D" if letter == "C" else "C"
+        why = f"{other} was not identified: nothing weighs the wrist at a known torque"
+    return ScaleVerdict(
+        joint,
+        ScaleStatus.UNIDENTIFIABLE,
+        result.params.torque_scale[joint],
+        sigma,
+        why + "; the twin takes its datasheet torque (1)",
+    )
+
+
+def _net_sigma(result: FitResult, load: ParamRef, given: Sequence[ParamRef] = ()) -> float:
+    """Relative 1-sigma of a fitted load's net weight (its effective mass's, times m / net),
+    with the parameters `given` known (the anchor's own torque scale)."""
+    fisher = result.fisher
+    if fisher is None or load not in fisher.refs:
+        return math.inf
+    m = result.params.link_mass_kg[load[1]]
+    net = m - buoyant_kg(result.params, load[1])
+    return fisher.sigma({load: 1.0}, given) * m / max(net, 1e-9)
+
+
+def parameter_verdicts(fit: ArmFit) -> tuple[dict[str, Estimate], dict[str, Unidentified]]:
+    """What the fit can report, per parameter name: the identified ones with their 1-sigma,
+    and for the rest the twin's value and the combination known. A joint whose torque scale
+    is unidentifiable has its armature, damping and Coulomb friction known only over that
+    scale (the armature with the links' inertia: `INERTIA`). A load (an effective link mass)
+    is never known by itself: mass and displaced volume act together, and how the weight
+    splits between D's link and the wrist rests on the C link's datasheet weight; what the
+    data fix is the joint's load (`LOAD_RMS`), over its scale where that is unidentifiable."""
+    known: dict[str, Estimate] = {}
+    unknown: dict[str, Unidentified] = {}
+    for j, result in sorted(fit.results.items()):
+        verdict = fit.scales.get(j)
+        scale_ref: ParamRef = ("torque_scale", j)
+        free = verdict is not None and verdict.status is ScaleStatus.UNIDENTIFIABLE
+        s_twin = verdict.value if verdict is not None and free else 1.0
+        # an anchored scale is known (the anchor's assumption); a fitted one is estimated
+        given = [] if free or scale_ref in result.refs else [scale_ref]
+        fisher = result.fisher
+        s_name = ref_name(scale_ref)
+        letter = JOINT_LETTERS[j]
+        over = f"/{s_name}" if free else ""
+        if verdict is not None and verdict.status is ScaleStatus.IDENTIFIED:
+            known[s_name] = Estimate(verdict.value, (verdict.sigma or 0.0) * verdict.value)
+        elif verdict is not None and free:
+            unknown[s_name] = Unidentified(verdict.value, verdict.reason)
+        loads = [r for r in result.refs if r[0] == LOAD]
+        if loads:
+            value = joint_load(result.params, j)
+            exps = load_exponents(result.params, j, loads)
+            if free:
+                exps[scale_ref] = -1.0
+            combo = Combination(
+                f"{LOAD_RMS}[{letter}]{over}",
+                value / s_twin,
+                _rel(fisher, exps, given) * value / s_twin,
+            )
+            for ref in loads:
+                unknown[ref_name(ref)] = Unidentified(
+                    param_value(result.params, 0.0, ref),
+                    f"an effective mass: mass and displaced volume act together, and what "
+                    f"{letter} carries is known as a whole",
+                    combo,
+                )
+        friction = result.params.frictionloss[j]
+        for ref, value, sigma in zip(result.refs, result.values, result.sigma, strict=True):
+            if ref == scale_ref or ref[0] == LOAD:
+                continue
+            name = ref_name(ref)
+            exps = {ref: 1.0, **({scale_ref: -1.0} if free else {})}
+            if ref[0] == "damping" and value * DRAG_SPEED < DAMPING_SHARE * friction:
+                drag = friction + value * DRAG_SPEED
+                f_ref: ParamRef = ("frictionloss", j)
+                exps = {f_ref: friction / drag, ref: value * DRAG_SPEED / drag}
+                if free:
+                    exps[scale_ref] = -1.0
+                unknown[name] = Unidentified(
+                    value,
+                    f"behind Coulomb friction: its torque at {DRAG_SPEED:g} rad/s is under "
+                    f"{DAMPING_SHARE:.0%} of the friction: what the fit gets wrong goes into it",
+                    Combination(
+                        f"{DRAG}[{letter}]{over}",
+                        drag / s_twin,
+                        _rel(fisher, exps, given) * drag / s_twin,
+                    ),
+                )
+            elif free and ref[0] == "armature":
+                total = joint_inertia(result.params, j)
+                exps[ref] = value / total  # d log(total) = armature / total d log(armature)
+                unknown[name] = Unidentified(
+                    value,
+                    f"known only with the links' inertia, over {s_name} (unidentifiable)",
+                    Combination(
+                        f"{INERTIA}[{letter}]{over}",
+                        total / s_twin,
+                        _rel(fisher, exps) * total / s_twin,
+                    ),
+                )
+            elif free:
+                unknown[name] = Unidentified(
+                    value,
+                    f"known only over {s_name} (unidentifiable)",
+                    Combination(f"{name}{over}", value / s_twin, _rel(fisher, exps) * value),
+                )
+            else:
+                known[name] = Estimate(value, sigma)
+    return known, unknown
+
+
+def _rel(
+    fisher: Fisher | None, exps: dict[ParamRef, float], given: Sequence[ParamRef] = ()
+) -> float:
+    """Relative 1-sigma of a product of parameters (inf without the information)."""
+    if fisher is None or any(r not in fisher.refs for r in exps):
+        return math.inf
+    return fisher.sigma(exps, [g for g in given if g in fisher.refs])

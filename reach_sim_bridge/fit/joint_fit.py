@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from protocol.alpha5 import JOINT_LETTERS
+from reach_sim_bridge.fit.identifiability import Fisher, correlation_time, marginal_information
 from reach_sim_bridge.fit.replay import (
     DELAY,
     VELOCITY_WEIGHT_S,
@@ -40,6 +41,10 @@ class FitResult:
     rollouts: int
     costs: tuple[float, ...]
     segments: tuple[Segment, ...] = ()  # as fitted: with their window starts when fitted
+    #: what the data say about `refs` and the probed parameters at the optimum
+    fisher: Fisher | None = None
+    #: the residuals' correlation time (rows) the uncertainties were inflated by
+    correlation_rows: float = 1.0
 
     def table(self) -> dict[str, dict[str, float]]:
         return {
@@ -61,6 +66,19 @@ def default_refs(joint: int, fit_delay: bool = True) -> list[ParamRef]:
     if fit_delay:
         refs.append((DELAY, -1))
     return refs
+
+
+LOAD = "link_mass_kg"
+"""The `ArmParams` field of a fitted gravity-buoyancy load (an effective link mass)."""
+SCALED = ("armature", "damping", "frictionloss")
+"""A joint's parameters that, with its loads, move it as its torque scale does: multiplied
+together by one factor they change none of its motions
+(`reach_sim_bridge.fit.identifiability`)."""
+
+
+def buoyant_kg(params: ArmParams, link: int) -> float:
+    """The mass of water link `link` (E D C B index) displaces."""
+    return params.link_volume_l[link] * 1e-3 * params.water_density
 
 
 FRICTION_FLOOR = 1e-4  # N m: log-parameters need a positive start
@@ -114,6 +132,7 @@ def fit_joint(
     on_iteration: Callable[[int, float], None] | None = None,
     weights: FloatArray | None = None,
     fit_starts: bool = False,
+    probe: Sequence[ParamRef] = (),
 ) -> FitResult:
     """Levenberg-Marquardt over `refs` (log of each physical value; the delay in seconds)
     on the residuals of `segments`, starting from `start` and `delay_s`.
@@ -124,7 +143,18 @@ def fit_joint(
     sensor noise that biased D's and C's armature 13-19 % low (docs/identification.md). The
     starts are separable (each moves its own window only), so their Jacobian costs two
     rollouts whatever their number. Off by default: beside an arm still far from the data
-    the starts soak up its errors, so `fit_arm` fits them only in its polish."""
+    the starts soak up its errors, so `fit_arm` fits them only in its polish.
+
+    With the joint's torque scale among `refs`, its other parameters are fitted over the
+    scale (armature / s, damping / s, friction / s, a load's net weight / s): the coordinates
+    the data fix one by one, the scale being the one left
+    (`reach_sim_bridge.fit.identifiability`). In the physical ones the data's valley runs
+    along all of them at once, and Levenberg-Marquardt crawled along it (a D at 70 % torque
+    stopped at 81 % on a noise-free log).
+
+    `probe`: parameters not fitted (held as in `start`) whose information the result's
+    `fisher` holds beside the fitted ones' (a joint's torque scale: what would the data say
+    if it were free)."""
     refs = tuple(refs)
     if not segments:
         raise ValueError("no segments to fit")
@@ -134,14 +164,31 @@ def fit_joint(
     n_fix = sum(counts) if fit_starts else 0
     n_par = len(refs)
     is_log = np.concatenate([[r[0] != DELAY for r in refs], np.zeros(2 * n_fix, dtype=bool)])
-    x0 = np.array(
+    scale_ref: ParamRef = ("torque_scale", joint)
+    si = refs.index(scale_ref) if scale_ref in refs else -1
+    # per ref: fitted over the scale (`over`), and the part of it that does not scale
+    # (`fixed`: the water a load displaces)
+    over = np.array(
         [
-            math.log(max(param_value(start, delay_s, r), FRICTION_FLOOR))
-            if r[0] != DELAY
-            else param_value(start, delay_s, r)
-            for r in refs
-        ]
+            si >= 0 and i != si and (r[0] == LOAD or (r[1] == joint and r[0] in SCALED))
+            for i, r in enumerate(refs)
+        ],
+        dtype=bool,
     )
+    fixed = np.array(
+        [buoyant_kg(start, r[1]) if r[0] == LOAD and over[i] else 0.0 for i, r in enumerate(refs)]
+    )
+    s0 = start.torque_scale[joint]
+
+    def coordinate(i: int, ref: ParamRef) -> float:
+        value = param_value(start, delay_s, ref)
+        if ref[0] == DELAY:
+            return value
+        if over[i]:
+            value = (value - fixed[i]) / s0
+        return math.log(max(value, FRICTION_FLOOR))
+
+    x0 = np.array([coordinate(i, r) for i, r in enumerate(refs)])
     if n_fix:
         fixes = [s.start_fix for s in segs if s.start_fix is not None]
         x0 = np.concatenate([x0, *[f[:, 0] for f in fixes], *[f[:, 1] for f in fixes]])
@@ -156,7 +203,9 @@ def fit_joint(
         if ref[0] == "torque_scale":
             return 0.0  # a drive delivers at most its full torque
         if ref == ("frictionloss", joint) and math.isfinite(ceiling):
-            return math.log(max(ceiling, 10 * FRICTION_FLOOR))
+            # over the scale: what the drive could break at full torque (as `start` has it)
+            c = ceiling / s0 if si >= 0 else ceiling
+            return math.log(max(c, 10 * FRICTION_FLOOR))
         return math.log(1e3)
 
     upper = np.concatenate([[top(r) for r in refs], np.full(2 * n_fix, np.inf)])
@@ -164,8 +213,14 @@ def fit_joint(
     rollouts0 = replay.rollouts
     row_window = replay.residual_windows(segs, velocity_weight) if n_fix else None
 
+    def physical_of(x: FloatArray) -> FloatArray:
+        out = np.where(is_log[:n_par], np.exp(x[:n_par]), x[:n_par])
+        if si >= 0:
+            out = np.where(over, fixed + out * out[si], out)
+        return out
+
     def unpack(x: FloatArray) -> tuple[ArmParams, float]:
-        physical = np.where(is_log[:n_par], np.exp(x[:n_par]), x[:n_par])
+        physical = physical_of(x)
         delay = delay_s
         for r, v in zip(refs, physical, strict=True):
             if r[0] == DELAY:
@@ -187,6 +242,16 @@ def fit_joint(
         r = replay.residuals(p, d, starts_at(x), velocity_weight)
         return r if weights is None else r * weights
 
+    def own_starts(x: FloatArray, r0: FloatArray) -> FloatArray:
+        """Per residual row, its derivative by its own window's start angle and speed (every
+        window's start moved at once: window w's rows answer its own start only)."""
+        out = np.empty((r0.size, 2))
+        for block, h in enumerate(START_STEP):
+            xp = x.copy()
+            xp[n_par + block * n_fix : n_par + (block + 1) * n_fix] += h
+            out[:, block] = (fun(xp) - r0) / h
+        return out
+
     def jacobian(x: FloatArray, r0: FloatArray) -> FloatArray:
         cols = []
         for i in range(n_par):
@@ -197,13 +262,45 @@ def fit_joint(
         jac = np.column_stack(cols)
         if not n_fix or row_window is None:
             return jac
-        # every window's start at once: window w's rows answer its own start only
         starts = np.zeros((r0.size, 2 * n_fix))
-        for block, h in enumerate(START_STEP):
-            xp = x.copy()
-            xp[n_par + block * n_fix : n_par + (block + 1) * n_fix] += h
-            starts[np.arange(r0.size), block * n_fix + row_window] = (fun(xp) - r0) / h
+        own = own_starts(x, r0)
+        for block in range(2):
+            starts[np.arange(r0.size), block * n_fix + row_window] = own[:, block]
         return np.hstack([jac, starts])
+
+    def fisher_at(x: FloatArray, r0: FloatArray, jac: FloatArray, sigma2: float) -> Fisher:
+        """The information about the log of each fitted physical parameter and each probed
+        one, the window starts (and a fitted delay) marginalized out."""
+        p_at, d_at = unpack(x)
+        segs_at = starts_at(x)
+        logs = [i for i in range(n_par) if is_log[i]]
+        # d log(physical) / dx: the identity, but for what is fitted over the scale
+        phys = physical_of(x)
+        dlog = np.eye(n_par)
+        for i in np.flatnonzero(over):
+            share = (phys[i] - fixed[i]) / phys[i]
+            dlog[i, i] = share
+            dlog[i, si] = share
+        sub = dlog[np.ix_(logs, logs)]
+        cols = list((jac[:, logs] @ np.linalg.inv(sub)).T)
+        for ref in probe:
+            v = max(param_value(p_at, d_at, ref), FRICTION_FLOOR)
+            h = -0.01 if ref[0] == "torque_scale" else 0.01  # a scale is at most 1
+            moved = params_with(p_at, [ref], [v * math.exp(h)])
+            rp = replay.residuals(moved, d_at, segs_at, velocity_weight)
+            cols.append(((rp if weights is None else rp * weights) - r0) / h)
+        delay = [jac[:, i] for i in range(n_par) if not is_log[i]]
+        starts = own_starts(x, r0) if n_fix and row_window is not None else None
+        info = marginal_information(
+            np.column_stack(cols),
+            sigma2,
+            np.column_stack(delay) if delay else None,
+            starts,
+            row_window,
+        )
+        refs_f = tuple([refs[i] for i in logs] + list(probe))
+        values = tuple(param_value(p_at, d_at, ref) for ref in refs_f)
+        return Fisher(refs_f, values, info)
 
     x = np.clip(x0, lower, upper)
     r = fun(x)
@@ -247,14 +344,29 @@ def fit_joint(
     # Uncertainty at the optimum (the last Jacobian is at x unless the step was refused).
     jac = jacobian(x, r)
     dof = max(r.size - x.size, 1)
-    sigma2 = cost / dof
+    # residuals correlated in time carry fewer independent samples than rows: the variance
+    # per row times the correlation time, in rows (`correlation_time`)
+    p_end, d_end = unpack(x)
+    segs_end = starts_at(x)
+    blocks = []
+    for seg in segs_end:
+        one = replay.residuals(p_end, d_end, [seg], velocity_weight)
+        windows = 0 if seg.start_fix is None else seg.start_fix.shape[0]
+        rows = (one.size - 2 * windows) // (2 if velocity_weight > 0 else 1)
+        blocks.append(one[:rows])
+    tau = correlation_time(blocks)
+    sigma2 = cost / dof * tau
+    physical = physical_of(x)
+    # d physical / dx, to carry the uncertainty over to the physical values
+    grad = np.diag(np.where(is_log[:n_par], physical, 1.0))
+    for i in np.flatnonzero(over):
+        grad[i, i] = grad[i, si] = physical[i] - fixed[i]
     try:
-        cov = sigma2 * np.linalg.inv(jac.T @ jac)
-        std_x = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        cov_x = sigma2 * np.linalg.inv(jac.T @ jac)[:n_par, :n_par]
+        std = np.sqrt(np.maximum(np.diag(grad @ cov_x @ grad.T), 0.0))
     except np.linalg.LinAlgError:
-        std_x = np.full(x.size, np.inf)
-    physical = np.where(is_log, np.exp(x), x)[:n_par]
-    std = np.where(is_log, np.exp(x) * std_x, std_x)[:n_par]
+        std = np.full(n_par, np.inf)
+    fisher = fisher_at(x, r, jac, sigma2)
     params, delay = unpack(x)
     return FitResult(
         joint=joint,
@@ -268,6 +380,8 @@ def fit_joint(
         rollouts=replay.rollouts - rollouts0,
         costs=tuple(costs),
         segments=tuple(starts_at(x)),
+        fisher=fisher,
+        correlation_rows=tau,
     )
 
 
@@ -281,17 +395,33 @@ COARSE_GRID: dict[str, tuple[float, ...]] = {
     "frictionloss": (0.0, 0.15, 1.0, 3.0, 10.0),
     "link_mass_kg": (0.7, 1.0, 1.3),
 }
-DRIVE_SCALES: tuple[float, ...] = (1.0, 0.25)
-"""`coarse_start` tries the grid at each of these torque scales of the joint's drive (the
-envelope's weak joint runs at 25 %): a weak D, whose drive fights its own load, was fitted
-from full torque as 12.6 N m of Coulomb friction (validation R^2 0.71). The scale found is
-kept through the fit (beside the load it is a trade the data hardly see) unless the fit has
-it among its own parameters (a weak C's refit)."""
-DRIVE_MARGIN = 0.5
-"""... and a weaker drive than the first must fit with at most this share of its squared
-residual: for a joint without a load a weak drive and a heavier joint move alike, and a
-healthy E once came out at a quarter torque by a 0.80 ratio (weak joints measured 0.10-0.45,
-a weak B 0.76)."""
+DRIVE_SCALES: tuple[float, ...] = (1.0, 0.5, 0.25)
+"""`coarse_start` tries the grid at each of these torque scales of the joint's drive: a way to
+span what a worn drive makes a joint look like (armature, friction and load over the scale, up
+to 4x at the envelope's 25 %) with a grid around the nominal arm. The best point is then
+expressed at the start's own scale (`equivalent`): the data cannot tell the two apart
+(`reach_sim_bridge.fit.identifiability`), so the grid must not choose the scale. It once did,
+by a tie-break between 1 and 0.25: an arm with 3.5 N m of friction on E and D at 70 % torque
+came out with E, D and C at a quarter torque and a quarter of their friction."""
+
+
+def equivalent(
+    params: ArmParams, joint: int, scale: float, loads: Sequence[ParamRef] = ()
+) -> ArmParams:
+    """The arm that moves `joint` as `params` does with its drive at torque scale `scale`:
+    the joint's armature, damping and Coulomb friction and the net weight in water of each
+    link in `loads` multiplied by scale / (its scale now), the displaced volumes kept. Exact
+    but for the links' own inertia (they do not scale)."""
+    ratio = scale / params.torque_scale[joint]
+    refs: list[ParamRef] = [("armature", joint), ("damping", joint), ("frictionloss", joint)]
+    values = [param_value(params, 0.0, r) * ratio for r in refs]
+    for ref in loads:
+        buoyant = buoyant_kg(params, ref[1])
+        refs.append(ref)
+        values.append(buoyant + (params.link_mass_kg[ref[1]] - buoyant) * ratio)
+    refs.append(("torque_scale", joint))
+    values.append(scale)
+    return params_with(params, refs, [max(v, FRICTION_FLOOR) for v in values])
 
 
 def coarse_start(
@@ -300,37 +430,94 @@ def coarse_start(
     base: ArmParams,
     refs: Sequence[ParamRef],
     velocity_weight: float = VELOCITY_WEIGHT_S,
-) -> ArmParams:
-    """`base`, or `base` with `refs` (and the joint's torque scale, `DRIVE_SCALES`) set to the
-    best point of `COARSE_GRID` (around the nominal arm's values) if one fits the segments
-    better: where Levenberg-Marquardt starts.
-    From the nominal arm alone a frictionless joint under 3x sensor noise was fitted at 7x
-    its damping (and once at 20x its armature): the residual far from the arm is no guide."""
+    scales: Sequence[float] = DRIVE_SCALES,
+    grid: Sequence[ParamRef] | None = None,
+) -> list[ArmParams]:
+    """Where Levenberg-Marquardt starts: `base`, or `base` with `refs` set to the best point
+    of `COARSE_GRID` (around the nominal arm's values) at `base`'s torque scale if it fits
+    the segments better; then the best of the grid tried at the other torque scales in
+    `scales`, expressed at `base`'s (`at_own_scale`). Both, for `fit_arm` to start from
+    each: neither start's cost says which basin holds the arm (a healthy C started from the
+    half-torque grid's point, at 0.57 of the cost of the full-torque one's, stopped 20 % off
+    in friction; a D behind 4.3 N m of friction started from the full-torque one's, 1.8 x
+    the other's, stayed at 300 times the true arm's cost). `grid`: the refs to grid (default
+    all of `refs`); the rest keep `base`'s values, a load among them carried over to `base`'s
+    scale all the same. From the nominal arm alone a frictionless joint under 3x sensor
+    noise was fitted at 7x its damping (and once at 20x its armature): the residual far from
+    the arm is no guide."""
     nominal = ArmParams()
     joint = segments[0].joint
     axes: list[list[tuple[ParamRef, float]]] = []
-    if ("torque_scale", joint) not in refs:
-        axes.append([(("torque_scale", joint), s) for s in DRIVE_SCALES])
-    for name, j in refs:
+    for name, j in refs if grid is None else grid:
         if name not in COARSE_GRID:  # the delay, a torque scale: kept as in `base`
             continue
         ref_value = getattr(nominal, name)[j]
         axes.append([((name, j), max(f * ref_value, FRICTION_FLOOR)) for f in COARSE_GRID[name]])
+    loads = [r for r in refs if r[0] == LOAD]
+    poses = np.concatenate([s.q[:: max(1, s.ticks // 40)] for s in segments])
 
     def cost(p: ArmParams) -> float:
         res = replay.residuals(p, 0.0, segments, velocity_weight)
         return float(res @ res)
 
-    by_scale: dict[float, tuple[float, ArmParams]] = {}
-    for point in itertools.product(*axes):
-        trial = params_with(base, [ref for ref, _ in point], [v for _, v in point])
-        c, scale = cost(trial), trial.torque_scale[joint]
-        if scale not in by_scale or c < by_scale[scale][0]:
-            by_scale[scale] = (c, trial)
-    best_cost, best = cost(base), base  # unless a grid point does better
-    for scale in sorted(by_scale, reverse=True):  # the strongest drive first
-        c, trial = by_scale[scale]
-        margin = DRIVE_MARGIN if scale < best.torque_scale[joint] else 1.0
-        if c < margin * best_cost:
-            best_cost, best = c, trial
-    return best
+    own = base.torque_scale[joint]
+    starts: list[tuple[float, ArmParams, bool]] = [(cost(base), base, True)]
+    for scale in scales:
+        at_scale = params_with(base, [("torque_scale", joint)], [scale])
+        found: tuple[float, ArmParams] | None = None
+        for point in itertools.product(*axes):
+            trial = params_with(at_scale, [ref for ref, _ in point], [v for _, v in point])
+            c = cost(trial)
+            if found is None or c < found[0]:
+                found = (c, trial)
+        if found is None:
+            continue
+        if scale == own:
+            starts.append((found[0], found[1], True))
+        else:
+            there = at_own_scale(replay, found[1], joint, own, loads, poses)
+            starts.append((cost(there), there, False))
+    return [
+        min((x for x in starts if x[2]), key=lambda x: x[0])[1],
+        *[p for _, p, _ in sorted((x for x in starts if not x[2]), key=lambda x: x[0])[:1]],
+    ]
+
+
+def at_own_scale(
+    replay: Replay,
+    params: ArmParams,
+    joint: int,
+    scale: float,
+    loads: Sequence[ParamRef],
+    poses: FloatArray,
+) -> ArmParams:
+    """`params` with `joint`'s drive at torque scale `scale`, moving the joint as before: its
+    armature, damping and friction scaled as in `equivalent`, and its fitted `loads` (link
+    masses) set so that its gravity-buoyancy torque over the scale at `poses` is as before,
+    in least squares. Why not `equivalent`'s loads: the links a joint carries that are not
+    fitted (the C link, for C and D) do not scale, so the fitted ones must carry their share
+    (a C grid point at a quarter torque, its wrist alone scaled, started the fit at 18 times
+    the cost of the point itself and stopped 20 % off in friction)."""
+    out = equivalent(params, joint, scale)
+    if not loads:
+        return out
+    arm = replay.arm
+    ratio = scale / params.torque_scale[joint]
+
+    def torque(p: ArmParams) -> FloatArray:
+        arm.set_params(p)
+        return np.array([float(arm.gravity_torque(q)[joint]) for q in poses])
+
+    target = torque(params) * ratio
+    here = torque(out)
+    # the torque is linear in each link's net weight: one column per fitted load
+    cols = []
+    for ref in loads:
+        m = out.link_mass_kg[ref[1]]
+        cols.append(torque(params_with(out, [ref], [m + 0.1])) - here)
+    step, *_ = np.linalg.lstsq(np.column_stack(cols) / 0.1, target - here, rcond=None)
+    masses = [
+        max(out.link_mass_kg[r[1]] + float(d), buoyant_kg(out, r[1]) + FRICTION_FLOOR)
+        for r, d in zip(loads, step, strict=True)
+    ]
+    return params_with(out, loads, masses)

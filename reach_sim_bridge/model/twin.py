@@ -41,13 +41,47 @@ class Estimate:
 
 
 @dataclass(frozen=True)
+class Combination:
+    """A product or ratio of parameters the data fix (e.g. "frictionloss[E]/torque_scale[E]",
+    the friction in N m the drive would need at its full torque) and its 1-sigma."""
+
+    name: str
+    value: float
+    sigma: float
+
+
+@dataclass(frozen=True)
+class Unidentified:
+    """A parameter the data cannot fix: the value the twin has for it (`twin_value`, what an
+    assumption made it, said in `reason`) and the combination the data do fix (None where
+    there is none to give: a torque scale itself)."""
+
+    twin_value: float
+    reason: str
+    known: Combination | None = None
+
+    def to_json_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"twin_value": self.twin_value, "reason": self.reason}
+        if self.known is not None:
+            k = self.known
+            out["known"] = {"name": k.name, "value": k.value, "sigma": k.sigma}
+        return out
+
+
+@dataclass(frozen=True)
 class FitMetadata:
     """What an identification found beside the parameters (the file's ``_fit``). Every field
     is optional so that files with part of it (older or hand-written) still load."""
 
     method: str = ""
-    #: what was fitted: per parameter ("armature[E]", "link_mass_kg[B]"...) its estimate
+    #: what was identified: per parameter ("armature[E]", "torque_scale[D]"...) its estimate
     parameters: dict[str, Estimate] = field(default_factory=dict)
+    #: what the data cannot fix, per parameter: the twin's value and the combination known
+    unidentifiable: dict[str, Unidentified] = field(default_factory=dict)
+    #: per joint letter, its torque scale's verdict (`reach_sim_bridge.fit.identifiability`)
+    torque_scales: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: per joint letter, the directions of its fit's Fisher information and their 1-sigma
+    identifiability: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: the transport delay measured (s): the median of the delays the replay used
     delay_s: float | None = None
     delay_note: str = ""
@@ -91,6 +125,16 @@ class FitMetadata:
             "log": self.log,
             "fit_seconds": self.fit_seconds,
         }
+        # after the parameters, where there are any (an older file writes back as it was)
+        verdicts = {
+            "unidentifiable": {k: u.to_json_dict() for k, u in self.unidentifiable.items()},
+            "torque_scales": self.torque_scales,
+            "identifiability": self.identifiability,
+        }
+        if any(verdicts.values()):
+            keys = list(out)
+            at = keys.index("parameters") + 1
+            out = {k: out[k] for k in keys[:at]} | verdicts | {k: out[k] for k in keys[at:]}
         if self.controller_gap is not None:
             out["controller_gap"] = self.controller_gap
         out.update(self.other)
@@ -105,6 +149,9 @@ class FitMetadata:
         known = {
             "method",
             "parameters",
+            "unidentifiable",
+            "torque_scales",
+            "identifiability",
             "delay_s",
             "delay_note",
             "command_step_s",
@@ -124,6 +171,12 @@ class FitMetadata:
                 _number(entry.get("value"), f"{where}.parameters.{name}.value"),
                 _number(entry.get("sigma"), f"{where}.parameters.{name}.sigma"),
             )
+        unidentifiable = {
+            str(name): _unidentified(raw, f"{where}.unidentifiable.{name}")
+            for name, raw in _mapping(
+                data.get("unidentifiable", {}), f"{where}.unidentifiable"
+            ).items()
+        }
         gap = data.get("controller_gap")
         if gap is not None and not (
             isinstance(gap, list) and all(isinstance(g, Mapping) for g in gap)
@@ -133,6 +186,19 @@ class FitMetadata:
             return cls(
                 method=_text(data.get("method", ""), f"{where}.method"),
                 parameters=parameters,
+                unidentifiable=unidentifiable,
+                torque_scales={
+                    str(k): dict(_mapping(v, f"{where}.torque_scales.{k}"))
+                    for k, v in _mapping(
+                        data.get("torque_scales", {}), f"{where}.torque_scales"
+                    ).items()
+                },
+                identifiability={
+                    str(k): dict(_mapping(v, f"{where}.identifiability.{k}"))
+                    for k, v in _mapping(
+                        data.get("identifiability", {}), f"{where}.identifiability"
+                    ).items()
+                },
                 delay_s=_optional_number(data.get("delay_s"), f"{where}.delay_s"),
                 delay_note=_text(data.get("delay_note", ""), f"{where}.delay_note"),
                 command_step_s=_optional_number(
@@ -224,6 +290,24 @@ def _number(raw: Any, what: str) -> float:
     if isinstance(raw, bool) or not isinstance(raw, (int, float)):
         raise ParamsFileError(f"{what} must be a number, got {raw!r}")
     return float(raw)
+
+
+def _unidentified(raw: Any, what: str) -> Unidentified:
+    entry = _mapping(raw, what)
+    known = entry.get("known")
+    combination = None
+    if known is not None:
+        k = _mapping(known, f"{what}.known")
+        combination = Combination(
+            _text(k.get("name"), f"{what}.known.name"),
+            _number(k.get("value"), f"{what}.known.value"),
+            _number(k.get("sigma"), f"{what}.known.sigma"),
+        )
+    return Unidentified(
+        _number(entry.get("twin_value"), f"{what}.twin_value"),
+        _text(entry.get("reason", ""), f"{what}.reason"),
+        combination,
+    )
 
 
 def _optional_number(raw: Any, what: str) -> float | None:

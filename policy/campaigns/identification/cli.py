@@ -3,6 +3,7 @@
     reach-sim --link /tmp/alpha5 --speed 4 &
     tools/identify.py --port /tmp/alpha5 --out arm.json            # excite, record, fit, report
     tools/identify.py --fit-only arm.log.npz --out arm.json        # refit a recorded log
+    tools/identify.py --virtual hidden.json --out arm.json         # a virtual arm, in-process
     python -m policy.campaigns.identification --port ...           # the same, from the package
     reach-sim --params arm.json ...                                # serve the fitted twin
 
@@ -42,6 +43,7 @@ from policy.campaigns.identification.driving import Session, excite
 from policy.campaigns.identification.fitting import check_controllers, fit, fit_metadata
 from policy.campaigns.identification.recording import ExcitationRecorder, load_recording
 from policy.campaigns.identification.report import write_report
+from policy.campaigns.identification.virtual import excite_virtual
 from policy.controllers.excitation import plan
 from protocol.alpha5 import JOINT_LETTERS, JOINTS
 from reach_driver import ArmClient, DriverError, SafetyConfig, open_transport
@@ -49,6 +51,7 @@ from reach_driver.interfaces import DEFAULT_BAUD
 from reach_sim_bridge.fit.replay import DEFAULT_WINDOW_S
 from reach_sim_bridge.fit.segments import load_segments, save_segments
 from reach_sim_bridge.model.params import load_arm_params
+from reach_sim_bridge.model.sensors import SensorNoise
 from reach_sim_bridge.model.twin import FittedTwin, write_twin
 
 
@@ -65,6 +68,24 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         metavar="LOG",
         help="refit a recorded excitation: its .npz log or its .rrd recording",
+    )
+    src.add_argument(
+        "--virtual",
+        type=Path,
+        metavar="HIDDEN.json",
+        help="excite the virtual arm this parameter file describes in this process (no driver, "
+        "no link: the same controller and plan, the arm stepped directly), then fit it: what "
+        "the data can and cannot tell apart, in seconds instead of minutes",
+    )
+    p.add_argument(
+        "--sensor-noise",
+        default="0.002,0.02",
+        metavar="Q,V",
+        help="with --virtual: the readings' noise, rad and rad/s (default 0.002,0.02: "
+        "reach-sim --sensor-noise's)",
+    )
+    p.add_argument(
+        "--seed", type=int, default=0, help="with --virtual: the sensor noise's seed (default 0)"
     )
     p.add_argument("--out", type=Path, required=True, metavar="PARAMS.json")
     p.add_argument("--log", type=Path, metavar="LOG.npz", help="default: PARAMS.log.npz")
@@ -123,6 +144,16 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _pair(text: str) -> tuple[float, float]:
+    """`Q,V` as two numbers (ValueError saying what was given)."""
+    parts = text.split(",")
+    try:
+        q, v = (float(x) for x in parts)
+    except ValueError:
+        raise ValueError(f"--sensor-noise takes Q,V (rad, rad/s), got {text!r}") from None
+    return q, v
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     console = Console(stderr=True, soft_wrap=True)
@@ -147,6 +178,27 @@ def main(argv: list[str] | None = None) -> int:
             console.print(f"[red]cannot read {args.fit_only}:[/] {exc}")
             return 2
         log_path = args.fit_only
+    elif args.virtual is not None:
+        try:
+            hidden = load_arm_params(args.virtual)
+            noise = SensorNoise(*_pair(args.sensor_noise))
+        except ValueError as exc:
+            console.print(f"[red]error:[/] {exc}")
+            return 2
+        segments = excite_virtual(
+            hidden,
+            joints,
+            plan(args.scale),
+            rate_hz=args.rate,
+            noise=noise,
+            seed=args.seed,
+            max_current_mA=args.max_current,
+        )
+        session = Session(segments=segments)
+        session.arm_seconds = sum(x.ticks * x.period for x in segments)
+        header = {"virtual": str(args.virtual), "rate_hz": args.rate, "scale": args.scale}
+        save_segments(segments, log_path, header)
+        console.print(f"log {log_path} ({len(segments)} segments, excited in-process)")
     else:
         max_current = np.array([1.0, 1.0, 1.0, 0.5]) * args.max_current
         safety = SafetyConfig(

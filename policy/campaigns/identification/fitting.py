@@ -14,12 +14,13 @@ from rich.console import Console
 
 from policy.campaigns.identification.driving import Session
 from protocol.alpha5 import JOINT_LETTERS
-from reach_sim_bridge.fit.arm_fit import fit_arm, tune_offsets
+from reach_sim_bridge.fit.arm_fit import fit_arm, parameter_verdicts, tune_offsets
+from reach_sim_bridge.fit.identifiability import ScaleVerdict
 from reach_sim_bridge.fit.joint_fit import FitResult
 from reach_sim_bridge.fit.replay import DEFAULT_WINDOW_S, Replay, quality, ref_name
 from reach_sim_bridge.fit.segments import Segment
 from reach_sim_bridge.model.params import ArmParams
-from reach_sim_bridge.model.twin import Estimate, FitMetadata
+from reach_sim_bridge.model.twin import Estimate, FitMetadata, Unidentified
 
 
 @dataclass
@@ -36,6 +37,10 @@ class FitOutcome:
     fit_starts: bool = True
     # The segments as each twin was scored ("nominal", "fitted"): with their delay offsets.
     scored: dict[str, list[Segment]] = field(default_factory=dict)
+    # Per joint, its torque scale's verdict; per parameter what is identified and what not.
+    scales: dict[int, ScaleVerdict] = field(default_factory=dict)
+    identified: dict[str, Estimate] = field(default_factory=dict)
+    unidentifiable: dict[str, Unidentified] = field(default_factory=dict)
 
 
 def fit(
@@ -72,6 +77,19 @@ def fit(
         fit_starts=fit_starts,
     )
     params = arm_fit.params
+    identified, unidentifiable = parameter_verdicts(arm_fit)
+    for j, verdict in sorted(arm_fit.scales.items()):
+        sigma = "" if verdict.sigma is None else f" (data: +-{100 * verdict.sigma:.1f} %)"
+        console.print(
+            f"torque scale {JOINT_LETTERS[j]}: {verdict.status.value}, twin {verdict.value:.3f}"
+            f"{sigma}: {verdict.reason}"
+        )
+    for name, u in unidentifiable.items():
+        if u.known is not None:
+            console.print(
+                f"{name}: unidentifiable; known {u.known.name} = {u.known.value:.4g} "
+                f"+- {u.known.sigma:.2g}"
+            )
     nom_q: dict[str, Any] = {}
     fit_q: dict[str, Any] = {}
     # Each twin is scored with the delay offsets that suit it best (one per segment, the
@@ -99,6 +117,9 @@ def fit(
         quantum_s=arm_fit.quantum_s,
         fit_starts=fit_starts,
         scored=scored,
+        scales=arm_fit.scales,
+        identified=identified,
+        unidentifiable=unidentifiable,
     )
     return outcome, replay
 
@@ -107,14 +128,20 @@ def fit_metadata(
     outcome: FitOutcome, session: Session | None, window_s: float, log_path: Path | None
 ) -> FitMetadata:
     """What the fitted twin's file keeps of the fit (`FittedTwin.fit`)."""
-    parameters: dict[str, Estimate] = {}
-    for r in outcome.results.values():
-        parameters.update({k: Estimate(v["value"], v["sigma"]) for k, v in r.table().items()})
     return FitMetadata(
         method="least squares over MuJoCo rollouts (reach_sim_bridge.fit), multiple "
         f"shooting over {window_s:g} s windows"
         f"{' with fitted starts' if outcome.fit_starts else ''}; docs/identification.md",
-        parameters=parameters,
+        parameters=dict(outcome.identified),
+        unidentifiable=dict(outcome.unidentifiable),
+        torque_scales={
+            JOINT_LETTERS[j]: v.to_json_dict() for j, v in sorted(outcome.scales.items())
+        },
+        identifiability={
+            JOINT_LETTERS[j]: r.fisher.to_json_dict()
+            for j, r in sorted(outcome.results.items())
+            if r.fisher is not None
+        },
         delay_s=outcome.delay_s,
         delay_note="median of the delays the replay used (per command: measured from the "
         "driver's timestamps plus a per-segment offset); not an arm parameter",
@@ -124,8 +151,10 @@ def fit_metadata(
         },
         quality_fitted=outcome.fitted_quality,
         quality_nominal=outcome.nominal_quality,
-        sigma_note="1 sigma from sqrt(diag(s^2 (J^T J)^-1)) at the optimum; residuals are "
-        "correlated in time, so these understate the true uncertainty",
+        sigma_note="1 sigma from sqrt(diag(s^2 (J^T J)^-1)) at the optimum, s^2 the residual "
+        "variance times the residuals' correlation time in rows; it assumes the model exact. "
+        "Parameters the data cannot fix are under 'unidentifiable' with the combination they "
+        "do fix; each joint's torque scale's verdict under 'torque_scales'",
         arm_seconds=None if session is None else session.arm_seconds + session.move_seconds,
         log=None if log_path is None else str(log_path),
         fit_seconds=outcome.fit_seconds,

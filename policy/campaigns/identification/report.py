@@ -12,7 +12,8 @@ import numpy as np
 from policy.campaigns.identification.driving import Session
 from policy.campaigns.identification.fitting import FitOutcome
 from protocol.alpha5 import JOINT_LETTERS
-from reach_sim_bridge.fit.replay import Replay, ref_name
+from reach_sim_bridge.fit.identifiability import combination_value
+from reach_sim_bridge.fit.replay import Replay
 from reach_sim_bridge.fit.segments import Segment, segment_delays
 from reach_sim_bridge.model.params import ArmParams
 
@@ -23,6 +24,70 @@ def _scored(outcome: FitOutcome, twin: str, seg: Segment) -> Segment:
         if x.name == seg.name:
             return x
     return seg
+
+
+def _parameter_lines(outcome: FitOutcome, nominal: ArmParams, truth: ArmParams | None) -> list[str]:
+    """The torque scales' verdicts, every parameter as the fit reports it (its value where
+    identified, "unidentifiable" and the combination known where not), and what the data pin
+    down per joint (the Fisher information's directions)."""
+    lines = ["## Torque scales", "", "| joint | verdict | twin | data's 1 sigma | why |"]
+    lines.append("|---|---|---|---|---|")
+    for j, v in sorted(outcome.scales.items()):
+        sigma = "-" if v.sigma is None else f"{100 * v.sigma:.1f} %"
+        lines.append(
+            f"| {JOINT_LETTERS[j]} | {v.status.value} | {v.value:.3f} | {sigma} | {v.reason} |"
+        )
+    header = "| parameter | nominal | reported | 1 sigma |"
+    rule = "|---|---|---|---|"
+    if truth is not None:
+        header += " truth | error |"
+        rule += "---|---|"
+    lines += ["", "## Parameters", "", header, rule]
+
+    def truth_cells(name: str, value: float) -> str:
+        if truth is None:
+            return ""
+        true = combination_value(truth, name)
+        # a frictionless joint has no relative error: give the difference
+        err = f"{100 * (value - true) / true:+.1f} %" if true != 0 else f"{value - true:+.2g} (abs)"
+        return f" {true:.4g} | {err} |"
+
+    for name, e in outcome.identified.items():
+        field, rest = name.split("[")
+        nom = getattr(nominal, field)[JOINT_LETTERS.index(rest.rstrip("]"))]
+        lines.append(
+            f"| {name} | {nom:.4g} | {e.value:.4g} | {e.sigma:.2g} |{truth_cells(name, e.value)}"
+        )
+    for name, u in outcome.unidentifiable.items():
+        field, rest = name.split("[")
+        nom = getattr(nominal, field)[JOINT_LETTERS.index(rest.rstrip("]"))]
+        if u.known is None:
+            row = f"| {name} | {nom:.4g} | unidentifiable (twin: {u.twin_value:.4g}) | - |"
+            lines.append(row + (" - | - |" if truth is not None else ""))
+            continue
+        k = u.known
+        row = (
+            f"| {name} | {nom:.4g} | unidentifiable (twin: {u.twin_value:.4g}); known "
+            f"{k.name} = {k.value:.4g} | {k.sigma:.2g} |"
+        )
+        lines.append(row + truth_cells(k.name, k.value))
+    lines += [
+        "",
+        "## What the data pin down",
+        "",
+        "Per joint, the directions of its fit's Fisher information in log-parameters, best "
+        "determined first: the product of the parameters to the powers given, and its "
+        "relative 1 sigma (the residuals' correlation in time counted; the model assumed "
+        "exact).",
+        "",
+    ]
+    for j, r in sorted(outcome.results.items()):
+        if r.fisher is None:
+            continue
+        lines.append(f"- **{JOINT_LETTERS[j]}**:")
+        for d in r.fisher.directions():
+            lines.append(f"  - {100 * d.sigma:.3g} %: {d.describe(r.fisher.refs)}")
+    return lines
 
 
 def write_report(
@@ -56,26 +121,7 @@ def write_report(
         f"{outcome.quantum_s * 1e3:g} ms (chosen by the fit).",
         "",
     ]
-    header = "| parameter | nominal | fitted | 1 sigma |"
-    rule = "|---|---|---|---|"
-    if truth is not None:
-        header += " truth | error |"
-        rule += "---|---|"
-    lines += ["## Parameters", "", header, rule]
-    for r in outcome.results.values():
-        for ref, v, s in zip(r.refs, r.values, r.sigma, strict=True):
-            name, idx = ref
-            nom = 0.005 if name == "delay_s" else getattr(nominal, name)[idx]
-            row = f"| {ref_name(ref)} | {nom:.4g} | {v:.4g} | {s:.2g} |"
-            if truth is not None:
-                if name == "delay_s":
-                    row += " - | - |"
-                else:
-                    tv = getattr(truth, name)[idx]
-                    # a frictionless joint has no relative error: give the difference
-                    err = f"{100 * (v - tv) / tv:+.1f} %" if tv != 0 else f"{v - tv:+.2g} (abs)"
-                    row += f" {tv:.4g} | {err} |"
-            lines.append(row)
+    lines += _parameter_lines(outcome, nominal, truth)
     lines += [
         "",
         f"## Prediction quality ({window_s:g} s windows from the measured state, and open "

@@ -20,7 +20,11 @@ from policy.campaigns.evaluation import add_param_option, parse_controller_param
 from policy.campaigns.parallel import CampaignError
 from policy.campaigns.robustness.arms import Plan, export_arms, plan, read_fitted
 from policy.campaigns.robustness.campaign import campaign
-from policy.campaigns.robustness.identification import identify_arms, identify_table
+from policy.campaigns.robustness.identification import (
+    identify_arms,
+    identify_table,
+    verdict_table,
+)
 from policy.campaigns.robustness.progress import ProgressLog
 from policy.campaigns.robustness.report import (
     COMPARISON,
@@ -59,6 +63,7 @@ class Options:
     identify: Path | None = None
     identify_args: str = "--max-current 600 --watchdog 1.0"
     sim_speed: float = 1.0
+    identify_virtual: bool = False
     seed: int = 1
     seconds: float = 20.0
     rate: float = 20.0
@@ -108,10 +113,12 @@ def identify(opts: Options, console: Console) -> None:
         console,
         speed=opts.sim_speed,
         identify_args=shlex.split(opts.identify_args),
+        virtual=opts.identify_virtual,
         workers=opts.workers,
         address=opts.address,
     )
     Console().print(escape(identify_table(rows)), soft_wrap=True)
+    Console().print(escape("\n" + verdict_table(rows)), soft_wrap=True)
     failed = [r["arm"] for r in rows if "joints" not in r]
     if failed:
         raise ValueError(f"{len(failed)} arms not identified: {', '.join(failed)}")
@@ -351,6 +358,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=1.0,
         metavar="X",
         help="with --identify: reach-sim --speed (default 1: host stalls stay out of the data)",
+    )
+    p.add_argument(
+        "--identify-virtual",
+        action="store_true",
+        help="with --identify: excite each arm in the identification's own process "
+        "(tools/identify.py --virtual: no reach-sim, no driver, no link), a few minutes of one "
+        "CPU per arm: what the data can tell apart (docs/identification.md)",
     )
     p.add_argument("--seed", type=int, default=1, help="seed of the draws and episodes (1)")
     p.add_argument("--seconds", type=float, default=20.0, help="episode length (20 s)")

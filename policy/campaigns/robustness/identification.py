@@ -14,9 +14,12 @@ from rich.console import Console
 from policy.campaigns.identify import (
     IdentifyJob,
     IdentifyResult,
+    Verdict,
     fit_row,
     run_identify_job,
     run_row,
+    verdict,
+    verdict_counts,
 )
 from policy.campaigns.parallel import run_on_ray
 from policy.campaigns.robustness.arms import Arm, arm_file, arm_noise, arm_params, envelope_meta
@@ -36,11 +39,14 @@ def identify_arms(
     identify_args: Sequence[str] = (),
     workers: int | None = None,
     address: str | None = None,
+    virtual: bool = False,
 ) -> list[dict[str, Any]]:
     """Identify each arm through the driver (`policy.campaigns.identify`): OUT/SET-INDEX.json,
     the fit `--twin-from OUT` reads, beside its log (.log.npz) and the hidden arm
     (.hidden.json); OUT/identify-summary.json has every arm's fit against its truth. Arms
-    already fitted in OUT are skipped, so an interrupted campaign resumes."""
+    already fitted in OUT are skipped, so an interrupted campaign resumes. `virtual`: each arm
+    excited in the identification's own process instead (`IdentifyJob.virtual`), its sensor
+    noise seeded by the arm's index."""
     out.mkdir(parents=True, exist_ok=True)
     summary_path = out / SUMMARY_FILE
     runs: dict[str, dict[str, Any]] = {}
@@ -59,6 +65,8 @@ def identify_arms(
                 arm_noise(a),
                 speed=speed,
                 identify_args=tuple(identify_args),
+                virtual=virtual,
+                seed=a.index,
             )
         )
     skipped = len(arms) - len(todo)
@@ -118,31 +126,47 @@ def identify_rows(
 
 
 def identify_table(rows: Sequence[dict[str, Any]]) -> str:
-    """The fits against their hidden arms, one line per arm (markdown): each joint's
-    armature and damping as fitted over true (effective values: over the torque scale),
-    the torque scales the fit found (and the true ones) where either is not 1, and the
-    validation motions' replay RMS through the fitted (and the nominal) twin."""
+    """The fits against their hidden arms, one line per arm (markdown): the true torque
+    scales where not 1; each joint's torque scale as the fit reports it (its value where
+    identified or taken as the anchor, "?" where unidentifiable); the worst error of what the
+    fit reports (a value where it identified the parameter, the combination it gave where it
+    did not: `policy.campaigns.identify.reported_errors`) and which; the PID's energy on the
+    fitted and the nominal twin against the arm's (`--check-controller pid`, worst episode);
+    and the validation motions' replay RMS through the fitted (and the nominal) twin."""
     lines = [
-        "| arm | wall [s] | fit [s] | armature fitted / true, E D C B | damping fitted / true "
-        "| torque scale fitted (true) | validation RMS fitted (nominal) [mrad] |",
-        "|---|---|---|---|---|---|---|",
+        "| arm | true torque scales | reported scale E / D / C / B | worst reported error "
+        "| PID energy error fitted (nominal) | validation RMS fitted (nominal) [mrad] |",
+        "|---|---|---|---|---|---|",
     ]
 
     def num(value: Any, fmt: str) -> str:
         return "-" if value is None else format(value, fmt)
 
     for r in rows:
-        wall = num(r.get("wall_s"), ".0f")
         if "joints" not in r:
-            lines.append(f"| {r['arm']} | {wall} | failed ({r.get('returncode')}) | | | | |")
+            lines.append(f"| {r['arm']} | failed ({r.get('returncode')}) | | | | |")
             continue
         j = [r["joints"][x] for x in JOINT_LETTERS]
-        arm = " / ".join(num(q["armature_ratio"], ".2f") for q in j)
-        damp = " / ".join(num(q["damping_ratio"], ".2f") for q in j)
         weak = ", ".join(
-            f"{x} {q['torque_scale']:.2f} ({q['true_torque_scale']:.2f})"
+            f"{x} {q['true_torque_scale']:.2f}"
             for x, q in zip(JOINT_LETTERS, j, strict=True)
-            if q["torque_scale"] != 1 or q["true_torque_scale"] != 1
+            if q["true_torque_scale"] != 1
+        )
+        scales = " / ".join(
+            "?" if q.get("scale_status") == "unidentifiable" else f"{q['torque_scale']:.2f}"
+            for q in j
+        )
+        worst, which = 0.0, "-"
+        for q in j:
+            for name, e in q.get("reported", {}).items():
+                if e["error"] is not None and abs(e["error"]) > abs(worst):
+                    worst, which = e["error"], name if e["as"] == "value" else e["as"]
+        gap = next((g for g in r.get("controller_gap") or [] if g["controller"] == "pid"), None)
+        energy = (
+            "-"
+            if gap is None
+            else f"{100 * gap['fitted']['energy_error_max']:.1f} % "
+            f"({100 * gap['nominal']['energy_error_max']:.0f} %)"
         )
         rms = ", ".join(
             f"{x} {num(q['validate_rms_mrad_fitted'], '.1f')} "
@@ -150,7 +174,51 @@ def identify_table(rows: Sequence[dict[str, Any]]) -> str:
             for x, q in zip(JOINT_LETTERS, j, strict=True)
         )
         lines.append(
-            f"| {r['arm']} | {wall} | {num(r.get('fit_s'), '.0f')} | {arm} | {damp} "
-            f"| {weak or 'none'} | {rms} |"
+            f"| {r['arm']} | {weak or 'all 1'} | {scales} | {100 * worst:+.1f} % ({which}) "
+            f"| {energy} | {rms} |"
+        )
+    return "\n".join(lines)
+
+
+ENERGY_TOLERANCE = 0.05
+"""Issue 46's: a PID's energy on the fitted twin within 5 % of its energy on the arm."""
+
+
+def verdict_table(rows: Sequence[dict[str, Any]]) -> str:
+    """Issue 46's target over the fits, per parameter (markdown): how many are reported within
+    10 % of the arm's, reported unidentifiable with the combination the data fix within 10 %,
+    or confidently wrong (`policy.campaigns.identify.verdict`); then each wrong one, and how
+    many fitted twins put the PID's energy within 5 % of the arm's (worst episode, with
+    `--check-controller pid`)."""
+    kinds = list(Verdict)
+    counts = verdict_counts(rows)
+    lines = [
+        "| parameter | " + " | ".join(k.value for k in kinds) + " |",
+        "|---|" + "---|" * len(kinds),
+    ]
+    for name in sorted(counts):
+        lines.append(f"| {name} | " + " | ".join(str(counts[name][k]) for k in kinds) + " |")
+    total = {k: sum(c[k] for c in counts.values()) for k in kinds}
+    lines.append("| all | " + " | ".join(str(total[k]) for k in kinds) + " |")
+    for r in rows:
+        for letter, joint in r.get("joints", {}).items():
+            for name, e in joint.get("reported", {}).items():
+                if verdict(e).wrong:
+                    what = name if e["as"] == "value" else f"{name} as {e['as']}"
+                    lines.append(
+                        f"- {r['arm']} {letter}: {what} {e['fitted']:.4g}, "
+                        f"true {e['true']:.4g} ({100 * e['error']:+.1f} %)"
+                    )
+    gaps = [
+        g["fitted"]["energy_error_max"]
+        for r in rows
+        for g in r.get("controller_gap") or []
+        if g["controller"] == "pid"
+    ]
+    if gaps:
+        ok = sum(g <= ENERGY_TOLERANCE for g in gaps)
+        lines.append(
+            f"- PID energy within 5 % of the arm's on {ok} of {len(gaps)} fitted twins "
+            f"(worst {100 * max(gaps):.1f} %)"
         )
     return "\n".join(lines)
