@@ -163,18 +163,25 @@ def test_the_rate_is_measured_on_reported_plausible_changing_velocities_only() -
 
 
 def test_a_hard_start_does_not_pass_for_a_wrong_rate() -> None:
-    """Six joints starting hard (20 rad/s^2) on an arm whose velocity is sampled half a period
-    before its position: over the first ticks the mean of two velocity samples says much less
-    motion than the position shows, which read as a stream 35 % slow and stopped a Bravo 7's
-    run 0.1 s in. Intervals whose speed changed by more than half are not used."""
+    """Six light joints reaching their top speed (1.5 rad/s, time constant 10 ms) within the
+    first tick: between the first two samples each moves nearly top speed x the period, while
+    the mean of its two velocity samples (a third of top speed, then top speed) says two
+    thirds of it, which read as a stream 35 % slow and stopped a Bravo 7's run 0.1 s in. An
+    interval whose speed more than doubled does not measure the rate; steady ones do."""
+    top, tau, t0 = 1.5, 0.01, 0.004
+
+    def sample(t: float) -> tuple[np.ndarray, np.ndarray]:
+        s = t + t0
+        q = 1.0 + top * (s - tau * (1.0 - np.exp(-s / tau)))
+        return np.full(6, q), np.full(6, top * (1.0 - np.exp(-s / tau)))
+
     rate = RateCheck(20)
-    accel, lag = 20.0, 0.025
-    for k in range(4):
-        t = k / 20
-        q = np.full(6, 1.0 + 0.5 * accel * t**2)
-        qdot = np.full(6, accel * max(t - lag, 0.0))
-        rate.update(k, q, qdot)
+    for k in range(2):
+        rate.update(k, *sample(k / 20))
     assert not rate.off(), rate.measured_hz
+    for k in range(2, 6):
+        rate.update(k, *sample(k / 20))
+    assert rate.measured_hz is not None and abs(rate.measured_hz - 20.0) < 0.5
 
 
 def test_ticks_lost_whole_are_seen_as_a_gap_and_estimated() -> None:
