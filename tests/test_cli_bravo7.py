@@ -250,6 +250,42 @@ def test_run_pid_reaches_its_targets_on_the_bravo_over_a_pty(sim, capsys) -> Non
     assert all(sim.firmware.mode(d) == Mode.ZERO_VELOCITY for d in JOINT_IDS)
 
 
+@pytest.mark.sim(speed=1.0)  # ticks a loaded host skips at 4x would cost it the overshoot
+def test_run_lambda_reaches_its_targets_on_the_bravo_over_a_pty(sim, capsys) -> None:
+    """The model-based controller, its twin the Bravo's MJCF (the emulated arm's own):
+    reached at rest, none 2 % past its goal."""
+    q0 = sim.snapshot().q
+    target = q0 + np.array([0.25, -0.3, 0.3, -0.35, 0.2, 0.45])
+    argv = ["--port", str(sim.link), "--arm", "bravo7", "--watchdog", str(WATCHDOG_S), "run"]
+    argv += ["--controller", "lambda", "--target", *map(str, target), "--seconds", "6"]
+    code = main([*argv, "--json", "-q"])
+    captured = capsys.readouterr()
+    assert code == Exit.OK, captured.err
+    out = json.loads(captured.out)
+    assert out["arm"] == "bravo7" and out["ok"], out["error"]
+    assert out["stopped_by"] == "duration"
+    assert np.max(np.abs(out["final_error"])) < 0.02, out["final_error"]
+    metrics = out["metrics"]
+    assert metrics["reached"] and metrics["at_rest"] and metrics["overshoot_pct"] < 2.0, metrics
+    assert out["left_in"] == "zero_velocity (confirmed by the arm)"
+    assert np.max(np.abs(sim.snapshot().q - target)) < 0.02  # the arm's true angles
+    assert all(sim.firmware.mode(d) == Mode.ZERO_VELOCITY for d in JOINT_IDS)
+
+
+def test_run_lambda_refuses_an_alpha_arm_file_on_the_bravo(sim, tmp_path, capsys) -> None:
+    twin = tmp_path / "arm.json"
+    twin.write_text('{"frictionloss": [0.7, 0.7, 0.7, 0.075]}')
+    target = sim.snapshot().q
+    argv = ["--port", str(sim.link), "run", "--controller", "lambda", "--param"]
+    argv += [f"params={twin}", "--target", *map(str, target), "--seconds", "1"]
+    code = _status(argv)
+    err = capsys.readouterr().err
+    assert code == Exit.USAGE, err
+    assert "describes a Reach Alpha 5" in err and "Traceback" not in err, err
+    assert len([line for line in err.splitlines() if line.startswith("error:")]) == 1, err
+    assert _untouched(sim)
+
+
 def test_run_prints_the_bravos_joints_and_torque_constants(sim, capsys) -> None:
     target = sim.snapshot().q + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.2])
     argv = ["--port", str(sim.link), "--watchdog", str(WATCHDOG_S), "run", "--controller"]

@@ -176,3 +176,42 @@ def test_a_small_step_under_heavy_noise_stops_short_instead_of_crossing() -> Non
     final = short.final_error[2]
     assert 0.0 < final <= 0.0075  # short of the goal, by at most the standoff and some wander
     assert m.settling_time_s < 2.0
+
+
+def test_on_the_bravo_the_twin_is_its_mjcf_and_every_joint_arrives_without_overshoot() -> None:
+    """The same law on the Bravo 7's six joints (G F E D C B), its twin the Bravo's MJCF:
+    each joint of the arm, read through the sensor's noise, ends within 10 mrad of its goal,
+    none 2 % past it, at rest."""
+    from protocol.models import BRAVO7
+    from reach_sim_bridge.model.bravo7 import Bravo7Arm
+
+    ctrl = load_controller("lambda", arm=BRAVO7)
+    assert isinstance(ctrl, LambdaController) and ctrl.params is None
+    arm = Bravo7Arm(seed=0)
+    rng = np.random.default_rng(0)
+    start = arm.q
+    step = np.array([0.25, -0.3, 0.3, -0.35, 0.2, 0.45])
+    target = start + step
+    past = np.zeros(6)  # how far each joint went beyond its goal (rad)
+    for k in range(int(6.0 / T)):
+        state = ControlState(
+            arm.q + rng.normal(0.0, 0.002, 6), arm.qdot + rng.normal(0.0, 0.02, 6), k * T
+        )
+        command = ctrl.act(state, target)
+        assert command.shape == (6,)
+        assert np.all(np.abs(command) <= np.array(BRAVO7.current_limits_mA))
+        arm.step(command, n=int(round(T / arm.dt)))
+        past = np.maximum(past, np.sign(step) * (arm.q - target))
+    assert np.all(np.abs(arm.q - target) < 0.01), arm.q - target
+    assert np.all(past < 0.02 * np.abs(step)), past / np.abs(step)
+    assert np.all(np.abs(arm.qdot) < 0.01), arm.qdot
+
+
+def test_on_the_bravo_an_alpha_arm_file_and_four_angles_are_refused() -> None:
+    from protocol.models import BRAVO7
+
+    with pytest.raises(ValueError, match="describes a Reach Alpha 5"):
+        make_controller(params={"frictionloss": [0.7, 0.7, 0.7, 0.075]}, model=BRAVO7)
+    ctrl = make_controller(model=BRAVO7)
+    with pytest.raises(ValueError, match=r"6 values \(G F E D C B\)"):
+        ctrl.act(ControlState(np.zeros(4), np.zeros(4), 0.0), np.zeros(4))

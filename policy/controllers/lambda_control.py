@@ -58,6 +58,10 @@ The twin is everything: with the arm's own parameters the law is measured to rea
 corner of the envelope tried, with the nominal arm's it reaches almost none of them
 (docs/robustness.md). A twin comes from `tools/identify.py`.
 
+On the Bravo 7 (`model=BRAVO7`) the twin is the Bravo's (`Bravo7Arm`: its MJCF's inertia,
+damping and friction, in fresh water), the same law on its six joints G F E D C B; an arm file
+(`params`) is the Alpha 5's only so far.
+
     from policy.controllers.lambda_control import make_controller
     ctrl = make_controller(params="arm.json", latency_periods=1.0)
 """
@@ -71,15 +75,16 @@ from typing import Any
 
 import numpy as np
 
-from protocol.alpha5 import N_JOINTS
 from protocol.extras import needs_extra
-from reach_driver.controllers import ControlState, engineered
+from protocol.models import ALPHA5, BRAVO7, ArmModel
+from reach_driver.controllers import ControlState, drives, engineered
 from reach_driver.metrics import settling_band
 from reach_sim_bridge.model.params import ArmParams
 from reach_sim_bridge.model.twin import FittedTwin, read_twin
 
 with needs_extra("the lambda controller", "sim"):  # its twin is the MuJoCo model
-    from reach_sim_bridge.model.arm import Alpha5Arm
+    from reach_sim_bridge.model.arm import Alpha5Arm, MotorArm
+    from reach_sim_bridge.model.bravo7 import Bravo7Arm
 
 
 @dataclass(frozen=True)
@@ -133,20 +138,48 @@ class LambdaConfig:
         return (latency + 0.5) / self.rate_hz
 
 
-class LambdaController:
-    """Currents (mA, E D C B) from the measured state, the goal and the twin (`ArmParams`)."""
+_ARM_FILE_IS_ALPHAS = (
+    f"params (an arm file) describes a {ALPHA5.title}; the lambda controller's twin of the "
+    "{} is its MJCF's"
+)
 
-    def __init__(self, params: ArmParams | None = None, config: LambdaConfig | None = None):
-        self.params = params or ArmParams()
+
+def _twin_of(model: ArmModel, params: ArmParams | None) -> MotorArm:
+    """The twin of `model`: the Alpha 5 with `params` (nominal if None), the Bravo 7 as its
+    MJCF describes it (no parameter file for it yet)."""
+    if model is ALPHA5:
+        return Alpha5Arm(params=params or ArmParams())
+    if model is BRAVO7:
+        if params is not None:
+            raise ValueError(_ARM_FILE_IS_ALPHAS.format(model.title))
+        return Bravo7Arm()
+    raise ValueError(f"the lambda controller has no twin of the {model.title}")
+
+
+class LambdaController:
+    """Currents (mA, in the arm's joint order) from the measured state, the goal and the twin
+    (`ArmParams` on the Alpha 5, the MJCF's on the Bravo 7)."""
+
+    def __init__(
+        self,
+        params: ArmParams | None = None,
+        config: LambdaConfig | None = None,
+        *,
+        model: ArmModel = ALPHA5,
+    ):
+        self.model = model
+        self.n = model.n_joints
         self.config = config or LambdaConfig()
-        self.twin = Alpha5Arm(params=self.params)
-        self.twin.torque_scale = np.asarray(self.params.torque_scale, dtype=np.float64)
+        self.twin = _twin_of(model, params)
+        #: the Alpha 5 twin's parameters (None on another arm: its twin is its MJCF's)
+        self.params = (params or ArmParams()) if model is ALPHA5 else None
         self.current_limits_mA = np.asarray(self.twin.current_limits_mA, dtype=np.float64)
-        scale = np.asarray(self.params.torque_scale, dtype=np.float64)
         #: N m per mA of each joint on the twin (its torque scale included)
-        self.torque_per_mA = self.twin.motor.torque_per_amp * scale / 1000.0
-        self.damping = np.asarray(self.params.damping, dtype=np.float64)
-        self.friction = np.asarray(self.params.frictionloss, dtype=np.float64)
+        self.torque_per_mA = self.twin.motor.torque_per_amp * self.twin.torque_scale / 1000.0
+        # the joints' own viscous and Coulomb friction, as the twin steps them
+        dof = np.arange(self.n)
+        self.damping = np.asarray(self.twin.model.dof_damping[dof], dtype=np.float64).copy()
+        self.friction = np.asarray(self.twin.model.dof_frictionloss[dof], dtype=np.float64).copy()
         self.reset()
 
     @property
@@ -156,20 +189,20 @@ class LambdaController:
 
     def reset(self) -> None:
         """Forget the estimate, the integral and the commands sent."""
-        self._integral = np.zeros(N_JOINTS)
+        self._integral = np.zeros(self.n)
         self._goal: np.ndarray | None = None
         self._q: np.ndarray | None = None  # the filter's estimate, now
-        self._v = np.zeros(N_JOINTS)
+        self._v = np.zeros(self.n)
         #: the estimate's covariance per joint ((angle, speed) x (angle, speed))
-        self._cov = np.zeros((N_JOINTS, 2, 2))
+        self._cov = np.zeros((self.n, 2, 2))
         self._cov[:, 0, 0] = self.config.noise_q**2
         self._cov[:, 1, 1] = self.config.noise_v**2
-        self._model_accel = np.full(N_JOINTS, self.config.model_accel)
-        self._aim_side = np.zeros(N_JOINTS)  # +1 / -1: the side each joint comes from
-        self._standoff = np.zeros(N_JOINTS)  # the largest standoff since the goal was set
-        self._standoff_room = np.zeros((2, N_JOINTS))  # allowance, most standoff (rad)
+        self._model_accel = np.full(self.n, self.config.model_accel)
+        self._aim_side = np.zeros(self.n)  # +1 / -1: the side each joint comes from
+        self._standoff = np.zeros(self.n)  # the largest standoff since the goal was set
+        self._standoff_room = np.zeros((2, self.n))  # allowance, most standoff (rad)
         n = int(np.ceil(self.config.latency_periods)) + 2
-        self._sent: deque[np.ndarray] = deque([np.zeros(N_JOINTS)] * n, maxlen=n)
+        self._sent: deque[np.ndarray] = deque([np.zeros(self.n)] * n, maxlen=n)
 
     def _run_twin(
         self, q: np.ndarray, v: np.ndarray, t0: float, t1: float
@@ -191,7 +224,7 @@ class LambdaController:
         starts = [0, *(np.flatnonzero(np.diff(sent)) + 1).tolist(), steps]
         for a, b in zip(starts[:-1], starts[1:], strict=True):
             m = int(sent[a])
-            command = self._sent[m] if -m <= len(self._sent) else np.zeros(N_JOINTS)
+            command = self._sent[m] if -m <= len(self._sent) else np.zeros(self.n)
             self.twin.step(command, n=b - a)
         return self.twin.q, self.twin.qdot
 
@@ -236,8 +269,11 @@ class LambdaController:
         q = np.asarray(state.q, dtype=np.float64)
         qdot = np.asarray(state.qdot, dtype=np.float64)
         goal = np.asarray(target, dtype=np.float64)
-        if q.shape != (N_JOINTS,) or qdot.shape != (N_JOINTS,) or goal.shape != (N_JOINTS,):
-            raise ValueError("state.q, state.qdot and target must each be 4 values (E D C B)")
+        if q.shape != (self.n,) or qdot.shape != (self.n,) or goal.shape != (self.n,):
+            order = " ".join(self.model.joint_letters)
+            raise ValueError(
+                f"state.q, state.qdot and target must each be {self.n} values ({order})"
+            )
         period = 1.0 / cfg.rate_hz
         if self._q is None:
             self._q, self._v = q.copy(), qdot.copy()
@@ -245,11 +281,11 @@ class LambdaController:
             q_pred, v_pred = self._run_twin(self._q, self._v, -period, 0.0)
             self._filter(q_pred, v_pred, q, qdot)
         if self._goal is None or np.any(goal != self._goal):
-            self._integral = np.zeros(N_JOINTS)
+            self._integral = np.zeros(self.n)
             self._goal = goal.copy()
             step = goal - self._q
             self._aim_side = np.sign(step)
-            self._standoff = np.zeros(N_JOINTS)
+            self._standoff = np.zeros(self.n)
             self._standoff_room = np.stack(
                 [
                     cfg.overshoot_allowance * np.abs(step),
@@ -294,9 +330,13 @@ class LambdaController:
         return out
 
 
+@drives(ALPHA5, BRAVO7)
 @engineered
 def make_controller(
-    params: str | Path | dict[str, Any] | FittedTwin | None = None, **kwargs: Any
+    params: str | Path | dict[str, Any] | FittedTwin | None = None,
+    *,
+    model: ArmModel = ALPHA5,
+    **kwargs: Any,
 ) -> LambdaController:
     """Lambda rule on a twin; engineered, no learning.
 
@@ -304,7 +344,8 @@ def make_controller(
     `ArmParams` fields, or a `FittedTwin`; nominal if omitted); keyword arguments are
     `LambdaConfig` fields. Without `latency_periods`, a twin with a fit (a file written by
     `tools/identify.py`, or a dict or `FittedTwin` holding its ``_fit``) gives it: the command
-    delay it measured times the control rate."""
+    delay it measured times the control rate. On the Bravo 7 (`model`) the twin is its MJCF's
+    and `params` is refused."""
     known = {f.name for f in fields(LambdaConfig)}
     unknown = set(kwargs) - known
     if unknown:
@@ -312,6 +353,10 @@ def make_controller(
             f"unknown lambda options {sorted(unknown)}; known: {sorted(known)} and params"
         )
     config = replace(LambdaConfig(), **kwargs)
+    if model is not ALPHA5:  # its twin is its MJCF's
+        if params is not None:
+            raise ValueError(_ARM_FILE_IS_ALPHAS.format(model.title))
+        return LambdaController(None, config, model=model)
     if params is None:
         twin = FittedTwin()
     elif isinstance(params, FittedTwin):
