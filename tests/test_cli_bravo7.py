@@ -281,7 +281,7 @@ def test_run_lambda_refuses_an_alpha_arm_file_on_the_bravo(sim, tmp_path, capsys
     code = _status(argv)
     err = capsys.readouterr().err
     assert code == Exit.USAGE, err
-    assert "describes a Reach Alpha 5" in err and "Traceback" not in err, err
+    assert "describe a Reach Alpha 5" in err and "Traceback" not in err, err
     assert len([line for line in err.splitlines() if line.startswith("error:")]) == 1, err
     assert _untouched(sim)
 

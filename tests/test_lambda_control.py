@@ -210,7 +210,7 @@ def test_on_the_bravo_the_twin_is_its_mjcf_and_every_joint_arrives_without_overs
 def test_on_the_bravo_an_alpha_arm_file_and_four_angles_are_refused() -> None:
     from protocol.models import BRAVO7
 
-    with pytest.raises(ValueError, match="describes a Reach Alpha 5"):
+    with pytest.raises(ValueError, match="describe a Reach Alpha 5"):
         make_controller(params={"frictionloss": [0.7, 0.7, 0.7, 0.075]}, model=BRAVO7)
     ctrl = make_controller(model=BRAVO7)
     with pytest.raises(ValueError, match=r"6 values \(G F E D C B\)"):

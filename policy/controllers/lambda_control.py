@@ -83,8 +83,7 @@ from reach_sim_bridge.model.params import ArmParams
 from reach_sim_bridge.model.twin import FittedTwin, read_twin
 
 with needs_extra("the lambda controller", "sim"):  # its twin is the MuJoCo model
-    from reach_sim_bridge.model.arm import Alpha5Arm, MotorArm
-    from reach_sim_bridge.model.bravo7 import Bravo7Arm
+    from reach_sim_bridge.model.arms import arm_twin
 
 
 @dataclass(frozen=True)
@@ -138,24 +137,6 @@ class LambdaConfig:
         return (latency + 0.5) / self.rate_hz
 
 
-_ARM_FILE_IS_ALPHAS = (
-    f"params (an arm file) describes a {ALPHA5.title}; the lambda controller's twin of the "
-    "{} is its MJCF's"
-)
-
-
-def _twin_of(model: ArmModel, params: ArmParams | None) -> MotorArm:
-    """The twin of `model`: the Alpha 5 with `params` (nominal if None), the Bravo 7 as its
-    MJCF describes it (no parameter file for it yet)."""
-    if model is ALPHA5:
-        return Alpha5Arm(params=params or ArmParams())
-    if model is BRAVO7:
-        if params is not None:
-            raise ValueError(_ARM_FILE_IS_ALPHAS.format(model.title))
-        return Bravo7Arm()
-    raise ValueError(f"the lambda controller has no twin of the {model.title}")
-
-
 class LambdaController:
     """Currents (mA, in the arm's joint order) from the measured state, the goal and the twin
     (`ArmParams` on the Alpha 5, the MJCF's on the Bravo 7)."""
@@ -170,7 +151,7 @@ class LambdaController:
         self.model = model
         self.n = model.n_joints
         self.config = config or LambdaConfig()
-        self.twin = _twin_of(model, params)
+        self.twin = arm_twin(model, params)
         #: the Alpha 5 twin's parameters (None on another arm: its twin is its MJCF's)
         self.params = (params or ArmParams()) if model is ALPHA5 else None
         self.current_limits_mA = np.asarray(self.twin.current_limits_mA, dtype=np.float64)
@@ -345,7 +326,7 @@ def make_controller(
     `LambdaConfig` fields. Without `latency_periods`, a twin with a fit (a file written by
     `tools/identify.py`, or a dict or `FittedTwin` holding its ``_fit``) gives it: the command
     delay it measured times the control rate. On the Bravo 7 (`model`) the twin is its MJCF's
-    and `params` is refused."""
+    and `params`, an Alpha 5's, is refused (`arm_twin`)."""
     known = {f.name for f in fields(LambdaConfig)}
     unknown = set(kwargs) - known
     if unknown:
@@ -353,18 +334,15 @@ def make_controller(
             f"unknown lambda options {sorted(unknown)}; known: {sorted(known)} and params"
         )
     config = replace(LambdaConfig(), **kwargs)
-    if model is not ALPHA5:  # its twin is its MJCF's
-        if params is not None:
-            raise ValueError(_ARM_FILE_IS_ALPHAS.format(model.title))
-        return LambdaController(None, config, model=model)
+    twin: FittedTwin | None
     if params is None:
-        twin = FittedTwin()
+        twin = None  # the model's nominal twin
     elif isinstance(params, FittedTwin):
         twin = params
     elif isinstance(params, dict):
         twin = FittedTwin.from_json_dict(params)
     else:
         twin = read_twin(params)
-    if "latency_periods" not in kwargs and twin.delay_s is not None:
+    if twin is not None and "latency_periods" not in kwargs and twin.delay_s is not None:
         config = replace(config, latency_periods=twin.delay_s * config.rate_hz)
-    return LambdaController(twin.params, config)
+    return LambdaController(None if twin is None else twin.params, config, model=model)
