@@ -272,6 +272,28 @@ def test_run_lambda_reaches_its_targets_on_the_bravo_over_a_pty(sim, capsys) -> 
     assert all(sim.firmware.mode(d) == Mode.ZERO_VELOCITY for d in JOINT_IDS)
 
 
+@pytest.mark.sim(speed=1.0)  # a solve takes up to 40 ms: a 4x arm's period is 12.5 ms
+def test_run_mpc_reaches_its_targets_on_the_bravo_over_a_pty(sim, capsys) -> None:
+    """The MPC, its prediction model the Bravo's MJCF and motors, its weights the Bravo's."""
+    pytest.importorskip("casadi")
+    q0 = sim.snapshot().q
+    target = q0 + np.array([0.25, -0.3, 0.3, -0.35, 0.2, 0.45])
+    argv = ["--port", str(sim.link), "--arm", "bravo7", "--watchdog", str(WATCHDOG_S), "run"]
+    argv += ["--controller", "mpc", "--target", *map(str, target), "--seconds", "6"]
+    code = main([*argv, "--json", "-q"])
+    captured = capsys.readouterr()
+    assert code == Exit.OK, captured.err
+    out = json.loads(captured.out)
+    assert out["arm"] == "bravo7" and out["ok"], out["error"]
+    assert out["stopped_by"] == "duration"
+    assert np.max(np.abs(out["final_error"])) < 0.02, out["final_error"]
+    metrics = out["metrics"]
+    assert metrics["reached"] and metrics["overshoot_pct"] < 5.0, metrics
+    assert out["left_in"] == "zero_velocity (confirmed by the arm)"
+    assert np.max(np.abs(sim.snapshot().q - target)) < 0.02  # the arm's true angles
+    assert all(sim.firmware.mode(d) == Mode.ZERO_VELOCITY for d in JOINT_IDS)
+
+
 def test_run_lambda_refuses_an_alpha_arm_file_on_the_bravo(sim, tmp_path, capsys) -> None:
     twin = tmp_path / "arm.json"
     twin.write_text('{"frictionloss": [0.7, 0.7, 0.7, 0.075]}')

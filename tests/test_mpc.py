@@ -117,3 +117,43 @@ def test_solve_time_statistics_are_recorded(mpc: MPCController) -> None:
     stats = mpc.solve_time_stats()
     assert stats["n"] == n_before + 1
     assert 0 < stats["p50"] <= stats["p99"] <= stats["max"]
+
+
+def test_on_the_bravo_every_joint_arrives_with_the_bravos_weights() -> None:
+    """The same cost on the Bravo 7's six joints (G F E D C B), its model the Bravo's MJCF
+    and motors: each joint of the arm, read through the sensor's noise, ends within 10 mrad
+    of its goal and under 5 % past it, every command within the current limits."""
+    from protocol.models import BRAVO7
+    from reach_driver.controllers import load_controller
+    from reach_sim_bridge.model.bravo7 import Bravo7Arm
+
+    ctrl = load_controller("mpc", arm=BRAVO7)
+    assert isinstance(ctrl, MPCController)
+    assert ctrl.config.qdot_weight == (30.0,) * 6  # the Bravo's, not the Alpha's
+    arm = Bravo7Arm(seed=0)
+    rng = np.random.default_rng(0)
+    step = np.array([0.25, -0.3, 0.3, -0.35, 0.2, 0.45])
+    target = arm.q + step
+    past = np.zeros(6)
+    for k in range(120):  # 6 s at 20 Hz
+        state = ControlState(
+            arm.q + rng.normal(0.0, 0.002, 6), arm.qdot + rng.normal(0.0, 0.02, 6), k * 0.05
+        )
+        command = ctrl.act(state, target)
+        assert np.all(np.abs(command) <= np.array(BRAVO7.current_limits_mA) + 1e-6)
+        arm.step(command, n=25)
+        past = np.maximum(past, np.sign(step) * (arm.q - target))
+    assert np.all(np.abs(arm.q - target) < 0.01), arm.q - target
+    assert np.all(past < 0.05 * np.abs(step)), past / np.abs(step)
+
+
+def test_on_the_bravo_alpha_parameters_weights_and_angles_of_four_are_refused() -> None:
+    from protocol.models import BRAVO7
+
+    with pytest.raises(ValueError, match="describe a Reach Alpha 5"):
+        make_controller(model=BRAVO7, params=ArmParams(frictionloss=(0.5, 0.5, 0.5, 0.05)))
+    with pytest.raises(ValueError, match=r"r_weight needs 6 .*\(G F E D C B\)"):
+        make_controller(model=BRAVO7, r_weight=(1.0, 1.0, 1.0, 1.0))
+    ctrl = make_controller(model=BRAVO7, horizon=5)
+    with pytest.raises(ValueError, match=r"6 values \(G F E D C B\)"):
+        ctrl.act(ControlState(np.zeros(4), np.zeros(4), 0.0), np.zeros(4))

@@ -1,4 +1,4 @@
-"""Model predictive control baseline: the paper's cost on a per-joint model of the Alpha 5.
+"""Model predictive control baseline: the paper's cost on a per-joint model of the arm.
 
 Cost (paper, section V): J = sum_k ||q_ref - q_k||^2_Q + ||qdot_k||^2_Qv + ||du_k||^2_R,
 with du_k = u_k - u_{k-1} (u_{-1} the current last sent) and Qv = 0 by default.
@@ -19,50 +19,86 @@ Constraints: current limits as bounds on u; the back-EMF envelope -V <= R u_k + 
 at that current); joint limits on predicted angles k >= 1 only, softened by slacks with an
 L1 + L2 penalty. Solved by CasADi's sqpmethod with qrqp, warm-started from the shifted
 previous solution, with a capped number of SQP iterations so the worst case is bounded.
+
+One controller for the Alpha 5 (E D C B) and the Bravo 7 (G F E D C B): the model's numbers
+come from its twin (`reach_sim_bridge.model.arms.arm_twin`: the Alpha's with `ArmParams`, the
+Bravo's MJCF), the weights' defaults per model (`DEFAULT_WEIGHTS`).
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
 from protocol.extras import needs_extra
-from reach_driver.controllers import ControlState, engineered
+from protocol.models import ALPHA5, BRAVO7, ArmModel
+from reach_driver.controllers import ControlState, drives, engineered
 from reach_sim_bridge.model.params import ArmParams
 
 with needs_extra("the mpc controller", "mpc"):  # CasADi, and MuJoCo for the nominal model
     import casadi as ca
     import mujoco
 
-    from reach_sim_bridge.model.arm import Alpha5Arm
+    from reach_sim_bridge.model.arms import arm_twin
 
 SOLVERS = ("ipopt", "sqp-qrqp", "sqp-osqp", "sqp-qpoases")
-Vec4 = tuple[float, float, float, float]
+Weights = tuple[float, ...]  # one per joint, in the model's order (empty: the model's default)
 
 
-def _vec4(value: Any, name: str) -> Vec4:
+@dataclass(frozen=True)
+class DefaultWeights:
+    """One model's default weights per joint in its order: Q, Qv and R (`MPCConfig`)."""
+
+    q_weight: Weights
+    qdot_weight: Weights
+    r_weight: Weights
+
+
+#: Default weights per model (`ArmModel.name`).
+DEFAULT_WEIGHTS: Mapping[str, DefaultWeights] = MappingProxyType(
+    {
+        # horizon and R chosen by tools/tune_mpc.py (docs/results.md, "MPC tuning")
+        ALPHA5.name: DefaultWeights(
+            (100.0, 100.0, 100.0, 100.0), (0.0, 0.0, 0.0, 0.0), (100.0, 100.0, 100.0, 1000.0)
+        ),
+        # The virtual Bravo 7 (tuned on its twin in fresh water, not on a real arm;
+        # tests/test_mpc.py): heavily damped joints that stick, so current changes cost
+        # less (R) and speed is weighed (Qv) against the overshoot the Alpha's weights gave
+        # (5-13 % on 0.2-0.45 rad steps of every joint; these: under 3 %).
+        BRAVO7.name: DefaultWeights((100.0,) * 6, (30.0,) * 6, (10.0,) * 6),
+    }
+)
+
+
+def _weights(value: Any, name: str, model: ArmModel) -> Weights:
+    """One value for every joint of `model`, or one per joint (ValueError naming them)."""
+    n = model.n_joints
     arr = np.asarray(value, dtype=float).reshape(-1)
     if arr.size == 1:
-        arr = np.repeat(arr, 4)
-    if arr.size != 4 or not np.all(np.isfinite(arr)) or np.any(arr < 0):
-        raise ValueError(f"{name} needs 4 finite non-negative values (E D C B), got {value!r}")
-    return (float(arr[0]), float(arr[1]), float(arr[2]), float(arr[3]))
+        arr = np.repeat(arr, n)
+    if arr.size != n or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        order = " ".join(model.joint_letters)
+        raise ValueError(f"{name} needs {n} finite non-negative values ({order}), got {value!r}")
+    return tuple(float(v) for v in arr)
 
 
 @dataclass(frozen=True)
 class MPCConfig:
-    """Weights (Q per rad^2, Qv per (rad/s)^2, R per A^2 of current change) and solver knobs."""
+    """Weights (Q per rad^2, Qv per (rad/s)^2, R per A^2 of current change; per joint of
+    `model`, its `DEFAULT_WEIGHTS` unless given) and solver knobs. `params` is the Alpha 5
+    twin's (the Bravo 7's twin is its MJCF: other parameters are refused)."""
 
-    # horizon and R chosen by tools/tune_mpc.py (docs/results.md, "MPC tuning")
     horizon: int = 20
     rate_hz: float = 20.0
-    q_weight: Vec4 = (100.0, 100.0, 100.0, 100.0)
-    qdot_weight: Vec4 = (0.0, 0.0, 0.0, 0.0)
-    r_weight: Vec4 = (100.0, 100.0, 100.0, 1000.0)
+    q_weight: Weights = ()
+    qdot_weight: Weights = ()
+    r_weight: Weights = ()
     bound_weight: float = 1e4  # per rad^2 of predicted joint-limit violation (and per rad L1)
     friction_smoothing: float = 0.02  # rad/s: eps of the tanh Coulomb model
     disturbance_gain: float = 0.3  # 0 disables the offset-free disturbance estimate
@@ -70,10 +106,17 @@ class MPCConfig:
     solver: str = "ipopt"  # see SOLVERS and docs/results.md for measured solve times
     time_fraction: float = 0.8  # ipopt's wall-time cap as a fraction of the control period
     params: ArmParams = field(default_factory=ArmParams)
+    model: ArmModel = ALPHA5
 
     def __post_init__(self) -> None:
+        defaults = DEFAULT_WEIGHTS[self.model.name]
         for name in ("q_weight", "qdot_weight", "r_weight"):
-            object.__setattr__(self, name, _vec4(getattr(self, name), name))
+            value = getattr(self, name)
+            if isinstance(value, tuple) and not value:
+                value = getattr(defaults, name)
+            object.__setattr__(self, name, _weights(value, name, self.model))
+        if self.model is not ALPHA5 and self.params != ArmParams():
+            arm_twin(self.model, self.params)  # refused: no parameters describe it
         if self.horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {self.horizon}")
         if not (self.rate_hz > 0 and math.isfinite(self.rate_hz)):
@@ -95,37 +138,41 @@ class MPCConfig:
 
 
 class NominalModel:
-    """The prediction model's numbers, from the nominal MJCF and motor model (no perturbation)."""
+    """The prediction model's numbers, from the model's twin and motor model (no
+    perturbation): the Alpha 5 with `params`, the Bravo 7 as its MJCF describes it."""
 
-    def __init__(self, params: ArmParams) -> None:
-        self.arm = Alpha5Arm(params=params)
+    def __init__(self, params: ArmParams, model: ArmModel = ALPHA5) -> None:
+        self.n = n = model.n_joints
+        self.arm = arm_twin(model, params if model is ALPHA5 else None)
         motor = self.arm.motor
         self.torque_per_amp = motor.torque_per_amp * motor.torque_scale
         self.backemf = motor.backemf_per_speed
         self.resistance = motor.resistance
         self.supply = motor.supply_voltage
         self.current_limit_a = motor.current_limits_mA / 1000.0
-        self.damping = np.asarray(params.damping, dtype=float)
-        self.coulomb = np.asarray(params.frictionloss, dtype=float)
+        # the joints' viscous and Coulomb friction, as the twin steps them
+        self.damping = np.asarray(self.arm.model.dof_damping[:n], dtype=float).copy()
+        self.coulomb = np.asarray(self.arm.model.dof_frictionloss[:n], dtype=float).copy()
         self.position_limits = self.arm.position_limits
         self._data = mujoco.MjData(self.arm.model)
         self._full = np.zeros((self.arm.model.nv, self.arm.model.nv))
 
     def inertia(self, q: np.ndarray) -> np.ndarray:
         """Diagonal of the joint-space inertia at q (kg m^2), armature included."""
-        d = self._data
-        d.qpos[:4] = q
-        d.qpos[4] = 0.005
+        d, n = self._data, self.n
+        d.qpos[:n] = q
+        d.qpos[n] = 0.005  # the jaws 5 mm open
         mujoco.mj_forward(self.arm.model, d)
         mujoco.mj_fullM(self.arm.model, d, self._full)
-        return np.diag(self._full)[:4].copy()
+        return np.diag(self._full)[:n].copy()
 
     def gravity(self, q: np.ndarray, step: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
         """Gravity-buoyancy torque at q and its Jacobian (central differences)."""
+        n = self.n
         g0 = self.arm.gravity_torque(q)
-        jac = np.zeros((4, 4))
-        for i in range(4):
-            dq = np.zeros(4)
+        jac = np.zeros((n, n))
+        for i in range(n):
+            dq = np.zeros(n)
             dq[i] = step
             jac[:, i] = (self.arm.gravity_torque(q + dq) - self.arm.gravity_torque(q - dq)) / (
                 2 * step
@@ -149,20 +196,28 @@ def zoh_coefficients(inertia: np.ndarray, damping: np.ndarray, period: float) ->
 
 @dataclass
 class _Layout:
-    n: int
-    stage: int = 16  # u(4), q(4), qdot(4), slack(4)
+    n: int  # stages (the horizon)
+    joints: int = 4
+
+    @property
+    def stage(self) -> int:  # u, q, qdot, slack: one per joint each
+        return 4 * self.joints
+
+    def _part(self, k: int, i: int) -> slice:
+        start = k * self.stage + i * self.joints
+        return slice(start, start + self.joints)
 
     def u(self, k: int) -> slice:
-        return slice(k * self.stage, k * self.stage + 4)
+        return self._part(k, 0)
 
     def q(self, k: int) -> slice:  # predicted state k+1
-        return slice(k * self.stage + 4, k * self.stage + 8)
+        return self._part(k, 1)
 
     def v(self, k: int) -> slice:
-        return slice(k * self.stage + 8, k * self.stage + 12)
+        return self._part(k, 2)
 
     def s(self, k: int) -> slice:
-        return slice(k * self.stage + 12, k * self.stage + 16)
+        return self._part(k, 3)
 
     @property
     def size(self) -> int:
@@ -173,19 +228,20 @@ class _Layout:
 class Prediction:
     """The optimal plan of the last solve: currents u_k (A) and predicted states k = 1..N."""
 
-    u: np.ndarray  # (N, 4) A
-    q: np.ndarray  # (N, 4) rad
-    qdot: np.ndarray  # (N, 4) rad/s
+    u: np.ndarray  # (N, joints) A
+    q: np.ndarray  # (N, joints) rad
+    qdot: np.ndarray  # (N, joints) rad/s
     success: bool
 
 
 class MPCController:
-    """Receding-horizon current commands (mA, E D C B) for a joint-space target."""
+    """Receding-horizon current commands (mA, in the arm's joint order) for a joint-space
+    target."""
 
     def __init__(self, config: MPCConfig | None = None) -> None:
         self.config = config or MPCConfig()
-        self.model = NominalModel(self.config.params)
-        self._layout = _Layout(self.config.horizon)
+        self.model = NominalModel(self.config.params, self.config.model)
+        self._layout = _Layout(self.config.horizon, self.model.n)
         self._solver, self._lbg, self._ubg = self._build()
         self.solve_times: list[float] = []
         self.failures = 0
@@ -194,15 +250,15 @@ class MPCController:
     # -- problem ------------------------------------------------------------------------------
     def _build(self) -> tuple[ca.Function, np.ndarray, np.ndarray]:
         c, m, lay = self.config, self.model, self._layout
-        n = c.horizon
+        n, j = c.horizon, m.n
         w = ca.SX.sym("w", lay.size)
-        # parameters: q0, v0, qref, uprev, zoh(16), g0, G(16), d
-        p = ca.SX.sym("p", 4 * 4 + 16 + 4 + 16 + 4)
-        q0, v0, qref, uprev = p[0:4], p[4:8], p[8:12], p[12:16]
-        zoh = ca.reshape(p[16:32], 4, 4)  # rows: phi_v, gam_v, phi_q, gam_q
-        g0 = p[32:36]
-        gjac = ca.reshape(p[36:52], 4, 4)
-        dist = p[52:56]
+        # parameters: q0, v0, qref, uprev, zoh(4 x j), g0, G(j x j), d
+        p = ca.SX.sym("p", 4 * j + 4 * j + j + j * j + j)
+        q0, v0, qref, uprev = p[0:j], p[j : 2 * j], p[2 * j : 3 * j], p[3 * j : 4 * j]
+        zoh = ca.reshape(p[4 * j : 8 * j], 4, j)  # rows: phi_v, gam_v, phi_q, gam_q
+        g0 = p[8 * j : 9 * j]
+        gjac = ca.reshape(p[9 * j : 9 * j + j * j], j, j)
+        dist = p[9 * j + j * j : 10 * j + j * j]
         k_t = ca.DM(m.torque_per_amp)
         fc = ca.DM(m.coulomb)
         ke, res, vsup = ca.DM(m.backemf), ca.DM(m.resistance), m.supply
@@ -220,17 +276,17 @@ class MPCController:
             v_next = zoh[0, :].T * v_prev + zoh[1, :].T * tau
             q_next = q_prev + zoh[2, :].T * v_prev + zoh[3, :].T * tau
             g += [v - v_next, q - q_next]
-            lbg += [0.0] * 8
-            ubg += [0.0] * 8
+            lbg += [0.0] * 2 * j
+            ubg += [0.0] * 2 * j
             emf = res * u + ke * v  # back-EMF envelope at the end of the held interval
             g.append(emf)
-            lbg += [-vsup] * 4
-            ubg += [vsup] * 4
+            lbg += [-vsup] * j
+            ubg += [vsup] * j
             lo = ca.DM(m.position_limits[:, 0])
             hi = ca.DM(m.position_limits[:, 1])
             g += [q + s - lo, q - s - hi]  # soft joint bounds: q >= lo - s, q <= hi + s
-            lbg += [0.0] * 4 + [-ca.inf] * 4
-            ubg += [ca.inf] * 4 + [0.0] * 4
+            lbg += [0.0] * j + [-ca.inf] * j
+            ubg += [ca.inf] * j + [0.0] * j
             e = qref - q
             du = u - u_prev
             cost += ca.sum1(qw * e**2) + ca.sum1(vw * v**2) + ca.sum1(rw * du**2)
@@ -304,15 +360,15 @@ class MPCController:
         self._w0: np.ndarray | None = None
         self._lam_g: np.ndarray | None = None
         self._lam_x: np.ndarray | None = None
-        self._u_prev = np.zeros(4)
-        self._dist = np.zeros(4)
+        self._u_prev = np.zeros(self.model.n)
+        self._dist = np.zeros(self.model.n)
         self._last: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._lbx, self._ubx = self._bounds()
         self.prediction: Prediction | None = None
 
     @property
     def disturbance(self) -> np.ndarray:
-        """Current estimate of the unmodelled joint torque (N m), E D C B."""
+        """Current estimate of the unmodelled joint torque (N m), in the arm's joint order."""
         return self._dist.copy()
 
     def _update_disturbance(self, q: np.ndarray, v: np.ndarray) -> None:
@@ -330,6 +386,10 @@ class MPCController:
         q = np.asarray(state.q, dtype=float)
         v = np.asarray(state.qdot, dtype=float)
         qref = np.asarray(target, dtype=float)
+        n = self.model.n
+        if q.shape != (n,) or v.shape != (n,) or qref.shape != (n,):
+            order = " ".join(self.config.model.joint_letters)
+            raise ValueError(f"state.q, state.qdot and target must each be {n} values ({order})")
         self._update_disturbance(q, v)
         c, m, lay = self.config, self.model, self._layout
         inertia = m.inertia(q)
@@ -410,16 +470,15 @@ class MPCController:
         }
 
 
+@drives(ALPHA5, BRAVO7)
 @engineered
-def make_controller(**kwargs: Any) -> MPCController:
+def make_controller(*, model: ArmModel = ALPHA5, **kwargs: Any) -> MPCController:
     """MPC on a nominal model; engineered, no learning.
 
-    Entry point `mpc`: the paper's cost on a per-joint model of the arm; keyword arguments
-    are `MPCConfig` fields."""
-    unknown = set(kwargs) - set(MPCConfig.__dataclass_fields__)
+    Entry point `mpc`: the paper's cost on a per-joint model of the arm (`model`: the Alpha 5
+    or the Bravo 7); keyword arguments are `MPCConfig` fields."""
+    known = set(MPCConfig.__dataclass_fields__) - {"model"}
+    unknown = set(kwargs) - known
     if unknown:
-        raise ValueError(
-            f"unknown MPC options {sorted(unknown)}; known: "
-            f"{sorted(MPCConfig.__dataclass_fields__)}"
-        )
-    return MPCController(replace(MPCConfig(), **kwargs))
+        raise ValueError(f"unknown MPC options {sorted(unknown)}; known: {sorted(known)}")
+    return MPCController(replace(MPCConfig(model=model), **kwargs))
