@@ -98,6 +98,21 @@ def test_the_prediction_through_the_commands_in_flight_is_the_arms_own() -> None
     np.testing.assert_allclose(v_pred, arm.qdot, atol=1e-9)
 
 
+@pytest.mark.parametrize("latency", [1.5, 0.5, 2.5, 3.5])
+def test_a_latency_of_half_periods_is_predicted_through(latency: float) -> None:
+    """A latency whose horizon falls on the middle of a physics step (1.5 periods: 37.5 steps
+    of 2 ms) runs the twin up to it, not into the command being computed: the controller acts
+    (it raised on its first prediction) and drives the arm towards its goal."""
+    ctrl = make_controller(latency_periods=latency)
+    arm = Alpha5Arm()
+    target = arm.q + np.array([0.2, -0.2, 0.2, 0.3])
+    for k in range(40):
+        command = ctrl.act(ControlState(arm.q, arm.qdot, k * T), target)
+        assert np.all(np.isfinite(command))
+        arm.step(command, n=25)
+    assert np.max(np.abs(arm.q - target)) < 0.05
+
+
 def _latent_frictionless_corner() -> tuple[ArmParams, tuple[float, float, float, float], float]:
     for v in corners().variants:
         f = v.factors

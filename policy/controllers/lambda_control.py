@@ -191,7 +191,9 @@ class LambdaController:
         """The twin's angles and speeds at t1 from (q, v) at t0 (s, relative to now), under
         the commands in force: the twin's own physics (coupling, motors, friction)."""
         cfg, dt = self.config, self.twin.dt
-        steps = int(round((t1 - t0) / dt))
+        # whole physics steps, a half rounded down: a step whose middle is t1 would run into
+        # the command computed now (a latency of 1.5 periods is 37.5 steps at 20 Hz)
+        steps = int(np.ceil((t1 - t0) / dt - 0.5 - 1e-9))
         if steps <= 0:
             return q, v
         # per physics step, which command is in force: the one sent latency_periods before
