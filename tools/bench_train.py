@@ -15,11 +15,12 @@ Contenders:
   ours    our loop as the distilled stack's first stage trained: 8 envs per round, batch
           256, 2 updates per round (the paper's 64 transitions learned from per env step),
           twin critics
-  scratch the `scratch` preset as it trains the shipped `ddpg`, its own env included
-          (memory channels, shaped reward, envelope arms): 256-256 networks, 16 envs per
-          round, batch 256, 2 updates per round (32 transitions per env step)
-  scratch+collector  the same with `collector_process`: the envs in a second process, one
-          round ahead of the learner (on one core this only adds the hand-over)
+  scratch the `scratch` preset's learner and env (DDPG updates, memory channels, shaped
+          reward, envelope arms): 256-256 networks, 16 envs per round, batch 256, 2
+          updates per round (32 transitions per env step), the envs in this process
+  scratch+collector  the preset as it trains the shipped `ddpg`: the same with
+          `collector_process`, the envs in a second process one round ahead of the
+          learner (on one core this only adds the hand-over)
 """
 
 from __future__ import annotations
@@ -210,6 +211,7 @@ def main(argv: list[str] | None = None) -> int:
         total_steps=10**9,
         buffer_size=200_000,
         eval_envelope_episodes=0,
+        collector_process=False,
     )
     tmp = tempfile.TemporaryDirectory()
     trainers: list[Trainer] = []

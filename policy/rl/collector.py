@@ -25,6 +25,7 @@ from policy.controllers.weights import LAYERS, LEAKY_RELU_SLOPE, ActorWeights
 from policy.rl.config import ENV_SEED_STRIDE, STEP_SEED_FACTOR, DDPGConfig
 from policy.rl.env import ReachAlphaEnv, time_limited
 from policy.rl.exploration import OUNoise
+from policy.rl.relabel import GoalRelabeller, Relabelled
 from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, N_JOINTS
 
 #: the thread-count variables of the BLAS libraries numpy may use, set to 1 for the child
@@ -43,6 +44,8 @@ class Round:
     next_obs: np.ndarray
     terms: np.ndarray
     returns: tuple[float, ...]  #: undiscounted return of each episode that ended
+    #: the ended episodes replayed for other goals (`her_goals`); None when off
+    relabelled: Relabelled | None = None
 
 
 class EnvWorker:
@@ -61,6 +64,11 @@ class EnvWorker:
         seed = config.seed * ENV_SEED_STRIDE + STEP_SEED_FACTOR * from_step
         self.obs = np.stack([t.reset(seed=seed + i)[0] for i, t in enumerate(self.timed)])
         self.returns = np.zeros(config.num_envs)
+        self.relabeller = GoalRelabeller(
+            self.envs, config.her_goals, np.random.default_rng([config.seed, 2, from_step])
+        )
+        for i in range(config.num_envs):
+            self.relabeller.started(i)
         self.actor: ActorWeights | None = None
 
     def set_actor(self, arrays: list[np.ndarray]) -> None:
@@ -91,17 +99,24 @@ class EnvWorker:
         terms = np.zeros(n)
         done = np.zeros(n, dtype=bool)
         for i, env in enumerate(self.timed):
-            o, r, term, trunc, _ = env.step(actions[i])
+            o, r, term, trunc, info = env.step(actions[i])
             next_obs[i], rewards[i], terms[i], done[i] = o, r, float(term), term or trunc
+            self.relabeller.stepped(i, actions[i], info)
         self.returns += rewards
         obs, finished = self.obs, []
         self.obs = next_obs.copy()
+        replays = []
         for j in np.nonzero(done)[0]:
             finished.append(float(self.returns[j]))
             self.returns[j] = 0.0
+            replay = self.relabeller.finished(int(j))
+            if replay is not None:
+                replays.append(replay)
             self.obs[j] = self.timed[j].reset()[0]
+            self.relabeller.started(int(j))
             self.noise.reset(int(j))
-        return Round(obs, actions, rewards, next_obs, terms, tuple(finished))
+        relabelled = Relabelled.concatenate(replays) if replays else None
+        return Round(obs, actions, rewards, next_obs, terms, tuple(finished), relabelled)
 
 
 def _serve(conn: Connection, config: dict[str, Any], from_step: int) -> None:

@@ -62,6 +62,7 @@ RESUMABLE = frozenset(
         "eps_steps",
         "updates_per_round",
         "collector_process",
+        "her_goals",
         "target_noise",
         "target_noise_clip",
         "policy_delay",

@@ -46,6 +46,7 @@ from policy.rl.env import EnvConfig, ReachAlphaEnv, time_limited
 from policy.rl.expert import PDExpert
 from policy.rl.exploration import OUNoise
 from policy.rl.networks import Actor
+from policy.rl.relabel import GoalRelabeller, Relabelled
 from policy.rl.replay import ReplayBuffer
 from protocol.alpha5 import N_JOINTS
 
@@ -148,6 +149,10 @@ class Trainer:
         self.noise = OUNoise(
             (config.num_envs, N_JOINTS), config.ou_theta, config.ou_sigma, self.rng
         )
+        #: goal relabelling of the envs here (`her_goals`; the collector has its own)
+        self.relabeller = GoalRelabeller(
+            self.envs, config.her_goals, np.random.default_rng([config.seed, 2])
+        )
         # built once: arms load the MJCF when constructed, so evaluation uses the same model
         self.eval_nominal = eval_envs(config.env, config.eval_episodes, None, arm_factory)
         self.eval_weak = eval_envs(
@@ -213,6 +218,7 @@ class Trainer:
         if self.state.episodes < self.config.num_envs:  # first episode of each env: seed it
             seed = self.config.seed * ENV_SEED_STRIDE + i + STEP_SEED_FACTOR * self.state.env_steps
         obs, _ = self.timed[i].reset(seed=seed)
+        self.relabeller.started(i)
         self.noise.reset(i)
         self.state.episodes += 1
         return obs
@@ -293,8 +299,9 @@ class Trainer:
                 terms = np.zeros(cfg.num_envs)
                 done = np.zeros(cfg.num_envs, dtype=bool)
                 for i, env in enumerate(self.timed):
-                    o, r, term, trunc, _ = env.step(actions[i])
+                    o, r, term, trunc, info = env.step(actions[i])
                     next_obs[i], rewards[i], terms[i], done[i] = o, r, float(term), term or trunc
+                    self.relabeller.stepped(i, actions[i], info)
                 # truncation (the 20 s limit) still bootstraps: only `term` cuts the target
                 self.buffer.add(obs, actions, rewards, next_obs, terms, expert_a)
                 ep_returns += rewards
@@ -302,6 +309,9 @@ class Trainer:
                     if csv is not None:
                         csv.write(self._csv_row(ep_returns[j], losses))
                     ep_returns[j] = 0.0
+                    replay = self.relabeller.finished(int(j))
+                    if replay is not None:
+                        self._add_relabelled(replay)
                     next_obs[j] = self._reset_env(int(j))
                 self._obs = next_obs
                 self.state.env_steps += cfg.num_envs
@@ -349,6 +359,8 @@ class Trainer:
                 self.buffer.add(
                     got.obs, got.actions, got.rewards, got.next_obs, got.terms, no_label
                 )
+                if got.relabelled is not None:
+                    self._add_relabelled(got.relabelled)
                 self.state.env_steps += cfg.num_envs
                 self.state.episodes += len(got.returns)
                 if self.state.env_steps < until:
@@ -364,6 +376,14 @@ class Trainer:
             if csv is not None:
                 csv.close()
         return self.state
+
+    def _add_relabelled(self, replay: Relabelled) -> None:
+        """Replayed episodes join the buffer (no expert label: the expert saw other goals)."""
+        fill = np.nan if self.expert is not None else 0.0  # NaN: no BC term (`_label`)
+        label = np.full_like(replay.actions, fill)
+        self.buffer.add(
+            replay.obs, replay.actions, replay.rewards, replay.next_obs, replay.terms, label
+        )
 
     def _learn(self) -> dict[str, float] | None:
         """A round's gradient updates once learning has started; the last one's losses."""
