@@ -14,10 +14,13 @@ a reconnect that identity is confirmed before anything else is sent or accepted;
 arm gets only its safe stop and the link becomes FAILED (`ArmIdentityError`).
 
 `ArmClient` is the facade over the pieces, each in its own module: request matching
-(`requests`) and the reads built on it (`queries`, whose `ArmQueries` it inherits), link
-supervision and reconnecting (`supervisor`), which joints are armed and the watchdog
-(`watchdog`), the checks before a command goes out (`gate`), status flags (`faults`) and
-heartbeat streaming (`streaming`).
+(`requests`) and the reads built on it (`queries`, `ArmQueries`), the commands and the safe
+mode (`commanding`, `ArmCommands`: it inherits both), link supervision and reconnecting
+(`supervisor`) and what a lost or reopened link means for requests, the watchdog and the
+arm's identity (`recovery`), which joints are armed and the watchdog (`watchdog`), the
+checks before a command goes out (`gate`), status flags (`faults`), heartbeat streaming
+(`streaming`) and why a stream stopped (`stream_diagnosis`), the reader thread's absences
+(`reader_away`), and the events it reports (`link`).
 """
 
 from __future__ import annotations
@@ -25,33 +28,19 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import deque
 from collections.abc import Callable, Sequence
 
 from protocol import DecoderStats, Packet, PacketDecoder, PacketID, commands
 from protocol.models import ALPHA5, MODELS, ArmModel
 from reach_driver.commanding import ArmCommands
-from reach_driver.errors import (
-    ArmIdentityError,
-    ArmModelError,
-    DriverError,
-    LimitError,
-    LinkDownError,
-    TransportError,
-)
+from reach_driver.errors import ArmIdentityError, DriverError, LinkDownError, TransportError
 from reach_driver.faults import FaultFlags
 from reach_driver.gate import LIMIT_KIND_OF, CommandGate
-from reach_driver.identity import (
-    DeviceIdentity,
-    ModelCheck,
-    devices_to_ask,
-    model_answering,
-    model_mismatch,
-)
+from reach_driver.identity import DeviceIdentity, ModelCheck, devices_to_ask, model_taken
 from reach_driver.link import (
-    ClientEvent,
     ClientStats,
     EventCallback,
+    EventHistory,
     EventKind,
     LinkConfig,
     LinkState,
@@ -65,16 +54,14 @@ from reach_driver.requests import Requester, Waiters
 from reach_driver.safety import SafetyConfig, SafetyGuard
 from reach_driver.state import ArmState, JointState, StateTable, joint_name
 from reach_driver.stream_diagnosis import StreamDiagnosis
-from reach_driver.streaming import Stream
+from reach_driver.streaming import Stream, stalest_feedback
 from reach_driver.supervisor import LinkSupervisor
 from reach_driver.transport import Transport
 from reach_driver.watchdog import LoopTiming, Watchdog
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ArmClient", "ClientStats"]
-
-EVENT_HISTORY = 200
+__all__ = ["ArmClient"]
 
 
 class ArmClient(ArmCommands):
@@ -106,7 +93,9 @@ class ArmClient(ArmCommands):
         self.decoder = PacketDecoder()
         self.listeners = ListenerSet()
         self.stats = ClientStats()
-        self.events: deque[ClientEvent] = deque(maxlen=EVENT_HISTORY)
+        self._events = EventHistory(clock, log)
+        #: The latest events (link, watchdog, faults...), oldest first.
+        self.events = self._events.kept
         self.found_devices: tuple[int, ...] = ()
         #: Every device that answered discovery (with a model check: of every known model's
         #: joints and jaws, an arm's that is not this client's model included).
@@ -114,7 +103,6 @@ class ArmClient(ArmCommands):
         #: What each device reported at connect; a reconnect must find the same.
         self.identity: dict[int, DeviceIdentity] = {}
         self.warnings: list[str] = []
-        self._event_callbacks: list[EventCallback] = []
         self._lock = threading.RLock()  # link state and the watchdog change together
         self._write_lock = threading.Lock()
         self._thread: threading.Thread | None = None
@@ -123,7 +111,12 @@ class ArmClient(ArmCommands):
         self.watchdog = Watchdog()
         self._away = ReaderAway()
         self._diagnosis = StreamDiagnosis(
-            transport, self.table, self.watchdog, clock=clock, emit=self._emit, request=self.request
+            transport,
+            self.table,
+            self.watchdog,
+            clock=clock,
+            emit=self._events.emit,
+            request=self.request,
         )
         #: Set by a running `ControlLoop`: how it keeps time, for the watchdog to name.
         self.loop_timing: Callable[[], LoopTiming | None] | None = None
@@ -139,7 +132,7 @@ class ArmClient(ArmCommands):
             clock=clock,
             stop=self._stop,
             stats=self.stats,
-            emit=self._emit,
+            emit=self._events.emit,
             send_internal=lambda frames: self._write(frames, internal=True),
             probe_frame=self._probe_frame,
             on_lost=self._link_lost,
@@ -154,7 +147,7 @@ class ArmClient(ArmCommands):
             identity=self.identity,
             lock=self._lock,
             stop=self._stop,
-            emit=self._emit,
+            emit=self._events.emit,
             send_internal=lambda frames: self._write(frames, internal=True),
             guard=lambda: self.guard,
             safe_frames=self._safe_mode_frames,
@@ -219,22 +212,9 @@ class ArmClient(ArmCommands):
         (DETECT) or confirmed (CONFIRM) before anything but a REQUEST is sent."""
         models = tuple(MODELS.values())
         self.answering = self.discover(devices_to_ask(self.devices, models))
-        url = self.transport.url
-        model = model_answering(self.answering, models)
-        if check is ModelCheck.CONFIRM:
-            problem = model_mismatch(url, self.model, self.answering, models)
-            if problem is not None:
-                raise ArmModelError(
-                    f"{problem}; nothing was sent", None if model is None else model.name
-                )
-        else:
-            if model is None:
-                raise ArmModelError(
-                    f"the devices answering on {url} are no known arm's: "
-                    f"{', '.join(joint_name(d) for d in self.answering)}; nothing was sent"
-                )
-            if model is not self.model:
-                self._use_model(model)
+        model = model_taken(check, self.model, self.answering, models, self.transport.url)
+        if model is not self.model:
+            self._use_model(model)
         self.found_devices = tuple(d for d in self.devices if d in self.answering)
 
     def _use_model(self, model: ArmModel) -> None:
@@ -316,7 +296,7 @@ class ArmClient(ArmCommands):
         return self.faults.blocking()
 
     def on_event(self, callback: EventCallback) -> None:
-        self._event_callbacks.append(callback)
+        self._events.callbacks.append(callback)
 
     def subscribe(self, listener: PacketListener) -> Subscription:
         """Call `listener(packet, arrival_time)` on the reader thread for every packet."""
@@ -331,19 +311,7 @@ class ArmClient(ArmCommands):
     def note_event(self, kind: EventKind, message: str, device: int | None = None) -> None:
         """Report something the caller found (the control loop: implausible feedback) as the
         client's own events are: kept in `events`, logged, passed to the callbacks."""
-        self._emit(kind, message, device)
-
-    def _emit(self, kind: EventKind, message: str, device: int | None = None) -> None:
-        event = ClientEvent(kind, self.clock(), message, device)
-        self.events.append(event)
-        quiet = kind in (EventKind.LINK_UP, EventKind.FAULT_CLEARED)
-        level = logging.INFO if quiet else logging.WARNING
-        log.log(level, "%s: %s", kind.value, message)
-        for callback in list(self._event_callbacks):
-            try:
-                callback(event)
-            except Exception:
-                log.exception("event callback %r failed", callback)
+        self._events.emit(kind, message, device)
 
     # ----------------------------------------------------------------- streaming
 
@@ -362,29 +330,10 @@ class ArmClient(ArmCommands):
         if not 1 <= hz <= 255:
             raise ValueError(f"heartbeat frequency must be 1..255 Hz, got {hz}")
         devs = self.model.joints if devices is None else devices
-        stream = Stream(tuple(int(i) for i in ids), int(hz), tuple(int(d) for d in devs))
-        wire = self.transport.wire_bytes_per_s
-        if wire is not None and not stream.fits(wire):
-            # The arm would queue what the line cannot carry and send it late, shown as fresh
-            # (or drop it): cap the rate to what fits and say so.
-            capped = stream.max_hz(wire)
-            if capped < 1:
-                raise LimitError(
-                    f"the line ({wire:.0f} B/s) cannot carry {len(stream.ids)} ids from "
-                    f"{len(stream.devices)} devices even at 1 Hz ({stream.bytes_per_beat()} B "
-                    "a beat): stream fewer ids or devices"
-                )
-            log.warning(
-                "%d Hz of %d ids from %d devices needs %.0f B/s, more than the line's %.0f: "
-                "streaming at %d Hz",
-                hz,
-                len(stream.ids),
-                len(stream.devices),
-                hz * stream.bytes_per_beat(),
-                wire,
-                capped,
-            )
-            stream = Stream(stream.ids, capped, stream.devices)
+        wanted = Stream(tuple(int(i) for i in ids), int(hz), tuple(int(d) for d in devs))
+        stream, capped = wanted.capped_to(self.transport.wire_bytes_per_s)
+        if capped is not None:
+            log.warning("%s", capped)
         self._stream = stream
         self._write(stream.start_frames())
         return stream.hz
@@ -393,6 +342,12 @@ class ArmClient(ArmCommands):
         stream, self._stream = self._stream, None
         if stream is not None:
             self._write(stream.stop_frames())
+
+    def stream_problem(self) -> str | None:
+        """Why this client's heartbeat stopped arriving, when the arm can tell: over a link
+        other hosts share (UDP), ask a streamed device for its rate (which also takes the
+        stream back). None when not knowable: no stream, a private link, no answer."""
+        return self._diagnosis.problem(self._stream)
 
     # ----------------------------------------------------------------- writing
 
@@ -423,7 +378,7 @@ class ArmClient(ArmCommands):
                     LinkState.CLOSED, f"reader thread crashed: {exc!r}", self.clock()
                 )
             self._waiters.fail_all(lambda: LinkDownError(self.supervisor.down_message()))
-            self._emit(EventKind.LINK_DOWN, f"reader thread crashed: {exc!r}")
+            self._events.emit(EventKind.LINK_DOWN, f"reader thread crashed: {exc!r}")
 
     def _read_loop(self) -> None:
         sched = SchedStat()  # this thread's run-queue time: away for want of a CPU?
@@ -462,7 +417,7 @@ class ArmClient(ArmCommands):
             elif pid == PacketID.HARDWARE_STATUS:
                 event = self.faults.note(packet)
                 if event is not None:
-                    self._emit(*event)
+                    self._events.emit(*event)
         self._diagnosis.offer(packet, self.guard.config)
         self._waiters.offer(packet)
         self.listeners.dispatch(packet, t)
@@ -482,7 +437,7 @@ class ArmClient(ArmCommands):
             return
         self.stats.limits_rejected += 1
         kept = self.guard.present_limit(dev, kind)
-        self._emit(
+        self._events.emit(
             EventKind.LIMITS_REJECTED,
             f"{joint_name(dev)} reported {kind.value} limits {list(value)} ({problem}); "
             f"safety keeps {list(kept) if kept else 'none'}",
@@ -498,21 +453,7 @@ class ArmClient(ArmCommands):
 
     def _watchdog(self, now: float) -> None:
         def feedback_t(dev: int) -> tuple[float | None, str]:
-            # Position always; velocity too while it is streamed to this device (a controller
-            # uses both, and either may stop alone). The stalest is judged, and named.
-            joint = self.table.get(dev)
-            pos = joint.position
-            fed: tuple[float | None, str] = (None if pos is None else pos.t, "position")
-            stream, vel = self._stream, joint.velocity
-            if (
-                stream is not None
-                and PacketID.VELOCITY in stream.ids
-                and dev in stream.devices
-                and vel is not None
-                and (fed[0] is None or vel.t < fed[0])
-            ):
-                fed = (vel.t, "velocity")
-            return fed
+            return stalest_feedback(self.table.get(dev), dev, self._stream)
 
         timing = self.loop_timing
         expired = self.watchdog.expired(
@@ -537,13 +478,7 @@ class ArmClient(ArmCommands):
         except LinkDownError:
             self.watchdog.mark_safe_pending()
             sent = f"could not send {mode.name} (link down): will on reconnect"
-        self._emit(EventKind.WATCHDOG, f"{reason}; {sent}")
-
-    def stream_problem(self) -> str | None:
-        """Why this client's heartbeat stopped arriving, when the arm can tell: over a link
-        other hosts share (UDP), ask a streamed device for its rate (which also takes the
-        stream back). None when not knowable: no stream, a private link, no answer."""
-        return self._diagnosis.problem(self._stream)
+        self._events.emit(EventKind.WATCHDOG, f"{reason}; {sent}")
 
     # ----------------------------------------------------------------- link loss
 

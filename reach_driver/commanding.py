@@ -54,6 +54,28 @@ class ArmCommands(ArmQueries):
         in the CLI uses it."""
         self._write_commands(packets)
 
+    def write_frames(self, frames: Sequence[bytes]) -> float:
+        """Encoded frames, each decoded and passed through the same gate as `send`; returns
+        the write completion time. Joints they arm are armed in the watchdog, but nothing
+        here disarms one (tests use it to fake feedback on loop://)."""
+        packets = []
+        for frame in frames:
+            try:
+                packets.append(decode_packet(frame))
+            except ProtocolError as exc:
+                raise LimitError(
+                    f"refused: a frame that does not decode ({exc}) cannot be checked; "
+                    "write_frames_unchecked() writes it as it is; nothing was sent"
+                ) from None
+        for p in packets:
+            self._gate.check_packet(p)
+        return self._write_commands(packets, disarm=False)
+
+    def write_frames_unchecked(self, frames: Sequence[bytes]) -> float:
+        """Raw frames with no check at all (malformed-frame tests, tools); returns the write
+        completion time. Nothing in the CLI uses it."""
+        return self._write(frames)
+
     def set_mode(self, devices: int | Sequence[int], mode: Mode) -> None:
         devs = [devices] if isinstance(devices, int) else list(devices)
         self.send(*(commands.mode(int(d), mode) for d in devs))
@@ -219,28 +241,6 @@ class ArmCommands(ArmQueries):
     def _safe_mode_frames(self, devices: Sequence[int]) -> list[bytes]:
         mode = self.guard.config.safe_mode
         return [commands.mode(int(d), mode).encode() for d in devices]
-
-    def write_frames(self, frames: Sequence[bytes]) -> float:
-        """Encoded frames, each decoded and passed through the same gate as `send`; returns
-        the write completion time. Joints they arm are armed in the watchdog, but nothing
-        here disarms one (tests use it to fake feedback on loop://)."""
-        packets = []
-        for frame in frames:
-            try:
-                packets.append(decode_packet(frame))
-            except ProtocolError as exc:
-                raise LimitError(
-                    f"refused: a frame that does not decode ({exc}) cannot be checked; "
-                    "write_frames_unchecked() writes it as it is; nothing was sent"
-                ) from None
-        for p in packets:
-            self._gate.check_packet(p)
-        return self._write_commands(packets, disarm=False)
-
-    def write_frames_unchecked(self, frames: Sequence[bytes]) -> float:
-        """Raw frames with no check at all (malformed-frame tests, tools); returns the write
-        completion time. Nothing in the CLI uses it."""
-        return self._write(frames)
 
 
 def _mode_name(mode: Mode | int | None) -> str:
