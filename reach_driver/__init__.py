@@ -7,7 +7,7 @@ with ArmClient(open_transport("/dev/ttyUSB0")) as arm:   # start()s and close()s
 
 from protocol.alpha5 import JAW, JOINTS
 from reach_driver.chatter import ChatterConfig, HoldMode
-from reach_driver.client import ArmClient, ClientStats
+from reach_driver.client import ArmClient
 from reach_driver.control import ControlLoop, Pacing
 from reach_driver.controllers import (
     Controller,
@@ -43,7 +43,7 @@ from reach_driver.errors import (
 )
 from reach_driver.identity import ModelCheck
 from reach_driver.interfaces import open_transport
-from reach_driver.link import ClientEvent, EventKind, LinkConfig, LinkState
+from reach_driver.link import ClientEvent, ClientStats, EventKind, LinkConfig, LinkState
 from reach_driver.listeners import PacketQueue, Subscription
 from reach_driver.records import ControlSummary, LoopTrace, StepRecord, TimingStats
 from reach_driver.safety import LimitKind, SafetyConfig, SafetyGuard

@@ -21,6 +21,7 @@ from enum import Enum
 
 from protocol import DeviceID, Packet, PacketID, ProtocolError, commands
 from protocol.models import ArmModel
+from reach_driver.errors import ArmModelError
 from reach_driver.state import joint_name, packet_value
 
 
@@ -98,6 +99,33 @@ def model_mismatch(
     return f"the arm on {url} is not a {expected.title}: {device_list(answered)} answer, {what}" + (
         f"; the {expected.title}'s {device_list(silent)} do not" if silent else ""
     )
+
+
+def model_taken(
+    check: ModelCheck,
+    expected: ArmModel,
+    found: Collection[int],
+    models: Iterable[ArmModel],
+    url: str,
+) -> ArmModel:
+    """The model `ArmClient.start` takes from the devices `found` answering on `url`: with
+    DETECT the one they are, with CONFIRM `expected` if they are its; else `ArmModelError`
+    (nothing but REQUESTs was sent)."""
+    models = tuple(models)
+    model = model_answering(found, models)
+    if check is ModelCheck.CONFIRM:
+        problem = model_mismatch(url, expected, found, models)
+        if problem is not None:
+            raise ArmModelError(
+                f"{problem}; nothing was sent", None if model is None else model.name
+            )
+        return expected
+    if model is None:
+        raise ArmModelError(
+            f"the devices answering on {url} are no known arm's: "
+            f"{', '.join(joint_name(d) for d in found)}; nothing was sent"
+        )
+    return model
 
 
 #: What identifies a device, and the JointState/DeviceIdentity field each fills.

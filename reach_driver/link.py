@@ -1,8 +1,10 @@
 """Link supervision settings, states, the events the client reports (link, watchdog, faults)
-and its counters."""
+and their history, and its counters."""
 
 from __future__ import annotations
 
+import logging
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
@@ -39,6 +41,32 @@ class ClientEvent:
 
 
 EventCallback = Callable[[ClientEvent], None]
+
+#: How many of its latest events a client keeps (`ArmClient.events`).
+EVENT_HISTORY = 200
+
+
+class EventHistory:
+    """A client's events: the latest kept, each logged (to the client's logger) and passed to
+    every callback; a callback that fails is logged, and the others still get the event."""
+
+    def __init__(self, clock: Callable[[], float], log: logging.Logger) -> None:
+        self.kept: deque[ClientEvent] = deque(maxlen=EVENT_HISTORY)
+        self.callbacks: list[EventCallback] = []
+        self._clock = clock
+        self._log = log
+
+    def emit(self, kind: EventKind, message: str, device: int | None = None) -> None:
+        event = ClientEvent(kind, self._clock(), message, device)
+        self.kept.append(event)
+        quiet = kind in (EventKind.LINK_UP, EventKind.FAULT_CLEARED)
+        level = logging.INFO if quiet else logging.WARNING
+        self._log.log(level, "%s: %s", kind.value, message)
+        for callback in list(self.callbacks):
+            try:
+                callback(event)
+            except Exception:
+                self._log.exception("event callback %r failed", callback)
 
 
 @dataclass(frozen=True)

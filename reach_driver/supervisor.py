@@ -7,7 +7,7 @@ PROBING until the arm answers, and only then UP again (commands resume). If the 
 finds a different arm answering, it sets FAILED: terminal, never reopened.
 
 The supervisor holds the link's state and timers and runs on the reader thread; what losing
-or regaining the link means for commands, requests and the watchdog is the client's.
+or regaining the link means for commands, requests and the watchdog is `recovery`'s.
 """
 
 from __future__ import annotations
