@@ -5,6 +5,7 @@ the config says), with checkpoints that survive the session.
     .venv/bin/python tools/train.py --run runs/scratch-s0 --resume       # continue later
     .venv/bin/python tools/train.py --config ours --run runs/ours-s0 --seed 0   # TD3+BC
     .venv/bin/python tools/train.py --config paper --run runs/paper-s0   # the paper's DDPG
+    .venv/bin/python tools/train.py --arm bravo7 --run runs/bravo-s0     # on the Bravo 7
 
 Writes to the run directory: config.json, train.csv (one row per finished episode: return and
 losses), eval.jsonl (periodic deterministic evaluation), best_actor.npz/.json (best evaluated
@@ -28,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from protocol.extras import script_needs_extra
+from protocol.models import ALPHA5, ArmModelName, model_named
 
 with script_needs_extra("tools/train.py", "train"):
     from policy.campaigns.selection import envelope_results, envelope_summary
@@ -52,6 +54,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "stated, the reward on the norm of the error), paper-per-joint (its reward per "
         "joint), ours and robust (the distilled stack's stages: demonstrations and "
         "behaviour cloning from a privileged expert)",
+    )
+    p.add_argument(
+        "--arm",
+        choices=[m.value for m in ArmModelName],
+        default=None,
+        help="the arm to train on (default alpha5; on --resume, the run's): bravo7 trains its "
+        "six joints G F E D C B with the preset's recipe, its base joint G as the weak one, "
+        "its own workspace, and no envelope arms or parameter perturbation (they perturb "
+        'the Alpha 5\'s parameters; docs/training.md, "Another arm")',
     )
     p.add_argument("--run", type=Path, help="run directory (checkpoints, logs)")
     p.add_argument("--seed", type=int, default=0)
@@ -176,6 +187,12 @@ def evaluate_envelope(args: argparse.Namespace) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    arm = None if args.arm is None else model_named(args.arm)
+    if arm is not None and arm is not ALPHA5 and (args.params or args.evaluate):
+        raise SystemExit(
+            f"--arm {arm.name}: --params and --evaluate are the Alpha 5's (its parameters, "
+            "its evaluation sets)"
+        )
     arm_factory = params_arm_factory(args.params)
     if args.evaluate is not None and args.envelope is not None:
         print(json.dumps(evaluate_envelope(args), indent=1))
@@ -193,7 +210,14 @@ def main(argv: list[str] | None = None) -> int:
         verb = "wrote" if args.ship_as else "shipped"
         print(f"{verb} {ship(run_dir, args.ship_as or LEARNED_WEIGHTS)}")
         return 0
-    start = start_run(run_dir, args.resume, args.config, args.seed, args.steps, args.set)
+    start = start_run(run_dir, args.resume, args.config, args.seed, args.steps, args.set, arm)
+    if not args.resume and arm is not None and arm is not ALPHA5:
+        env = start.config.env
+        print(
+            f"{arm.title}: {arm.n_joints} joints {' '.join(arm.joint_letters)}; envelope "
+            f"arms {env.envelope_fraction:g}, param perturbation {env.param_perturbation:g} "
+            "(the Alpha 5's parameters only)"
+        )
     record_command(run_dir, argv or sys.argv[1:])
     # every command the run was given (the start, then each resume): the actor's provenance
     command = "; ".join((run_dir / COMMANDS).read_text().splitlines())

@@ -34,6 +34,7 @@ from policy.controllers.settle import SettleSupervisor
 from policy.controllers.settle_law import SettleLaw
 from policy.controllers.weights import DISTILLED_WEIGHTS, ActorWeights, provenance_of
 from protocol.alpha5 import N_JOINTS
+from protocol.models import ALPHA5
 from reach_driver.controllers import ControlState, learned
 
 
@@ -75,6 +76,11 @@ class DistilledController:
         integral: ReferenceIntegral | None = None,
         settle: SettleLaw | None = None,
     ) -> None:
+        if weights.model.name != ALPHA5.name:
+            raise ValueError(
+                f"the weights hold an actor for the {weights.model.title}; this controller "
+                f"drives the {ALPHA5.title}"
+            )
         self.weights = weights
         limits = weights.current_limits_mA if current_limits_mA is None else current_limits_mA
         self.current_limits_mA = np.asarray(limits, dtype=np.float64)

@@ -4,6 +4,9 @@ A learned controller only works on inputs distributed like the ones it was train
 environment (`policy.rl.env`) and the deployed controllers (`policy.controllers.ddpg`,
 `policy.controllers.ddpg_distilled`) call `build_observation` (through `InputMemory` when the
 network has memory channels) with the configuration stored beside the weights.
+
+Each group of inputs holds one entry per joint of the arm, in its joint order; the angles are
+normalised by the arm's `Workspace` (`Workspace.of(model)`; the Alpha 5's by default).
 """
 
 from __future__ import annotations
@@ -16,12 +19,17 @@ from typing import Any
 import numpy as np
 
 from protocol.alpha5 import N_JOINTS
+from protocol.models import ALPHA5, ArmModel, ArmModelName
 
-#: Range that random starts and goals are drawn from (rad, E D C B): the evaluation workspace.
+#: Range that random starts and goals are drawn from (rad, E D C B): the Alpha 5's evaluation
+#: workspace, chosen for the paper's evaluation (not derived from its limits).
 WORKSPACE_LOW = np.array([0.4, 0.5, 0.5, 0.5])
 WORKSPACE_HIGH = np.array([5.8, 2.9, 2.9, 2.8])
 WORKSPACE_CENTRE = 0.5 * (WORKSPACE_LOW + WORKSPACE_HIGH)
 WORKSPACE_HALF_RANGE = 0.5 * (WORKSPACE_HIGH - WORKSPACE_LOW)
+#: rad: how far inside its factory envelope an arm without a chosen workspace draws starts and
+#: goals (about the Alpha's own margin: its E and D sit 0.4-0.5 rad inside theirs)
+WORKSPACE_INSET_RAD = 0.4
 
 #: Finite bounds the raw readings are clipped to (gymnasium needs finite observation bounds;
 #: the arm's own angles stay within 0..2pi and its speed within ~1.2 rad/s).
@@ -30,6 +38,58 @@ QDOT_BOUND = 5.0
 #: the window's speeds (over `qdot_scale`) are clipped to this: a reading past twice the
 #: no-load speed is noise or a glitch, not information about the arm
 WINDOW_SPEED_BOUND = 2.0
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """Per joint (the arm's joint order), the range starts and goals are drawn from: the
+    evaluation workspace. Its centre and half-range normalise the angle inputs and scale the
+    shaped reward's distance; its size is the arm's joint count."""
+
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        low = tuple(float(v) for v in self.low)
+        high = tuple(float(v) for v in self.high)
+        if not low or len(low) != len(high):
+            raise ValueError(f"workspace needs one (low, high) per joint, got {low} .. {high}")
+        if not all(math.isfinite(v) for v in (*low, *high)) or any(
+            lo >= hi for lo, hi in zip(low, high, strict=True)
+        ):
+            raise ValueError(f"workspace must be finite ranges low < high, got {low} .. {high}")
+        object.__setattr__(self, "low", low)
+        object.__setattr__(self, "high", high)
+
+    @classmethod
+    def of(cls, model: ArmModel) -> Workspace:
+        """`model`'s workspace: the Alpha 5's chosen one, or the factory envelope of any other
+        arm inset by `WORKSPACE_INSET_RAD` per side."""
+        if model.name in CHOSEN_WORKSPACES:
+            return CHOSEN_WORKSPACES[model.name]
+        ranges = [model.position_limits[d] for d in model.joints]
+        return cls(
+            tuple(lo + WORKSPACE_INSET_RAD for lo, _ in ranges),
+            tuple(hi - WORKSPACE_INSET_RAD for _, hi in ranges),
+        )
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.low)
+
+    @property
+    def centre(self) -> np.ndarray:
+        return 0.5 * (np.asarray(self.low) + np.asarray(self.high))
+
+    @property
+    def half_range(self) -> np.ndarray:
+        return 0.5 * (np.asarray(self.high) - np.asarray(self.low))
+
+
+#: the Alpha 5's evaluation workspace (`WORKSPACE_LOW` .. `WORKSPACE_HIGH`)
+ALPHA5_WORKSPACE = Workspace(tuple(WORKSPACE_LOW), tuple(WORKSPACE_HIGH))
+#: workspaces chosen rather than derived from the factory envelope, by model name
+CHOSEN_WORKSPACES: dict[str, Workspace] = {ArmModelName.ALPHA5.value: ALPHA5_WORKSPACE}
 
 
 @dataclass(frozen=True)
@@ -98,11 +158,16 @@ class ObservationConfig:
 
     @property
     def size(self) -> int:
-        return (self.stateless_groups + self.memory_groups) * N_JOINTS
+        """Inputs for the Alpha 5's four joints; `size_for` any arm's."""
+        return self.size_for(N_JOINTS)
+
+    def size_for(self, n_joints: int) -> int:
+        """Inputs for an arm of `n_joints` joints: one per joint in each group."""
+        return (self.stateless_groups + self.memory_groups) * n_joints
 
     @property
     def stateless_groups(self) -> int:
-        """Groups of 4 built from one reading and the target alone."""
+        """Groups (one entry per joint) built from one reading and the target alone."""
         n = 3
         if self.include_error:
             n += 1
@@ -112,8 +177,8 @@ class ObservationConfig:
 
     @property
     def memory_groups(self) -> int:
-        """Groups of 4 that carry the past (`InputMemory`): previous action, error integral,
-        and two per period of the window (speed, action)."""
+        """Groups (one entry per joint) that carry the past (`InputMemory`): previous action,
+        error integral, and two per period of the window (speed, action)."""
         return int(self.previous_action) + int(self.integral_tau > 0) + 2 * self.history
 
     @property
@@ -134,13 +199,15 @@ class ObservationConfig:
 
 
 @lru_cache(maxsize=16)
-def _affine(config: ObservationConfig) -> tuple[np.ndarray, np.ndarray]:
+def _affine(config: ObservationConfig, workspace: Workspace) -> tuple[np.ndarray, np.ndarray]:
     """(offset, scale) applied to [q, qdot, q_req, e(, e)] before the fine channel's tanh."""
-    zeros, ones = np.zeros(N_JOINTS), np.ones(N_JOINTS)
+    n = workspace.n_joints
+    zeros, ones = np.zeros(n), np.ones(n)
+    centre, half_range = workspace.centre, workspace.half_range
     if config.normalise:
-        offsets = [WORKSPACE_CENTRE, zeros, WORKSPACE_CENTRE]
-        scales = [1 / WORKSPACE_HALF_RANGE, ones / config.qdot_scale, 1 / WORKSPACE_HALF_RANGE]
-        err_scale = 1 / WORKSPACE_HALF_RANGE
+        offsets = [centre, zeros, centre]
+        scales = [1 / half_range, ones / config.qdot_scale, 1 / half_range]
+        err_scale = 1 / half_range
     else:
         offsets, scales, err_scale = [zeros, zeros, zeros], [ones, ones, ones], ones
     if config.include_error:
@@ -155,17 +222,21 @@ def _affine(config: ObservationConfig) -> tuple[np.ndarray, np.ndarray]:
     return offset, scale
 
 
-def checked_inputs(q: Any, qdot: Any, target: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A learned controller's reading and target as float arrays, or a ValueError saying what
-    is wrong: a network fed NaN or a wrong shape answers with nonsense, not an error."""
+def checked_inputs(
+    q: Any, qdot: Any, target: Any, model: ArmModel = ALPHA5
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A learned controller's reading and target (for an arm of `model`) as float arrays, or
+    a ValueError saying what is wrong: a network fed NaN or a wrong shape answers with
+    nonsense, not an error."""
+    n, order = model.n_joints, " ".join(model.joint_letters)
     target = np.asarray(target, dtype=np.float64)
-    if target.shape != (N_JOINTS,) or not np.all(np.isfinite(target)):
-        raise ValueError(f"target must be 4 finite angles (rad, E D C B), got {target!r}")
+    if target.shape != (n,) or not np.all(np.isfinite(target)):
+        raise ValueError(f"target must be {n} finite angles (rad, {order}), got {target!r}")
     q = np.asarray(q, dtype=np.float64)
     qdot = np.asarray(qdot, dtype=np.float64)
-    if q.shape != (N_JOINTS,) or qdot.shape != (N_JOINTS,):
+    if q.shape != (n,) or qdot.shape != (n,):
         raise ValueError(
-            f"state.q and state.qdot must have shape (4,), got {q.shape}, {qdot.shape}"
+            f"state.q and state.qdot must have shape ({n},), got {q.shape}, {qdot.shape}"
         )
     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qdot))):
         raise ValueError(f"state must be finite, got q={q}, qdot={qdot}")
@@ -178,36 +249,40 @@ def build_observation(
     q_req: np.ndarray,
     config: ObservationConfig,
     memory: InputMemory | None = None,
+    workspace: Workspace = ALPHA5_WORKSPACE,
 ) -> np.ndarray:
-    """Observation (float32) from joint angles, speeds and the requested angles, E D C B,
-    followed by the memory channels (`memory`'s, required when the config has them).
+    """Observation (float32) from joint angles, speeds and the requested angles (the arm's
+    joint order, one entry per joint of `workspace`), followed by the memory channels
+    (`memory`'s, required when the config has them).
 
     Runs every control period, so it is a handful of numpy calls on one small buffer.
     """
     q = np.asarray(q, dtype=np.float64)
     qdot = np.asarray(qdot, dtype=np.float64)
     q_req = np.asarray(q_req, dtype=np.float64)
-    if q.shape != (N_JOINTS,) or qdot.shape != (N_JOINTS,) or q_req.shape != (N_JOINTS,):
+    n = workspace.n_joints
+    if q.shape != (n,) or qdot.shape != (n,) or q_req.shape != (n,):
         raise ValueError(
-            f"q, qdot and q_req must each have shape (4,), got {q.shape}, {qdot.shape}, "
+            f"q, qdot and q_req must each have shape ({n},), got {q.shape}, {qdot.shape}, "
             f"{q_req.shape}"
         )
-    offset, scale = _affine(config)
+    offset, scale = _affine(config, workspace)
     x = np.empty(offset.size)
-    x[0:4] = q
-    x[4:8] = qdot
-    x[8:12] = q_req
-    np.clip(x[0:4], Q_BOUNDS[0], Q_BOUNDS[1], out=x[0:4])
-    np.clip(x[4:8], -QDOT_BOUND, QDOT_BOUND, out=x[4:8])
-    np.clip(x[8:12], Q_BOUNDS[0], Q_BOUNDS[1], out=x[8:12])
+    q_, v_, r_, e_, f_ = (slice(k * n, (k + 1) * n) for k in range(5))
+    x[q_] = q
+    x[v_] = qdot
+    x[r_] = q_req
+    np.clip(x[q_], Q_BOUNDS[0], Q_BOUNDS[1], out=x[q_])
+    np.clip(x[v_], -QDOT_BOUND, QDOT_BOUND, out=x[v_])
+    np.clip(x[r_], Q_BOUNDS[0], Q_BOUNDS[1], out=x[r_])
     if config.include_error:
-        np.subtract(x[8:12], x[0:4], out=x[12:16])
-        if offset.size > 16:
-            x[16:20] = x[12:16]
+        np.subtract(x[r_], x[q_], out=x[e_])
+        if offset.size > 4 * n:
+            x[f_] = x[e_]
     x -= offset
     x *= scale
-    if offset.size > 16:
-        np.tanh(x[16:20], out=x[16:20])
+    if offset.size > 4 * n:
+        np.tanh(x[f_], out=x[f_])
     if not config.has_memory:
         return x.astype(np.float32)
     if memory is None:
@@ -228,20 +303,24 @@ class InputMemory:
     The window (`history`) shifts in the speed read and the action taken each period.
     """
 
-    def __init__(self, config: ObservationConfig, dt: float) -> None:
+    def __init__(
+        self, config: ObservationConfig, dt: float, workspace: Workspace = ALPHA5_WORKSPACE
+    ) -> None:
         if not dt > 0:
             raise ValueError(f"control period must be > 0, got {dt}")
         self.config = config
         self.dt = float(dt)
+        self.workspace = workspace
         self.leak = float(np.exp(-dt / config.integral_tau)) if config.integral_tau > 0 else 0.0
         self.reset()
 
     def reset(self) -> None:
-        self.prev_action = np.zeros(N_JOINTS)
-        self.integral = np.zeros(N_JOINTS)
+        n = self.workspace.n_joints
+        self.prev_action = np.zeros(n)
+        self.integral = np.zeros(n)
         #: the window, newest first: row k is (speed read, action taken) k + 1 periods ago
-        self.window = np.zeros((self.config.history, 2 * N_JOINTS))
-        self._speed = np.zeros(N_JOINTS)  # this period's speed reading, until `acted`
+        self.window = np.zeros((self.config.history, 2 * n))
+        self._speed = np.zeros(n)  # this period's speed reading, until `acted`
 
     def observe(self, q: np.ndarray, qdot: np.ndarray, q_req: np.ndarray) -> np.ndarray:
         if self.config.integral_tau > 0:
@@ -250,14 +329,15 @@ class InputMemory:
         if self.config.history:
             speed = np.asarray(qdot, dtype=np.float64) / self.config.qdot_scale
             self._speed = np.clip(speed, -WINDOW_SPEED_BOUND, WINDOW_SPEED_BOUND)
-        return build_observation(q, qdot, q_req, self.config, self)
+        return build_observation(q, qdot, q_req, self.config, self, self.workspace)
 
     def acted(self, action: np.ndarray) -> None:
         self.prev_action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
         if self.config.history:
+            n = self.workspace.n_joints
             self.window[1:] = self.window[:-1]
-            self.window[0, :N_JOINTS] = self._speed
-            self.window[0, N_JOINTS:] = self.prev_action
+            self.window[0, :n] = self._speed
+            self.window[0, n:] = self.prev_action
 
     def channels(self) -> np.ndarray:
         parts = []
@@ -270,33 +350,38 @@ class InputMemory:
         return np.concatenate(parts) if parts else np.zeros(0)
 
 
-def observation_bounds(config: ObservationConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Finite (low, high) that every `build_observation` output lies within."""
-    q_lo = np.full(N_JOINTS, Q_BOUNDS[0])
-    q_hi = np.full(N_JOINTS, Q_BOUNDS[1])
-    v = np.full(N_JOINTS, QDOT_BOUND)
+def observation_bounds(
+    config: ObservationConfig, workspace: Workspace = ALPHA5_WORKSPACE
+) -> tuple[np.ndarray, np.ndarray]:
+    """Finite (low, high) that every `build_observation` output (for `workspace`'s arm) lies
+    within."""
+    n = workspace.n_joints
+    centre, half_range = workspace.centre, workspace.half_range
+    q_lo = np.full(n, Q_BOUNDS[0])
+    q_hi = np.full(n, Q_BOUNDS[1])
+    v = np.full(n, QDOT_BOUND)
     e_hi = q_hi - q_lo
     if config.normalise:
         q_lo, q_hi = (
-            (q_lo - WORKSPACE_CENTRE) / WORKSPACE_HALF_RANGE,
-            (q_hi - WORKSPACE_CENTRE) / WORKSPACE_HALF_RANGE,
+            (q_lo - centre) / half_range,
+            (q_hi - centre) / half_range,
         )
         v = v / config.qdot_scale
-        e_hi = e_hi / WORKSPACE_HALF_RANGE
+        e_hi = e_hi / half_range
     lows = [q_lo, -v, q_lo]
     highs = [q_hi, v, q_hi]
     if config.include_error:
         lows.append(-e_hi)
         highs.append(e_hi)
         if config.fine_error_scale > 0:
-            lows.append(-np.ones(N_JOINTS))
-            highs.append(np.ones(N_JOINTS))
+            lows.append(-np.ones(n))
+            highs.append(np.ones(n))
     for _ in range(int(config.previous_action) + int(config.integral_tau > 0)):  # in [-1, 1]
-        lows.append(-np.ones(N_JOINTS))
-        highs.append(np.ones(N_JOINTS))
+        lows.append(-np.ones(n))
+        highs.append(np.ones(n))
     for _ in range(config.history):  # a speed (clipped), then an action in [-1, 1]
-        lows += [np.full(N_JOINTS, -WINDOW_SPEED_BOUND), -np.ones(N_JOINTS)]
-        highs += [np.full(N_JOINTS, WINDOW_SPEED_BOUND), np.ones(N_JOINTS)]
+        lows += [np.full(n, -WINDOW_SPEED_BOUND), -np.ones(n)]
+        highs += [np.full(n, WINDOW_SPEED_BOUND), np.ones(n)]
     low = np.concatenate(lows).astype(np.float32)
     high = np.concatenate(highs).astype(np.float32)
     return low, high

@@ -2,7 +2,9 @@
 
 A pair of files: `NAME.npz` holds the dense layers as float64 arrays W0 b0 W1 b1 W2 b2 (W: out x
 in, torch's layout), `NAME.json` beside it what the controller needs to rebuild the inputs and
-outputs (observation config, current limits, activation) plus the run's config and, under
+outputs (the arm it drives, "arm": a `protocol.models` name, absent in files written before
+it was recorded and then the Alpha 5; observation config, current limits, activation) plus
+the run's config and, under
 "provenance", how the actor was trained (`Provenance`: algorithm, demonstrations, teacher,
 env steps, wall time, seed, command, and every training stage it descends from).
 
@@ -24,8 +26,8 @@ from typing import Any
 import numpy as np
 
 from policy.controllers.observation import ObservationConfig
-from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, N_JOINTS
 from protocol.files import MAX_WEIGHTS_BYTES, read_bounded, read_json
+from protocol.models import ALPHA5, ArmModel, model_named
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DISTILLED_WEIGHTS = WEIGHTS_DIR / "ddpg_distilled_actor.npz"
@@ -189,7 +191,8 @@ def provenance_of(weights: Path, around: str) -> Callable[[], dict[str, Any]]:
 
 @dataclass(frozen=True)
 class ActorWeights:
-    """Dense layers (W: out x in, b) with LeakyReLU between them and tanh at the end."""
+    """Dense layers (W: out x in, b) with LeakyReLU between them and tanh at the end: an actor
+    for an arm of `model` (one output per joint)."""
 
     weights: tuple[np.ndarray, ...]
     biases: tuple[np.ndarray, ...]
@@ -197,6 +200,7 @@ class ActorWeights:
     observation: ObservationConfig
     current_limits_mA: np.ndarray
     metadata: dict[str, Any]
+    model: ArmModel = ALPHA5
 
     @classmethod
     def load(cls, path: str | Path) -> ActorWeights:
@@ -220,25 +224,29 @@ class ActorWeights:
         if "observation" not in meta:
             raise ValueError(f"{meta_path}: no observation config (key 'observation')")
         try:
+            model = model_named(str(meta.get("arm", ALPHA5.name)))  # absent: the Alpha 5
             observation = ObservationConfig.from_dict(meta["observation"])
-            limits = np.asarray(meta.get("current_limits_mA", DEFAULT_CURRENT_LIMITS_MA), float)
+            limits = np.asarray(meta.get("current_limits_mA", model.current_limits_mA), float)
             slope = _number(meta.get("leaky_relu_slope", LEAKY_RELU_SLOPE), "leaky_relu_slope")
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{meta_path}: {exc}") from None
-        if limits.shape != (N_JOINTS,) or not np.all(np.isfinite(limits)) or np.any(limits < 0):
-            raise ValueError(f"{meta_path}: current_limits_mA needs {N_JOINTS} finite values >= 0")
-        if weights[0].shape[1] != observation.size or weights[-1].shape[0] != N_JOINTS:
+        n, size = model.n_joints, observation.size_for(model.n_joints)
+        if limits.shape != (n,) or not np.all(np.isfinite(limits)) or np.any(limits < 0):
+            raise ValueError(
+                f"{meta_path}: current_limits_mA needs {n} finite values >= 0 ({model.title})"
+            )
+        if weights[0].shape[1] != size or weights[-1].shape[0] != n:
             raise ValueError(
                 f"{path}: network maps {weights[0].shape[1]} -> {weights[-1].shape[0]}, "
-                f"the observation config needs {observation.size} -> {N_JOINTS}"
+                f"the observation config needs {size} -> {n} ({model.title})"
             )
         try:
-            actor = cls(weights, biases, slope, observation, limits, meta)
+            actor = cls(weights, biases, slope, observation, limits, meta, model)
             _ = actor.control_hz, actor.provenance  # what the controller and `controllers` read
-            out = actor.forward(np.zeros(observation.size))
+            out = actor.forward(np.zeros(size))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise ValueError(f"{meta_path}: {type(exc).__name__}: {exc}") from None
-        if out.shape != (N_JOINTS,) or not np.all(np.isfinite(out)):
+        if out.shape != (n,) or not np.all(np.isfinite(out)):
             raise ValueError(f"{path}: the network's output at rest is not finite")
         return actor
 

@@ -17,11 +17,10 @@ import numpy as np
 
 from policy.rl.env import EnvConfig, ReachAlphaEnv
 from policy.tasks.episodes import Episode, EpisodeResult, score
-from protocol.alpha5 import N_JOINTS
 from reach_driver.metrics import Trace, summarize
 
 Expert = Callable[[ReachAlphaEnv], np.ndarray]
-"""A privileged controller: an action in [-1, 1]^4 from the env's true state."""
+"""A privileged controller: an action in [-1, 1]^n (n joints) from the env's true state."""
 
 #: checkpoint score: penalty per unit of RMSE / floor above 1, per % of overshoot and per rad
 #: of steady-state error (reaching counts 1 per episode fraction)
@@ -34,7 +33,7 @@ FLOOR_EPS = 1e-9  # rad: a zero step has a zero floor
 def eval_envs(
     env_config: EnvConfig,
     episodes: int,
-    torque_scale: tuple[float, float, float, float] | None = None,
+    torque_scale: tuple[float, ...] | None = None,
     arm_factory: Any = None,
     param_perturbation: float = 0.0,
     training_workspace: bool = False,
@@ -53,7 +52,7 @@ def eval_envs(
         workspace_low=env_config.workspace_low if training_workspace else None,
         workspace_high=env_config.workspace_high if training_workspace else None,
         param_perturbation=param_perturbation,
-        torque_scale=torque_scale or (1.0, 1.0, 1.0, 1.0),
+        torque_scale=torque_scale or (1.0,) * env_config.model.n_joints,
         envelope_fraction=1.0 if envelope else 0.0,
         goal_every_s=None,
     )
@@ -130,7 +129,8 @@ def run_batch(
     n_envs = len(envs)
     obs = np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(envs)])
     steps = envs[0].config.steps_per_episode
-    q = np.zeros((steps + 1, n_envs, N_JOINTS))
+    n_joints = envs[0].n_joints
+    q = np.zeros((steps + 1, n_envs, n_joints))
     qdot = np.zeros_like(q)
     tau = np.zeros_like(q)
     power = np.zeros_like(q)
@@ -147,7 +147,7 @@ def run_batch(
         q[k] = np.stack([env.arm.q for env in envs])
         qdot[k] = np.stack([env.arm.qdot for env in envs])
         tau[k] = np.stack([env.arm.tau for env in envs])
-        power[k] = np.stack([s[4].get("power", np.zeros(N_JOINTS)) for s in stepped])
+        power[k] = np.stack([s[4].get("power", np.zeros(n_joints)) for s in stepped])
         actions_taken[k] = np.stack([env.prev_action for env in envs])
     dt = envs[0].control_dt
     results = []
@@ -165,7 +165,7 @@ def evaluate_batched(
     env_config: EnvConfig,
     episodes: int = 20,
     seed: int = 10_000,
-    torque_scale: tuple[float, float, float, float] | None = None,
+    torque_scale: tuple[float, ...] | None = None,
     arm_factory: Any = None,
     expert: Expert | None = None,
     envs: list[ReachAlphaEnv] | None = None,

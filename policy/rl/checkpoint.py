@@ -26,7 +26,6 @@ from policy.controllers.weights import (
 )
 from policy.rl.config import DDPGConfig
 from policy.rl.networks import Actor
-from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA
 
 
 def actor_arrays(actor: Actor) -> dict[str, np.ndarray]:
@@ -116,11 +115,13 @@ def save_actor_npz(
     provenance."""
     path = Path(path)
     arrays: dict[str, Any] = dict(actor_arrays(actor))
+    model = config.env.model
     meta = {
         "format": FORMAT,
+        "arm": model.name,
         "layers": LAYERS,
         "leaky_relu_slope": LEAKY_RELU_SLOPE,
-        "current_limits_mA": list(DEFAULT_CURRENT_LIMITS_MA),
+        "current_limits_mA": list(model.current_limits_mA),
         "observation": config.env.observation.to_dict(),
         "env": config.env.to_dict(),
         "config": config.to_dict(),

@@ -26,7 +26,6 @@ from policy.rl.config import ENV_SEED_STRIDE, STEP_SEED_FACTOR, DDPGConfig
 from policy.rl.env import ReachAlphaEnv, time_limited
 from policy.rl.exploration import OUNoise
 from policy.rl.relabel import GoalRelabeller, Relabelled
-from protocol.alpha5 import DEFAULT_CURRENT_LIMITS_MA, N_JOINTS
 
 #: the thread-count variables of the BLAS libraries numpy may use, set to 1 for the child
 BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -55,11 +54,12 @@ class EnvWorker:
         self.config = config
         self.envs = [ReachAlphaEnv(config.env) for _ in range(config.num_envs)]
         self.timed = [time_limited(env) for env in self.envs]
+        self.model = config.env.model
         #: the child's own stream (exploration, warm-up actions), seeded from the run's seed
         #: and the step it starts at, so a resumed run does not replay the same noise
         self.rng = np.random.default_rng([config.seed, 1, from_step])
         self.noise = OUNoise(
-            (config.num_envs, N_JOINTS), config.ou_theta, config.ou_sigma, self.rng
+            (config.num_envs, self.model.n_joints), config.ou_theta, config.ou_sigma, self.rng
         )
         seed = config.seed * ENV_SEED_STRIDE + STEP_SEED_FACTOR * from_step
         self.obs = np.stack([t.reset(seed=seed + i)[0] for i, t in enumerate(self.timed)])
@@ -79,8 +79,9 @@ class EnvWorker:
             tuple(arrays[1::2]),
             LEAKY_RELU_SLOPE,
             observation,
-            np.asarray(DEFAULT_CURRENT_LIMITS_MA, dtype=np.float64),
+            np.asarray(self.model.current_limits_mA, dtype=np.float64),
             {"layers": LAYERS},
+            self.model,
         )
 
     def round(self, epsilon: float, uniform: bool) -> Round:
@@ -88,7 +89,7 @@ class EnvWorker:
         or the actor's plus `epsilon` times OU noise, clipped to [-1, 1]."""
         n = self.config.num_envs
         if uniform:
-            actions = self.rng.uniform(-1, 1, size=(n, N_JOINTS))
+            actions = self.rng.uniform(-1, 1, size=(n, self.model.n_joints))
         else:
             if self.actor is None:
                 raise RuntimeError("the collector has no actor yet")

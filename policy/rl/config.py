@@ -15,6 +15,7 @@ from typing import Any
 
 from policy.controllers.observation import ObservationConfig
 from policy.rl.env import EnvConfig, RewardConfig, RewardMode
+from protocol.models import ArmModel
 
 #: seeds: env i's first episode `seed * ENV_SEED_STRIDE + i + STEP_SEED_FACTOR * env_steps`;
 #: demonstration episode k `seed * ENV_SEED_STRIDE + DEMO_SEED_OFFSET + k`
@@ -34,6 +35,14 @@ SIDE_OVERSHOOT_WEIGHT = 0.005
 #: rest, docs/metrics.md) x this, minus overshoot (%) x SIDE_OVERSHOOT_WEIGHT: reaching every
 #: envelope arm outweighs the nominal set's finer differences
 ENVELOPE_REACHED_WEIGHT = 2.0
+
+
+def weak_eval_torque_scale(n_joints: int) -> tuple[float, ...]:
+    """The weak checkpoint set's torque scales on an arm of `n_joints`: its base joint at 25 %
+    as `WEAK_EVAL_TORQUE_SCALE` has the Alpha's E, the others at full torque."""
+    return (WEAK_EVAL_TORQUE_SCALE[0],) + (1.0,) * (n_joints - 1)
+
+
 #: rad: the curriculum's widest step (E's workspace span, 5.8 - 0.4)
 CURRICULUM_MAX_STEP = 5.4
 
@@ -311,6 +320,25 @@ class DDPGConfig:
             eval_envelope_episodes=20,
         )
         return dataclasses.replace(base, **overrides)
+
+    def on(self, model: ArmModel) -> DDPGConfig:
+        """This run's config for an arm of `model` (itself on its own arm): the env's as
+        `EnvConfig.on` makes it (envelope arms and parameter perturbation off on an arm whose
+        twin takes no parameters), and then no envelope checkpoint set either. The PD
+        demonstrator and a starting actor are an Alpha 5's: a config with them is refused."""
+        from reach_sim_bridge.model.arms import takes_params
+
+        env = self.env.on(model)
+        if env is self.env:
+            return self
+        if self.demo_episodes or self.bc_weight or self.init_actor is not None:
+            raise ValueError(
+                f"config {self.name!r} learns from the Alpha 5's PD demonstrator or starts from "
+                f"an Alpha 5 actor: not for the {model.title} (use scratch, paper or "
+                "paper-per-joint)"
+            )
+        envelope = self.eval_envelope_episodes if takes_params(model) else 0
+        return dataclasses.replace(self, env=env, eval_envelope_episodes=envelope)
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> DDPGConfig:

@@ -1,8 +1,9 @@
-"""Gymnasium environment `ReachAlpha-v0`: the four joints E D C B of the MuJoCo Alpha 5.
+"""Gymnasium environment `ReachAlpha-v0`: the rotary joints of a MuJoCo Reach arm, the four
+E D C B of the Alpha 5 by default, or the six G F E D C B of the Bravo 7 (`EnvConfig.arm`).
 
-The env steps `reach_sim_bridge.model.arm.Alpha5Arm` directly (the same arm and motor model the
-virtual arm serves on the wire), so a policy trained here meets the same physics in the loop.
-`ReachAlphaEnv`'s docstring describes the spaces, rewards and episodes.
+The env steps the arm's twin (`reach_sim_bridge.model.arms.arm_twin`: the same arm and motor
+model the virtual arm serves on the wire) directly, so a policy trained here meets the same
+physics in the loop. `ReachAlphaEnv`'s docstring describes the spaces, rewards and episodes.
 
 Gymnasium 1.x has no plugin entry points any more, so importing this module registers the env;
 `gym.make("policy.rl.env:ReachAlpha-v0")` imports and registers in one go. As for Gymnasium's own
@@ -25,17 +26,16 @@ from gymnasium.wrappers import TimeLimit
 
 from policy.controllers.observation import (
     WORKSPACE_HALF_RANGE,
-    WORKSPACE_HIGH,
-    WORKSPACE_LOW,
     InputMemory,
     ObservationConfig,
+    Workspace,
     observation_bounds,
 )
 from policy.tasks.arm import ArmLike
 from policy.tasks.envelope import Envelope, Variant, draws
-from protocol.alpha5 import N_JOINTS
+from protocol.models import ALPHA5, ArmModel, ArmModelName, model_named
 from reach_driver.metrics import OVERSHOOT_MIN_STEP_RAD
-from reach_sim_bridge.model.motor import no_load_speed
+from reach_sim_bridge.model.motor import MotorParams, no_load_speed
 from reach_sim_bridge.model.sensors import SensorNoise
 
 ENV_ID = "ReachAlpha-v0"
@@ -43,6 +43,26 @@ ENV_ID = "ReachAlpha-v0"
 NO_LOAD_SPEEDS = np.asarray(no_load_speed(), dtype=np.float64)
 #: what `EnvConfig.sensor_noise` switches on (the sim's one noise, Table I's sigmas)
 SENSOR_NOISE = SensorNoise()
+
+
+@dataclass(frozen=True)
+class ArmScales:
+    """An arm's per-joint scales in the shaped reward: the half-range of its evaluation
+    workspace (distance, potential) and its motors' no-load speed (velocity, away)."""
+
+    half_range: np.ndarray
+    no_load_speed: np.ndarray
+
+    @classmethod
+    def of(cls, model: ArmModel) -> ArmScales:
+        """From the model: `Workspace.of(model)`, and the no-load speed of its motors at its
+        nominal supply."""
+        speed = no_load_speed(MotorParams.of(model.motors), model.nominal_supply_v)
+        return cls(Workspace.of(model).half_range, np.asarray(speed, dtype=np.float64))
+
+
+#: the Alpha 5's (`reward_terms` uses them unless given an arm's)
+ALPHA5_SCALES = ArmScales(WORKSPACE_HALF_RANGE, NO_LOAD_SPEEDS)
 
 
 class RewardMode(str, Enum):
@@ -103,6 +123,9 @@ class EnvConfig:
 
     control_hz: 20 Hz by default: the paper does not state its rate, but its mean integral
     error (58.27 over 20 random 20 s episodes) is the size of |e| summed per step at ~20 Hz.
+
+    Per-joint tuples are in `arm`'s joint order, one value per joint; `on(model)` gives this
+    config for another arm.
     """
 
     control_hz: float = 20.0
@@ -112,17 +135,18 @@ class EnvConfig:
     reward: RewardConfig = field(default_factory=RewardConfig)
     bounds_margin: float = 0.3  # rad outside the workspace before a step counts as out of bounds
     sensor_noise: bool = False  # sigma 0.002 rad on q, 0.02 rad/s on qdot
-    torque_scale: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+    torque_scale: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)
     #: if set, each episode draws each joint's torque scale uniformly in [low, torque_scale]
-    torque_scale_low: tuple[float, float, float, float] | None = None
-    #: relative perturbation of the model parameters per episode (0.1 = +-10 %), 0 disables
+    torque_scale_low: tuple[float, ...] | None = None
+    #: relative perturbation of the model parameters per episode (0.1 = +-10 %), 0 disables;
+    #: an arm whose twin takes parameters only (the Alpha 5's `ArmParams`)
     param_perturbation: float = 0.0
     #: starts and goals at most this far apart per joint (rad); None = whole workspace
     max_step: float | None = None
     #: draw starts and goals (and put the bounds around) this range instead of the evaluation
     #: workspace, e.g. B over most of its turn for the paper's scenarios (B up to 5.65 rad)
-    workspace_low: tuple[float, float, float, float] | None = None
-    workspace_high: tuple[float, float, float, float] | None = None
+    workspace_low: tuple[float, ...] | None = None
+    workspace_high: tuple[float, ...] | None = None
     #: control latency in control periods: the action computed from the state at t takes
     #: effect at t + latency, rounded to physics steps (the previous one stays in force until
     #: then), as `policy.campaigns.direct` emulates `RunConfig.latency_periods`
@@ -133,15 +157,27 @@ class EnvConfig:
     #: (`policy.tasks.envelope.draws`, its default ranges around the nominal arm): parameters, weak
     #: joint's torque scale, noise multiple and latency all come from the draw and replace
     #: `param_perturbation`, `torque_scale(_low)`, `noise_scale` and `latency_periods` for
-    #: that episode; 0 disables, 1 trains on envelope arms only
+    #: that episode; 0 disables, 1 trains on envelope arms only. The Alpha 5 only: the
+    #: envelope is drawn around its `ArmParams`
     envelope_fraction: float = 0.0
     #: draw a new goal every this many seconds within the episode (from where the arm is,
     #: as the first goal is drawn from the start; the memory channels run on, as they do at
     #: run time when a target sequence moves on), so an episode holds several arrivals
     #: instead of one; None: one goal per episode (evaluation always uses one)
     goal_every_s: float | None = None
+    #: the arm (`protocol.models`): its twin, joints, workspace, limits and motors
+    arm: ArmModelName = ArmModelName.ALPHA5
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "arm", ArmModelName(model_named(self.arm).name))
+        n, letters = self.model.n_joints, " ".join(self.model.joint_letters)
+        for key in ("torque_scale", "torque_scale_low", "workspace_low", "workspace_high"):
+            value = getattr(self, key)
+            if value is not None and len(value) != n:
+                raise ValueError(
+                    f"{key} needs {n} values ({letters}) for the {self.model.title}, got "
+                    f"{value} (EnvConfig.on(model) fits a config to an arm)"
+                )
         if self.goal_every_s is not None and not self.goal_every_s > 0:
             raise ValueError(f"goal_every_s must be > 0 or None, got {self.goal_every_s}")
         if not 0.0 <= self.envelope_fraction <= 1.0:
@@ -151,12 +187,43 @@ class EnvConfig:
         if not self.noise_scale >= 0.0:
             raise ValueError(f"noise_scale must be >= 0, got {self.noise_scale}")
 
+    @property
+    def model(self) -> ArmModel:
+        """The arm's model (`arm`)."""
+        return model_named(self.arm)
+
+    def on(self, model: ArmModel) -> EnvConfig:
+        """This config for an arm of `model` (itself if it is that arm's already): the
+        per-joint fields written for another arm's joints become `model`'s: full torque
+        (`torque_scale_low`: the base joint's range kept, the others at full torque), the
+        arm's own workspace. Envelope arms and parameter perturbation are switched off for an
+        arm whose twin takes no parameters (`reach_sim_bridge.model.arms.takes_params`)."""
+        from reach_sim_bridge.model.arms import takes_params
+
+        if model.name == self.arm.value:
+            return self
+        n = model.n_joints
+        low = self.torque_scale_low
+        fields: dict[str, Any] = {
+            "arm": ArmModelName(model.name),
+            "torque_scale": (1.0,) * n,
+            "torque_scale_low": None if low is None else (low[0],) + (1.0,) * (n - 1),
+            "workspace_low": None,
+            "workspace_high": None,
+        }
+        if not takes_params(model):
+            fields.update(param_perturbation=0.0, envelope_fraction=0.0)
+        return dataclasses.replace(self, **fields)
+
     def workspace(self) -> tuple[np.ndarray, np.ndarray]:
-        """(low, high) of the episodes' starts and goals, rad, E D C B."""
-        low = WORKSPACE_LOW if self.workspace_low is None else np.asarray(self.workspace_low)
-        high = WORKSPACE_HIGH if self.workspace_high is None else np.asarray(self.workspace_high)
-        if low.shape != (N_JOINTS,) or high.shape != (N_JOINTS,) or np.any(low >= high):
-            raise ValueError(f"workspace must be 4 ranges low < high, got {low} .. {high}")
+        """(low, high) of the episodes' starts and goals, rad, in the arm's joint order: its
+        evaluation workspace (`Workspace.of`) unless `workspace_low` / `workspace_high`."""
+        arm = Workspace.of(self.model)
+        low = np.asarray(arm.low if self.workspace_low is None else self.workspace_low)
+        high = np.asarray(arm.high if self.workspace_high is None else self.workspace_high)
+        n = arm.n_joints
+        if low.shape != (n,) or high.shape != (n,) or np.any(low >= high):
+            raise ValueError(f"workspace must be {n} ranges low < high, got {low} .. {high}")
         return low.astype(np.float64), high.astype(np.float64)
 
     @property
@@ -165,6 +232,7 @@ class EnvConfig:
 
     def to_dict(self) -> dict[str, Any]:
         data = dataclasses.asdict(self)
+        data["arm"] = self.arm.value
         data["reward"]["mode"] = self.reward.mode.value
         return data
 
@@ -219,16 +287,17 @@ def reward_terms(
     config: RewardConfig,
     prev_q: np.ndarray | None = None,
     start: np.ndarray | None = None,
+    scales: ArmScales = ALPHA5_SCALES,
 ) -> dict[str, float]:
     """One step's reward, term by term (signed; inactive terms 0), from the TRUE state (never
     the noisy readings). Their sum in `REWARD_TERMS` order is the reward, exactly. `prev_q`
     (the true angles before the step) is needed by the potential term only, `start` (the
-    episode's first angles) by the overshoot term only."""
+    episode's first angles) by the overshoot term only; `scales` are the arm's."""
     terms = dict.fromkeys(REWARD_TERMS, 0.0)
     if config.potential_weight and prev_q is not None:
-        terms["potential"] = config.potential_gamma * _potential(q, q_req, config) - _potential(
-            prev_q, q_req, config
-        )
+        terms["potential"] = config.potential_gamma * _potential(
+            q, q_req, config, scales
+        ) - _potential(prev_q, q_req, config, scales)
     if not in_bounds:
         terms["out_of_bounds"] = float(config.out_of_bounds)
         return terms
@@ -243,14 +312,12 @@ def reward_terms(
     if config.fine_weight:
         fine = np.mean(np.exp(-0.5 * (error / config.fine_sigma) ** 2))
         terms["precision_fine"] = float(config.fine_weight * (-1.0 + fine))
-    terms["distance"] = -float(
-        config.distance_weight * np.mean(np.abs(error) / WORKSPACE_HALF_RANGE)
-    )
+    terms["distance"] = -float(config.distance_weight * np.mean(np.abs(error) / scales.half_range))
     terms["velocity"] = -float(
-        config.velocity_weight * np.mean(gate * np.abs(qdot) / NO_LOAD_SPEEDS)
+        config.velocity_weight * np.mean(gate * np.abs(qdot) / scales.no_load_speed)
     )
     if config.away_weight:
-        away = np.maximum(0.0, -np.sign(error) * qdot) / NO_LOAD_SPEEDS
+        away = np.maximum(0.0, -np.sign(error) * qdot) / scales.no_load_speed
         terms["away"] = -float(config.away_weight * np.mean(away))
     if config.overshoot_weight and start is not None:
         step = q_req - start
@@ -267,8 +334,8 @@ def reward_terms(
     return terms
 
 
-def _potential(q: np.ndarray, q_req: np.ndarray, config: RewardConfig) -> float:
-    return -float(config.potential_weight * np.mean(np.abs(q_req - q) / WORKSPACE_HALF_RANGE))
+def _potential(q: np.ndarray, q_req: np.ndarray, config: RewardConfig, scales: ArmScales) -> float:
+    return -float(config.potential_weight * np.mean(np.abs(q_req - q) / scales.half_range))
 
 
 def compute_reward(
@@ -286,45 +353,58 @@ def compute_reward(
 
 
 def default_arm_factory(config: EnvConfig) -> ArmLike:
-    """The MuJoCo arm at its nominal parameters."""
-    from reach_sim_bridge.model.arm import Alpha5Arm
+    """The MuJoCo twin of the config's arm, at its nominal parameters."""
+    from reach_sim_bridge.model.arms import arm_twin
 
-    arm: ArmLike = Alpha5Arm(dt=config.physics_dt)
+    arm: ArmLike = arm_twin(config.model, dt=config.physics_dt)  # type: ignore[assignment]
     return arm
 
 
+def _no_params(model: ArmModel, what: str) -> str:
+    return (
+        f"{what} draw {ALPHA5.title} parameters (ArmParams); the {model.title}'s twin has "
+        "none: set env.envelope_fraction and env.param_perturbation to 0"
+    )
+
+
 class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
-    """Reach a random goal from a random start with the four joints E D C B.
+    """Reach a random goal from a random start with the arm's rotary joints (`EnvConfig.arm`):
+    E D C B on the Alpha 5 (the default), G F E D C B on the Bravo 7; the jaw is not moved.
 
     ## Action space
 
-    `Box(-1, 1, (4,), float32)`: each joint's current as a fraction of its current limit,
-    clipped to [-1, 1] and held for the control period (`n_substeps` physics steps of 2 ms).
+    `Box(-1, 1, (n,), float32)`, n the arm's joints: each joint's current as a fraction of its
+    current limit (the twin's, the model's defaults), clipped to [-1, 1] and held for the
+    control period (`n_substeps` physics steps of 2 ms).
 
-    | Num | Action            | Min | Max | Unit                     |
-    |-----|-------------------|-----|-----|--------------------------|
-    | 0   | current, joint E  | -1  | 1   | x 600 mA                 |
-    | 1   | current, joint D  | -1  | 1   | x 600 mA                 |
-    | 2   | current, joint C  | -1  | 1   | x 600 mA                 |
-    | 3   | current, joint B  | -1  | 1   | x 300 mA                 |
+    | Num | Alpha 5: current of | x mA | Bravo 7: current of | x mA |
+    |-----|---------------------|------|---------------------|------|
+    | 0   | joint E             | 600  | joint G             | 2000 |
+    | 1   | joint D             | 600  | joint F             | 2000 |
+    | 2   | joint C             | 600  | joint E             | 1500 |
+    | 3   | joint B             | 300  | joint D             | 1500 |
+    | 4   |                     |      | joint C             | 1500 |
+    | 5   |                     |      | joint B             | 1000 |
 
     ## Observation space
 
-    `Box(low, high, (n,), float32)` with finite bounds (`observation_bounds`), built by
+    `Box(low, high, (m,), float32)` with finite bounds (`observation_bounds`), built by
     `policy.controllers.observation.build_observation`, the function the deployed controller calls.
-    Each group is 4 entries, E D C B. Readings are clipped to [-0.5, 2 pi + 0.5] rad and +-5 rad/s
-    first; with `sensor_noise`, q and qdot are as a sensor reports them (sigma 0.002 rad,
-    0.02 rad/s), q_req exact.
+    Each group is n entries, in the arm's joint order. Readings are clipped to
+    [-0.5, 2 pi + 0.5] rad and +-5 rad/s first; with `sensor_noise`, q and qdot are as a sensor
+    reports them (sigma 0.002 rad, 0.02 rad/s), q_req exact.
 
-    | Index | Observation          | `ObservationConfig.paper()` (12) | default (20)              |
-    |-------|----------------------|----------------------------------|---------------------------|
-    | 0-3   | joint angles q       | rad                              | (q - centre) / half-range |
-    | 4-7   | joint speeds qdot    | rad/s                            | qdot / 1.2 rad/s          |
-    | 8-11  | goal q_req           | rad                              | (q_req - centre) / h.-r.  |
-    | 12-15 | error e = q_req - q  | -                                | e / half-range            |
-    | 16-19 | fine error           | -                                | tanh(e / 0.05 rad)        |
+    | Group | Observation          | `ObservationConfig.paper()` | default                   |
+    |-------|----------------------|-----------------------------|---------------------------|
+    | 0     | joint angles q       | rad                         | (q - centre) / half-range |
+    | 1     | joint speeds qdot    | rad/s                       | qdot / 1.2 rad/s          |
+    | 2     | goal q_req           | rad                         | (q_req - centre) / h.-r.  |
+    | 3     | error e = q_req - q  | -                           | e / half-range            |
+    | 4     | fine error           | -                           | tanh(e / 0.05 rad)        |
+    | m     | Alpha 5 / Bravo 7    | 12 / 18                     | 20 / 30                   |
 
-    centre and half-range are the evaluation workspace's (`policy.controllers.observation`).
+    centre and half-range are the arm's evaluation workspace's (`Workspace.of`). The memory
+    channels (`previous_action`, `integral_tau`, `history`) add n entries per group.
 
     ## Rewards
 
@@ -355,15 +435,18 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
 
     ## Starting state
 
-    At rest at a start q0 drawn uniformly in the workspace (E [0.4, 5.8], D [0.5, 2.9],
-    C [0.5, 2.9], B [0.5, 2.8] rad, or `workspace_low` / `workspace_high`), the goal drawn in
-    the same range (or within `max_step` of q0). Per episode, if configured: each joint's
+    At rest at a start q0 drawn uniformly in the workspace (`Workspace.of`; the Alpha 5's
+    E [0.4, 5.8], D [0.5, 2.9], C [0.5, 2.9], B [0.5, 2.8] rad; the Bravo 7's its factory
+    envelope 0.4 rad in from each end: G D B [0.4, 5.88], F E C [0.4, 2.8] rad; or
+    `workspace_low` / `workspace_high`), the goal drawn in the same range (or within
+    `max_step` of q0). Per episode, if configured: each joint's
     torque scale uniform in [`torque_scale_low`, `torque_scale`], the arm's parameters scaled
     by U(1 +- `param_perturbation`). With `envelope_fraction` > 0, that share of episodes
     runs on an arm drawn from `policy.tasks.envelope` instead (`draws(1, seed)` with a seed from
     the env's generator: friction, armature, masses, buoyancy, one weak joint, noise multiple,
-    latency; infeasible arms are redrawn); `info["variant"]` names it. `reset(options=...)`
-    may fix "start", "target", "torque_scale", and "variant" (a `policy.tasks.envelope.Variant`).
+    latency; infeasible arms are redrawn); `info["variant"]` names it. Both perturb the Alpha
+    5's `ArmParams`: on another arm either is refused (ValueError). `reset(options=...)` may
+    fix "start", "target", "torque_scale", and "variant" (a `policy.tasks.envelope.Variant`).
 
     ## Episode end
 
@@ -403,31 +486,43 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         self._arm_factory = arm_factory or default_arm_factory
         self.n_substeps = max(1, int(round(1.0 / (config.control_hz * config.physics_dt))))
         self.control_dt = self.n_substeps * config.physics_dt
-        low, high = observation_bounds(config.observation)
+        #: the arm's model, and what the inputs and the reward are normalised by
+        self.model = config.model
+        self.n_joints = n = self.model.n_joints
+        self.arm_workspace = Workspace.of(self.model)
+        self.scales = ArmScales.of(self.model)
+        low, high = observation_bounds(config.observation, self.arm_workspace)
         self.observation_space = gym.spaces.Box(low, high, dtype=np.float32)
         self._obs_low, self._obs_high = low, high
-        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(N_JOINTS,), dtype=np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(n,), dtype=np.float32)
         self.arm: ArmLike = self._arm_factory(config)
         self._nominal_params = getattr(self.arm, "params", None)
+        if self._nominal_params is None and (config.envelope_fraction or config.param_perturbation):
+            raise ValueError(_no_params(self.model, "envelope arms and param_perturbation"))
         limits = np.asarray(self.arm.position_limits, dtype=np.float64)
+        if limits.shape != (n, 2):
+            raise ValueError(
+                f"the arm has {limits.shape[0]} joints, the {self.model.title} {n}: "
+                "an arm_factory for another arm than env.arm"
+            )
         self.workspace_low, self.workspace_high = config.workspace()
         self.bounds_low = np.maximum(self.workspace_low - config.bounds_margin, limits[:, 0])
         self.bounds_high = np.minimum(self.workspace_high + config.bounds_margin, limits[:, 1])
         self.current_limits_mA = np.asarray(self.arm.current_limits_mA, dtype=np.float64).copy()
         self.target = self.workspace_low.copy()
         self.start = self.workspace_low.copy()
-        self.prev_action = np.zeros(N_JOINTS)
+        self.prev_action = np.zeros(n)
         self.steps = 0
-        self.last_reading = (self.start.copy(), np.zeros(N_JOINTS))
+        self.last_reading = (self.start.copy(), np.zeros(n))
         #: this episode's envelope arm (None: the configured arm) and what it sets
         self.variant: Variant | None = None
         self.latency_substeps = self._latency(config.latency_periods)
         self.noise = self._noise(config.noise_scale)
         #: commands in flight: (physics step they take effect at, currents mA)
         self._pending: deque[tuple[int, np.ndarray]] = deque()
-        self._applied = np.zeros(N_JOINTS)
+        self._applied = np.zeros(n)
         #: the observation's memory channels (previous action, error integral), if any
-        self.memory = InputMemory(config.observation, self.control_dt)
+        self.memory = InputMemory(config.observation, self.control_dt, self.arm_workspace)
 
     # -- gymnasium API -------------------------------------------------------------------
     def reset(
@@ -473,17 +568,17 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         self.start, self.target = start, target
         self.arm.torque_scale = scale.copy()
         self.arm.reset(q=start.copy())
-        self.prev_action = np.zeros(N_JOINTS)
+        self.prev_action = np.zeros(self.n_joints)
         self._pending.clear()
-        self._applied = np.zeros(N_JOINTS)
+        self._applied = np.zeros(self.n_joints)
         self.steps = 0
         self.memory.reset()
         return self._observe(), self._info(in_bounds=True)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         action = np.asarray(action, dtype=np.float64)
-        if action.shape != (N_JOINTS,):
-            raise ValueError(f"action must have shape (4,), got {action.shape}")
+        if action.shape != (self.n_joints,):
+            raise ValueError(f"action must have shape ({self.n_joints},), got {action.shape}")
         if not np.all(np.isfinite(action)):
             raise ValueError(f"action must be finite, got {action}")
         action = np.clip(action, -1.0, 1.0)
@@ -503,6 +598,7 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
             self.config.reward,
             prev_q,
             self.start,
+            self.scales,
         )
         self.prev_action = action
         self.memory.acted(action)
@@ -523,11 +619,15 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         low, high = self.workspace_low, self.workspace_high
         if self.config.max_step is None:
             return self.np_random.uniform(low, high)
-        step = self.np_random.uniform(-self.config.max_step, self.config.max_step, size=N_JOINTS)
+        step = self.np_random.uniform(
+            -self.config.max_step, self.config.max_step, size=self.n_joints
+        )
         return np.clip(start + step, low, high)
 
     def draw_variant(self) -> Variant:
         """A feasible arm of the envelope around the nominal one, from the env's generator."""
+        if self._nominal_params is None:
+            raise ValueError(_no_params(self.model, "envelope arms"))
         seed = int(self.np_random.integers(0, 2**31 - 1))
         return draws(1, seed, Envelope(), self._nominal_params).variants[0]
 
@@ -546,7 +646,7 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         n = self.n_substeps
         k0 = self.steps * n
         self._pending.append((k0 + self.latency_substeps, currents))
-        work = np.zeros(N_JOINTS) if self.measure_power else None
+        work = np.zeros(self.n_joints) if self.measure_power else None
         i = 0
         while i < n:
             while self._pending and self._pending[0][0] <= k0 + i:
@@ -588,11 +688,13 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
             "variant": None if self.variant is None else self.variant.name,
         }
 
-    @staticmethod
-    def _joint_vector(value: Any, name: str) -> np.ndarray:
+    def _joint_vector(self, value: Any, name: str) -> np.ndarray:
         arr = np.asarray(value, dtype=np.float64)
-        if arr.shape != (N_JOINTS,) or not np.all(np.isfinite(arr)):
-            raise ValueError(f"option {name!r} must be 4 finite numbers (E D C B), got {value!r}")
+        n, letters = self.n_joints, " ".join(self.model.joint_letters)
+        if arr.shape != (n,) or not np.all(np.isfinite(arr)):
+            raise ValueError(
+                f"option {name!r} must be {n} finite numbers ({letters}), got {value!r}"
+            )
         return arr
 
 

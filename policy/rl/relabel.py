@@ -123,9 +123,9 @@ class GoalRelabeller:
         """The episode's transitions as they would have been after `goal`."""
         env = self.envs[i]
         config = env.config
-        memory = InputMemory(config.observation, env.control_dt)
+        memory = InputMemory(config.observation, env.control_dt, env.arm_workspace)
         n = len(trace)
-        low, high = observation_bounds(config.observation)  # the env clips to these
+        low, high = observation_bounds(config.observation, env.arm_workspace)  # the env clips
         obs = np.empty((n + 1, low.size), np.float32)
         rewards = np.empty(n)
         prev_action = np.zeros_like(goal)
@@ -147,6 +147,7 @@ class GoalRelabeller:
                 config.reward,
                 trace.true_q[t],
                 trace.start,
+                env.scales,
             )
             rewards[t] = sum(terms.values())
             prev_action = action

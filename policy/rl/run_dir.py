@@ -21,6 +21,7 @@ from policy.controllers.weights import LEARNED_WEIGHTS, TrainingStage
 from policy.rl.checkpoint import provenance
 from policy.rl.config import DDPGConfig
 from policy.rl.overrides import apply_overrides, resume_overrides
+from protocol.models import ALPHA5, ArmModel
 
 CHECKPOINT = "checkpoint.pt"
 COMMANDS = "commands.txt"
@@ -44,9 +45,11 @@ def start_run(
     seed: int,
     steps: int | None,
     overrides: list[str],
+    arm: ArmModel | None = None,
 ) -> RunStart:
-    """The config of a new run (preset, seed, steps, `--set`), refused if `run_dir` already
-    holds one; or of the run in `run_dir` resumed (`--set` limited to what a resume can take)."""
+    """The config of a new run (preset on `arm`, the Alpha 5 if None; seed, steps, `--set`),
+    refused if `run_dir` already holds one; or of the run in `run_dir` resumed (`--set`
+    limited to what a resume can take; `arm`, if given, must be the run's)."""
     if resume:
         if not (run_dir / CHECKPOINT).exists():
             raise SystemExit(f"--resume: no checkpoint in {run_dir}")
@@ -54,6 +57,10 @@ def start_run(
         # may be newer, from a resume killed before it saved).
         saved = torch.load(run_dir / CHECKPOINT, weights_only=False)["config"]
         config = DDPGConfig.from_dict(saved)
+        if arm is not None and arm.name != config.env.arm.value:
+            raise SystemExit(
+                f"--arm {arm.name}: the run in {run_dir} trains the {config.env.model.title}"
+            )
         target = config
         changes: list[str] = []
         if overrides:
@@ -66,7 +73,13 @@ def start_run(
     fields: dict[str, Any] = {"seed": seed}
     if steps is not None:
         fields["total_steps"] = steps
-    config = apply_overrides(DDPGConfig.preset(preset, **fields), overrides)
+    config = DDPGConfig.preset(preset, **fields)
+    if arm is not None:
+        try:
+            config = config.on(arm)
+        except ValueError as exc:
+            raise SystemExit(f"--arm {arm.name}: {exc}") from None
+    config = apply_overrides(config, overrides)
     return RunStart(config, config)
 
 
@@ -83,6 +96,12 @@ def ship(run_dir: Path, dest: Path = LEARNED_WEIGHTS) -> Path:
     if not src.exists():
         raise SystemExit(f"--ship: {src} does not exist (no evaluation yet?)")
     meta = json.loads(src.with_suffix(".json").read_text())
+    arm = meta.get("arm", ALPHA5.name)
+    if arm != ALPHA5.name and dest.resolve() == LEARNED_WEIGHTS.resolve():
+        raise SystemExit(
+            f"--ship: {run_dir} trained an actor for {arm}; the shipped `ddpg` weights are the "
+            "Alpha 5's: give --ship-as FILE.npz"
+        )
     commands = (
         (run_dir / COMMANDS).read_text().splitlines() if (run_dir / COMMANDS).exists() else []
     )

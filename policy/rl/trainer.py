@@ -38,9 +38,9 @@ from policy.rl.config import (
     SIDE_REACHED_WEIGHT,
     STEP_SEED_FACTOR,
     WEAK_EVAL_SEED_OFFSET,
-    WEAK_EVAL_TORQUE_SCALE,
     WIDE_EVAL_SEED_OFFSET,
     DDPGConfig,
+    weak_eval_torque_scale,
 )
 from policy.rl.env import EnvConfig, ReachAlphaEnv, time_limited
 from policy.rl.expert import PDExpert
@@ -48,7 +48,6 @@ from policy.rl.exploration import OUNoise
 from policy.rl.networks import Actor
 from policy.rl.relabel import GoalRelabeller, Relabelled
 from policy.rl.replay import ReplayBuffer
-from protocol.alpha5 import N_JOINTS
 
 
 def _side_score(result: EvalResult, reached_weight: float) -> float:
@@ -137,18 +136,18 @@ class Trainer:
         #: ... and behind gymnasium's TimeLimit, as gym.make builds them: episodes are
         #: stepped and reset here, and end (truncated) after `config.env.episode_s`
         self.timed = [time_limited(env) for env in self.envs]
-        obs_dim = config.env.observation.size
+        #: the arm's joints: the actor's outputs
+        self.n_joints = n = config.env.model.n_joints
+        obs_dim = config.env.observation.size_for(n)
         self.obs_dim = obs_dim
-        self.agent = Agent(config, obs_dim)
+        self.agent = Agent(config, obs_dim, n)
         if config.init_actor is not None:
             self.agent.load_actor_npz(config.init_actor)
-        self.buffer = ReplayBuffer(config.buffer_size, obs_dim, N_JOINTS)
+        self.buffer = ReplayBuffer(config.buffer_size, obs_dim, n)
         self.demos = ReplayBuffer(
-            max(1, config.demo_episodes * config.env.steps_per_episode), obs_dim, N_JOINTS
+            max(1, config.demo_episodes * config.env.steps_per_episode), obs_dim, n
         )
-        self.noise = OUNoise(
-            (config.num_envs, N_JOINTS), config.ou_theta, config.ou_sigma, self.rng
-        )
+        self.noise = OUNoise((config.num_envs, n), config.ou_theta, config.ou_sigma, self.rng)
         #: goal relabelling of the envs here (`her_goals`; the collector has its own)
         self.relabeller = GoalRelabeller(
             self.envs, config.her_goals, np.random.default_rng([config.seed, 2])
@@ -158,9 +157,11 @@ class Trainer:
         self.eval_weak = eval_envs(
             config.env,
             max(MIN_SIDE_EVAL_EPISODES, config.eval_episodes // 2),
-            WEAK_EVAL_TORQUE_SCALE,
+            weak_eval_torque_scale(n),
             arm_factory,
         )
+        #: the weak set's joint (the base joint at 25 %: E on the Alpha 5)
+        self.weak_joint = config.env.model.joint_letters[0]
         # a run on a wider workspace is also scored on episodes from it (e.g. B up to the
         # paper's scenario angles), so the best actor is not chosen on the narrow range alone
         wide = config.env.workspace_low is not None or config.env.workspace_high is not None
@@ -225,7 +226,7 @@ class Trainer:
 
     def _expert_actions(self) -> np.ndarray:
         if self.expert is None:
-            return np.zeros((len(self.envs), N_JOINTS), np.float32)
+            return np.zeros((len(self.envs), self.n_joints), np.float32)
         return np.stack([self._label(env) for env in self.envs]).astype(np.float32)
 
     def _label(self, env: ReachAlphaEnv) -> np.ndarray:
@@ -235,7 +236,7 @@ class Trainer:
         action = np.asarray(self.expert(env), dtype=np.float64)
         limit = self.config.bc_max_latency
         if limit is not None and env.latency_substeps > limit * env.n_substeps:
-            return np.full(N_JOINTS, np.nan)
+            return np.full(self.n_joints, np.nan)
         return action
 
     # -- demonstrations --------------------------------------------------------------------
@@ -290,7 +291,7 @@ class Trainer:
                 obs = self._obs
                 expert_a = self._expert_actions()
                 if self.state.env_steps < cfg.learning_starts and self.expert is None:
-                    actions = self.rng.uniform(-1, 1, size=(cfg.num_envs, N_JOINTS))
+                    actions = self.rng.uniform(-1, 1, size=(cfg.num_envs, self.n_joints))
                 else:
                     actions = self.agent.act(obs) + self.epsilon() * self.noise.sample()
                 actions = np.clip(actions, -1.0, 1.0).astype(np.float32)
@@ -471,7 +472,7 @@ class Trainer:
             "wall_s": round(self.state.wall_s, 1),
             "score": score,
             "nominal": nominal.to_dict(),
-            "torque_e_25pct": weak.to_dict(),
+            f"torque_{self.weak_joint.lower()}_25pct": weak.to_dict(),
         }
         wide_note = ""
         sides = (
@@ -504,7 +505,7 @@ class Trainer:
             f"final {nominal.final_error:.4f} rmse x{nominal.rmse_floor_ratio:.2f} "
             f"OS {nominal.overshoot_pct:.2f}% ST {nominal.settling_s:.2f}s "
             f"SS {nominal.steady_error:.4f} MIE {nominal.mie:.3f} E {nominal.energy_j:.2f}J "
-            f"| E25%: reached {weak.reached_fraction:.2f} "
+            f"| {self.weak_joint}25%: reached {weak.reached_fraction:.2f} "
             f"OS {weak.overshoot_pct:.2f}%{wide_note}" + (" *best*" if record.get("best") else "")
         )
         return record
@@ -517,7 +518,7 @@ class Trainer:
         )
 
     def export_best(self, path: Path, record: dict[str, Any]) -> None:
-        actor = Actor(self.obs_dim, N_JOINTS, self.config.hidden)
+        actor = Actor(self.obs_dim, self.n_joints, self.config.hidden)
         actor.load_state_dict(self.best_actor)
         stage = TrainingStage(
             run=self.run_dir.name,
