@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, cast
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, cast
 
 import gymnasium as gym
 import numpy as np
@@ -12,6 +14,7 @@ from gymnasium.utils.env_checker import check_env
 
 from policy.controllers.observation import (
     WORKSPACE_HIGH,
+    WORKSPACE_INSET_RAD,
     WORKSPACE_LOW,
     ObservationConfig,
     build_observation,
@@ -29,8 +32,11 @@ from policy.rl.env import (
     reward_terms,
     time_limited,
 )
+from policy.rl.config import DDPGConfig
 from policy.rl.expert import PDExpert
+from protocol.models import ALPHA5, BRAVO7, ArmModelName
 from reach_driver.controllers import ControlState
+from reach_sim_bridge.model.motor import MotorParams, no_load_speed
 
 if TYPE_CHECKING:
     from reach_sim_bridge.model.arm import Alpha5Arm
@@ -503,3 +509,123 @@ def test_sign_flip_penalty_is_paid_near_the_goal_only() -> None:
         env.step(np.array([s, 0, 0, 0]))[4]["reward_terms"]["sign_flip"] for s in (0.3, -0.3, 0.3)
     ]
     assert paid[0] == 0.0 and paid[1] < -0.2 and paid[2] < -0.2, paid
+
+
+# -- the arm is a parameter ------------------------------------------------------------------
+
+REFERENCE = Path(__file__).resolve().parent / "data" / "alpha_env_reference.json"
+
+
+def _rollout(config: EnvConfig, seed: int, steps: int = 30) -> dict[str, object]:
+    """What `alpha_env_reference.json` holds: 30 steps of uniform random actions (seeded)."""
+    env = ReachAlphaEnv(config)
+    obs, _ = env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    out: dict[str, Any] = {"obs": [obs.tolist()], "reward": [], "variant": None}
+    out["variant"] = None if env.variant is None else env.variant.name
+    for _ in range(steps):
+        o, r, *_ = env.step(rng.uniform(-1, 1, 4))
+        out["obs"].append(o.tolist())
+        out["reward"].append(r)
+    return out
+
+
+@pytest.mark.parametrize(
+    ("case", "config", "seed"),
+    [
+        ("paper", EnvConfig(), 3),
+        ("scratch", DDPGConfig.scratch().env, 11),  # an envelope arm
+        ("scratch-envelope", DDPGConfig.scratch().env, 1),  # +-20 % around the nominal one
+    ],
+)
+def test_the_alpha_env_observes_and_rewards_exactly_as_before(
+    case: str, config: EnvConfig, seed: int
+) -> None:
+    """Recorded before the arm was a parameter (tests/data/README.md): every observation
+    and reward bit for bit, the observation's normalisation and the reward's scales included."""
+    reference = json.loads(REFERENCE.read_text())[case]
+    assert config.arm is ArmModelName.ALPHA5 and config.on(ALPHA5) is config
+    assert _rollout(config, seed) == reference
+
+
+def test_the_bravo_env_has_six_joint_spaces_from_its_model() -> None:
+    paper = ReachAlphaEnv(EnvConfig().on(BRAVO7))
+    check_env(paper, skip_render_check=True)
+    assert paper.action_space.shape == (6,)
+    assert paper.observation_space.shape == (18,)
+    scratch = DDPGConfig.scratch().on(BRAVO7)
+    env = ReachAlphaEnv(scratch.env)
+    assert env.observation_space.shape == (scratch.env.observation.size_for(6),) == (42,)
+    # each fact from the model: limits and motors from protocol.bravo7, through its twin
+    np.testing.assert_array_equal(env.current_limits_mA, BRAVO7.current_limits_mA)
+    lows = [BRAVO7.position_limits[d][0] + WORKSPACE_INSET_RAD for d in BRAVO7.joints]
+    np.testing.assert_allclose(env.workspace_low, lows)
+    assert np.all(env.bounds_high <= np.array([BRAVO7.position_limits[d][1] for d in BRAVO7.joints]))
+    speed = no_load_speed(MotorParams.of(BRAVO7.motors), BRAVO7.nominal_supply_v)
+    np.testing.assert_array_equal(env.scales.no_load_speed, speed)
+    assert 1.0 < speed.min() < speed.max() < 1.2  # bravo7.md "Motors": 1.10 to 1.17 rad/s
+    obs, info = env.reset(seed=0)
+    assert obs.shape == (42,) and info["q"].shape == (6,) and info["target"].shape == (6,)
+    assert np.all((info["target"] >= env.workspace_low) & (info["target"] <= env.workspace_high))
+    obs, reward, *_, info = env.step(np.full(6, 0.5))
+    assert np.isfinite(reward) and info["reward_terms"]["velocity"] <= 0.0
+    with pytest.raises(ValueError, match=r"shape \(6,\)"):
+        env.step(np.zeros(4))
+    with pytest.raises(ValueError, match="6 finite numbers"):
+        env.reset(options={"start": [1.0] * 4})
+
+
+def _table(doc: str, heading: str) -> list[list[str]]:
+    """The rows of the first table after `heading` in a docstring, cells stripped."""
+    lines = doc.split(heading, 1)[1].splitlines()
+    start = next(i for i, line in enumerate(lines) if line.strip().startswith("|"))
+    rows = []
+    for line in lines[start:]:
+        if not line.strip().startswith("|"):
+            break
+        rows.append([cell.strip() for cell in line.strip().strip("|").split("|")])
+    return rows[2:]  # past the header and its rule
+
+
+def test_the_env_docstring_tables_say_what_each_arm_has() -> None:
+    doc = ReachAlphaEnv.__doc__ or ""
+    actions = _table(doc, "## Action space")
+    for model, (joint, mA) in ((ALPHA5, (1, 2)), (BRAVO7, (3, 4))):
+        env = ReachAlphaEnv(EnvConfig().on(model))
+        told = [(row[joint], row[mA]) for row in actions if row[joint]]
+        expected = [
+            (f"joint {letter}", f"{limit:g}")
+            for letter, limit in zip(model.joint_letters, env.current_limits_mA, strict=True)
+        ]
+        assert told == expected, model.name
+    sizes = _table(doc, "## Observation space")[-1]
+    assert sizes[0] == "m"
+    for column, obs in ((2, ObservationConfig.paper()), (3, ObservationConfig())):
+        per_arm = [
+            ReachAlphaEnv(EnvConfig(observation=obs).on(m)).observation_space.shape[0]
+            for m in (ALPHA5, BRAVO7)
+        ]
+        assert sizes[column] == " / ".join(map(str, per_arm))
+    env = ReachAlphaEnv(EnvConfig().on(BRAVO7))
+    told = "G D B [{:.1f}, {:.2f}], F E C [{:.1f}, {:.1f}] rad".format(
+        env.workspace_low[0], env.workspace_high[0], env.workspace_low[1], env.workspace_high[1]
+    )
+    assert told in " ".join(doc.split()), told
+
+
+def test_envelope_arms_and_perturbation_are_refused_on_the_bravo() -> None:
+    six = (1.0,) * 6
+    for field in ("envelope_fraction", "param_perturbation"):
+        with pytest.raises(ValueError, match="ArmParams.*Reach Bravo 7's twin has none"):
+            ReachAlphaEnv(EnvConfig(arm=ArmModelName.BRAVO7, torque_scale=six, **{field: 0.5}))
+    with pytest.raises(ValueError, match=r"torque_scale needs 6 values \(G F E D C B\)"):
+        EnvConfig(arm=ArmModelName.BRAVO7)
+    # the scratch recipe fitted to the Bravo: both off, the weak joint its base joint G
+    env = DDPGConfig.scratch().on(BRAVO7).env
+    assert env.envelope_fraction == 0.0 and env.param_perturbation == 0.0
+    assert env.torque_scale_low == (0.25, 1.0, 1.0, 1.0, 1.0, 1.0)
+    assert env.workspace_high is None  # the Alpha's wide B is the Alpha's
+    assert EnvConfig.from_dict(env.to_dict()) == env and env.to_dict()["arm"] == "bravo7"
+    assert EnvConfig.from_dict({}).arm is ArmModelName.ALPHA5  # absent: the Alpha 5
+    with pytest.raises(ValueError, match="no arm model 'gamma9'"):
+        EnvConfig.from_dict({"arm": "gamma9"})
