@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -10,9 +11,12 @@ import pytest
 import torch
 from conftest import tiny
 
+from policy.controllers.ddpg import make_controller
 from policy.rl.collector import CollectorProcess, EnvWorker
 from policy.rl.config import DDPGConfig
 from policy.rl.trainer import Trainer
+from protocol.models import BRAVO7
+from reach_driver.controllers import ControlState
 
 
 def small_scratch(**overrides: object) -> DDPGConfig:
@@ -69,3 +73,33 @@ def test_the_collector_refuses_what_needs_the_envs_in_the_learner(tmp_path: Path
     cfg = small_scratch(curriculum_start=0.5)
     with pytest.raises(ValueError, match="curriculum"):
         Trainer(cfg, tmp_path, log=lambda _: None).run()
+
+
+@pytest.mark.parametrize("collector_process", [False, True])
+def test_a_tiny_bravo_run_trains_its_six_joints_and_exports_a_bravo_actor(
+    tmp_path: Path, collector_process: bool
+) -> None:
+    cfg = tiny(
+        DDPGConfig.scratch(hidden=(32, 32), batch_size=32, num_envs=2).on(BRAVO7),
+        collector_process=collector_process,
+        eval_episodes=2,
+    )
+    assert cfg.eval_envelope_episodes == 0 and cfg.env.envelope_fraction == 0.0
+    trainer = Trainer(cfg, tmp_path, log=lambda _: None)
+    try:
+        trainer.run()
+    finally:
+        trainer.close()
+    assert trainer.state.env_steps == 400 and trainer.agent.updates > 0
+    data = trainer.buffer.state()
+    assert data["obs"].shape[1] == 42 and data["act"].shape[1] == 6
+    record = trainer.evaluate_and_keep_best()
+    assert "torque_g_25pct" in record  # the weak set's joint: the Bravo's base joint
+    meta = json.loads((tmp_path / "best_actor.json").read_text())
+    assert meta["arm"] == "bravo7" and meta["env"]["arm"] == "bravo7"
+    assert meta["current_limits_mA"] == list(BRAVO7.current_limits_mA)
+    controller = make_controller(tmp_path / "best_actor.npz", model=BRAVO7)
+    state = ControlState(q=np.full(6, 1.5), qdot=np.zeros(6), t=0.0)
+    currents = controller.act(state, np.full(6, 1.6))
+    assert currents.shape == (6,)
+    assert np.all(np.abs(currents) <= np.asarray(BRAVO7.current_limits_mA))

@@ -20,6 +20,7 @@ from policy.controllers.observation import (
     build_observation,
     observation_bounds,
 )
+from policy.rl.config import DDPGConfig
 from policy.rl.env import (
     ENV_ID,
     NO_LOAD_SPEEDS,
@@ -32,11 +33,10 @@ from policy.rl.env import (
     reward_terms,
     time_limited,
 )
-from policy.rl.config import DDPGConfig
 from policy.rl.expert import PDExpert
 from protocol.models import ALPHA5, BRAVO7, ArmModelName
 from reach_driver.controllers import ControlState
-from reach_sim_bridge.model.motor import MotorParams, no_load_speed
+from reach_sim_bridge.model.motor import model_no_load_speed
 
 if TYPE_CHECKING:
     from reach_sim_bridge.model.arm import Alpha5Arm
@@ -534,8 +534,8 @@ def _rollout(config: EnvConfig, seed: int, steps: int = 30) -> dict[str, object]
     ("case", "config", "seed"),
     [
         ("paper", EnvConfig(), 3),
-        ("scratch", DDPGConfig.scratch().env, 11),  # an envelope arm
-        ("scratch-envelope", DDPGConfig.scratch().env, 1),  # +-20 % around the nominal one
+        ("scratch-envelope-arm", DDPGConfig.scratch().env, 11),
+        ("scratch-perturbed", DDPGConfig.scratch().env, 1),  # +-20 % around the nominal arm
     ],
 )
 def test_the_alpha_env_observes_and_rewards_exactly_as_before(
@@ -560,8 +560,10 @@ def test_the_bravo_env_has_six_joint_spaces_from_its_model() -> None:
     np.testing.assert_array_equal(env.current_limits_mA, BRAVO7.current_limits_mA)
     lows = [BRAVO7.position_limits[d][0] + WORKSPACE_INSET_RAD for d in BRAVO7.joints]
     np.testing.assert_allclose(env.workspace_low, lows)
-    assert np.all(env.bounds_high <= np.array([BRAVO7.position_limits[d][1] for d in BRAVO7.joints]))
-    speed = no_load_speed(MotorParams.of(BRAVO7.motors), BRAVO7.nominal_supply_v)
+    assert np.all(
+        env.bounds_high <= np.array([BRAVO7.position_limits[d][1] for d in BRAVO7.joints])
+    )
+    speed = model_no_load_speed(BRAVO7)
     np.testing.assert_array_equal(env.scales.no_load_speed, speed)
     assert 1.0 < speed.min() < speed.max() < 1.2  # bravo7.md "Motors": 1.10 to 1.17 rad/s
     obs, info = env.reset(seed=0)
@@ -607,9 +609,8 @@ def test_the_env_docstring_tables_say_what_each_arm_has() -> None:
         ]
         assert sizes[column] == " / ".join(map(str, per_arm))
     env = ReachAlphaEnv(EnvConfig().on(BRAVO7))
-    told = "G D B [{:.1f}, {:.2f}], F E C [{:.1f}, {:.1f}] rad".format(
-        env.workspace_low[0], env.workspace_high[0], env.workspace_low[1], env.workspace_high[1]
-    )
+    low, high = env.workspace_low, env.workspace_high
+    told = f"G D B [{low[0]:.1f}, {high[0]:.2f}], F E C [{low[1]:.1f}, {high[1]:.1f}] rad"
     assert told in " ".join(doc.split()), told
 
 

@@ -152,9 +152,15 @@ def run_batch(
     dt = envs[0].control_dt
     results = []
     for i, env in enumerate(envs):
-        episode = Episode(q[0, i], env.target, np.asarray(env.arm.torque_scale))
+        episode = Episode(q[0, i], env.target, np.asarray(env.arm.torque_scale), model=env.model)
         trace = Trace(
-            dt=dt, q=q[:, i], qdot=qdot[:, i], tau=tau[:, i], target=env.target, power=power[:, i]
+            dt=dt,
+            q=q[:, i],
+            qdot=qdot[:, i],
+            tau=tau[:, i],
+            target=env.target,
+            power=power[:, i],
+            model=env.model,
         )
         results.append(score(episode, trace, actions_taken[:, i] * env.current_limits_mA))
     return results

@@ -35,7 +35,7 @@ from policy.tasks.arm import ArmLike
 from policy.tasks.envelope import Envelope, Variant, draws
 from protocol.models import ALPHA5, ArmModel, ArmModelName, model_named
 from reach_driver.metrics import OVERSHOOT_MIN_STEP_RAD
-from reach_sim_bridge.model.motor import MotorParams, no_load_speed
+from reach_sim_bridge.model.motor import model_no_load_speed, no_load_speed
 from reach_sim_bridge.model.sensors import SensorNoise
 
 ENV_ID = "ReachAlpha-v0"
@@ -57,8 +57,8 @@ class ArmScales:
     def of(cls, model: ArmModel) -> ArmScales:
         """From the model: `Workspace.of(model)`, and the no-load speed of its motors at its
         nominal supply."""
-        speed = no_load_speed(MotorParams.of(model.motors), model.nominal_supply_v)
-        return cls(Workspace.of(model).half_range, np.asarray(speed, dtype=np.float64))
+        speed = np.asarray(model_no_load_speed(model), dtype=np.float64)
+        return cls(Workspace.of(model).half_range, speed)
 
 
 #: the Alpha 5's (`reward_terms` uses them unless given an arm's)

@@ -21,6 +21,7 @@ from policy.controllers.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from policy.tasks.arm import PHYSICS_DT
 from protocol.alpha5 import JOINT_LETTERS, N_JOINTS
 from protocol.files import read_json
+from protocol.models import ALPHA5, ArmModel
 from reach_driver.controllers import Controller, ControlState
 from reach_driver.metrics import (
     Metrics,
@@ -31,7 +32,7 @@ from reach_driver.metrics import (
     rmse_floor,
     summarize,
 )
-from reach_sim_bridge.model.motor import no_load_speed
+from reach_sim_bridge.model.motor import model_no_load_speed
 from reach_sim_bridge.model.params import ArmParams
 from reach_sim_bridge.model.sensors import SensorNoise
 
@@ -42,29 +43,32 @@ PERTURBATION_STREAM = 1
 from its sensor noise (`default_rng(s)`), so switching noise on does not change the arm."""
 
 
-def _vec4(value: Any, what: str) -> np.ndarray:
+def _joints(value: Any, what: str, model: ArmModel = ALPHA5) -> np.ndarray:
+    n, letters = model.n_joints, " ".join(model.joint_letters)
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"{what} must be 4 numbers (E D C B), got {value!r}") from exc
-    if arr.shape != (N_JOINTS,) or not np.all(np.isfinite(arr)):
-        raise ValueError(f"{what} must be 4 finite numbers (E D C B), got {value!r}")
+        raise ValueError(f"{what} must be {n} numbers ({letters}), got {value!r}") from exc
+    if arr.shape != (n,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{what} must be {n} finite numbers ({letters}), got {value!r}")
     return arr
 
 
 @dataclass(frozen=True)
 class Episode:
-    """A step from ``start`` to ``target`` (arm angles, rad, E D C B)."""
+    """A step from ``start`` to ``target`` (arm angles, rad, in `model`'s joint order: E D C B
+    on the Alpha 5; episode files are the Alpha's)."""
 
     start: np.ndarray
     target: np.ndarray
     torque_scale: np.ndarray = field(default_factory=lambda: np.ones(N_JOINTS))
     name: str = ""
+    model: ArmModel = ALPHA5
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "start", _vec4(self.start, "start"))
-        object.__setattr__(self, "target", _vec4(self.target, "target"))
-        scale = _vec4(self.torque_scale, "torque_scale")
+        object.__setattr__(self, "start", _joints(self.start, "start", self.model))
+        object.__setattr__(self, "target", _joints(self.target, "target", self.model))
+        scale = _joints(self.torque_scale, "torque_scale", self.model)
         if np.any(scale < 0) or np.any(scale > 1):
             raise ValueError(f"torque_scale must be in [0, 1] per joint, got {scale.tolist()}")
         object.__setattr__(self, "torque_scale", scale)
@@ -223,8 +227,8 @@ class EpisodeResult:
         return out
 
 
-def no_load_speeds() -> np.ndarray:
-    return np.asarray(no_load_speed(), dtype=float)
+def no_load_speeds(model: ArmModel = ALPHA5) -> np.ndarray:
+    return np.asarray(model_no_load_speed(model), dtype=float)
 
 
 def score(episode: Episode, trace: Trace, currents_mA: np.ndarray) -> EpisodeResult:
@@ -235,7 +239,7 @@ def score(episode: Episode, trace: Trace, currents_mA: np.ndarray) -> EpisodeRes
     if trace.command_mA is None:
         trace = dataclasses.replace(trace, command_mA=np.asarray(currents_mA, dtype=float))
     n = trace.q.shape[0] - 1
-    floor = rmse_floor(episode.start, trace.target, no_load_speeds(), trace.dt, n)
+    floor = rmse_floor(episode.start, trace.target, no_load_speeds(episode.model), trace.dt, n)
     return EpisodeResult(episode, trace, currents_mA, compute_metrics(trace), floor)
 
 

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from protocol import alpha5, bravo7
-from protocol.models import ALPHA5, BRAVO7, MotorConstants
+from protocol.models import ALPHA5, BRAVO7, ArmModel, MotorConstants
 
 FloatArray = NDArray[np.float64]
 
@@ -268,3 +268,8 @@ def no_load_speed(
 ) -> FloatArray:
     """No-load output speed per joint (rad/s): ~1.18 for E, D, C and ~1.29 for B at 24 V."""
     return MotorModel(params, supply_voltage).no_load_speed()
+
+
+def model_no_load_speed(model: ArmModel) -> FloatArray:
+    """No-load output speed of each of `model`'s joints (rad/s) at its nominal supply."""
+    return no_load_speed(MotorParams.of(model.motors), model.nominal_supply_v)
