@@ -250,6 +250,34 @@ def test_run_pid_reaches_its_targets_on_the_bravo_over_a_pty(sim, capsys) -> Non
     assert all(sim.firmware.mode(d) == Mode.ZERO_VELOCITY for d in JOINT_IDS)
 
 
+def test_run_ddpg_drives_the_bravo_with_a_bravo_actor(sim, tmp_path, capsys) -> None:
+    """An actor trained for the Bravo (here one that asks for no current: the plumbing, not a
+    policy) runs through the driver with six joints in and out."""
+    import torch
+
+    from policy.rl.checkpoint import save_actor_npz
+    from policy.rl.config import DDPGConfig
+    from policy.rl.networks import Actor
+
+    config = DDPGConfig.scratch(hidden=(16, 16)).on(BRAVO7)
+    actor = Actor(config.env.observation.size_for(6), 6, config.hidden)
+    with torch.no_grad():
+        for tensor in actor.linears()[-1].parameters():
+            tensor.zero_()
+    weights = tmp_path / "bravo_actor.npz"
+    save_actor_npz(weights, actor, config)
+    target = sim.snapshot().q
+    argv = ["--port", str(sim.link), "--arm", "bravo7", "--watchdog", str(WATCHDOG_S), "run"]
+    argv += ["--controller", "ddpg", "--param", f"weights={weights}"]
+    code = main([*argv, "--target", *map(str, target), "--seconds", "1", "--json", "-q"])
+    captured = capsys.readouterr()
+    assert code == Exit.OK, captured.err
+    out = json.loads(captured.out)
+    assert out["arm"] == "bravo7" and out["ok"], out["error"]
+    assert len(out["final_q"]) == 6
+    assert out["left_in"] == "zero_velocity (confirmed by the arm)"
+
+
 @pytest.mark.sim(speed=1.0)  # ticks a loaded host skips at 4x would cost it the overshoot
 def test_run_lambda_reaches_its_targets_on_the_bravo_over_a_pty(sim, capsys) -> None:
     """The model-based controller, its twin the Bravo's MJCF (the emulated arm's own):
@@ -329,7 +357,13 @@ JOINT_ROWS = {"G ", "F ", "E ", "D ", "C ", "B "}
         (["--controller", "pid", "--target", "3", "1.5", "1.5", "3"], "run --target needs the six"),
         (
             ["--controller", "ddpg", "--target", "3", "1.5", "1.5", "3", "1.5", "3"],
-            "controller 'ddpg' drives the Reach Alpha 5 only, not the Reach Bravo 7",
+            "ddpg_actor.npz: the weights hold an actor for the Reach Alpha 5 (4 joints), not "
+            "the Reach Bravo 7: drive a Reach Alpha 5 with it (reach-driver --arm alpha5) or "
+            "train one for the Reach Bravo 7 (tools/train.py --arm bravo7); nothing was sent",
+        ),
+        (
+            ["--controller", "ddpg-distilled", "--target", "3", "1.5", "1.5", "3", "1.5", "3"],
+            "controller 'ddpg-distilled' drives the Reach Alpha 5 only, not the Reach Bravo 7",
         ),
         (
             ["--controller", "pid", "--target", "3", "1.5", "1.5", "3", "1.5", "3"]

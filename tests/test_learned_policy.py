@@ -21,7 +21,8 @@ from policy.controllers.observation import InputMemory, ObservationConfig, build
 from policy.controllers.weights import FORMAT, LAYERS, LEARNED_WEIGHTS, ActorWeights
 from policy.rl.config import DDPGConfig
 from policy.rl.env import EnvConfig, ReachAlphaEnv, RewardConfig, RewardMode, reward_terms
-from reach_driver.controllers import ControlState
+from protocol.models import ALPHA5, BRAVO7, ArmModel
+from reach_driver.controllers import ControllerModelError, ControlState, load_controller
 
 MEMORY_OBS = ObservationConfig(previous_action=True, integral_tau=1.0)
 
@@ -200,3 +201,70 @@ def test_the_shipped_ddpg_is_learned_from_scratch_and_says_how() -> None:
     assert weights.observation.has_memory  # its memory channels travel with it
     controller = make_controller()
     assert isinstance(controller, LearnedController) and controller.control_hz == 20.0
+
+
+# -- another arm -----------------------------------------------------------------------------
+
+
+def bravo_actor_file(tmp_path: Path, seed: int = 0) -> Path:
+    """A (random) actor saved by training's own writer for the scratch recipe on the Bravo."""
+    import torch
+
+    from policy.rl.checkpoint import save_actor_npz
+    from policy.rl.networks import Actor
+
+    config = DDPGConfig.scratch(hidden=(16, 16)).on(BRAVO7)
+    torch.manual_seed(seed)
+    actor = Actor(config.env.observation.size_for(6), 6, config.hidden)
+    path = tmp_path / "bravo_actor.npz"
+    save_actor_npz(path, actor, config)
+    return path
+
+
+def test_a_bravo_actor_round_trips_with_its_arm(tmp_path: Path) -> None:
+    path = bravo_actor_file(tmp_path)
+    meta = json.loads(path.with_suffix(".json").read_text())
+    assert meta["arm"] == "bravo7"
+    assert meta["current_limits_mA"] == [2000.0, 2000.0, 1500.0, 1500.0, 1500.0, 1000.0]
+    weights = ActorWeights.load(path)
+    assert weights.model is BRAVO7 and weights.weights[0].shape == (16, 42)
+    np.testing.assert_array_equal(weights.current_limits_mA, BRAVO7.current_limits_mA)
+    # the controller builds the inputs the Bravo env built, step by step
+    env = ReachAlphaEnv(DDPGConfig.scratch().on(BRAVO7).env)
+    controller = LearnedController(weights, model=BRAVO7)
+    obs, _ = env.reset(seed=4)
+    for k in range(40):
+        q, qdot = env.last_reading
+        sent = controller.act(ControlState(q, qdot, k * env.control_dt), env.target)
+        action = weights.forward(obs)
+        np.testing.assert_allclose(sent, action * weights.current_limits_mA, rtol=1e-5)
+        obs, *_ = env.step(action)
+    with pytest.raises(ValueError, match=r"6 finite angles \(rad, G F E D C B\)"):
+        controller.act(ControlState(np.ones(6), np.zeros(6), 0.0), np.ones(4))
+    # a file written before the arm was recorded (the shipped ones) is an Alpha 5's
+    del meta["arm"]
+    path.with_suffix(".json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=r"needs 4 finite values >= 0 \(Reach Alpha 5\)"):
+        ActorWeights.load(path)
+    assert "arm" not in json.loads(LEARNED_WEIGHTS.with_suffix(".json").read_text())
+    assert ActorWeights.load(LEARNED_WEIGHTS).model is ALPHA5
+
+
+@pytest.mark.parametrize("arm", [ALPHA5, BRAVO7])
+def test_ddpg_refuses_an_actor_for_another_arm_in_one_line(tmp_path: Path, arm: ArmModel) -> None:
+    bravo = {"weights": str(bravo_actor_file(tmp_path))}
+    shipped: dict[str, str] = {}  # the shipped actor: the Alpha 5's
+    mine, other = (shipped, bravo) if arm is ALPHA5 else (bravo, shipped)
+    other_model = BRAVO7 if arm is ALPHA5 else ALPHA5
+    with pytest.raises(ControllerModelError) as caught:
+        load_controller("ddpg", arm=arm, **other)
+    message = str(caught.value)
+    assert "\n" not in message
+    assert (
+        f"the weights hold an actor for the {other_model.title} ({other_model.n_joints} "
+        f"joints), not the {arm.title}: drive a {other_model.title} with it (reach-driver "
+        f"--arm {other_model.name}) or train one for the {arm.title} (tools/train.py --arm "
+        f"{arm.name})"
+    ) in message
+    own = load_controller("ddpg", arm=arm, **mine)
+    assert isinstance(own, LearnedController) and own.model is arm

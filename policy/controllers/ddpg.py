@@ -39,10 +39,12 @@ class LearnedController:
     ) -> None:
         self.model = weights.model if model is None else model
         if weights.model.name != self.model.name:
+            theirs = weights.model
             raise ControllerModelError(
-                f"the weights hold an actor for the {weights.model.title} "
-                f"({weights.model.n_joints} joints), not the {self.model.title}: train one "
-                f"with tools/train.py --arm {self.model.name}"
+                f"the weights hold an actor for the {theirs.title} ({theirs.n_joints} "
+                f"joints), not the {self.model.title}: drive a {theirs.title} with it "
+                f"(reach-driver --arm {theirs.name}) or train one for the {self.model.title} "
+                f"(tools/train.py --arm {self.model.name})"
             )
         self.weights = weights
         n = self.model.n_joints
