@@ -179,3 +179,63 @@ def test_the_best_actor_records_how_it_was_trained(tiny_run: tuple[Path, str]) -
     assert provenance["demonstrations"] == "2 episodes of a privileged PD expert"
     assert provenance["teacher"].startswith("PDExpert (privileged")
     assert provenance["stages"][0]["run"] == "run" and provenance["stages"][0]["init_actor"] is None
+
+
+#: the scratch recipe cut to a few hundred steps (its collector process kept)
+TINY_SCRATCH = [
+    "--set",
+    "num_envs=2",
+    "--set",
+    "eval_every=200",
+    "--set",
+    "eval_episodes=2",
+    "--set",
+    "learning_starts=100",
+    "--set",
+    "buffer_size=5000",
+    "--set",
+    "hidden=[16,16]",
+    "--set",
+    "batch_size=32",
+    "--set",
+    "env.episode_s=5.0",
+]
+
+
+def test_arm_bravo7_trains_the_scratch_recipe_on_the_bravos_six_joints(tmp_path) -> None:
+    run = tmp_path / "bravo"
+    out = _train("--arm", "bravo7", "--run", str(run), "--steps", "400", *TINY_SCRATCH)
+    assert out.returncode == 0, out.stderr
+    assert (
+        "Reach Bravo 7: 6 joints G F E D C B; envelope arms 0, param perturbation 0 (the "
+        "Alpha 5's parameters only)"
+    ) in out.stdout
+    config = json.loads((run / "config.json").read_text())
+    assert config["name"] == "scratch" and config["collector_process"] is True
+    assert config["env"]["arm"] == "bravo7" and config["eval_envelope_episodes"] == 0
+    assert config["env"]["torque_scale_low"] == [0.25, 1, 1, 1, 1, 1]
+    best = json.loads((run / "best_actor.json").read_text())
+    assert best["arm"] == "bravo7" and best["provenance"]["env_steps"] > 0
+    assert "G25%" in out.stdout  # the weak checkpoint set: the base joint at 25 %
+    # the run is the Bravo's: resumed as such, never as an Alpha's
+    wrong = _train("--arm", "alpha5", "--run", str(run), "--resume", "--no-progress")
+    assert wrong.returncode != 0
+    assert "--arm alpha5: the run in" in wrong.stderr and "Reach Bravo 7" in wrong.stderr
+    # and its actor is not shipped over the Alpha 5's `ddpg`
+    shipped = _train("--run", str(run), "--ship")
+    assert shipped.returncode != 0 and "give --ship-as FILE.npz" in shipped.stderr
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["--config", "ours"], "--arm bravo7: config 'ours' learns from the Alpha 5's PD"),
+        (["--evaluate", "shipped"], "--arm bravo7: --params and --evaluate are the Alpha 5's"),
+    ],
+)
+def test_arm_bravo7_refuses_what_is_the_alpha_5s_in_one_line(tmp_path, argv, expected) -> None:
+    out = _train("--arm", "bravo7", "--run", str(tmp_path / "run"), *argv, "--no-progress")
+    assert out.returncode != 0
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(expected), out.stderr
+    assert "Traceback" not in out.stderr and not (tmp_path / "run" / "checkpoint.pt").exists()
