@@ -604,21 +604,27 @@ def test_the_env_docstring_tables_say_what_each_arm_has() -> None:
     assert sizes[0] == "m"
     for column, obs in ((2, ObservationConfig.paper()), (3, ObservationConfig())):
         per_arm = [
-            ReachAlphaEnv(EnvConfig(observation=obs).on(m)).observation_space.shape[0]
+            str(EnvConfig(observation=obs).on(m).observation.size_for(m.n_joints))
             for m in (ALPHA5, BRAVO7)
         ]
-        assert sizes[column] == " / ".join(map(str, per_arm))
+        assert sizes[column] == " / ".join(per_arm)
+        assert ReachAlphaEnv(EnvConfig(observation=obs).on(BRAVO7)).observation_space.shape == (
+            int(per_arm[1]),
+        )
     env = ReachAlphaEnv(EnvConfig().on(BRAVO7))
     low, high = env.workspace_low, env.workspace_high
-    told = f"G D B [{low[0]:.1f}, {high[0]:.2f}], F E C [{low[1]:.1f}, {high[1]:.1f}] rad"
-    assert told in " ".join(doc.split()), told
+    said = f"G D B [{low[0]:.1f}, {high[0]:.2f}], F E C [{low[1]:.1f}, {high[1]:.1f}] rad"
+    assert said in " ".join(doc.split()), said
 
 
 def test_envelope_arms_and_perturbation_are_refused_on_the_bravo() -> None:
     six = (1.0,) * 6
-    for field in ("envelope_fraction", "param_perturbation"):
+    for config in (
+        EnvConfig(arm=ArmModelName.BRAVO7, torque_scale=six, envelope_fraction=0.5),
+        EnvConfig(arm=ArmModelName.BRAVO7, torque_scale=six, param_perturbation=0.5),
+    ):
         with pytest.raises(ValueError, match="ArmParams.*Reach Bravo 7's twin has none"):
-            ReachAlphaEnv(EnvConfig(arm=ArmModelName.BRAVO7, torque_scale=six, **{field: 0.5}))
+            ReachAlphaEnv(config)
     with pytest.raises(ValueError, match=r"torque_scale needs 6 values \(G F E D C B\)"):
         EnvConfig(arm=ArmModelName.BRAVO7)
     # the scratch recipe fitted to the Bravo: both off, the weak joint its base joint G
