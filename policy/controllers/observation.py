@@ -12,8 +12,10 @@ normalised by the arm's `Workspace` (`Workspace.of(model)`; the Alpha 5's by def
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from functools import lru_cache
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -89,7 +91,9 @@ class Workspace:
 #: the Alpha 5's evaluation workspace (`WORKSPACE_LOW` .. `WORKSPACE_HIGH`)
 ALPHA5_WORKSPACE = Workspace(tuple(WORKSPACE_LOW), tuple(WORKSPACE_HIGH))
 #: workspaces chosen rather than derived from the factory envelope, by model name
-CHOSEN_WORKSPACES: dict[str, Workspace] = {ArmModelName.ALPHA5.value: ALPHA5_WORKSPACE}
+CHOSEN_WORKSPACES: Mapping[str, Workspace] = MappingProxyType(
+    {ArmModelName.ALPHA5.value: ALPHA5_WORKSPACE}
+)
 
 
 @dataclass(frozen=True)
