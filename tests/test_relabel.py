@@ -14,23 +14,24 @@ from policy.rl.config import DDPGConfig
 from policy.rl.env import ReachAlphaEnv, time_limited
 from policy.rl.relabel import GoalRelabeller
 from policy.rl.trainer import Trainer
+from protocol.models import ALPHA5, BRAVO7, ArmModel
 
 STEPS = 60
 
 
-def _env_config() -> DDPGConfig:
-    """The `scratch` recipe's env: noisy readings, memory channels, envelope arms with
-    latency, the shaped reward with every term it uses; 3 s episodes."""
-    cfg = DDPGConfig.scratch()
+def _env_config(model: ArmModel = ALPHA5) -> DDPGConfig:
+    """The `scratch` recipe's env (on `model`): noisy readings, memory channels, envelope arms
+    with latency (the Alpha's), the shaped reward with every term it uses; 3 s episodes."""
+    cfg = DDPGConfig.scratch().on(model)
     return dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, episode_s=STEPS / 20))
 
 
 def _episode(
-    seed: int, actions: np.ndarray, target: np.ndarray | None = None
+    seed: int, actions: np.ndarray, target: np.ndarray | None = None, model: ArmModel = ALPHA5
 ) -> tuple[ReachAlphaEnv, list[np.ndarray], list[float], GoalRelabeller]:
     """One traced episode of the given actions; `target` fixes the goal (the env's draws are
     made all the same, so the arm, its noise and its start do not change with it)."""
-    env = ReachAlphaEnv(_env_config().env)
+    env = ReachAlphaEnv(_env_config(model).env)
     timed = time_limited(env)
     relabeller = GoalRelabeller([env], goals=1, rng=np.random.default_rng(0))
     options = None if target is None else {"target": target}
@@ -45,11 +46,13 @@ def _episode(
     return env, observations, rewards, relabeller
 
 
-@pytest.mark.parametrize("seed", [3, 11])
-def test_a_replay_for_another_goal_is_the_episode_the_env_gives_for_it(seed: int) -> None:
+@pytest.mark.parametrize(("seed", "model"), [(3, ALPHA5), (11, ALPHA5), (5, BRAVO7)])
+def test_a_replay_for_another_goal_is_the_episode_the_env_gives_for_it(
+    seed: int, model: ArmModel
+) -> None:
     rng = np.random.default_rng(seed)
-    actions = rng.uniform(-1, 1, size=(STEPS, 4)).astype(np.float32)
-    env, obs, rewards, relabeller = _episode(seed, actions)
+    actions = rng.uniform(-1, 1, size=(STEPS, model.n_joints)).astype(np.float32)
+    env, obs, rewards, relabeller = _episode(seed, actions, model=model)
     trace = relabeller.traces[0]
     assert trace is not None and len(trace) == STEPS
     # for its own goal the replay is the episode itself
@@ -61,7 +64,7 @@ def test_a_replay_for_another_goal_is_the_episode_the_env_gives_for_it(seed: int
     # for a goal the arm passed through: as if that had been the goal from the start
     goal = trace.true_q[STEPS // 2].copy()
     replay = relabeller.replay(0, trace, goal)
-    _, obs_g, rewards_g, _ = _episode(seed, actions, target=goal)
+    _, obs_g, rewards_g, _ = _episode(seed, actions, target=goal, model=model)
     np.testing.assert_allclose(replay.obs, np.array(obs_g[:-1]), rtol=0, atol=1e-6)
     np.testing.assert_allclose(replay.next_obs, np.array(obs_g[1:]), rtol=0, atol=1e-6)
     np.testing.assert_allclose(replay.rewards, rewards_g, rtol=0, atol=1e-9)
