@@ -183,7 +183,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=ALPHA5.name,
         help="the arm served (default alpha5). bravo7: devices 0x01-0x07 (G base .. B wrist "
         "roll, A jaws) and the router 0x0D with the wrist's force-torque reading; --params and "
-        "--randomize-params and --record/--viewer are the Alpha 5's only",
+        "--randomize-params are the Alpha 5's only",
     )
     arm.add_argument(
         "--start",
@@ -380,10 +380,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     viewer = getattr(args, "viewer", None)
     try:
         config = config_from_args(args)
-        if config.model is not ALPHA5 and (args.record is not None or viewer is not None):
-            raise ValueError(
-                f"--record and --viewer draw the {ALPHA5.title} only, not the {config.model.title}"
-            )
         server = SimServer(config)
     except ValueError as exc:
         parser.error(str(exc))

@@ -9,6 +9,7 @@ on the arm's reports and modes, bounded by the conftest deadlines.
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -223,8 +224,13 @@ def test_an_unreachable_point_is_refused_before_anything_moves(sim, capsys) -> N
     assert code == Exit.LIMIT, err
     assert "out of reach" in err and "nothing was sent" in err
     assert _untouched(sim)
-    assert _status(["--arm", "bravo7", "workspace"]) == Exit.USAGE
-    assert "workspace: not yet for the Reach Bravo 7" in capsys.readouterr().err
+    # the nearest reachable point over the whole workspace, as `workspace --xyz` names it
+    said = re.search(r"the nearest reachable point is \((.+?)\) mm, (\S+) mm away", err)
+    assert said, err
+    assert _status(["--arm", "bravo7", "workspace", "--xyz", "3000", "0", "0", "--json"]) == 3
+    point = json.loads(capsys.readouterr().out)["target"]
+    np.testing.assert_allclose([float(v) for v in said[1].split(", ")], point["point_mm"], atol=1)
+    assert float(said[2]) == pytest.approx(point["distance_mm"], abs=1.0)
 
 
 # -- 2: run ----------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ broken server into a failure instead of a hang.
 
 from __future__ import annotations
 
+import json
 import signal
 import socket
 import subprocess
@@ -266,12 +267,73 @@ def test_the_twins_reading_is_the_jaws_weight_in_air() -> None:
     np.testing.assert_allclose(reading[3:], jaws + rod, atol=1e-9)
 
 
-def test_the_recorder_refuses_the_bravo(sim: SimServer, tmp_path: Path) -> None:
-    from reach_sim_bridge.emulator.recording import SimRecorder
+def test_a_bravo_sim_recording_is_the_bravo_and_reads_back_with_inspect(
+    sim: SimServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from reach_driver.cli import Exit
+    from reach_driver.cli import main as driver
+    from reach_driver.rrd_summary import read_recording
+    from reach_sim_bridge.emulator.recording import SimRecorder, drawn_bodies
 
-    with pytest.raises(ValueError, match="draws the Reach Alpha 5 only"):
-        SimRecorder(sim, tmp_path / "bravo.rrd")
-    assert not (tmp_path / "bravo.rrd").exists()
+    path = tmp_path / "bravo.rrd"
+    recorder = SimRecorder(sim, path, rate_hz=50.0)
+    recorder.start()
+    client = Client(sim, "pty")
+    try:
+        start = sim.snapshot().q
+        client.send(commands.position(F, start[1] + 0.3))
+        client.wait_sim(1.5)
+    finally:
+        client.close()
+        truth = sim.snapshot()
+        recorder.stop()
+    # the MJCF's own links are drawn: base, the six links, the jaws' housing and fingers
+    model = sim.arm.model  # its bodies' names: fixed at load
+    names = [model.body(b).name for b in drawn_bodies(model)]
+    assert names == [*(f"link{i}" for i in range(8)), "jaw"]
+    run = read_recording(path)
+    assert run.metadata["arm"] == "bravo7" and run.model is BRAVO7
+    assert run.q.shape[1] == 6 and len(run.step) >= 40
+    assert run.q[0, 1] == pytest.approx(start[1], abs=0.01)  # F, from where it was
+    assert run.q[-1, 1] == pytest.approx(truth.q[1], abs=0.05) and run.q[-1, 1] > start[1] + 0.2
+    assert np.nanmax(run.target[:, 1]) == pytest.approx(start[1] + 0.3, abs=1e-6)
+    assert driver(["inspect", str(path), "--json"]) == Exit.OK
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["kind"] == "simulator" and summary["arm"] == "bravo7"
+    assert summary["joints"] == ["G", "F", "E", "D", "C", "B"]
+    assert summary["final_modes"][1] == "position"
+    assert summary["final_position"][1] == pytest.approx(truth.q[1], abs=0.05)
+
+
+def test_reach_sim_records_the_bravo(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from conftest import recorded_steps, wait_until
+
+    from reach_driver.cli import Exit
+    from reach_driver.cli import main as driver
+
+    path = tmp_path / "cli.rrd"
+    cli = [sys.executable, "-m", "reach_sim_bridge.cli", "--arm", "bravo7", "--speed", "4"]
+    proc = subprocess.Popen(
+        [*cli, "--record", str(path), "--stats-interval", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().startswith("pty "), proc.stderr
+        assert wait_until(lambda: len(recorded_steps(path)) >= 10, timeout=WALL_LIMIT_S)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=WALL_LIMIT_S)
+    assert proc.returncode == 0, err
+    assert f"recording {path}" in out
+    assert driver(["inspect", str(path)]) == Exit.OK
+    said = capsys.readouterr().out
+    assert "simulator recording" in said and "final true state of the Reach Bravo 7" in said
+    table = [line.split() for line in said.splitlines()]
+    rows = [cells[0] for cells in table if len(cells) == 4 and cells[1] == "standby"]
+    assert rows == ["G", "F", "E", "D", "C", "B"], said
 
 
 def test_the_alpha_still_knows_no_force_torque_packet() -> None:
@@ -353,7 +415,6 @@ def test_options_for_the_bravo_and_the_alpha_stays_the_default(
         (["--arm", "bravo7", "--start", "1", "1", "1", "1"], "takes 6 angles (G F E D C B)"),
         (["--arm", "bravo7", "--torque-scale", "X=1"], "JOINT one of G F E D C B"),
         (["--arm", "bravo7", "--randomize-params", "3"], "Alpha 5's parameters"),
-        (["--arm", "bravo7", "--record", "x.rrd"], "draw the Reach Alpha 5 only"),
         (["--arm", "bravo5"], "invalid choice"),
         (["--start", "1", "1", "1", "1", "1", "1"], "takes 4 angles (E D C B)"),
     ):
