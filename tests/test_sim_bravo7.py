@@ -36,9 +36,10 @@ from reach_driver.safety import LimitKind, SafetyConfig
 from reach_sim_bridge.cli import build_parser, config_from_args, main
 from reach_sim_bridge.emulator.faults import Leak
 from reach_sim_bridge.emulator.firmware import Firmware
-from reach_sim_bridge.emulator.server import SimServer
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 from reach_sim_bridge.model.arm import Alpha5Arm
 from reach_sim_bridge.model.bravo7 import Bravo7Arm
+from reach_sim_bridge.model.params import ArmParams
 
 A, B, C, D, E, F, G = (DeviceID(i) for i in range(1, 8))
 ROUTER = DeviceID.ROUTER
@@ -414,7 +415,6 @@ def test_options_for_the_bravo_and_the_alpha_stays_the_default(
     for argv, message in (
         (["--arm", "bravo7", "--start", "1", "1", "1", "1"], "takes 6 angles (G F E D C B)"),
         (["--arm", "bravo7", "--torque-scale", "X=1"], "JOINT one of G F E D C B"),
-        (["--arm", "bravo7", "--randomize-params", "3"], "Alpha 5's parameters"),
         (["--arm", "bravo5"], "invalid choice"),
         (["--start", "1", "1", "1", "1", "1", "1"], "takes 4 angles (E D C B)"),
     ):
@@ -423,6 +423,103 @@ def test_options_for_the_bravo_and_the_alpha_stays_the_default(
         assert exit_info.value.code == 2
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err
+
+
+# -- an identified Bravo (--params) and a perturbed one (--randomize-params) ---------------------
+def _parse(*argv: str):  # noqa: ANN202
+    return config_from_args(build_parser().parse_args(list(argv)))
+
+
+def test_the_nominal_bravo_as_parameters_is_its_mjcf() -> None:
+    """`ArmParams` of the nominal Bravo, applied, leave the MJCF's model as it was written."""
+    from reach_sim_bridge.model.bravo7 import load
+
+    for water, drag in ((WATER, True), (0.0, True), (1025.0, False)):
+        written, arm = load(water, drag), Bravo7Arm(water_density=water, fluid_drag=drag)
+        for name in ("dof_armature", "dof_damping", "dof_frictionloss", "body_mass"):
+            # to the last bit but one: the lift's litres x density summed in another order
+            np.testing.assert_allclose(getattr(arm.model, name), getattr(written, name), rtol=1e-12)
+        np.testing.assert_allclose(arm.model.body_inertia, written.body_inertia, rtol=1e-12)
+        assert (arm.model.opt.density, arm.model.opt.viscosity) == (
+            written.opt.density,
+            written.opt.viscosity,
+        )
+        assert arm.params.n_joints == 6 and arm.params.water_density == water
+
+
+def test_reach_sim_serves_the_bravo_a_params_file_describes(
+    sim_factory: SimFactory, tmp_path: Path
+) -> None:
+    from reach_sim_bridge.model.bravo7 import gravity_torque, load
+
+    nominal = Bravo7Arm.nominal()
+    friction = list(nominal.frictionloss)
+    friction[1] *= 2.0  # F's
+    path = tmp_path / "bravo.json"
+    path.write_text(json.dumps({"water_density": 0.0, "frictionloss": friction, "_fit": {}}))
+    config = _parse("--arm", "bravo7", "--params", str(path), "--no-pty", "--udp", "0")
+    assert config.params is not None and config.params.frictionloss == tuple(friction)
+    server = sim_factory(config=config)
+    arm = server.arm
+    assert arm.model.dof_frictionloss[1] == pytest.approx(friction[1])
+    np.testing.assert_array_equal(arm.model.dof_armature[:6], nominal.armature)  # the rest nominal
+    # in air: the weight the MJCF's links have out of the water, no lift
+    q = np.array([1.0, 1.2, 1.9, 2.5, 1.4, 0.7])
+    # (to 0.1 mN m: the jaws stand 5 mm open here, shut there, moving their 0.1 g push rod)
+    np.testing.assert_allclose(arm.gravity_torque(q), gravity_torque(load(0.0), q), atol=1e-4)
+    assert not np.allclose(arm.gravity_torque(q), gravity_torque(load(WATER), q), atol=0.1)
+    client = Client(server, "udp")  # and it is served
+    try:
+        assert client.value(F, PacketID.POSITION) == pytest.approx(server.snapshot().q[1], abs=0.01)
+    finally:
+        client.close()
+
+
+def test_randomize_params_perturbs_the_bravo_around_its_nominal_arm(
+    sim_factory: SimFactory,
+) -> None:
+    nominal = Bravo7Arm.nominal()
+    drawn = []
+    for _ in range(2):
+        config = _parse("--arm", "bravo7", "--randomize-params", "3", "--no-pty", "--udp", "0")
+        drawn.append(sim_factory(config=config).arm.params)
+    first = drawn[0]
+    assert first == drawn[1]  # the seed decides the arm
+    for name in ("armature", "damping", "frictionloss", "link_mass_kg", "link_volume_l"):
+        ratio = np.asarray(getattr(first, name)) / np.asarray(getattr(nominal, name))
+        assert len(ratio) == 6 and np.all(np.abs(ratio - 1.0) <= 0.2 + 1e-12), name
+        assert np.any(np.abs(ratio - 1.0) > 0.01), name  # perturbed, per joint
+    for name in ("current_limits_mA", "torque_scale", "supply_voltage", "motors"):
+        assert getattr(first, name) == getattr(nominal, name), name
+
+
+def test_a_params_file_of_the_other_arm_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    alpha = tmp_path / "alpha.json"
+    alpha.write_text('{"frictionloss": [0.7, 0.7, 0.7, 0.075]}')
+    bravo = tmp_path / "bravo.json"
+    bravo.write_text(json.dumps({"motors": {"gear_ratio": [120.0] * 6}}))
+    for argv, message in (
+        (
+            ["--arm", "bravo7", "--params", str(alpha)],
+            f"{alpha}: describes an arm of 4 joints (E D C B: a Reach Alpha 5), not the "
+            "Reach Bravo 7 served (6 joints G F E D C B)",
+        ),
+        (
+            ["--params", str(bravo)],
+            f"{bravo}: describes an arm of 6 joints (G F E D C B: a Reach Bravo 7), not the "
+            "Reach Alpha 5 served (4 joints E D C B)",
+        ),
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            main(argv)
+        assert exit_info.value.code == 2
+        err = capsys.readouterr().err
+        assert err.splitlines()[-1] == f"reach-sim: error: {message}", err
+        assert "Traceback" not in err
+    with pytest.raises(ValueError, match="describe a Reach Alpha 5, not the Reach Bravo 7"):
+        SimServer(SimConfig(model=BRAVO7, params=ArmParams()))
 
 
 def test_reach_sim_serves_the_bravo_on_a_pty_and_udp(tmp_path: Path) -> None:
