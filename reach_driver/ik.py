@@ -167,8 +167,8 @@ def _reach_grid(drawing: ArmDrawing, limits: np.ndarray) -> tuple[np.ndarray, np
     """Poses over the ranges of the joints that move the tool centre point, all but the first
     (which turns the arm about its vertical axis, `ArmDrawing.yaw_axis`): `GRID_STEP_RAD`
     apart, or coarser to hold `GRID_POINTS`, both ends included; every other joint at its
-    lower limit. Returns the angles (N x joints), the tool centre points (N x 3, m) and the
-    step."""
+    lower limit. Returns the angles (N x joints), the tool centre points with the first joint
+    at 0 (`_at_zero`: N x 3, m) and the step."""
     inner = list(drawing.positioning[1:])
     lim = limits[inner]
     span = np.maximum(lim[:, 1] - lim[:, 0], 0.0)
@@ -179,7 +179,7 @@ def _reach_grid(drawing: ArmDrawing, limits: np.ndarray) -> tuple[np.ndarray, np
     q = np.tile(limits[:, 0], (int(np.prod([len(a) for a in axes])), 1))
     for j, values in zip(inner, np.meshgrid(*axes, indexing="ij"), strict=True):
         q[:, j] = values.ravel()
-    return q, drawing.tool_positions(q), step
+    return q, _at_zero(drawing, q), step
 
 
 def _turned(
