@@ -388,29 +388,31 @@ def test_faults_and_climate_as_for_the_alpha(client: Client) -> None:
     assert HardwareStatus.OVER_HUMIDITY in leak
 
 
+def _parse(*argv: str):  # noqa: ANN202
+    """The SimConfig `reach-sim argv` serves."""
+    return config_from_args(build_parser().parse_args(list(argv)))
+
+
 def test_options_for_the_bravo_and_the_alpha_stays_the_default(
     sim_factory: SimFactory, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    def parse(*argv: str):  # noqa: ANN202
-        return config_from_args(build_parser().parse_args(list(argv)))
-
-    assert parse().model is ALPHA5 and parse("--udp").udp == ("127.0.0.1", 6789)
-    config = parse("--arm", "bravo7", "--udp", "--torque-scale", "G=0.25", "--sensor-noise")
+    assert _parse().model is ALPHA5 and _parse("--udp").udp == ("127.0.0.1", 6789)
+    config = _parse("--arm", "bravo7", "--udp", "--torque-scale", "G=0.25", "--sensor-noise")
     assert config.model is BRAVO7 and config.udp == ("127.0.0.1", 6789)
     assert config.faults.torque_scale == (0.25, 1.0, 1.0, 1.0, 1.0, 1.0)
     start = (1.0, 1.5, 1.5, 3.0, 1.5, 3.0)
-    config = parse("--arm", "bravo7", "--no-pty", "--udp", "0", "--start", *map(str, start))
+    config = _parse("--arm", "bravo7", "--no-pty", "--udp", "0", "--start", *map(str, start))
     assert config.start == start
     server = sim_factory(config=config)
     np.testing.assert_allclose(server.snapshot().q, start, atol=0.01)
-    noisy = sim_factory(model=BRAVO7, udp=LOOPBACK, faults=parse("--sensor-noise").faults)
+    noisy = sim_factory(model=BRAVO7, udp=LOOPBACK, faults=_parse("--sensor-noise").faults)
     client = Client(noisy, "udp")
     try:
         readings = {client.value(E, PacketID.POSITION) for _ in range(4)}
         assert len(readings) > 1  # noise on what is reported
     finally:
         client.close()
-    scaled = sim_factory(config=parse("--arm", "bravo7", "--torque-scale", "d=0.5"))
+    scaled = sim_factory(config=_parse("--arm", "bravo7", "--torque-scale", "d=0.5"))
     assert scaled.arm.torque_scale.tolist() == [1.0, 1.0, 1.0, 0.5, 1.0, 1.0]
     for argv, message in (
         (["--arm", "bravo7", "--start", "1", "1", "1", "1"], "takes 6 angles (G F E D C B)"),
@@ -426,10 +428,6 @@ def test_options_for_the_bravo_and_the_alpha_stays_the_default(
 
 
 # -- an identified Bravo (--params) and a perturbed one (--randomize-params) ---------------------
-def _parse(*argv: str):  # noqa: ANN202
-    return config_from_args(build_parser().parse_args(list(argv)))
-
-
 def test_the_nominal_bravo_as_parameters_is_its_mjcf() -> None:
     """`ArmParams` of the nominal Bravo, applied, leave the MJCF's model as it was written."""
     from reach_sim_bridge.model.bravo7 import load
