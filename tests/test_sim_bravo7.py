@@ -501,13 +501,13 @@ def test_a_params_file_of_the_other_arm_is_one_line(
     for argv, message in (
         (
             ["--arm", "bravo7", "--params", str(alpha)],
-            f"{alpha}: describes an arm of 4 joints (E D C B: a Reach Alpha 5), not the "
-            "Reach Bravo 7 served (6 joints G F E D C B)",
+            f"{alpha}: describes an arm of 4 joints (E D C B: a Reach Alpha 5), not a "
+            "Reach Bravo 7 (6 joints G F E D C B)",
         ),
         (
             ["--params", str(bravo)],
-            f"{bravo}: describes an arm of 6 joints (G F E D C B: a Reach Bravo 7), not the "
-            "Reach Alpha 5 served (4 joints E D C B)",
+            f"{bravo}: describes an arm of 6 joints (G F E D C B: a Reach Bravo 7), not a "
+            "Reach Alpha 5 (4 joints E D C B)",
         ),
     ):
         with pytest.raises(SystemExit) as exit_info:

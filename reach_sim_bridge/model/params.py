@@ -260,7 +260,7 @@ def _check_joint_count(data: Mapping[str, Any], model: ArmModel, where: str) -> 
     if other is not None:
         raise ParamsFileError(
             f"{where}: describes an arm of {other.n_joints} joints ({joint_order(other.n_joints)}:"
-            f" a {other.title}), not the {model.title} served ({model.n_joints} joints "
+            f" a {other.title}), not a {model.title} ({model.n_joints} joints "
             f"{' '.join(model.joint_letters)})"
         )
 
