@@ -9,6 +9,7 @@ tools/gen_arm_geometry.py and checked against them by tests/test_recording_views
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
@@ -18,7 +19,13 @@ import numpy as np
 from protocol.models import ALPHA5, BRAVO7, ArmModel
 from reach_driver import bravo7_drawing
 from reach_driver.arm_geometry import GEOMS, LinkGeom
-from reach_driver.kinematics import CHAIN, TCP_OFFSET_M, axis_rotation, quat_rotation
+from reach_driver.kinematics import (
+    CHAIN,
+    TCP_OFFSET_M,
+    axis_rotation,
+    axis_rotations,
+    quat_rotation,
+)
 
 __all__ = ["DRAWINGS", "ArmDrawing", "drawing_for"]
 
@@ -58,6 +65,31 @@ class ArmDrawing:
         """The tool centre point in the base frame (m) at angles `q`."""
         pos, rot = self.link_poses(q)[-1]
         return pos + rot @ self.tcp
+
+    def tool_positions(self, q: np.ndarray) -> np.ndarray:
+        """`tool_position` of N poses at once (N x joints -> N x 3, m): what a search over
+        the workspace evaluates (reach_driver.ik)."""
+        qs = np.atleast_2d(np.asarray(q, dtype=float))
+        pos = np.zeros((len(qs), 3))
+        rot = np.broadcast_to(np.eye(3), (len(qs), 3, 3))
+        for i, (origin, fixed, axis) in enumerate(
+            zip(self.origins, self.rotations, self.axes, strict=True)
+        ):
+            pos = pos + rot @ origin
+            rot = rot @ (fixed @ axis_rotations(axis, qs[:, i]))
+        return pos + rot @ self.tcp
+
+    @property
+    def yaw_axis(self) -> tuple[np.ndarray, float]:
+        """The axis the first joint turns the whole arm about: where it meets the base's x y
+        plane (m), and +1 if a positive angle turns the arm anticlockwise seen from above, -1
+        if clockwise. ValueError if that axis is not vertical (then no one angle sets the
+        tool's bearing)."""
+        pos, rot = self.link_poses(np.zeros(len(self.links)))[0]
+        axis = rot @ np.asarray(self.axes[0], dtype=float)
+        if abs(abs(float(axis[2])) - 1.0) > 1e-9:
+            raise ValueError(f"the first joint's axis {axis.round(6).tolist()} is not vertical")
+        return pos[:2].copy(), math.copysign(1.0, float(axis[2]))
 
     @property
     def positioning(self) -> tuple[int, ...]:

@@ -100,7 +100,7 @@ def tool_position(q: np.ndarray) -> np.ndarray:
     return pos + rot @ np.array([0.0, 0.0, TCP_OFFSET_M])
 
 
-def _axis_rotations(axis: tuple[float, float, float], angles: np.ndarray) -> np.ndarray:
+def axis_rotations(axis: tuple[float, float, float], angles: np.ndarray) -> np.ndarray:
     """`axis_rotation` for N angles at once: N x 3 x 3."""
     x, y, z = axis
     c, s = np.cos(angles), np.sin(angles)
@@ -124,7 +124,7 @@ def tool_positions(q: np.ndarray) -> np.ndarray:
     for i, frame in enumerate(CHAIN):
         yaw = axis_rotation((0.0, 0.0, 1.0), frame.yaw)
         pos = pos + rot @ np.asarray(frame.xyz, dtype=float)
-        rot = rot @ (yaw @ _axis_rotations(frame.axis, qs[:, i]))
+        rot = rot @ (yaw @ axis_rotations(frame.axis, qs[:, i]))
     return pos + rot @ np.array([0.0, 0.0, TCP_OFFSET_M])
 
 

@@ -557,6 +557,7 @@ def _summarize_sim(path: str | Path, run: RecordedRun) -> dict[str, object]:
     out: dict[str, object] = {
         "file": str(path),
         "kind": "simulator",
+        "arm": run.model.name,
         "steps": int(len(run.step)),  # samples logged (fewer per second while the arm idles)
         "duration_s": run.duration_s,
         "start_s": float(run.t[0]) if len(run.t) else None,  # sim time of the first sample

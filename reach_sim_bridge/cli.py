@@ -19,7 +19,8 @@ from protocol.viewer import add_viewer_option, viewer_options_problem
 from reach_sim_bridge.emulator.faults import FaultConfig, torque_scales
 from reach_sim_bridge.emulator.server import TURNAROUND_BYTES, SimConfig, SimServer, serve_forever
 from reach_sim_bridge.emulator.udp import DEFAULT_UDP_HOST, DEFAULT_UDP_PORT, parse_udp_address
-from reach_sim_bridge.model.params import ArmParams, load_arm_params
+from reach_sim_bridge.model.arms import load_params
+from reach_sim_bridge.model.params import ArmParams
 from reach_sim_bridge.model.sensors import (
     DEFAULT_POSITION_NOISE,
     DEFAULT_VELOCITY_NOISE,
@@ -182,8 +183,7 @@ def build_parser() -> argparse.ArgumentParser:
         choices=[m.value for m in ArmModelName],
         default=ALPHA5.name,
         help="the arm served (default alpha5). bravo7: devices 0x01-0x07 (G base .. B wrist "
-        "roll, A jaws) and the router 0x0D with the wrist's force-torque reading; --params and "
-        "--randomize-params and --record/--viewer are the Alpha 5's only",
+        "roll, A jaws) and the router 0x0D with the wrist's force-torque reading",
     )
     arm.add_argument(
         "--start",
@@ -206,8 +206,10 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         metavar="FILE.json",
         help="serve the arm this parameter file describes: a JSON object of ArmParams "
-        "field names (any subset; arrays of four in E D C B order; the rest nominal; keys "
-        "starting with _ ignored), as tools/identify.py writes. --randomize-params then "
+        "field names (any subset; per-joint arrays of four in E D C B order, of six in G F E D "
+        "C B with --arm bravo7; the rest the arm's nominal; keys starting with _ ignored), as "
+        "tools/identify.py writes; a file of another arm's joints is refused in one line. "
+        "--randomize-params then "
         "perturbs around it and --torque-scale multiplies its torque_scale. A file that cannot "
         "be used (not a regular file, over 16 MB, not JSON, an unknown key) is one line and "
         "exit 2",
@@ -345,7 +347,7 @@ def config_from_args(args: argparse.Namespace) -> SimConfig:
         )
     params: ArmParams | None = None
     if getattr(args, "params", None) is not None:
-        params = load_arm_params(args.params)
+        params = load_params(args.params, model)
     return SimConfig(
         model=model,
         speed=args.speed,
@@ -380,10 +382,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     viewer = getattr(args, "viewer", None)
     try:
         config = config_from_args(args)
-        if config.model is not ALPHA5 and (args.record is not None or viewer is not None):
-            raise ValueError(
-                f"--record and --viewer draw the {ALPHA5.title} only, not the {config.model.title}"
-            )
         server = SimServer(config)
     except ValueError as exc:
         parser.error(str(exc))

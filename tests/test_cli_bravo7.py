@@ -9,6 +9,7 @@ on the arm's reports and modes, bounded by the conftest deadlines.
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -223,8 +224,13 @@ def test_an_unreachable_point_is_refused_before_anything_moves(sim, capsys) -> N
     assert code == Exit.LIMIT, err
     assert "out of reach" in err and "nothing was sent" in err
     assert _untouched(sim)
-    assert _status(["--arm", "bravo7", "workspace"]) == Exit.USAGE
-    assert "workspace: not yet for the Reach Bravo 7" in capsys.readouterr().err
+    # the nearest reachable point over the whole workspace, as `workspace --xyz` names it
+    said = re.search(r"the nearest reachable point is \((.+?)\) mm, (\S+) mm away", err)
+    assert said, err
+    assert _status(["--arm", "bravo7", "workspace", "--xyz", "3000", "0", "0", "--json"]) == 3
+    point = json.loads(capsys.readouterr().out)["target"]
+    np.testing.assert_allclose([float(v) for v in said[1].split(", ")], point["point_mm"], atol=1)
+    assert float(said[2]) == pytest.approx(point["distance_mm"], abs=1.0)
 
 
 # -- 2: run ----------------------------------------------------------------------------------
@@ -331,9 +337,44 @@ def test_run_lambda_refuses_an_alpha_arm_file_on_the_bravo(sim, tmp_path, capsys
     code = _status(argv)
     err = capsys.readouterr().err
     assert code == Exit.USAGE, err
-    assert "describe a Reach Alpha 5" in err and "Traceback" not in err, err
+    flat = " ".join(err.split())
+    assert "describes an arm of 4 joints (E D C B: a Reach Alpha 5), not a Reach Bravo 7" in flat
+    assert "Traceback" not in err, err
     assert len([line for line in err.splitlines() if line.startswith("error:")]) == 1, err
     assert _untouched(sim)
+
+
+def test_run_lambda_told_an_identified_bravo_reaches_its_targets(
+    sim_factory, tmp_path, capsys
+) -> None:
+    """An arm file of the Bravo's six joints is its twin: the arm served is that Bravo (in
+    air, F's friction half again the MJCF's) and lambda, told it, reaches at rest."""
+    from policy.controllers.lambda_control import make_controller
+    from reach_sim_bridge.model.arms import load_params
+    from reach_sim_bridge.model.bravo7 import Bravo7Arm
+
+    friction = list(Bravo7Arm.nominal().frictionloss)
+    friction[1] *= 1.5
+    path = tmp_path / "bravo.json"
+    path.write_text(json.dumps({"water_density": 0.0, "frictionloss": friction}))
+    told = make_controller(params=str(path), model=BRAVO7)
+    assert told.params.water_density == 0.0 and told.params.frictionloss == tuple(friction)
+    np.testing.assert_allclose(told.friction, friction)
+    sim = sim_factory(model=BRAVO7, params=load_params(path, BRAVO7), speed=1.0)
+    q0 = sim.snapshot().q
+    target = q0 + np.array([0.25, -0.3, 0.3, -0.35, 0.2, 0.45])
+    argv = ["--port", str(sim.link), "--arm", "bravo7", "--watchdog", str(WATCHDOG_S), "run"]
+    argv += ["--controller", "lambda", "--param", f"params={path}"]
+    argv += ["--target", *map(str, target), "--seconds", "6"]
+    code = main([*argv, "--json", "-q"])
+    captured = capsys.readouterr()
+    assert code == Exit.OK, captured.err
+    out = json.loads(captured.out)
+    assert out["arm"] == "bravo7" and out["ok"], out["error"]
+    metrics = out["metrics"]
+    assert metrics["reached"] and metrics["at_rest"] and metrics["overshoot_pct"] < 2.0, metrics
+    assert np.max(np.abs(sim.snapshot().q - target)) < 0.02  # the arm's true angles
+    assert out["left_in"] == "zero_velocity (confirmed by the arm)"
 
 
 def test_run_prints_the_bravos_joints_and_torque_constants(sim, capsys) -> None:

@@ -623,7 +623,7 @@ def test_envelope_arms_and_perturbation_are_refused_on_the_bravo() -> None:
         EnvConfig(arm=ArmModelName.BRAVO7, torque_scale=six, envelope_fraction=0.5),
         EnvConfig(arm=ArmModelName.BRAVO7, torque_scale=six, param_perturbation=0.5),
     ):
-        with pytest.raises(ValueError, match="ArmParams.*Reach Bravo 7's twin has none"):
+        with pytest.raises(ValueError, match="draw Reach Alpha 5 arms.*not the Reach Bravo 7's"):
             ReachAlphaEnv(config)
     with pytest.raises(ValueError, match=r"torque_scale needs 6 values \(G F E D C B\)"):
         EnvConfig(arm=ArmModelName.BRAVO7)

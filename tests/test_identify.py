@@ -523,3 +523,25 @@ def test_a_joint_is_fitted_beside_a_weak_one_it_does_not_know_yet() -> None:
     assert coasting.armature[2] == pytest.approx(truth.armature[2], rel=0.01)
     assert coasting.link_mass_kg[3] == pytest.approx(truth.link_mass_kg[3], rel=0.02)
     assert driven.armature[2] > 1.15 * truth.armature[2]
+
+
+def test_identify_refuses_a_bravo_before_anything_moves(
+    sim_factory, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The excitation and the fit are the Alpha 5's: on a Bravo 7 its E D C B are another
+    arm's elbow, forearm roll and wrist; nothing but requests may reach it."""
+    from protocol import Mode
+    from protocol.models import BRAVO7
+
+    server = sim_factory(model=BRAVO7)
+    (tmp_path / "out").mkdir()
+    out = tmp_path / "out" / "arm.json"
+    code = identify_main(["--port", str(server.link), "--out", str(out), "--scale", "0.05"])
+    err = capsys.readouterr().err
+    assert code == 4, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith("wrong arm: identification fits a Reach Alpha 5 only: ")
+    assert "nothing was sent" in lines[0]
+    assert all(server.firmware.mode(d) == Mode.STANDBY for d in range(1, 8))
+    assert list(out.parent.iterdir()) == []  # no log, recording or parameters written

@@ -201,7 +201,7 @@ def test_on_the_bravo_the_twin_is_its_mjcf_and_every_joint_arrives_without_overs
     from reach_sim_bridge.model.bravo7 import Bravo7Arm
 
     ctrl = load_controller("lambda", arm=BRAVO7)
-    assert isinstance(ctrl, LambdaController) and ctrl.params is None
+    assert isinstance(ctrl, LambdaController) and ctrl.params == Bravo7Arm.nominal()
     arm = Bravo7Arm(seed=0)
     rng = np.random.default_rng(0)
     start = arm.q
@@ -225,7 +225,9 @@ def test_on_the_bravo_the_twin_is_its_mjcf_and_every_joint_arrives_without_overs
 def test_on_the_bravo_an_alpha_arm_file_and_four_angles_are_refused() -> None:
     from protocol.models import BRAVO7
 
-    with pytest.raises(ValueError, match="describe a Reach Alpha 5"):
+    with pytest.raises(
+        ValueError, match=r"4 joints \(E D C B: a Reach Alpha 5\), not a Reach Bravo"
+    ):
         make_controller(params={"frictionloss": [0.7, 0.7, 0.7, 0.075]}, model=BRAVO7)
     ctrl = make_controller(model=BRAVO7)
     with pytest.raises(ValueError, match=r"6 values \(G F E D C B\)"):

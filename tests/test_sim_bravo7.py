@@ -14,6 +14,7 @@ broken server into a failure instead of a hang.
 
 from __future__ import annotations
 
+import json
 import signal
 import socket
 import subprocess
@@ -35,9 +36,10 @@ from reach_driver.safety import LimitKind, SafetyConfig
 from reach_sim_bridge.cli import build_parser, config_from_args, main
 from reach_sim_bridge.emulator.faults import Leak
 from reach_sim_bridge.emulator.firmware import Firmware
-from reach_sim_bridge.emulator.server import SimServer
+from reach_sim_bridge.emulator.server import SimConfig, SimServer
 from reach_sim_bridge.model.arm import Alpha5Arm
 from reach_sim_bridge.model.bravo7 import Bravo7Arm
+from reach_sim_bridge.model.params import ArmParams
 
 A, B, C, D, E, F, G = (DeviceID(i) for i in range(1, 8))
 ROUTER = DeviceID.ROUTER
@@ -266,12 +268,73 @@ def test_the_twins_reading_is_the_jaws_weight_in_air() -> None:
     np.testing.assert_allclose(reading[3:], jaws + rod, atol=1e-9)
 
 
-def test_the_recorder_refuses_the_bravo(sim: SimServer, tmp_path: Path) -> None:
-    from reach_sim_bridge.emulator.recording import SimRecorder
+def test_a_bravo_sim_recording_is_the_bravo_and_reads_back_with_inspect(
+    sim: SimServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from reach_driver.cli import Exit
+    from reach_driver.cli import main as driver
+    from reach_driver.rrd_summary import read_recording
+    from reach_sim_bridge.emulator.recording import SimRecorder, drawn_bodies
 
-    with pytest.raises(ValueError, match="draws the Reach Alpha 5 only"):
-        SimRecorder(sim, tmp_path / "bravo.rrd")
-    assert not (tmp_path / "bravo.rrd").exists()
+    path = tmp_path / "bravo.rrd"
+    recorder = SimRecorder(sim, path, rate_hz=50.0)
+    recorder.start()
+    client = Client(sim, "pty")
+    try:
+        start = sim.snapshot().q
+        client.send(commands.position(F, start[1] + 0.3))
+        client.wait_sim(1.5)
+    finally:
+        client.close()
+        truth = sim.snapshot()
+        recorder.stop()
+    # the MJCF's own links are drawn: base, the six links, the jaws' housing and fingers
+    model = sim.arm.model  # its bodies' names: fixed at load
+    names = [model.body(b).name for b in drawn_bodies(model)]
+    assert names == [*(f"link{i}" for i in range(8)), "jaw"]
+    run = read_recording(path)
+    assert run.metadata["arm"] == "bravo7" and run.model is BRAVO7
+    assert run.q.shape[1] == 6 and len(run.step) >= 40
+    assert run.q[0, 1] == pytest.approx(start[1], abs=0.01)  # F, from where it was
+    assert run.q[-1, 1] == pytest.approx(truth.q[1], abs=0.05) and run.q[-1, 1] > start[1] + 0.2
+    assert np.nanmax(run.target[:, 1]) == pytest.approx(start[1] + 0.3, abs=1e-6)
+    assert driver(["inspect", str(path), "--json"]) == Exit.OK
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["kind"] == "simulator" and summary["arm"] == "bravo7"
+    assert summary["joints"] == ["G", "F", "E", "D", "C", "B"]
+    assert summary["final_modes"][1] == "position"
+    assert summary["final_position"][1] == pytest.approx(truth.q[1], abs=0.05)
+
+
+def test_reach_sim_records_the_bravo(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from conftest import recorded_steps, wait_until
+
+    from reach_driver.cli import Exit
+    from reach_driver.cli import main as driver
+
+    path = tmp_path / "cli.rrd"
+    cli = [sys.executable, "-m", "reach_sim_bridge.cli", "--arm", "bravo7", "--speed", "4"]
+    proc = subprocess.Popen(
+        [*cli, "--record", str(path), "--stats-interval", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().startswith("pty "), proc.stderr
+        assert wait_until(lambda: len(recorded_steps(path)) >= 10, timeout=WALL_LIMIT_S)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=WALL_LIMIT_S)
+    assert proc.returncode == 0, err
+    assert f"recording {path}" in out
+    assert driver(["inspect", str(path)]) == Exit.OK
+    said = capsys.readouterr().out
+    assert "simulator recording" in said and "final true state of the Reach Bravo 7" in said
+    table = [line.split() for line in said.splitlines()]
+    rows = [cells[0] for cells in table if len(cells) == 4 and cells[1] == "standby"]
+    assert rows == ["G", "F", "E", "D", "C", "B"], said
 
 
 def test_the_alpha_still_knows_no_force_torque_packet() -> None:
@@ -325,35 +388,35 @@ def test_faults_and_climate_as_for_the_alpha(client: Client) -> None:
     assert HardwareStatus.OVER_HUMIDITY in leak
 
 
+def _parse(*argv: str):  # noqa: ANN202
+    """The SimConfig `reach-sim argv` serves."""
+    return config_from_args(build_parser().parse_args(list(argv)))
+
+
 def test_options_for_the_bravo_and_the_alpha_stays_the_default(
     sim_factory: SimFactory, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    def parse(*argv: str):  # noqa: ANN202
-        return config_from_args(build_parser().parse_args(list(argv)))
-
-    assert parse().model is ALPHA5 and parse("--udp").udp == ("127.0.0.1", 6789)
-    config = parse("--arm", "bravo7", "--udp", "--torque-scale", "G=0.25", "--sensor-noise")
+    assert _parse().model is ALPHA5 and _parse("--udp").udp == ("127.0.0.1", 6789)
+    config = _parse("--arm", "bravo7", "--udp", "--torque-scale", "G=0.25", "--sensor-noise")
     assert config.model is BRAVO7 and config.udp == ("127.0.0.1", 6789)
     assert config.faults.torque_scale == (0.25, 1.0, 1.0, 1.0, 1.0, 1.0)
     start = (1.0, 1.5, 1.5, 3.0, 1.5, 3.0)
-    config = parse("--arm", "bravo7", "--no-pty", "--udp", "0", "--start", *map(str, start))
+    config = _parse("--arm", "bravo7", "--no-pty", "--udp", "0", "--start", *map(str, start))
     assert config.start == start
     server = sim_factory(config=config)
     np.testing.assert_allclose(server.snapshot().q, start, atol=0.01)
-    noisy = sim_factory(model=BRAVO7, udp=LOOPBACK, faults=parse("--sensor-noise").faults)
+    noisy = sim_factory(model=BRAVO7, udp=LOOPBACK, faults=_parse("--sensor-noise").faults)
     client = Client(noisy, "udp")
     try:
         readings = {client.value(E, PacketID.POSITION) for _ in range(4)}
         assert len(readings) > 1  # noise on what is reported
     finally:
         client.close()
-    scaled = sim_factory(config=parse("--arm", "bravo7", "--torque-scale", "d=0.5"))
+    scaled = sim_factory(config=_parse("--arm", "bravo7", "--torque-scale", "d=0.5"))
     assert scaled.arm.torque_scale.tolist() == [1.0, 1.0, 1.0, 0.5, 1.0, 1.0]
     for argv, message in (
         (["--arm", "bravo7", "--start", "1", "1", "1", "1"], "takes 6 angles (G F E D C B)"),
         (["--arm", "bravo7", "--torque-scale", "X=1"], "JOINT one of G F E D C B"),
-        (["--arm", "bravo7", "--randomize-params", "3"], "Alpha 5's parameters"),
-        (["--arm", "bravo7", "--record", "x.rrd"], "draw the Reach Alpha 5 only"),
         (["--arm", "bravo5"], "invalid choice"),
         (["--start", "1", "1", "1", "1", "1", "1"], "takes 4 angles (E D C B)"),
     ):
@@ -362,6 +425,99 @@ def test_options_for_the_bravo_and_the_alpha_stays_the_default(
         assert exit_info.value.code == 2
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err
+
+
+# -- an identified Bravo (--params) and a perturbed one (--randomize-params) ---------------------
+def test_the_nominal_bravo_as_parameters_is_its_mjcf() -> None:
+    """`ArmParams` of the nominal Bravo, applied, leave the MJCF's model as it was written."""
+    from reach_sim_bridge.model.bravo7 import load
+
+    for water, drag in ((WATER, True), (0.0, True), (1025.0, False)):
+        written, arm = load(water, drag), Bravo7Arm(water_density=water, fluid_drag=drag)
+        for name in ("dof_armature", "dof_damping", "dof_frictionloss", "body_mass"):
+            # to the last bit but one: the lift's litres x density summed in another order
+            np.testing.assert_allclose(getattr(arm.model, name), getattr(written, name), rtol=1e-12)
+        np.testing.assert_allclose(arm.model.body_inertia, written.body_inertia, rtol=1e-12)
+        assert (arm.model.opt.density, arm.model.opt.viscosity) == (
+            written.opt.density,
+            written.opt.viscosity,
+        )
+        assert arm.params.n_joints == 6 and arm.params.water_density == water
+
+
+def test_reach_sim_serves_the_bravo_a_params_file_describes(
+    sim_factory: SimFactory, tmp_path: Path
+) -> None:
+    from reach_sim_bridge.model.bravo7 import gravity_torque, load
+
+    nominal = Bravo7Arm.nominal()
+    friction = list(nominal.frictionloss)
+    friction[1] *= 2.0  # F's
+    path = tmp_path / "bravo.json"
+    path.write_text(json.dumps({"water_density": 0.0, "frictionloss": friction, "_fit": {}}))
+    config = _parse("--arm", "bravo7", "--params", str(path), "--no-pty", "--udp", "0")
+    assert config.params is not None and config.params.frictionloss == tuple(friction)
+    server = sim_factory(config=config)
+    arm = server.arm
+    assert arm.model.dof_frictionloss[1] == pytest.approx(friction[1])
+    np.testing.assert_array_equal(arm.model.dof_armature[:6], nominal.armature)  # the rest nominal
+    # in air: the weight the MJCF's links have out of the water, no lift
+    q = np.array([1.0, 1.2, 1.9, 2.5, 1.4, 0.7])
+    # (to 0.1 mN m: the jaws stand 5 mm open here, shut there, moving their 0.1 g push rod)
+    np.testing.assert_allclose(arm.gravity_torque(q), gravity_torque(load(0.0), q), atol=1e-4)
+    assert not np.allclose(arm.gravity_torque(q), gravity_torque(load(WATER), q), atol=0.1)
+    client = Client(server, "udp")  # and it is served
+    try:
+        assert client.value(F, PacketID.POSITION) == pytest.approx(server.snapshot().q[1], abs=0.01)
+    finally:
+        client.close()
+
+
+def test_randomize_params_perturbs_the_bravo_around_its_nominal_arm(
+    sim_factory: SimFactory,
+) -> None:
+    nominal = Bravo7Arm.nominal()
+    drawn = []
+    for _ in range(2):
+        config = _parse("--arm", "bravo7", "--randomize-params", "3", "--no-pty", "--udp", "0")
+        drawn.append(sim_factory(config=config).arm.params)
+    first = drawn[0]
+    assert first == drawn[1]  # the seed decides the arm
+    for name in ("armature", "damping", "frictionloss", "link_mass_kg", "link_volume_l"):
+        ratio = np.asarray(getattr(first, name)) / np.asarray(getattr(nominal, name))
+        assert len(ratio) == 6 and np.all(np.abs(ratio - 1.0) <= 0.2 + 1e-12), name
+        assert np.any(np.abs(ratio - 1.0) > 0.01), name  # perturbed, per joint
+    for name in ("current_limits_mA", "torque_scale", "supply_voltage", "motors"):
+        assert getattr(first, name) == getattr(nominal, name), name
+
+
+def test_a_params_file_of_the_other_arm_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    alpha = tmp_path / "alpha.json"
+    alpha.write_text('{"frictionloss": [0.7, 0.7, 0.7, 0.075]}')
+    bravo = tmp_path / "bravo.json"
+    bravo.write_text(json.dumps({"motors": {"gear_ratio": [120.0] * 6}}))
+    for argv, message in (
+        (
+            ["--arm", "bravo7", "--params", str(alpha)],
+            f"{alpha}: describes an arm of 4 joints (E D C B: a Reach Alpha 5), not a "
+            "Reach Bravo 7 (6 joints G F E D C B)",
+        ),
+        (
+            ["--params", str(bravo)],
+            f"{bravo}: describes an arm of 6 joints (G F E D C B: a Reach Bravo 7), not a "
+            "Reach Alpha 5 (4 joints E D C B)",
+        ),
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            main(argv)
+        assert exit_info.value.code == 2
+        err = capsys.readouterr().err
+        assert err.splitlines()[-1] == f"reach-sim: error: {message}", err
+        assert "Traceback" not in err
+    with pytest.raises(ValueError, match="describe a Reach Alpha 5, not the Reach Bravo 7"):
+        SimServer(SimConfig(model=BRAVO7, params=ArmParams()))
 
 
 def test_reach_sim_serves_the_bravo_on_a_pty_and_udp(tmp_path: Path) -> None:

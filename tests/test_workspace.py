@@ -4,15 +4,26 @@
 from __future__ import annotations
 
 import json
+import math
 import re
+from typing import NamedTuple
 
 import numpy as np
 import pytest
 
 from protocol import Mode
 from protocol.alpha5 import JOINTS
+from protocol.models import ALPHA5, BRAVO7, ArmModel
 from reach_driver.cli import Exit, main
-from reach_driver.ik import TOLERANCE_MM, UnreachableError, factory_limits, solve_or_refuse
+from reach_driver.drawing import drawing_for
+from reach_driver.ik import (
+    TOLERANCE_MM,
+    Envelope,
+    UnreachableError,
+    envelope,
+    factory_limits,
+    solve_or_refuse,
+)
 from reach_driver.kinematics import tool_position
 
 LIMITS = factory_limits()
@@ -183,3 +194,153 @@ def test_move_xyz_refusal_names_the_nearest_reachable_point(sim, capsys) -> None
     assert away < 140.0  # the nearest, not where the solver gave up (189 mm)
     assert all(sim.firmware.mode(d) == Mode.STANDBY for d in JOINTS)  # nothing was sent
     assert np.max(np.abs(sim.snapshot().q - q0)) < 0.01
+
+
+# ------------------------------------------------------------------ any model: the Bravo 7
+#
+# Independent of the driver's chains: the Alpha's URDF frames (reach_sim_bridge/model/README.md)
+# and the Bravo's datasheet DH table (tests/test_bravo7_model.py, bravo7.md), typed in. Each arm
+# stretched out straight from its shoulder is its farthest from the yaw axis (horizontal) and its
+# highest (upright): its shoulder's offset plus the lengths of its rigid segments, shoulder to
+# elbow, elbow to wrist pitch, wrist pitch to the tool centre point.
+
+
+class Stretch(NamedTuple):
+    """An arm stretched out straight from its shoulder (mm)."""
+
+    shoulder_offset: float  # the shoulder's axis from the yaw axis
+    shoulder_height: float  # above the base frame
+    segments: tuple[float, ...]  # rigid lengths: shoulder to elbow to wrist pitch to tool
+
+    @property
+    def radius(self) -> float:
+        return self.shoulder_offset + sum(self.segments)
+
+    @property
+    def height(self) -> float:
+        return self.shoulder_height + sum(self.segments)
+
+
+ALPHA5_STRETCH = Stretch(
+    shoulder_offset=20.0,  # D's axis from E's
+    shoulder_height=14.0 + 33.0,
+    segments=(math.hypot(40.0, 145.3), math.hypot(20.0, 33.0 + 99.75 + 40.0)),
+)
+BRAVO7_STRETCH = Stretch(
+    shoulder_offset=46.0,  # a1: F's axis from G's
+    shoulder_height=41.45 + 117.48,  # d0 - d1
+    segments=(
+        math.hypot(5.2, 290.77),  # a2
+        math.hypot(160.26, 40.8 + 40.8),  # d4 along the forearm, a3 + a4 across it
+        math.hypot(224.16 + 120.0, 40.8),  # d6 + the tool's 120 mm, a5 across
+    ),
+)
+BRAVO7_LIMITS = np.array([BRAVO7.position_limits[d] for d in BRAVO7.joints])
+
+
+def _dh_tool_mm(q: np.ndarray) -> np.ndarray:
+    """The Bravo's tool centre point (mm) by the datasheet's DH table, not the driver's chain."""
+    from test_bravo7_model import dh_frames
+
+    return dh_frames(np.asarray(q, dtype=float))["tcp"][:3, 3] * 1000.0
+
+
+@pytest.fixture(scope="module")
+def bravo_envelope() -> Envelope:
+    return envelope(BRAVO7_LIMITS, drawing_for(BRAVO7))
+
+
+@pytest.mark.parametrize(
+    ("model", "facts"),
+    [(ALPHA5, ALPHA5_STRETCH), (BRAVO7, BRAVO7_STRETCH)],
+    ids=["alpha5", "bravo7"],
+)
+def test_the_farthest_and_highest_reach_are_the_arm_stretched_out(
+    model: ArmModel, facts: Stretch
+) -> None:
+    limits = np.array([model.position_limits[d] for d in model.joints])
+    env = envelope(limits, drawing_for(model))
+    assert env.radius_mm[1] == pytest.approx(facts.radius, abs=0.01)
+    assert env.z_mm[1] == pytest.approx(facts.height, abs=0.01)
+    assert env.radius_mm[0] == pytest.approx(0.0, abs=0.01)  # the tool over the yaw axis
+
+
+def test_the_bravos_bounds_are_its_poses_by_the_datasheet(bravo_envelope: Envelope) -> None:
+    env = bravo_envelope
+    assert env.axis_mm == pytest.approx((67.5, 0.0))  # a0: G's axis off the base frame's
+    measures = {
+        "radius_min": lambda p: math.hypot(p[0] - 67.5, p[1]),
+        "radius_max": lambda p: math.hypot(p[0] - 67.5, p[1]),
+        "z_min": lambda p: p[2],
+        "z_max": lambda p: p[2],
+        "reach": lambda p: float(np.linalg.norm(p)),
+    }
+    bounds = {
+        "radius_min": env.radius_mm[0],
+        "radius_max": env.radius_mm[1],
+        "z_min": env.z_mm[0],
+        "z_max": env.z_mm[1],
+        "reach": env.reach_mm,
+    }
+    for name, measure in measures.items():
+        q = env.poses[name]
+        assert np.all(q >= BRAVO7_LIMITS[:, 0]) and np.all(q <= BRAVO7_LIMITS[:, 1]), name
+        assert measure(_dh_tool_mm(q)) == pytest.approx(bounds[name], abs=0.01), name
+
+
+def test_the_bravos_envelope_holds_every_pose(bravo_envelope: Envelope) -> None:
+    rng = np.random.default_rng(7)
+    q = rng.uniform(BRAVO7_LIMITS[:, 0], BRAVO7_LIMITS[:, 1], size=(3000, 6))
+    p = np.array([_dh_tool_mm(x) for x in q])
+    radius = np.hypot(p[:, 0] - 67.5, p[:, 1])
+    env = bravo_envelope
+    assert env.radius_mm[0] - 0.01 <= radius.min() and radius.max() <= env.radius_mm[1] + 0.01
+    assert env.z_mm[0] - 0.01 <= p[:, 2].min() and p[:, 2].max() <= env.z_mm[1] + 0.01
+    assert np.linalg.norm(p, axis=1).max() <= env.reach_mm + 0.01
+
+
+def test_workspace_for_the_bravo_prints_its_envelope_and_limits(capsys) -> None:
+    assert main(["--arm", "bravo7", "workspace"]) == Exit.OK
+    out = capsys.readouterr().out
+    lines = out.splitlines()
+    radius = next(x for x in lines if x.startswith("distance from G's axis (at x 67.5 y 0.0)"))
+    assert _numbers(radius)[-2:] == [0.0, round(BRAVO7_STRETCH.radius, 1)]
+    assert "G sets the bearing; B turns the tool about its own axis" in " ".join(out.split())
+    rows = [x.split()[0] for x in lines if len(x.split()) == 5 and x.split()[0] in "GFEDCB"]
+    assert rows == ["G", "F", "E", "D", "C", "B"]
+    f = next(x for x in lines if x.split()[:1] == ["F"])
+    assert _numbers(f)[:2] == [0.0, 3.2]
+
+
+def test_workspace_for_the_bravo_json_margin_and_a_reachable_point(capsys) -> None:
+    q = np.array([2.0, 1.2, 1.9, 2.5, 1.4, 0.7])
+    target = _dh_tool_mm(q)
+    argv = ["--arm", "bravo7", "workspace", "--position-margin", "0.1", "--json", "--xyz"]
+    assert main([*argv, *(f"{v:.3f}" for v in target)]) == Exit.OK
+    data = json.loads(capsys.readouterr().out)
+    assert data["position_limits_rad"]["F"] == [pytest.approx(0.1), pytest.approx(3.1)]
+    assert data["axis_mm"] == [67.5, 0.0]
+    point = data["target"]
+    assert point["reachable"] is True and set(point["angles_rad"]) == {"G", "F", "E", "D", "C"}
+    angles = np.array([*point["angles_rad"].values(), 0.0])  # B any angle
+    assert all(0.1 - 1e-9 <= v <= 3.1 + 1e-9 for v in angles[1:3])
+    assert np.linalg.norm(_dh_tool_mm(angles) - target) <= TOLERANCE_MM
+
+
+def test_workspace_for_the_bravo_names_the_nearest_point_and_exits_3(capsys) -> None:
+    far = np.array([0.0, 0.0, -1000.0])  # under the base, past the arm hanging down
+    assert main(["--arm", "bravo7", "workspace", "--json", "--xyz", *map(str, far)]) == Exit.LIMIT
+    point = json.loads(capsys.readouterr().out)["target"]
+    assert point["reachable"] is False
+    near = _dh_tool_mm(np.array([*point["angles_rad"].values(), 0.0]))
+    np.testing.assert_allclose(point["point_mm"], near, atol=0.01)
+    assert point["distance_mm"] == pytest.approx(np.linalg.norm(near - far), abs=0.01)
+    # the nearest inside the limits: no pose of 3000 random ones gets nearer
+    rng = np.random.default_rng(11)
+    q = rng.uniform(BRAVO7_LIMITS[:, 0], BRAVO7_LIMITS[:, 1], size=(3000, 6))
+    sampled = np.array([_dh_tool_mm(x) for x in q])
+    assert point["distance_mm"] <= float(np.linalg.norm(sampled - far, axis=1).min()) + 0.1
+    assert main(["--arm", "bravo7", "workspace", "--xyz", *map(str, far)]) == Exit.LIMIT
+    said = capsys.readouterr().out.splitlines()[-1]
+    assert "mm is out of reach; the nearest reachable point is" in said
+    assert said.endswith("rad (B any angle)") and " G " in said

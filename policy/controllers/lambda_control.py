@@ -59,8 +59,9 @@ corner of the envelope tried, with the nominal arm's it reaches almost none of t
 (docs/robustness.md). A twin comes from `tools/identify.py`.
 
 On the Bravo 7 (`model=BRAVO7`) the twin is the Bravo's (`Bravo7Arm`: its MJCF's inertia,
-damping and friction, in fresh water), the same law on its six joints G F E D C B; an arm file
-(`params`) is the Alpha 5's only so far.
+damping and friction, in fresh water, or an arm file of its six joints: what it does not name
+the MJCF's), the same law on its six joints G F E D C B; an arm file of another arm's joints
+is refused naming the arm it fits.
 
     from policy.controllers.lambda_control import make_controller
     ctrl = make_controller(params="arm.json", latency_periods=1.0)
@@ -83,7 +84,7 @@ from reach_sim_bridge.model.params import ArmParams
 from reach_sim_bridge.model.twin import FittedTwin, read_twin
 
 with needs_extra("the lambda controller", "sim"):  # its twin is the MuJoCo model
-    from reach_sim_bridge.model.arms import arm_twin
+    from reach_sim_bridge.model.arms import arm_twin, nominal_params
 
 
 @dataclass(frozen=True)
@@ -152,8 +153,8 @@ class LambdaController:
         self.n = model.n_joints
         self.config = config or LambdaConfig()
         self.twin = arm_twin(model, params)
-        #: the Alpha 5 twin's parameters (None on another arm: its twin is its MJCF's)
-        self.params = (params or ArmParams()) if model is ALPHA5 else None
+        #: the twin's parameters (the model's nominal ones unless given)
+        self.params = self.twin.params
         self.current_limits_mA = np.asarray(self.twin.current_limits_mA, dtype=np.float64)
         #: N m per mA of each joint on the twin (its torque scale included)
         self.torque_per_mA = self.twin.motor.torque_per_amp * self.twin.torque_scale / 1000.0
@@ -327,8 +328,8 @@ def make_controller(
     `ArmParams` fields, or a `FittedTwin`; nominal if omitted); keyword arguments are
     `LambdaConfig` fields. Without `latency_periods`, a twin with a fit (a file written by
     `tools/identify.py`, or a dict or `FittedTwin` holding its ``_fit``) gives it: the command
-    delay it measured times the control rate. On the Bravo 7 (`model`) the twin is its MJCF's
-    and `params`, an Alpha 5's, is refused (`arm_twin`)."""
+    delay it measured times the control rate. On the Bravo 7 (`model`) `params` are of its six
+    joints, the rest its MJCF's; an Alpha 5's are refused in one line."""
     known = {f.name for f in fields(LambdaConfig)}
     unknown = set(kwargs) - known
     if unknown:
@@ -342,9 +343,9 @@ def make_controller(
     elif isinstance(params, FittedTwin):
         twin = params
     elif isinstance(params, dict):
-        twin = FittedTwin.from_json_dict(params)
+        twin = FittedTwin.from_json_dict(params, "params", model, nominal_params(model))
     else:
-        twin = read_twin(params)
+        twin = read_twin(params, model, nominal_params(model))
     if twin is not None and "latency_periods" not in kwargs and twin.delay_s is not None:
         config = replace(config, latency_periods=twin.delay_s * config.rate_hz)
     return LambdaController(None if twin is None else twin.params, config, model=model)

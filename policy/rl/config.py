@@ -323,10 +323,10 @@ class DDPGConfig:
 
     def on(self, model: ArmModel) -> DDPGConfig:
         """This run's config for an arm of `model` (itself on its own arm): the env's as
-        `EnvConfig.on` makes it (envelope arms and parameter perturbation off on an arm whose
-        twin takes no parameters), and then no envelope checkpoint set either. The PD
+        `EnvConfig.on` makes it (envelope arms and parameter perturbation off on an arm the
+        envelope is not defined for), and then no envelope checkpoint set either. The PD
         demonstrator and a starting actor are an Alpha 5's: a config with them is refused."""
-        from reach_sim_bridge.model.arms import takes_params
+        from policy.tasks.envelope import has_envelope
 
         env = self.env.on(model)
         if env is self.env:
@@ -337,7 +337,7 @@ class DDPGConfig:
                 f"an Alpha 5 actor: not for the {model.title} (use scratch, paper or "
                 "paper-per-joint)"
             )
-        envelope = self.eval_envelope_episodes if takes_params(model) else 0
+        envelope = self.eval_envelope_episodes if has_envelope(model) else 0
         return dataclasses.replace(self, env=env, eval_envelope_episodes=envelope)
 
     @classmethod

@@ -32,7 +32,7 @@ from policy.controllers.observation import (
     observation_bounds,
 )
 from policy.tasks.arm import ArmLike
-from policy.tasks.envelope import Envelope, Variant, draws
+from policy.tasks.envelope import Envelope, Variant, draws, has_envelope
 from protocol.models import ALPHA5, ArmModel, ArmModelName, model_named
 from reach_driver.metrics import OVERSHOOT_MIN_STEP_RAD
 from reach_sim_bridge.model.motor import model_no_load_speed, no_load_speed
@@ -139,7 +139,7 @@ class EnvConfig:
     #: if set, each episode draws each joint's torque scale uniformly in [low, torque_scale]
     torque_scale_low: tuple[float, ...] | None = None
     #: relative perturbation of the model parameters per episode (0.1 = +-10 %), 0 disables;
-    #: an arm whose twin takes parameters only (the Alpha 5's `ArmParams`)
+    #: an arm the envelope is defined for only (`has_envelope`: the Alpha 5)
     param_perturbation: float = 0.0
     #: starts and goals at most this far apart per joint (rad); None = whole workspace
     max_step: float | None = None
@@ -197,9 +197,7 @@ class EnvConfig:
         per-joint fields written for another arm's joints become `model`'s: full torque
         (`torque_scale_low`: the base joint's range kept, the others at full torque), the
         arm's own workspace. Envelope arms and parameter perturbation are switched off for an
-        arm whose twin takes no parameters (`reach_sim_bridge.model.arms.takes_params`)."""
-        from reach_sim_bridge.model.arms import takes_params
-
+        arm the envelope is not defined for (`policy.tasks.envelope.has_envelope`)."""
         if model.name == self.arm.value:
             return self
         n = model.n_joints
@@ -211,7 +209,7 @@ class EnvConfig:
             "workspace_low": None,
             "workspace_high": None,
         }
-        if not takes_params(model):
+        if not has_envelope(model):
             fields.update(param_perturbation=0.0, envelope_fraction=0.0)
         return dataclasses.replace(self, **fields)
 
@@ -360,10 +358,10 @@ def default_arm_factory(config: EnvConfig) -> ArmLike:
     return arm
 
 
-def _no_params(model: ArmModel, what: str) -> str:
+def _no_envelope(model: ArmModel, what: str) -> str:
     return (
-        f"{what} draw {ALPHA5.title} parameters (ArmParams); the {model.title}'s twin has "
-        "none: set env.envelope_fraction and env.param_perturbation to 0"
+        f"{what} draw {ALPHA5.title} arms (policy.tasks.envelope), not the {model.title}'s: "
+        "set env.envelope_fraction and env.param_perturbation to 0"
     )
 
 
@@ -497,8 +495,8 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(n,), dtype=np.float32)
         self.arm: ArmLike = self._arm_factory(config)
         self._nominal_params = getattr(self.arm, "params", None)
-        if self._nominal_params is None and (config.envelope_fraction or config.param_perturbation):
-            raise ValueError(_no_params(self.model, "envelope arms and param_perturbation"))
+        if not has_envelope(self.model) and (config.envelope_fraction or config.param_perturbation):
+            raise ValueError(_no_envelope(self.model, "envelope arms and param_perturbation"))
         limits = np.asarray(self.arm.position_limits, dtype=np.float64)
         if limits.shape != (n, 2):
             raise ValueError(
@@ -626,8 +624,8 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def draw_variant(self) -> Variant:
         """A feasible arm of the envelope around the nominal one, from the env's generator."""
-        if self._nominal_params is None:
-            raise ValueError(_no_params(self.model, "envelope arms"))
+        if self._nominal_params is None or not has_envelope(self.model):
+            raise ValueError(_no_envelope(self.model, "envelope arms"))
         seed = int(self.np_random.integers(0, 2**31 - 1))
         return draws(1, seed, Envelope(), self._nominal_params).variants[0]
 

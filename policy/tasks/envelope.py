@@ -22,10 +22,19 @@ import numpy as np
 from policy.controllers.observation import WORKSPACE_HIGH, WORKSPACE_LOW
 from policy.tasks.episodes import Episode, RunConfig
 from protocol.alpha5 import JOINT_LETTERS, N_JOINTS
+from protocol.models import ALPHA5, ArmModel
 from reach_sim_bridge.model.arm import Alpha5Arm
 from reach_sim_bridge.model.motor import MotorModel
 from reach_sim_bridge.model.params import ArmParams
 from reach_sim_bridge.model.sensors import SensorNoise
+
+
+def has_envelope(model: ArmModel) -> bool:
+    """Whether the uncertainty envelope, and the training env's perturbation of the arm's
+    parameters around the nominal ones, are defined for `model`: the Alpha 5's only (the
+    ranges below, its weak joints and its latencies are the Alpha's)."""
+    return model is ALPHA5
+
 
 Span = tuple[float, float]
 

@@ -28,6 +28,7 @@ from reach_driver.cli.exits import Exit, UsageError, for_operator, left_in_for_o
 from reach_driver.cli.live import MoveView, RunView, chain
 from reach_driver.cli.recorder import CliRecorder, output_path_problem
 from reach_driver.cli.render import (
+    Roles,
     as_typed,
     blocking_faults,
     controllers_lines,
@@ -735,28 +736,29 @@ def cmd_controllers(args: argparse.Namespace, console: Console) -> Exit:
 
 
 def cmd_workspace(args: argparse.Namespace, console: Console) -> Exit:
-    """Where the tool reaches inside the limits `move --xyz` would use on an arm reporting
-    the factory ones (the same guard, the same solver); opens no port."""
+    """Where the tool reaches inside the limits `move --xyz` would use on an arm of the model
+    (`--arm`, the Alpha 5 by default) reporting the factory ones (the same guard, the same
+    solver); opens no port."""
     model = given_model(args) or ALPHA5
-    if model is not ALPHA5:
-        raise UsageError(
-            f"workspace: not yet for the {model.title} (its envelope is the {ALPHA5.title}'s "
-            "only so far); `move --xyz` solves a point on it"
-        )
+    try:
+        drawing = drawing_for(model)
+    except ValueError as exc:
+        raise UsageError(f"workspace: {exc}") from None
+    roles = Roles.of(model, drawing)
     margin = float(args.position_margin)
-    limits = np.array(SafetyGuard(safety_config(args)).position_limits())
-    env = ik.envelope(limits)
+    limits = np.array(SafetyGuard(safety_config(args), model).position_limits())
+    env = ik.envelope(limits, drawing)
     sol = None
     if args.xyz is not None:
         middle = limits.mean(axis=1)  # no arm, no present angles: start mid-range
-        sol = ik.nearest_reachable(args.xyz, middle, limits)
+        sol = ik.nearest_on(drawing, args.xyz, middle, limits)
     if args.json:
-        console.print_json(json.dumps(workspace_json(env, margin, args.xyz, sol)))
+        console.print_json(json.dumps(workspace_json(env, margin, args.xyz, sol, roles)))
     else:
-        for table in workspace_tables(env, margin):
+        for table in workspace_tables(env, margin, roles):
             show_table(console, table)
         if sol is not None:
-            console.print(escape(workspace_point_line(args.xyz, sol)), soft_wrap=True)
+            console.print(escape(workspace_point_line(args.xyz, sol, roles)), soft_wrap=True)
     return Exit.OK if sol is None or sol.reachable else Exit.LIMIT
 
 

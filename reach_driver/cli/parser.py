@@ -491,13 +491,15 @@ def build_parser() -> argparse.ArgumentParser:
         "workspace",
         parents=[offline],
         help="where the tool can reach: the envelope, and the angles for a point (no arm needed)",
-        description="Print where the tool centre point can reach inside the position limits "
-        "(the factory ones, tightened by --position-margin): its distance from the base's z "
-        "axis, its height and its farthest reach (mm, base frame, as `move --xyz` takes "
-        "them), and the limits used. With --xyz: the joint angles E D C that put it there, "
-        "or, out of reach, the nearest reachable point and its angles (exit 3, as `move "
-        "--xyz` refuses it). B turns the tool about its own axis and never moves the point. "
-        "Needs no arm: the driver's own kinematics, the same `move --xyz` uses.",
+        description="Print where the tool centre point of the arm --arm names (the Alpha 5 "
+        "by default; --arm bravo7) can reach inside the position limits (the factory ones, "
+        "tightened by --position-margin): its distance from the axis the base yaw turns "
+        "about (the base's z axis on the Alpha, 67.5 mm off it on the Bravo), its height and "
+        "its farthest reach (mm, base frame, as `move --xyz` takes them), and the limits used. "
+        "With --xyz: the joint angles that put it there (E D C; G F E D C on the Bravo), or, "
+        "out of reach, the nearest reachable point and its angles (exit 3, as `move --xyz` "
+        "refuses it). B turns the tool about its own axis and never moves the point. Needs "
+        "no arm: the driver's own kinematics, the same `move --xyz` uses.",
     )
     ws.add_argument(
         "--xyz",

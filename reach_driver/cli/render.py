@@ -8,7 +8,7 @@ import shutil
 import sys
 import textwrap
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from rich.console import Console
@@ -16,15 +16,15 @@ from rich.markup import escape
 from rich.table import Table
 
 from protocol import DeviceID, HardwareStatus, Mode, PacketID
-from protocol.alpha5 import JOINT_LETTERS
 from protocol.models import ALPHA5, ArmModel, model_named
 from reach_driver.cli.exits import for_operator
 from reach_driver.cli.report import run_metrics, run_overshoot
 from reach_driver.cli.tables import show_table
 from reach_driver.client import ArmClient
 from reach_driver.controllers import ControllerInfo, ControllerKind
+from reach_driver.drawing import ArmDrawing
 from reach_driver.faults import blocking_flags, flag_labels, status_bytes
-from reach_driver.ik import Envelope, Solution, xyz_text
+from reach_driver.ik import ChainSolution, Envelope, Solution, xyz_text
 from reach_driver.metrics import METRIC_KEYS, metric_label
 from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind
@@ -574,7 +574,9 @@ def print_sim_recording(console: Console, summary: dict[str, Any], clean: str) -
         f"{f', part {part} of a rotated recording' if part else ''}{clean}",
         soft_wrap=True,
     )
-    joints = Table(title="final true state")
+    arm = summary.get("arm", ALPHA5.name)
+    named = "" if arm == ALPHA5.name else f" of the {_model_title(str(arm))}"
+    joints = Table(title=f"final true state{named}")
     for col in ("joint", "mode", "position (rad)", "setpoint (rad)"):
         joints.add_column(col, justify="right")
     for j, mode, q, sp in zip(
@@ -596,47 +598,93 @@ def print_sim_recording(console: Console, summary: dict[str, Any], clean: str) -
         console.print(f"  {escape(str(line))}")
 
 
-def workspace_tables(env: Envelope, margin: float) -> tuple[Table, Table]:
+class Roles(NamedTuple):
+    """What each joint of a model does to the tool centre point (`ArmDrawing.positioning`):
+    the first sets its bearing, `moving` (the first included) place it, `free` only turn
+    the tool about its own axis."""
+
+    letters: tuple[str, ...]
+    moving: tuple[str, ...]
+    free: tuple[str, ...]
+
+    @classmethod
+    def of(cls, model: ArmModel, drawing: ArmDrawing) -> Roles:
+        letters = model.joint_letters
+        moving = tuple(letters[i] for i in drawing.positioning)
+        return cls(letters, moving, tuple(j for j in letters if j not in moving))
+
+    @property
+    def free_text(self) -> str:
+        return " ".join(self.free)
+
+
+def workspace_tables(env: Envelope, margin: float, roles: Roles) -> tuple[Table, Table]:
     """`workspace`: the envelope (mm) and the position limits it was found within."""
     reach = Table(title="where the tool centre point reaches (mm, base frame, as move --xyz)")
     for column in ("", "min", "max"):
         reach.add_column(column, justify="left" if not column else "right")
-    reach.add_row("distance from the base's z axis", *(f"{v:.1f}" for v in env.radius_mm))
+    x, y = env.axis_mm
+    axis = (
+        "the base's z axis"
+        if math.hypot(x, y) < 1e-6
+        else f"{roles.moving[0]}'s axis (at x {x:.1f} y {y:.1f})"
+    )
+    reach.add_row(f"distance from {axis}", *(f"{v:.1f}" for v in env.radius_mm))
     reach.add_row("height z", *(f"{v:.1f}" for v in env.z_mm))
     reach.add_row("distance from the base's origin", "-", f"{env.reach_mm:.1f}")
-    reach.caption = "E sets the bearing; B turns the tool about its own axis, never moving it"
+    reach.caption = f"{roles.moving[0]} sets the bearing" + (
+        f"; {roles.free_text} turns the tool about its own axis, never moving it"
+        if roles.free
+        else ""
+    )
     source = "factory" + (f" less --position-margin {margin:g}" if margin else "")
     limits = Table(title=f"position limits used ({source})")
     for column in ("joint", "min [rad]", "max [rad]", "min [deg]", "max [deg]"):
         limits.add_column(escape(column), justify="right")
-    for letter, (lo, hi) in zip(JOINT_LETTERS, env.limits, strict=True):
+    for letter, (lo, hi) in zip(roles.letters, env.limits, strict=True):
         limits.add_row(
             letter, f"{lo:.4f}", f"{hi:.4f}", f"{math.degrees(lo):.1f}", f"{math.degrees(hi):.1f}"
         )
     return reach, limits
 
 
-def workspace_point_line(xyz: tuple[float, float, float], sol: Solution) -> str:
+def _moving_angles(roles: Roles, q: np.ndarray) -> dict[str, float]:
+    return {j: float(v) for j, v in zip(roles.letters, q, strict=True) if j in roles.moving}
+
+
+def workspace_point_line(
+    xyz: tuple[float, float, float], sol: Solution | ChainSolution, roles: Roles
+) -> str:
     """`workspace --xyz`: the angles for the point, or the nearest reachable point's."""
-    angles = " ".join(f"{j} {v:.4f}" for j, v in zip(JOINT_LETTERS, sol.q[:3], strict=False))
+    angles = " ".join(f"{j} {v:.4f}" for j, v in _moving_angles(roles, sol.q).items())
+    free = f" ({roles.free_text} any angle)" if roles.free else ""
     if sol.reachable:
-        return f"{xyz_text(xyz)} mm is reachable at {angles} rad (B any angle)"
+        return f"{xyz_text(xyz)} mm is reachable at {angles} rad{free}"
     return (
         f"{xyz_text(xyz)} mm is out of reach; the nearest reachable point is "
-        f"{xyz_text(sol.point_mm)} mm, {sol.error_mm:.1f} mm away, at {angles} rad (B any angle)"
+        f"{xyz_text(sol.point_mm)} mm, {sol.error_mm:.1f} mm away, at {angles} rad{free}"
     )
 
 
 def workspace_json(
-    env: Envelope, margin: float, xyz: tuple[float, float, float] | None, sol: Solution | None
+    env: Envelope,
+    margin: float,
+    xyz: tuple[float, float, float] | None,
+    sol: Solution | ChainSolution | None,
+    roles: Roles,
 ) -> dict[str, Any]:
-    """`workspace --json`: the envelope, the limits and, with --xyz, the point."""
+    """`workspace --json`: the envelope, the limits, the angles at each bound and, with
+    --xyz, the point."""
     out: dict[str, Any] = {
         "radius_mm": list(env.radius_mm),
         "z_mm": list(env.z_mm),
         "reach_mm": env.reach_mm,
+        "axis_mm": list(env.axis_mm),
+        "bounds_angles_rad": {
+            name: dict(zip(roles.letters, q.tolist(), strict=True)) for name, q in env.poses.items()
+        },
         "position_limits_rad": {
-            j: list(lim) for j, lim in zip(JOINT_LETTERS, env.limits.tolist(), strict=True)
+            j: list(lim) for j, lim in zip(roles.letters, env.limits.tolist(), strict=True)
         },
         "position_margin_rad": margin,
     }
@@ -646,7 +694,7 @@ def workspace_json(
             "reachable": sol.reachable,
             "point_mm": [round(float(v), 3) + 0.0 for v in sol.point_mm],  # no 1e-14
             "distance_mm": sol.error_mm,
-            "angles_rad": dict(zip(JOINT_LETTERS[:3], sol.q[:3], strict=True)),
+            "angles_rad": _moving_angles(roles, sol.q),
         }
     return jsonable(out, digits6=True)
 

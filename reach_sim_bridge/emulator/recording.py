@@ -53,8 +53,6 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from protocol import HardwareStatus, Mode
-from protocol.alpha5 import JOINT_LETTERS as JOINTS
-from protocol.models import ALPHA5
 from protocol.viewer import (
     ViewerError,
     ViewerSpec,
@@ -65,23 +63,22 @@ from protocol.viewer import (
 )
 from protocol.viewer_layout import (
     ARM_COLOR,
-    JOINT_COLORS,
-    JOINT_KEY,
     TARGET_COLOR,
     ArmBody,
     Ball,
     EyePose,
     arm_view,
     framing_eye,
+    joint_colors,
+    joint_key,
     reach,
     series_view,
     time_panel,
 )
 from reach_sim_bridge.emulator.firmware import Firmware
 from reach_sim_bridge.emulator.server import SimServer
-from reach_sim_bridge.model.arm import Alpha5Arm
+from reach_sim_bridge.model.arm import MotorArm
 
-DEVICE_IDS = (0x05, 0x04, 0x03, 0x02)
 TIMELINE_TIME = "arm_time"
 TIMELINE_STEP = "step"
 
@@ -96,11 +93,21 @@ _MIN_ROWS_PER_FLUSH = 50  # samples: fewer per flush and the chunk overhead domi
 # rerun 0.41): a part is rotated when its size plus the footer still to come reaches its cap.
 _FOOTER_BYTES_PER_CHUNK = 1200
 _CHUNKS_AT_OPEN = 80  # the blueprint's and the static scene's (77, measured with rerun 0.41)
-_PER_SAMPLE_ENTITIES = 13  # joints x 8, torques, velocities, links, jaw, link/frames
+#: Entities logged per sample beside the two per joint: torques, velocities, links, jaw,
+#: link/frames.
+_PER_SAMPLE_ENTITIES = 5
 
 _BASE_COLOR = (90, 90, 90, 255)
 _APPLIED_COLOR = (120, 120, 120, 255)
-_LINKS = ("m3_inline", "m2_1_1", "m2", "m2_1_3", "m1", "jaw")
+
+
+def drawn_bodies(model: mujoco.MjModel) -> list[int]:
+    """The bodies drawn, in the model's order: those with a cylinder or box geom (the links,
+    the base and the jaws; not the buoyancy bodies, which have none)."""
+    kinds = (int(mujoco.mjtGeom.mjGEOM_CYLINDER), int(mujoco.mjtGeom.mjGEOM_BOX))
+    return sorted(
+        {int(model.geom_bodyid[g]) for g in range(model.ngeom) if model.geom_type[g] in kinds}
+    )
 
 
 @dataclass(frozen=True)
@@ -116,8 +123,8 @@ class _Geoms:
 
 
 def _geoms(model: mujoco.MjModel) -> _Geoms:
-    bodies = {model.body(name).id for name in _LINKS}
-    base = model.body("m3_inline").id
+    bodies = set(drawn_bodies(model))
+    base = {b for b in bodies if model.body_parentid[b] == 0}  # welded to the world
     cyl, box = int(mujoco.mjtGeom.mjGEOM_CYLINDER), int(mujoco.mjtGeom.mjGEOM_BOX)
     cylinders = [
         g
@@ -135,7 +142,7 @@ def _geoms(model: mujoco.MjModel) -> _Geoms:
         radii=model.geom_size[cylinders, 0].copy(),
         lengths=2.0 * model.geom_size[cylinders, 1].copy(),
         half_sizes=model.geom_size[boxes].copy(),
-        colors=[_BASE_COLOR if model.geom_bodyid[g] == base else ARM_COLOR for g in cylinders],
+        colors=[_BASE_COLOR if model.geom_bodyid[g] in base else ARM_COLOR for g in cylinders],
     )
 
 
@@ -165,9 +172,9 @@ class _Sample:
     box_quat: np.ndarray
 
 
-def _sampler(geoms: _Geoms):  # type: ignore[no-untyped-def]
-    def sample(arm: Alpha5Arm, firmware: Firmware) -> _Sample:
-        setpoints = [firmware.setpoints(dev) for dev in DEVICE_IDS]
+def _sampler(geoms: _Geoms, devices: tuple[int, ...]):  # type: ignore[no-untyped-def]
+    def sample(arm: MotorArm, firmware: Firmware) -> _Sample:
+        setpoints = [firmware.setpoints(dev) for dev in devices]
         modes = tuple(m for m, _, _ in setpoints)
         target = np.array([p if m == Mode.POSITION else math.nan for m, p, _ in setpoints])
         arm.skeleton()  # runs the kinematics: the geoms' world poses below are current
@@ -181,7 +188,7 @@ def _sampler(geoms: _Geoms):  # type: ignore[no-untyped-def]
             applied_mA=np.array([a for _, _, a in setpoints]),
             setpoint=target,
             modes=modes,
-            status=tuple(firmware.status(dev) for dev in DEVICE_IDS),
+            status=tuple(firmware.status(dev) for dev in devices),
             cylinder_pos=data.geom_xpos[geoms.cylinders].copy(),
             cylinder_quat=_quats_xyzw(data.geom_xmat[geoms.cylinders]),
             box_pos=data.geom_xpos[geoms.boxes].copy(),
@@ -216,11 +223,11 @@ def _balls(model: mujoco.MjModel, data: mujoco.MjData, body: int, grow: float) -
 
 
 def arm_bodies(model: mujoco.MjModel) -> list[ArmBody]:
-    """The drawn links (_LINKS) as `protocol.viewer_layout` bodies, posed at the model's zero
-    angles; the jaw's slide counted as its fingers' travel."""
+    """The drawn bodies (`drawn_bodies`) as `protocol.viewer_layout` bodies, posed at the
+    model's zero angles; the jaw's slide counted as its fingers' travel."""
     data = mujoco.MjData(model)
     mujoco.mj_kinematics(model, data)
-    ids = [model.body(name).id for name in _LINKS]
+    ids = drawn_bodies(model)
     hinge = int(mujoco.mjtJoint.mjJNT_HINGE)
     bodies = []
     for b in ids:
@@ -247,7 +254,7 @@ def arm_bodies(model: mujoco.MjModel) -> list[ArmBody]:
     return bodies
 
 
-def _blueprint(eye: EyePose, live: bool = False) -> rrb.Blueprint:
+def _blueprint(joints: tuple[str, ...], eye: EyePose, live: bool = False) -> rrb.Blueprint:
     """The true arm with its eye on every pose (`eye`), per joint its position vs the
     firmware's setpoint beside its currents, torques, velocities and the link's frames; every
     plot over the whole recording, legends hidden. `live`: following the newest data."""
@@ -270,11 +277,11 @@ def _blueprint(eye: EyePose, live: bool = False) -> rrb.Blueprint:
                             f"{j}: current, applied grey vs drawn orange (mA)",
                         ),
                     )
-                    for j in JOINTS
+                    for j in joints
                 ]
             ),
             rrb.Vertical(
-                series_view("/torques", f"torques delivered (N m); {JOINT_KEY}"),
+                series_view("/torques", f"torques delivered (N m); {joint_key(joints)}"),
                 series_view("/velocities", "velocities (rad/s)"),
                 series_view("/link/frames", "link: frames (count)"),
             ),
@@ -307,9 +314,6 @@ class SimRecorder:
     ) -> None:
         if path is None and viewer is None:
             raise ValueError("SimRecorder needs a path, a viewer or both")
-        if server.config.model is not ALPHA5:
-            # Its views, names and skeleton are the Alpha 5's (four joints E D C B).
-            raise ValueError(f"SimRecorder draws the {ALPHA5.title} only")
         if not (math.isfinite(rate_hz) and rate_hz > 0):
             raise ValueError(f"recording rate must be positive, got {rate_hz}")
         if not (math.isfinite(idle_rate_hz) and 0 < idle_rate_hz <= rate_hz):
@@ -319,6 +323,9 @@ class SimRecorder:
         if parts < 2:
             raise ValueError(f"a capped recording needs at least 2 parts, got {parts}")
         self.server = server
+        #: the arm served: its joints name the entities, its MJCF is drawn
+        self.model = server.config.model
+        self.joints = self.model.joint_letters
         self.path = None if path is None else Path(path)
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -339,7 +346,7 @@ class SimRecorder:
         self._recording_id = f"reach-sim-{time.time_ns()}"
         self._geoms = server.observe(lambda arm, _fw: _geoms(arm.model))
         self._eye = server.observe(lambda arm, _fw: framing_eye(reach(arm_bodies(arm.model))))
-        self._sample = _sampler(self._geoms)
+        self._sample = _sampler(self._geoms, tuple(int(d) for d in self.model.joints))
         self._lock = threading.Lock()  # the stream, across rotation and outside flushes
         self._modes: tuple[Mode, ...] | None = None
         self._status: tuple[HardwareStatus, ...] | None = None
@@ -347,7 +354,7 @@ class SimRecorder:
         self._out = ViewerTee(None, None, self._viewer_error)
         if viewer is not None:
             try:
-                live = _blueprint(self._eye, live=True)
+                live = _blueprint(self.joints, self._eye, live=True)
                 view = open_viewer(viewer, "reach-sim", self._recording_id, live, announce)
             except ViewerError as exc:
                 self._viewer_error(exc, opening=True)
@@ -383,7 +390,7 @@ class SimRecorder:
             recording_id=self._recording_id,
             batcher_config=rr.ChunkBatcherConfig(flush_tick=timedelta(seconds=IDLE_FLUSH_S + 5.0)),
         )
-        rec.save(str(self.path), default_blueprint=_blueprint(self._eye))
+        rec.save(str(self.path), default_blueprint=_blueprint(self.joints, self._eye))
         self._log_scene(rec)
         # Each part states the modes and faults it starts with.
         self._modes = None
@@ -410,7 +417,7 @@ class SimRecorder:
                 ),
                 static=True,
             )
-        for j in JOINTS:
+        for j in self.joints:
             rec.log(
                 f"joints/{j}/position",
                 rr.SeriesLines(names=["q", "setpoint"], colors=[ARM_COLOR, TARGET_COLOR]),
@@ -423,7 +430,9 @@ class SimRecorder:
             )
         for entity in ("torques", "velocities"):
             rec.log(
-                entity, rr.SeriesLines(names=list(JOINTS), colors=list(JOINT_COLORS)), static=True
+                entity,
+                rr.SeriesLines(names=list(self.joints), colors=list(joint_colors(self.joints))),
+                static=True,
             )
         rec.log(
             "link/frames",
@@ -432,7 +441,8 @@ class SimRecorder:
         )
         meta = {
             "source": "reach-sim",
-            "joint_names": list(JOINTS),
+            "arm": self.model.name,
+            "joint_names": list(self.joints),
             "rate_hz": self.rate_hz,
             "idle_rate_hz": self.idle_rate_hz,
             "speed": self.server.config.speed,
@@ -506,7 +516,7 @@ class SimRecorder:
             rec = self._out
             rec.set_time(TIMELINE_TIME, duration=s.t)
             rec.set_time(TIMELINE_STEP, sequence=k)
-            for i, j in enumerate(JOINTS):
+            for i, j in enumerate(self.joints):
                 rec.log(f"joints/{j}/position", rr.Scalars([s.q[i], s.setpoint[i]]))
                 rec.log(f"joints/{j}/current", rr.Scalars([s.applied_mA[i], s.drawn_mA[i]]))
             rec.log("torques", rr.Scalars(s.tau))
@@ -528,13 +538,15 @@ class SimRecorder:
             )
             if s.modes != self._modes:
                 names = ", ".join(
-                    f"{j}={m.name.lower()}" for j, m in zip(JOINTS, s.modes, strict=True)
+                    f"{j}={m.name.lower()}" for j, m in zip(self.joints, s.modes, strict=True)
                 )
                 rec.log("events", rr.TextLog(f"modes: {names}", level="INFO"))
                 self._modes = s.modes
                 self._urgent = self._events_since_flush = True
             if s.status != self._status:
-                faults = [f"{j}={_flags(st)}" for j, st in zip(JOINTS, s.status, strict=True) if st]
+                faults = [
+                    f"{j}={_flags(st)}" for j, st in zip(self.joints, s.status, strict=True) if st
+                ]
                 text = "faults: " + (", ".join(faults) if faults else "none")
                 rec.log("events", rr.TextLog(text, level="WARN" if faults else "INFO"))
                 self._status = s.status
@@ -557,7 +569,8 @@ class SimRecorder:
                 self._rec.flush(timeout_sec=2.0)
             self._last_flush = time.monotonic()
             if self._rows_since_flush:  # a chunk per entity logged since the last flush
-                self._chunks += _PER_SAMPLE_ENTITIES + int(self._events_since_flush)
+                per_sample = 2 * len(self.joints) + _PER_SAMPLE_ENTITIES
+                self._chunks += per_sample + int(self._events_since_flush)
             self._rows_since_flush, self._urgent, self._events_since_flush = 0, False, False
             if self.part_bytes is not None and self.path is not None:
                 try:

@@ -30,7 +30,7 @@ import numpy as np
 
 from protocol import HardwareStatus, Packet, PacketDecoder
 from protocol.decoder import DecoderStats
-from protocol.models import ALPHA5, BRAVO7, ArmModel
+from protocol.models import ALPHA5, ArmModel
 from reach_sim_bridge.emulator.devices import DEVICE_SPECS, MODEL_NUMBERS
 from reach_sim_bridge.emulator.events import EventLog
 from reach_sim_bridge.emulator.faults import FaultConfig, LinkFaults, StuckReading
@@ -47,8 +47,8 @@ from reach_sim_bridge.emulator.wire import (
     out_frame_max_age,
     out_queue_limit,
 )
-from reach_sim_bridge.model.arm import Alpha5Arm, MotorArm
-from reach_sim_bridge.model.bravo7 import Bravo7Arm
+from reach_sim_bridge.model.arm import MotorArm
+from reach_sim_bridge.model.arms import TWINS, arm_twin, params_problem
 from reach_sim_bridge.model.params import ArmParams
 
 T = TypeVar("T")
@@ -68,11 +68,6 @@ __all__ = [
     "serve_forever",
 ]
 
-#: The arms other than the Alpha 5 the simulator serves: (physics dt, seed) -> the twin.
-_TWINS: dict[str, Callable[[float, int | None], MotorArm]] = {
-    ALPHA5.name: lambda dt, seed: Alpha5Arm(dt=dt, seed=seed),
-    BRAVO7.name: lambda dt, seed: Bravo7Arm(dt=dt, seed=seed),
-}
 
 MAX_STEPS_PER_PASS = 25  # physics steps between two looks at the endpoints
 MAX_LAG_WALL_S = 0.25  # further behind than this, the sim slows down instead of catching up
@@ -100,25 +95,18 @@ class SimConfig:
     faults: FaultConfig = field(default_factory=FaultConfig)
     firmware: FirmwareConfig = field(default_factory=FirmwareConfig)
     seed: int | None = None  # link faults and sensor noise
-    # The Alpha 5 served (None: nominal); --randomize-params perturbs around it, and the
-    # faults' torque scale multiplies its own.
+    # The arm served, as `ArmParams` of its model (None: nominal); --randomize-params
+    # perturbs around it, and the faults' torque scale multiplies its own.
     params: ArmParams | None = None
 
     def __post_init__(self) -> None:
         model = self.model
-        if model.name not in _TWINS:
-            known = ", ".join(_TWINS)
+        if model.name not in TWINS:
+            known = ", ".join(TWINS)
             raise ValueError(f"no virtual {model.title}: the simulator serves {known}")
-        if model is not ALPHA5 and self.params is not None:
-            raise ValueError(
-                f"arm parameters (--params) describe an {ALPHA5.title}; the {model.title} "
-                "twin takes none"
-            )
-        if model is not ALPHA5 and self.faults.randomize_seed is not None:
-            raise ValueError(
-                f"--randomize-params perturbs the {ALPHA5.title}'s parameters; the "
-                f"{model.title} twin has none to perturb yet"
-            )
+        problem = None if self.params is None else params_problem(self.params, model)
+        if problem:
+            raise ValueError(f"--params: {problem}")
         self.faults.torque_scale_for(model)  # one value per joint of this arm
         firmware = self.firmware
         if firmware.model.name != model.name:
@@ -270,13 +258,7 @@ class SimServer(WireIO):
 
     def _make_arm(self) -> MotorArm:
         cfg = self.config
-        if cfg.model is not ALPHA5:
-            twin = _TWINS[cfg.model.name](cfg.dt, cfg.seed)
-            twin.torque_scale = np.asarray(cfg.faults.torque_scale_for(cfg.model))
-            start = None if cfg.start is None else np.asarray(cfg.start)
-            twin.reset(q=start, jaw_mm=cfg.jaw_mm)
-            return twin
-        arm = Alpha5Arm(params=cfg.params, dt=cfg.dt, seed=cfg.faults.randomize_seed)
+        arm = arm_twin(cfg.model, cfg.params, cfg.dt, cfg.faults.randomize_seed)
         if cfg.faults.randomize_seed is not None:
             params = arm.randomize()
             log.info(
@@ -293,7 +275,9 @@ class SimServer(WireIO):
                     )
                 },
             )
-        arm.torque_scale = np.asarray(arm.params.torque_scale) * np.asarray(cfg.faults.torque_scale)
+        arm.torque_scale = np.asarray(arm.params.torque_scale) * np.asarray(
+            cfg.faults.torque_scale_for(cfg.model)
+        )
         arm.reset(q=None if cfg.start is None else np.asarray(cfg.start), jaw_mm=cfg.jaw_mm)
         return arm
 

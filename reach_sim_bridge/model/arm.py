@@ -34,7 +34,12 @@ from numpy.typing import ArrayLike, NDArray
 from protocol.alpha5 import JOINT_LETTERS as JOINTS
 from protocol.models import ALPHA5, ArmModel
 from reach_sim_bridge.model.motor import MotorModel
-from reach_sim_bridge.model.params import LINK_BODIES, NOSLIP_ITERATIONS, ArmParams
+from reach_sim_bridge.model.params import (
+    LINK_BODIES,
+    NOSLIP_ITERATIONS,
+    ArmParams,
+    joint_order,
+)
 
 __all__ = ["MODEL_PATH", "Alpha5Arm", "ArmParams", "JOINTS", "MotorArm"]
 
@@ -44,7 +49,6 @@ FloatArray = NDArray[np.float64]
 
 _TCP_SITE = "tcp"
 _BUOYANCY_SUFFIX = "_buoyancy"
-_WRIST = 3  # index of B in E D C B
 COAST_ARMATURE = 1e6
 """kg m^2: a joint with this armature (`MotorArm.coast`) gains 2e-9 rad/s per N m per 2 ms
 step (the arm's own: 0.003-0.2). Not more: at 1e9 MuJoCo's solve lost precision, and a replay
@@ -170,6 +174,130 @@ class MotorArm:
     def continuous_joint(self) -> int | None:
         """Index of the joint that turns without end stops and is reported in [0, 2 pi)."""
         return self._wrap
+
+    # -- parameters -------------------------------------------------------------------------
+    def _init_params(
+        self,
+        params: ArmParams,
+        collision_geoms: Sequence[str],
+        fixed_volumes_l: Sequence[tuple[str, float]] = (),
+    ) -> None:
+        """Take `ArmParams` for this arm and apply `params`: per joint, the first
+        `n_joints` link bodies (the link each joint moves) and their `_buoyancy` bodies;
+        `fixed_volumes_l`, bodies that float but are no parameter (the Bravo's jaws: their
+        displaced litres), follow the water density; `collision_geoms` are the geoms
+        `self_collision` turns on."""
+        m, n = self.model, self._n
+        if params.n_joints != n:
+            raise ValueError(
+                f"arm parameters of {params.n_joints} joints ({joint_order(params.n_joints)}) "
+                f"do not describe the {self.arm_model.title} ({n} joints "
+                f"{' '.join(self.arm_model.joint_letters)})"
+            )
+        self._param_links = self._link_ids[:n]
+        self._wrist = n - 1  # the wrist roll, the last joint: the one `wrist_continuous` frees
+        names = [m.body(int(b)).name for b in self._param_links]
+        self._buoy_ids = np.array([m.body(name + _BUOYANCY_SUFFIX).id for name in names])
+        self._fixed_buoys = [
+            (m.body(name + _BUOYANCY_SUFFIX).id, litres) for name, litres in fixed_volumes_l
+        ]
+        every = [*self._buoy_ids.tolist(), *(b for b, _ in self._fixed_buoys)]
+        self._buoy_gravcomp = m.body_gravcomp[self._buoy_ids].copy()
+        if np.any(m.body_gravcomp[every] <= 1.0):
+            raise RuntimeError("buoyancy bodies need gravcomp > 1 (net upward force)")
+        self._nominal_mass = m.body_mass[self._param_links].copy()
+        self._nominal_inertia = m.body_inertia[self._param_links].copy()
+        self._collision_geoms = np.array([m.geom(name).id for name in collision_geoms])
+        self._base_damping[:] = 0.0
+        self._params = params
+        self.nominal_params = params  # what randomize() perturbs around
+        self.set_params(params)
+
+    @property
+    def params(self) -> ArmParams:
+        """The parameters in force, including run-time changes to limits and torque scale."""
+        return replace(
+            self._params,
+            supply_voltage=self.motor.supply_voltage,
+            current_limits_mA=tuple(float(v) for v in self.motor.current_limits_mA),
+            torque_scale=tuple(float(v) for v in self.motor.torque_scale),
+            jaw_current_limit_mA=float(self.jaw_motor.current_limits_mA[0]),
+        )
+
+    def set_params(self, params: ArmParams) -> None:
+        """Apply parameters to the compiled model in place (no recompilation; state kept);
+        ValueError for parameters of another number of joints."""
+        n = self._n
+        if params.n_joints != n:
+            raise ValueError(
+                f"arm parameters of {params.n_joints} joints for the {self.arm_model.title} "
+                f"({n} joints)"
+            )
+        if params.motors != self.motor.params or params.jaw_motor != self.jaw_motor.params:
+            self.motor = MotorModel(params.motors)
+            self.jaw_motor = MotorModel(params.jaw_motor)
+        m = self.model
+        dof = self._dofadr
+        m.dof_armature[dof[:n]] = params.armature
+        m.dof_damping[dof[:n]] = params.damping
+        m.dof_frictionloss[dof[:n]] = params.frictionloss
+        m.dof_armature[dof[n]] = params.jaw_armature
+        m.dof_damping[dof[n]] = params.jaw_damping
+        self._base_damping[:n] = params.damping
+        self._base_damping[n] = params.jaw_damping
+        m.dof_frictionloss[dof[n]] = params.jaw_frictionloss
+
+        mass = np.asarray(params.link_mass_kg)
+        m.body_mass[self._param_links] = mass
+        ratio = mass / self._nominal_mass
+        m.body_inertia[self._param_links] = self._nominal_inertia * ratio[:, None]
+        # gravcomp g_c on a body of mass m_b gives a net upward force (g_c - 1) m_b g.
+        m.body_mass[self._buoy_ids] = params.buoyancy_kg() / (self._buoy_gravcomp - 1.0)
+        for body, litres in self._fixed_buoys:
+            lift = litres * 1e-3 * params.water_density
+            m.body_mass[body] = lift / (m.body_gravcomp[body] - 1.0)
+
+        drag = params.fluid_drag and params.in_water
+        m.opt.density = params.water_density if drag else 0.0
+        m.opt.viscosity = params.fluid_viscosity if drag else 0.0
+        m.opt.gravity[:] = params.gravity
+        m.opt.noslip_iterations = NOSLIP_ITERATIONS if params.friction_holds else 0
+        m.jnt_limited[self._joint_ids[self._wrist]] = 0 if params.wrist_continuous else 1
+        self._wrap = self._wrist if params.wrist_continuous else None
+        collide = 1 if params.self_collision else 0
+        m.geom_contype[self._collision_geoms] = collide
+        m.geom_conaffinity[self._collision_geoms] = collide
+        if params.self_collision:
+            m.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+        else:
+            m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+
+        for motor in (self.motor, self.jaw_motor):
+            motor.supply_voltage = params.supply_voltage
+        self.motor.current_limits_mA = params.current_limits_mA
+        self.motor.torque_scale = params.torque_scale
+        self.jaw_motor.current_limits_mA = (params.jaw_current_limit_mA,)
+        mujoco.mj_setConst(m, self._scratch)
+        self._params = params
+
+    def randomize(
+        self, spread: float = 0.2, rng: np.random.Generator | int | None = None
+    ) -> ArmParams:
+        """Perturb friction, armature, masses and buoyancy by up to +-spread around
+        ``nominal_params`` (the arm as built, so repeated calls do not compound), keeping the
+        run-time torque scale, current limits and supply; draws from the arm's seeded
+        generator unless rng is given. Applies the result and returns it."""
+        now = self.params
+        drawn = self.nominal_params.randomized(self._rng if rng is None else rng, spread)
+        params = replace(
+            drawn,
+            torque_scale=now.torque_scale,
+            current_limits_mA=now.current_limits_mA,
+            jaw_current_limit_mA=now.jaw_current_limit_mA,
+            supply_voltage=now.supply_voltage,
+        )
+        self.set_params(params)
+        return params
 
     # -- state ------------------------------------------------------------------------------
     def coast(self, joints: Sequence[int]) -> None:
@@ -486,99 +614,8 @@ class Alpha5Arm(MotorArm):
             seed,
             LINK_BODIES,
         )
-        m = self.model
-        self._wrist_joint = self._joint_ids[_WRIST]
-        self._buoy_ids = np.array([m.body(name + _BUOYANCY_SUFFIX).id for name in LINK_BODIES])
-        self._buoy_gravcomp = m.body_gravcomp[self._buoy_ids].copy()
-        if np.any(self._buoy_gravcomp <= 1.0):
-            raise RuntimeError("buoyancy bodies need gravcomp > 1 (net upward force)")
-        self._nominal_mass = m.body_mass[self._link_ids].copy()
-        self._nominal_inertia = m.body_inertia[self._link_ids].copy()
-        self._collision_geoms = np.array([m.geom(name).id for name in ("m3_inline", *LINK_BODIES)])
-        self._base_damping[:] = 0.0
-        self._params = p
-        self.nominal_params = p  # what randomize() perturbs around
-        self.set_params(p)
+        self._init_params(p, ("m3_inline", *LINK_BODIES))
         self.reset()
-
-    # -- parameters -------------------------------------------------------------------------
-    @property
-    def params(self) -> ArmParams:
-        """The parameters in force, including run-time changes to limits and torque scale."""
-        lim = self.motor.current_limits_mA
-        scale = self.motor.torque_scale
-        return replace(
-            self._params,
-            supply_voltage=self.motor.supply_voltage,
-            current_limits_mA=(float(lim[0]), float(lim[1]), float(lim[2]), float(lim[3])),
-            torque_scale=(float(scale[0]), float(scale[1]), float(scale[2]), float(scale[3])),
-            jaw_current_limit_mA=float(self.jaw_motor.current_limits_mA[0]),
-        )
-
-    def set_params(self, params: ArmParams) -> None:
-        """Apply parameters to the compiled model in place (no recompilation; state kept)."""
-        if params.motors != self.motor.params or params.jaw_motor != self.jaw_motor.params:
-            self.motor = MotorModel(params.motors)
-            self.jaw_motor = MotorModel(params.jaw_motor)
-        m = self.model
-        dof = self._dofadr
-        m.dof_armature[dof[:4]] = params.armature
-        m.dof_damping[dof[:4]] = params.damping
-        m.dof_frictionloss[dof[:4]] = params.frictionloss
-        m.dof_armature[dof[4]] = params.jaw_armature
-        m.dof_damping[dof[4]] = params.jaw_damping
-        self._base_damping[:4] = params.damping
-        self._base_damping[4] = params.jaw_damping
-        m.dof_frictionloss[dof[4]] = params.jaw_frictionloss
-
-        mass = np.asarray(params.link_mass_kg)
-        m.body_mass[self._link_ids] = mass
-        ratio = mass / self._nominal_mass
-        m.body_inertia[self._link_ids] = self._nominal_inertia * ratio[:, None]
-        # gravcomp g_c on a body of mass m_b gives a net upward force (g_c - 1) m_b g.
-        m.body_mass[self._buoy_ids] = params.buoyancy_kg() / (self._buoy_gravcomp - 1.0)
-
-        drag = params.fluid_drag and params.in_water
-        m.opt.density = params.water_density if drag else 0.0
-        m.opt.viscosity = params.fluid_viscosity if drag else 0.0
-        m.opt.gravity[:] = params.gravity
-        m.opt.noslip_iterations = NOSLIP_ITERATIONS if params.friction_holds else 0
-        m.jnt_limited[self._wrist_joint] = 0 if params.wrist_continuous else 1
-        self._wrap = _WRIST if params.wrist_continuous else None
-        collide = 1 if params.self_collision else 0
-        m.geom_contype[self._collision_geoms] = collide
-        m.geom_conaffinity[self._collision_geoms] = collide
-        if params.self_collision:
-            m.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
-        else:
-            m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
-
-        for motor in (self.motor, self.jaw_motor):
-            motor.supply_voltage = params.supply_voltage
-        self.motor.current_limits_mA = params.current_limits_mA
-        self.motor.torque_scale = params.torque_scale
-        self.jaw_motor.current_limits_mA = (params.jaw_current_limit_mA,)
-        mujoco.mj_setConst(m, self._scratch)
-        self._params = params
-
-    def randomize(
-        self, spread: float = 0.2, rng: np.random.Generator | int | None = None
-    ) -> ArmParams:
-        """Perturb friction, armature, masses and buoyancy by up to +-spread around
-        ``nominal_params`` (the arm as built, so repeated calls do not compound), keeping the
-        run-time torque scale, current limits and supply; draws from the arm's seeded
-        generator unless rng is given. Applies the result and returns it."""
-        now = self.params
-        drawn = self.nominal_params.randomized(self._rng if rng is None else rng, spread)
-        params = replace(
-            drawn,
-            torque_scale=now.torque_scale,
-            current_limits_mA=now.current_limits_mA,
-            jaw_current_limit_mA=now.jaw_current_limit_mA,
-            supply_voltage=now.supply_voltage,
-        )
-        self.set_params(params)
-        return params
 
 
 def _pose(pos_m: ArrayLike, xmat: ArrayLike) -> tuple[float, float, float, float, float, float]:

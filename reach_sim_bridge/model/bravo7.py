@@ -24,6 +24,7 @@ from protocol.bravo7 import (
 from protocol.models import BRAVO7
 from reach_sim_bridge.model.arm import MotorArm, check_dt
 from reach_sim_bridge.model.motor import BRAVO7_JAW_MOTOR, BRAVO7_MOTORS, MotorModel
+from reach_sim_bridge.model.params import ArmParams
 
 __all__ = [
     "BUOYANCY_GRAVCOMP",
@@ -90,7 +91,9 @@ def gravity_torque(model: mujoco.MjModel, q: ArrayLike) -> FloatArray:
 class Bravo7Arm(MotorArm):
     """The Bravo 7's six joints (G F E D C B) and jaws, stepped with motor currents (mA)
     through the motors' current limit and back-EMF envelope, as the Alpha's are; state in
-    the arm's units. Friction, damping and armature are the MJCF's (model/bravo7.md)."""
+    the arm's units. Friction, damping and armature are the MJCF's (model/bravo7.md) unless
+    `params` (an identified arm, `ArmParams` of six joints) say otherwise; `params`, when
+    given, also hold the medium and the supply."""
 
     def __init__(
         self,
@@ -99,19 +102,23 @@ class Bravo7Arm(MotorArm):
         dt: float = 0.002,
         seed: int | None = None,
         supply_voltage: float = NOMINAL_SUPPLY_V,
+        params: ArmParams | None = None,
     ) -> None:
         check_dt(dt)
+        p = params or self.nominal(water_density, fluid_drag, supply_voltage)
         super().__init__(
-            load(water_density, fluid_drag),
+            load(p.water_density, p.fluid_drag),
             BRAVO7,
-            MotorModel(BRAVO7_MOTORS, supply_voltage, DEFAULT_CURRENT_LIMITS_MA),
-            MotorModel(BRAVO7_JAW_MOTOR, supply_voltage, (DEFAULT_JAW_CURRENT_LIMIT_MA,)),
+            MotorModel(p.motors, p.supply_voltage, p.current_limits_mA, p.torque_scale),
+            MotorModel(p.jaw_motor, p.supply_voltage, (p.jaw_current_limit_mA,)),
             dt,
             seed,
             LINK_BODIES,
         )
         m = self.model
-        self.water_density = float(water_density)
+        # the jaws' link (7) floats but is no parameter: its volume follows the water
+        fixed = tuple(zip(LINK_BODIES[len(JOINTS) :], LINK_VOLUME_L[len(JOINTS) :], strict=True))
+        self._init_params(p, ("link0", *LINK_BODIES), fixed)
         self._ft_site = m.site(FT_SITE).id
         root = m.body(FT_BODY).id
         below = [root]
@@ -121,6 +128,50 @@ class Bravo7Arm(MotorArm):
         self._ft_bodies = np.array(below)
         self._ft_root = root
         self.reset()
+
+    @property
+    def water_density(self) -> float:
+        return self._params.water_density
+
+    @staticmethod
+    def nominal(
+        water_density: float = 1000.0,
+        fluid_drag: bool = True,
+        supply_voltage: float = NOMINAL_SUPPLY_V,
+    ) -> ArmParams:
+        """The nominal Bravo 7 as `ArmParams`: read from its MJCF (friction, damping,
+        armature, link masses, the jaw's slide) and `protocol.bravo7` (motors, current
+        limits), volumes from the datasheet (`LINK_VOLUME_L`); what a `--params` file for a
+        Bravo does not name."""
+        m = mujoco.MjModel.from_xml_path(str(MODEL_PATH))  # as written: the medium is ours
+        n = len(JOINTS)
+        dof = [m.jnt_dofadr[m.joint(name).id] for name in (*JOINTS, BRAVO7.jaw.name)]
+        links = [m.body(name).id for name in LINK_BODIES[:n]]
+
+        def per_joint(values: NDArray[np.float64]) -> tuple[float, ...]:
+            return tuple(float(v) for v in values)
+
+        return ArmParams(
+            armature=per_joint(m.dof_armature[dof[:n]]),
+            damping=per_joint(m.dof_damping[dof[:n]]),
+            frictionloss=per_joint(m.dof_frictionloss[dof[:n]]),
+            link_mass_kg=per_joint(m.body_mass[links]),
+            link_volume_l=LINK_VOLUME_L[:n],
+            water_density=float(water_density),
+            fluid_viscosity=float(m.opt.viscosity),
+            fluid_drag=fluid_drag,
+            gravity=(float(m.opt.gravity[0]), float(m.opt.gravity[1]), float(m.opt.gravity[2])),
+            motors=BRAVO7_MOTORS,
+            supply_voltage=supply_voltage,
+            current_limits_mA=DEFAULT_CURRENT_LIMITS_MA,
+            torque_scale=(1.0,) * n,
+            jaw_motor=BRAVO7_JAW_MOTOR,
+            jaw_current_limit_mA=DEFAULT_JAW_CURRENT_LIMIT_MA,
+            jaw_armature=float(m.dof_armature[dof[n]]),
+            jaw_damping=float(m.dof_damping[dof[n]]),
+            jaw_frictionloss=float(m.dof_frictionloss[dof[n]]),
+            wrist_continuous=not bool(m.jnt_limited[m.joint(JOINTS[-1]).id]),
+        )
 
     def force_torque(self) -> FloatArray:
         """The wrench the jaws put on the wrist, as the force-torque sensor reads it: force

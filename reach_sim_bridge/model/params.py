@@ -1,9 +1,12 @@
-"""Physical parameters of the simulated Alpha 5 that vary between arms, fluids and faults.
+"""Physical parameters of a simulated arm that vary between arms, fluids and faults.
 
-The MJCF (model/alpha5.xml) holds the nominal arm; ``ArmParams()`` holds the same nominal
+The MJCF (model/alpha5.xml) holds the nominal Alpha 5; ``ArmParams()`` holds the same nominal
 values (a test keeps the two equal) so they can be perturbed, read by MPC, and applied to a
-compiled model without recompiling. Arrays of four are in joint order E D C B; the link
-arrays name the body each joint moves (E -> m2_1_1, D -> m2, C -> m2_1_3, B -> m1 + jaws).
+compiled model without recompiling. Per-joint arrays have one value per joint of the arm, in
+its joint order: four on the Alpha 5 (E D C B), six on the Bravo 7 (G F E D C B, nominal
+values read from its MJCF: `reach_sim_bridge.model.bravo7.Bravo7Arm.nominal`). The
+link arrays name the body each joint moves (Alpha: E -> m2_1_1, D -> m2, C -> m2_1_3, B -> m1
++ jaws; Bravo: joint i -> link i, the jaws' link 7 not a parameter).
 """
 
 from __future__ import annotations
@@ -18,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from protocol.alpha5 import JOINT_LETTERS
 from protocol.files import UserFileError, read_json
+from protocol.models import ALPHA5, MODELS, ArmModel
 from reach_sim_bridge.model.motor import (
     ALPHA5_MOTORS,
     DEFAULT_CURRENT_LIMITS_MA,
@@ -32,9 +35,9 @@ from reach_sim_bridge.model.motor import (
 LINK_BODIES = ("m2_1_1", "m2", "m2_1_3", "m1")  # the body each of E D C B moves
 NOSLIP_ITERATIONS = 10  # MuJoCo no-slip solver iterations when `friction_holds`
 
-Vec4 = tuple[float, float, float, float]
+Vec = tuple[float, ...]  # one value per joint
 
-_VEC4_FIELDS = (
+_JOINT_FIELDS = (
     "armature",
     "damping",
     "frictionloss",
@@ -50,12 +53,12 @@ class ArmParams:
     """Everything about one simulated arm that a run may change (see model/README.md)."""
 
     # Joints E D C B: reflected rotor inertia (kg m^2), viscous (N m s/rad), Coulomb (N m).
-    armature: Vec4 = (0.12, 0.12, 0.12, 0.007)
-    damping: Vec4 = (2.40, 2.24, 0.82, 0.36)
-    frictionloss: Vec4 = (0.7, 0.7, 0.7, 0.075)
+    armature: Vec = (0.12, 0.12, 0.12, 0.007)
+    damping: Vec = (2.40, 2.24, 0.82, 0.36)
+    frictionloss: Vec = (0.7, 0.7, 0.7, 0.075)
     # Links moved by E D C B: mass (kg) and displaced volume (litres) from the datasheet.
-    link_mass_kg: Vec4 = (0.161, 0.380, 0.142, 0.355)
-    link_volume_l: Vec4 = (0.032, 0.218, 0.032, 0.134)
+    link_mass_kg: Vec = (0.161, 0.380, 0.142, 0.355)
+    link_volume_l: Vec = (0.032, 0.218, 0.032, 0.134)
     # Medium: water density 0 means in air (no buoyancy, no drag).
     water_density: float = 1000.0  # kg/m^3 (1000 fresh, ~1025 sea)
     fluid_viscosity: float = 0.0009  # Pa s
@@ -64,8 +67,8 @@ class ArmParams:
     # Motors and drive.
     motors: MotorParams = ALPHA5_MOTORS
     supply_voltage: float = DEFAULT_SUPPLY_VOLTAGE
-    current_limits_mA: Vec4 = DEFAULT_CURRENT_LIMITS_MA  # type: ignore[assignment]
-    torque_scale: Vec4 = (1.0, 1.0, 1.0, 1.0)
+    current_limits_mA: Vec = DEFAULT_CURRENT_LIMITS_MA  # type: ignore[assignment]
+    torque_scale: Vec = (1.0, 1.0, 1.0, 1.0)
     # Jaw (slide joint A, metres): assumed values, see model/README.md.
     jaw_motor: MotorParams = JAW_MOTOR
     jaw_current_limit_mA: float = DEFAULT_JAW_CURRENT_LIMIT_MA
@@ -85,10 +88,13 @@ class ArmParams:
     friction_holds: bool = False
 
     def __post_init__(self) -> None:
-        for name in _VEC4_FIELDS:
+        n = self.motors.count
+        if self.jaw_motor.count != 1:
+            raise ValueError("jaw_motor needs 1 entry")
+        for name in _JOINT_FIELDS:
             vec = tuple(float(v) for v in np.asarray(getattr(self, name), float).reshape(-1))
-            if len(vec) != 4 or not all(math.isfinite(v) for v in vec):
-                raise ValueError(f"{name} needs 4 finite values (E D C B), got {vec}")
+            if len(vec) != n or not all(math.isfinite(v) for v in vec):
+                raise ValueError(f"{name} needs {n} finite values ({joint_order(n)}), got {vec}")
             object.__setattr__(self, name, vec)
         for name in ("armature", "link_mass_kg"):
             if any(v <= 0.0 for v in getattr(self, name)):
@@ -118,15 +124,17 @@ class ArmParams:
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"{name} must be a finite number > 0, got {value}")
             object.__setattr__(self, name, value)
-        if self.motors.count != 4 or self.jaw_motor.count != 1:
-            raise ValueError("motors needs 4 entries (E D C B) and jaw_motor 1")
+
+    @property
+    def n_joints(self) -> int:
+        return self.motors.count
 
     @property
     def in_water(self) -> bool:
         return self.water_density > 0.0
 
     def buoyancy_kg(self) -> np.ndarray:
-        """Mass of water each link displaces (kg), E D C B."""
+        """Mass of water each joint's link displaces (kg), in joint order."""
         return np.asarray(self.link_volume_l) * 1e-3 * self.water_density
 
     def in_air(self) -> ArmParams:
@@ -140,10 +148,9 @@ class ArmParams:
             raise ValueError(f"spread must be in [0, 1), got {spread}")
         gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
 
-        def scaled(values: Vec4) -> Vec4:
-            f = gen.uniform(1.0 - spread, 1.0 + spread, size=4)
-            out = np.asarray(values) * f
-            return (float(out[0]), float(out[1]), float(out[2]), float(out[3]))
+        def scaled(values: Vec) -> Vec:
+            f = gen.uniform(1.0 - spread, 1.0 + spread, size=len(values))
+            return tuple(float(v) for v in np.asarray(values) * f)
 
         return replace(
             self,
@@ -173,17 +180,30 @@ class ArmParams:
         return out
 
     @classmethod
-    def from_json_dict(cls, data: Any, where: str = "params") -> ArmParams:
-        """The arm a `--params` object describes: the fields it names, nominal otherwise.
+    def from_json_dict(
+        cls,
+        data: Any,
+        where: str = "params",
+        model: ArmModel = ALPHA5,
+        nominal: ArmParams | None = None,
+    ) -> ArmParams:
+        """The arm of `model` a `--params` object describes: the fields it names, `nominal`
+        otherwise (the model's nominal arm; default `ArmParams()`, the Alpha 5's).
 
         Keys starting with ``_`` (``_fit``, ``_comment``...) are metadata and ignored.
         Raises `ParamsFileError` (a ValueError) naming the key for unknown keys (with the
-        nearest field name), wrong types or lengths, and non-physical values."""
+        nearest field name), wrong types or lengths, per-joint arrays for another number of
+        joints than the model's (naming the arm they fit), and non-physical values."""
         if not isinstance(data, Mapping):
             raise ParamsFileError(
                 f"{where}: expected a JSON object of ArmParams fields, got {_kind(data)}"
             )
-        nominal = cls()
+        nominal = cls() if nominal is None else nominal
+        if nominal.n_joints != model.n_joints:
+            raise ValueError(
+                f"nominal parameters of {nominal.n_joints} joints for the {model.title}"
+            )
+        _check_joint_count(data, model, where)
         values: dict[str, Any] = {}
         for key, raw in data.items():
             if not isinstance(key, str):
@@ -214,6 +234,35 @@ _MOTOR_FIELDS = (
 )
 _FILE_FIELDS = tuple(f.name for f in fields(ArmParams))
 _BOOL_FIELDS = ("fluid_drag", "wrist_continuous", "self_collision", "friction_holds")
+
+
+def joint_order(n: int) -> str:
+    """How the joints of an arm of `n` joints read: "E D C B" (the known model with that many
+    joints), else "n joints"."""
+    for model in MODELS.values():
+        if model.n_joints == n:
+            return " ".join(model.joint_letters)
+    return f"{n} joints"
+
+
+def _check_joint_count(data: Mapping[str, Any], model: ArmModel, where: str) -> None:
+    """One line if the file's per-joint arrays all have the joint count of another known
+    model: the file describes that arm, not `model`'s (any other wrong length is the field's
+    own error, naming the values it needs)."""
+    counts = {len(v) for k, v in data.items() if k in _JOINT_FIELDS and isinstance(v, list)}
+    motors = data.get("motors")
+    if isinstance(motors, Mapping):
+        counts |= {len(v) for v in motors.values() if isinstance(v, list)}
+    other = next(
+        (m for m in MODELS.values() if counts == {m.n_joints} and m.n_joints != model.n_joints),
+        None,
+    )
+    if other is not None:
+        raise ParamsFileError(
+            f"{where}: describes an arm of {other.n_joints} joints ({joint_order(other.n_joints)}:"
+            f" a {other.title}), not a {model.title} ({model.n_joints} joints "
+            f"{' '.join(model.joint_letters)})"
+        )
 
 
 def _kind(value: Any) -> str:
@@ -267,7 +316,7 @@ def _parse_field(key: str, raw: Any, nominal: Any, what: str) -> Any:
                 f"{what} must be an object of {', '.join(_MOTOR_FIELDS)}, got {_kind(raw)}"
             )
         n = nominal.count
-        order = "E D C B" if n == 4 else "the jaw"
+        order = joint_order(n) if key == "motors" else "the jaw"
         table: dict[str, tuple[float, ...]] = {}
         for name, value in raw.items():
             if name not in _MOTOR_FIELDS:
@@ -281,8 +330,8 @@ def _parse_field(key: str, raw: Any, nominal: Any, what: str) -> Any:
             return replace(nominal, **table)
         except ValueError as exc:
             raise ParamsFileError(f"{what}: {exc}") from exc
-    if key in _VEC4_FIELDS:
-        return _numbers(raw, 4, what, " ".join(JOINT_LETTERS))
+    if key in _JOINT_FIELDS:
+        return _numbers(raw, len(nominal), what, joint_order(len(nominal)))
     if key == "gravity":
         return _numbers(raw, 3, what, "x y z in the base frame, m/s^2")
     return _number(raw, what)
@@ -290,12 +339,13 @@ def _parse_field(key: str, raw: Any, nominal: Any, what: str) -> Any:
 
 def _check_physical(p: ArmParams, where: str) -> None:
     """What `ArmParams` itself allows but no arm has (a file states a real arm)."""
-    for joint, scale in zip(JOINT_LETTERS, p.torque_scale, strict=True):
+    letters = joint_order(p.n_joints).split()
+    for joint, scale in zip(letters, p.torque_scale, strict=True):
         if not 0.0 < scale <= 1.0:
             raise ParamsFileError(
                 f"{where}: torque_scale of {joint} must be in (0, 1], got {scale:g}"
             )
-    for joint, limit in zip(JOINT_LETTERS, p.current_limits_mA, strict=True):
+    for joint, limit in zip(letters, p.current_limits_mA, strict=True):
         if limit <= 0.0:
             raise ParamsFileError(
                 f"{where}: current_limits_mA of {joint} must be > 0 mA, got {limit:g}"
@@ -313,11 +363,14 @@ def _check_physical(p: ArmParams, where: str) -> None:
         raise ParamsFileError(f"{where}: gravity {p.gravity} m/s^2 is not an Earth gravity")
 
 
-def load_arm_params(path: str | Path) -> ArmParams:
-    """The arm a `--params FILE.json` describes: a JSON object of `ArmParams` field names
-    (any subset; arrays of four in E D C B order; the rest nominal). Keys starting with
-    ``_`` are ignored (a fit's metadata, ``_fit``, is read by `reach_sim_bridge.model.twin`)."""
-    return ArmParams.from_json_dict(read_params_json(path), where=str(path))
+def load_arm_params(
+    path: str | Path, model: ArmModel = ALPHA5, nominal: ArmParams | None = None
+) -> ArmParams:
+    """The arm of `model` a `--params FILE.json` describes: a JSON object of `ArmParams`
+    field names (any subset; per-joint arrays in the model's joint order, E D C B on the
+    Alpha 5; the rest `nominal`, the model's nominal arm). Keys starting with ``_`` are ignored
+    (a fit's metadata, ``_fit``, is read by `reach_sim_bridge.model.twin`)."""
+    return ArmParams.from_json_dict(read_params_json(path), str(path), model, nominal)
 
 
 def read_params_json(path: str | Path) -> Any:

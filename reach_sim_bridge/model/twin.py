@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from protocol.models import ALPHA5, ArmModel
 from reach_sim_bridge.model.params import (
     ArmParams,
     ParamsFileError,
@@ -255,10 +256,16 @@ class FittedTwin:
         return data
 
     @classmethod
-    def from_json_dict(cls, data: Any, where: str = "params") -> FittedTwin:
-        """The twin a `--params` object describes (`ArmParams.from_json_dict`'s rules, and
-        ``_fit`` read as `FitMetadata`)."""
-        params = ArmParams.from_json_dict(data, where=where)
+    def from_json_dict(
+        cls,
+        data: Any,
+        where: str = "params",
+        model: ArmModel = ALPHA5,
+        nominal: ArmParams | None = None,
+    ) -> FittedTwin:
+        """The twin of `model` a `--params` object describes (`ArmParams.from_json_dict`'s
+        rules, the rest `nominal`, and ``_fit`` read as `FitMetadata`)."""
+        params = ArmParams.from_json_dict(data, where, model, nominal)
         fit = data.get(FIT_KEY)
         return cls(
             params,
@@ -267,9 +274,12 @@ class FittedTwin:
         )
 
 
-def read_twin(path: str | Path) -> FittedTwin:
-    """The fitted twin a parameter file holds (a file without ``_fit`` gives ``fit=None``)."""
-    return FittedTwin.from_json_dict(read_params_json(path), where=str(path))
+def read_twin(
+    path: str | Path, model: ArmModel = ALPHA5, nominal: ArmParams | None = None
+) -> FittedTwin:
+    """The fitted twin of `model` a parameter file holds (a file without ``_fit`` gives
+    ``fit=None``; what it does not name is `nominal`)."""
+    return FittedTwin.from_json_dict(read_params_json(path), str(path), model, nominal)
 
 
 def write_twin(twin: FittedTwin, path: str | Path) -> Path:

@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 from rich.console import Console
+from rich.markup import escape
 
 from policy.campaigns.identification.driving import Session, excite
 from policy.campaigns.identification.fitting import check_controllers, fit, fit_metadata
@@ -46,7 +47,10 @@ from policy.campaigns.identification.report import write_report
 from policy.campaigns.identification.virtual import excite_virtual
 from policy.controllers.excitation import plan
 from protocol.alpha5 import JOINT_LETTERS, JOINTS
+from protocol.models import ALPHA5
 from reach_driver import ArmClient, DriverError, SafetyConfig, open_transport
+from reach_driver.errors import ArmModelError
+from reach_driver.identity import ModelCheck
 from reach_driver.interfaces import DEFAULT_BAUD
 from reach_sim_bridge.fit.replay import DEFAULT_WINDOW_S
 from reach_sim_bridge.fit.segments import load_segments, save_segments
@@ -209,7 +213,15 @@ def main(argv: list[str] | None = None) -> int:
         session = Session()
         try:
             client = ArmClient(open_transport(args.port, baud=args.baud), safety=safety)
-            client.start()
+            # the excitation, the fit and the twin are the Alpha 5's: another arm is refused
+            # before anything but a request is sent
+            client.start(model_check=ModelCheck.CONFIRM)
+        except ArmModelError as exc:
+            client.close()
+            console.print(
+                f"[red]wrong arm:[/] identification fits a {ALPHA5.title} only: {escape(str(exc))}"
+            )
+            return 4
         except (DriverError, ValueError) as exc:
             console.print(f"[red]no arm:[/] {exc}")
             return 4
