@@ -94,7 +94,7 @@ def test_json_says_ddpg_was_learned_from_scratch(capsys) -> None:
     assert ddpg["kind"] == "learned" and "from scratch" in ddpg["summary"]
     provenance = ddpg["provenance"]
     assert provenance["demonstrations"] == "none" and provenance["teacher"] == "none"
-    assert provenance["algorithm"] == "TD3" and provenance["complete"]
+    assert provenance["algorithm"] == "DDPG" and provenance["complete"]
     assert "tools/train.py" in provenance["command"] and provenance["env_steps"] > 0
     assert provenance["around_the_network"].startswith("nothing")
 
