@@ -72,6 +72,7 @@ from reach_driver.link import (
 from reach_driver.listeners import ListenerSet, PacketListener, PacketQueue, Subscription
 from reach_driver.loop_timing import SchedStat
 from reach_driver.queries import ArmQueries, limit_verdict
+from reach_driver.realtime import RealtimeThreads, ThreadRole
 from reach_driver.requests import Requester, Waiters
 from reach_driver.safe_stop import SafeStop
 from reach_driver.safety import SafetyConfig, SafetyGuard
@@ -148,6 +149,8 @@ class ArmClient(ArmQueries):
         self._reader_away_queue_s: float | None = None  # of which runnable, given no CPU
         #: Set by a running `ControlLoop`: how it keeps time, for the watchdog to name.
         self.loop_timing: Callable[[], LoopTiming | None] | None = None
+        #: Real-time priority for the reader and a `ControlLoop`'s thread (set before start()).
+        self.realtime = RealtimeThreads()
         self.faults = FaultFlags()
         self._waiters = Waiters()
         self._requests = Requester(
@@ -203,7 +206,9 @@ class ArmClient(ArmQueries):
         self.supervisor.opened(self.clock())
         self._stop.clear()
         self._thread = threading.Thread(
-            target=self._run, name=f"reach-driver reader {self.transport.url}", daemon=True
+            target=self.realtime.thread_target(ThreadRole.READER, self._run),
+            name=f"reach-driver reader {self.transport.url}",
+            daemon=True,
         )
         self._thread.start()
         try:
