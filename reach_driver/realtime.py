@@ -89,17 +89,20 @@ class RealtimeReport:
         if self.policy is RealtimePolicy.OFF or self.granted:
             return None
         missing = [o for o in self.outcomes if not o.granted]
-        reasons = {f"{o.status.value}" + (f": {o.reason}" if o.reason else "") for o in missing}
-        if len(reasons) == 1:  # the usual case: every thread refused alike
-            return reasons.pop() + f" ({', '.join(o.role.value for o in missing)})"
-        return "; ".join(o.describe() for o in missing)
+        said: dict[tuple[RealtimeStatus, str], list[str]] = {}
+        for o in missing:  # the usual case: every thread refused alike, said once
+            said.setdefault((o.status, o.reason), []).append(o.role.value)
+        return "; ".join(
+            f"{status.value} for the {' and the '.join(roles)}" + (f": {reason}" if reason else "")
+            for (status, reason), roles in said.items()
+        )
 
     def refusal(self) -> str | None:
         """Under REQUIRE, the one line a refused run ends with; None when it may go on."""
         why = self.without()
         if self.policy is not RealtimePolicy.REQUIRE or why is None:
             return None
-        return f"real-time priority was required but not granted: {why}; nothing was commanded"
+        return f"real-time priority required but {why}; nothing was commanded"
 
     def describe(self) -> str:
         """One phrase for the run's summary."""
@@ -139,12 +142,28 @@ def _rtprio_limit() -> str:
     return "unlimited" if soft == resource.RLIM_INFINITY else str(soft)
 
 
+#: CAP_SYS_NICE's bit in /proc/self/status's CapEff.
+CAP_SYS_NICE = 23
+
+
+def _has_sys_nice() -> bool | None:
+    """Whether this process holds CAP_SYS_NICE (None where Linux does not say)."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("CapEff:"):
+                    return bool(int(line.split()[1], 16) >> CAP_SYS_NICE & 1)
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def not_permitted_reason(priority: int) -> str:
     """Why the kernel refused SCHED_FIFO `priority` to this process, and what grants it."""
-    if hasattr(os, "geteuid") and os.geteuid() == 0:
+    if _has_sys_nice():
         return (
-            "refused although running as root: a container without CAP_SYS_NICE, or a "
-            "control group that gives real-time threads no CPU time (cpu.rt_runtime_us)"
+            "refused although this process has CAP_SYS_NICE: its control group gives "
+            "real-time threads no CPU time (cpu.rt_runtime_us)"
         )
     return (
         f"needs CAP_SYS_NICE or an rtprio limit of at least {priority} "
@@ -217,12 +236,7 @@ class RealtimeThreads:
             yield outcome
         finally:
             if outcome.granted and before is not None and _current() != before:
-                # the flag stays: an unprivileged thread may not clear it once set
-                reset = int(getattr(os, "SCHED_RESET_ON_FORK", 0))
-                try:
-                    os.sched_setscheduler(0, before[0] | reset, os.sched_param(before[1]))
-                except OSError as exc:
-                    log.warning("could not give the %s its scheduling back: %s", role.value, exc)
+                _restore(role, *before)
 
     def outcome(self, role: ThreadRole, timeout_s: float = READER_WAIT_S) -> RealtimeOutcome:
         """`role`'s outcome, waited for while a thread started to take it has not asked yet."""
@@ -254,3 +268,19 @@ def _current() -> tuple[int, int] | None:
         return os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
     except OSError:
         return None
+
+
+def _restore(role: ThreadRole, policy: int, priority: int) -> None:
+    """Give the calling thread `policy` and `priority` back (SCHED_RESET_ON_FORK stays set
+    where this thread may not clear it: without CAP_SYS_NICE)."""
+    reset = int(getattr(os, "SCHED_RESET_ON_FORK", 0))
+    for flags in (policy, policy | reset):
+        try:
+            os.sched_setscheduler(0, flags, os.sched_param(priority))
+            return
+        except PermissionError:
+            continue
+        except OSError as exc:
+            log.warning("could not give the %s its scheduling back: %s", role.value, exc)
+            return
+    log.warning("could not give the %s its scheduling back: not permitted", role.value)

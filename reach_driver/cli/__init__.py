@@ -204,7 +204,7 @@ def _run(args: argparse.Namespace, console: Console, errors: Console) -> int:
         _say(errors, "no arm", str(exc))
         return int(Exit.NO_ARM)
     except RealtimeRefusedError as exc:  # run --realtime require, not granted
-        _say(errors, "no real-time priority", str(exc))
+        _say(errors, "refused", str(exc))
         return int(Exit.NO_REALTIME)
     except (LinkDownError, DriverError) as exc:
         _say(errors, "failed", str(exc))
