@@ -89,6 +89,8 @@ class RealtimeReport:
         if self.policy is RealtimePolicy.OFF or self.granted:
             return None
         missing = [o for o in self.outcomes if not o.granted]
+        if not missing:
+            return None
         said: dict[tuple[RealtimeStatus, str], list[str]] = {}
         for o in missing:  # the usual case: every thread refused alike, said once
             said.setdefault((o.status, o.reason), []).append(o.role.value)
