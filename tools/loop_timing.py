@@ -278,6 +278,7 @@ class RunResult:
     summary: dict[str, object] = field(default_factory=dict)
     tree: Path = ROOT
     prefixed: bool = False
+    load: float = float("nan")  # the 1-minute load average as the run ended
 
 
 WATCHDOG_LINE = re.compile(r"watchdog: (.*?)(?:; put |\n|$)")
@@ -295,6 +296,7 @@ def run_once(
     sample: bool = False,
     tree: Path = ROOT,
     prefix: list[str] | None = None,
+    realtime: str | None = None,
 ) -> RunResult:
     rec = where / f"run{index}.rrd"
     wrap = []
@@ -308,6 +310,8 @@ def run_once(
         "-m", "reach_driver", "--port", str(port), *README_RUN, "--seconds", f"{seconds:g}"
     )
     cmd += ["--record", str(rec), *viewer]
+    if realtime:
+        cmd += ["--realtime", realtime]
     started = time.monotonic()
     chunks: list[bytes] = []
     if tty:
@@ -378,6 +382,13 @@ def fmt(p: dict[str, float]) -> str:
     return " / ".join(f"{k} {v:.1f}" for k, v in p.items()) + " ms"
 
 
+def realtime_granted(r: RunResult) -> bool | None:
+    """Whether the run's loop and reader had real-time priority (its recording's summary;
+    None when it does not say)."""
+    got = r.summary.get("realtime")
+    return bool(got.get("granted")) if isinstance(got, dict) else None
+
+
 def longest_gaps(r: RunResult) -> list[dict[str, Any]]:
     """The run's longest gaps between commands, taken apart, as its recording's summary
     holds them (`reach_driver.loop_timing.Gap.as_dict`), longest first."""
@@ -391,6 +402,9 @@ def summarize(label: str, results: list[RunResult]) -> dict[str, object]:
     pooled = np.concatenate([r.periods_ms for r in results]) if results else np.zeros(0)
     trips = sum(1 for r in results if r.watchdog)
     failed = sum(1 for r in results if r.exit_code != 0)
+    granted = sum(1 for r in results if realtime_granted(r))
+    loads = [r.load for r in results if np.isfinite(r.load)]
+    load = f"{min(loads):.1f}-{max(loads):.1f}" if loads else "unknown"
     causes: dict[str, int] = {}
     for r in results:
         for g in longest_gaps(r):
@@ -398,7 +412,8 @@ def summarize(label: str, results: list[RunResult]) -> dict[str, object]:
                 causes[str(g["cause"])] = causes.get(str(g["cause"]), 0) + 1
     print(
         f"\n{label + ': ' if label else ''}{trips} watchdog trip(s), {failed} run(s) not exit 0, "
-        f"of {len(results)}; loop period over {pooled.size} gaps: {fmt(percentiles(pooled))}"
+        f"of {len(results)}; loop period over {pooled.size} gaps: {fmt(percentiles(pooled))}; "
+        f"real-time priority in {granted}; load average {load}"
     )
     if causes:
         print(
@@ -409,6 +424,8 @@ def summarize(label: str, results: list[RunResult]) -> dict[str, object]:
         "runs": len(results),
         "watchdog_trips": trips,
         "not_ok": failed,
+        "realtime_granted": granted,
+        "load_average": load,
         "loop_period_ms": percentiles(pooled),
         "gap_causes": causes,
     }
@@ -441,6 +458,11 @@ def main(argv: list[str] | None = None) -> int:
         metavar="COMMAND",
         help="run the arm's reach-sim under this (e.g. 'chrt -f 20': a virtual arm that keeps "
         "time, as a real one does)",
+    )
+    parser.add_argument(
+        "--realtime",
+        choices=("try", "require", "off"),
+        help="pass `run --realtime` this (default: not given, the driver's own default, try)",
     )
     parser.add_argument(
         "--prefix-alternate",
@@ -489,9 +511,11 @@ def main(argv: list[str] | None = None) -> int:
                 args.threads_trace,
                 tree,
                 prefix,
+                args.realtime,
             )
             r.prefixed = bool(prefix)
             r.tree = tree
+            r.load = os.getloadavg()[0]
             results.append(r)
             p = percentiles(r.periods_ms)
             longest = longest_gaps(r)
@@ -503,9 +527,10 @@ def main(argv: list[str] | None = None) -> int:
             note = f" FAILED: {r.failure}" if r.failure and not r.watchdog else ""
             ab = args.against is not None or args.prefix_alternate
             which = ("B" if tree != ROOT or r.prefixed else "A") if ab else ""
+            rt = {True: " rt", False: " no-rt", None: ""}[realtime_granted(r)]
             print(
-                f"run {k:3d}{which} exit {r.exit_code} load {os.getloadavg()[0]:.1f} | {fmt(p)}"
-                f"{cause}{said}{note}",
+                f"run {k:3d}{which} exit {r.exit_code} load {r.load:.1f}{rt} | "
+                f"{fmt(p)}{cause}{said}{note}",
                 flush=True,
             )
     finally:
@@ -541,6 +566,8 @@ def main(argv: list[str] | None = None) -> int:
                             "watchdog": r.watchdog,
                             "failure": r.failure,
                             "loop_period_ms": percentiles(r.periods_ms),
+                            "load_average": r.load,
+                            "realtime": r.summary.get("realtime"),
                             "longest_gaps": r.summary.get("longest_gaps"),
                         }
                         for r in results
