@@ -30,6 +30,11 @@ their modes read back, resent until the arm confirms it or `SafetyConfig.safe_wa
 out (a lost link is waited for meanwhile), and a summary whose `left_in` claims only what the
 arm confirmed. An interrupt is passed on as `Interrupted` carrying that summary.
 
+The loop's thread asks for real-time priority as the client's `realtime` policy says (the
+reader asks as it starts; `reach_driver.realtime`) for the run and gets its own back after it;
+a required priority not granted raises `RealtimeRefusedError` before anything is commanded, and
+the summary's `timing.realtime` says what each thread was given.
+
 The summary carries the run as a uniformly sampled `LoopTrace` (the state that ended the run
 is its last row) from which `reach_driver.metrics` scores it like the evaluation runner does,
 on the angles the arm reported; torque is current x the joint's torque constant.

@@ -23,6 +23,10 @@ Loads (each a process of its own beside the runs, at the driver's priority unles
 
 `--tty` runs each command on a pseudo-terminal (120x40), so `run` draws its live table as it
 does for a person; `--viewer serve` adds the live viewer's gRPC server and web server.
+`--realtime MODE` passes `run --realtime MODE` (default: the driver's own, try: real-time
+priority for the loop and the link's reader where permitted); `--sim-prefix 'chrt -f 10'`
+starts the arm's reach-sim real-time too, as a real arm keeps time on its own processor
+whatever the host does.
 
 Exit status: 0 when no run tripped its watchdog or failed, 1 otherwise.
 """
