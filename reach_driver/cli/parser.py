@@ -457,8 +457,8 @@ def build_parser() -> argparse.ArgumentParser:
         "reader, so that a busy machine cannot hold them off past --watchdog. try (default): "
         "ask, and run without it if refused (the summary says why); require: refuse the run "
         "before anything is commanded (exit 7); off: do not ask. Linux grants it to root, to "
-        "a python given CAP_SYS_NICE (setcap cap_sys_nice+ep) and under an rtprio limit of at "
-        "least 10 (`ulimit -r`, /etc/security/limits.d): docs/hil.md",
+        "a python given CAP_SYS_NICE (setcap cap_sys_nice+ep) or to a user whose rtprio "
+        "limit is at least 10 (`ulimit -r`, /etc/security/limits.d): docs/hil.md section 2a",
     )
     run.add_argument(
         "--param",
