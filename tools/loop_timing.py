@@ -24,7 +24,8 @@ Loads (each a process of its own beside the runs, at the driver's priority unles
 `--tty` runs each command on a pseudo-terminal (120x40), so `run` draws its live table as it
 does for a person; `--viewer serve` adds the live viewer's gRPC server and web server.
 `--realtime MODE` passes `run --realtime MODE` (default: the driver's own, try: real-time
-priority for the loop and the link's reader where permitted); `--sim-prefix 'chrt -f 10'`
+priority for the loop and the link's reader where permitted; `--realtime try off` takes
+turns, an A/B under the same load); `--sim-prefix 'chrt -f 10'`
 starts the arm's reach-sim real-time too, as a real arm keeps time on its own processor
 whatever the host does.
 
@@ -283,6 +284,7 @@ class RunResult:
     tree: Path = ROOT
     prefixed: bool = False
     load: float = float("nan")  # the 1-minute load average as the run ended
+    realtime: str | None = None  # the `run --realtime` mode given (None: the default)
 
 
 WATCHDOG_LINE = re.compile(r"watchdog: (.*?)(?:; put |\n|$)")
@@ -465,8 +467,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--realtime",
+        nargs="+",
         choices=("try", "require", "off"),
-        help="pass `run --realtime` this (default: not given, the driver's own default, try)",
+        metavar="MODE",
+        help="pass `run --realtime` this (try, require, off; default: not given, the driver's "
+        "own, try); several modes take turns run by run (an A/B under the same load: "
+        "--realtime try off), each summarised apart",
     )
     parser.add_argument(
         "--prefix-alternate",
@@ -499,9 +505,11 @@ def main(argv: list[str] | None = None) -> int:
     sim = Sim(where, "alpha5", "127.0.0.1:0", 0, args.sim_prefix)
     load = Load(args.load, where, args.nice)
     results: list[RunResult] = []
+    modes: list[str | None] = args.realtime or [None]
     try:
         time.sleep(1.0)  # let the load start up
         for k in range(1, args.runs + 1):
+            mode = modes[(k - 1) % len(modes)]
             tree = args.against if args.against is not None and k % 2 == 0 else ROOT
             prefix = args.prefix if not args.prefix_alternate or k % 2 == 0 else None
             r = run_once(
@@ -515,8 +523,9 @@ def main(argv: list[str] | None = None) -> int:
                 args.threads_trace,
                 tree,
                 prefix,
-                args.realtime,
+                mode,
             )
+            r.realtime = mode
             r.prefixed = bool(prefix)
             r.tree = tree
             r.load = os.getloadavg()[0]
@@ -531,22 +540,27 @@ def main(argv: list[str] | None = None) -> int:
             note = f" FAILED: {r.failure}" if r.failure and not r.watchdog else ""
             ab = args.against is not None or args.prefix_alternate
             which = ("B" if tree != ROOT or r.prefixed else "A") if ab else ""
+            which += f" {mode}" if len(modes) > 1 else ""
             rt = {True: " rt", False: " no-rt", None: ""}[realtime_granted(r)]
             print(
                 f"run {k:3d}{which} exit {r.exit_code} load {r.load:.1f}{rt} | "
                 f"{fmt(p)}{cause}{said}{note}",
                 flush=True,
             )
+    except KeyboardInterrupt:  # Ctrl-C: the runs done so far are summarised
+        print(f"\ninterrupted: {len(results)} of {args.runs} runs done")
     finally:
         load.stop()
         sim.stop()
     groups = {"": results}
+    if len(modes) > 1:
+        groups = {f"--realtime {m}": [r for r in results if r.realtime == m] for m in modes}
     if args.against is not None:
         groups = {
             f"A ({ROOT})": [r for r in results if r.tree == ROOT],
             f"B ({args.against})": [r for r in results if r.tree != ROOT],
         }
-    elif args.prefix_alternate:
+    if args.prefix_alternate:
         groups = {
             "A (as is)": [r for r in results if not r.prefixed],
             f"B ({' '.join(args.prefix or [])})": [r for r in results if r.prefixed],
@@ -571,6 +585,7 @@ def main(argv: list[str] | None = None) -> int:
                             "failure": r.failure,
                             "loop_period_ms": percentiles(r.periods_ms),
                             "load_average": r.load,
+                            "realtime_mode": r.realtime,
                             "realtime": r.summary.get("realtime"),
                             "longest_gaps": r.summary.get("longest_gaps"),
                         }
