@@ -28,6 +28,7 @@ from reach_driver.realtime import (
     RealtimeThreads,
     ThreadRole,
 )
+from reach_driver.rrd_summary import read_recording
 from reach_driver.watchdog import LoopTiming, Watchdog
 
 pytestmark = pytest.mark.sim(speed=4.0, udp=LOOPBACK)
@@ -248,6 +249,7 @@ def test_the_loop_and_reader_run_sched_fifo_and_the_recorder_does_not(
     got = json.loads(out)["realtime"]
     assert got["granted"] is True and got["without"] is None
     assert got["threads"]["control loop"] == {"status": "granted", "priority": 10, "reason": ""}
+    assert read_recording(tmp_path / "run.rrd").summary["realtime"] == got  # the recording too
 
 
 def test_a_thread_already_real_time_above_it_keeps_its_own() -> None:
