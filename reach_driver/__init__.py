@@ -36,6 +36,7 @@ from reach_driver.errors import (
     PortBusyError,
     PortNotFoundError,
     PortPermissionError,
+    RealtimeRefusedError,
     RequestTimeoutError,
     StreamRateError,
     TransportError,
@@ -45,6 +46,7 @@ from reach_driver.identity import ModelCheck
 from reach_driver.interfaces import open_transport
 from reach_driver.link import ClientEvent, ClientStats, EventKind, LinkConfig, LinkState
 from reach_driver.listeners import PacketQueue, Subscription
+from reach_driver.realtime import RealtimePolicy, RealtimeReport, RealtimeThreads
 from reach_driver.records import ControlSummary, LoopTrace, StepRecord, TimingStats
 from reach_driver.safety import LimitKind, SafetyConfig, SafetyGuard
 from reach_driver.state import ArmState, JointState, Reading
@@ -91,6 +93,10 @@ __all__ = [
     "PortBusyError",
     "PortPermissionError",
     "Reading",
+    "RealtimePolicy",
+    "RealtimeRefusedError",
+    "RealtimeReport",
+    "RealtimeThreads",
     "RequestTimeoutError",
     "SafetyConfig",
     "SafetyGuard",

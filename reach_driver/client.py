@@ -49,6 +49,7 @@ from reach_driver.listeners import ListenerSet, PacketListener, PacketQueue, Sub
 from reach_driver.loop_timing import SchedStat
 from reach_driver.queries import limit_verdict
 from reach_driver.reader_away import ReaderAway
+from reach_driver.realtime import RealtimeThreads, ThreadRole
 from reach_driver.recovery import LinkRecovery
 from reach_driver.requests import Requester, Waiters
 from reach_driver.safety import SafetyConfig, SafetyGuard
@@ -120,6 +121,8 @@ class ArmClient(ArmCommands):
         )
         #: Set by a running `ControlLoop`: how it keeps time, for the watchdog to name.
         self.loop_timing: Callable[[], LoopTiming | None] | None = None
+        #: Real-time priority for the reader and a `ControlLoop`'s thread (set before start()).
+        self.realtime = RealtimeThreads()
         self.faults = FaultFlags()
         self._waiters = Waiters()
         self._requests = Requester(
@@ -190,7 +193,9 @@ class ArmClient(ArmCommands):
         self.supervisor.opened(self.clock())
         self._stop.clear()
         self._thread = threading.Thread(
-            target=self._run, name=f"reach-driver reader {self.transport.url}", daemon=True
+            target=self.realtime.thread_target(ThreadRole.READER, self._run),
+            name=f"reach-driver reader {self.transport.url}",
+            daemon=True,
         )
         self._thread.start()
         try:

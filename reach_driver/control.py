@@ -30,6 +30,11 @@ their modes read back, resent until the arm confirms it or `SafetyConfig.safe_wa
 out (a lost link is waited for meanwhile), and a summary whose `left_in` claims only what the
 arm confirmed. An interrupt is passed on as `Interrupted` carrying that summary.
 
+The loop's thread asks for real-time priority as the client's `realtime` policy says (the
+reader asks as it starts; `reach_driver.realtime`) for the run and gets its own back after it;
+a required priority not granted raises `RealtimeRefusedError` before anything is commanded, and
+the summary's `timing.realtime` says what each thread was given.
+
 The summary carries the run as a uniformly sampled `LoopTrace` (the state that ended the run
 is its last row) from which `reach_driver.metrics` scores it like the evaluation runner does,
 on the angles the arm reported; torque is current x the joint's torque constant.
@@ -58,12 +63,14 @@ from reach_driver.errors import (
     ControllerError,
     DriverError,
     Interrupted,
+    RealtimeRefusedError,
     StreamRateError,
     WatchdogTrippedError,
 )
 from reach_driver.link import EventKind, LinkState
 from reach_driver.loop_timing import Gap, GapLog
 from reach_driver.plausibility import FeedbackCheck, PlausibilityConfig
+from reach_driver.realtime import RealtimeReport, ThreadRole
 from reach_driver.records import ControlSummary, LoopTrace, StepHook, StepRecord, TimingStats
 from reach_driver.safety import LimitKind
 from reach_driver.state import joint_name
@@ -207,8 +214,17 @@ class ControlLoop:
             self.client.guard.check(int(dev), LimitKind.POSITION, float(value))
         if seconds <= 0:
             raise ValueError(f"seconds must be positive, got {seconds}")
+        realtime = self.client.realtime
+        with realtime.held(ThreadRole.LOOP):
+            report = realtime.report(ThreadRole.LOOP, ThreadRole.READER)
+            refusal = report.refusal()
+            if refusal is not None:
+                raise RealtimeRefusedError(refusal)  # before anything is commanded
+            return self._run(goal, seconds, report)
+
+    def _run(self, goal: np.ndarray, seconds: float, realtime: RealtimeReport) -> ControlSummary:
         events_before = len(self.client.events)
-        run = _Run(self, goal, seconds)
+        run = _Run(self, goal, seconds, realtime)
         interrupted: KeyboardInterrupt | None = None
         try:
             run.execute()
@@ -262,8 +278,11 @@ def _superseded(assembler: StateAssembler, serial: int) -> Callable[[], bool]:
 class _Run:
     """The bookkeeping of one `ControlLoop.run`."""
 
-    def __init__(self, loop: ControlLoop, goal: np.ndarray, seconds: float) -> None:
+    def __init__(
+        self, loop: ControlLoop, goal: np.ndarray, seconds: float, realtime: RealtimeReport
+    ) -> None:
         self.loop = loop
+        self.realtime = realtime
         self.client = loop.client
         self.goal = goal
         self.seconds = seconds
@@ -328,7 +347,8 @@ class _Run:
         loop = self.loop
         loop.controller.reset()
         self.gap_log.start()
-        self.client.loop_timing = lambda: self.gap_log.timing(loop.period_s)
+        without = self.realtime.without()
+        self.client.loop_timing = lambda: self.gap_log.timing(loop.period_s, without)
         try:
             if loop.pacing is Pacing.STREAM:
                 self._run_stream()
@@ -727,6 +747,7 @@ class _Run:
             stream_gaps=asm.gaps if asm is not None else 0,
             lost_ticks=asm.lost if asm is not None else 0,
             gaps=self.gap_log.stats(),
+            realtime=self.realtime,
         )
         # The state that ended the run is the last one the arm reported.
         final_q = self.final[1] if self.final is not None else self.q

@@ -106,6 +106,11 @@ class StreamRateError(DriverError):
     wrong, so the run ends."""
 
 
+class RealtimeRefusedError(DriverError):
+    """Real-time priority was required (`RealtimePolicy.REQUIRE`) and a thread on the command
+    path was not given it; raised before anything was commanded."""
+
+
 class Interrupted(KeyboardInterrupt):
     """A signal asked the process to stop (SIGINT, SIGTERM, SIGHUP, SIGQUIT). A
     `KeyboardInterrupt`, so code that stops on Ctrl-C stops on these too; whatever was under

@@ -318,13 +318,16 @@ class GapLog:
         self._cpu0 = cpu
         self._queue0 = queue
 
-    def timing(self, nominal_s: float) -> LoopTiming | None:
+    def timing(self, nominal_s: float, without_realtime: str | None = None) -> LoopTiming | None:
         """The loop's timing so far, for the watchdog's message (any thread); None before
-        two commands."""
+        two commands unless it runs `without_realtime` (why), which a trip names."""
         gaps = list(self.gaps)
         if not gaps:
-            return None
-        return LoopTiming(nominal_s, float(np.percentile(gaps, 99)), max(gaps), len(gaps))
+            if without_realtime is None:
+                return None
+            return LoopTiming(nominal_s, math.nan, math.nan, 0, without_realtime)
+        p99 = float(np.percentile(gaps, 99))
+        return LoopTiming(nominal_s, p99, max(gaps), len(gaps), without_realtime)
 
     def stats(self) -> GapStats:
         if not self.gaps:

@@ -15,6 +15,7 @@ import numpy as np
 from protocol.models import ALPHA5, ArmModel
 from reach_driver.chatter import Verdict
 from reach_driver.loop_timing import GapStats
+from reach_driver.realtime import RealtimeReport
 
 
 @dataclass(frozen=True)
@@ -71,6 +72,8 @@ class TimingStats:
     lost_ticks: int = 0  # ticks those gaps could have held: arm time not counted (at most)
     #: The gaps between commands (what the watchdog judges): percentiles, the longest taken apart.
     gaps: GapStats = field(default_factory=GapStats)
+    #: Whether the loop and the link's reader ran with real-time priority, and why not.
+    realtime: RealtimeReport = field(default_factory=RealtimeReport)
 
 
 @dataclass(frozen=True)

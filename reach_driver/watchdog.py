@@ -45,6 +45,8 @@ class LoopTiming:
     p99_s: float
     max_s: float
     gaps: int
+    #: Why the loop runs without real-time priority (None: it has it, or was not to ask).
+    without_realtime: str | None = None
 
     @property
     def busy(self) -> bool:
@@ -143,8 +145,15 @@ class Watchdog:
         limit = f"watchdog {limit_s:g} s, {LIMIT_NAME}"
         silent = now - last_command
         stalled = away_s > limit_s / 2
+        why = None if loop is None else loop.without_realtime
+
+        # a busy machine is the OS's choice of thread: a loop without real-time priority says so
+        def busy(timing: str = "") -> str:
+            grant = f"; real-time priority was not granted: {why}" if why else ""
+            return f"the machine was busy{timing}{grant}"
+
         process = (
-            f"; this process itself had not run for {away_s:.3f} s (the machine was busy: "
+            f"; this process itself had not run for {away_s:.3f} s ({busy()}; "
             f"raise {LIMIT_NAME} or reduce the load)"
             if stalled
             else ""
@@ -168,17 +177,17 @@ class Watchdog:
                 return reason, tuple(armed)
         if silent > limit_s:
             head = f"no command for {silent:.3f} s ({limit})"
-            timing = "" if loop is None else f" (loop period {loop.describe()})"
+            timing = "" if loop is None or not loop.gaps else f" (loop period {loop.describe()})"
             if stalled:
                 reason = (
                     f"{head}: this process did not run for {away_s:.3f} s of it, its reader "
-                    f"thread no more than the controller: the machine was busy{timing}; raise "
+                    f"thread no more than the controller: {busy(timing)}; raise "
                     f"{LIMIT_NAME} or reduce the load"
                 )
             elif loop is not None and loop.busy:
                 reason = (
                     f"{head} while the arm's feedback kept arriving: the controller did not "
-                    f"command for {silent:.3f} s: the machine was busy{timing}; raise "
+                    f"command for {silent:.3f} s: {busy(timing)}; raise "
                     f"{LIMIT_NAME} or reduce the load"
                 )
             else:

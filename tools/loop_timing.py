@@ -23,6 +23,11 @@ Loads (each a process of its own beside the runs, at the driver's priority unles
 
 `--tty` runs each command on a pseudo-terminal (120x40), so `run` draws its live table as it
 does for a person; `--viewer serve` adds the live viewer's gRPC server and web server.
+`--realtime MODE` passes `run --realtime MODE` (default: the driver's own, try: real-time
+priority for the loop and the link's reader where permitted; `--realtime try off` takes
+turns, an A/B under the same load); `--sim-prefix 'chrt -f 10'`
+starts the arm's reach-sim real-time too, as a real arm keeps time on its own processor
+whatever the host does.
 
 Exit status: 0 when no run tripped its watchdog or failed, 1 otherwise.
 """
@@ -278,6 +283,8 @@ class RunResult:
     summary: dict[str, object] = field(default_factory=dict)
     tree: Path = ROOT
     prefixed: bool = False
+    load: float = float("nan")  # the 1-minute load average as the run ended
+    realtime: str | None = None  # the `run --realtime` mode given (None: the default)
 
 
 WATCHDOG_LINE = re.compile(r"watchdog: (.*?)(?:; put |\n|$)")
@@ -295,6 +302,7 @@ def run_once(
     sample: bool = False,
     tree: Path = ROOT,
     prefix: list[str] | None = None,
+    realtime: str | None = None,
 ) -> RunResult:
     rec = where / f"run{index}.rrd"
     wrap = []
@@ -308,6 +316,8 @@ def run_once(
         "-m", "reach_driver", "--port", str(port), *README_RUN, "--seconds", f"{seconds:g}"
     )
     cmd += ["--record", str(rec), *viewer]
+    if realtime:
+        cmd += ["--realtime", realtime]
     started = time.monotonic()
     chunks: list[bytes] = []
     if tty:
@@ -378,6 +388,13 @@ def fmt(p: dict[str, float]) -> str:
     return " / ".join(f"{k} {v:.1f}" for k, v in p.items()) + " ms"
 
 
+def realtime_granted(r: RunResult) -> bool | None:
+    """Whether the run's loop and reader had real-time priority (its recording's summary;
+    None when it does not say)."""
+    got = r.summary.get("realtime")
+    return bool(got.get("granted")) if isinstance(got, dict) else None
+
+
 def longest_gaps(r: RunResult) -> list[dict[str, Any]]:
     """The run's longest gaps between commands, taken apart, as its recording's summary
     holds them (`reach_driver.loop_timing.Gap.as_dict`), longest first."""
@@ -391,6 +408,9 @@ def summarize(label: str, results: list[RunResult]) -> dict[str, object]:
     pooled = np.concatenate([r.periods_ms for r in results]) if results else np.zeros(0)
     trips = sum(1 for r in results if r.watchdog)
     failed = sum(1 for r in results if r.exit_code != 0)
+    granted = sum(1 for r in results if realtime_granted(r))
+    loads = [r.load for r in results if np.isfinite(r.load)]
+    load = f"{min(loads):.1f}-{max(loads):.1f}" if loads else "unknown"
     causes: dict[str, int] = {}
     for r in results:
         for g in longest_gaps(r):
@@ -398,7 +418,8 @@ def summarize(label: str, results: list[RunResult]) -> dict[str, object]:
                 causes[str(g["cause"])] = causes.get(str(g["cause"]), 0) + 1
     print(
         f"\n{label + ': ' if label else ''}{trips} watchdog trip(s), {failed} run(s) not exit 0, "
-        f"of {len(results)}; loop period over {pooled.size} gaps: {fmt(percentiles(pooled))}"
+        f"of {len(results)}; loop period over {pooled.size} gaps: {fmt(percentiles(pooled))}; "
+        f"real-time priority in {granted}; load average {load}"
     )
     if causes:
         print(
@@ -409,6 +430,8 @@ def summarize(label: str, results: list[RunResult]) -> dict[str, object]:
         "runs": len(results),
         "watchdog_trips": trips,
         "not_ok": failed,
+        "realtime_granted": granted,
+        "load_average": load,
         "loop_period_ms": percentiles(pooled),
         "gap_causes": causes,
     }
@@ -443,6 +466,15 @@ def main(argv: list[str] | None = None) -> int:
         "time, as a real one does)",
     )
     parser.add_argument(
+        "--realtime",
+        nargs="+",
+        choices=("try", "require", "off"),
+        metavar="MODE",
+        help="pass `run --realtime` this (try, require, off; default: not given, the driver's "
+        "own, try); several modes take turns run by run (an A/B under the same load: "
+        "--realtime try off), each summarised apart",
+    )
+    parser.add_argument(
         "--prefix-alternate",
         action="store_true",
         help="only every second run under --prefix (an A/B: A without, B with)",
@@ -473,9 +505,11 @@ def main(argv: list[str] | None = None) -> int:
     sim = Sim(where, "alpha5", "127.0.0.1:0", 0, args.sim_prefix)
     load = Load(args.load, where, args.nice)
     results: list[RunResult] = []
+    modes: list[str | None] = args.realtime or [None]
     try:
         time.sleep(1.0)  # let the load start up
         for k in range(1, args.runs + 1):
+            mode = modes[(k - 1) % len(modes)]
             tree = args.against if args.against is not None and k % 2 == 0 else ROOT
             prefix = args.prefix if not args.prefix_alternate or k % 2 == 0 else None
             r = run_once(
@@ -489,9 +523,12 @@ def main(argv: list[str] | None = None) -> int:
                 args.threads_trace,
                 tree,
                 prefix,
+                mode,
             )
+            r.realtime = mode
             r.prefixed = bool(prefix)
             r.tree = tree
+            r.load = os.getloadavg()[0]
             results.append(r)
             p = percentiles(r.periods_ms)
             longest = longest_gaps(r)
@@ -503,21 +540,27 @@ def main(argv: list[str] | None = None) -> int:
             note = f" FAILED: {r.failure}" if r.failure and not r.watchdog else ""
             ab = args.against is not None or args.prefix_alternate
             which = ("B" if tree != ROOT or r.prefixed else "A") if ab else ""
+            which += f" {mode}" if len(modes) > 1 else ""
+            rt = {True: " rt", False: " no-rt", None: ""}[realtime_granted(r)]
             print(
-                f"run {k:3d}{which} exit {r.exit_code} load {os.getloadavg()[0]:.1f} | {fmt(p)}"
-                f"{cause}{said}{note}",
+                f"run {k:3d}{which} exit {r.exit_code} load {r.load:.1f}{rt} | "
+                f"{fmt(p)}{cause}{said}{note}",
                 flush=True,
             )
+    except KeyboardInterrupt:  # Ctrl-C: the runs done so far are summarised
+        print(f"\ninterrupted: {len(results)} of {args.runs} runs done")
     finally:
         load.stop()
         sim.stop()
     groups = {"": results}
+    if len(modes) > 1:
+        groups = {f"--realtime {m}": [r for r in results if r.realtime == m] for m in modes}
     if args.against is not None:
         groups = {
             f"A ({ROOT})": [r for r in results if r.tree == ROOT],
             f"B ({args.against})": [r for r in results if r.tree != ROOT],
         }
-    elif args.prefix_alternate:
+    if args.prefix_alternate:
         groups = {
             "A (as is)": [r for r in results if not r.prefixed],
             f"B ({' '.join(args.prefix or [])})": [r for r in results if r.prefixed],
@@ -541,6 +584,9 @@ def main(argv: list[str] | None = None) -> int:
                             "watchdog": r.watchdog,
                             "failure": r.failure,
                             "loop_period_ms": percentiles(r.periods_ms),
+                            "load_average": r.load,
+                            "realtime_mode": r.realtime,
+                            "realtime": r.summary.get("realtime"),
                             "longest_gaps": r.summary.get("longest_gaps"),
                         }
                         for r in results

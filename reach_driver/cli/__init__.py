@@ -37,6 +37,7 @@ from reach_driver.errors import (
     NoResponseError,
     PortNotFoundError,
     PortPermissionError,
+    RealtimeRefusedError,
     TransportError,
 )
 
@@ -202,6 +203,9 @@ def _run(args: argparse.Namespace, console: Console, errors: Console) -> int:
     except TransportError as exc:
         _say(errors, "no arm", str(exc))
         return int(Exit.NO_ARM)
+    except RealtimeRefusedError as exc:  # run --realtime require, not granted
+        _say(errors, "refused", str(exc))
+        return int(Exit.NO_REALTIME)
     except (LinkDownError, DriverError) as exc:
         _say(errors, "failed", str(exc))
         return int(Exit.FAILED)

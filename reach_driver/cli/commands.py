@@ -59,9 +59,10 @@ from reach_driver.controllers import (
     registered_list,
 )
 from reach_driver.drawing import drawing_for
-from reach_driver.errors import ArmFaultError, DriverError, Interrupted
+from reach_driver.errors import ArmFaultError, DriverError, Interrupted, RealtimeRefusedError
 from reach_driver.kinematics import tool_position
 from reach_driver.link import EventKind, LinkState
+from reach_driver.realtime import ThreadRole
 from reach_driver.records import ControlSummary
 from reach_driver.safety import LimitKind, SafetyGuard
 from reach_driver.state import ArmState, joint_name
@@ -585,6 +586,11 @@ def cmd_run(args: argparse.Namespace, console: Console) -> Exit:
         target = np.array(args.target, dtype=float)
         for dev, value in zip(model.joints, target, strict=True):
             client.guard.check(dev, LimitKind.POSITION, float(value))
+        # --realtime require: refused now, before a recording or viewer is opened, when the
+        # reader was refused (the loop's thread asks as the loop starts, and is refused alike)
+        refusal = client.realtime.report(ThreadRole.READER).refusal()
+        if refusal is not None:
+            raise RealtimeRefusedError(refusal)
         faults = blocking_faults(
             client.read_status(model.joints), _notes() if args.json else console
         )

@@ -26,6 +26,7 @@ from reach_driver.errors import ArmModelError, BadUrlError
 from reach_driver.identity import ModelCheck, device_list
 from reach_driver.interfaces import open_transport
 from reach_driver.link import ClientEvent, EventKind
+from reach_driver.realtime import RealtimePolicy, RealtimeThreads
 from reach_driver.safety import SafetyConfig
 
 log = logging.getLogger("reach_driver.cli.events")  # to --log-file; the console shows them
@@ -46,6 +47,8 @@ def connect(args: argparse.Namespace, console: Console) -> ArmClient:
         retries=args.retries,
         model=given or ALPHA5,
     )
+    # `run --realtime`: its reader asks as it starts; other commands never ask
+    client.realtime = RealtimeThreads(RealtimePolicy(getattr(args, "realtime", "off")))
 
     # Events and warnings go to stderr so `info --json` stays parseable.
     notes = Console(stderr=True, highlight=False)

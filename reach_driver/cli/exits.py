@@ -20,6 +20,7 @@ class Exit(IntEnum):
     NO_ARM = 4
     LINK_LOST = 5  # the link went down while a command was under way
     RECORDING_INCOMPLETE = 6  # the run completed; its --record file stops early
+    NO_REALTIME = 7  # run --realtime require, and real-time priority was not granted
     # A signal ended a move or run: 128 + its number, the shell's convention.
     HANGUP = 128 + signal.SIGHUP  # 129: the terminal went away (an ssh drop)
     INTERRUPTED = 128 + signal.SIGINT  # 130: Ctrl-C
@@ -52,6 +53,9 @@ EXIT_TABLE: dict[Exit, str] = {
     "last positions the arm reported)",
     Exit.RECORDING_INCOMPLETE: "a run completed but its --record file is incomplete (e.g. a "
     "full disk: recording stopped, control went on)",
+    Exit.NO_REALTIME: "run --realtime require and the driver was not given real-time "
+    "priority (the line says why: CAP_SYS_NICE or an rtprio limit is needed); nothing was "
+    "commanded",
     Exit.HANGUP: "move or run ended by SIGHUP (the terminal or ssh session went away)",
     Exit.INTERRUPTED: "move or run ended by Ctrl-C (SIGINT)",
     Exit.QUIT: "move or run ended by SIGQUIT (Ctrl-\\)",

@@ -14,6 +14,7 @@ from protocol.viewer import add_viewer_option
 from reach_driver.cli.exits import exit_table_text
 from reach_driver.control import Pacing
 from reach_driver.controllers import registered_list
+from reach_driver.realtime import RealtimePolicy
 from reach_driver.transport import DEFAULT_BAUD
 
 DESCRIPTION = """\
@@ -447,6 +448,17 @@ def build_parser() -> argparse.ArgumentParser:
         choices=[p.value for p in Pacing],
         default=Pacing.STREAM.value,
         help="stream: the arm's heartbeat paces the loop (arm time); poll: host clock",
+    )
+    run.add_argument(
+        "--realtime",
+        choices=[p.value for p in RealtimePolicy],
+        default=RealtimePolicy.TRY.value,
+        help="real-time priority (SCHED_FIFO 10) for the control loop's thread and the link's "
+        "reader, so that a busy machine cannot hold them off past --watchdog. try (default): "
+        "ask, and run without it if refused (the summary says why); require: refuse the run "
+        "before anything is commanded (exit 7); off: do not ask. Linux grants it to root, to "
+        "a python given CAP_SYS_NICE (setcap cap_sys_nice+ep) or to a user whose rtprio "
+        "limit is at least 10 (`ulimit -r`, /etc/security/limits.d): docs/hil.md section 2a",
     )
     run.add_argument(
         "--param",

@@ -457,7 +457,7 @@ def print_summary(console: Console, s: ControlSummary) -> None:
     )
     gaps = t.gaps
     longest = f"; longest: {gaps.longest[0].describe()}" if gaps.longest else ""
-    console.print(escape(f"{gaps.brief()}{longest}"))
+    console.print(escape(f"{gaps.brief()}; {t.realtime.describe()}{longest}"))
     console.print(
         f"saturated steps {s.saturated_steps}, barrier cuts {s.barrier_steps}, implausible "
         f"samples {s.implausible_samples}, duplicate packets {s.duplicate_packets}, stream "

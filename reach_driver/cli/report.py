@@ -75,6 +75,7 @@ def summary_dict(s: ControlSummary) -> dict[str, object]:
         "gc_pauses": t.gaps.gc_pauses,
         "gc_longest_s": t.gaps.gc_longest_s,
         "longest_gaps": [g.as_dict() for g in t.gaps.longest],
+        "realtime": t.realtime.as_dict(),
         "left_in": s.left_in,
         "events": list(s.events),
         "metrics": None if metrics is None else metrics.as_dict(),
