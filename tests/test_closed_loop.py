@@ -45,8 +45,8 @@ JOINT_IDS = (5, 4, 3, 2)  # E D C B
 SCENARIO_1 = SCENARIOS[0].episode()
 SCENARIO_2 = SCENARIOS[1].episode()
 SCENARIO_3 = SCENARIOS[2].episode()  # E at 25 % torque
-#: where `ddpg` ends well inside the 20 mrad tolerance (at most 5 mrad over noise seeds; on
-#: scenario 1 its B stops up to 19.7 mrad short: docs/training.md, "Results")
+#: where `ddpg` ends well inside the 20 mrad tolerance (about 1 mrad: docs/results.md); its D
+#: swings 0.7 rad past a 0.11 rad step on the way, so the overshoot agreement is relative
 DDPG_TARGET = SCENARIO_2
 
 
@@ -401,7 +401,7 @@ def test_the_driver_path_agrees_with_the_direct_environment() -> None:
     assert abs(v.mie - d.mie) <= AGREEMENT.mie_rel * d.mie
     assert abs(v.energy_j - d.energy_j) <= AGREEMENT.energy_rel * d.energy_j
     assert abs(v.settling_time_s - d.settling_time_s) <= AGREEMENT.settling_abs_s
-    assert abs(v.overshoot_pct - d.overshoot_pct) <= AGREEMENT.overshoot_abs_pct
+    assert abs(v.overshoot_pct - d.overshoot_pct) <= AGREEMENT.overshoot_bound(d.overshoot_pct)
     assert np.max(np.abs(via.result.final_error - direct.final_error)) <= (
         AGREEMENT.final_error_abs
     )
