@@ -21,14 +21,10 @@ from policy.rl.overrides import resume_overrides
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = str(ROOT / "tools" / "train.py")
-#: a run of a few hundred steps that evaluates twice: seconds, not minutes
-TINY = [
-    "--config",
-    "ours",
+#: a training run cut to a few hundred steps that evaluates twice: seconds, not minutes
+TINY_STEPS = [
     "--set",
     "num_envs=2",
-    "--set",
-    "demo_episodes=2",
     "--set",
     "eval_every=200",
     "--set",
@@ -44,6 +40,8 @@ TINY = [
     "--set",
     "env.episode_s=5.0",
 ]
+#: the distilled stack's recipe so cut, with two demonstration episodes
+TINY = ["--config", "ours", *TINY_STEPS, "--set", "demo_episodes=2"]
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 
 
@@ -182,24 +180,7 @@ def test_the_best_actor_records_how_it_was_trained(tiny_run: tuple[Path, str]) -
 
 
 #: the scratch recipe cut to a few hundred steps (its collector process kept)
-TINY_SCRATCH = [
-    "--set",
-    "num_envs=2",
-    "--set",
-    "eval_every=200",
-    "--set",
-    "eval_episodes=2",
-    "--set",
-    "learning_starts=100",
-    "--set",
-    "buffer_size=5000",
-    "--set",
-    "hidden=[16,16]",
-    "--set",
-    "batch_size=32",
-    "--set",
-    "env.episode_s=5.0",
-]
+TINY_SCRATCH = TINY_STEPS
 
 
 def test_arm_bravo7_trains_the_scratch_recipe_on_the_bravos_six_joints(tmp_path) -> None:
