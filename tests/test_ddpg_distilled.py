@@ -179,11 +179,11 @@ def test_replay_buffer_wraps_and_round_trips() -> None:
     assert len(buf) == 5 and buf.pos == 1
     assert buf.rew[:, 0].tolist() == [2, 0, 1, 1, 2]  # the oldest transition was replaced
     other = ReplayBuffer(5, 3, 2)
-    other.load(buf.state())
+    other.load(buf.state(), gamma=0.99)
     np.testing.assert_array_equal(other.obs, buf.obs)
     assert other.pos == buf.pos and len(other) == 5
     with pytest.raises(ValueError, match="capacity"):
-        ReplayBuffer(6, 3, 2).load(buf.state())
+        ReplayBuffer(6, 3, 2).load(buf.state(), gamma=0.99)
 
 
 def _train(config: DDPGConfig, run_dir: Path) -> Trainer:
@@ -460,7 +460,7 @@ def test_bc_ignores_unlabelled_rows() -> None:
         "act": rng.uniform(-1, 1, size=(4, 4)).astype(np.float32),
         "rew": np.zeros((4, 1), np.float32),
         "next_obs": rng.normal(size=(4, 20)).astype(np.float32),
-        "term": np.zeros((4, 1), np.float32),
+        "discount": np.full((4, 1), 0.99, np.float32),
         "expert": rng.uniform(-1, 1, size=(4, 4)).astype(np.float32),
     }
     batch["expert"][2:] = np.nan  # the demonstrator is no teacher on these rows

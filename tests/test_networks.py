@@ -43,7 +43,7 @@ def test_an_agent_with_layer_norm_critics_updates_and_keeps_the_actor_format() -
         "act": rng.uniform(-1, 1, size=(16, 4)).astype(np.float32),
         "rew": rng.normal(size=(16, 1)).astype(np.float32),
         "next_obs": rng.normal(size=(16, 20)).astype(np.float32),
-        "term": np.zeros((16, 1), np.float32),
+        "discount": np.full((16, 1), 0.99, np.float32),
         "expert": np.full((16, 4), np.nan, np.float32),
     }
     losses = [agent.update(batch, 0.0)["critic_loss"] for _ in range(30)]

@@ -99,6 +99,12 @@ INGREDIENTS: tuple[Ingredient, ...] = (
         ("updates_per_round=4",),
     ),
     Ingredient(
+        "n-step-3",
+        "three rewards per transition before the bootstrap (the recipe one): an arrival's cost "
+        "reaches the states that caused it sooner",
+        ("n_step=3",),
+    ),
+    Ingredient(
         "goal-relabel",
         "goal relabelling (hindsight replay, off in the recipe): each ended episode stored 4 "
         "more times for goals the arm passed through, 80 % of the buffer replays",

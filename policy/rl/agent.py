@@ -76,9 +76,10 @@ class Agent:
         act = torch.from_numpy(batch["act"])
         rew = torch.from_numpy(batch["rew"])
         next_obs = torch.from_numpy(batch["next_obs"])
-        term = torch.from_numpy(batch["term"])
+        discount = torch.from_numpy(batch["discount"])
 
-        # 1. the TD target: r + gamma Q'(s', pi'(s')), cut only where the episode terminated
+        # 1. the TD target: r + gamma Q'(s', pi'(s')), cut only where the episode terminated;
+        #    `discount` is gamma (0 if terminated), or gamma^n with n-step returns in r
         with torch.no_grad():
             next_act = self.actor_target(next_obs)
             if cfg.target_noise > 0:  # TD3 target policy smoothing
@@ -88,7 +89,7 @@ class Agent:
             q_next = torch.min(  # one critic: itself; TD3's twin critics: the smaller
                 torch.stack([c(next_obs, next_act) for c in self.critics_target]), dim=0
             ).values
-            target = rew + cfg.gamma * (1.0 - term) * q_next
+            target = rew + discount * q_next
 
         # 2. the critic loss: mean squared TD error, summed over the critics
         qs = [c(obs, act) for c in self.critics]

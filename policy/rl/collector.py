@@ -42,6 +42,7 @@ class Round:
     rewards: np.ndarray
     next_obs: np.ndarray
     terms: np.ndarray
+    dones: np.ndarray  #: the episode ended at this step (terminated or truncated)
     returns: tuple[float, ...]  #: undiscounted return of each episode that ended
     #: the ended episodes replayed for other goals (`her_goals`); None when off
     relabelled: Relabelled | None = None
@@ -117,7 +118,7 @@ class EnvWorker:
             self.relabeller.started(int(j))
             self.noise.reset(int(j))
         relabelled = Relabelled.concatenate(replays) if replays else None
-        return Round(obs, actions, rewards, next_obs, terms, tuple(finished), relabelled)
+        return Round(obs, actions, rewards, next_obs, terms, done, tuple(finished), relabelled)
 
 
 def _serve(conn: Connection, config: dict[str, Any], from_step: int) -> None:

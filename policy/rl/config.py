@@ -109,6 +109,9 @@ class DDPGConfig:
     policy_delay: int = 1
     #: LayerNorm after each hidden layer of the critics (the actor, which ships, is unchanged)
     critic_layer_norm: bool = False
+    #: rewards per stored transition (policy/rl/nstep.py): the critic's target sums n rewards
+    #: and bootstraps gamma^n later (1: DDPG's one-step target)
+    n_step: int = 1
     #: goal relabelling (policy/rl/relabel.py): each finished episode is also stored this
     #: many times, each with a goal drawn from the true angles the arm passed through, its
     #: observations and rewards recomputed for it. 0: off
@@ -166,6 +169,13 @@ class DDPGConfig:
             raise ValueError(f"her_goals must be a whole number, got {self.her_goals!r}")
         if self.her_goals < 0:
             raise ValueError(f"her_goals must be >= 0, got {self.her_goals}")
+        if isinstance(self.n_step, bool) or not isinstance(self.n_step, int) or self.n_step < 1:
+            raise ValueError(f"n_step must be a whole number >= 1, got {self.n_step!r}")
+        if self.n_step > 1 and (self.her_goals > 0 or self.demo_episodes > 0):
+            raise ValueError(
+                "n_step > 1 with her_goals or demo_episodes: replayed and demonstration "
+                "episodes are stored as one-step transitions; use one or the other"
+            )
         reward = self.env.reward
         if reward.potential_weight and reward.potential_gamma != self.gamma:
             raise ValueError(

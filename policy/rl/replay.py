@@ -1,4 +1,8 @@
-"""Replay buffer: a numpy ring that also keeps the expert's action for every state (for BC)."""
+"""Replay buffer: a numpy ring that also keeps the expert's action for every state (for BC).
+
+Each transition carries its bootstrap `discount` (policy.rl.nstep): gamma ** (rewards summed in
+`rew`), 0 where the episode terminated.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +12,7 @@ import numpy as np
 class ReplayBuffer:
     """Fixed-capacity ring of transitions; numpy rather than torch: sampling is cheaper."""
 
-    FIELDS = ("obs", "act", "rew", "next_obs", "term", "expert")
+    FIELDS = ("obs", "act", "rew", "next_obs", "discount", "expert")
 
     def __init__(self, capacity: int, obs_dim: int, act_dim: int) -> None:
         self.capacity = capacity
@@ -16,7 +20,7 @@ class ReplayBuffer:
         self.act = np.zeros((capacity, act_dim), np.float32)
         self.rew = np.zeros((capacity, 1), np.float32)
         self.next_obs = np.zeros((capacity, obs_dim), np.float32)
-        self.term = np.zeros((capacity, 1), np.float32)
+        self.discount = np.zeros((capacity, 1), np.float32)
         self.expert = np.zeros((capacity, act_dim), np.float32)
         self.pos = 0
         self.full = False
@@ -30,7 +34,7 @@ class ReplayBuffer:
         act: np.ndarray,
         rew: np.ndarray,
         next_obs: np.ndarray,
-        term: np.ndarray,
+        discount: np.ndarray,
         expert: np.ndarray,
     ) -> None:
         """Add a batch of transitions (first axis = env)."""
@@ -40,7 +44,7 @@ class ReplayBuffer:
         self.act[idx] = act
         self.rew[idx, 0] = rew
         self.next_obs[idx] = next_obs
-        self.term[idx, 0] = term
+        self.discount[idx, 0] = discount
         self.expert[idx] = expert
         self.full = self.full or self.pos + n >= self.capacity
         self.pos = int((self.pos + n) % self.capacity)
@@ -56,7 +60,11 @@ class ReplayBuffer:
         data["meta"] = np.array([self.pos, int(self.full), self.capacity])
         return data
 
-    def load(self, data: dict[str, np.ndarray]) -> None:
+    def load(self, data: dict[str, np.ndarray], gamma: float) -> None:
+        """`state()`'s arrays; a buffer saved before discounts were stored holds `term`
+        instead, read as one-step transitions with `gamma`."""
+        if "discount" not in data and "term" in data:
+            data = {**data, "discount": gamma * (1.0 - data["term"])}
         pos, full, capacity = (int(x) for x in data["meta"])
         if capacity != self.capacity:
             raise ValueError(f"buffer capacity {capacity} in checkpoint, {self.capacity} now")

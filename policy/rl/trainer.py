@@ -46,6 +46,7 @@ from policy.rl.env import EnvConfig, ReachAlphaEnv, time_limited
 from policy.rl.expert import PDExpert
 from policy.rl.exploration import OUNoise
 from policy.rl.networks import Actor
+from policy.rl.nstep import NStepReturns
 from policy.rl.relabel import GoalRelabeller, Relabelled
 from policy.rl.replay import ReplayBuffer
 
@@ -148,6 +149,8 @@ class Trainer:
             max(1, config.demo_episodes * config.env.steps_per_episode), obs_dim, n
         )
         self.noise = OUNoise((config.num_envs, n), config.ou_theta, config.ou_sigma, self.rng)
+        #: the envs' steps become n-step transitions here, whichever process stepped them
+        self.nstep = NStepReturns(config.num_envs, config.n_step, config.gamma)
         #: goal relabelling of the envs here (`her_goals`; the collector has its own)
         self.relabeller = GoalRelabeller(
             self.envs, config.her_goals, np.random.default_rng([config.seed, 2])
@@ -258,7 +261,7 @@ class Trainer:
                     a[None],
                     np.array([r]),
                     next_obs[None],
-                    np.array([float(term)]),
+                    np.array([cfg.gamma * (1.0 - float(term))]),
                     label[None],
                 )
                 obs, done = next_obs, term or trunc
@@ -282,6 +285,7 @@ class Trainer:
             self.collect_demonstrations()
         if self._obs is None:
             self._obs = np.stack([self._reset_env(i) for i in range(cfg.num_envs)])
+            self.nstep.reset()
         ep_returns = np.zeros(cfg.num_envs)
         csv = _open_csv(csv_path)
         cadence = self._cadence(checkpoint_every_s)
@@ -304,7 +308,7 @@ class Trainer:
                     next_obs[i], rewards[i], terms[i], done[i] = o, r, float(term), term or trunc
                     self.relabeller.stepped(i, actions[i], info)
                 # truncation (the 20 s limit) still bootstraps: only `term` cuts the target
-                self.buffer.add(obs, actions, rewards, next_obs, terms, expert_a)
+                self._store(obs, actions, rewards, next_obs, terms, done, expert_a)
                 ep_returns += rewards
                 for j in np.nonzero(done)[0]:
                     if csv is not None:
@@ -342,6 +346,7 @@ class Trainer:
         losses: dict[str, float] = {}
         if self._collector is None:  # kept across calls: its episodes go on, as `_obs`'s
             self._collector = CollectorProcess(cfg, self.state.env_steps)
+            self.nstep.reset()  # the child starts new episodes
             self.state.episodes += cfg.num_envs  # the child's first episodes
         collector = self._collector
 
@@ -357,8 +362,8 @@ class Trainer:
                 losses = self._learn() or losses  # while the child steps the next round
                 got = collector.result()
                 no_label = np.zeros_like(got.actions)
-                self.buffer.add(
-                    got.obs, got.actions, got.rewards, got.next_obs, got.terms, no_label
+                self._store(
+                    got.obs, got.actions, got.rewards, got.next_obs, got.terms, got.dones, no_label
                 )
                 if got.relabelled is not None:
                     self._add_relabelled(got.relabelled)
@@ -378,12 +383,29 @@ class Trainer:
                 csv.close()
         return self.state
 
+    def _store(
+        self,
+        obs: np.ndarray,
+        actions: np.ndarray,
+        rewards: np.ndarray,
+        next_obs: np.ndarray,
+        terms: np.ndarray,
+        dones: np.ndarray,
+        labels: np.ndarray,
+    ) -> None:
+        """A round of env steps (row i: env i) into the buffer, as n-step transitions."""
+        out = self.nstep.push(obs, actions, rewards, next_obs, terms, dones)
+        self.buffer.add(
+            out.obs, out.actions, out.rewards, out.next_obs, out.discounts, labels[out.envs]
+        )
+
     def _add_relabelled(self, replay: Relabelled) -> None:
         """Replayed episodes join the buffer (no expert label: the expert saw other goals)."""
         fill = np.nan if self.expert is not None else 0.0  # NaN: no BC term (`_label`)
         label = np.full_like(replay.actions, fill)
+        discounts = self.config.gamma * (1.0 - replay.terms)
         self.buffer.add(
-            replay.obs, replay.actions, replay.rewards, replay.next_obs, replay.terms, label
+            replay.obs, replay.actions, replay.rewards, replay.next_obs, discounts, label
         )
 
     def _learn(self) -> dict[str, float] | None:
@@ -587,9 +609,13 @@ class Trainer:
                     f"buffer.npz is from step {saved_at}, checkpoint.pt from "
                     f"{self.state.env_steps}: the last save was interrupted"
                 )
-            self.buffer.load({k: data[k] for k in (*ReplayBuffer.FIELDS, "meta")})
-            self.demos.load({k: data[f"demo_{k}"] for k in (*ReplayBuffer.FIELDS, "meta")})
+            names = (*ReplayBuffer.FIELDS, "term", "meta")
+            gamma = self.config.gamma
+            self.buffer.load({k: data[k] for k in names if k in data.files}, gamma)
+            demo = {k: data[f"demo_{k}"] for k in names if f"demo_{k}" in data.files}
+            self.demos.load(demo, gamma)
         self._obs = None  # episodes restart after a resume
+        self.nstep.reset()
         self.close()
         # later episodes are drawn from each env's own generator: reseed them from the step
         for i, env in enumerate(self.timed):
