@@ -3,7 +3,7 @@
 episodes, and a table of what each ingredient brings, with seed-then-episode bootstrap
 intervals and the change against the recipe (ROOT/baseline).
 
-Train the runs first, one seed sweep per ingredient (docs/training.md, "What makes it learn"):
+Train the runs first, one seed sweep per ingredient (docs/ablation.md):
     tools/sweep.py --config scratch --ablate no-away --seeds 0 1 2 --steps 200000 \\
         --set eps_steps=80000 --out runs/ablation/no-away
 then:
@@ -30,7 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="ablation.py",
         description="Score every ROOT/INGREDIENT/seed-N/best_actor.npz on held-out test "
         "episodes and print what each ingredient brings against ROOT/baseline.",
-        epilog="docs/training.md, 'What makes it learn'.",
+        epilog="docs/ablation.md: every table, what it says and its commands.",
     )
     p.add_argument("root", type=Path, nargs="?", help="the ablation's directory")
     p.add_argument("--list", action="store_true", help="list the ingredients and exit")

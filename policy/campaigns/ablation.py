@@ -7,7 +7,7 @@ sweep (tools/sweep.py ``--ablate NAME``, or tools/train.py per seed) into ``ROOT
 `score_root` then runs each ``ROOT/NAME/seed-N/best_actor.npz`` on the same held-out test
 episodes (`HeldOutSets`: never used in training or checkpoint selection) and `summarize` gives
 per ingredient the means with seed-then-episode bootstrap intervals and the difference to
-the recipe itself. tools/ablation.py prints it and writes the table docs/training.md holds.
+the recipe itself. tools/ablation.py prints it and writes the tables docs/ablation.md holds.
 """
 
 from __future__ import annotations
@@ -289,7 +289,7 @@ def summarize(
 
 
 def markdown(summary: dict[str, dict[str, Any]]) -> str:
-    """The table docs/training.md holds: mean [95 % interval], and the change against the
+    """The table docs/ablation.md holds: mean [95 % interval], and the change against the
     recipe with its interval (bold where the interval excludes 0)."""
     heads = [f"{test} {label}" for test, label, _ in COLUMNS]
     lines = [
