@@ -7,6 +7,9 @@ import signal
 import textwrap
 from enum import IntEnum
 
+from rich.console import Console
+from rich.markup import escape
+
 
 class UsageError(Exception):
     """A bad option or parameter found after parsing (exit 2, one line, no traceback)."""
@@ -105,3 +108,17 @@ def left_in_for_operator(left_in: str, port: str | None) -> str:
         f"is moving, cut its power; once it answers, `reach-driver{where} info` shows its "
         "mode and position."
     )
+
+
+def notes() -> Console:
+    """Where notes and warnings go: stderr, so that --json's stdout stays parseable."""
+    return Console(stderr=True, highlight=False)
+
+
+def say_interrupted(signum: int | None, left_in: str) -> None:
+    """The last line on stderr of a move or run a signal ended."""
+    if signum is not None:
+        notes().print(
+            f"interrupted: by {signal.Signals(signum).name}; arm left in {escape(left_in)}",
+            soft_wrap=True,
+        )

@@ -18,6 +18,7 @@ and the exit status does not change.
 
 from __future__ import annotations
 
+import argparse
 import os
 import queue
 import stat
@@ -31,6 +32,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from protocol.models import ALPHA5, ArmModel
+from reach_driver.cli.exits import UsageError
 from reach_driver.cli.report import summary_dict
 from reach_driver.errors import DriverError
 from reach_driver.records import ControlSummary, StepRecord
@@ -331,3 +333,20 @@ class CliRecorder:
             self._close(rec)
         except Exception as exc:
             self._fail(exc, "while closing")
+
+
+def kept_viewers(args: argparse.Namespace) -> list[RunRecorder] | None:
+    """With --viewer-keep: where a command's recorder leaves its live viewer serving for
+    `main` to wait on once the command is done (None: close it with the command)."""
+    if not getattr(args, "viewer_keep", False):
+        return None
+    kept: list[RunRecorder] = args.kept_viewers
+    return kept
+
+
+def check_record(args: argparse.Namespace) -> None:
+    """Before the port is opened: `--record` must name a file, never the arm's port."""
+    if args.record:
+        problem = output_path_problem("--record", args.record, args.port, devices=True)
+        if problem:
+            raise UsageError(f"{problem}; nothing was sent")
