@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     model = model_named(args.arm)
     seeds = ARM_TABLE_SEEDS[model.name]
-    table = args.table or model is not ALPHA5
+    table = args.table or model.name != ALPHA5.name
     for actor in args.actors:
         problem = actor_problem(actor, model)
         if problem:

@@ -77,7 +77,7 @@ def _cache_name(
     controller: str, params: dict[str, Any], seed: int, model: ArmModel = ALPHA5
 ) -> str:
     named: dict[str, Any] = {"controller": controller, "params": params}
-    if model is not ALPHA5:  # the Alpha's names stay those of runs kept before arms
+    if model.name != ALPHA5.name:  # the Alpha's names stay those of runs kept before arms
         named["arm"] = model.name
     key = json.dumps(named, sort_keys=True)
     for value in params.values():  # a weights file: its bytes, so a retrained file reruns

@@ -68,10 +68,10 @@ class Episode:
     def __post_init__(self) -> None:
         object.__setattr__(self, "start", _joints(self.start, "start", self.model))
         object.__setattr__(self, "target", _joints(self.target, "target", self.model))
-        scale = self.torque_scale
-        if np.ndim(scale) == 0:
-            scale = np.full(self.model.n_joints, scale, dtype=float)
-        scale = _joints(scale, "torque_scale", self.model)
+        given: Any = self.torque_scale
+        if np.ndim(given) == 0:  # one for every joint
+            given = [given] * self.model.n_joints
+        scale = _joints(given, "torque_scale", self.model)
         if np.any(scale < 0) or np.any(scale > 1):
             raise ValueError(f"torque_scale must be in [0, 1] per joint, got {scale.tolist()}")
         object.__setattr__(self, "torque_scale", scale)
