@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import json
 import sys
 from pathlib import Path
 from types import ModuleType
@@ -131,3 +132,26 @@ def test_an_actor_of_the_other_arm_is_refused_in_one_line(
     assert err.count("\n") == 1 and err.startswith("error: ")
     assert f"an actor for the {theirs.title}, not the" in err and f"--arm {theirs.name}" in err
     assert not (tmp_path / "runs").exists()  # refused before anything ran
+
+
+def test_evaluate_runs_bravo_targets_and_keeps_the_other_backends_to_the_alpha(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from policy.campaigns.evaluate_command import Options, execute
+
+    episode = random_episodes(1, 7020, model=BRAVO7)[0]
+    targets = tmp_path / "t.json"
+    targets.write_text(json.dumps([episode.to_dict()]))
+    out = tmp_path / "out.json"
+    options = Options(
+        controller="pid", targets=targets, seconds=8.0, out=out, quiet=True, arm="bravo7"
+    )
+    assert execute(options) == 0
+    data = json.loads(out.read_text())
+    assert np.all(np.abs(data["episodes"][0]["final_error"]) < REACHED_TOL_RAD)
+    assert len(data["episodes"][0]["final_error"]) == 6
+    # the same six angles as an Alpha's episode: refused, naming the joints it wants
+    assert execute(dataclasses.replace(options, arm="alpha5")) == 2
+    assert "start must be 4 finite numbers (E D C B)" in capsys.readouterr().err
+    assert execute(dataclasses.replace(options, via_driver=True)) == 2
+    assert "run the Alpha 5 only" in capsys.readouterr().err
