@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--runs", type=Path, default=ROOT / "runs" / "table1-line", help="where runs are kept"
     )
-    parser.add_argument("--json", action="store_true", help="print the checks as JSON")
+    parser.add_argument("--json", action="store_true", help="print the line's checks as JSON")
     args = parser.parse_args(argv)
     model = model_named(args.arm)
     seeds = ARM_TABLE_SEEDS[model.name]
@@ -98,6 +98,15 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     if not table and not args.actors:
         print("error: give at least one actor to check against the line", file=sys.stderr)
+        return 2
+    misplaced = "--json" if table and args.json else None
+    if not table and args.controllers is not None:
+        misplaced = "--controllers"
+    if misplaced:
+        print(
+            f"error: {misplaced} does not go with {'the table' if table else 'the line'}",
+            file=sys.stderr,
+        )
         return 2
     drive = controllers_for(model, ControllerKind.ENGINEERED)
     chosen = drive if args.controllers is None else args.controllers.split(",")
