@@ -242,6 +242,23 @@ def _describe(ep: EntryPoint) -> ControllerInfo:
     return ControllerInfo(ep.name, ep.value, summary, provenance, None, ControllerKind.LEARNED)
 
 
+def controllers_for(model: ArmModel, kind: ControllerKind) -> list[str]:
+    """The names of the registered controllers of `kind` that drive `model`, sorted; one
+    that fails to load (an extra not installed) is left out: `reach-driver controllers` says
+    why."""
+    out = []
+    for name, ep in sorted(_entry_points().items()):
+        try:
+            factory = ep.load()
+        except Exception:  # listed with its error by describe_controllers
+            continue
+        if getattr(factory, "controller_kind", None) is kind and model.name in driven_models(
+            factory
+        ):
+            out.append(name)
+    return out
+
+
 def describe_controllers() -> list[ControllerInfo]:
     """Every registered controller, by name: what it is and, for a learned one, how it was
     trained. Each entry point is loaded (imported) to read its docstring; one that fails is

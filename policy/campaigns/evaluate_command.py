@@ -1,6 +1,7 @@
 """What `tools/evaluate.py` does with its options: a controller scored on step responses of
-the simulated Alpha 5 (directly, on Ray or through the driver), its JSON, its table and its
-Rerun recording. `Options` holds the command line's values, one field per option."""
+the simulated Alpha 5 (directly, on Ray or through the driver) or of another arm's twin
+(`--arm`, directly), its JSON, its table and its Rerun recording. `Options` holds the
+command line's values, one field per option."""
 
 from __future__ import annotations
 
@@ -31,11 +32,11 @@ from policy.campaigns.evaluation import (
     random_episodes,
 )
 from policy.campaigns.parallel import CampaignError, evaluate_parallel
+from protocol.models import ALPHA5, ArmModelName, model_named
 from reach_driver.cli.tables import show_table
 from reach_driver.controllers import registered_list
 from reach_driver.errors import DriverError
 from reach_driver.metrics import ALL_METRIC_KEYS, metric_label
-from reach_sim_bridge.model.params import load_arm_params
 from reach_sim_bridge.model.sensors import SensorNoise
 
 
@@ -62,6 +63,7 @@ class Options:
     workers: int | None = None
     address: str | None = None
     quiet: bool = False
+    arm: str = ALPHA5.name
 
 
 def record_evaluation(evaluation: Evaluation, path: Path) -> None:
@@ -122,12 +124,21 @@ def _fmt(v: Any) -> str:
 
 def run(args: Options, console: Console) -> Evaluation:
     """The controller over the episodes, on the backend the options ask for."""
+    model = model_named(args.arm)
+    parallel = args.workers is not None or args.address is not None
+    if model.name != ALPHA5.name and (args.via_driver or parallel):
+        raise ValueError(
+            f"--via-driver, --workers and --address run the Alpha 5 only; the {model.title} "
+            "runs on the direct backend"
+        )
     if args.via_driver:
         from policy.campaigns.via_driver import DriverConfig, evaluate_via_driver
+    from reach_sim_bridge.model.arms import load_params  # the twins: MuJoCo
+
     if args.targets is not None:
-        episodes: list[Episode] = load_episodes(args.targets)
+        episodes: list[Episode] = load_episodes(args.targets, model)
     elif args.random is not None:
-        episodes = random_episodes(args.random, args.seed)
+        episodes = random_episodes(args.random, args.seed, model=model)
     else:
         raise ValueError("give --targets FILE or --random N")
     config = RunConfig(
@@ -136,17 +147,16 @@ def run(args: Options, console: Console) -> Evaluation:
         noise=SensorNoise() if args.noise else None,
         seed=args.seed,
         param_spread=args.perturb,
-        params=None if args.params is None else load_arm_params(args.params),
+        params=None if args.params is None else load_params(args.params, model),
     )
     params = parse_controller_params(args.param)
-    parallel = args.workers is not None or args.address is not None
     if parallel and args.via_driver:
         raise ValueError("--workers/--address run the direct backend; drop --via-driver")
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers must be at least 1, got {args.workers}")
     # Built here even for Ray, whose workers build their own: a bad name or parameter fails
     # before a cluster is started.
-    controller = load_controller(args.controller, **params)
+    controller = load_controller(args.controller, arm=model, **params)
     with Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -213,8 +223,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="evaluate.py",
         description=(
-            "Run a controller closed-loop on the MuJoCo Alpha 5 for a set of step episodes "
-            "(start -> target, arm angles in rad, joint order E D C B) and write per-episode "
+            "Run a controller closed-loop on the MuJoCo Alpha 5 (another arm's twin with --arm) "
+            "for a set of step episodes (start -> target, arm angles in rad, joint order E D C "
+            "B on the Alpha 5) and write per-episode "
             "metrics and their means to JSON. The controller sees q and qdot (noisy with "
             "--noise) once per control period; its currents (mA) are held for the period."
         ),
@@ -227,13 +238,21 @@ def build_parser() -> argparse.ArgumentParser:
         "what each is)",
     )
     add_param_option(p, "--param horizon=15")
+    p.add_argument(
+        "--arm",
+        choices=[m.value for m in ArmModelName],
+        default=ALPHA5.name,
+        help="the arm whose twin runs the episodes (default alpha5); bravo7: episodes of six "
+        "angles G F E D C B, --random draws in its workspace (docs/training.md), direct "
+        "backend only",
+    )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument(
         "--targets",
         type=Path,
         metavar="FILE",
         help='JSON list of {"start": [E,D,C,B], "target": [E,D,C,B], '
-        '"torque_scale": [4 numbers, optional]}',
+        '"torque_scale": [4 numbers, optional]} (six, G F E D C B, with --arm bravo7)',
     )
     src.add_argument(
         "--random",

@@ -26,6 +26,7 @@ from policy.tasks.episodes import (
     load_episodes,
     random_episodes,
 )
+from protocol.models import ALPHA5
 from reach_driver.controllers import Controller, ControlState, load_controller
 from reach_driver.metrics import METRIC_KEYS
 from reach_sim_bridge.model.sensors import SensorNoise
@@ -48,8 +49,11 @@ def run_episode(
     backend: Backend | None = None,
     episode_seed: int = 0,
 ) -> EpisodeResult:
-    """One episode: reset arm and controller, hold each action for one control period."""
-    return (backend or DirectArm()).run(controller, episode, config, episode_seed)
+    """One episode: reset arm and controller, hold each action for one control period (on
+    the twin of the episode's arm unless `backend` says otherwise)."""
+    return (backend or DirectArm(model=episode.model)).run(
+        controller, episode, config, episode_seed
+    )
 
 
 def evaluate(
@@ -60,8 +64,9 @@ def evaluate(
     backend: Backend | None = None,
     on_episode: Callable[[int, EpisodeResult], None] | None = None,
 ) -> Evaluation:
-    """Every episode in turn; episode i uses seed `config.seed + i`."""
-    backend = backend or DirectArm()
+    """Every episode in turn; episode i uses seed `config.seed + i`. Without a `backend`, the
+    direct one on the episodes' arm."""
+    backend = backend or DirectArm(model=episodes[0].model if episodes else ALPHA5)
     results = []
     for i, episode in enumerate(episodes):
         result = backend.run(controller, episode, config, config.seed + i)

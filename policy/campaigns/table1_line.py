@@ -9,23 +9,31 @@ non-privileged PD with gravity feed-forward on the same noisy readings) on reach
 overshoot and steady-state error. Verdicts use the means over the 80 episodes; every
 comparison also gives the paired 95 % bootstrap interval of the difference, so a pass that
 rests on noise shows as one.
+
+Another arm has its own Table I set (`ARM_TABLE_SEEDS`: the Bravo 7's is the 20 random
+episodes of seed 7020 in its workspace, under the same noise and +-20 % arms); the line is
+the Alpha's, so there `metrics_table` gives each controller's figures with their intervals.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
 from policy.campaigns.evaluation import evaluate
+from policy.campaigns.paper.markdown import CI_FORMAT, ci_cell
 from policy.campaigns.paper.table import values
-from policy.campaigns.stats import paired_difference_ci
+from policy.campaigns.stats import DEFAULT_RESAMPLES, bootstrap_ci, paired_difference_ci
 from policy.tasks.episodes import RunConfig, random_episodes
+from policy.tasks.scenarios import TABLE_KEYS
+from protocol.models import ALPHA5, BRAVO7, ArmModel
 from reach_driver.controllers import load_controller
 from reach_driver.metrics import metric_label
 from reach_sim_bridge.model.sensors import SensorNoise
@@ -33,6 +41,11 @@ from reach_sim_bridge.model.sensors import SensorNoise
 #: Table I's seeds: 20 random episodes each (docs/results.md)
 TABLE_SEEDS = (2020, 2120, 2220, 2320)
 EPISODES_PER_SEED = 20
+#: each arm's Table I set: the seeds of its random episodes (`random_episodes` in the arm's
+#: workspace, `EPISODES_PER_SEED` per seed)
+ARM_TABLE_SEEDS: Mapping[str, tuple[int, ...]] = MappingProxyType(
+    {ALPHA5.name: TABLE_SEEDS, BRAVO7.name: (7020,)}
+)
 #: the paper's RL row's overshoot (Carlucho et al., Table I), in %
 PAPER_RL_OVERSHOOT_PCT = 1.43
 #: reached and at rest in at least this share of the episodes (79 of 80)
@@ -60,8 +73,13 @@ def table_config(seed: int) -> RunConfig:
     return RunConfig(noise=SensorNoise(0.002, 0.02), seed=seed, param_spread=0.2)
 
 
-def _cache_name(controller: str, params: dict[str, Any], seed: int) -> str:
-    key = json.dumps({"controller": controller, "params": params}, sort_keys=True)
+def _cache_name(
+    controller: str, params: dict[str, Any], seed: int, model: ArmModel = ALPHA5
+) -> str:
+    named: dict[str, Any] = {"controller": controller, "params": params}
+    if model.name != ALPHA5.name:  # the Alpha's names stay those of runs kept before arms
+        named["arm"] = model.name
+    key = json.dumps(named, sort_keys=True)
     for value in params.values():  # a weights file: its bytes, so a retrained file reruns
         if isinstance(value, str) and Path(value).is_file():
             key += hashlib.sha256(Path(value).read_bytes()).hexdigest()
@@ -75,16 +93,17 @@ def table_runs(
     runs: Path,
     seeds: Sequence[int] = TABLE_SEEDS,
     progress: Callable[[str], None] | None = None,
+    model: ArmModel = ALPHA5,
 ) -> list[dict[str, Any]]:
-    """The controller on every seed's episodes, as `Evaluation.to_dict()`; each seed's run is
-    kept in `runs` and reused while the controller, its parameters (a weights file by its
-    bytes) and the settings are unchanged."""
+    """The controller on every seed's episodes of `model`, as `Evaluation.to_dict()`; each
+    seed's run is kept in `runs` and reused while the arm, the controller, its parameters (a
+    weights file by its bytes) and the settings are unchanged."""
     runs.mkdir(parents=True, exist_ok=True)
     out = []
     for seed in seeds:
         config = table_config(seed)
-        path = runs / _cache_name(controller, params, seed)
-        episodes = random_episodes(EPISODES_PER_SEED, seed)
+        path = runs / _cache_name(controller, params, seed, model)
+        episodes = random_episodes(EPISODES_PER_SEED, seed, model=model)
         run = None
         if path.is_file():
             kept = json.loads(path.read_text(encoding="utf-8"))
@@ -92,9 +111,10 @@ def table_runs(
                 run = kept
         if run is None:
             if progress is not None:
-                progress(f"{controller} {params or ''} seed {seed}")
+                named = " ".join([controller, *(f"{k}={v}" for k, v in params.items())])
+                progress(f"{named} on the {model.title}, seed {seed}")
             run = evaluate(
-                load_controller(controller, **params), episodes, config, name=controller
+                load_controller(controller, arm=model, **params), episodes, config, name=controller
             ).to_dict()
             path.write_text(json.dumps(run), encoding="utf-8")
         out.append(run)
@@ -173,3 +193,27 @@ def line_checks(
             )
         )
     return checks
+
+
+def metrics_table(
+    table: Mapping[str, Sequence[dict[str, Any]]],
+    resamples: int = DEFAULT_RESAMPLES,
+    ci_seed: int = 0,
+) -> list[str]:
+    """Table I's metrics per controller (its runs, every seed pooled) as markdown: the mean
+    and its 95 % percentile-bootstrap interval over the episodes."""
+    keys = ("reached", "at_rest", *TABLE_KEYS)
+    heads = [metric_label(k) for k in keys]
+    lines = ["| controller | " + " | ".join(heads) + " |", "|---|" + "---|" * len(heads)]
+    for name, runs in table.items():
+        cells = []
+        for key in keys:
+            v = np.concatenate([values(run, key).astype(float) for run in runs])
+            low, high = bootstrap_ci(v, resamples=resamples, seed=ci_seed)
+            mean = float(np.mean(v))
+            if key in CI_FORMAT:
+                cells.append(ci_cell(mean, low, high, key))
+            else:  # a share of the episodes
+                cells.append(f"{mean:.2f} [{low:.2f}, {high:.2f}]")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return lines

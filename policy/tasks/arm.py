@@ -10,6 +10,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from protocol.models import ALPHA5, ArmModel
+
 PHYSICS_DT = 0.002
 """s: the MuJoCo step every runner uses (a control period is a whole number of them)."""
 
@@ -47,9 +49,10 @@ class ArmLike(Protocol):
     ) -> Any: ...
 
 
-def nominal_arm(seed: int = 0, dt: float = PHYSICS_DT) -> ArmLike:
-    """The MuJoCo arm at its nominal parameters (its own seed drives any randomness it has)."""
-    from reach_sim_bridge.model.arm import Alpha5Arm
+def nominal_arm(seed: int = 0, dt: float = PHYSICS_DT, model: ArmModel = ALPHA5) -> ArmLike:
+    """The MuJoCo twin of `model` at its nominal parameters (its own seed drives any
+    randomness it has)."""
+    from reach_sim_bridge.model.arms import arm_twin
 
-    arm: ArmLike = Alpha5Arm(dt=dt, seed=seed)
+    arm: ArmLike = arm_twin(model, None, dt, seed)
     return arm

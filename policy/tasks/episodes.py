@@ -17,9 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from policy.controllers.observation import WORKSPACE_HIGH, WORKSPACE_LOW
+from policy.controllers.observation import Workspace
 from policy.tasks.arm import PHYSICS_DT
-from protocol.alpha5 import JOINT_LETTERS, N_JOINTS
 from protocol.files import read_json
 from protocol.models import ALPHA5, ArmModel
 from reach_driver.controllers import Controller, ControlState
@@ -57,24 +56,28 @@ def _joints(value: Any, what: str, model: ArmModel = ALPHA5) -> np.ndarray:
 @dataclass(frozen=True)
 class Episode:
     """A step from ``start`` to ``target`` (arm angles, rad, in `model`'s joint order: E D C B
-    on the Alpha 5; episode files are the Alpha's)."""
+    on the Alpha 5, G F E D C B on the Bravo 7). ``torque_scale``: one per joint, or one for
+    all (the default: 1, full torque)."""
 
     start: np.ndarray
     target: np.ndarray
-    torque_scale: np.ndarray = field(default_factory=lambda: np.ones(N_JOINTS))
+    torque_scale: np.ndarray = field(default_factory=lambda: np.ones(()))
     name: str = ""
     model: ArmModel = ALPHA5
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "start", _joints(self.start, "start", self.model))
         object.__setattr__(self, "target", _joints(self.target, "target", self.model))
-        scale = _joints(self.torque_scale, "torque_scale", self.model)
+        given: Any = self.torque_scale
+        if np.ndim(given) == 0:  # one for every joint
+            given = [given] * self.model.n_joints
+        scale = _joints(given, "torque_scale", self.model)
         if np.any(scale < 0) or np.any(scale > 1):
             raise ValueError(f"torque_scale must be in [0, 1] per joint, got {scale.tolist()}")
         object.__setattr__(self, "torque_scale", scale)
 
     @classmethod
-    def from_dict(cls, data: Any, where: str = "episode") -> Episode:
+    def from_dict(cls, data: Any, where: str = "episode", model: ArmModel = ALPHA5) -> Episode:
         if not isinstance(data, dict):
             raise ValueError(f"{where}: expected an object with start and target, got {data!r}")
         unknown = set(data) - {"start", "target", "torque_scale", "name"}
@@ -87,8 +90,9 @@ class Episode:
             return cls(
                 start=data["start"],
                 target=data["target"],
-                torque_scale=data.get("torque_scale", np.ones(N_JOINTS)),
+                torque_scale=data.get("torque_scale", 1.0),
                 name=str(data.get("name", "")),
+                model=model,
             )
         except (ValueError, TypeError) as exc:
             raise ValueError(f"{where}: {exc}") from exc
@@ -102,23 +106,35 @@ class Episode:
         return out
 
 
-def load_episodes(path: str | Path) -> list[Episode]:
-    """Episodes from a JSON list of {"start", "target", "torque_scale"?} objects."""
+def load_episodes(path: str | Path, model: ArmModel = ALPHA5) -> list[Episode]:
+    """Episodes of `model` from a JSON list of {"start", "target", "torque_scale"?} objects."""
     path = Path(path)
     data = read_json(path, "targets file")  # a UserFileError (ValueError) says what is wrong
     if not isinstance(data, list) or not data:
         raise ValueError(f"{path}: expected a non-empty JSON list of episodes")
-    return [Episode.from_dict(item, f"{path} episode {i}") for i, item in enumerate(data)]
+    return [Episode.from_dict(item, f"{path} episode {i}", model) for i, item in enumerate(data)]
 
 
 def random_episodes(
-    n: int, seed: int, low: np.ndarray = WORKSPACE_LOW, high: np.ndarray = WORKSPACE_HIGH
+    n: int,
+    seed: int,
+    low: np.ndarray | None = None,
+    high: np.ndarray | None = None,
+    *,
+    model: ArmModel = ALPHA5,
 ) -> list[Episode]:
-    """``n`` starts and targets drawn uniformly in the evaluation workspace."""
+    """``n`` starts and targets of `model` drawn uniformly in its evaluation workspace
+    (`Workspace.of(model)`) unless ``low`` and ``high`` are given."""
     if n < 1:
         raise ValueError(f"need at least one episode, got {n}")
+    workspace = Workspace.of(model)
+    lo = np.asarray(workspace.low if low is None else low, dtype=float)
+    hi = np.asarray(workspace.high if high is None else high, dtype=float)
     rng = np.random.default_rng(seed)
-    return [Episode(start=rng.uniform(low, high), target=rng.uniform(low, high)) for _ in range(n)]
+    return [
+        Episode(start=rng.uniform(lo, hi), target=rng.uniform(lo, hi), model=model)
+        for _ in range(n)
+    ]
 
 
 @dataclass(frozen=True)
@@ -200,7 +216,7 @@ class EpisodeResult:
 
     episode: Episode
     trace: Trace
-    currents_mA: np.ndarray  # (N+1, 4) commanded over the period ending at each sample
+    currents_mA: np.ndarray  # (N+1, joints) commanded over the period ending at each sample
     metrics: Metrics
     rmse_floor: float
 
@@ -212,7 +228,7 @@ class EpisodeResult:
     def overshoot(self) -> OvershootAnatomy | None:
         """How the overshoot came about (docs/metrics.md, "Overshoot"); None without one."""
         tr = self.trace
-        return overshoot_anatomy(tr.q, tr.qdot, tr.target, tr.dt)
+        return overshoot_anatomy(tr.q, tr.qdot, tr.target, tr.dt, self.episode.model.joint_letters)
 
     def to_dict(self) -> dict[str, Any]:
         out = self.episode.to_dict()
@@ -291,12 +307,15 @@ def reading(controller: Controller, config: RunConfig, episode_seed: int) -> Con
     return NoisyReadings(controller, config.noise, np.random.default_rng(episode_seed))
 
 
-def check_inside_limits(position_limits: np.ndarray, q: np.ndarray, what: str) -> None:
-    """A clear error naming the joints of `q` outside the arm's [min, max] limits."""
+def check_inside_limits(
+    position_limits: np.ndarray, q: np.ndarray, what: str, model: ArmModel = ALPHA5
+) -> None:
+    """A clear error naming the joints of `q` (of `model`) outside the arm's [min, max]
+    limits."""
     limits = np.asarray(position_limits, dtype=float)
     outside = (q < limits[:, 0]) | (q > limits[:, 1])
     if np.any(outside):
-        joints = ", ".join(JOINT_LETTERS[j] for j in np.flatnonzero(outside))
+        joints = ", ".join(model.joint_letters[j] for j in np.flatnonzero(outside))
         raise ValueError(
             f"{what} {q.tolist()} is outside the arm's joint limits on {joints} ({limits.tolist()})"
         )

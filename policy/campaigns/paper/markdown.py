@@ -61,8 +61,8 @@ CI_FORMAT = {
 }
 
 
-def _ci(mean: float, low: float, high: float, key: str, signed: bool = False) -> str:
-    """mean [low, high] in the metric's unit; a difference (signed) gets enough
+def ci_cell(mean: float, low: float, high: float, key: str, signed: bool = False) -> str:
+    """mean [low, high] in the metric's unit (`CI_FORMAT`); a difference (signed) gets enough
     decimals for two significant digits of its interval's half-width."""
     fmt = CI_FORMAT[key]
     if signed:
@@ -91,7 +91,7 @@ def ci_lines(table: dict[str, dict[str, Any]], n: int, resamples: int, ci_seed: 
         for k in TABLE_KEYS:
             v = values(run, k)
             low, high = bootstrap_ci(v, resamples=resamples, seed=ci_seed)
-            cells.append(_ci(float(np.mean(v)), low, high, k))
+            cells.append(ci_cell(float(np.mean(v)), low, high, k))
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return lines
 
@@ -147,7 +147,7 @@ def paired_lines(
                 d = paired_difference_ci(va, vb, resamples=resamples, seed=ci_seed)
                 ref = float(np.mean(vb))
                 rel = f"{100 * d.estimate / ref:+.1f}" if ref != 0 else "-"
-                cells += [_ci(d.estimate, d.low, d.high, k, signed=True), rel]
+                cells += [ci_cell(d.estimate, d.low, d.high, k, signed=True), rel]
                 numbers[label].setdefault(which, {})[k] = {
                     **dataclasses.asdict(d),
                     "b_mean": ref,
