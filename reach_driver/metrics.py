@@ -46,7 +46,23 @@ chattering: 39 of 40 periods)."""
 REST_ENERGY_AFTER_SETTLING_MAX_J = 0.5
 """At rest: at most this much energy spent after settling (J; settled <= 0.15, a burst of
 chatter that dies out 1.1-1.4, chatter to the end 20-50), a joint still finishing a straight
-approach from outside REACHED_TOL_RAD counted from when it is inside (`energy_clocks`)."""
+approach from outside REACHED_TOL_RAD counted from when it is inside (`energy_clocks`). Set on
+the Alpha 5; another arm's bound is `rest_energy_limit_j`."""
+
+
+def rest_energy_limit_j(model: ArmModel) -> float:
+    """The energy-after-settling bound on `model`'s arm: REST_ENERGY_AFTER_SETTLING_MAX_J
+    times the arm's summed peak joint torque (current limit x torque per amp) over the Alpha
+    5's. Holding heavier links against the same sensor noise spends energy in proportion to the
+    torque it takes (the Bravo 7: 6.4 times the Alpha's, 3.2 J), and a chatter's in proportion
+    to the torque it swings, so the bound keeps its place between the two."""
+
+    def peak_nm(m: ArmModel) -> float:
+        limits = np.asarray(m.current_limits_mA, dtype=float) / 1e3
+        return float(np.sum(limits * np.asarray(m.torque_per_amp_nm, dtype=float)))
+
+    return REST_ENERGY_AFTER_SETTLING_MAX_J * peak_nm(model) / peak_nm(ALPHA5)
+
 
 METRIC_KEYS = (
     "energy_j",
@@ -361,13 +377,15 @@ class Rest:
     speed_rms: float
     reversals: int
     energy_after_settling_j: float
+    #: the arm's bound on `energy_after_settling_j` (`rest_energy_limit_j`)
+    energy_limit_j: float = REST_ENERGY_AFTER_SETTLING_MAX_J
 
     @property
     def at_rest(self) -> bool:
         return (
             self.speed_rms <= REST_SPEED_RMS_MAX
             and self.reversals <= REST_REVERSALS_MAX
-            and self.energy_after_settling_j <= REST_ENERGY_AFTER_SETTLING_MAX_J
+            and self.energy_after_settling_j <= self.energy_limit_j
         )
 
 
@@ -424,6 +442,7 @@ def rest(trace: Trace, settling_time_s: float | None = None) -> Rest:
         energy_after_settling_j=energy_after_clocks(
             trace, energy_clocks(trace.q, trace.target, trace.dt, settling_time_s)
         ),
+        energy_limit_j=rest_energy_limit_j(model),
     )
 
 

@@ -21,7 +21,12 @@ from policy.controllers.observation import Workspace
 from policy.tasks.arm import nominal_arm
 from policy.tasks.episodes import random_episodes
 from protocol.models import ALPHA5, BRAVO7
-from reach_driver.metrics import REACHED_TOL_RAD
+from reach_driver.metrics import (
+    REACHED_TOL_RAD,
+    REST_ENERGY_AFTER_SETTLING_MAX_J,
+    compute_metrics,
+    rest_energy_limit_j,
+)
 from reach_sim_bridge.model.bravo7 import Bravo7Arm
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,6 +67,12 @@ def test_the_pid_brings_a_bravo_episode_to_its_target_on_all_six_joints() -> Non
     assert len(out["final_error"]) == 6 and len(out["start"]) == 6
     anatomy = result.overshoot
     assert anatomy is None or out["overshoot"]["joint"] in BRAVO7.joint_letters
+    # at rest by the Bravo's own bound: holding its heavier links spends more than the
+    # Alpha's 0.5 J after settling, with no chatter (no reversal, no speed)
+    still = compute_metrics(result.trace)
+    assert still.command_reversals == 0 and still.rest_speed_rms < 0.01
+    assert REST_ENERGY_AFTER_SETTLING_MAX_J < still.energy_after_settling_j
+    assert still.energy_after_settling_j <= rest_energy_limit_j(BRAVO7) and still.at_rest
 
 
 def test_table_conditions_degrade_the_bravo_twin_and_score_six_joints() -> None:
