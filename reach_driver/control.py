@@ -185,7 +185,12 @@ class ControlLoop:
         if too_short is not None:
             raise ValueError(too_short)
         self.on_step = on_step
-        self.state_timeout_s = state_timeout_s or max(0.5, 10 * self.period_s)
+        #: How long (host time) to wait for a complete state. Never shorter than the watchdog:
+        #: without a state there is no command, and the watchdog makes the arm safe after
+        #: `watchdog_s` without one anyway, so a shorter wait would only end the run sooner
+        #: than safety asks, and `--watchdog` raised for a busy machine would not reach it.
+        watchdog_s = client.guard.config.watchdog_s or 0.0
+        self.state_timeout_s = state_timeout_s or max(0.5, 10 * self.period_s, watchdog_s)
         #: How long (arm time) a joint's position or velocity may go without a fresh, plausible
         #: sample before the run stops: the watchdog's limit, else the state timeout.
         self.stale_limit_s = client.guard.config.watchdog_s or self.state_timeout_s

@@ -372,3 +372,23 @@ def test_a_second_udp_client_holding_the_stream_past_the_state_timeout_is_named(
     assert error.startswith("feedback stopped: no complete state for 0.50 s"), error
     assert "another client on this arm's UDP port took the stream" in error
     assert summary.left_in == "zero_velocity (confirmed by the arm)"
+
+
+def test_the_wait_for_a_state_is_never_shorter_than_the_watchdog(sim_factory) -> None:
+    """Without a state there is no command, and the watchdog makes the arm safe after its
+    limit anyway: `--watchdog` raised for a busy machine must also lengthen the wait."""
+    server = sim_factory(speed=1.0, pty=False, udp=LOOPBACK)
+    for watchdog_s, period_s, given, expected in (
+        (1.0, PERIOD, None, 1.0),  # a raised watchdog
+        (0.2, PERIOD, None, 0.5),  # the default watchdog: the default wait
+        (None, PERIOD, None, 0.5),  # no watchdog
+        (1.0, PERIOD, 0.3, 0.3),  # a wait given is kept
+    ):
+        client = ArmClient(
+            open_transport(udp_url(server)), safety=SafetyConfig(watchdog_s=watchdog_s)
+        )
+        try:
+            loop = ControlLoop(client, Reach(), period_s, state_timeout_s=given)
+            assert loop.state_timeout_s == expected, (watchdog_s, given)
+        finally:
+            client.close()
