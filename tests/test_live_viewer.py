@@ -436,15 +436,15 @@ def test_monitor_streams_the_arm_to_a_viewer(sim, tmp_path, receiver, capsys) ->
 def test_monitor_seconds_count_from_when_it_watches(sim, tmp_path, monkeypatch) -> None:
     """Opening the recording and viewer (loading rerun) took seconds on a loaded host, all of
     `--seconds 1`: the monitor recorded nothing. Its seconds start once it is watching."""
-    from reach_driver.cli import commands
+    from reach_driver.cli import monitor
 
-    opened = commands.CliRecorder
+    opened = monitor.CliRecorder
 
     def slow_open(*args: Any, **kwargs: Any) -> Any:
         time.sleep(1.5)  # a host too busy to load rerun within the monitor's second
         return opened(*args, **kwargs)
 
-    monkeypatch.setattr(commands, "CliRecorder", slow_open)
+    monkeypatch.setattr(monitor, "CliRecorder", slow_open)
     record = tmp_path / "monitor.rrd"
     argv = ["--port", str(sim.link), "-q", "monitor", "--seconds", "1", "--record", str(record)]
     assert main(argv) == 0
@@ -472,9 +472,9 @@ def test_move_streams_the_state_it_ended_on_whenever_the_last_tick_was(
     """The viewer's last frame of a move is the state that was judged reached, not the 20 Hz
     tick before it (a loaded host's last tick came early and showed the arm short of its
     tolerance). Here the stream ticks once only: the start, then the end."""
-    from reach_driver.cli import commands
+    from reach_driver.cli import monitor
 
-    monkeypatch.setattr(commands._StateStream, "PERIOD_S", 1e9)
+    monkeypatch.setattr(monitor.StateStream, "PERIOD_S", 1e9)
     port, received, proc = receiver
     q = sim.snapshot().q + np.array([0.1, 0.0, 0.0, 0.0])
     tolerance = 0.02
