@@ -46,6 +46,13 @@ class Agent:
         self.critics_target = copy.deepcopy(self.critics)
         for p in [*self.actor_target.parameters(), *self.critics_target.parameters()]:
             p.requires_grad_(False)
+        #: the Polyak-averaged actor (`actor_average_tau`): smooths the update-to-update
+        #: wander of the online actor's weights, which is what checkpoints then score
+        self.actor_average: Actor | None = None
+        if config.actor_average_tau > 0:
+            self.actor_average = copy.deepcopy(self.actor)
+            for p in self.actor_average.parameters():
+                p.requires_grad_(False)
         self.actor_opt = _adam(self.actor.parameters(), config.actor_lr)
         self.critic_opt = _adam(self.critics.parameters(), config.critic_lr)
         self.updates = 0
@@ -53,9 +60,11 @@ class Agent:
         self.gen = torch.Generator().manual_seed(config.seed + 1)
 
     def load_actor_npz(self, path: str | Path) -> None:
-        """Actor and target actor from shipped-format weights (policy.controllers.weights)."""
+        """Actor, target and averaged actor from shipped-format weights."""
         load_actor_npz(self.actor, path)
         self.actor_target.load_state_dict(self.actor.state_dict())
+        if self.actor_average is not None:
+            self.actor_average.load_state_dict(self.actor.state_dict())
 
     def set_learning_rates(self, env_steps: int) -> None:
         decay = self.config.lr_decay ** (env_steps // self.config.lr_decay_every)
@@ -67,6 +76,14 @@ class Agent:
     @torch.no_grad()
     def act(self, obs: np.ndarray) -> np.ndarray:
         out: np.ndarray = self.actor(torch.from_numpy(obs)).numpy()
+        return out
+
+    @torch.no_grad()
+    def act_average(self, obs: np.ndarray) -> np.ndarray:
+        """The Polyak-averaged actor's action (`actor_average_tau` > 0)."""
+        if self.actor_average is None:
+            raise ValueError("actor_average_tau is 0: there is no averaged actor")
+        out: np.ndarray = self.actor_average(torch.from_numpy(obs)).numpy()
         return out
 
     def update(self, batch: dict[str, np.ndarray], bc_weight: float) -> dict[str, float]:
@@ -136,10 +153,16 @@ class Agent:
                 (self.critics, self.critics_target),
             ):
                 torch._foreach_lerp_(list(target_net.parameters()), list(net.parameters()), cfg.tau)
+            if self.actor_average is not None:
+                torch._foreach_lerp_(
+                    list(self.actor_average.parameters()),
+                    list(self.actor.parameters()),
+                    cfg.actor_average_tau,
+                )
         return info
 
     def state_dict(self) -> dict[str, Any]:
-        return {
+        state = {
             "actor": self.actor.state_dict(),
             "critics": self.critics.state_dict(),
             "actor_target": self.actor_target.state_dict(),
@@ -149,6 +172,9 @@ class Agent:
             "updates": self.updates,
             "gen": self.gen.get_state(),
         }
+        if self.actor_average is not None:
+            state["actor_average"] = self.actor_average.state_dict()
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.actor.load_state_dict(state["actor"])
@@ -159,3 +185,5 @@ class Agent:
         self.critic_opt.load_state_dict(state["critic_opt"])
         self.updates = int(state["updates"])
         self.gen.set_state(state["gen"])
+        if self.actor_average is not None:
+            self.actor_average.load_state_dict(state["actor_average"])

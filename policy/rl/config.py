@@ -112,6 +112,11 @@ class DDPGConfig:
     #: rewards per stored transition (policy/rl/nstep.py): the critic's target sums n rewards
     #: and bootstraps gamma^n later (1: DDPG's one-step target)
     n_step: int = 1
+    #: > 0: a Polyak average of the actor's weights, theta_avg += tau_avg (theta - theta_avg)
+    #: after each actor update, is what checkpoints score and the run keeps
+    #: (best_actor.npz); the online actor still explores and learns as before, and is
+    #: scored beside it (best_online_actor.npz). 0: the online actor is scored and kept
+    actor_average_tau: float = 0.0
     #: goal relabelling (policy/rl/relabel.py): each finished episode is also stored this
     #: many times, each with a goal drawn from the true angles the arm passed through, its
     #: observations and rewards recomputed for it. 0: off
@@ -165,6 +170,8 @@ class DDPGConfig:
     bc_max_latency: float | None = None
 
     def __post_init__(self) -> None:
+        if not 0 <= self.actor_average_tau < 1:
+            raise ValueError(f"actor_average_tau must be in [0, 1), got {self.actor_average_tau}")
         if isinstance(self.her_goals, bool) or not isinstance(self.her_goals, int):
             raise ValueError(f"her_goals must be a whole number, got {self.her_goals!r}")
         if self.her_goals < 0:

@@ -98,6 +98,8 @@ class TrainState:
     env_steps: int = 0
     episodes: int = 0
     best_score: float = -np.inf
+    #: the online actor's best score, with `actor_average_tau` (best_online_actor.npz)
+    best_online_score: float = -np.inf
     wall_s: float = 0.0
     history: list[dict[str, Any]] = field(default_factory=list)
 
@@ -485,9 +487,59 @@ class Trainer:
         return ",".join(str(f) for f in fields) + "\n"
 
     def evaluate_and_keep_best(self) -> dict[str, Any]:
+        """Score the actor that is kept (the averaged one with `actor_average_tau`) on the
+        checkpoint sets, and keep it in best_actor.npz if it is the best so far; with the
+        average on, the online actor is scored beside it (record["online"]) and its best
+        kept in best_online_actor.npz, so one run measures what the averaging brings."""
+        agent = self.agent
+        averaged = agent.actor_average is not None
+        record, note = self._checkpoint_record(agent.act_average if averaged else agent.act)
+        score = record["score"]
+        self.state.history.append(record)
+        if score > self.state.best_score:
+            self.state.best_score = score
+            kept = agent.actor_average if agent.actor_average is not None else agent.actor
+            self.best_actor = copy.deepcopy(kept.state_dict())
+            record["best"] = True
+            self.export_best(self.run_dir / "best_actor.npz", record, self.best_actor)
+        if averaged:
+            online, _ = self._checkpoint_record(agent.act)
+            record["online"] = online
+            if online["score"] > self.state.best_online_score:
+                self.state.best_online_score = online["score"]
+                online["best"] = True
+                self.export_best(
+                    self.run_dir / "best_online_actor.npz", online, agent.actor.state_dict()
+                )
+        with open(self.run_dir / "eval.jsonl", "a") as fh:
+            fh.write(json.dumps(record) + "\n")
+        nominal = EvalResult(**record["nominal"])
+        weak = EvalResult(**record[f"torque_{self.weak_joint.lower()}_25pct"])
+        online_note = (
+            f" | online: score {record['online']['score']:.3f}"
+            f" OS {record['online']['nominal']['overshoot_pct']:.2f}%"
+            if averaged
+            else ""
+        )
+        self.log(
+            f"eval @ {self.state.env_steps}: reached {nominal.reached_fraction:.2f} "
+            f"final {nominal.final_error:.4f} rmse x{nominal.rmse_floor_ratio:.2f} "
+            f"OS {nominal.overshoot_pct:.2f}% ST {nominal.settling_s:.2f}s "
+            f"SS {nominal.steady_error:.4f} MIE {nominal.mie:.3f} E {nominal.energy_j:.2f}J "
+            f"| {self.weak_joint}25%: reached {weak.reached_fraction:.2f} "
+            f"OS {weak.overshoot_pct:.2f}%{note}"
+            + (" *best*" if record.get("best") else "")
+            + online_note
+        )
+        return record
+
+    def _checkpoint_record(
+        self, act: Callable[[np.ndarray], np.ndarray]
+    ) -> tuple[dict[str, Any], str]:
+        """One actor on every checkpoint set: its results and score, and a log line's tail."""
         cfg = self.config
-        nominal = self._side(self.eval_nominal, 0)
-        weak = self._side(self.eval_weak, WEAK_EVAL_SEED_OFFSET)
+        nominal = self._side(self.eval_nominal, 0, act)
+        weak = self._side(self.eval_weak, WEAK_EVAL_SEED_OFFSET, act)
         score = nominal.score(cfg.score_energy_weight) + _side_score(weak, SIDE_REACHED_WEIGHT)
         record: dict[str, Any] = {
             "env_steps": self.state.env_steps,
@@ -496,7 +548,7 @@ class Trainer:
             "nominal": nominal.to_dict(),
             f"torque_{self.weak_joint.lower()}_25pct": weak.to_dict(),
         }
-        wide_note = ""
+        note = ""
         sides = (
             ("envelope", self.eval_envelope, ENVELOPE_EVAL_SEED_OFFSET, ENVELOPE_REACHED_WEIGHT),
             ("training_workspace", self.eval_wide, WIDE_EVAL_SEED_OFFSET, SIDE_REACHED_WEIGHT),
@@ -504,44 +556,32 @@ class Trainer:
         for key, envs, offset, weight in sides:
             if not envs:
                 continue
-            side = self._side(envs, offset)
+            side = self._side(envs, offset, act)
             score += _side_score(side, weight)
             record[key] = side.to_dict()
-            wide_note += (
+            note += (
                 f" | {'wide' if key == 'training_workspace' else key}: reached "
                 f"{side.reached_fraction:.3f} rest {side.at_rest_fraction:.3f} "
                 f"final {side.final_error:.4f} OS {side.overshoot_pct:.2f}% "
                 f"max {side.overshoot_max_pct:.1f}%"
             )
         record["score"] = score
-        self.state.history.append(record)
-        if score > self.state.best_score:
-            self.state.best_score = score
-            self.best_actor = copy.deepcopy(self.agent.actor.state_dict())
-            record["best"] = True
-            self.export_best(self.run_dir / "best_actor.npz", record)
-        with open(self.run_dir / "eval.jsonl", "a") as fh:
-            fh.write(json.dumps(record) + "\n")
-        self.log(
-            f"eval @ {self.state.env_steps}: reached {nominal.reached_fraction:.2f} "
-            f"final {nominal.final_error:.4f} rmse x{nominal.rmse_floor_ratio:.2f} "
-            f"OS {nominal.overshoot_pct:.2f}% ST {nominal.settling_s:.2f}s "
-            f"SS {nominal.steady_error:.4f} MIE {nominal.mie:.3f} E {nominal.energy_j:.2f}J "
-            f"| {self.weak_joint}25%: reached {weak.reached_fraction:.2f} "
-            f"OS {weak.overshoot_pct:.2f}%{wide_note}" + (" *best*" if record.get("best") else "")
-        )
-        return record
+        return record, note
 
-    def _side(self, envs: list[ReachAlphaEnv], seed_offset: int) -> EvalResult:
-        """The actor on one fixed checkpoint set (envs from `eval_envs`)."""
-        cfg = self.config
+    def _side(
+        self,
+        envs: list[ReachAlphaEnv],
+        seed_offset: int,
+        act: Callable[[np.ndarray], np.ndarray],
+    ) -> EvalResult:
+        """An actor on one fixed checkpoint set (envs from `eval_envs`)."""
         return evaluate_batched(
-            self.agent.act, cfg.env, len(envs), cfg.eval_seed + seed_offset, envs=envs
+            act, self.config.env, len(envs), self.config.eval_seed + seed_offset, envs=envs
         )
 
-    def export_best(self, path: Path, record: dict[str, Any]) -> None:
+    def export_best(self, path: Path, record: dict[str, Any], weights: dict[str, Any]) -> None:
         actor = Actor(self.obs_dim, self.n_joints, self.config.hidden)
-        actor.load_state_dict(self.best_actor)
+        actor.load_state_dict(weights)
         stage = TrainingStage(
             run=self.run_dir.name,
             env_steps=self.state.env_steps,
