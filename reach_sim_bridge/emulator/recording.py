@@ -343,6 +343,7 @@ class SimRecorder:
         self.rotations = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._closers: list[threading.Thread] = []  # finishing rotated-out parts
         self._recording_id = f"reach-sim-{time.time_ns()}"
         self._geoms = server.observe(lambda arm, _fw: _geoms(arm.model))
         self._eye = server.observe(lambda arm, _fw: framing_eye(reach(arm_bodies(arm.model))))
@@ -453,10 +454,14 @@ class SimRecorder:
         rec.log("run/metadata", rr.TextDocument(json.dumps(meta)), static=True)
 
     def _rotate(self) -> None:
-        """Close the current part and start the next: FILE.rrd -> FILE.1.rrd -> ..."""
+        """Close the current part and start the next: FILE.rrd -> FILE.1.rrd -> ...
+
+        Only the renames and the new part's opening happen here, on the sampling thread; the
+        old part's last flush and footer are written by a thread of their own (the open file
+        follows its rename), so the arm's motion during them is sampled into the new part
+        instead of being lost to a wait on the disk."""
         assert self._rec is not None and self.path is not None
-        self._rec.flush(timeout_sec=5.0)
-        self._rec.disconnect()
+        old = self._rec
         oldest = part_path(self.path, self.parts - 1)
         oldest.unlink(missing_ok=True)
         for n in range(self.parts - 2, -1, -1):
@@ -466,6 +471,11 @@ class SimRecorder:
         self.rotations += 1
         self._rec = self._open_part()
         self._out.file = self._rec
+        closer = threading.Thread(
+            target=_close_part, args=(old,), name="reach-sim-part-closer", daemon=True
+        )
+        closer.start()
+        self._closers = [t for t in self._closers if t.is_alive()] + [closer]
 
     # -- sampling ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -585,6 +595,8 @@ class SimRecorder:
         if self._thread is not None:
             self._thread.join(timeout=5.0)
         self._out.unwatch()
+        for closer in self._closers:
+            closer.join(timeout=10.0)
         with self._lock:
             try:
                 if self._rec is not None:
@@ -592,6 +604,12 @@ class SimRecorder:
                     self._rec.disconnect()
             finally:
                 self._out.close_viewer()
+
+
+def _close_part(rec: rr.RecordingStream) -> None:
+    """Write a rotated-out part's last samples and its footer."""
+    rec.flush(timeout_sec=5.0)
+    rec.disconnect()
 
 
 def _flags(status: HardwareStatus) -> str:
