@@ -39,3 +39,40 @@ def test_the_references_run_the_actors_episodes_and_the_privileged_pd_arrives_ca
     rows = render(result)
     assert [r[0] for r in rows[1:]] == ["actor", "pid", "pd-expert"]
     assert all(len(r) == len(rows[0]) for r in rows)
+
+
+def test_the_hold_column_is_the_last_seconds_and_the_pid_holds_the_goal(result) -> None:  # type: ignore[no-untyped-def]
+    for returns in result.returns.values():
+        assert np.all(returns.hold <= 0) and np.all(returns.hold >= returns.total)
+    # at rest at the goal a step costs ~nothing: over the last 2 s the PID earns more than
+    # a hundredth of what it earned over the whole episode
+    pid = result.returns["pid"]
+    assert np.all(pid.hold > 0.01 * pid.total)
+    assert result.hold_minus["pid"].n == 3
+
+
+def test_an_actor_of_another_arm_is_audited_on_its_arm_without_the_alpha_expert(
+    tmp_path: Path,
+) -> None:
+    """A Bravo actor (one that asks for no current: the plumbing, not a policy) runs in the
+    Bravo's env against the Bravo's PID; the PD expert, the Alpha 5's, sits out."""
+    import torch
+
+    from policy.rl.checkpoint import save_actor_npz
+    from policy.rl.config import DDPGConfig
+    from policy.rl.networks import Actor
+    from protocol.models import BRAVO7
+
+    config = DDPGConfig.scratch(hidden=(16, 16)).on(BRAVO7)
+    actor = Actor(config.env.observation.size_for(6), 6, config.hidden)
+    with torch.no_grad():
+        for tensor in actor.linears()[-1].parameters():
+            tensor.zero_()
+    weights = tmp_path / "bravo_actor.npz"
+    save_actor_npz(weights, actor, config)
+    bravo = audit(weights, episodes=2, seed=7020)
+    assert set(bravo.returns) == {"actor", "pid"}
+    # the PID moves the Bravo's six joints to the goal; an actor that commands nothing does not
+    assert bravo.returns["pid"].discounted.mean() > bravo.returns["actor"].discounted.mean()
+    assert bravo.hold_minus["pid"].estimate < 0
+    assert [r[0] for r in render(bravo)[1:]] == ["actor", "pid"]
