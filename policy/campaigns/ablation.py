@@ -105,6 +105,12 @@ INGREDIENTS: tuple[Ingredient, ...] = (
         ("n_step=3",),
     ),
     Ingredient(
+        "actor-average",
+        "a Polyak average of the actor's weights (rate 0.0005 per update, ~16k env steps) is "
+        "what checkpoints score and the run keeps; the online actor learns as before",
+        ("actor_average_tau=0.0005",),
+    ),
+    Ingredient(
         "goal-relabel",
         "goal relabelling (hindsight replay, off in the recipe): each ended episode stored 4 "
         "more times for goals the arm passed through, 80 % of the buffer replays",
