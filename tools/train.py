@@ -9,8 +9,10 @@ the config says), with checkpoints that survive the session.
 
 Writes to the run directory: config.json, train.csv (one row per finished episode: return and
 losses), eval.jsonl (periodic deterministic evaluation), best_actor.npz/.json (best evaluated
-actor with its provenance, the format policy/controllers/weights/ ships), checkpoint.pt +
-buffer.npz (everything to resume), commands.txt (every command given), train.log (what was printed).
+actor with its provenance, the format policy/controllers/weights/ ships; with
+`--set actor_average_tau=...` the averaged actor, and best_online_actor.npz/.json the online
+one), checkpoint.pt + buffer.npz (everything to resume), commands.txt (every command given),
+train.log (what was printed).
 
 `--resume --set KEY=VALUE` applies the fields a resumed run can change (learning rates, batch
 size, exploration, the BC schedule, evaluation cadence: `policy.rl.overrides.RESUMABLE`) and

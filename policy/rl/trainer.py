@@ -3,7 +3,8 @@ checkpoint evaluation that keeps the best actor, and checkpoints that survive a 
 
 `Trainer` owns everything a run needs (envs, agent, buffers, generators); `TrainState` is what
 it has done so far. A run directory holds eval.jsonl, best_actor.npz/.json
-(policy.controllers.weights), checkpoint.pt and buffer-STEP.npz; a sitting of tools/train.py
+(policy.controllers.weights; best_online_actor.npz/.json beside it with `actor_average_tau`),
+checkpoint.pt and buffer-STEP.npz; a sitting of tools/train.py
 (policy.rl.session) adds config.json, train.csv and the logs.
 """
 
