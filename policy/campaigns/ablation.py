@@ -105,6 +105,12 @@ INGREDIENTS: tuple[Ingredient, ...] = (
         ("n_step=3",),
     ),
     Ingredient(
+        "rate-40hz",
+        "control at 40 Hz (41.7 in effect) with discount 0.975, the same 1 s horizon: twice "
+        "the decisions per arrival",
+        ("env.control_hz=40", "gamma=0.975", "env.reward.potential_gamma=0.975"),
+    ),
+    Ingredient(
         "actor-average",
         "a Polyak average of the actor's weights (rate 0.0005 per update, ~16k env steps) is "
         "what checkpoints score and the run keeps; the online actor learns as before",
