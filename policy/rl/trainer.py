@@ -499,7 +499,7 @@ class Trainer:
         self.state.history.append(record)
         if score > self.state.best_score:
             self.state.best_score = score
-            kept = agent.actor_average if agent.actor_average is not None else agent.actor
+            kept = agent.actor if agent.actor_average is None else agent.actor_average
             self.best_actor = copy.deepcopy(kept.state_dict())
             record["best"] = True
             self.export_best(self.run_dir / "best_actor.npz", record, self.best_actor)
@@ -514,30 +514,20 @@ class Trainer:
                 )
         with open(self.run_dir / "eval.jsonl", "a") as fh:
             fh.write(json.dumps(record) + "\n")
-        nominal = EvalResult(**record["nominal"])
-        weak = EvalResult(**record[f"torque_{self.weak_joint.lower()}_25pct"])
         online_note = (
             f" | online: score {record['online']['score']:.3f}"
             f" OS {record['online']['nominal']['overshoot_pct']:.2f}%"
             if averaged
             else ""
         )
-        self.log(
-            f"eval @ {self.state.env_steps}: reached {nominal.reached_fraction:.2f} "
-            f"final {nominal.final_error:.4f} rmse x{nominal.rmse_floor_ratio:.2f} "
-            f"OS {nominal.overshoot_pct:.2f}% ST {nominal.settling_s:.2f}s "
-            f"SS {nominal.steady_error:.4f} MIE {nominal.mie:.3f} E {nominal.energy_j:.2f}J "
-            f"| {self.weak_joint}25%: reached {weak.reached_fraction:.2f} "
-            f"OS {weak.overshoot_pct:.2f}%{note}"
-            + (" *best*" if record.get("best") else "")
-            + online_note
-        )
+        best = " *best*" if record.get("best") else ""
+        self.log(f"eval @ {self.state.env_steps}: {note}{best}{online_note}")
         return record
 
     def _checkpoint_record(
         self, act: Callable[[np.ndarray], np.ndarray]
     ) -> tuple[dict[str, Any], str]:
-        """One actor on every checkpoint set: its results and score, and a log line's tail."""
+        """One actor on every checkpoint set: its results and score, and its log line."""
         cfg = self.config
         nominal = self._side(self.eval_nominal, 0, act)
         weak = self._side(self.eval_weak, WEAK_EVAL_SEED_OFFSET, act)
@@ -549,7 +539,14 @@ class Trainer:
             "nominal": nominal.to_dict(),
             f"torque_{self.weak_joint.lower()}_25pct": weak.to_dict(),
         }
-        note = ""
+        note = (
+            f"reached {nominal.reached_fraction:.2f} "
+            f"final {nominal.final_error:.4f} rmse x{nominal.rmse_floor_ratio:.2f} "
+            f"OS {nominal.overshoot_pct:.2f}% ST {nominal.settling_s:.2f}s "
+            f"SS {nominal.steady_error:.4f} MIE {nominal.mie:.3f} E {nominal.energy_j:.2f}J "
+            f"| {self.weak_joint}25%: reached {weak.reached_fraction:.2f} "
+            f"OS {weak.overshoot_pct:.2f}%"
+        )
         sides = (
             ("envelope", self.eval_envelope, ENVELOPE_EVAL_SEED_OFFSET, ENVELOPE_REACHED_WEIGHT),
             ("training_workspace", self.eval_wide, WIDE_EVAL_SEED_OFFSET, SIDE_REACHED_WEIGHT),
