@@ -27,6 +27,7 @@ import pytest
 
 if TYPE_CHECKING:
     from policy.rl.config import DDPGConfig
+    from protocol.models import ArmModel
     from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
 #: What `sim_factory` hands a test: `make(**SimConfig fields) -> SimServer`.
@@ -153,6 +154,24 @@ def tiny(config: DDPGConfig, **overrides: object) -> DDPGConfig:
     )
     base.update(overrides)
     return dataclasses.replace(config, **base)  # type: ignore[arg-type]
+
+
+def still_actor(path: Path, model: ArmModel) -> Path:
+    """A weights file at `path` holding an actor for `model`'s arm that asks for no current
+    (its output layer zeroed): the plumbing of an arm's actor, not a policy."""
+    import torch
+
+    from policy.rl.checkpoint import save_actor_npz
+    from policy.rl.config import DDPGConfig
+    from policy.rl.networks import Actor
+
+    config = DDPGConfig.scratch(hidden=(16, 16)).on(model)
+    actor = Actor(config.env.observation.size_for(model.n_joints), model.n_joints, config.hidden)
+    with torch.no_grad():
+        for tensor in actor.linears()[-1].parameters():
+            tensor.zero_()
+    save_actor_npz(path, actor, config)
+    return path
 
 
 def wait_until(

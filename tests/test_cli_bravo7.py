@@ -13,7 +13,7 @@ import re
 
 import numpy as np
 import pytest
-from conftest import LOOPBACK, WATCHDOG_S
+from conftest import LOOPBACK, WATCHDOG_S, still_actor
 
 from protocol import Mode
 from protocol.models import ALPHA5, BRAVO7
@@ -259,19 +259,7 @@ def test_run_pid_reaches_its_targets_on_the_bravo_over_a_pty(sim, capsys) -> Non
 def test_run_ddpg_drives_the_bravo_with_a_bravo_actor(sim, tmp_path, capsys) -> None:
     """An actor trained for the Bravo (here one that asks for no current: the plumbing, not a
     policy) runs through the driver with six joints in and out."""
-    import torch
-
-    from policy.rl.checkpoint import save_actor_npz
-    from policy.rl.config import DDPGConfig
-    from policy.rl.networks import Actor
-
-    config = DDPGConfig.scratch(hidden=(16, 16)).on(BRAVO7)
-    actor = Actor(config.env.observation.size_for(6), 6, config.hidden)
-    with torch.no_grad():
-        for tensor in actor.linears()[-1].parameters():
-            tensor.zero_()
-    weights = tmp_path / "bravo_actor.npz"
-    save_actor_npz(weights, actor, config)
+    weights = still_actor(tmp_path / "bravo_actor.npz", BRAVO7)
     target = sim.snapshot().q
     argv = ["--port", str(sim.link), "--arm", "bravo7", "--watchdog", str(WATCHDOG_S), "run"]
     argv += ["--controller", "ddpg", "--param", f"weights={weights}"]

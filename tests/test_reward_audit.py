@@ -6,9 +6,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import still_actor
 
 from policy.campaigns.reward_audit import audit, render
 from policy.rl.env import REWARD_TERMS
+from protocol.models import BRAVO7
 
 SHIPPED = Path(__file__).resolve().parents[1] / "policy/controllers/weights/ddpg_actor.npz"
 
@@ -56,20 +58,7 @@ def test_an_actor_of_another_arm_is_audited_on_its_arm_without_the_alpha_expert(
 ) -> None:
     """A Bravo actor (one that asks for no current: the plumbing, not a policy) runs in the
     Bravo's env against the Bravo's PID; the PD expert, the Alpha 5's, sits out."""
-    import torch
-
-    from policy.rl.checkpoint import save_actor_npz
-    from policy.rl.config import DDPGConfig
-    from policy.rl.networks import Actor
-    from protocol.models import BRAVO7
-
-    config = DDPGConfig.scratch(hidden=(16, 16)).on(BRAVO7)
-    actor = Actor(config.env.observation.size_for(6), 6, config.hidden)
-    with torch.no_grad():
-        for tensor in actor.linears()[-1].parameters():
-            tensor.zero_()
-    weights = tmp_path / "bravo_actor.npz"
-    save_actor_npz(weights, actor, config)
+    weights = still_actor(tmp_path / "bravo_actor.npz", BRAVO7)
     bravo = audit(weights, episodes=2, seed=7020)
     assert set(bravo.returns) == {"actor", "pid"}
     # the PID moves the Bravo's six joints to the goal; an actor that commands nothing does not
