@@ -37,6 +37,9 @@ LEARNED_WEIGHTS = WEIGHTS_DIR / "ddpg_actor.npz"
 PAPER_WEIGHTS = WEIGHTS_DIR / "ddpg_paper_actor.npz"
 #: the control rate of weights whose file does not record the env they were trained in
 DEFAULT_CONTROL_HZ = 20.0
+#: a training run's folder holding every checkpoint's actor (actor-STEPS.npz, and
+#: online-actor-STEPS.npz with an averaged actor), for reselection on more episodes
+CHECKPOINT_ACTORS = "checkpoint-actors"
 FORMAT = "reach-stack ddpg actor v1"
 LAYERS = ["linear", "leaky_relu", "linear", "leaky_relu", "linear", "tanh"]
 #: torch's default slope, what `policy.rl.networks` builds and the json records

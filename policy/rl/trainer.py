@@ -4,8 +4,8 @@ checkpoint evaluation that keeps the best actor, and checkpoints that survive a 
 `Trainer` owns everything a run needs (envs, agent, buffers, generators); `TrainState` is what
 it has done so far. A run directory holds eval.jsonl, best_actor.npz/.json
 (policy.controllers.weights; best_online_actor.npz/.json beside it with `actor_average_tau`),
-checkpoint.pt and buffer-STEP.npz; a sitting of tools/train.py
-(policy.rl.session) adds config.json, train.csv and the logs.
+every checkpoint's actor in checkpoint-actors/, checkpoint.pt and buffer-STEP.npz; a sitting
+of tools/train.py (policy.rl.session) adds config.json, train.csv and the logs.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from typing import Any, TextIO
 import numpy as np
 import torch
 
-from policy.controllers.weights import TrainingStage
+from policy.controllers.weights import CHECKPOINT_ACTORS, TrainingStage
 from policy.rl.agent import Agent
 from policy.rl.batched import EvalResult, Expert, eval_envs, evaluate_batched
 from policy.rl.checkpoint import save_actor_npz
@@ -497,15 +497,19 @@ class Trainer:
         record, note = self._checkpoint_record(agent.act_average if averaged else agent.act)
         score = record["score"]
         self.state.history.append(record)
+        kept = agent.actor if agent.actor_average is None else agent.actor_average
+        self.export_best(self._checkpoint_actor("actor"), record, kept.state_dict())
         if score > self.state.best_score:
             self.state.best_score = score
-            kept = agent.actor if agent.actor_average is None else agent.actor_average
             self.best_actor = copy.deepcopy(kept.state_dict())
             record["best"] = True
             self.export_best(self.run_dir / "best_actor.npz", record, self.best_actor)
         if averaged:
             online, _ = self._checkpoint_record(agent.act)
             record["online"] = online
+            self.export_best(
+                self._checkpoint_actor("online-actor"), online, agent.actor.state_dict()
+            )
             if online["score"] > self.state.best_online_score:
                 self.state.best_online_score = online["score"]
                 online["best"] = True
@@ -523,6 +527,13 @@ class Trainer:
         best = " *best*" if record.get("best") else ""
         self.log(f"eval @ {self.state.env_steps}: {note}{best}{online_note}")
         return record
+
+    def _checkpoint_actor(self, kind: str) -> Path:
+        """Where this checkpoint's `kind` actor is kept: every checkpoint's actor stays, so a
+        run can be reselected later on more episodes (`policy.campaigns.reselect`)."""
+        folder = self.run_dir / CHECKPOINT_ACTORS
+        folder.mkdir(exist_ok=True)
+        return folder / f"{kind}-{self.state.env_steps:08d}.npz"
 
     def _checkpoint_record(
         self, act: Callable[[np.ndarray], np.ndarray]
