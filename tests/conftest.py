@@ -18,6 +18,8 @@ Every arm's loop must not have failed by the end of the test."""
 from __future__ import annotations
 
 import signal
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -154,6 +156,18 @@ def tiny(config: DDPGConfig, **overrides: object) -> DDPGConfig:
     )
     base.update(overrides)
     return dataclasses.replace(config, **base)  # type: ignore[arg-type]
+
+
+def run_tool(script: str, *argv: str) -> subprocess.CompletedProcess[str]:
+    """tools/`script` run as a user runs it, from the repository's root; its output kept."""
+    root = Path(__file__).resolve().parents[1]
+    return subprocess.run(
+        [sys.executable, str(root / "tools" / script), *argv],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=root,
+    )
 
 
 def still_actor(path: Path, model: ArmModel) -> Path:

@@ -4,12 +4,11 @@ and intervals over seeds and episodes (policy.campaigns.ablation, tools/ablation
 from __future__ import annotations
 
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_tool
 
 from policy.campaigns import ablation
 from policy.campaigns.ablation import (
@@ -25,18 +24,6 @@ from policy.campaigns.stats import interval, seed_episode_bootstrap
 from policy.controllers.weights import LEARNED_WEIGHTS
 from policy.rl.config import DDPGConfig
 from policy.rl.overrides import apply_overrides
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _tool(*argv: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, str(ROOT / "tools" / "ablation.py"), *argv],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=ROOT,
-    )
 
 
 def test_every_ingredient_is_a_valid_override_of_the_recipe() -> None:
@@ -120,10 +107,10 @@ def test_score_root_runs_each_actor_on_the_test_sets_once(tmp_path: Path) -> Non
 
 
 def test_tool_lists_ingredients_and_refuses_what_it_cannot_score(tmp_path: Path) -> None:
-    listed = _tool("--list")
+    listed = run_tool("ablation.py", "--list")
     assert listed.returncode == 0
     assert "no-memory" in listed.stdout and "env.reward.away_weight=0" in listed.stdout
-    missing = _tool(str(tmp_path / "nowhere"))
+    missing = run_tool("ablation.py", str(tmp_path / "nowhere"))
     assert missing.returncode == 2 and "no directory" in missing.stderr
-    empty = _tool(str(tmp_path))
+    empty = run_tool("ablation.py", str(tmp_path))
     assert empty.returncode == 2 and "best_actor.npz" in empty.stderr

@@ -34,20 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("root", type=Path, nargs="?", help="the ablation's directory")
     p.add_argument("--list", action="store_true", help="list the ingredients and exit")
-    defaults = HeldOutSets()
-    p.add_argument(
-        "--standard",
-        type=int,
-        default=defaults.standard,
-        help=f"test episodes under Table I's conditions per actor ({defaults.standard})",
-    )
-    p.add_argument(
-        "--envelope",
-        type=int,
-        default=defaults.envelope,
-        help=f"test episodes on envelope arms per actor ({defaults.envelope})",
-    )
-    p.add_argument("--test-seed", type=int, default=defaults.seed, help=f"({defaults.seed})")
+    HeldOutSets().add_arguments(p, "test", "--test-seed")
     p.add_argument("--markdown", type=Path, metavar="FILE", help="write the table here too")
     p.add_argument("--json", type=Path, metavar="FILE", help="write the summary here too")
     return p
@@ -70,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.standard < 1 or args.envelope < 1:
         err.print("[red]error:[/red] --standard and --envelope must be at least 1")
         return 2
-    sets = HeldOutSets(args.standard, args.envelope, args.test_seed)
+    sets = HeldOutSets.from_args(args)
     scores = score_root(args.root, sets, lambda what: err.print(f"scoring {escape(what)}"))
     if not scores:
         err.print(

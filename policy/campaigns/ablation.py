@@ -12,6 +12,7 @@ the recipe itself. tools/ablation.py prints it and writes the tables docs/ablati
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 from collections.abc import Callable
@@ -25,6 +26,7 @@ from policy.campaigns.stats import DEFAULT_RESAMPLES, interval, seed_episode_boo
 from policy.controllers.weights import ActorWeights
 from policy.rl.batched import eval_envs, run_batch
 from policy.rl.env import EnvConfig
+from policy.tasks.envelope import has_envelope
 
 #: the recipe itself: every ablation is read against it
 BASELINE = "baseline"
@@ -162,6 +164,34 @@ class HeldOutSets:
     def to_dict(self) -> dict[str, int]:
         return dataclasses.asdict(self)
 
+    def add_arguments(self, parser: argparse.ArgumentParser, what: str, seed_flag: str) -> None:
+        """A tool's --standard, --envelope and `seed_flag` for sets like these (the
+        defaults); `what` names the episodes ("test", "validation"). `from_args` reads them."""
+        parser.add_argument(
+            "--standard",
+            type=int,
+            default=self.standard,
+            help=f"{what} episodes under Table I's conditions per actor ({self.standard})",
+        )
+        parser.add_argument(
+            "--envelope",
+            type=int,
+            default=self.envelope,
+            help=f"{what} episodes on envelope arms per actor ({self.envelope})",
+        )
+        parser.add_argument(
+            seed_flag,
+            dest="sets_seed",
+            type=int,
+            default=self.seed,
+            metavar="SEED",
+            help=f"the {what} episodes' first seed ({self.seed}; the envelope's add 10000)",
+        )
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> HeldOutSets:
+        return cls(args.standard, args.envelope, args.sets_seed)
+
 
 #: per-episode figures kept for each test episode
 EPISODE_KEYS = ("reached", "at_rest", "overshoot_pct", "msse", "energy_j")
@@ -172,11 +202,16 @@ SMALL_OVERSHOOT_PCT = 2.0
 def evaluate_actor(path: Path, sets: HeldOutSets) -> dict[str, list[dict[str, float]]]:
     """The actor at `path` alone (its memory channels kept by the env, as the `ddpg`
     controller keeps them) on both test sets: per set, one dict of `EPISODE_KEYS` per
-    episode."""
+    episode. Alpha 5 actors only: the sets' arms are drawn around the Alpha's."""
     weights = ActorWeights.load(path)
     env_config = dataclasses.replace(
         EnvConfig.from_dict(weights.metadata["env"]), observation=weights.observation
     )
+    if not has_envelope(env_config.model):
+        raise ValueError(
+            f"{path}: an actor for the {env_config.model.title}; the held-out sets draw arms "
+            "around the Reach Alpha 5's (+-20 % and its uncertainty envelope) only"
+        )
     out: dict[str, list[dict[str, float]]] = {}
     plans = (
         ("standard", eval_envs(env_config, sets.standard, param_perturbation=0.2), 0),
@@ -205,20 +240,32 @@ def score_root(
             seed = int(seed_dir.removeprefix("seed-"))
         except ValueError:
             continue
-        cache = actor.parent / SCORES
-        stamp = {"sets": sets.to_dict(), "weights_mtime_ns": actor.stat().st_mtime_ns}
-        episodes: dict[str, list[dict[str, float]]] | None = None
-        if cache.is_file():
-            kept = json.loads(cache.read_text(encoding="utf-8"))
-            if kept.get("stamp") == stamp:
-                episodes = kept["episodes"]
-        if episodes is None:
-            if progress is not None:
-                progress(f"{name} seed {seed}")
-            episodes = evaluate_actor(actor, sets)
-            cache.write_text(json.dumps({"stamp": stamp, "episodes": episodes}), "utf-8")
-        found.setdefault(name, {})[seed] = episodes
+        found.setdefault(name, {})[seed] = cached_episodes(
+            actor, sets, actor.parent / SCORES, progress, f"{name} seed {seed}"
+        )
     return found
+
+
+def cached_episodes(
+    actor: Path,
+    sets: HeldOutSets,
+    cache: Path,
+    progress: Callable[[str], None] | None = None,
+    label: str = "",
+) -> dict[str, list[dict[str, float]]]:
+    """`evaluate_actor` of `actor` on `sets`, kept in `cache` and reused while the actor's
+    weights and the sets are unchanged; `progress(label)` is told before an evaluation runs."""
+    stamp = {"sets": sets.to_dict(), "weights_mtime_ns": actor.stat().st_mtime_ns}
+    if cache.is_file():
+        kept = json.loads(cache.read_text(encoding="utf-8"))
+        if kept.get("stamp") == stamp:
+            episodes: dict[str, list[dict[str, float]]] = kept["episodes"]
+            return episodes
+    if progress is not None:
+        progress(label)
+    episodes = evaluate_actor(actor, sets)
+    cache.write_text(json.dumps({"stamp": stamp, "episodes": episodes}), "utf-8")
+    return episodes
 
 
 @dataclass(frozen=True)
