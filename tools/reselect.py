@@ -71,7 +71,7 @@ def _kept_steps(run: Path) -> int | None:
 def table(result: Reselection, kept: int | None) -> Table:
     out = Table(title=f"{result.run}: {result.kind} checkpoints on the validation set")
     heads = [
-        *("steps", "good std %", "good env %", "at rest std %", "at rest env %"),
+        *("env steps", "good std %", "good env %", "at rest std %", "at rest env %"),
         *("OS %", "MSSE mrad", "E J", ""),
     ]
     for head in heads:
@@ -83,7 +83,7 @@ def table(result: Reselection, kept: int | None) -> Table:
         if r.env_steps == kept:
             marks.append("run's own")
         out.add_row(
-            f"{r.env_steps:,}",
+            f"{r.env_steps // 1000:,}k",
             f"{100 * r.standard_good:.1f}",
             f"{100 * r.envelope_good:.1f}",
             f"{100 * r.standard_reached:.1f}",
