@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
                 run,
                 args.kind,
                 sets,
-                lambda what: err.print(f"scoring {escape(what)}"),
+                lambda what: err.print(escape(what)),
                 args.workers,
                 args.address,
             )

@@ -185,7 +185,8 @@ def reselect(
         run_on_ray(validation_job, jobs, workers, address, on_result=scored)
     rows = []
     for steps, path in actors:
-        episodes = cached_episodes(path, sets, _cache(path), progress, f"{run.name} {path.name}")
+        label = f"scoring {run.name} {path.name}"
+        episodes = cached_episodes(path, sets, _cache(path), progress, label)
         rows.append(figures(steps, path, episodes))
     return Reselection(str(run), kind, sets, tuple(rows), choose(rows))
 
