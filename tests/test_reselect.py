@@ -21,7 +21,12 @@ from policy.campaigns.reselect import (
     reselect,
     write,
 )
-from policy.controllers.weights import CHECKPOINT_ACTORS, LEARNED_WEIGHTS, ActorWeights
+from policy.controllers.weights import (
+    CHECKPOINT_ACTORS,
+    LEARNED_WEIGHTS,
+    ActorWeights,
+    CheckpointActor,
+)
 from policy.rl.config import DDPGConfig
 from policy.rl.trainer import Trainer
 from protocol.models import ALPHA5, BRAVO7
@@ -64,7 +69,7 @@ def test_a_run_keeps_every_checkpoints_actor_each_the_one_its_record_scored(
     records = [json.loads(line) for line in (run / "eval.jsonl").open()]
     assert len(records) == 2
     kept = checkpoint_actors(run)
-    online = checkpoint_actors(run, "online-actor")
+    online = checkpoint_actors(run, CheckpointActor.ONLINE)
     assert [steps for steps, _ in kept] == [r["env_steps"] for r in records]
     assert [steps for steps, _ in online] == [r["env_steps"] for r in records]
     for record, (_, path), (_, online_path) in zip(records, kept, online, strict=True):

@@ -31,7 +31,8 @@ from rich.table import Table
 
 from policy.campaigns.ablation import HeldOutSets
 from policy.campaigns.parallel import CampaignError
-from policy.campaigns.reselect import KINDS, VALIDATION, Reselection, reselect, write
+from policy.campaigns.reselect import VALIDATION, Reselection, reselect, write
+from policy.controllers.weights import CheckpointActor
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -44,8 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("runs", nargs="+", type=Path, help="training run directories")
     p.add_argument(
         "--kind",
-        choices=KINDS,
-        default="actor",
+        choices=[kind.value for kind in CheckpointActor],
+        default=CheckpointActor.KEPT.value,
         help="which checkpoint actors: the kept ones (actor, default) or, in a run with an "
         "averaged actor, the online ones",
     )
@@ -69,7 +70,7 @@ def _kept_steps(run: Path) -> int | None:
 
 
 def table(result: Reselection, kept: int | None) -> Table:
-    out = Table(title=f"{result.run}: {result.kind} checkpoints on the validation set")
+    out = Table(title=f"{result.run}: {result.kind.value} checkpoints on the validation set")
     heads = [
         *("env steps", "good std %", "good env %", "at rest std %", "at rest env %"),
         *("OS %", "MSSE mrad", "E J", ""),
@@ -109,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             result = reselect(
                 run,
-                args.kind,
+                CheckpointActor(args.kind),
                 sets,
                 lambda what: err.print(escape(what)),
                 args.workers,

@@ -27,12 +27,10 @@ import numpy as np
 
 from policy.campaigns.ablation import SMALL_OVERSHOOT_PCT, HeldOutSets, cached_episodes
 from policy.campaigns.parallel import run_on_ray
-from policy.controllers.weights import CHECKPOINT_ACTORS
+from policy.controllers.weights import CHECKPOINT_ACTORS, CheckpointActor
 
 #: the validation set: as large as the ablation's test sets, on seeds of its own
 VALIDATION = HeldOutSets(standard=40, envelope=100, seed=60_000)
-#: the actor files a run keeps per checkpoint (`policy.rl.trainer`)
-KINDS = ("actor", "online-actor")
 #: what reselection writes into the run directory
 RESELECTED = "reselected_actor.npz"
 REPORT = "reselection.json"
@@ -103,20 +101,20 @@ def choose(rows: Sequence[CheckpointFigures]) -> CheckpointFigures:
     )
 
 
-def checkpoint_actors(run: Path, kind: str = "actor") -> list[tuple[int, Path]]:
-    """A run's kept checkpoint actors of `kind` (`KINDS`), by env steps."""
-    if kind not in KINDS:
-        raise ValueError(f"unknown actor kind {kind!r}; choose from {list(KINDS)}")
+def checkpoint_actors(
+    run: Path, kind: CheckpointActor = CheckpointActor.KEPT
+) -> list[tuple[int, Path]]:
+    """A run's kept checkpoint actors of `kind`, by env steps."""
     folder = run / CHECKPOINT_ACTORS
     found = []
-    for path in folder.glob(f"{kind}-*.npz"):
-        steps = path.stem.removeprefix(f"{kind}-")
+    for path in folder.glob(f"{kind.value}-*.npz"):
+        steps = path.stem.removeprefix(f"{kind.value}-")
         if steps.isdigit():
             found.append((int(steps), path))
     if not found:
         raise FileNotFoundError(
-            f"{run}: no {kind}-STEPS.npz in {CHECKPOINT_ACTORS}/ (runs keep every checkpoint's "
-            "actor since this was added; older runs keep only best_actor.npz)"
+            f"{run}: no {kind.value}-STEPS.npz in {CHECKPOINT_ACTORS}/ (runs keep every "
+            "checkpoint's actor since this was added; older runs keep only best_actor.npz)"
         )
     return sorted(found)
 
@@ -126,7 +124,7 @@ class Reselection:
     """Every checkpoint's figures and the one `choose` picked."""
 
     run: str
-    kind: str
+    kind: CheckpointActor
     sets: HeldOutSets
     rows: tuple[CheckpointFigures, ...]
     chosen: CheckpointFigures
@@ -134,7 +132,7 @@ class Reselection:
     def to_dict(self) -> dict[str, object]:
         return {
             "run": self.run,
-            "kind": self.kind,
+            "kind": self.kind.value,
             "sets": self.sets.to_dict(),
             "rule": "max standard_good + envelope_good, then standard_reached + "
             "envelope_reached, then min standard_overshoot_pct",
@@ -164,7 +162,7 @@ def _cache(actor: Path) -> Path:
 
 def reselect(
     run: Path,
-    kind: str = "actor",
+    kind: CheckpointActor = CheckpointActor.KEPT,
     sets: HeldOutSets = VALIDATION,
     progress: Callable[[str], None] | None = None,
     workers: int | None = None,

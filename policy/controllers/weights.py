@@ -20,6 +20,7 @@ from __future__ import annotations
 import io
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from enum import Enum
 from pathlib import Path
 from typing import Any
 
@@ -37,8 +38,8 @@ LEARNED_WEIGHTS = WEIGHTS_DIR / "ddpg_actor.npz"
 PAPER_WEIGHTS = WEIGHTS_DIR / "ddpg_paper_actor.npz"
 #: the control rate of weights whose file does not record the env they were trained in
 DEFAULT_CONTROL_HZ = 20.0
-#: a training run's folder holding every checkpoint's actor (actor-STEPS.npz, and
-#: online-actor-STEPS.npz with an averaged actor), for reselection on more episodes
+#: a training run's folder holding every checkpoint's actor (`CheckpointActor`-STEPS.npz),
+#: for reselection on more episodes
 CHECKPOINT_ACTORS = "checkpoint-actors"
 FORMAT = "reach-stack ddpg actor v1"
 LAYERS = ["linear", "leaky_relu", "linear", "leaky_relu", "linear", "tanh"]
@@ -74,6 +75,18 @@ class TrainingStage:
             command=str(data.get("command", "")),
             init_actor=data.get("init_actor"),
         )
+
+
+class CheckpointActor(str, Enum):
+    """Which actor a checkpoint's file in `CHECKPOINT_ACTORS` holds, named by its file's
+    prefix: the one the run keeps (the averaged one with `actor_average_tau`), or the online
+    one scored beside an average."""
+
+    KEPT = "actor"
+    ONLINE = "online-actor"
+
+    def file(self, env_steps: int) -> str:
+        return f"{self.value}-{env_steps:08d}.npz"
 
 
 @dataclass(frozen=True)

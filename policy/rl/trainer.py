@@ -23,7 +23,7 @@ from typing import Any, TextIO
 import numpy as np
 import torch
 
-from policy.controllers.weights import CHECKPOINT_ACTORS, TrainingStage
+from policy.controllers.weights import CHECKPOINT_ACTORS, CheckpointActor, TrainingStage
 from policy.rl.agent import Agent
 from policy.rl.batched import EvalResult, Expert, eval_envs, evaluate_batched
 from policy.rl.checkpoint import save_actor_npz
@@ -498,22 +498,22 @@ class Trainer:
         score = record["score"]
         self.state.history.append(record)
         kept = agent.actor if agent.actor_average is None else agent.actor_average
-        self.export_best(self._checkpoint_actor("actor"), record, kept.state_dict())
+        self.export_actor(self._checkpoint_actor(CheckpointActor.KEPT), record, kept.state_dict())
         if score > self.state.best_score:
             self.state.best_score = score
             self.best_actor = copy.deepcopy(kept.state_dict())
             record["best"] = True
-            self.export_best(self.run_dir / "best_actor.npz", record, self.best_actor)
+            self.export_actor(self.run_dir / "best_actor.npz", record, self.best_actor)
         if averaged:
             online, _ = self._checkpoint_record(agent.act)
             record["online"] = online
-            self.export_best(
-                self._checkpoint_actor("online-actor"), online, agent.actor.state_dict()
+            self.export_actor(
+                self._checkpoint_actor(CheckpointActor.ONLINE), online, agent.actor.state_dict()
             )
             if online["score"] > self.state.best_online_score:
                 self.state.best_online_score = online["score"]
                 online["best"] = True
-                self.export_best(
+                self.export_actor(
                     self.run_dir / "best_online_actor.npz", online, agent.actor.state_dict()
                 )
         with open(self.run_dir / "eval.jsonl", "a") as fh:
@@ -528,12 +528,12 @@ class Trainer:
         self.log(f"eval @ {self.state.env_steps}: {note}{best}{online_note}")
         return record
 
-    def _checkpoint_actor(self, kind: str) -> Path:
+    def _checkpoint_actor(self, kind: CheckpointActor) -> Path:
         """Where this checkpoint's `kind` actor is kept: every checkpoint's actor stays, so a
         run can be reselected later on more episodes (`policy.campaigns.reselect`)."""
         folder = self.run_dir / CHECKPOINT_ACTORS
         folder.mkdir(exist_ok=True)
-        return folder / f"{kind}-{self.state.env_steps:08d}.npz"
+        return folder / kind.file(self.state.env_steps)
 
     def _checkpoint_record(
         self, act: Callable[[np.ndarray], np.ndarray]
@@ -588,7 +588,7 @@ class Trainer:
             act, self.config.env, len(envs), self.config.eval_seed + seed_offset, envs=envs
         )
 
-    def export_best(self, path: Path, record: dict[str, Any], weights: dict[str, Any]) -> None:
+    def export_actor(self, path: Path, record: dict[str, Any], weights: dict[str, Any]) -> None:
         actor = Actor(self.obs_dim, self.n_joints, self.config.hidden)
         actor.load_state_dict(weights)
         stage = TrainingStage(
