@@ -13,6 +13,7 @@ import socket
 from collections.abc import Iterable
 
 import pytest
+from conftest import wait_until
 
 from protocol import (
     DeviceID,
@@ -308,7 +309,16 @@ def test_client_session_over_a_served_endpoint(endpoint: str) -> None:
                 client.write(chunk)
                 replies += decoder.feed(client.read())
             assert server.wait_sim_time(server.sim_time + 0.2, timeout=20.0)
-            replies += decoder.feed(client.read())
+            polls = int(seconds * POLL_HZ)
+
+            def every_poll_answered() -> bool:
+                # the last answers may still be on their way (a loaded host): wait for them,
+                # and a reply that never comes still fails check_session below
+                replies.extend(decoder.feed(client.read()))
+                keys = [p.key for p in replies]
+                return all(keys.count((d, pid)) >= polls for d in JOINTS for pid in POLL_REPLIES)
+
+            wait_until(every_poll_answered, timeout=20.0)
         finally:
             client.close()
         stats = server.stats()
