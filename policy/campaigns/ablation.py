@@ -130,6 +130,12 @@ INGREDIENTS: tuple[Ingredient, ...] = (
         ("critic_layer_norm=true",),
     ),
     Ingredient(
+        "sac",
+        "soft actor-critic instead of DDPG: a Gaussian actor explored by its own samples, an "
+        "entropy bonus with a learned temperature, twin critics; the mean action ships",
+        ("algorithm=sac", "twin_critics=true"),
+    ),
+    Ingredient(
         "potential",
         "potential-based shaping switched on (off in the recipe)",
         ("env.reward.potential_weight=2.0",),

@@ -4,6 +4,9 @@
 loss against the target networks' bootstrap, then (every `policy_delay` updates) the actor
 loss and the soft update of the targets. The TD3 and TD3+BC options (docs/training.md,
 docs/distilled.md) are branches inside those steps, each off in `DDPGConfig.paper()`.
+`Agent.update_sac` is SAC's update (`Algorithm.SAC`), read the same way as CleanRL's
+`sac_continuous_action.py`: a soft TD target, the actor's entropy-regularised loss and the
+temperature's.
 
 Speed (tools/bench_train.py): fused Adam, gradients of the actor loss for the actor only, and a
 foreach lerp for the target networks.
@@ -20,8 +23,8 @@ import torch
 from torch import nn
 
 from policy.rl.checkpoint import load_actor_npz
-from policy.rl.config import DDPGConfig
-from policy.rl.networks import Actor, Critic
+from policy.rl.config import Algorithm, DDPGConfig
+from policy.rl.networks import Actor, Critic, GaussianActor
 from protocol.alpha5 import N_JOINTS
 
 
@@ -36,7 +39,8 @@ class Agent:
     def __init__(self, config: DDPGConfig, obs_dim: int, act_dim: int = N_JOINTS) -> None:
         self.config = config
         torch.manual_seed(config.seed)
-        self.actor = Actor(obs_dim, act_dim, config.hidden)
+        sac = config.algorithm is Algorithm.SAC
+        self.actor = (GaussianActor if sac else Actor)(obs_dim, act_dim, config.hidden)
         n_critics = 2 if config.twin_critics else 1
         self.critics = nn.ModuleList(
             Critic(obs_dim, act_dim, config.hidden, config.critic_layer_norm)
@@ -55,8 +59,15 @@ class Agent:
                 p.requires_grad_(False)
         self.actor_opt = _adam(self.actor.parameters(), config.actor_lr)
         self.critic_opt = _adam(self.critics.parameters(), config.critic_lr)
+        #: SAC's entropy temperature, learned as log alpha (unused by DDPG)
+        self.log_alpha = torch.tensor(float(np.log(config.sac_alpha)), requires_grad=True)
+        self.alpha_opt = _adam([self.log_alpha], config.sac_alpha_lr)
+        self.target_entropy = (
+            -float(act_dim) if config.sac_target_entropy is None else config.sac_target_entropy
+        )
         self.updates = 0
-        #: the target policy noise's own generator: it does not shift torch's global stream
+        #: the target policy noise's (SAC: the actor's samples') own generator: it does not
+        #: shift torch's global stream
         self.gen = torch.Generator().manual_seed(config.seed + 1)
 
     def load_actor_npz(self, path: str | Path) -> None:
@@ -72,6 +83,21 @@ class Agent:
             group["lr"] = self.config.actor_lr * decay
         for group in self.critic_opt.param_groups:
             group["lr"] = self.config.critic_lr * decay
+        for group in self.alpha_opt.param_groups:
+            group["lr"] = self.config.sac_alpha_lr
+
+    def gaussian_actor(self) -> GaussianActor:
+        """The actor as SAC's (`Algorithm.SAC`); an error for a DDPG agent."""
+        if not isinstance(self.actor, GaussianActor):
+            raise ValueError("a DDPG agent has no Gaussian actor")
+        return self.actor
+
+    @torch.no_grad()
+    def explore(self, obs: np.ndarray) -> np.ndarray:
+        """SAC's exploration: an action sampled from the Gaussian actor."""
+        action, _ = self.gaussian_actor().sample(torch.from_numpy(obs), self.gen)
+        out: np.ndarray = action.numpy()
+        return out
 
     @torch.no_grad()
     def act(self, obs: np.ndarray) -> np.ndarray:
@@ -89,6 +115,8 @@ class Agent:
     def update(self, batch: dict[str, np.ndarray], bc_weight: float) -> dict[str, float]:
         """One gradient update from `batch` (policy.rl.replay fields); returns the losses."""
         cfg = self.config
+        if cfg.algorithm is Algorithm.SAC:
+            return self.update_sac(batch)
         obs = torch.from_numpy(batch["obs"])
         act = torch.from_numpy(batch["act"])
         rew = torch.from_numpy(batch["rew"])
@@ -161,6 +189,72 @@ class Agent:
                 )
         return info
 
+    def update_sac(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
+        """One SAC update (Haarnoja et al. 2018, with a learned temperature)."""
+        cfg = self.config
+        actor = self.gaussian_actor()
+        obs = torch.from_numpy(batch["obs"])
+        act = torch.from_numpy(batch["act"])
+        rew = torch.from_numpy(batch["rew"])
+        next_obs = torch.from_numpy(batch["next_obs"])
+        discount = torch.from_numpy(batch["discount"])
+        alpha = self.log_alpha.detach().exp()
+
+        # 1. the soft TD target: r + gamma (min_i Q'_i(s', a') - alpha log pi(a'|s')),
+        #    a' sampled from the current actor (SAC has no target actor)
+        with torch.no_grad():
+            next_act, next_log_prob = actor.sample(next_obs, self.gen)
+            q_next = torch.min(
+                torch.stack([c(next_obs, next_act) for c in self.critics_target]), dim=0
+            ).values
+            target = rew + discount * (q_next - alpha * next_log_prob)
+
+        # 2. the critic loss: mean squared TD error, summed over the critics
+        qs = [c(obs, act) for c in self.critics]
+        critic_loss = sum(((q - target) ** 2).mean() for q in qs)
+        assert isinstance(critic_loss, torch.Tensor)
+        self.critic_opt.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self.critic_opt.step()
+        self.updates += 1
+        info = {
+            "critic_loss": float(critic_loss.detach()),
+            "q": float(qs[0].detach().mean()),
+            "alpha": float(alpha),
+        }
+        if self.updates % cfg.policy_delay != 0:
+            return info
+
+        # 3. the actor loss: alpha log pi(a|s) - min_i Q_i(s, a), a reparameterised sample
+        pi, log_prob = actor.sample(obs, self.gen)
+        q_pi = torch.min(torch.stack([c(obs, pi) for c in self.critics]), dim=0).values
+        actor_loss = (alpha * log_prob - q_pi).mean()
+        self.actor_opt.zero_grad(set_to_none=True)
+        actor_loss.backward(inputs=list(actor.parameters()))
+        self.actor_opt.step()
+        info["actor_loss"] = float(actor_loss.detach())
+        info["entropy"] = float(-log_prob.detach().mean())
+
+        # 4. the temperature: raised while the policy's entropy is below the target, lowered
+        #    while above it
+        alpha_loss = -(self.log_alpha.exp() * (log_prob.detach() + self.target_entropy)).mean()
+        self.alpha_opt.zero_grad(set_to_none=True)
+        alpha_loss.backward()
+        self.alpha_opt.step()
+
+        # 5. soft update of the critics' targets (and the averaged actor, if kept)
+        with torch.no_grad():
+            torch._foreach_lerp_(
+                list(self.critics_target.parameters()), list(self.critics.parameters()), cfg.tau
+            )
+            if self.actor_average is not None:
+                torch._foreach_lerp_(
+                    list(self.actor_average.parameters()),
+                    list(actor.parameters()),
+                    cfg.actor_average_tau,
+                )
+        return info
+
     def state_dict(self) -> dict[str, Any]:
         state = {
             "actor": self.actor.state_dict(),
@@ -171,6 +265,8 @@ class Agent:
             "critic_opt": self.critic_opt.state_dict(),
             "updates": self.updates,
             "gen": self.gen.get_state(),
+            "log_alpha": self.log_alpha.detach().clone(),
+            "alpha_opt": self.alpha_opt.state_dict(),
         }
         if self.actor_average is not None:
             state["actor_average"] = self.actor_average.state_dict()
@@ -185,5 +281,9 @@ class Agent:
         self.critic_opt.load_state_dict(state["critic_opt"])
         self.updates = int(state["updates"])
         self.gen.set_state(state["gen"])
+        if "log_alpha" in state:  # checkpoints before SAC have none (and need none)
+            with torch.no_grad():
+                self.log_alpha.copy_(state["log_alpha"])
+            self.alpha_opt.load_state_dict(state["alpha_opt"])
         if self.actor_average is not None:
             self.actor_average.load_state_dict(state["actor_average"])

@@ -24,7 +24,7 @@ from policy.controllers.weights import (
     TrainingStage,
     read_provenance,
 )
-from policy.rl.config import DDPGConfig
+from policy.rl.config import Algorithm, DDPGConfig
 from policy.rl.networks import Actor
 
 
@@ -42,8 +42,11 @@ TEACHER = "PDExpert (privileged: true state, masses, torque scale)"
 
 
 def algorithm(config: DDPGConfig) -> str:
-    """What the config trains: DDPG, or TD3 if any of its three changes is on; + behaviour
-    cloning when the actor loss imitates the teacher."""
+    """What the config trains: SAC; DDPG, or TD3 if any of its three changes is on; +
+    behaviour cloning when the actor loss imitates the teacher."""
+    if config.algorithm is Algorithm.SAC:
+        critics = "twin critics" if config.twin_critics else "one critic"
+        return f"SAC ({critics}, learned temperature; the mean action is the policy)"
     plain = not config.twin_critics and config.policy_delay == 1 and config.target_noise == 0
     name = "DDPG" if plain else "TD3"
     if config.bc_weight > 0:

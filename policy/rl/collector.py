@@ -7,8 +7,9 @@ buffer, the child steps round k+1 with the actor the learner had after round k-1
 travel with each request, about 0.3 MB). The lag is fixed at one round, so a run is still
 deterministic for its seed, though not identical to an in-process run of the same config.
 
-`EnvWorker` is the stepping itself (envs behind TimeLimit, OU exploration, uniform actions
-before learning starts, a numpy copy of the actor); the child process only serves it.
+`EnvWorker` is the stepping itself (envs behind TimeLimit, OU exploration or SAC's samples,
+uniform actions before learning starts, a numpy copy of the actor); the child process only
+serves it.
 """
 
 from __future__ import annotations
@@ -22,9 +23,9 @@ from typing import Any
 import numpy as np
 
 from policy.controllers.weights import LAYERS, LEAKY_RELU_SLOPE, ActorWeights
-from policy.rl.config import ENV_SEED_STRIDE, STEP_SEED_FACTOR, DDPGConfig
+from policy.rl.config import ENV_SEED_STRIDE, STEP_SEED_FACTOR, Algorithm, DDPGConfig
 from policy.rl.env import ReachAlphaEnv, time_limited
-from policy.rl.exploration import OUNoise
+from policy.rl.exploration import GaussianSampler, OUNoise
 from policy.rl.relabel import GoalRelabeller, Relabelled
 
 #: the thread-count variables of the BLAS libraries numpy may use, set to 1 for the child
@@ -71,10 +72,16 @@ class EnvWorker:
         for i in range(config.num_envs):
             self.relabeller.started(i)
         self.actor: ActorWeights | None = None
+        #: SAC's sampler over the same layers and the log-std head (`Algorithm.SAC`)
+        self.sampler: GaussianSampler | None = None
 
     def set_actor(self, arrays: list[np.ndarray]) -> None:
-        """The learner's actor as (W0, b0, W1, b1, W2, b2), torch's layout."""
+        """The learner's actor as (W0, b0, W1, b1, W2, b2), torch's layout; SAC's log-std
+        head (W, b) after them."""
         observation = self.config.env.observation
+        if self.config.algorithm is Algorithm.SAC:
+            self.sampler = GaussianSampler(arrays, LEAKY_RELU_SLOPE, self.rng)
+            arrays = arrays[:6]
         self.actor = ActorWeights(
             tuple(arrays[0::2]),
             tuple(arrays[1::2]),
@@ -86,11 +93,13 @@ class EnvWorker:
         )
 
     def round(self, epsilon: float, uniform: bool) -> Round:
-        """Step every env once: uniform random actions (`uniform`, before learning starts)
-        or the actor's plus `epsilon` times OU noise, clipped to [-1, 1]."""
+        """Step every env once: uniform random actions (`uniform`, before learning starts),
+        SAC's samples, or the actor's plus `epsilon` times OU noise, clipped to [-1, 1]."""
         n = self.config.num_envs
         if uniform:
             actions = self.rng.uniform(-1, 1, size=(n, self.model.n_joints))
+        elif self.sampler is not None:
+            actions = self.sampler.sample(self.obs)
         else:
             if self.actor is None:
                 raise RuntimeError("the collector has no actor yet")

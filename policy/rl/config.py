@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Any
 
 from policy.controllers.observation import ObservationConfig
@@ -41,6 +42,16 @@ def weak_eval_torque_scale(n_joints: int) -> tuple[float, ...]:
     """The weak checkpoint set's torque scales on an arm of `n_joints`: its base joint at 25 %
     as `WEAK_EVAL_TORQUE_SCALE` has the Alpha's E, the others at full torque."""
     return (WEAK_EVAL_TORQUE_SCALE[0],) + (1.0,) * (n_joints - 1)
+
+
+class Algorithm(str, Enum):
+    """The update a run learns by (`Agent.update`). TD3 is DDPG with its three options on."""
+
+    #: a deterministic actor explored by OU noise; the paper's algorithm
+    DDPG = "ddpg"
+    #: soft actor-critic: a Gaussian actor squashed by tanh, explored by its own samples,
+    #: an entropy bonus whose temperature is learned; the mean action is what ships
+    SAC = "sac"
 
 
 #: rad: the curriculum's widest step (E's workspace span, 5.8 - 0.4)
@@ -99,6 +110,16 @@ class DDPGConfig:
     #: an expert, a curriculum or a --params arm
     collector_process: bool = False
     # --- improvements (all off in the paper's configuration) ---
+    #: the update (`Algorithm`): DDPG (the paper's) or SAC. With SAC the OU noise and its
+    #: eps schedule are unused (the actor's own samples explore), and so is the target actor
+    algorithm: Algorithm = Algorithm.DDPG
+    #: SAC: the entropy temperature alpha at the start (learned from there)
+    sac_alpha: float = 0.2
+    #: SAC: the entropy the temperature steers the policy to, nats; None: -(joints), the
+    #: usual one nat less per action dimension
+    sac_target_entropy: float | None = None
+    #: SAC: Adam learning rate of log alpha
+    sac_alpha_lr: float = 3e-4
     #: TD3's clipped double Q: two critics, the min of their targets in the TD target
     twin_critics: bool = False
     #: TD3's target policy smoothing: std of the Gaussian noise on a', action units (0: off)
@@ -170,6 +191,21 @@ class DDPGConfig:
     bc_max_latency: float | None = None
 
     def __post_init__(self) -> None:
+        if not isinstance(self.algorithm, Algorithm):
+            try:
+                self.algorithm = Algorithm(self.algorithm)
+            except ValueError:
+                choices = ", ".join(a.value for a in Algorithm)
+                raise ValueError(
+                    f"algorithm must be one of {choices}, got {self.algorithm!r}"
+                ) from None
+        if self.algorithm is Algorithm.SAC:
+            if self.target_noise > 0:
+                raise ValueError("target_noise is TD3's; SAC's next action is sampled already")
+            if self.bc_weight > 0 or self.demo_episodes > 0:
+                raise ValueError("SAC here learns from the reward alone: no bc_weight or demos")
+            if self.sac_alpha <= 0 or self.sac_alpha_lr < 0:
+                raise ValueError("sac_alpha must be > 0 and sac_alpha_lr >= 0")
         if not 0 <= self.actor_average_tau < 1:
             raise ValueError(f"actor_average_tau must be in [0, 1), got {self.actor_average_tau}")
         if isinstance(self.her_goals, bool) or not isinstance(self.her_goals, int):
@@ -373,6 +409,7 @@ class DDPGConfig:
     def to_dict(self) -> dict[str, Any]:
         data = dataclasses.asdict(self)
         data["env"] = self.env.to_dict()
+        data["algorithm"] = self.algorithm.value
         return data
 
     @classmethod

@@ -76,6 +76,8 @@ RESUMABLE = frozenset(
         "curriculum_steps",
         "eval_every",
         "score_energy_weight",
+        "sac_target_entropy",
+        "sac_alpha_lr",
     }
 )
 #: ... and these it may not, with the reason given when one is asked for.
@@ -86,6 +88,7 @@ FIXED_ON_RESUME = {
     "reward and randomisation); start a new run, with init_actor to keep the actor",
     "hidden": "the checkpoint's networks have that shape",
     "twin_critics": "the checkpoint holds that many critics",
+    "algorithm": "the checkpoint's networks and optimisers are that algorithm's",
     "num_envs": "the envs, their exploration noise and their seeds are per env",
     "buffer_size": "the replay buffer in the checkpoint has that capacity",
     "demo_episodes": "the demonstrations were collected when the run started",

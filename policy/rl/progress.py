@@ -122,9 +122,14 @@ class TrainingProgress:
             self._bars.start_task(self._train_task)
         self._last_print = now
         trainer = self.trainer
+        explore = (  # SAC explores by its own samples: its temperature and entropy instead
+            f"alpha {losses.get('alpha', np.nan):.3g} entropy {losses.get('entropy', np.nan):.2f}"
+            if "alpha" in losses
+            else f"eps {trainer.epsilon():.2f} bc {trainer.bc_weight():.2f}"
+        )
         detail = (
             f"critic {losses.get('critic_loss', np.nan):.3g} q {losses.get('q', np.nan):.3g} "
-            f"eps {trainer.epsilon():.2f} bc {trainer.bc_weight():.2f}"
+            f"{explore}"
         )
         if self.bar:
             self._bars.update(self._train_task, completed=state.env_steps, detail=detail)

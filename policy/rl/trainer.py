@@ -40,13 +40,14 @@ from policy.rl.config import (
     STEP_SEED_FACTOR,
     WEAK_EVAL_SEED_OFFSET,
     WIDE_EVAL_SEED_OFFSET,
+    Algorithm,
     DDPGConfig,
     weak_eval_torque_scale,
 )
 from policy.rl.env import EnvConfig, ReachAlphaEnv, time_limited
 from policy.rl.expert import PDExpert
 from policy.rl.exploration import OUNoise
-from policy.rl.networks import Actor
+from policy.rl.networks import Actor, GaussianActor
 from policy.rl.nstep import NStepReturns
 from policy.rl.relabel import GoalRelabeller, Relabelled
 from policy.rl.replay import ReplayBuffer
@@ -300,7 +301,7 @@ class Trainer:
                 if self.state.env_steps < cfg.learning_starts and self.expert is None:
                     actions = self.rng.uniform(-1, 1, size=(cfg.num_envs, self.n_joints))
                 else:
-                    actions = self.agent.act(obs) + self.epsilon() * self.noise.sample()
+                    actions = self._explore(obs)
                 actions = np.clip(actions, -1.0, 1.0).astype(np.float32)
                 next_obs = np.empty_like(obs)
                 rewards = np.empty(cfg.num_envs)
@@ -454,13 +455,21 @@ class Trainer:
             self._collector.close()
             self._collector = None
 
+    def _explore(self, obs: np.ndarray) -> np.ndarray:
+        """The actions the envs take once learning starts: the actor's plus eps times OU
+        noise (DDPG), or samples of the Gaussian actor (SAC)."""
+        if self.config.algorithm is Algorithm.SAC:
+            return self.agent.explore(obs)
+        return self.agent.act(obs) + self.epsilon() * self.noise.sample()
+
     def _actor_arrays(self) -> list[np.ndarray]:
-        """The actor's layers (W, b per layer, torch's layout) for the collector."""
-        return [
-            t.detach().numpy().copy()
-            for layer in self.agent.actor.linears()
-            for t in (layer.weight, layer.bias)
-        ]
+        """The actor's layers (W, b per layer, torch's layout) for the collector; SAC's
+        log-std head last."""
+        actor = self.agent.actor
+        layers = actor.linears()
+        if isinstance(actor, GaussianActor):
+            layers = [*layers, actor.log_std]
+        return [t.detach().numpy().copy() for layer in layers for t in (layer.weight, layer.bias)]
 
     def _sample(self) -> dict[str, np.ndarray]:
         cfg = self.config
@@ -590,7 +599,8 @@ class Trainer:
 
     def export_actor(self, path: Path, record: dict[str, Any], weights: dict[str, Any]) -> None:
         actor = Actor(self.obs_dim, self.n_joints, self.config.hidden)
-        actor.load_state_dict(weights)
+        # SAC's log-std head is for exploring only: what ships is the mean, an `Actor`
+        actor.load_state_dict({k: v for k, v in weights.items() if k.startswith("net.")})
         stage = TrainingStage(
             run=self.run_dir.name,
             env_steps=self.state.env_steps,
