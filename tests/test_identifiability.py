@@ -18,8 +18,8 @@ from policy.campaigns.identification.cli import main as identify_main
 from policy.campaigns.identification.virtual import excite_virtual
 from policy.controllers.excitation import Wave
 from protocol.alpha5 import JOINT_LETTERS
-from reach_sim_bridge.fit import joint_fit
-from reach_sim_bridge.fit.arm_fit import fit_arm
+from reach_sim_bridge.fit import arm_fit, joint_fit
+from reach_sim_bridge.fit.arm_fit import fit_arm, parameter_verdicts
 from reach_sim_bridge.fit.identifiability import (
     Fisher,
     ScaleStatus,
@@ -66,6 +66,16 @@ def test_a_drive_at_70_percent_is_fitted_at_its_scale(monkeypatch: pytest.Monkey
     if d.status is ScaleStatus.IDENTIFIED:  # measured 0.736
         assert d.value == pytest.approx(0.7, rel=TOL)
         assert fit.params.frictionloss[D] == pytest.approx(2.8, rel=TOL)
+        # a value of D's the data do not give to the bar is not claimed: what is reported is
+        # the value over the fitted scale, within 10 % of the arm's
+        monkeypatch.setattr(arm_fit, "IDENTIFIED_SIGMA", 1e-9)
+        known, unknown = parameter_verdicts(fit)
+        for name in ("armature", "damping", "frictionloss"):
+            assert f"{name}[D]" not in known, name
+            combo = unknown[f"{name}[D]"].known
+            assert combo is not None and combo.name.endswith("/torque_scale[D]"), name
+            assert combo.value == pytest.approx(combination_value(REPRO, combo.name), rel=TOL)
+        assert "frictionloss[C]" in known  # the anchor's values are values still
     else:
         assert d.status is ScaleStatus.UNIDENTIFIABLE
         f = fit.params.frictionloss[D] / fit.params.torque_scale[D]
