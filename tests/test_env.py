@@ -213,6 +213,32 @@ def test_overshoot_term_is_the_metrics_ratio_past_the_goal() -> None:
     assert paid[0] == 0.0 and min(paid) < 0.0  # E driven through its goal pays once past it
 
 
+def test_overshoot_peak_term_pays_the_metric_once_as_it_is_made() -> None:
+    """Over an episode the term sums to -w x mean_j (joint j's largest ratio past its goal):
+    driven through its goal and held there, E pays for its largest excursion, and no more for
+    the steps it stays past."""
+    w = 40.0
+    cfg = dataclasses.replace(SHAPED, overshoot_peak_weight=w, overshoot_floor=0.1)
+    start = np.array([1.0, 1.0, 1.0, 1.0])
+    env = ReachAlphaEnv(EnvConfig(reward=cfg))
+    env.reset(seed=0, options={"start": start, "target": start + np.array([0.5, 0, 0, 0])})
+    paid, ratios = [], []
+    for k in range(40):
+        action = np.array([1.0 if k < 10 else 0.0, 0, 0, 0])
+        info = env.step(action)[4]
+        paid.append(info["reward_terms"]["overshoot_peak"])
+        ratios.append(float(np.clip((info["q"][0] - env.target[0]) / 0.5, 0.0, 1.0)))
+    assert 0.05 < max(ratios) < 1.0  # driven well past its goal, not to the clip
+    assert sum(paid) == pytest.approx(-w * max(ratios) / 4, rel=1e-9)
+    # paid only on the steps its largest excursion grew
+    grew = np.diff(np.maximum.accumulate([0.0, *ratios])) > 0
+    assert all((p < 0) == g for p, g in zip(paid, grew, strict=True))
+    assert (
+        reward_terms(start, np.zeros(4), env.target, start, start, True, cfg)["overshoot_peak"]
+        == 0.0
+    )  # without a start and a peak: off
+
+
 def test_control_rate_is_a_parameter() -> None:
     env = ReachAlphaEnv(EnvConfig(control_hz=50.0, episode_s=2.0))
     assert env.n_substeps == 10

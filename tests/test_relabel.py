@@ -21,9 +21,12 @@ STEPS = 60
 
 def _env_config(model: ArmModel = ALPHA5) -> DDPGConfig:
     """The `scratch` recipe's env (on `model`): noisy readings, memory channels, envelope arms
-    with latency (the Alpha's), the shaped reward with every term it uses; 3 s episodes."""
+    with latency (the Alpha's), the shaped reward with every term it uses and the overshoot
+    peak's (which depends on the episode's history); 3 s episodes."""
     cfg = DDPGConfig.scratch().on(model)
-    return dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, episode_s=STEPS / 20))
+    reward = dataclasses.replace(cfg.env.reward, overshoot_peak_weight=50.0)
+    env = dataclasses.replace(cfg.env, episode_s=STEPS / 20, reward=reward)
+    return dataclasses.replace(cfg, env=env)
 
 
 def _episode(

@@ -130,6 +130,12 @@ INGREDIENTS: tuple[Ingredient, ...] = (
         ("critic_layer_norm=true",),
     ),
     Ingredient(
+        "overshoot-peak",
+        "the overshoot metric paid once, as each joint's largest excursion past its goal grows "
+        "(weight 100: a 10 % overshoot of one joint costs 2.5); off in the recipe",
+        ("env.reward.overshoot_peak_weight=100",),
+    ),
+    Ingredient(
         "sac",
         "soft actor-critic instead of DDPG: a Gaussian actor explored by its own samples, an "
         "entropy bonus with a learned temperature, twin critics; the mean action ships",

@@ -115,6 +115,13 @@ class RewardConfig:
     #: a milliradian past its goal cost more than stopping short (shaped mode). 0 disables
     overshoot_weight: float = 0.0
     overshoot_floor: float = 0.1  # rad
+    #: x mean_j (the growth this step of joint j's running maximum of that same ratio): the
+    #: overshoot metric paid once, when it is made. Over an episode the term sums to
+    #: -overshoot_peak_weight x mean_j (joint j's largest ratio), the metric's own figure
+    #: (averaged over joints where the metric takes the worst), so a joint that crossed its
+    #: goal and came back, or hovers a milliradian past it, pays no more; `overshoot_weight`
+    #: pays for every step past it (shaped mode). 0 disables
+    overshoot_peak_weight: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -261,6 +268,7 @@ REWARD_TERMS = (
     "velocity",
     "away",
     "overshoot",
+    "overshoot_peak",
     "action_change",
     "sign_flip",
     "out_of_bounds",
@@ -286,11 +294,14 @@ def reward_terms(
     prev_q: np.ndarray | None = None,
     start: np.ndarray | None = None,
     scales: ArmScales = ALPHA5_SCALES,
+    overshoot_peak: np.ndarray | None = None,
 ) -> dict[str, float]:
     """One step's reward, term by term (signed; inactive terms 0), from the TRUE state (never
     the noisy readings). Their sum in `REWARD_TERMS` order is the reward, exactly. `prev_q`
     (the true angles before the step) is needed by the potential term only, `start` (the
-    episode's first angles) by the overshoot term only; `scales` are the arm's."""
+    episode's first angles) by the overshoot terms only, `overshoot_peak` (each joint's largest
+    `overshoot_ratio` before this step) by the overshoot-peak term only; `scales` are the
+    arm's."""
     terms = dict.fromkeys(REWARD_TERMS, 0.0)
     if config.potential_weight and prev_q is not None:
         terms["potential"] = config.potential_gamma * _potential(
@@ -318,11 +329,12 @@ def reward_terms(
         away = np.maximum(0.0, -np.sign(error) * qdot) / scales.no_load_speed
         terms["away"] = -float(config.away_weight * np.mean(away))
     if config.overshoot_weight and start is not None:
-        step = q_req - start
-        moving = np.abs(step) >= OVERSHOOT_MIN_STEP_RAD
-        past = -error * np.sign(step) / np.maximum(np.abs(step), config.overshoot_floor)
-        share = np.where(moving, np.clip(past, 0.0, 1.0), 0.0)
+        share = overshoot_ratio(q, q_req, start, config.overshoot_floor)
         terms["overshoot"] = -float(config.overshoot_weight * np.mean(share))
+    if config.overshoot_peak_weight and start is not None and overshoot_peak is not None:
+        ratio = overshoot_ratio(q, q_req, start, config.overshoot_floor)
+        growth = np.maximum(ratio - overshoot_peak, 0.0)
+        terms["overshoot_peak"] = -float(config.overshoot_peak_weight * np.mean(growth))
     terms["action_change"] = -float(
         config.action_change_weight * np.mean(gate * np.abs(action - prev_action))
     )
@@ -330,6 +342,19 @@ def reward_terms(
         flips = sign_flips(action, prev_action, config.sign_flip_threshold)
         terms["sign_flip"] = -float(config.sign_flip_weight * np.mean(gate * flips))
     return terms
+
+
+def overshoot_ratio(
+    q: np.ndarray, q_req: np.ndarray, start: np.ndarray, floor: float
+) -> np.ndarray:
+    """Per joint, how far past its goal it is over its step from `start` (at least `floor`),
+    in [0, 1]; 0 for a joint whose step is under OVERSHOOT_MIN_STEP_RAD: the overshoot
+    metric's ratio (docs/metrics.md) at one instant."""
+    step = q_req - start
+    moving = np.abs(step) >= OVERSHOOT_MIN_STEP_RAD
+    past = (q - q_req) * np.sign(step) / np.maximum(np.abs(step), floor)
+    out: np.ndarray = np.where(moving, np.clip(past, 0.0, 1.0), 0.0)
+    return out
 
 
 def _potential(q: np.ndarray, q_req: np.ndarray, config: RewardConfig, scales: ArmScales) -> float:
@@ -567,6 +592,8 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         self.arm.torque_scale = scale.copy()
         self.arm.reset(q=start.copy())
         self.prev_action = np.zeros(self.n_joints)
+        #: each joint's largest overshoot ratio so far this episode (`overshoot_peak_weight`)
+        self.overshoot_peak = np.zeros(self.n_joints)
         self._pending.clear()
         self._applied = np.zeros(self.n_joints)
         self.steps = 0
@@ -597,6 +624,11 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
             prev_q,
             self.start,
             self.scales,
+            self.overshoot_peak,
+        )
+        self.overshoot_peak = np.maximum(
+            self.overshoot_peak,
+            overshoot_ratio(q, self.target, self.start, self.config.reward.overshoot_floor),
         )
         self.prev_action = action
         self.memory.acted(action)
@@ -604,6 +636,7 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         if every is not None and self.steps % max(1, round(every * self.config.control_hz)) == 0:
             self.start = q.copy()
             self.target = self._draw_goal(self.start)
+            self.overshoot_peak = np.zeros(self.n_joints)
         info = self._info(in_bounds)
         info["reward_terms"] = terms
         if power is not None:

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from policy.controllers.observation import InputMemory, observation_bounds
-from policy.rl.env import ReachAlphaEnv, reward_terms
+from policy.rl.env import ReachAlphaEnv, overshoot_ratio, reward_terms
 
 
 @dataclass
@@ -129,6 +129,7 @@ class GoalRelabeller:
         obs = np.empty((n + 1, low.size), np.float32)
         rewards = np.empty(n)
         prev_action = np.zeros_like(goal)
+        peak = np.zeros_like(goal)
         for t in range(n + 1):
             obs[t] = np.clip(
                 memory.observe(trace.readings_q[t], trace.readings_qdot[t], goal), low, high
@@ -148,7 +149,10 @@ class GoalRelabeller:
                 trace.true_q[t],
                 trace.start,
                 env.scales,
+                peak,
             )
+            floor = config.reward.overshoot_floor
+            peak = np.maximum(peak, overshoot_ratio(trace.true_q[t + 1], goal, trace.start, floor))
             rewards[t] = sum(terms.values())
             prev_action = action
         return Relabelled(
