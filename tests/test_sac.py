@@ -149,12 +149,15 @@ def test_a_sac_run_keeps_the_mean_action_in_the_shipped_format(tmp_path: Path) -
     )
     trainer = Trainer(cfg, tmp_path / "run", log=lambda _: None)
     try:
-        trainer.run()
+        trainer.run(csv_path=tmp_path / "run" / "train.csv")
     finally:
         trainer.close()
     kept = ActorWeights.load(tmp_path / "run" / "best_actor.npz")
     obs = np.random.default_rng(1).normal(size=(4, trainer.obs_dim)).astype(np.float32)
     np.testing.assert_allclose(kept.forward(obs), trainer.agent.act(obs), atol=1e-5)
+    rows = (tmp_path / "run" / "train.csv").read_text().splitlines()
+    header, last = rows[0].split(","), rows[-1].split(",")
+    assert last[header.index("epsilon")] == "nan"  # SAC explores by its own samples
     meta = json.loads((tmp_path / "run" / "best_actor.json").read_text())
     assert meta["provenance"]["algorithm"].startswith("SAC")
     assert meta["provenance"]["demonstrations"] == "none"

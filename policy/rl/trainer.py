@@ -491,7 +491,8 @@ class Trainer:
             f"{losses.get('actor_loss', float('nan')):.5g}",
             f"{losses.get('bc_loss', float('nan')):.5g}",
             f"{losses.get('q', float('nan')):.5g}",
-            f"{self.epsilon():.4f}",
+            # SAC explores by its own samples: no eps
+            "nan" if self.config.algorithm is Algorithm.SAC else f"{self.epsilon():.4f}",
             f"{self.bc_weight():.4f}",
         ]
         return ",".join(str(f) for f in fields) + "\n"
