@@ -307,6 +307,11 @@ def test_bad_input_is_rejected() -> None:
         env.reset(options={"target": [1.0, 2.0]})
     with pytest.raises(ValueError, match="control_hz"):
         ReachAlphaEnv(EnvConfig(control_hz=0.0))
+    # 40 Hz is 12.5 physics steps of 2 ms: refused, naming the rates that are whole numbers
+    with pytest.raises(ValueError, match=r"not a whole number .* 41\.6667 Hz \(12 steps\)"):
+        ReachAlphaEnv(EnvConfig(control_hz=40.0))
+    env = ReachAlphaEnv(EnvConfig(control_hz=1 / (12 * 0.002), episode_s=1.0))
+    assert env.n_substeps == 12 and env.config.steps_per_episode == 42
 
 
 def test_sensor_noise_only_on_readings() -> None:

@@ -108,9 +108,9 @@ INGREDIENTS: tuple[Ingredient, ...] = (
     ),
     Ingredient(
         "rate-40hz",
-        "control at 40 Hz (41.7 in effect) with discount 0.975, the same 1 s horizon: twice "
-        "the decisions per arrival",
-        ("env.control_hz=40", "gamma=0.975", "env.reward.potential_gamma=0.975"),
+        "control at 41.7 Hz (12 physics steps of 2 ms) with discount 0.975, the same 1 s "
+        "horizon: twice the decisions per arrival",
+        ("env.control_hz=41.666666666666664", "gamma=0.975", "env.reward.potential_gamma=0.975"),
     ),
     Ingredient(
         "actor-average",

@@ -14,6 +14,7 @@ the env: `time_limited(env)` wraps an env built directly the same way.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -502,6 +503,16 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
             config = dataclasses.replace(config, **overrides)
         if config.control_hz <= 0 or config.episode_s <= 0:
             raise ValueError("control_hz and episode_s must be positive")
+        steps = 1.0 / (config.control_hz * config.physics_dt)
+        if abs(steps - round(steps)) > 1e-6 * steps:
+            # rounded silently, a control period would not be 1 / control_hz: the episode's
+            # steps and a controller run at the weights' control_hz would be off by as much
+            near = sorted({max(1, math.floor(steps)), math.ceil(steps)})
+            rates = " or ".join(f"{1.0 / (n * config.physics_dt):.6g} Hz ({n} steps)" for n in near)
+            raise ValueError(
+                f"control_hz {config.control_hz:g} is not a whole number of physics steps of "
+                f"{config.physics_dt:g} s ({steps:.4g}); use {rates}"
+            )
         self.config = config
         #: put each step's mean |tau qdot| over the period in info["power"] (W, per joint);
         #: evaluation switches it on, training leaves the faster whole-period step
