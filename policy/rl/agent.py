@@ -117,11 +117,9 @@ class Agent:
         cfg = self.config
         if cfg.algorithm is Algorithm.SAC:
             return self.update_sac(batch)
-        obs = torch.from_numpy(batch["obs"])
-        act = torch.from_numpy(batch["act"])
-        rew = torch.from_numpy(batch["rew"])
-        next_obs = torch.from_numpy(batch["next_obs"])
-        discount = torch.from_numpy(batch["discount"])
+        obs, act, rew, next_obs, discount = (
+            torch.from_numpy(batch[k]) for k in ("obs", "act", "rew", "next_obs", "discount")
+        )
 
         # 1. the TD target: r + gamma Q'(s', pi'(s')), cut only where the episode terminated;
         #    `discount` is gamma (0 if terminated), or gamma^n with n-step returns in r
@@ -131,20 +129,11 @@ class Agent:
                 noise = torch.randn(next_act.shape, generator=self.gen) * cfg.target_noise
                 noise = noise.clamp(-cfg.target_noise_clip, cfg.target_noise_clip)
                 next_act = (next_act + noise).clamp(-1.0, 1.0)
-            q_next = torch.min(  # one critic: itself; TD3's twin critics: the smaller
-                torch.stack([c(next_obs, next_act) for c in self.critics_target]), dim=0
-            ).values
-            target = rew + discount * q_next
+            # one critic: itself; TD3's twin critics: the smaller
+            target = rew + discount * self._target_q(next_obs, next_act)
 
         # 2. the critic loss: mean squared TD error, summed over the critics
-        qs = [c(obs, act) for c in self.critics]
-        critic_loss = sum(((q - target) ** 2).mean() for q in qs)
-        assert isinstance(critic_loss, torch.Tensor)
-        self.critic_opt.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        self.critic_opt.step()
-        self.updates += 1
-        info = {"critic_loss": float(critic_loss.detach()), "q": float(qs[0].detach().mean())}
+        info = self._critic_step(obs, act, target)
         if self.updates % cfg.policy_delay != 0:  # TD3: the actor and targets wait
             return info
 
@@ -181,47 +170,27 @@ class Agent:
                 (self.critics, self.critics_target),
             ):
                 torch._foreach_lerp_(list(target_net.parameters()), list(net.parameters()), cfg.tau)
-            if self.actor_average is not None:
-                torch._foreach_lerp_(
-                    list(self.actor_average.parameters()),
-                    list(self.actor.parameters()),
-                    cfg.actor_average_tau,
-                )
+        self._follow_average()
         return info
 
     def update_sac(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
         """One SAC update (Haarnoja et al. 2018, with a learned temperature)."""
         cfg = self.config
         actor = self.gaussian_actor()
-        obs = torch.from_numpy(batch["obs"])
-        act = torch.from_numpy(batch["act"])
-        rew = torch.from_numpy(batch["rew"])
-        next_obs = torch.from_numpy(batch["next_obs"])
-        discount = torch.from_numpy(batch["discount"])
+        obs, act, rew, next_obs, discount = (
+            torch.from_numpy(batch[k]) for k in ("obs", "act", "rew", "next_obs", "discount")
+        )
         alpha = self.log_alpha.detach().exp()
 
         # 1. the soft TD target: r + gamma (min_i Q'_i(s', a') - alpha log pi(a'|s')),
         #    a' sampled from the current actor (SAC has no target actor)
         with torch.no_grad():
             next_act, next_log_prob = actor.sample(next_obs, self.gen)
-            q_next = torch.min(
-                torch.stack([c(next_obs, next_act) for c in self.critics_target]), dim=0
-            ).values
+            q_next = self._target_q(next_obs, next_act)
             target = rew + discount * (q_next - alpha * next_log_prob)
 
         # 2. the critic loss: mean squared TD error, summed over the critics
-        qs = [c(obs, act) for c in self.critics]
-        critic_loss = sum(((q - target) ** 2).mean() for q in qs)
-        assert isinstance(critic_loss, torch.Tensor)
-        self.critic_opt.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        self.critic_opt.step()
-        self.updates += 1
-        info = {
-            "critic_loss": float(critic_loss.detach()),
-            "q": float(qs[0].detach().mean()),
-            "alpha": float(alpha),
-        }
+        info = {**self._critic_step(obs, act, target), "alpha": float(alpha)}
         if self.updates % cfg.policy_delay != 0:
             return info
 
@@ -247,13 +216,36 @@ class Agent:
             torch._foreach_lerp_(
                 list(self.critics_target.parameters()), list(self.critics.parameters()), cfg.tau
             )
-            if self.actor_average is not None:
-                torch._foreach_lerp_(
-                    list(self.actor_average.parameters()),
-                    list(actor.parameters()),
-                    cfg.actor_average_tau,
-                )
+        self._follow_average()
         return info
+
+    def _target_q(self, next_obs: torch.Tensor, next_act: torch.Tensor) -> torch.Tensor:
+        """The target critics' value of (s', a'): the smaller of two (twin critics)."""
+        qs = torch.stack([c(next_obs, next_act) for c in self.critics_target])
+        return torch.min(qs, dim=0).values
+
+    def _critic_step(
+        self, obs: torch.Tensor, act: torch.Tensor, target: torch.Tensor
+    ) -> dict[str, float]:
+        """One step of the critics towards `target`: the mean squared TD error, summed."""
+        qs = [c(obs, act) for c in self.critics]
+        critic_loss = sum(((q - target) ** 2).mean() for q in qs)
+        assert isinstance(critic_loss, torch.Tensor)
+        self.critic_opt.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self.critic_opt.step()
+        self.updates += 1
+        return {"critic_loss": float(critic_loss.detach()), "q": float(qs[0].detach().mean())}
+
+    @torch.no_grad()
+    def _follow_average(self) -> None:
+        """The averaged actor (`actor_average_tau`) moves towards the actor, after its update."""
+        if self.actor_average is not None:
+            torch._foreach_lerp_(
+                list(self.actor_average.parameters()),
+                list(self.actor.parameters()),
+                self.config.actor_average_tau,
+            )
 
     def state_dict(self) -> dict[str, Any]:
         state = {
