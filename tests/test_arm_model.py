@@ -10,6 +10,7 @@ plain numpy, independently of the MJCF, so a wrong number in the model shows up 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import mujoco
 import numpy as np
@@ -219,6 +220,40 @@ def test_worst_case_torque_at_d_is_the_datasheet_figure() -> None:
     assert arm.gravity_torque(q)[0] == pytest.approx(0.0, abs=1e-9)
     air = Alpha5Arm(ArmParams(water_density=0.0)).gravity_torque(q)[1]
     assert abs(arm.gravity_torque(q)[1]) < 0.65 * abs(air)
+
+
+@pytest.mark.parametrize("q", [(3.08, 1.71, 1.71, 3.14), (3.58, 1.26, 2.21, 3.94)])
+def test_a_load_in_the_jaws_adds_its_inertia_and_net_weight(q: tuple[float, ...]) -> None:
+    """`ArmParams.payload_kg` at the tool centre point, a solid sphere of `payload_volume_l`:
+    the joint-space inertia gains m Jp^T Jp + (2/5) m r^2 Jr^T Jr and the gravity torque
+    Jp^T of its net weight (mass less the water it displaces); E, whose axis is vertical,
+    carries none of the weight."""
+    kg, litres, rho = 1.0, 0.09, 1000.0
+    bare = Alpha5Arm()
+    held = Alpha5Arm(ArmParams(payload_kg=kg, payload_volume_l=litres))
+    q_arr = np.array(q)
+    _, _, jacp, jacr = bare.tcp_kinematics(q_arr)
+    radius = (3.0 * litres * 1e-3 / (4.0 * math.pi)) ** (1.0 / 3.0)
+    # the buoyancy body at its centre carries rho V / 1000 (gravcomp 1001): a ten-thousandth
+    point = kg + litres * 1e-3 * rho / 1000.0
+    inertia = point * jacp.T @ jacp + 0.4 * kg * radius**2 * jacr.T @ jacr
+    np.testing.assert_allclose(
+        held.mass_matrix(q_arr) - bare.mass_matrix(q_arr), inertia, atol=1e-9
+    )
+    weight = np.array([0.0, 0.0, -(kg - litres * 1e-3 * rho) * 9.81])
+    added = held.gravity_torque(q_arr) - bare.gravity_torque(q_arr)
+    np.testing.assert_allclose(added, jacp.T @ weight, atol=1e-9)
+    assert added[0] == pytest.approx(0.0, abs=1e-9) and abs(added[1]) > 1.0
+
+
+def test_a_load_is_refused_where_the_model_holds_none() -> None:
+    from reach_sim_bridge.model.bravo7 import Bravo7Arm
+
+    with pytest.raises(ValueError, match="payload_kg"):
+        ArmParams(payload_kg=-1.0)
+    nominal = Bravo7Arm().params
+    with pytest.raises(ValueError, match="takes no payload"):
+        Bravo7Arm(params=replace(nominal, payload_kg=1.0))
 
 
 def test_arm_held_by_its_gravity_torque_stays_put() -> None:

@@ -168,3 +168,47 @@ def test_fisher_directions_name_the_scale_symmetry() -> None:
     nuisance = np.ones((200, 1))
     groups = np.repeat(np.arange(4), 50)
     assert np.all(np.diag(marginal_information(jac, 1e-4, None, nuisance, groups)) <= np.diag(info))
+
+
+def test_a_known_load_in_the_jaws_weighs_es_scale(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """E at 60 % torque, which nothing else weighs (above): its fitting motions run again
+    holding 1 kg in the jaws, whose inertia in kg m^2 does not scale with the drive. E's scale
+    is fitted, not assumed; the twin's friction is the arm's, not the arm's over its scale."""
+    _short_grid(monkeypatch)
+    arm = replace(REPRO, torque_scale=(0.6, 1.0, 1.0, 1.0))
+    hidden = save_arm_params(arm, tmp_path / "hidden.json")
+    out = tmp_path / "arm.json"
+    argv = ["--virtual", str(hidden), "--joints", "E", "--scale", "0.25", "--iterations", "6"]
+    argv += ["--max-current", "600", "--out", str(out), "--no-report", "--payload", "1.0"]
+    assert identify_main(argv) == 0
+    fit = read_twin(out).fit
+    assert fit is not None
+    verdict = fit.torque_scales["E"]
+    assert "known 1 kg load" in verdict["reason"]
+    data = json.loads(out.read_text())
+    assert data["torque_scale"][E] == pytest.approx(0.6, rel=TOL)
+    assert data["frictionloss"][E] == pytest.approx(3.5, rel=TOL)
+    assert data["payload_kg"] == 0.0  # the twin is the arm, bare
+    if verdict["status"] == "identified":
+        assert fit.parameters["torque_scale[E]"].value == pytest.approx(0.6, rel=TOL)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--virtual", "{hidden}", "--payload", "3"], "at most 2"),
+        (["--virtual", "{hidden}", "--payload", "1", "--joints", "D"], "must include E"),
+        (["--port", "/nonexistent/arm", "--payload", "1"], "--joints E"),
+        (["--fit-only", "{hidden}", "--payload", "1"], "a log keeps it"),
+    ],
+)
+def test_a_load_that_cannot_weigh_e_is_refused_before_anything_runs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str
+) -> None:
+    hidden = save_arm_params(ArmParams(), tmp_path / "hidden.json")
+    argv = [a.format(hidden=hidden) for a in args] + ["--out", str(tmp_path / "arm.json")]
+    assert identify_main(argv) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "arm.json").exists()

@@ -261,11 +261,28 @@ def test_refs_and_params_with() -> None:
 
 def test_segments_round_trip(tmp_path: Path) -> None:
     seg = _record(ArmParams(), 3, "steps", 0.5)
+    loaded = replace(seg, name="held", payload_kg=1.0, payload_volume_l=0.09)
     path = tmp_path / "log.npz"
-    save_segments([seg], path, {"port": "x"})
-    (back,) = load_segments(path)
+    save_segments([seg, loaded], path, {"port": "x"})
+    back, back_loaded = load_segments(path)
     assert back.name == seg.name and back.joint == 3 and back.role == "fit"
     assert np.array_equal(back.q, seg.q) and np.array_equal(back.command_mA, seg.command_mA)
+    assert (back.payload_kg, back.payload_volume_l) == (0.0, 0.0)
+    assert (back_loaded.payload_kg, back_loaded.payload_volume_l) == (1.0, 0.09)
+    with pytest.raises(ValueError, match="payload_kg"):
+        replace(seg, payload_kg=-1.0)
+
+
+def test_the_replay_puts_a_segments_load_on_the_twin() -> None:
+    """A segment logged holding a known load is replayed with it in the jaws: the true arm's
+    parameters (which hold none) reproduce it, as they do a bare segment."""
+    truth = ArmParams().randomized(5)
+    held = replace(truth, payload_kg=1.0, payload_volume_l=0.09)
+    seg = replace(_record(held, 0, "chirp", 3.0), payload_kg=1.0, payload_volume_l=0.09)
+    replay = Replay(window_s=1.0, coast_others=False)
+    assert quality(replay, truth, 0.004, [seg]).rms_rad < 1e-5
+    bare = replace(seg, payload_kg=0.0, payload_volume_l=0.0)
+    assert quality(replay, truth, 0.004, [bare]).rms_rad > 1e-3  # the load is seen
 
 
 def test_the_excitation_stays_inside_its_window_and_speed() -> None:

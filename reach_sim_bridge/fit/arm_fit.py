@@ -227,9 +227,14 @@ def fit_arm(
     def segs_of(j: int) -> list[Segment]:
         return [s for s in segments if s.joint == j and s.role == "fit"]
 
+    weighed = {j for j in fitted if j not in (C, D) and payload_of(segs_of(j)) is not None}
     first = True
     for j in fitted:
         refs_j = default_refs(j, fit_delay=False)
+        if j in weighed:
+            # excited with and without a known load: its inertia, which does not scale with
+            # the drive, weighs the scale (`weighed_scale`)
+            refs_j.append(("torque_scale", j))
         base = params
         if j == D:
             # D weighs the wrist over its own scale, from the nominal wrist: whatever C's fit
@@ -282,7 +287,9 @@ def fit_arm(
             if weak.joint == C:
                 on_joint(C, weak)
     for j in fitted:
-        if j not in scales:
+        if j in weighed:
+            scales[j] = weighed_scale(j, results[j], segs_of(j))
+        elif j not in scales:
             scales[j] = unanchored(j, results[j])
     tuned = [x for j in sorted(by_joint) for x in by_joint[j]]
     delays = np.concatenate([segment_delays(s) for s in tuned]) if tuned else np.zeros(1)
@@ -391,6 +398,36 @@ def anchor_scales(
     return result.params, result, {strong: anchor, weak: verdict}
 
 
+def payload_of(segments: Sequence[Segment]) -> tuple[float, float] | None:
+    """The known load (kg, litres) of a joint's segments if some were logged holding it and
+    some without (the two a torque scale can be weighed between); None otherwise."""
+    loads = {(s.payload_kg, s.payload_volume_l) for s in segments}
+    held = sorted(x for x in loads if x[0] > 0.0)
+    return held[-1] if held and (0.0, 0.0) in loads else None
+
+
+def weighed_scale(joint: int, result: FitResult, segments: Sequence[Segment]) -> ScaleVerdict:
+    """The verdict on a torque scale fitted from motions with and without a known load in the
+    jaws: the load's inertia in kg m^2 does not scale with the drive, so the drive's torque
+    per amp is the one that moves both as logged. Identified where the data give it to
+    `IDENTIFIED_SIGMA`; the twin keeps the fitted value either way."""
+    load = payload_of(segments)
+    kg = load[0] if load is not None else 0.0
+    scale_ref = ("torque_scale", joint)
+    fisher = result.fisher
+    sigma = fisher.sigma({scale_ref: 1.0}) if fisher is not None else math.inf
+    value = result.params.torque_scale[joint]
+    found = sigma <= IDENTIFIED_SIGMA
+    return ScaleVerdict(
+        joint,
+        ScaleStatus.IDENTIFIED if found else ScaleStatus.UNIDENTIFIABLE,
+        value,
+        sigma,
+        f"fitted against the inertia of a known {kg:g} kg load in the jaws (motions with "
+        "and without it)" + ("" if found else f"; to +-{100 * sigma:.0f} % only"),
+    )
+
+
 def unanchored(joint: int, result: FitResult) -> ScaleVerdict:
     """The verdict on a torque scale nothing anchors: E and B carry no load worth the name,
     and C or D without the other has nothing to weigh the wrist against. The twin takes the
@@ -403,7 +440,10 @@ def unanchored(joint: int, result: FitResult) -> ScaleVerdict:
         fisher.sigma({scale_ref: 1.0}) if fisher is not None and scale_ref in fisher.refs else None
     )
     if letter == "E":
-        why = "E turns about the vertical: no load weighs its torque against a known one"
+        why = (
+            "E turns about the vertical: no load weighs its torque against a known one (a "
+            "known load in the jaws would: identify.py --payload)"
+        )
     elif letter == "B":
         why = (
             "B's only load is the wrist's weight a few millimetres off its roll axis (mN m, "

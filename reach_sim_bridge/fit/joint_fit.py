@@ -21,6 +21,7 @@ from reach_sim_bridge.fit.replay import (
     param_value,
     params_with,
     ref_name,
+    with_payload,
 )
 from reach_sim_bridge.fit.segments import MAX_DELAY_S, FloatArray, Segment
 from reach_sim_bridge.model.params import ArmParams
@@ -105,14 +106,13 @@ def friction_ceiling(replay: Replay, params: ArmParams, segments: Sequence[Segme
     if max(float(np.ptp(s.q[:, j])) for s in segments) < MOVED_RAD:
         return math.inf
     arm = replay.arm
-    arm.set_params(params)
     peak_mA = max(float(np.max(np.abs(s.command_mA[:, j]))) for s in segments)
+    load = 0.0
+    for s in segments:  # each with the load it held
+        arm.set_params(with_payload(params, s))
+        for q in s.q[:: max(1, len(s.q) // 50)]:
+            load = max(load, abs(float(arm.gravity_torque(q)[j])))
     drive = params.torque_scale[j] * float(arm.motor.torque_per_amp[j]) * peak_mA / 1000.0
-    load = max(
-        abs(float(arm.gravity_torque(q)[j]))
-        for s in segments
-        for q in s.q[:: max(1, len(s.q) // 50)]
-    )
     return drive + load
 
 

@@ -58,6 +58,13 @@ def params_with(base: ArmParams, refs: Sequence[ParamRef], values: Sequence[floa
     return replace(base, **fields)
 
 
+def with_payload(params: ArmParams, seg: Segment) -> ArmParams:
+    """`params` holding the load `seg` was logged with (the fitted arm itself holds none)."""
+    if (params.payload_kg, params.payload_volume_l) == (seg.payload_kg, seg.payload_volume_l):
+        return params
+    return replace(params, payload_kg=seg.payload_kg, payload_volume_l=seg.payload_volume_l)
+
+
 def param_value(params: ArmParams, delay_s: float, ref: ParamRef) -> float:
     name, index = ref
     return float(delay_s) if name == DELAY else float(getattr(params, name)[index])
@@ -235,7 +242,7 @@ class Replay:
         """The twin `params` driven by the segment's commands (see the module docstring).
         ``window_s`` <= 0 or inf: one window from the first usable tick to the end."""
         arm = self.arm
-        arm.set_params(params)
+        arm.set_params(with_payload(params, seg))
         self.rollouts += 1
         w_ticks = self.window_ticks(seg, window_s)
         key = (

@@ -47,6 +47,11 @@ class Segment:
     # `fit_starts`), one row per window of the replay that fitted them; None: each window
     # starts from the readings as they are.
     start_fix: FloatArray | None = None
+    # A known load the arm held in its jaws for this segment (`ArmParams.payload_kg`,
+    # `payload_volume_l`): the replay puts it on the twin. A joint excited with and without
+    # one has its torque scale weighed against the load's inertia (docs/identification.md).
+    payload_kg: float = 0.0
+    payload_volume_l: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("q", "qdot", "command_mA"):
@@ -68,6 +73,11 @@ class Segment:
                     "finite delay for at least one command"
                 )
             object.__setattr__(self, "link_delay_s", d)
+        for name in ("payload_kg", "payload_volume_l"):
+            value = float(getattr(self, name))
+            if not (np.isfinite(value) and value >= 0.0):
+                raise ValueError(f"segment {self.name}: {name} must be >= 0, got {value}")
+            object.__setattr__(self, name, value)
         if self.start_fix is not None:
             fix = np.asarray(self.start_fix, dtype=float)
             if fix.ndim != 2 or fix.shape[1] != 2:
@@ -202,7 +212,30 @@ def segment_from_index(
         current_mA=current_mA,
         meta=dict(meta.get("meta", {})),
         link_delay_s=link_delay_s,
+        payload_kg=float(meta.get("payload_kg", 0.0)),
+        payload_volume_l=float(meta.get("payload_volume_l", 0.0)),
     )
+
+
+def segment_suffix(payload_kg: float) -> str:
+    """What a segment's name adds for the load held in the jaws: "" or "+1kg", so that the
+    same wave with and without a load keeps two names."""
+    return f"+{payload_kg:g}kg" if payload_kg else ""
+
+
+def index_entry(seg: Segment) -> dict[str, Any]:
+    """A segment's index entry in a log or recording (`segment_from_index` reads it back)."""
+    entry: dict[str, Any] = {
+        "name": seg.name,
+        "joint": seg.joint,
+        "role": seg.role,
+        "period": seg.period,
+        "meta": seg.meta,
+    }
+    if seg.payload_kg or seg.payload_volume_l:
+        entry["payload_kg"] = seg.payload_kg
+        entry["payload_volume_l"] = seg.payload_volume_l
+    return entry
 
 
 def load_segments(path: Any) -> list[Segment]:
@@ -238,15 +271,7 @@ def save_segments(segments: Sequence[Segment], path: Any, header: dict[str, Any]
             arrays[f"s{i}_current_mA"] = np.asarray(seg.current_mA, dtype=float)
         if seg.link_delay_s is not None:
             arrays[f"s{i}_link_delay_s"] = seg.link_delay_s
-        index.append(
-            {
-                "name": seg.name,
-                "joint": seg.joint,
-                "role": seg.role,
-                "period": seg.period,
-                "meta": seg.meta,
-            }
-        )
+        index.append(index_entry(seg))
     np.savez_compressed(
         path, index=np.array(json.dumps(index)), header=np.array(json.dumps(header)), **arrays
     )

@@ -49,6 +49,7 @@ FloatArray = NDArray[np.float64]
 
 _TCP_SITE = "tcp"
 _BUOYANCY_SUFFIX = "_buoyancy"
+_PAYLOAD_BODY = "payload"  # where a load held in the jaws goes (`ArmParams.payload_kg`)
 COAST_ARMATURE = 1e6
 """kg m^2: a joint with this armature (`MotorArm.coast`) gains 2e-9 rad/s per N m per 2 ms
 step (the arm's own: 0.003-0.2). Not more: at 1e9 MuJoCo's solve lost precision, and a replay
@@ -205,6 +206,11 @@ class MotorArm:
         self._buoy_gravcomp = m.body_gravcomp[self._buoy_ids].copy()
         if np.any(m.body_gravcomp[every] <= 1.0):
             raise RuntimeError("buoyancy bodies need gravcomp > 1 (net upward force)")
+        payload = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, _PAYLOAD_BODY)
+        #: the body a held load is given to, and its buoyancy's (None: the MJCF has none)
+        self._payload = (
+            None if payload < 0 else (payload, m.body(_PAYLOAD_BODY + _BUOYANCY_SUFFIX).id)
+        )
         self._nominal_mass = m.body_mass[self._param_links].copy()
         self._nominal_inertia = m.body_inertia[self._param_links].copy()
         self._collision_geoms = np.array([m.geom(name).id for name in collision_geoms])
@@ -257,6 +263,8 @@ class MotorArm:
             lift = litres * 1e-3 * params.water_density
             m.body_mass[body] = lift / (m.body_gravcomp[body] - 1.0)
 
+        self._set_payload(params)
+
         drag = params.fluid_drag and params.in_water
         m.opt.density = params.water_density if drag else 0.0
         m.opt.viscosity = params.fluid_viscosity if drag else 0.0
@@ -279,6 +287,21 @@ class MotorArm:
         self.jaw_motor.current_limits_mA = (params.jaw_current_limit_mA,)
         mujoco.mj_setConst(m, self._scratch)
         self._params = params
+
+    def _set_payload(self, params: ArmParams) -> None:
+        """The load held in the jaws: its mass, a solid sphere's inertia (a point mass at no
+        volume) and its buoyancy; ValueError on an arm whose model holds none."""
+        if self._payload is None:
+            if params.payload_kg or params.payload_volume_l:
+                raise ValueError(f"the {self.arm_model.title}'s model takes no payload")
+            return
+        m = self.model
+        body, buoy = self._payload
+        radius = (3.0 * params.payload_volume_l * 1e-3 / (4.0 * math.pi)) ** (1.0 / 3.0)
+        m.body_mass[body] = params.payload_kg
+        m.body_inertia[body] = 0.4 * params.payload_kg * radius**2
+        lift = params.payload_volume_l * 1e-3 * params.water_density
+        m.body_mass[buoy] = lift / (m.body_gravcomp[buoy] - 1.0)
 
     def randomize(
         self, spread: float = 0.2, rng: np.random.Generator | int | None = None

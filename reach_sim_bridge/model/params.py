@@ -69,6 +69,11 @@ class ArmParams:
     supply_voltage: float = DEFAULT_SUPPLY_VOLTAGE
     current_limits_mA: Vec = DEFAULT_CURRENT_LIMITS_MA  # type: ignore[assignment]
     torque_scale: Vec = (1.0, 1.0, 1.0, 1.0)
+    # A load held in the jaws, at the tool centre point: mass (kg) and displaced volume
+    # (litres), a solid sphere's inertia. Known loads anchor what identification cannot
+    # otherwise weigh (docs/identification.md, "A known payload").
+    payload_kg: float = 0.0
+    payload_volume_l: float = 0.0
     # Jaw (slide joint A, metres): assumed values, see model/README.md.
     jaw_motor: MotorParams = JAW_MOTOR
     jaw_current_limit_mA: float = DEFAULT_JAW_CURRENT_LIMIT_MA
@@ -114,6 +119,8 @@ class ArmParams:
             "jaw_current_limit_mA",
             "jaw_damping",
             "jaw_frictionloss",
+            "payload_kg",
+            "payload_volume_l",
         ):
             value = float(getattr(self, name))
             if not (math.isfinite(value) and value >= 0.0):

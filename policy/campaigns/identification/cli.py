@@ -32,6 +32,7 @@ figures (measured vs nominal twin vs fitted twin; `report`), with `--truth HIDDE
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -58,6 +59,9 @@ from reach_sim_bridge.model.params import load_arm_params
 from reach_sim_bridge.model.sensors import SensorNoise
 from reach_sim_bridge.model.twin import FittedTwin, write_twin
 
+PAYLOAD_MAX_KG = 2.0
+"""The most `--payload` takes (kg): the Alpha 5's lift at full reach (its datasheet)."""
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
@@ -70,8 +74,10 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument(
         "--fit-only",
         type=Path,
+        nargs="+",
         metavar="LOG",
-        help="refit a recorded excitation: its .npz log or its .rrd recording",
+        help="refit a recorded excitation: its .npz log or its .rrd recording; several are "
+        "fitted together (a run with --payload beside one without)",
     )
     src.add_argument(
         "--virtual",
@@ -90,6 +96,24 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--seed", type=int, default=0, help="with --virtual: the sensor noise's seed (default 0)"
+    )
+    p.add_argument(
+        "--payload",
+        type=float,
+        metavar="KG",
+        help="a known load held in the jaws (a compact dense mass, e.g. 1 kg of dive lead; the "
+        "Alpha 5 lifts 2 kg at full reach): its inertia weighs E's torque scale, which nothing "
+        "else does. With --virtual, E's fitting motions run again holding it. With --port, the "
+        "arm holds it throughout (--joints E only): fit that log together with one without "
+        "(--fit-only bare.log.npz loaded.log.npz)",
+    )
+    p.add_argument(
+        "--payload-volume",
+        type=float,
+        default=0.0,
+        metavar="LITRES",
+        help="the water the --payload displaces, litres (default 0; 1 kg of lead: 0.09); its "
+        "buoyancy loads D and C, not E",
     )
     p.add_argument("--out", type=Path, required=True, metavar="PARAMS.json")
     p.add_argument("--log", type=Path, metavar="LOG.npz", help="default: PARAMS.log.npz")
@@ -158,6 +182,27 @@ def _pair(text: str) -> tuple[float, float]:
     return q, v
 
 
+def _payload_problem(args: argparse.Namespace, joints: list[int]) -> str | None:
+    """Why `--payload` cannot be used as given (None: it can)."""
+    kg, litres = args.payload, args.payload_volume
+    if not (math.isfinite(kg) and 0.0 < kg <= PAYLOAD_MAX_KG):
+        return f"--payload takes a mass in kg, over 0 and at most {PAYLOAD_MAX_KG:g}, got {kg:g}"
+    if not (math.isfinite(litres) and litres >= 0.0):
+        return f"--payload-volume takes litres >= 0, got {litres:g}"
+    e = JOINT_LETTERS.index("E")
+    if args.fit_only is not None:
+        return "--payload is how an excitation was run; a log keeps it (--fit-only reads it)"
+    if args.virtual is not None and e not in joints:
+        return "--payload weighs E's torque scale: --joints must include E"
+    if args.port is not None and joints != [e]:
+        return (
+            "--payload with --port: the arm holds the load throughout, and it weighs E only "
+            "(C and D are weighed by the wrist; B turns about the load): give --joints E, and "
+            "fit with the log of a run without it (--fit-only bare.log.npz loaded.log.npz)"
+        )
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     console = Console(stderr=True, soft_wrap=True)
@@ -170,18 +215,27 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError:
         console.print(f"[red]error:[/] --joints takes letters of E D C B, got {args.joints!r}")
         return 2
+    payload = (0.0, 0.0)
+    if args.payload is not None:
+        problem = _payload_problem(args, joints)
+        if problem:
+            console.print(f"[red]error:[/] {problem}")
+            return 2
+        payload = (float(args.payload), float(args.payload_volume))
     truth = load_arm_params(args.truth) if args.truth else None
     session: Session | None = None
     if args.fit_only is not None:
-        try:
-            if args.fit_only.suffix == ".rrd":
-                segments = load_recording(args.fit_only)
-            else:
-                segments = load_segments(args.fit_only)
-        except (OSError, ValueError, KeyError) as exc:
-            console.print(f"[red]cannot read {args.fit_only}:[/] {exc}")
-            return 2
-        log_path = args.fit_only
+        segments = []
+        for path in args.fit_only:
+            try:
+                if path.suffix == ".rrd":
+                    segments += load_recording(path)
+                else:
+                    segments += load_segments(path)
+            except (OSError, ValueError, KeyError) as exc:
+                console.print(f"[red]cannot read {path}:[/] {exc}")
+                return 2
+        log_path = args.fit_only[0]
     elif args.virtual is not None:
         try:
             hidden = load_arm_params(args.virtual)
@@ -198,6 +252,17 @@ def main(argv: list[str] | None = None) -> int:
             seed=args.seed,
             max_current_mA=args.max_current,
         )
+        if args.payload is not None:
+            # E's fitting motions again, the virtual arm holding the load
+            segments += excite_virtual(
+                replace(hidden, payload_kg=payload[0], payload_volume_l=payload[1]),
+                [JOINT_LETTERS.index("E")],
+                [w for w in plan(args.scale) if w.role == "fit"],
+                rate_hz=args.rate,
+                noise=noise,
+                seed=args.seed + 1,
+                max_current_mA=args.max_current,
+            )
         session = Session(segments=segments)
         session.arm_seconds = sum(x.ticks * x.period for x in segments)
         header = {"virtual": str(args.virtual), "rate_hz": args.rate, "scale": args.scale}
@@ -252,6 +317,7 @@ def main(argv: list[str] | None = None) -> int:
                 session,
                 max_current,
                 recorder,
+                payload,
             )
         except KeyboardInterrupt:
             interrupted = True

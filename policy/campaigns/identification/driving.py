@@ -18,8 +18,9 @@ from protocol import Mode, PacketID
 from protocol.alpha5 import JOINT_LETTERS, JOINTS
 from reach_driver import ArmClient, ControlLoop, DriverError
 from reach_driver.errors import NoResponseError, RequestTimeoutError
-from reach_sim_bridge.fit.segments import Segment
+from reach_sim_bridge.fit.segments import Segment, segment_suffix
 from reach_sim_bridge.model.arm import Alpha5Arm
+from reach_sim_bridge.model.params import ArmParams
 
 RETRIES = 4  # per segment, after a watchdog trip or a feedback stall
 MOVE_SILENCE_S = 3.0  # a move gives up when the arm has not answered for this long
@@ -88,11 +89,14 @@ def excite(
     session: Session,
     max_current: np.ndarray,
     recorder: ExcitationRecorder | None = None,
+    payload: tuple[float, float] = (0.0, 0.0),
 ) -> None:
     """Run every wave on every joint, appending to `session` (and `recorder`) as segments
-    finish."""
+    finish. `payload`: the known load (kg, litres) the arm holds in its jaws throughout; the
+    segments are tagged with it and the hold's gravity feed-forward counts it."""
     period = 1.0 / rate_hz
-    twin = Alpha5Arm()
+    kg, litres = payload
+    twin = Alpha5Arm(ArmParams(payload_kg=kg, payload_volume_l=litres))
     amps = Amplitudes()
     total = sum(w.seconds for w in waves) * len(joints)
     with Progress(
@@ -147,7 +151,7 @@ def excite(
                     amps.learn(j, wave.speed, controller.amplitude)
                 timing = stamps.timing(trace.t, trace.dt)
                 segment = Segment(
-                    name=f"{letter}{k}-{wave.kind}-{wave.pose}",
+                    name=f"{letter}{k}-{wave.kind}-{wave.pose}{segment_suffix(kg)}",
                     joint=j,
                     role=wave.role,
                     period=trace.dt,
@@ -167,6 +171,8 @@ def excite(
                         "link_delay_p99_ms": None if timing is None else timing.p99_s * 1e3,
                     },
                     link_delay_s=None if timing is None else timing.delays_s,
+                    payload_kg=kg,
+                    payload_volume_l=litres,
                 )
                 session.segments.append(segment)
                 if recorder is not None:

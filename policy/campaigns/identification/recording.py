@@ -16,7 +16,13 @@ from rich.console import Console
 from protocol.alpha5 import N_JOINTS
 from reach_driver import DriverError
 from reach_driver.records import StepRecord
-from reach_sim_bridge.fit.segments import LinkTiming, Segment, link_delays, segment_from_index
+from reach_sim_bridge.fit.segments import (
+    LinkTiming,
+    Segment,
+    index_entry,
+    link_delays,
+    segment_from_index,
+)
 
 
 @dataclass
@@ -148,11 +154,7 @@ class ExcitationRecorder:
             return
         self.index.append(
             {
-                "name": seg.name,
-                "joint": seg.joint,
-                "role": seg.role,
-                "period": seg.period,
-                "meta": seg.meta,
+                **index_entry(seg),
                 "first_step": self.step,
                 "rows": n + 1,
                 "t0": t0,

@@ -15,7 +15,7 @@ import numpy as np
 from policy.controllers.excitation import Amplitudes, Excitation, Wave, pose
 from protocol.alpha5 import JOINT_LETTERS, N_JOINTS
 from reach_driver.controllers import ControlState
-from reach_sim_bridge.fit.segments import Segment
+from reach_sim_bridge.fit.segments import Segment, segment_suffix
 from reach_sim_bridge.model.arm import Alpha5Arm
 from reach_sim_bridge.model.params import ArmParams
 from reach_sim_bridge.model.sensors import SensorNoise
@@ -38,9 +38,13 @@ def excite_virtual(
 ) -> list[Segment]:
     """Every wave on every joint of the arm `params`, as `tools/identify.py` runs them: each
     segment from rest at its pose, the other joints held by the excitation's PID, readings with
-    `noise` (seeded by `seed`), currents capped at 80 % of `max_current_mA` (B: half of it)."""
+    `noise` (seeded by `seed`), currents capped at 80 % of `max_current_mA` (B: half of it).
+    Segments are tagged with the load `params` holds in its jaws (`payload_kg`)."""
     arm = Alpha5Arm(params=params)
-    twin = Alpha5Arm()
+    # the hold's gravity feed-forward knows the load the arm holds (`ArmParams.payload_kg`)
+    twin = Alpha5Arm(
+        ArmParams(payload_kg=params.payload_kg, payload_volume_l=params.payload_volume_l)
+    )
     substeps = int(round(1.0 / (rate_hz * arm.dt)))
     if substeps < 1 or not 0 <= delay_steps < substeps:
         raise ValueError(f"delay of {delay_steps} steps does not fit a {1 / rate_hz:g} s tick")
@@ -76,7 +80,7 @@ def excite_virtual(
                 amps.learn(j, wave.speed, ctl.amplitude)
             out.append(
                 Segment(
-                    name=f"{JOINT_LETTERS[j]}{k}-{wave.kind}-{wave.pose}",
+                    name=f"{JOINT_LETTERS[j]}{k}-{wave.kind}-{wave.pose}{segment_suffix(params.payload_kg)}",
                     joint=j,
                     role=wave.role,
                     period=period,
@@ -91,6 +95,8 @@ def excite_virtual(
                     },
                     # what the driver's timestamps would have measured (`link_delays`)
                     link_delay_s=np.full(n + 1, delay_steps * arm.dt),
+                    payload_kg=params.payload_kg,
+                    payload_volume_l=params.payload_volume_l,
                 )
             )
     return out
