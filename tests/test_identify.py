@@ -570,3 +570,17 @@ def test_identify_refuses_a_bravo_before_anything_moves(
     assert "nothing was sent" in lines[0]
     assert all(server.firmware.mode(d) == Mode.STANDBY for d in range(1, 8))
     assert list(out.parent.iterdir()) == []  # no log, recording or parameters written
+
+
+def test_several_logs_are_read_together_and_a_bad_one_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--fit-only` takes a bare run's log and a loaded one's (`--payload` through the
+    driver); one that cannot be read is named, and nothing is written."""
+    good = tmp_path / "bare.log.npz"
+    save_segments([_record(ArmParams(), 0, "relay", 0.5)], good, {"port": "x"})
+    missing = tmp_path / "loaded.log.npz"
+    out = tmp_path / "arm.json"
+    assert identify_main(["--fit-only", str(good), str(missing), "--out", str(out)]) == 2
+    assert f"cannot read {missing}" in capsys.readouterr().err.replace("\n", "")
+    assert not out.exists()

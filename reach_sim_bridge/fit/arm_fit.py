@@ -442,7 +442,8 @@ def unanchored(joint: int, result: FitResult) -> ScaleVerdict:
     if letter == "E":
         why = (
             "E turns about the vertical: no load weighs its torque against a known one (a "
-            "known load in the jaws would: identify.py --payload)"
+            "known load in the jaws would, E's motions logged with and without it: "
+            "identify.py --payload)"
         )
     elif letter == "B":
         why = (

@@ -357,7 +357,8 @@ def main(argv: list[str] | None = None) -> int:
     outcome, replay = fit(
         segments, console, args.window, args.iterations, fit_starts=not args.no_fit_starts
     )
-    meta = fit_metadata(outcome, session, args.window, log_path)
+    logs = " + ".join(str(x) for x in args.fit_only) if args.fit_only else log_path
+    meta = fit_metadata(outcome, session, args.window, logs)
     write_twin(FittedTwin(outcome.params, meta), out)
     console.print(f"wrote {out}")
     for key, q in outcome.fitted_quality.items():

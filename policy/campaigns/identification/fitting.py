@@ -125,9 +125,10 @@ def fit(
 
 
 def fit_metadata(
-    outcome: FitOutcome, session: Session | None, window_s: float, log_path: Path | None
+    outcome: FitOutcome, session: Session | None, window_s: float, log_path: Path | str | None
 ) -> FitMetadata:
-    """What the fitted twin's file keeps of the fit (`FittedTwin.fit`)."""
+    """What the fitted twin's file keeps of the fit (`FittedTwin.fit`); `log_path`: the log
+    (or logs, joined) it read."""
     return FitMetadata(
         method="least squares over MuJoCo rollouts (reach_sim_bridge.fit), multiple "
         f"shooting over {window_s:g} s windows"
