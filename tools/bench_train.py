@@ -67,8 +67,14 @@ def bench_ours(
 def bench_sb3(
     env_config: EnvConfig, warmup: int, steps: int, seed: int
 ) -> Callable[[], dict[str, float]]:
-    from stable_baselines3 import DDPG
-    from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
+    try:
+        from stable_baselines3 import DDPG
+        from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
+    except ImportError:
+        raise SystemExit(
+            "bench_train.py compares against Stable-Baselines3, which the bench extra installs: "
+            "make bench (or pip install -e '.[bench]')"
+        ) from None
 
     env = time_limited(ReachAlphaEnv(env_config))  # as gym.make builds it: SB3 needs the limit
     noise = OrnsteinUhlenbeckActionNoise(np.zeros(4), 0.2 * np.ones(4))
