@@ -254,6 +254,12 @@ def test_a_load_is_refused_where_the_model_holds_none() -> None:
     nominal = Bravo7Arm().params
     with pytest.raises(ValueError, match="takes no payload"):
         Bravo7Arm(params=replace(nominal, payload_kg=1.0))
+    bravo = Bravo7Arm()
+    lighter = replace(nominal, armature=tuple(0.5 * a for a in nominal.armature))
+    with pytest.raises(ValueError, match="takes no payload"):
+        bravo.set_params(replace(lighter, payload_kg=1.0))
+    assert bravo.params == nominal  # refused whole: nothing of it applied
+    np.testing.assert_allclose(bravo.model.dof_armature[:6], nominal.armature)
 
 
 def test_arm_held_by_its_gravity_torque_stays_put() -> None:

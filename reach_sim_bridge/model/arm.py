@@ -232,13 +232,16 @@ class MotorArm:
 
     def set_params(self, params: ArmParams) -> None:
         """Apply parameters to the compiled model in place (no recompilation; state kept);
-        ValueError for parameters of another number of joints."""
+        ValueError, with nothing changed, for parameters of another number of joints or a
+        payload on a model that holds none."""
         n = self._n
         if params.n_joints != n:
             raise ValueError(
                 f"arm parameters of {params.n_joints} joints for the {self.arm_model.title} "
                 f"({n} joints)"
             )
+        if self._payload is None and (params.payload_kg or params.payload_volume_l):
+            raise ValueError(f"the {self.arm_model.title}'s model takes no payload")
         if params.motors != self.motor.params or params.jaw_motor != self.jaw_motor.params:
             self.motor = MotorModel(params.motors)
             self.jaw_motor = MotorModel(params.jaw_motor)
@@ -290,10 +293,8 @@ class MotorArm:
 
     def _set_payload(self, params: ArmParams) -> None:
         """The load held in the jaws: its mass, a solid sphere's inertia (a point mass at no
-        volume) and its buoyancy; ValueError on an arm whose model holds none."""
+        volume) and its buoyancy (`set_params` has refused one on a model that holds none)."""
         if self._payload is None:
-            if params.payload_kg or params.payload_volume_l:
-                raise ValueError(f"the {self.arm_model.title}'s model takes no payload")
             return
         m = self.model
         body, buoy = self._payload

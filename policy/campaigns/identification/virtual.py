@@ -45,6 +45,7 @@ def excite_virtual(
     twin = Alpha5Arm(
         ArmParams(payload_kg=params.payload_kg, payload_volume_l=params.payload_volume_l)
     )
+    suffix = segment_suffix(params.payload_kg)
     substeps = int(round(1.0 / (rate_hz * arm.dt)))
     if substeps < 1 or not 0 <= delay_steps < substeps:
         raise ValueError(f"delay of {delay_steps} steps does not fit a {1 / rate_hz:g} s tick")
@@ -80,7 +81,7 @@ def excite_virtual(
                 amps.learn(j, wave.speed, ctl.amplitude)
             out.append(
                 Segment(
-                    name=f"{JOINT_LETTERS[j]}{k}-{wave.kind}-{wave.pose}{segment_suffix(params.payload_kg)}",
+                    name=f"{JOINT_LETTERS[j]}{k}-{wave.kind}-{wave.pose}{suffix}",
                     joint=j,
                     role=wave.role,
                     period=period,
