@@ -84,6 +84,12 @@ INGREDIENTS: tuple[Ingredient, ...] = (
         ("env.goal_every_s=5.0",),
     ),
     Ingredient(
+        "smooth-spatial",
+        "CAPS's spatial smoothness in the actor's loss (off in the recipe): || pi(s) - pi(s~) ||, "
+        "s~ read with fresh sensor noise, weight 1: the actor learns not to answer the noise",
+        ("smooth_spatial_weight=1",),
+    ),
+    Ingredient(
         "gamma-0.99",
         "discount 0.99 (a 5 s horizon at 20 Hz; the recipe 0.95, 1 s): the paper's, its values "
         "five times the size, an arrival's overshoot a smaller share of them",

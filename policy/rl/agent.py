@@ -25,6 +25,7 @@ from torch import nn
 from policy.rl.checkpoint import load_actor_npz
 from policy.rl.config import Algorithm, DDPGConfig
 from policy.rl.networks import Actor, Critic, GaussianActor
+from policy.rl.smoothness import input_noise_std, spatial_loss, temporal_loss
 from protocol.alpha5 import N_JOINTS
 
 
@@ -69,6 +70,15 @@ class Agent:
         #: the target policy noise's (SAC: the actor's samples') own generator: it does not
         #: shift torch's global stream
         self.gen = torch.Generator().manual_seed(config.seed + 1)
+        #: per input, the sensor noise's spread (the spatial smoothness term's perturbation)
+        self.input_noise: torch.Tensor | None = None
+        if config.smooth_spatial_weight > 0:
+            self.input_noise = torch.from_numpy(input_noise_std(config.env))
+            if self.input_noise.shape != (obs_dim,):
+                raise ValueError(
+                    f"the env's observation has {self.input_noise.shape[0]} inputs, the actor "
+                    f"{obs_dim}"
+                )
 
     def load_actor_npz(self, path: str | Path) -> None:
         """Actor, target and averaged actor from shipped-format weights."""
@@ -137,7 +147,8 @@ class Agent:
         if self.updates % cfg.policy_delay != 0:  # TD3: the actor and targets wait
             return info
 
-        # 3. the actor loss: -Q(s, pi(s)), plus TD3+BC's pull towards the expert's action
+        # 3. the actor loss: -Q(s, pi(s)), plus TD3+BC's pull towards the expert's action and
+        #    CAPS's smoothness terms, where configured
         pi = self.actor(obs)
         q_pi = self.critics[0](obs, pi)
         if bc_weight > 0:
@@ -156,6 +167,15 @@ class Agent:
             info["bc_loss"] = float(bc.detach())
         else:
             actor_loss = -q_pi.mean()
+        # CAPS: answer sensor noise and consecutive states alike (policy/rl/smoothness.py)
+        if self.input_noise is not None:
+            spatial = spatial_loss(self.actor, obs, pi, self.input_noise, self.gen)
+            actor_loss = actor_loss + cfg.smooth_spatial_weight * spatial
+            info["spatial_loss"] = float(spatial.detach())
+        if cfg.smooth_temporal_weight > 0:
+            temporal = temporal_loss(self.actor, pi, next_obs)
+            actor_loss = actor_loss + cfg.smooth_temporal_weight * temporal
+            info["temporal_loss"] = float(temporal.detach())
         self.actor_opt.zero_grad(set_to_none=True)
         # gradients for the actor only: the critic weights need none here (saves ~1/3 of the
         # critic backward pass)

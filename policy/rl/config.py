@@ -9,6 +9,7 @@ in its run directory and beside the weights, so every field round-trips through 
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
@@ -138,6 +139,13 @@ class DDPGConfig:
     #: (best_actor.npz); the online actor still explores and learns as before, and is
     #: scored beside it (best_online_actor.npz). 0: the online actor is scored and kept
     actor_average_tau: float = 0.0
+    #: CAPS's spatial smoothness (policy/rl/smoothness.py): the actor's loss adds this times
+    #: the mean || pi(s) - pi(s~) ||, s~ the same state read with fresh sensor noise, so the
+    #: actor learns not to turn the noise into currents at the goal. 0: off
+    smooth_spatial_weight: float = 0.0
+    #: CAPS's temporal smoothness: this times the mean || pi(s_t) - pi(s_t+1) || over the
+    #: batch's transitions. 0: off
+    smooth_temporal_weight: float = 0.0
     #: goal relabelling (policy/rl/relabel.py): each finished episode is also stored this
     #: many times, each with a goal drawn from the true angles the arm passed through, its
     #: observations and rewards recomputed for it. 0: off
@@ -208,6 +216,14 @@ class DDPGConfig:
                 raise ValueError("sac_alpha must be > 0 and sac_alpha_lr >= 0")
         if not 0 <= self.actor_average_tau < 1:
             raise ValueError(f"actor_average_tau must be in [0, 1), got {self.actor_average_tau}")
+        for name in ("smooth_spatial_weight", "smooth_temporal_weight"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        if self.algorithm is Algorithm.SAC and (
+            self.smooth_spatial_weight > 0 or self.smooth_temporal_weight > 0
+        ):
+            raise ValueError("the smoothness terms are DDPG's actor loss; SAC has its own")
         if isinstance(self.her_goals, bool) or not isinstance(self.her_goals, int):
             raise ValueError(f"her_goals must be a whole number, got {self.her_goals!r}")
         if self.her_goals < 0:
