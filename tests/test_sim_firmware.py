@@ -373,6 +373,17 @@ def test_sensor_noise_changes_reports_not_the_arm() -> None:
     assert readings.std() == pytest.approx(0.01, rel=0.2)
 
 
+def test_scaled_sensor_noise_spreads_readings_by_the_factor() -> None:
+    # A run's noise_scale multiplies both sigmas; zero reads the true state.
+    rng = np.random.default_rng(3)
+    q, qdot = np.zeros(2000), np.zeros(2000)
+    q_n, qdot_n = SensorNoise(0.002, 0.02).scaled(2.5).apply(q, qdot, rng)
+    assert q_n.std() == pytest.approx(0.005, rel=0.1)
+    assert qdot_n.std() == pytest.approx(0.05, rel=0.1)
+    q_0, qdot_0 = SensorNoise().scaled(0.0).apply(q, qdot, rng)
+    assert not q_0.any() and not qdot_0.any()
+
+
 def test_wire_bytes_of_a_reply_match_the_conformance_vector() -> None:
     # bpl-vectors.json: "SOFTWARE_VERSION 1.2.3 from device 0x02".
     fw = Firmware(Alpha5Arm(), FirmwareConfig(software_version=(1, 2, 3)))

@@ -551,7 +551,7 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         #: this episode's envelope arm (None: the configured arm) and what it sets
         self.variant: Variant | None = None
         self.latency_substeps = self._latency(config.latency_periods)
-        self.noise = self._noise(config.noise_scale)
+        self.noise = SENSOR_NOISE.scaled(config.noise_scale)
         #: commands in flight: (physics step they take effect at, currents mA)
         self._pending: deque[tuple[int, np.ndarray]] = deque()
         self._applied = np.zeros(n)
@@ -598,7 +598,7 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         latency = cfg.latency_periods if variant is None else variant.latency_periods
         noise_scale = cfg.noise_scale if variant is None else variant.noise_scale
         self.latency_substeps = self._latency(latency)
-        self.noise = self._noise(noise_scale)
+        self.noise = SENSOR_NOISE.scaled(noise_scale)
         self.start, self.target = start, target
         self.arm.torque_scale = scale.copy()
         self.arm.reset(q=start.copy())
@@ -675,10 +675,6 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def _latency(self, periods: float) -> int:
         return int(round(periods * self.n_substeps))
-
-    @staticmethod
-    def _noise(scale: float) -> SensorNoise:
-        return SensorNoise(SENSOR_NOISE.position_std * scale, SENSOR_NOISE.velocity_std * scale)
 
     def _advance(self, currents: np.ndarray) -> np.ndarray | None:
         """One control period of physics: `currents` join the commands in flight and each

@@ -47,8 +47,7 @@ def input_noise_std(env: EnvConfig, samples: int = 2048, seed: int = 0) -> np.nd
     model = env.model
     workspace = Workspace.of(model)
     rng = np.random.default_rng(seed)
-    noise = SENSOR_NOISE
-    scale = env.noise_scale
+    noise = SENSOR_NOISE.scaled(env.noise_scale)
     dt = 1.0 / env.control_hz
     n = model.n_joints
     periods = env.observation.history + 1
@@ -62,8 +61,7 @@ def input_noise_std(env: EnvConfig, samples: int = 2048, seed: int = 0) -> np.nd
         noisy = InputMemory(env.observation, dt, workspace)
         for _ in range(periods):
             obs = exact.observe(q, qdot, target)
-            q_n = q + rng.normal(0.0, noise.position_std * scale, n)
-            qdot_n = qdot + rng.normal(0.0, noise.velocity_std * scale, n)
+            q_n, qdot_n = noise.apply(q, qdot, rng)
             obs_n = noisy.observe(q_n, qdot_n, target)
             exact.acted(np.zeros(n))
             noisy.acted(np.zeros(n))

@@ -32,6 +32,10 @@ class SensorNoise:
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"sensor noise {name} must be a finite number >= 0, got {value}")
 
+    def scaled(self, factor: float) -> SensorNoise:
+        """Both standard deviations times `factor` (a run's `noise_scale`)."""
+        return SensorNoise(self.position_std * factor, self.velocity_std * factor)
+
     def apply(
         self, q: np.ndarray, qdot: np.ndarray, rng: np.random.Generator
     ) -> tuple[np.ndarray, np.ndarray]:
