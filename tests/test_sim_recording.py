@@ -138,10 +138,14 @@ def test_a_capped_recording_rotates_into_parts_that_each_read(tmp_path: Path) ->
     runs = [read_recording(f) for f in files]  # oldest first
     numbers = [int(r.metadata["part"]) for r in runs]  # type: ignore[call-overload]
     assert numbers == sorted(numbers) and numbers[-1] == recorder.rotations
-    for older, newer in zip(runs, runs[1:], strict=False):
+    first = [int(r.metadata["first_sample"]) for r in runs]  # type: ignore[call-overload]
+    for older, newer, start, after in zip(runs, runs[1:], first, first[1:], strict=False):
         assert len(older.step) and older.t[-1] <= newer.t[0]
-        # Nothing lost between parts beyond the idle rate's own gaps (2 Hz).
-        assert newer.t[0] - older.t[-1] <= 1.0 / recorder.idle_rate_hz + 0.1
+        # Nothing lost at a rotation: every sample logged before it is in the older part.
+        # (Counted, not timed: how far apart in arm time two samples land depends on how
+        # promptly the host schedules the recorder's thread beside an arm at 5x.)
+        assert start + len(older.step) == after, (start, len(older.step), after)
+    assert first[-1] + len(runs[-1].step) == recorder.samples
     # Every part states the modes it starts with.
     assert all(any(text.startswith("modes:") for _, _, text in r.events) for r in runs)
 

@@ -448,6 +448,9 @@ class SimRecorder:
             "idle_rate_hz": self.idle_rate_hz,
             "speed": self.server.config.speed,
             "part": self.rotations,  # 0 for the first file written, counting up
+            # How many samples the parts before this one hold: parts that join without a gap
+            # satisfy first_sample + its own sample count == the next part's first_sample.
+            "first_sample": self.samples,
             "max_bytes": self.max_bytes,
             "parts": self.parts,
         }
