@@ -2,7 +2,8 @@
 
 `reach-driver` commands run against a virtual arm (its pty or UDP address put where the text
 names a port; a virtual Bravo 7 where the port names a `bravo7`; durations cut short, run in
-order in one directory so `inspect run.rrd` finds the recording `run --record run.rrd` wrote);
+one directory; a recording that `inspect` or `export` reads is made first by the documented
+command that records it, where no earlier command on this worker has);
 a command with `...` in it, `reach-sim` (a server), `rerun` (a viewer) and the tools (minutes of
 work) are parsed by their own parser or asked for `--help`; `make` targets must exist. A command
 that no longer parses fails.
@@ -149,14 +150,10 @@ def test_documented_command_works(doc, command, arm, request, monkeypatch, capsy
             head = args[: args.index("...")]
             _parses(build_parser(), head + _required(head))
             return
-        port = args[args.index("--port") + 1] if "--port" in args else ""
-        if "bravo7" in port:
-            server = request.getfixturevalue("bravo")
-        argv = _for_the_virtual_arm(args, server)
-        _parses(build_parser(), argv)
-        code = main(argv)
-        captured = capsys.readouterr()
-        assert code == Exit.OK, f"{' '.join(argv)} -> {code}\n{captured.out}\n{captured.err}"
+        for needed in _recordings_read(args):
+            if not (work / needed).exists():  # its maker ran on another worker (xdist)
+                _run_driver(_recorded_by(needed), server, request, capsys)
+        _run_driver(args, server, request, capsys)
     elif program == "reach-sim":
         from reach_sim_bridge.cli import build_parser as sim_parser
 
@@ -174,6 +171,37 @@ def test_documented_command_works(doc, command, arm, request, monkeypatch, capsy
         _help([sys.executable, str(ROOT / script)])
     else:
         pytest.fail(f"{doc}: no rule for {command!r}; add one to this test")
+
+
+def _run_driver(args: list[str], server: SimServer, request, capsys) -> None:
+    """`reach-driver ARGS` against the virtual arm (the Bravo 7 where the port names one)."""
+    port = args[args.index("--port") + 1] if "--port" in args else ""
+    if "bravo7" in port:
+        server = request.getfixturevalue("bravo")
+    argv = _for_the_virtual_arm(args, server)
+    _parses(build_parser(), argv)
+    code = main(argv)
+    captured = capsys.readouterr()
+    assert code == Exit.OK, f"{' '.join(argv)} -> {code}\n{captured.out}\n{captured.err}"
+
+
+def _recordings_read(args: list[str]) -> list[str]:
+    """The recordings `reach-driver inspect|export FILE.rrd` reads."""
+    if not {"inspect", "export"} & set(args):
+        return []
+    return [a for a in args if a.endswith(".rrd")]
+
+
+def _recorded_by(name: str) -> list[str]:
+    """The arguments of the documented command that records `name` (`run ... --record NAME`)
+    against the virtual arm: the order the docs give it in is not the order xdist's workers
+    run their share in."""
+    for _, command in ALL:
+        words = shlex.split(command)
+        if _program(words[0]) == "reach-driver" and "--record" in words:
+            if words[words.index("--record") + 1] == name:
+                return words[1:]
+    pytest.fail(f"no documented command records {name}")
 
 
 def _installs_what_pyproject_defines(args: list[str]) -> None:
