@@ -121,6 +121,22 @@ def test_the_residual_has_one_length_whatever_the_delay() -> None:
     assert len(lengths) == 1
 
 
+def test_a_bounded_cost_is_the_residuals_or_cut_short() -> None:
+    """`Replay.cost`, what the coarse start's and the offsets' grids score points with: the
+    residuals' squared sum to the last bit, or inf once the windows replayed so far cost more
+    than the bound (a point that cannot be the lowest); never cut at its own cost."""
+    seg = _record(ArmParams(), 0, "relay", 2.0)
+    replay = Replay(window_s=0.5)
+    p = ArmParams().randomized(3)
+    r = replay.residuals(p, 0.004, [seg, seg])
+    full = float(r @ r)
+    assert replay.cost(p, 0.004, [seg, seg]) == full
+    assert replay.cost(p, 0.004, [seg, seg], above=full) == full
+    before = replay.rollouts
+    assert replay.cost(p, 0.004, [seg, seg], above=full / 4) == math.inf
+    assert replay.rollouts - before == 1  # the second segment was not replayed
+
+
 def test_the_fit_recovers_friction_armature_and_delay() -> None:
     truth = ArmParams().randomized(9)
     segs = [_record(truth, 0, "relay", 4.0), _record(truth, 0, "chirp", 4.0)]

@@ -40,6 +40,7 @@ from reach_sim_bridge.fit.replay import (
     param_value,
     params_with,
     ref_name,
+    schedule_key,
 )
 from reach_sim_bridge.fit.segments import Segment, segment_delays
 from reach_sim_bridge.model.params import ArmParams
@@ -83,31 +84,46 @@ def tune_offsets(
     step grid the residual is piecewise constant in the offset (no gradient to follow), and
     the offset left by the timestamps' clock mapping differs from run to run by a fraction of
     a millisecond (the least transit seen in that run)."""
-    out = []
-    for seg in segments:
-        if seg.link_delay_s is not None:
-            grid = np.arange(-OFFSET_SPAN_S, OFFSET_SPAN_S + 1e-12, OFFSET_STEP_S)
-        else:
-            grid = np.arange(0.0, CONSTANT_DELAY_MAX_S + 1e-12, OFFSET_STEP_S)
+    return [
+        replace(seg, offset_s=_best_offset(replay, params, seg, velocity_weight))
+        for seg in segments
+    ]
 
-        def cost(offset: float, seg: Segment = seg) -> float:
-            r = replay.residuals(
-                params, 0.0, [replace(seg, offset_s=float(offset))], velocity_weight
-            )
-            return float(r @ r)
 
-        costs = [cost(o) for o in grid]
-        best_cost, best = min(zip(costs, grid.tolist(), strict=True))
-        step = float(grid[1] - grid[0]) if grid.size > 1 else OFFSET_STEP_S
-        for _ in range(2):  # refine: half a step either side, twice
-            step /= 2
-            for o in (best - step, best + step):
-                c = cost(o)
-                if c < best_cost:
-                    best_cost, best = c, o
-        candidates = [(best_cost, best)]
-        out.append(replace(seg, offset_s=min(candidates)[1]))
-    return out
+def _best_offset(replay: Replay, params: ArmParams, seg: Segment, velocity_weight: float) -> float:
+    """`tune_offsets` on one segment: its best offset."""
+    if seg.link_delay_s is not None:
+        grid = np.arange(-OFFSET_SPAN_S, OFFSET_SPAN_S + 1e-12, OFFSET_STEP_S)
+    else:
+        grid = np.arange(0.0, CONSTANT_DELAY_MAX_S + 1e-12, OFFSET_STEP_S)
+    # cost by schedule: on the arm's command step neighbouring offsets often land every
+    # command alike, and so replay alike
+    seen: dict[bytes, float] = {}
+
+    def cost(offset: float, above: float) -> float:
+        trial = [replace(seg, offset_s=float(offset))]
+        key = schedule_key(replay.plan(trial[0], 0.0))
+        if key not in seen or (seen[key] == math.inf and above == math.inf):
+            # replayed only as far as it takes to see it cost more than `above`
+            # (`Replay.cost`); the bounds only fall, so a point cut short stays cut short
+            seen[key] = replay.cost(params, 0.0, trial, velocity_weight, above=above)
+        return seen[key]
+
+    # Each point bounded by the lowest cost before it: the costs kept, and so the choice (the
+    # lowest, the smaller offset on a tie), are what the whole grid replayed in full gives.
+    costs: list[float] = []
+    for o in grid.tolist():
+        costs.append(cost(o, min(costs, default=math.inf)))
+    best_cost, best = min(zip(costs, grid.tolist(), strict=True))
+    step = float(grid[1] - grid[0]) if grid.size > 1 else OFFSET_STEP_S
+    for _ in range(2):  # refine: half a step either side, twice
+        step /= 2
+        for o in (best - step, best + step):
+            c = cost(o, best_cost)
+            if c < best_cost:
+                best_cost, best = c, o
+    candidates = [(best_cost, best)]
+    return float(min(candidates)[1])
 
 
 @dataclass(frozen=True)
@@ -160,6 +176,9 @@ def fit_arm(
     quanta = tuple(quanta) or (replay.quantum_s,)
     replay.quantum_s = float(quanta[0])
 
+    # `one`'s fits before their polish, by what they depend on
+    before_polish: dict[tuple[object, ...], FitResult] = {}
+
     def one(
         base: ArmParams, j: int, refs: list[ParamRef], coarse: bool = True
     ) -> tuple[FitResult, list[Segment]]:
@@ -174,33 +193,44 @@ def fit_arm(
         # Offsets start at zero (the timestamps' word): tuned on an arm still far from
         # this one they would soak up its errors, the very trade-off they are to avoid.
         ready = [replace(x, offset_s=0.0) for x in segs]
-        starts = [base]
-        if coarse:
-            # the wrist is D's load too, but D's grid leaves it (x3 the rollouts) to D's fit
-            grid = [r for r in refs if not (r == WRIST_LOAD and j == D)]
-            starts = coarse_start(replay, ready, base, refs, grid=grid)
-        # from each start (`coarse_start`), the one that ends lower kept
-        tried = [
-            fit_joint(
-                replay,
-                ready,
-                start,
-                0.0,
-                refs,
-                max_iter=max_iter,
-                on_iteration=note,
-                # window starts only in the polish: fitted beside an arm still far from this
-                # one they soak up its errors as the offsets would (and mislead the offsets)
-                fit_starts=False,
+        # What this stage does depends on the replay only through the segments' schedules
+        # (from a coarse start, whose first replay resets the arm, not on what ran before):
+        # asked again with the same ones it would do it again to the last bit. That is the
+        # first joint's fit on another command step (below) when its schedules at offset 0
+        # come out alike, or are the ones `Replay.plan` kept.
+        key = (j, repr(base), tuple(refs), tuple(schedule_key(replay.plan(x, 0.0)) for x in ready))
+        result = before_polish.get(key) if coarse else None
+        if result is None:
+            starts = [base]
+            if coarse:
+                # the wrist is D's load too, but D's grid leaves it (x3 the rollouts) to D's fit
+                grid = [r for r in refs if not (r == WRIST_LOAD and j == D)]
+                starts = coarse_start(replay, ready, base, refs, grid=grid)
+            # from each start (`coarse_start`), the one that ends lower kept
+            tried = [
+                fit_joint(
+                    replay,
+                    ready,
+                    start,
+                    0.0,
+                    refs,
+                    max_iter=max_iter,
+                    on_iteration=note,
+                    # window starts only in the polish: fitted beside an arm still far from
+                    # this one they soak up its errors as the offsets would (and mislead the
+                    # offsets)
+                    fit_starts=False,
+                )
+                for start in starts
+            ]
+            result = min(tried, key=lambda r: r.costs[-1])
+            result = replace(
+                result,
+                iterations=sum(r.iterations for r in tried),
+                rollouts=sum(r.rollouts for r in tried),
             )
-            for start in starts
-        ]
-        result = min(tried, key=lambda r: r.costs[-1])
-        result = replace(
-            result,
-            iterations=sum(r.iterations for r in tried),
-            rollouts=sum(r.rollouts for r in tried),
-        )
+            if coarse:
+                before_polish[key] = result
         ready = tune_offsets(replay, result.params, ready)
         if fit_starts:
             ready = replay.with_starts(ready)

@@ -237,19 +237,33 @@ def fit_joint(
             i += c
         return out
 
-    def fun(x: FloatArray) -> FloatArray:
+    def residual_parts(x: FloatArray) -> list[FloatArray]:
+        """Each segment's `residuals` at `x`, unweighted (together: `residuals` of all)."""
         p, d = unpack(x)
-        r = replay.residuals(p, d, starts_at(x), velocity_weight)
+        return [replay.residuals(p, d, [s], velocity_weight) for s in starts_at(x)]
+
+    def weighed(parts: list[FloatArray]) -> FloatArray:
+        r = np.concatenate(parts)
         return r if weights is None else r * weights
+
+    def fun(x: FloatArray) -> FloatArray:
+        return weighed(residual_parts(x))
+
+    # the last `own_starts` (x's bytes, result): `fisher_at` asks again at the optimum, where
+    # the last Jacobian did
+    own_memo: list[tuple[bytes, FloatArray]] = []
 
     def own_starts(x: FloatArray, r0: FloatArray) -> FloatArray:
         """Per residual row, its derivative by its own window's start angle and speed (every
         window's start moved at once: window w's rows answer its own start only)."""
+        if own_memo and own_memo[0][0] == x.tobytes():
+            return own_memo[0][1]
         out = np.empty((r0.size, 2))
         for block, h in enumerate(START_STEP):
             xp = x.copy()
             xp[n_par + block * n_fix : n_par + (block + 1) * n_fix] += h
             out[:, block] = (fun(xp) - r0) / h
+        own_memo[:] = [(x.tobytes(), out)]
         return out
 
     def jacobian(x: FloatArray, r0: FloatArray) -> FloatArray:
@@ -303,7 +317,8 @@ def fit_joint(
         return Fisher(refs_f, values, info)
 
     x = np.clip(x0, lower, upper)
-    r = fun(x)
+    parts = residual_parts(x)
+    r = weighed(parts)
     if row_window is not None and row_window.size != r.size:
         raise RuntimeError(f"{r.size} residuals for {row_window.size} window rows")
     cost = float(r @ r)
@@ -311,6 +326,7 @@ def fit_joint(
     lam = 1e-3
     it = 0
     jac = jacobian(x, r)
+    jac_at_x = True  # the Jacobian is at x (it is a function of x alone)
     for it in range(1, max_iter + 1):
         g = jac.T @ r
         h = jac.T @ jac
@@ -326,12 +342,14 @@ def fit_joint(
             # see (friction near zero) shrink the step of the ones they do
             dx = np.where(is_log, np.clip(dx, -MAX_LOG_STEP, MAX_LOG_STEP), dx)
             x_new = np.clip(x + dx, lower, upper)
-            r_new = fun(x_new)
+            parts_new = residual_parts(x_new)
+            r_new = weighed(parts_new)
             cost_new = float(r_new @ r_new)
             if cost_new < cost:
                 improved = True
                 gain = (cost - cost_new) / max(cost, 1e-30)
-                x, r, cost = x_new, r_new, cost_new
+                x, r, cost, parts = x_new, r_new, cost_new, parts_new
+                jac_at_x = False
                 lam = max(lam / 3.0, 1e-7)
                 break
             lam *= 4.0
@@ -341,16 +359,17 @@ def fit_joint(
         if not improved or gain < tol:
             break
         jac = jacobian(x, r)
-    # Uncertainty at the optimum (the last Jacobian is at x unless the step was refused).
-    jac = jacobian(x, r)
+        jac_at_x = True
+    # Uncertainty at the optimum: the Jacobian there (the last one, unless a step was taken
+    # after it).
+    if not jac_at_x:
+        jac = jacobian(x, r)
     dof = max(r.size - x.size, 1)
     # residuals correlated in time carry fewer independent samples than rows: the variance
     # per row times the correlation time, in rows (`correlation_time`)
-    p_end, d_end = unpack(x)
     segs_end = starts_at(x)
     blocks = []
-    for seg in segs_end:
-        one = replay.residuals(p_end, d_end, [seg], velocity_weight)
+    for seg, one in zip(segs_end, parts, strict=True):  # each segment's residuals at x
         windows = 0 if seg.start_fix is None else seg.start_fix.shape[0]
         rows = (one.size - 2 * windows) // (2 if velocity_weight > 0 else 1)
         blocks.append(one[:rows])
@@ -467,7 +486,10 @@ def coarse_start(
         found: tuple[float, ArmParams] | None = None
         for point in itertools.product(*axes):
             trial = params_with(at_scale, [ref for ref, _ in point], [v for _, v in point])
-            c = cost(trial)
+            # a point is replayed only as far as it takes to see it cost more than the best
+            # so far (`Replay.cost`): the best, and its cost, are the same
+            best = math.inf if found is None else found[0]
+            c = replay.cost(trial, 0.0, segments, velocity_weight, above=best)
             if found is None or c < found[0]:
                 found = (c, trial)
         if found is None:

@@ -5,7 +5,7 @@ prediction quality (`quality`)."""
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -28,6 +28,9 @@ ROBUST_CLIP = 3.0
 STALL_S = 0.02
 """A command measured later than this after its tick (s) cuts the replay's window there."""
 PLAN_CACHE = 256  # command schedules kept by `Replay` (per segment and delay)
+PRUNE_MARGIN = 1e-9
+"""`Replay.cost` stops a replay once its partial sum exceeds the bound by this (relative):
+summed in another order than `r @ r`, it may differ from it by ~1e-12 at most."""
 SKIP_TICKS = 3
 """Ticks at the start of a segment not used: the joints leave position mode there."""
 
@@ -44,6 +47,18 @@ class Rollout:
     q: FloatArray
     qdot: FloatArray
     window: NDArray[np.int64] | None = None  # per row: the window that predicted it, or -1
+
+
+def schedule_key(plan: Schedule) -> bytes:
+    """`plan`'s content as bytes: two schedules with one key drive the arm alike (a replay's
+    rollout depends on its schedule, not on the delay that made it)."""
+    out = bytearray()
+    for runs in plan:
+        out += len(runs).to_bytes(4, "little")
+        for current, steps in runs:
+            out += np.asarray(current, dtype=np.float64).tobytes()
+            out += int(steps).to_bytes(4, "little")
+    return bytes(out)
 
 
 def params_with(base: ArmParams, refs: Sequence[ParamRef], values: Sequence[float]) -> ArmParams:
@@ -236,15 +251,8 @@ class Replay:
             for s in segments
         ]
 
-    def simulate(
-        self, params: ArmParams, delay_s: float, seg: Segment, window_s: float | None = None
-    ) -> Rollout:
-        """The twin `params` driven by the segment's commands (see the module docstring).
-        ``window_s`` <= 0 or inf: one window from the first usable tick to the end."""
-        arm = self.arm
-        arm.set_params(with_payload(params, seg))
-        self.rollouts += 1
-        w_ticks = self.window_ticks(seg, window_s)
+    def plan(self, seg: Segment, delay_s: float) -> Schedule:
+        """The `schedule` a replay of `seg` at `delay_s` runs, kept for the next (`_plans`)."""
         key = (
             id(seg.command_mA),
             id(seg.link_delay_s),
@@ -258,7 +266,32 @@ class Replay:
                 self._plans.pop(next(iter(self._plans)))
             plan_new = self.schedule(seg, delay_s)
             cached = self._plans[key] = (seg.command_mA, seg.link_delay_s, plan_new)
-        plan = cached[2]
+        return cached[2]
+
+    def simulate(
+        self, params: ArmParams, delay_s: float, seg: Segment, window_s: float | None = None
+    ) -> Rollout:
+        """The twin `params` driven by the segment's commands (see the module docstring).
+        ``window_s`` <= 0 or inf: one window from the first usable tick to the end."""
+        rollout = self._simulate(params, delay_s, seg, window_s)
+        assert rollout is not None  # nothing to stop it
+        return rollout
+
+    def _simulate(
+        self,
+        params: ArmParams,
+        delay_s: float,
+        seg: Segment,
+        window_s: float | None = None,
+        stop: Callable[[int, int, FloatArray, FloatArray], bool] | None = None,
+    ) -> Rollout | None:
+        """`simulate`; with `stop`, asked after each window (its first and last tick, the
+        rollout so far) whether to go on: None once it says stop."""
+        arm = self.arm
+        arm.set_params(with_payload(params, seg))
+        self.rollouts += 1
+        w_ticks = self.window_ticks(seg, window_s)
+        plan = self.plan(seg, delay_s)
         spans = self.windows(seg, w_ticks)
         fix = seg.start_fix
         if fix is not None and fix.shape[0] != len(spans):
@@ -290,6 +323,8 @@ class Replay:
                     arm.step(current, n=steps)
                 q_out[k + 1] = arm.q
                 qd_out[k + 1] = arm.qdot
+            if stop is not None and stop(s, end, q_out, qd_out):
+                return None
         return Rollout(q_out, qd_out, win)
 
     def residuals(
@@ -306,15 +341,65 @@ class Replay:
         parts = []
         for seg in segments:
             r = self.simulate(params, delay_s, seg, window_s)
-            j = seg.joint
-            ok = np.isfinite(r.q[:, j])
-            parts.append(r.q[ok, j] - seg.q[ok, j])
-            if velocity_weight > 0:
-                parts.append(velocity_weight * (r.qdot[ok, j] - seg.qdot[ok, j]))
-            if seg.start_fix is not None:
-                parts.append(seg.start_fix[:, 0])
-                parts.append(velocity_weight * seg.start_fix[:, 1])
+            parts.extend(self._residual_parts(r, seg, velocity_weight))
         return np.concatenate(parts) if parts else np.zeros(0)
+
+    @staticmethod
+    def _residual_parts(r: Rollout, seg: Segment, velocity_weight: float) -> list[FloatArray]:
+        """One segment's share of `residuals`, from its rollout."""
+        j = seg.joint
+        ok = np.isfinite(r.q[:, j])
+        parts = [r.q[ok, j] - seg.q[ok, j]]
+        if velocity_weight > 0:
+            parts.append(velocity_weight * (r.qdot[ok, j] - seg.qdot[ok, j]))
+        if seg.start_fix is not None:
+            parts.append(seg.start_fix[:, 0])
+            parts.append(velocity_weight * seg.start_fix[:, 1])
+        return parts
+
+    def cost(
+        self,
+        params: ArmParams,
+        delay_s: float,
+        segments: Sequence[Segment],
+        velocity_weight: float = VELOCITY_WEIGHT_S,
+        above: float = math.inf,
+    ) -> float:
+        """The squared sum of `residuals` (as `r @ r`, to the last bit); or inf as soon as the
+        windows replayed so far already cost more than `above` (with a margin far over the
+        rounding), the rest left unreplayed. Why: a search for the lowest cost (the coarse
+        start's grid, the delay offsets' grid) needs no more of a point than that it is not
+        the lowest, and most points are far off from their first window on; the points it
+        keeps, and their costs, are the same."""
+        limit = above * (1.0 + PRUNE_MARGIN) if math.isfinite(above) else math.inf
+        spent = 0.0
+        parts: list[FloatArray] = []
+        for seg in segments:
+            j = seg.joint
+            if seg.start_fix is not None:
+                fix = seg.start_fix
+                spent += float(fix[:, 0] @ fix[:, 0])
+                spent += velocity_weight**2 * float(fix[:, 1] @ fix[:, 1])
+
+            def over(
+                s: int, end: int, q: FloatArray, qd: FloatArray, seg: Segment = seg, j: int = j
+            ) -> bool:
+                nonlocal spent
+                rows = slice(s + 1, end + 1)
+                ok = np.isfinite(q[rows, j])  # the rows `residuals` keeps
+                e = q[rows, j][ok] - seg.q[rows, j][ok]
+                spent += float(e @ e)
+                if velocity_weight > 0:
+                    v = velocity_weight * (qd[rows, j][ok] - seg.qdot[rows, j][ok])
+                    spent += float(v @ v)
+                return spent > limit
+
+            r = self._simulate(params, delay_s, seg, None, over if limit < math.inf else None)
+            if r is None:
+                return math.inf
+            parts.extend(self._residual_parts(r, seg, velocity_weight))
+        res = np.concatenate(parts) if parts else np.zeros(0)
+        return float(res @ res)
 
     def window_errors(
         self, params: ArmParams, delay_s: float, segments: Sequence[Segment]
