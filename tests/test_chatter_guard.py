@@ -264,6 +264,7 @@ def test_the_guard_stops_a_chattering_controller_and_holds_the_arm_in_position(
 
 
 @pytest.mark.sim(speed=BANG_BANG_SPEED)
+@pytest.mark.sim(speed=BANG_BANG_SPEED)  # a bang-bang cycle, as above
 def test_the_guard_can_hold_in_zero_velocity_instead(sim: SimServer) -> None:
     hold = SafetyConfig(chatter=ChatterConfig(hold=HoldMode.ZERO_VELOCITY))
     summary = run_on(sim, BangBang(), hold)
