@@ -122,8 +122,7 @@ def _best_offset(replay: Replay, params: ArmParams, seg: Segment, velocity_weigh
             c = cost(o, best_cost)
             if c < best_cost:
                 best_cost, best = c, o
-    candidates = [(best_cost, best)]
-    return float(min(candidates)[1])
+    return float(best)
 
 
 @dataclass(frozen=True)

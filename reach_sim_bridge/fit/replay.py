@@ -345,13 +345,26 @@ class Replay:
         return np.concatenate(parts) if parts else np.zeros(0)
 
     @staticmethod
+    def _joint_residuals(
+        q: FloatArray,
+        qd: FloatArray,
+        seg: Segment,
+        velocity_weight: float,
+        rows: slice = slice(None),
+    ) -> list[FloatArray]:
+        """The excited joint's position and weighted velocity residuals over `rows`, where
+        the replay has a value: what `residuals` and `cost`'s running sum both count."""
+        j = seg.joint
+        ok = np.isfinite(q[rows, j])
+        parts = [q[rows, j][ok] - seg.q[rows, j][ok]]
+        if velocity_weight > 0:
+            parts.append(velocity_weight * (qd[rows, j][ok] - seg.qdot[rows, j][ok]))
+        return parts
+
+    @staticmethod
     def _residual_parts(r: Rollout, seg: Segment, velocity_weight: float) -> list[FloatArray]:
         """One segment's share of `residuals`, from its rollout."""
-        j = seg.joint
-        ok = np.isfinite(r.q[:, j])
-        parts = [r.q[ok, j] - seg.q[ok, j]]
-        if velocity_weight > 0:
-            parts.append(velocity_weight * (r.qdot[ok, j] - seg.qdot[ok, j]))
+        parts = Replay._joint_residuals(r.q, r.qdot, seg, velocity_weight)
         if seg.start_fix is not None:
             parts.append(seg.start_fix[:, 0])
             parts.append(velocity_weight * seg.start_fix[:, 1])
@@ -375,23 +388,16 @@ class Replay:
         spent = 0.0
         parts: list[FloatArray] = []
         for seg in segments:
-            j = seg.joint
             if seg.start_fix is not None:
                 fix = seg.start_fix
                 spent += float(fix[:, 0] @ fix[:, 0])
                 spent += velocity_weight**2 * float(fix[:, 1] @ fix[:, 1])
 
-            def over(
-                s: int, end: int, q: FloatArray, qd: FloatArray, seg: Segment = seg, j: int = j
-            ) -> bool:
+            def over(s: int, end: int, q: FloatArray, qd: FloatArray, seg: Segment = seg) -> bool:
                 nonlocal spent
-                rows = slice(s + 1, end + 1)
-                ok = np.isfinite(q[rows, j])  # the rows `residuals` keeps
-                e = q[rows, j][ok] - seg.q[rows, j][ok]
-                spent += float(e @ e)
-                if velocity_weight > 0:
-                    v = velocity_weight * (qd[rows, j][ok] - seg.qdot[rows, j][ok])
-                    spent += float(v @ v)
+                rows = slice(s + 1, end + 1)  # the window just replayed
+                for part in self._joint_residuals(q, qd, seg, velocity_weight, rows):
+                    spent += float(part @ part)
                 return spent > limit
 
             r = self._simulate(params, delay_s, seg, None, over if limit < math.inf else None)
