@@ -274,6 +274,21 @@ def test_arm_held_by_its_gravity_torque_stays_put() -> None:
     assert np.max(np.abs(arm.q - q0)[1:3]) > 0.05
 
 
+def test_gravity_torques_over_poses_are_gravity_torque_at_each_to_the_bit() -> None:
+    """The batch the envelope's feasibility sweeps hundreds of poses with: the same figures
+    as one pose at a time, on an arm whose masses and buoyancy were set after compiling."""
+    arm = Alpha5Arm()
+    arm.set_params(ArmParams().randomized(11, 0.3))
+    poses = np.random.default_rng(4).uniform([0.1, 0.2, 0.2, 0.1], [6.0, 3.0, 3.0, 6.0], (25, 4))
+    expected = np.array([arm.gravity_torque(q) for q in poses])
+    assert np.array_equal(arm.gravity_torques(poses), expected)
+    assert np.abs(expected).max() > 0.1  # loads, not zeros
+    with pytest.raises(ValueError, match="rows of 4 values"):
+        arm.gravity_torques(poses[:, :3])
+    with pytest.raises(ValueError, match="rows of 4 values"):
+        arm.gravity_torques(np.full((2, 4), np.nan))
+
+
 # -- motor model ----------------------------------------------------------------------------
 def test_no_load_speed_hand_value() -> None:
     speeds = no_load_speed()

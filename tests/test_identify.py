@@ -344,8 +344,9 @@ ERR_TOL = 0.10  # relative, friction, damping and armature: the issue's target
 def test_identify_a_hidden_virtual_arm_end_to_end(tmp_path: Path) -> None:
     """reach-sim --params HIDDEN on a pty; the identification through the driver; the fit is within
     10 % on friction, damping and armature and predicts the validation motions far better
-    than the nominal twin; the excitation is in the .rrd as in the .npz. Two joints (E
-    without, C with a gravity load), half-length segments."""
+    than the nominal twin; the excitation is in the .rrd as in the .npz. One joint, C (under a
+    gravity load, with B's link mass fitted beside it), half-length segments: E's fit without
+    a load is checked to 5 % on logs stepped in-process (`test_the_fit_recovers_...`)."""
     hidden = ArmParams().randomized(2024)
     hidden_path = save_arm_params(hidden, tmp_path / "hidden.json")
     link = tmp_path / "alpha5"
@@ -378,7 +379,7 @@ def test_identify_a_hidden_virtual_arm_end_to_end(tmp_path: Path) -> None:
                 "--out",
                 str(out),
                 "--joints",
-                "E,C",
+                "C",
                 "--scale",
                 "0.5",
                 "--iterations",
@@ -396,7 +397,7 @@ def test_identify_a_hidden_virtual_arm_end_to_end(tmp_path: Path) -> None:
     fitted = load_arm_params(out)
     meta = read_twin(out).fit
     assert meta is not None
-    for j in (0, 2):
+    for j in (2,):
         for name in ("frictionloss", "armature", "damping"):
             key = f"{name}[{JOINT_LETTERS[j]}]"
             unknown = meta.unidentifiable.get(key)
@@ -408,7 +409,7 @@ def test_identify_a_hidden_virtual_arm_end_to_end(tmp_path: Path) -> None:
             true_value = getattr(hidden, name)[j]
             got = getattr(fitted, name)[j]
             assert abs(got - true_value) < ERR_TOL * true_value, (JOINT_LETTERS[j], name)
-    for letter in ("E", "C"):
+    for letter in ("C",):
         fit_q = meta.quality_fitted[f"validate/{letter}"]["window"]
         nom_q = meta.quality_nominal[f"validate/{letter}"]["window"]
         assert fit_q["r2"] >= 0.99
@@ -423,7 +424,7 @@ def test_identify_a_hidden_virtual_arm_end_to_end(tmp_path: Path) -> None:
     # The recording holds every tick of every segment, as the log does.
     logged = load_segments(tmp_path / "arm.log.npz")
     recorded = load_recording(tmp_path / "arm.rrd")
-    assert [s.name for s in recorded] == [s.name for s in logged] and len(logged) == 12
+    assert [s.name for s in recorded] == [s.name for s in logged] and len(logged) == 6
     for a, b in zip(logged, recorded, strict=True):
         assert np.array_equal(a.q, b.q) and np.array_equal(a.command_mA, b.command_mA)
         assert a.link_delay_s is not None and b.link_delay_s is not None

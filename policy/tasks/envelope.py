@@ -148,21 +148,28 @@ class Feasibility:
 _GRID = 7  # poses per joint of D C B over the workspace for the worst static load
 
 
-def worst_static_load(params: ArmParams) -> np.ndarray:
-    """Largest |gravity + buoyancy torque| per joint (N m) over a grid of the workspace."""
-    arm = Alpha5Arm(params=params)
+def worst_static_load(params: ArmParams, arm: Alpha5Arm | None = None) -> np.ndarray:
+    """Largest |gravity + buoyancy torque| per joint (N m) over a grid of the workspace;
+    `arm`, if given, is set to `params` and reused (a model compiled once for many arms)."""
+    if arm is None:
+        arm = Alpha5Arm(params=params)
+    else:
+        arm.set_params(params)
     axes = [np.linspace(WORKSPACE_LOW[j], WORKSPACE_HIGH[j], _GRID) for j in (1, 2, 3)]
-    worst = np.zeros(N_JOINTS)
-    for d, c, b in itertools.product(*axes):
-        q = np.array([WORKSPACE_LOW[0], d, c, b])
-        worst = np.maximum(worst, np.abs(arm.gravity_torque(q)))
-    return worst
+    poses = [[WORKSPACE_LOW[0], d, c, b] for d, c, b in itertools.product(*axes)]
+    return np.abs(arm.gravity_torques(poses)).max(axis=0)
 
 
-def feasibility(params: ArmParams, torque_scale: Sequence[float], headroom: float) -> Feasibility:
-    """Whether each joint can move at all on this arm (the motor model's stall torque)."""
+def feasibility(
+    params: ArmParams,
+    torque_scale: Sequence[float],
+    headroom: float,
+    arm: Alpha5Arm | None = None,
+) -> Feasibility:
+    """Whether each joint can move at all on this arm (the motor model's stall torque);
+    `arm` as `worst_static_load` takes it."""
     motor = MotorModel(params.motors, params.supply_voltage, params.current_limits_mA, torque_scale)
-    required = np.asarray(params.frictionloss) + worst_static_load(params)
+    required = np.asarray(params.frictionloss) + worst_static_load(params, arm)
     return Feasibility(motor.stall_torque(), required, headroom)
 
 
@@ -292,6 +299,7 @@ def draws(
     base = base or ArmParams()
     keep: list[Variant] = []
     out: list[tuple[Variant, str]] = []
+    arm = Alpha5Arm(params=base)  # one model, set to each draw's parameters in turn
     for i in itertools.count():
         if len(keep) == n:
             break
@@ -314,7 +322,7 @@ def draws(
             noise=u(e.noise),
             latency_periods=u(e.latency_periods),
         )
-        feas = feasibility(v.params, v.torque_scale, e.headroom)
+        feas = feasibility(v.params, v.torque_scale, e.headroom, arm)
         if feas.ok:
             keep.append(v)
         else:
