@@ -59,7 +59,7 @@ typecheck: install
 # pytest exits 5 when it collects nothing: say so plainly and fail (an empty run proves nothing).
 # Every test runs once, spread over the cores (pytest-xdist): the real-time ones wait on events
 # and count in the arm's time, so a loaded host makes them slower, not red (tests/conftest.py).
-# The 15 slowest are listed at the end: the suite is kept under 10 minutes on 2 cores.
+# The 15 slowest are listed at the end: the aim is under 10 minutes on 2 cores (not yet met).
 pytest: install
 	@$(VENV)/bin/pytest -q -n auto --durations=15; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing" >&2; fi; exit $$rc
