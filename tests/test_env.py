@@ -287,6 +287,47 @@ def test_goal_every_draws_new_goals_within_the_episode_from_where_the_arm_is() -
     assert eval_envs(EnvConfig(goal_every_s=1.0), 1)[0].config.goal_every_s is None
 
 
+def test_small_steps_draw_that_share_of_goals_near_the_start_and_leave_the_rest_alone() -> None:
+    """`small_step_fraction`: per joint, that share of goals within `small_step` of the start;
+    at 0 the episodes are the ones the env always drew; evaluation draws uniformly."""
+    cfg = DDPGConfig.scratch().env
+    small = dataclasses.replace(cfg, small_step_fraction=0.25, small_step=0.3)
+    plain, near = ReachAlphaEnv(cfg), ReachAlphaEnv(small)
+    steps, plain_steps = [], []
+    for seed in range(400):
+        near.reset(seed=seed)
+        plain.reset(seed=seed)
+        steps.append(np.abs(near.target - near.start))
+        plain_steps.append(np.abs(plain.target - plain.start))
+        low, high = near.workspace_low, near.workspace_high
+        assert np.all(near.target >= low) and np.all(near.target <= high)
+    share = (np.array(steps) <= 0.3).mean(axis=0)
+    plain_share = (np.array(plain_steps) <= 0.3).mean(axis=0)
+    # uniform goals put 0.1-0.24 of steps within 0.3 rad (B over 5.3 rad, D C over 2.4);
+    # a quarter more drawn there lifts that to about 0.25 + 0.75 x those
+    assert np.all(share > plain_share + 0.12), (share, plain_share)
+    assert np.all(share < plain_share + 0.32), (share, plain_share)
+    # at 0 the draw is untouched: start and goal are the env's first two uniform draws, as
+    # they were before the option (runs and their seeds replay)
+    zero = ReachAlphaEnv(EnvConfig(small_step_fraction=0.0))
+    for seed in (1, 2, 3):
+        zero.reset(seed=seed)
+        rng, _ = gym.utils.seeding.np_random(seed)
+        np.testing.assert_array_equal(
+            zero.start, rng.uniform(zero.workspace_low, zero.workspace_high)
+        )
+        np.testing.assert_array_equal(
+            zero.target, rng.uniform(zero.workspace_low, zero.workspace_high)
+        )
+    with pytest.raises(ValueError, match="small_step_fraction"):
+        dataclasses.replace(cfg, small_step_fraction=1.5)
+    with pytest.raises(ValueError, match="small_step must be"):
+        dataclasses.replace(cfg, small_step=0.0)
+    from policy.rl.batched import eval_envs
+
+    assert eval_envs(small, 1)[0].config.small_step_fraction == 0.0
+
+
 def test_action_scaled_to_current_limits() -> None:
     env = ReachAlphaEnv(EnvConfig())
     env.reset(seed=0, options={"start": [3.0, 1.7, 1.7, 1.6], "target": [3.0, 1.7, 1.7, 1.6]})

@@ -84,6 +84,12 @@ INGREDIENTS: tuple[Ingredient, ...] = (
         ("env.goal_every_s=5.0",),
     ),
     Ingredient(
+        "small-steps",
+        "a quarter of each joint's training goals within 0.3 rad of its start (the recipe: all "
+        "uniform over the workspace): the small steps the overshoot metric weighs most",
+        ("env.small_step_fraction=0.25",),
+    ),
+    Ingredient(
         "smooth-spatial",
         "CAPS's spatial smoothness in the actor's loss (off in the recipe): || pi(s) - pi(s~) ||, "
         "s~ read with fresh sensor noise, weight 1: the actor learns not to answer the noise",

@@ -48,6 +48,7 @@ def eval_envs(
         env_config,
         torque_scale_low=None,
         max_step=None,
+        small_step_fraction=0.0,
         sensor_noise=True,
         workspace_low=env_config.workspace_low if training_workspace else None,
         workspace_high=env_config.workspace_high if training_workspace else None,
