@@ -274,14 +274,22 @@ def test_arm_held_by_its_gravity_torque_stays_put() -> None:
     assert np.max(np.abs(arm.q - q0)[1:3]) > 0.05
 
 
-def test_gravity_torques_over_poses_are_gravity_torque_at_each_to_the_bit() -> None:
+def test_gravity_torques_are_the_full_forward_steps_to_the_bit() -> None:
     """The batch the envelope's feasibility sweeps hundreds of poses with: the same figures
     as one pose at a time, on an arm whose masses and buoyancy were set after compiling."""
     arm = Alpha5Arm()
     arm.set_params(ArmParams().randomized(11, 0.3))
     poses = np.random.default_rng(4).uniform([0.1, 0.2, 0.2, 0.1], [6.0, 3.0, 3.0, 6.0], (25, 4))
-    expected = np.array([arm.gravity_torque(q) for q in poses])
-    assert np.array_equal(arm.gravity_torques(poses), expected)
+    full = mujoco.MjData(arm.model)  # the full forward step, at rest at each pose
+    expected = []
+    for q in poses:
+        full.qpos[:] = arm.data.qpos  # the jaw where the arm holds it
+        full.qpos[:4] = q
+        full.qvel[:] = 0.0
+        mujoco.mj_forward(arm.model, full)
+        expected.append(full.qfrc_gravcomp[:4] - full.qfrc_bias[:4])
+    assert np.array_equal(arm.gravity_torques(poses), np.array(expected))
+    assert np.array_equal(arm.gravity_torque(poses[3]), expected[3])
     assert np.abs(expected).max() > 0.1  # loads, not zeros
     with pytest.raises(ValueError, match="rows of 4 values"):
         arm.gravity_torques(poses[:, :3])

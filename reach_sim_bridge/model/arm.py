@@ -608,31 +608,31 @@ class MotorArm:
     def gravity_torque(self, q: ArrayLike) -> FloatArray:
         """Torque gravity and buoyancy exert on each joint at rest at q (N m); a controller
         holds the arm still by applying its negative."""
-        s = self._at(q)
-        n = self._n
-        return (s.qfrc_gravcomp[:n] - s.qfrc_bias[:n]).copy()
+        return self._gravity(self._vector(q, "q (rad)"))
 
     def gravity_torques(self, qs: ArrayLike) -> FloatArray:
-        """`gravity_torque` at each row of `qs` (poses x joints), the same figures: only the
-        stages they need (MuJoCo's position and velocity stages, where gravity compensation
-        and the bias forces are computed) per pose, not a full forward step. Why: a sweep
-        over hundreds of poses per arm (the envelope's worst static load) was most of the
-        cost of drawing arms."""
+        """`gravity_torque` at each row of `qs` (poses x joints): one check of the whole
+        array, not one per pose. Why: a sweep over hundreds of poses per arm (the envelope's
+        worst static load) was most of the cost of drawing arms."""
         poses = np.asarray(qs, dtype=np.float64)
         n = self._n
         if poses.ndim != 2 or poses.shape[1] != n or not np.all(np.isfinite(poses)):
             order = " ".join(self.arm_model.joint_letters)
             raise ValueError(f"poses need finite rows of {n} values ({order}), got {poses.shape}")
+        return np.array([self._gravity(q) for q in poses]).reshape(poses.shape)
+
+    def _gravity(self, q: FloatArray) -> FloatArray:
+        """gravity_torque at a checked q: only MuJoCo's position and velocity stages, where
+        gravity compensation (the buoyancy) and the bias forces are computed, at zero speed
+        (the full forward step gives the same figures, to the bit, at twice the cost)."""
         scratch = self._scratch
+        n = self._n
+        scratch.qpos[:n] = q
         scratch.qpos[n] = self.data.qpos[n]
         scratch.qvel[:] = 0.0
-        out = np.empty_like(poses)
-        for i, q in enumerate(poses):
-            scratch.qpos[:n] = q
-            mujoco.mj_fwdPosition(self.model, scratch)
-            mujoco.mj_fwdVelocity(self.model, scratch)
-            out[i] = scratch.qfrc_gravcomp[:n] - scratch.qfrc_bias[:n]
-        return out
+        mujoco.mj_fwdPosition(self.model, scratch)
+        mujoco.mj_fwdVelocity(self.model, scratch)
+        return scratch.qfrc_gravcomp[:n] - scratch.qfrc_bias[:n]
 
     def mass_matrix(self, q: ArrayLike) -> FloatArray:
         """Joint-space inertia of the joints at q, armature included (kg m^2)."""
