@@ -97,22 +97,58 @@ def test_the_window_holds_the_last_speeds_read_and_actions_taken_newest_first() 
         ObservationConfig(previous_action=True, history=2.5)  # type: ignore[arg-type]
 
 
-@pytest.mark.parametrize("obs_config", [MEMORY_OBS, WINDOW_OBS], ids=["memory", "window"])
+STEP_OBS = ObservationConfig(previous_action=True, integral_tau=1.0, target_step=True)
+
+
+def test_the_target_step_is_the_error_read_when_the_target_changed() -> None:
+    """Held from the first reading with a target until the target changes, whatever the arm
+    does meanwhile: past the goal the error changes sign, the step does not."""
+    assert STEP_OBS.size == 28 + 4
+    memory = InputMemory(STEP_OBS, 0.05)
+    half = memory.workspace.half_range
+    goal = np.array([1.5, 1.4, 2.0, 3.0])
+    obs = memory.observe(np.ones(4), np.zeros(4), goal)
+    np.testing.assert_allclose(obs[28:], (goal - 1.0) / half, rtol=1e-6)
+    past = goal + 0.01  # an overshoot on every joint
+    obs = memory.observe(past, np.zeros(4), goal.copy())  # equal values: the same target
+    np.testing.assert_allclose(obs[28:], (goal - 1.0) / half, rtol=1e-6)
+    assert np.all(obs[12:16] < 0) and np.all(obs[28:] > 0)  # the error says back, the step ahead
+    new = goal - 0.2
+    obs = memory.observe(past, np.zeros(4), new)
+    np.testing.assert_allclose(obs[28:], (new - past) / half, rtol=1e-6)
+    low, high = policy_env.observation_bounds(STEP_OBS)
+    assert np.all(obs >= low) and np.all(obs <= high)
+    assert low.size == STEP_OBS.size
+    memory.reset()
+    assert not memory.step.any()
+    obs = memory.observe(new, np.zeros(4), new)  # after a reset the same target is new again
+    assert not obs[28:].any()
+    with pytest.raises(ValueError, match="target_step"):
+        ObservationConfig(previous_action=True, target_step=1)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    "obs_config", [MEMORY_OBS, WINDOW_OBS, STEP_OBS], ids=["memory", "window", "step"]
+)
 def test_controller_feeds_the_network_what_the_env_fed_it(obs_config: ObservationConfig) -> None:
-    """Step the env with the actor's own actions; the controller, given the readings the env
-    observed, sends exactly those actions (times the limits) at every step."""
+    """Step the env with the actor's own actions (a new goal every second); the controller,
+    given the readings the env observed, sends exactly those actions (times the limits) at
+    every step."""
     weights = random_weights(obs_config)
-    env = ReachAlphaEnv(EnvConfig(observation=obs_config, sensor_noise=True))
+    env = ReachAlphaEnv(EnvConfig(observation=obs_config, sensor_noise=True, goal_every_s=1.0))
     controller = LearnedController(weights)
     obs, _ = env.reset(seed=3)
     controller.reset()
+    targets = set()
     for k in range(60):
+        targets.add(env.target.tobytes())
         q, qdot = env.last_reading
         sent = controller.act(ControlState(q, qdot, k * env.control_dt), env.target)
         action = weights.forward(obs)
         np.testing.assert_allclose(sent, action * weights.current_limits_mA, rtol=1e-5)
         obs, *_ = env.step(action)
     assert controller.control_hz == 20.0
+    assert len(targets) == 3
 
 
 def test_controller_rejects_bad_input() -> None:

@@ -90,6 +90,13 @@ INGREDIENTS: tuple[Ingredient, ...] = (
         ("env.small_step_fraction=0.25",),
     ),
     Ingredient(
+        "target-step",
+        "the error read when the target last changed in the input (off in the recipe): which "
+        "side of the goal the arm came from and how far, so a crossing (an overshoot) is "
+        "observable; the error alone reads the same before the goal and past it",
+        ("env.observation.target_step=true",),
+    ),
+    Ingredient(
         "smooth-spatial",
         "CAPS's spatial smoothness in the actor's loss (off in the recipe): || pi(s) - pi(s~) ||, "
         "s~ read with fresh sensor noise, weight 1: the actor learns not to answer the noise",

@@ -125,6 +125,11 @@ class ObservationConfig:
     #: so the network can see how this arm answers its commands (friction, a weak joint,
     #: latency) and adapt within an episode. 0 disables
     history: int = 0
+    #: the error read when the target last changed (over the joint's half-range, as the
+    #: error channel): which side of the goal the arm came from and how far, so the network
+    #: can tell a crossing (an overshoot, measured against that step) from an approach; the
+    #: error alone reads the same either way
+    target_step: bool = False
 
     @classmethod
     def paper(cls) -> ObservationConfig:
@@ -132,7 +137,7 @@ class ObservationConfig:
 
     def __post_init__(self) -> None:
         # A file states these: a string or null here would only fail at the first step.
-        for name in ("normalise", "include_error", "previous_action"):
+        for name in ("normalise", "include_error", "previous_action", "target_step"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
         for name in ("fine_error_scale", "qdot_scale", "integral_tau", "integral_error_scale"):
@@ -155,9 +160,7 @@ class ObservationConfig:
                 "integral_tau must be >= 0 and integral_error_scale > 0, got "
                 f"{self.integral_tau}, {self.integral_error_scale}"
             )
-        if (self.previous_action or self.integral_tau > 0 or self.history) and not (
-            self.include_error and self.fine_error_scale > 0
-        ):
+        if self.has_memory and not (self.include_error and self.fine_error_scale > 0):
             raise ValueError("the memory channels follow the error channels: enable those too")
 
     @property
@@ -182,8 +185,13 @@ class ObservationConfig:
     @property
     def memory_groups(self) -> int:
         """Groups (one entry per joint) that carry the past (`InputMemory`): previous action,
-        error integral, and two per period of the window (speed, action)."""
-        return int(self.previous_action) + int(self.integral_tau > 0) + 2 * self.history
+        error integral, two per period of the window (speed, action), the target's step."""
+        return (
+            int(self.previous_action)
+            + int(self.integral_tau > 0)
+            + 2 * self.history
+            + int(self.target_step)
+        )
 
     @property
     def has_memory(self) -> bool:
@@ -305,6 +313,8 @@ class InputMemory:
     error of the readings the policy saw; nothing is reset but by `reset()`, at the start of
     an episode or a run, so the network, not a rule, decides what a target change means.
     The window (`history`) shifts in the speed read and the action taken each period.
+    The target's step (`target_step`) is the error of the first reading observed with the
+    current target: a target is new when it differs from the last one observed.
     """
 
     def __init__(
@@ -325,6 +335,8 @@ class InputMemory:
         #: the window, newest first: row k is (speed read, action taken) k + 1 periods ago
         self.window = np.zeros((self.config.history, 2 * n))
         self._speed = np.zeros(n)  # this period's speed reading, until `acted`
+        self.step = np.zeros(n)  # the target's step, over the half-range
+        self._target: np.ndarray | None = None  # the target it was read for
 
     def observe(self, q: np.ndarray, qdot: np.ndarray, q_req: np.ndarray) -> np.ndarray:
         if self.config.integral_tau > 0:
@@ -333,6 +345,12 @@ class InputMemory:
         if self.config.history:
             speed = np.asarray(qdot, dtype=np.float64) / self.config.qdot_scale
             self._speed = np.clip(speed, -WINDOW_SPEED_BOUND, WINDOW_SPEED_BOUND)
+        if self.config.target_step:
+            target = np.array(q_req, dtype=np.float64)
+            if self._target is None or not np.array_equal(target, self._target):
+                self._target = target
+                bounded = np.clip(target, *Q_BOUNDS) - np.clip(np.asarray(q), *Q_BOUNDS)
+                self.step = bounded / self.workspace.half_range
         return build_observation(q, qdot, q_req, self.config, self, self.workspace)
 
     def acted(self, action: np.ndarray) -> None:
@@ -351,6 +369,8 @@ class InputMemory:
             parts.append(self.integral)
         if self.config.history:
             parts.append(self.window.ravel())
+        if self.config.target_step:
+            parts.append(self.step)
         return np.concatenate(parts) if parts else np.zeros(0)
 
 
@@ -386,6 +406,10 @@ def observation_bounds(
     for _ in range(config.history):  # a speed (clipped), then an action in [-1, 1]
         lows += [np.full(n, -WINDOW_SPEED_BOUND), -np.ones(n)]
         highs += [np.full(n, WINDOW_SPEED_BOUND), np.ones(n)]
+    if config.target_step:  # an error, over the half-range whatever `normalise` says
+        step = (np.full(n, Q_BOUNDS[1]) - np.full(n, Q_BOUNDS[0])) / half_range
+        lows.append(-step)
+        highs.append(step)
     low = np.concatenate(lows).astype(np.float32)
     high = np.concatenate(highs).astype(np.float32)
     return low, high

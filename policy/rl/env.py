@@ -442,7 +442,8 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
     | m     | Alpha 5 / Bravo 7    | 12 / 18                     | 20 / 30                   |
 
     centre and half-range are the arm's evaluation workspace's (`Workspace.of`). The memory
-    channels (`previous_action`, `integral_tau`, `history`) add n entries per group.
+    channels (`previous_action`, `integral_tau`, `history`, `target_step`) add n entries per
+    group.
 
     ## Rewards
 
