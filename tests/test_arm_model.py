@@ -297,6 +297,36 @@ def test_gravity_torques_are_the_full_forward_steps_to_the_bit() -> None:
         arm.gravity_torques(np.full((2, 4), np.nan))
 
 
+def test_work_summed_in_one_call_is_the_single_steps_to_the_bit() -> None:
+    """`step(..., n, work=w)` adds each physics step's |tau qdot| as n single steps read it:
+    the energy the evaluations integrate, over the current limit, the back-EMF bound (a
+    joint driven past its no-load speed brakes) and a weak joint."""
+    one, many = Alpha5Arm(), Alpha5Arm()
+    rng = np.random.default_rng(7)
+    for arm in (one, many):
+        arm.set_params(replace(ArmParams().randomized(3, 0.3), torque_scale=(1.0, 0.5, 1.0, 1.0)))
+        arm.reset(q=[1.0, 1.5, 1.5, 2.0], qdot=[1.5, -0.2, 0.0, -3.0])
+    regimes = {"back-EMF": 0, "limit": 0}
+    for _ in range(12):
+        currents = rng.uniform(-2500.0, 2500.0, 4)
+        expected, got = np.zeros(4), np.zeros(4)
+        for _ in range(25):
+            one.step(currents, n=1)
+            expected += np.abs(one.tau * one.qdot)
+            drawn = np.abs(one.current_mA)
+            regimes["limit"] += int(np.any(drawn >= one.current_limits_mA - 1e-9))
+            regimes["back-EMF"] += int(np.any(drawn < np.minimum(np.abs(currents), 600) - 1))
+        many.step(currents, n=25, work=got)
+        assert np.array_equal(got, expected)
+        assert np.array_equal(many.data.qpos, one.data.qpos)
+        assert np.array_equal(many.data.qvel, one.data.qvel)
+        assert np.array_equal(many.tau, one.tau)
+    assert regimes["limit"] > 0 and regimes["back-EMF"] > 0
+    for bad in (np.zeros(3), np.zeros(4, dtype=np.float32), [0.0] * 4):
+        with pytest.raises(ValueError, match="work must be"):
+            many.step(np.zeros(4), n=2, work=bad)  # type: ignore[arg-type]
+
+
 # -- motor model ----------------------------------------------------------------------------
 def test_no_load_speed_hand_value() -> None:
     speeds = no_load_speed()

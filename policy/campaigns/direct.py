@@ -93,15 +93,21 @@ class DirectArm:
                     f"controller returned {action!r} at step {k}: expected {joints} finite "
                     f"currents (mA) for the {self.model.title}"
                 )
-            # Physics steps one at a time so the energy integrates |tau qdot| at the physics
-            # rate (the back-EMF makes the torque vary within a held period).
+            # The energy integrates |tau qdot| at the physics rate (the back-EMF makes the
+            # torque vary within a held period): the arm sums it over each held command.
             energy = np.zeros(joints)
-            pending.append((k * config.substeps + delay, u))
-            for i in range(config.substeps):
-                while pending and pending[0][0] <= k * config.substeps + i:
+            start = k * config.substeps
+            pending.append((start + delay, u))
+            i = 0
+            while i < config.substeps:
+                while pending and pending[0][0] <= start + i:
                     applied = pending.popleft()[1]
-                arm.step(applied, n=1)
-                energy += np.abs(arm.tau * arm.qdot)
+                # hold the applied command up to the next switch
+                until = (
+                    config.substeps if not pending else min(config.substeps, pending[0][0] - start)
+                )
+                arm.step(applied, n=until - i, work=energy)
+                i = until
             power[k + 1] = energy / config.substeps
             q[k + 1], qdot[k + 1] = arm.q, arm.qdot
             tau[k + 1] = arm.tau

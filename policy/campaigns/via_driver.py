@@ -142,9 +142,15 @@ class TruthProbe:
         # An instance attribute shadows the method for the firmware's calls only.
         arm.step = self._recording_step  # type: ignore[method-assign]
 
-    def _recording_step(self, currents_mA: Any, jaw_current_mA: float = 0.0, n: int = 1) -> None:
+    def _recording_step(
+        self,
+        currents_mA: Any,
+        jaw_current_mA: float = 0.0,
+        n: int = 1,
+        work: np.ndarray | None = None,
+    ) -> None:
         for _ in range(n):
-            self._step(currents_mA, jaw_current_mA, 1)
+            self._step(currents_mA, jaw_current_mA, 1, work)
             arm = self.arm
             with self._lock:
                 self._time.append(float(arm.time))

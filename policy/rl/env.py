@@ -712,13 +712,8 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
                 self._applied = self._pending.popleft()[1]
             # hold the applied command up to the next switch (at most one per period)
             until = n if not self._pending else min(n, self._pending[0][0] - k0)
-            if work is not None:
-                # one physics step at a time, |tau qdot| at the physics rate (as `direct`)
-                for _ in range(until - i):
-                    self.arm.step(self._applied, n=1)
-                    work += np.abs(self.arm.tau * self.arm.qdot)
-            else:
-                self.arm.step(self._applied, n=until - i)
+            # with `work`, |tau qdot| summed at the physics rate (as `direct`)
+            self.arm.step(self._applied, n=until - i, work=work)
             i = until
         return None if work is None else work / n
 

@@ -379,9 +379,21 @@ class MotorArm:
         mujoco.mj_forward(self.model, d)
         self._update_outputs()
 
-    def step(self, currents_mA: ArrayLike, jaw_current_mA: float = 0.0, n: int = 1) -> None:
+    def step(
+        self,
+        currents_mA: ArrayLike,
+        jaw_current_mA: float = 0.0,
+        n: int = 1,
+        work: FloatArray | None = None,
+    ) -> None:
         """Hold the commanded currents (the joints in order, then the jaw; mA) for n physics
-        steps."""
+        steps.
+
+        `work` (one float64 entry per joint), if given, has |tau qdot| added to it at the end
+        of every physics step, the values `tau` and `qdot` read there: the energy at the
+        physics rate (the back-EMF varies the torque within a held command) for the cost of
+        one call, not n (tests/test_arm_model.py checks it to the bit against n single
+        steps)."""
         cmd = self._vector(currents_mA, "currents_mA")
         jaw = float(jaw_current_mA)
         if not math.isfinite(jaw):
@@ -390,6 +402,10 @@ class MotorArm:
             raise ValueError(f"n (physics steps) must be an integer >= 1, got {n!r}")
         nj = self._n
         na = nj + 1
+        if work is not None and (
+            not isinstance(work, np.ndarray) or work.shape != (nj,) or work.dtype != np.float64
+        ):
+            raise ValueError(f"work must be a float64 array of {nj} entries (one per joint)")
         self._command_mA[:nj] = cmd
         self._command_mA[nj] = jaw
 
@@ -412,6 +428,23 @@ class MotorArm:
         regime = [2] * na  # forces a write of every actuator in the first step
         actuators = range(na)
         mj_step = mujoco.mj_step
+        if work is not None:
+            # `_update_outputs`'s clamp and torque, in its order of operations, per joint
+            sums = work.tolist()
+            commands = self._command_mA[:nj].tolist()
+            clamp = list(
+                zip(
+                    commands,
+                    c.backemf_f[:nj],
+                    c.supply.tolist()[:nj],
+                    c.resistance_f[:nj],
+                    c.limit_f[:nj],
+                    c.neg_limit.tolist()[:nj],
+                    c.torque.tolist()[:nj],
+                    strict=True,
+                )
+            )
+            joints = range(nj)
         for _ in range(int(n)):
             w = qvel.tolist()
             for j in actuators:
@@ -426,6 +459,17 @@ class MotorArm:
                         ctrl[j] = new * f_volt[j]
                         damping[j] = d_volt[j]
             mj_step(m, d)
+            if work is not None:
+                w = qvel.tolist()
+                for j in joints:
+                    cm, ke, sv, r, hi_lim, lo_lim, kt = clamp[j]
+                    wj = w[j]
+                    emf = ke * wj
+                    hi = min(hi_lim, 1000.0 * (sv - emf) / r)
+                    lo = max(lo_lim, 1000.0 * (-sv - emf) / r)
+                    sums[j] += abs(kt * min(max(cm, lo), hi) / 1000.0 * wj)
+        if work is not None:
+            work[:] = sums
         damping[:na] = self._base_damping  # the model between calls is the nominal one
         # The currents and torques are worked out when read (a replay never reads them), from
         # the speeds and settings at this moment.

@@ -97,6 +97,43 @@ def bench_arm_step(
     )
 
 
+def bench_measured_period(
+    params: ArmParams,
+    seconds: float,
+    repeats: int,
+    substeps: int = 25,
+    seed: int = 0,
+    single: bool = False,
+) -> BenchResult:
+    """A control period with its energy measured at the physics rate, as every evaluation
+    steps (the env with `measure_power`, the direct backend): one `arm.step(..., n, work=w)`
+    call, or (`single`, the way they stepped before) n single steps with |tau qdot| read
+    after each. Both give the same sums to the bit (tests/test_arm_model.py)."""
+    arm = Alpha5Arm(params, seed=seed)
+    commands = _random_currents(np.random.default_rng(seed), int(EPISODE_S * CONTROL_HZ))
+
+    def episode() -> int:
+        arm.reset()
+        for cmd in commands:
+            work = np.zeros(4)
+            if single:
+                for _ in range(substeps):
+                    arm.step(cmd, n=1)
+                    work += np.abs(arm.tau * arm.qdot)
+            else:
+                arm.step(cmd, n=substeps, work=work)
+        return len(commands) * substeps
+
+    rate = best_rate(episode, seconds, repeats)
+    how = f"{substeps} single steps read back" if single else f"work= in one call of n={substeps}"
+    return BenchResult(
+        f"energy-measured period: {how}",
+        rate,
+        "physics steps/s",
+        {"control_steps/s": f"{rate / substeps:,.0f}"},
+    )
+
+
 def bench_clamp_once_per_period(
     params: ArmParams, seconds: float, repeats: int, substeps: int = 25, seed: int = 0
 ) -> BenchResult:
@@ -192,6 +229,12 @@ def physics_rows(seconds: float, repeats: int, substeps: int = 25) -> list[Bench
     for adopted, baseline in ((results[0], results[2]), (results[1], results[3]), short):
         adopted.extra["vs_baseline"] = f"{adopted.rate / baseline.rate:.2f}x"
     results.extend(short)
+    # The evaluations' energy at the physics rate: summed inside one call, against reading
+    # tau and qdot back after each single step.
+    measured = bench_measured_period(drag, s, reps, n)
+    read_back = bench_measured_period(drag, s, reps, n, single=True)
+    measured.extra["vs_single_steps"] = f"{measured.rate / read_back.rate:.2f}x"
+    results += [measured, read_back]
     implicit = bench_arm_step(drag, s, reps, n, integrator="implicitfast")
     implicit.extra["vs_adopted"] = f"{implicit.rate / results[0].rate:.2f}x"
     results.append(implicit)
