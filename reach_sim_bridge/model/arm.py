@@ -79,6 +79,10 @@ class _StepConstants:
     f_volt: list[float]
     base: list[float]
     d_volt: list[float]
+    supply_f: list[float]
+    neg_limit_f: list[float]
+    torque_f: list[float]
+    per_actuator: tuple[list[float], ...]  # limit_f, resistance_f, backemf_f, drive_f
 
     @classmethod
     def of(
@@ -89,6 +93,8 @@ class _StepConstants:
     ) -> _StepConstants:
         arm, jaw = motors
         limit = np.concatenate([mm.current_limits_mA for mm in motors])
+        supply = np.array([arm.supply_voltage] * arm.count + [jaw.supply_voltage])
+        torque = np.concatenate([arm.torque_scale * arm.torque_per_amp, jaw.torque_per_amp])
         drive = np.concatenate([mm.torque_scale * mm.torque_per_amp for mm in motors])
         backemf = np.concatenate([mm.backemf_per_speed for mm in motors])
         resistance = np.concatenate([mm.resistance for mm in motors])
@@ -98,10 +104,10 @@ class _StepConstants:
             key=key,
             limit=limit,
             neg_limit=-limit,
-            torque=np.concatenate([arm.torque_scale * arm.torque_per_amp, jaw.torque_per_amp]),
+            torque=torque,
             backemf=backemf,
             resistance=resistance,
-            supply=np.array([v] * arm.count + [jaw.supply_voltage]),
+            supply=supply,
             v=v,
             limit_f=limit.tolist(),
             drive_f=drive.tolist(),
@@ -110,6 +116,15 @@ class _StepConstants:
             f_volt=(drive * v / resistance).tolist(),
             base=base_damping.tolist(),
             d_volt=(base_damping + drive * backemf / resistance).tolist(),
+            supply_f=supply.tolist(),
+            neg_limit_f=(-limit).tolist(),
+            torque_f=torque.tolist(),
+            per_actuator=(
+                limit.tolist(),
+                resistance.tolist(),
+                backemf.tolist(),
+                drive.tolist(),
+            ),
         )
 
 
@@ -406,21 +421,21 @@ class MotorArm:
             not isinstance(work, np.ndarray) or work.shape != (nj,) or work.dtype != np.float64
         ):
             raise ValueError(f"work must be a float64 array of {nj} entries (one per joint)")
-        self._command_mA[:nj] = cmd
-        self._command_mA[nj] = jaw
+        command = self._command_mA
+        command[:nj] = cmd
+        command[nj] = jaw
 
         c = self._constants()
         # A handful of actuators: plain floats (IEEE doubles, the same arithmetic as
         # numpy's) are faster than arrays at this size.
         v = c.v
-        amps = [
-            min(max(x, -lim), lim) / 1000.0
-            for x, lim in zip(self._command_mA.tolist(), c.limit_f, strict=True)
-        ]
-        ra = [r * a for r, a in zip(c.resistance_f, amps, strict=True)]
-        thr_hi = [(v - x) / ke for x, ke in zip(ra, c.backemf_f, strict=True)]  # supply limits
-        thr_lo = [(-v - x) / ke for x, ke in zip(ra, c.backemf_f, strict=True)]  # reverse too
-        f_cur = [k * a for k, a in zip(c.drive_f, amps, strict=True)]
+        thr_hi, thr_lo, f_cur = [], [], []  # the supply's limits on speed, either way; torque
+        for x, lim, r, ke, k in zip(command.tolist(), *c.per_actuator, strict=True):
+            a = min(max(x, -lim), lim) / 1000.0
+            ra = r * a
+            thr_hi.append((v - ra) / ke)
+            thr_lo.append((-v - ra) / ke)
+            f_cur.append(k * a)
         f_volt, base, d_volt = c.f_volt, c.base, c.d_volt
 
         m, d = self.model, self.data
@@ -436,17 +451,17 @@ class MotorArm:
                 zip(
                     commands,
                     c.backemf_f[:nj],
-                    c.supply.tolist()[:nj],
+                    c.supply_f[:nj],
                     c.resistance_f[:nj],
                     c.limit_f[:nj],
-                    c.neg_limit.tolist()[:nj],
-                    c.torque.tolist()[:nj],
+                    c.neg_limit_f[:nj],
+                    c.torque_f[:nj],
                     strict=True,
                 )
             )
             joints = range(nj)
+        w = qvel.tolist()  # the speeds each physics step's regimes are chosen from
         for _ in range(int(n)):
-            w = qvel.tolist()
             for j in actuators:
                 wj = w[j]
                 new = 1 if wj > thr_hi[j] else (-1 if wj < thr_lo[j] else 0)
@@ -459,8 +474,8 @@ class MotorArm:
                         ctrl[j] = new * f_volt[j]
                         damping[j] = d_volt[j]
             mj_step(m, d)
+            w = qvel.tolist()  # the speeds after it: its work, and the next step's regimes
             if work is not None:
-                w = qvel.tolist()
                 for j in joints:
                     cm, ke, sv, r, hi_lim, lo_lim, kt = clamp[j]
                     wj = w[j]
@@ -473,7 +488,7 @@ class MotorArm:
         damping[:na] = self._base_damping  # the model between calls is the nominal one
         # The currents and torques are worked out when read (a replay never reads them), from
         # the speeds and settings at this moment.
-        self._outputs_pending = (c, self.data.qvel[:na].copy())
+        self._outputs_pending = (c, qvel[:na].copy())
 
     def _constants(self) -> _StepConstants:
         """The motors' constants for `step`, rebuilt only when a setting changed (checked by
@@ -516,7 +531,9 @@ class MotorArm:
             raise ValueError(
                 f"{name} needs {n} values in joint order {order}, got shape {array.shape}"
             )
-        if not np.all(np.isfinite(array)):
+        # a NaN or an infinity anywhere makes the sum one (cheaper than np.isfinite at this
+        # size); a sum that overflowed is checked entry by entry
+        if not math.isfinite(sum(array.tolist())) and not np.all(np.isfinite(array)):
             raise ValueError(f"{name} must be finite, got {array.tolist()}")
         return array
 
