@@ -470,6 +470,29 @@ def _first_motion(config: EnvConfig, start: np.ndarray) -> int:
     raise AssertionError("E never moved")
 
 
+def test_commands_in_flight_switch_at_the_physics_step_they_land_on() -> None:
+    """A delay of 1.2 periods of 25 steps: each command is held from 30 steps after it was
+    sent until the next one lands, in spans that split a period at the switch; before the
+    first lands, zero current. A negative delay is refused."""
+    from policy.tasks.arm import CommandsInFlight
+
+    class Recorder:
+        def __init__(self) -> None:
+            self.spans: list[tuple[float, int]] = []
+
+        def step(self, currents_mA: np.ndarray, n: int = 1, work: object = None) -> None:
+            self.spans.append((float(currents_mA[0]), n))
+
+    arm = Recorder()
+    line = CommandsInFlight(30, 4)
+    for k in range(3):
+        line.advance(arm, np.full(4, k + 1.0), 25 * k, 25)  # type: ignore[arg-type]
+    assert arm.spans == [(0.0, 25), (0.0, 5), (1.0, 20), (1.0, 5), (2.0, 20)]
+    assert line.applied[0] == 2.0
+    with pytest.raises(ValueError, match="delay"):
+        CommandsInFlight(-1, 4)
+
+
 def test_latency_delays_each_action_as_the_direct_backend_does() -> None:
     start = np.array([3.0, 1.7, 1.7, 1.65])
     frictionless = dataclasses.replace(

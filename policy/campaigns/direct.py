@@ -7,7 +7,6 @@ its substeps, the way the firmware holds the last CURRENT packet. The controller
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -15,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from policy.tasks.arm import ArmLike, nominal_arm
+from policy.tasks.arm import ArmLike, CommandsInFlight, nominal_arm
 from policy.tasks.episodes import (
     Episode,
     EpisodeResult,
@@ -80,10 +79,7 @@ class DirectArm:
         currents = np.zeros((n + 1, joints))
         q[0], qdot[0] = arm.q, arm.qdot
         target = episode.target.copy()
-        # Commands in flight (control latency): (physics step they take effect at, currents).
-        delay = config.latency_substeps
-        pending: deque[tuple[int, np.ndarray]] = deque()
-        applied = np.zeros(joints)
+        in_flight = CommandsInFlight(config.latency_substeps, joints)
         for k in range(n):
             state = ControlState(q[k].copy(), qdot[k].copy(), k * config.period)
             action = acting.act(state, target.copy())
@@ -96,18 +92,7 @@ class DirectArm:
             # The energy integrates |tau qdot| at the physics rate (the back-EMF makes the
             # torque vary within a held period): the arm sums it over each held command.
             energy = np.zeros(joints)
-            start = k * config.substeps
-            pending.append((start + delay, u))
-            i = 0
-            while i < config.substeps:
-                while pending and pending[0][0] <= start + i:
-                    applied = pending.popleft()[1]
-                # hold the applied command up to the next switch
-                until = (
-                    config.substeps if not pending else min(config.substeps, pending[0][0] - start)
-                )
-                arm.step(applied, n=until - i, work=energy)
-                i = until
+            in_flight.advance(arm, u, k * config.substeps, config.substeps, work=energy)
             power[k + 1] = energy / config.substeps
             q[k + 1], qdot[k + 1] = arm.q, arm.qdot
             tau[k + 1] = arm.tau

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
@@ -32,7 +31,7 @@ from policy.controllers.observation import (
     Workspace,
     observation_bounds,
 )
-from policy.tasks.arm import ArmLike
+from policy.tasks.arm import ArmLike, CommandsInFlight
 from policy.tasks.envelope import Envelope, Variant, draws, has_envelope
 from protocol.models import ALPHA5, ArmModel, ArmModelName, model_named
 from reach_driver.metrics import OVERSHOOT_MIN_STEP_RAD
@@ -567,9 +566,7 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         self.variant: Variant | None = None
         self.latency_substeps = self._latency(config.latency_periods)
         self.noise = SENSOR_NOISE.scaled(config.noise_scale)
-        #: commands in flight: (physics step they take effect at, currents mA)
-        self._pending: deque[tuple[int, np.ndarray]] = deque()
-        self._applied = np.zeros(n)
+        self._in_flight = CommandsInFlight(self.latency_substeps, n)
         #: the observation's memory channels (previous action, error integral), if any
         self.memory = InputMemory(config.observation, self.control_dt, self.arm_workspace)
 
@@ -620,8 +617,7 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         self.prev_action = np.zeros(self.n_joints)
         #: each joint's largest overshoot ratio so far this episode (`overshoot_peak_weight`)
         self.overshoot_peak = np.zeros(self.n_joints)
-        self._pending.clear()
-        self._applied = np.zeros(self.n_joints)
+        self._in_flight = CommandsInFlight(self.latency_substeps, self.n_joints)
         self.steps = 0
         self.memory.reset()
         return self._observe(), self._info(in_bounds=True)
@@ -703,18 +699,9 @@ class ReachAlphaEnv(gym.Env[np.ndarray, np.ndarray]):
         (as `policy.campaigns.direct`). Returns the period's mean |tau qdot| with
         `measure_power`."""
         n = self.n_substeps
-        k0 = self.steps * n
-        self._pending.append((k0 + self.latency_substeps, currents))
+        # with `work`, |tau qdot| summed at the physics rate (as `direct`)
         work = np.zeros(self.n_joints) if self.measure_power else None
-        i = 0
-        while i < n:
-            while self._pending and self._pending[0][0] <= k0 + i:
-                self._applied = self._pending.popleft()[1]
-            # hold the applied command up to the next switch (at most one per period)
-            until = n if not self._pending else min(n, self._pending[0][0] - k0)
-            # with `work`, |tau qdot| summed at the physics rate (as `direct`)
-            self.arm.step(self._applied, n=until - i, work=work)
-            i = until
+        self._in_flight.advance(self.arm, currents, self.steps * n, n, work=work)
         return None if work is None else work / n
 
     def readings(self) -> tuple[np.ndarray, np.ndarray]:
