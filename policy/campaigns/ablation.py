@@ -155,6 +155,13 @@ INGREDIENTS: tuple[Ingredient, ...] = (
         ("env.reward.overshoot_peak_weight=100",),
     ),
     Ingredient(
+        "crossq",
+        "CrossQ's critic under DDPG's actor (off in the recipe): batch renormalisation in the "
+        "critic, no target networks, (s, a) and (s', pi(s')) in one batch, Adam's beta1 0.5, "
+        "the actor updated every third critic update, as CrossQ does",
+        ("crossq_critic=true", "adam_beta1=0.5", "policy_delay=3"),
+    ),
+    Ingredient(
         "sac",
         "soft actor-critic instead of DDPG: a Gaussian actor explored by its own samples, an "
         "entropy bonus with a learned temperature, twin critics; the mean action ships",

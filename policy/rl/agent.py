@@ -6,7 +6,9 @@ loss and the soft update of the targets. The TD3 and TD3+BC options (docs/traini
 docs/distilled.md) are branches inside those steps, each off in `DDPGConfig.paper()`.
 `Agent.update_sac` is SAC's update (`Algorithm.SAC`), read the same way as CleanRL's
 `sac_continuous_action.py`: a soft TD target, the actor's entropy-regularised loss and the
-temperature's.
+temperature's. With `crossq_critic` the DDPG update takes CrossQ's critic (Bhatt et al. 2024):
+batch-renormalised, no target networks, the TD target from the online critic's value of
+(s', pi(s')) computed in the same batch as Q(s, a).
 
 Speed (tools/bench_train.py): fused Adam, gradients of the actor loss for the actor only, and a
 foreach lerp for the target networks.
@@ -29,11 +31,12 @@ from policy.rl.smoothness import input_noise_std, spatial_loss, temporal_loss
 from protocol.alpha5 import N_JOINTS
 
 
-def _adam(params: Any, lr: float) -> torch.optim.Adam:
+def _adam(params: Any, lr: float, beta1: float = 0.9) -> torch.optim.Adam:
+    betas = (beta1, 0.999)
     try:
-        return torch.optim.Adam(params, lr=lr, fused=True)
+        return torch.optim.Adam(params, lr=lr, betas=betas, fused=True)
     except (RuntimeError, TypeError):
-        return torch.optim.Adam(params, lr=lr)
+        return torch.optim.Adam(params, lr=lr, betas=betas)
 
 
 class Agent:
@@ -43,8 +46,9 @@ class Agent:
         sac = config.algorithm is Algorithm.SAC
         self.actor = (GaussianActor if sac else Actor)(obs_dim, act_dim, config.hidden)
         n_critics = 2 if config.twin_critics else 1
+        renorm = config.crossq_warmup_updates if config.crossq_critic else None
         self.critics = nn.ModuleList(
-            Critic(obs_dim, act_dim, config.hidden, config.critic_layer_norm)
+            Critic(obs_dim, act_dim, config.hidden, config.critic_layer_norm, renorm)
             for _ in range(n_critics)
         )
         self.actor_target = copy.deepcopy(self.actor)
@@ -58,8 +62,8 @@ class Agent:
             self.actor_average = copy.deepcopy(self.actor)
             for p in self.actor_average.parameters():
                 p.requires_grad_(False)
-        self.actor_opt = _adam(self.actor.parameters(), config.actor_lr)
-        self.critic_opt = _adam(self.critics.parameters(), config.critic_lr)
+        self.actor_opt = _adam(self.actor.parameters(), config.actor_lr, config.adam_beta1)
+        self.critic_opt = _adam(self.critics.parameters(), config.critic_lr, config.adam_beta1)
         #: SAC's entropy temperature, learned as log alpha (unused by DDPG)
         self.log_alpha = torch.tensor(float(np.log(config.sac_alpha)), requires_grad=True)
         self.alpha_opt = _adam([self.log_alpha], config.sac_alpha_lr)
@@ -132,25 +136,35 @@ class Agent:
         )
 
         # 1. the TD target: r + gamma Q'(s', pi'(s')), cut only where the episode terminated;
-        #    `discount` is gamma (0 if terminated), or gamma^n with n-step returns in r
+        #    `discount` is gamma (0 if terminated), or gamma^n with n-step returns in r.
+        #    CrossQ: the online actor and critic in place of the targets
+        crossq = cfg.crossq_critic
         with torch.no_grad():
-            next_act = self.actor_target(next_obs)
+            next_act = (self.actor if crossq else self.actor_target)(next_obs)
             if cfg.target_noise > 0:  # TD3 target policy smoothing
                 noise = torch.randn(next_act.shape, generator=self.gen) * cfg.target_noise
                 noise = noise.clamp(-cfg.target_noise_clip, cfg.target_noise_clip)
                 next_act = (next_act + noise).clamp(-1.0, 1.0)
-            # one critic: itself; TD3's twin critics: the smaller
-            target = rew + discount * self._target_q(next_obs, next_act)
 
         # 2. the critic loss: mean squared TD error, summed over the critics
-        info = self._critic_step(obs, act, target)
+        if crossq:
+            info = self._crossq_critic_step(obs, act, rew, discount, next_obs, next_act)
+        else:
+            with torch.no_grad():
+                # one critic: itself; TD3's twin critics: the smaller
+                target = rew + discount * self._target_q(next_obs, next_act)
+            info = self._critic_step(obs, act, target)
         if self.updates % cfg.policy_delay != 0:  # TD3: the actor and targets wait
             return info
 
         # 3. the actor loss: -Q(s, pi(s)), plus TD3+BC's pull towards the expert's action and
-        #    CAPS's smoothness terms, where configured
+        #    CAPS's smoothness terms, where configured. CrossQ's critic values the actor's
+        #    actions by its running statistics (eval mode), not by this batch's
         pi = self.actor(obs)
+        if crossq:
+            self.critics.eval()
         q_pi = self.critics[0](obs, pi)
+        self.critics.train()
         if bc_weight > 0:
             # the Q term is made scale-free so bc_weight means the same all run
             lam = cfg.q_weight / q_pi.abs().mean().detach().clamp(min=1e-6)
@@ -183,13 +197,16 @@ class Agent:
         self.actor_opt.step()
         info["actor_loss"] = float(actor_loss.detach())
 
-        # 4. soft update of the targets: theta' <- theta' + tau (theta - theta')
-        with torch.no_grad():
-            for net, target_net in (
-                (self.actor, self.actor_target),
-                (self.critics, self.critics_target),
-            ):
-                torch._foreach_lerp_(list(target_net.parameters()), list(net.parameters()), cfg.tau)
+        # 4. soft update of the targets: theta' <- theta' + tau (theta - theta'); CrossQ has none
+        if not crossq:
+            with torch.no_grad():
+                for net, target_net in (
+                    (self.actor, self.actor_target),
+                    (self.critics, self.critics_target),
+                ):
+                    torch._foreach_lerp_(
+                        list(target_net.parameters()), list(net.parameters()), cfg.tau
+                    )
         self._follow_average()
         return info
 
@@ -248,7 +265,10 @@ class Agent:
         self, obs: torch.Tensor, act: torch.Tensor, target: torch.Tensor
     ) -> dict[str, float]:
         """One step of the critics towards `target`: the mean squared TD error, summed."""
-        qs = [c(obs, act) for c in self.critics]
+        return self._fit_critics([c(obs, act) for c in self.critics], target)
+
+    def _fit_critics(self, qs: list[torch.Tensor], target: torch.Tensor) -> dict[str, float]:
+        """One optimiser step on the critics' summed mean squared TD error."""
         critic_loss = sum(((q - target) ** 2).mean() for q in qs)
         assert isinstance(critic_loss, torch.Tensor)
         self.critic_opt.zero_grad(set_to_none=True)
@@ -256,6 +276,27 @@ class Agent:
         self.critic_opt.step()
         self.updates += 1
         return {"critic_loss": float(critic_loss.detach()), "q": float(qs[0].detach().mean())}
+
+    def _crossq_critic_step(
+        self,
+        obs: torch.Tensor,
+        act: torch.Tensor,
+        rew: torch.Tensor,
+        discount: torch.Tensor,
+        next_obs: torch.Tensor,
+        next_act: torch.Tensor,
+    ) -> dict[str, float]:
+        """CrossQ's critic step: (s, a) and (s', a') through each critic as one batch, so its
+        batch renormalisation sees both; the TD target is r + gamma times the (smaller, with
+        twin critics) value of the second half, without gradient."""
+        n = obs.shape[0]
+        both_obs, both_act = torch.cat([obs, next_obs]), torch.cat([act, next_act])
+        outs = [c(both_obs, both_act) for c in self.critics]
+        with torch.no_grad():
+            q_next = torch.min(torch.stack([out[n:] for out in outs]), dim=0).values
+            target = rew + discount * q_next
+        qs = [out[:n] for out in outs]
+        return self._fit_critics(qs, target)
 
     @torch.no_grad()
     def _follow_average(self) -> None:

@@ -42,13 +42,16 @@ TEACHER = "PDExpert (privileged: true state, masses, torque scale)"
 
 
 def algorithm(config: DDPGConfig) -> str:
-    """What the config trains: SAC; DDPG, or TD3 if any of its three changes is on; +
-    behaviour cloning when the actor loss imitates the teacher."""
+    """What the config trains: SAC; DDPG, or TD3 if any of its three changes is on, with
+    CrossQ's critic where set; + behaviour cloning when the actor loss imitates the
+    teacher."""
     if config.algorithm is Algorithm.SAC:
         critics = "twin critics" if config.twin_critics else "one critic"
         return f"SAC ({critics}, learned temperature; the mean action is the policy)"
     plain = not config.twin_critics and config.policy_delay == 1 and config.target_noise == 0
     name = "DDPG" if plain else "TD3"
+    if config.crossq_critic:
+        name += " with CrossQ's critic (batch renormalisation, no target networks)"
     if config.bc_weight > 0:
         name += (
             f" + behaviour cloning toward the teacher (weight {config.bc_weight:g} -> "

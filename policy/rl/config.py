@@ -131,6 +131,16 @@ class DDPGConfig:
     policy_delay: int = 1
     #: LayerNorm after each hidden layer of the critics (the actor, which ships, is unchanged)
     critic_layer_norm: bool = False
+    #: CrossQ's critic (Bhatt et al., ICLR 2024) under DDPG's or TD3's actor: batch
+    #: renormalisation before each critic layer, no target networks, and (s, a) with
+    #: (s', pi(s')) through the critic as one batch, so the normalisation's statistics
+    #: cover both; the TD target is the online critic's value of s'. `tau` is then unused
+    crossq_critic: bool = False
+    #: CrossQ: critic updates over which batch renormalisation's corrections open up (r to
+    #: [1/3, 3], d to [-5, 5]); before that it is batch normalisation
+    crossq_warmup_updates: int = 12_500
+    #: Adam's beta1 for the actor and critics (0.9: Adam's default; CrossQ's 0.5)
+    adam_beta1: float = 0.9
     #: rewards per stored transition (policy/rl/nstep.py): the critic's target sums n rewards
     #: and bootstraps gamma^n later (1: DDPG's one-step target)
     n_step: int = 1
@@ -214,6 +224,24 @@ class DDPGConfig:
                 raise ValueError("SAC here learns from the reward alone: no bc_weight or demos")
             if self.sac_alpha <= 0 or self.sac_alpha_lr < 0:
                 raise ValueError("sac_alpha must be > 0 and sac_alpha_lr >= 0")
+        if self.crossq_critic and self.algorithm is not Algorithm.DDPG:
+            raise ValueError("crossq_critic is built into DDPG's update here; not with SAC")
+        if self.crossq_critic and (self.critic_layer_norm or self.bc_weight > 0):
+            raise ValueError(
+                "crossq_critic normalises the critic by batch: not with critic_layer_norm or "
+                "bc_weight"
+            )
+        if not (
+            isinstance(self.crossq_warmup_updates, int)
+            and not isinstance(self.crossq_warmup_updates, bool)
+            and self.crossq_warmup_updates >= 0
+        ):
+            raise ValueError(
+                f"crossq_warmup_updates must be a whole number >= 0, got "
+                f"{self.crossq_warmup_updates!r}"
+            )
+        if not 0.0 <= self.adam_beta1 < 1.0:
+            raise ValueError(f"adam_beta1 must be in [0, 1), got {self.adam_beta1}")
         if not 0 <= self.actor_average_tau < 1:
             raise ValueError(f"actor_average_tau must be in [0, 1), got {self.actor_average_tau}")
         for name in ("smooth_spatial_weight", "smooth_temporal_weight"):
