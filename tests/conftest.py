@@ -29,6 +29,7 @@ import pytest
 
 if TYPE_CHECKING:
     from policy.rl.config import DDPGConfig
+    from policy.rl.trainer import Trainer
     from protocol.models import ArmModel
     from reach_sim_bridge.emulator.server import SimConfig, SimServer
 
@@ -156,6 +157,18 @@ def tiny(config: DDPGConfig, **overrides: object) -> DDPGConfig:
     )
     base.update(overrides)
     return dataclasses.replace(config, **base)  # type: ignore[arg-type]
+
+
+def train_quietly(config: DDPGConfig, run_dir: Path) -> Trainer:
+    """`config` trained to its end in `run_dir` (train.csv there), the trainer closed after."""
+    from policy.rl.trainer import Trainer
+
+    trainer = Trainer(config, run_dir, log=lambda _: None)
+    try:
+        trainer.run(csv_path=run_dir / "train.csv")
+    finally:
+        trainer.close()
+    return trainer
 
 
 def run_tool(script: str, *argv: str) -> subprocess.CompletedProcess[str]:

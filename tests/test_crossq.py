@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import tiny
+from conftest import tiny, train_quietly
 from torch.nn import functional
 
 from policy.rl.agent import Agent
@@ -20,7 +20,6 @@ from policy.rl.checkpoint import algorithm
 from policy.rl.config import Algorithm, DDPGConfig
 from policy.rl.networks import BatchRenorm
 from policy.rl.overrides import apply_overrides
-from policy.rl.trainer import Trainer
 
 
 def _crossq(**overrides: object) -> DDPGConfig:
@@ -145,11 +144,7 @@ def test_a_crossq_run_trains_and_records_its_critic(tmp_path: Path) -> None:
         eval_every=400,
         eval_episodes=2,
     )
-    trainer = Trainer(cfg, tmp_path / "run", log=lambda _: None)
-    try:
-        trainer.run(csv_path=tmp_path / "run" / "train.csv")
-    finally:
-        trainer.close()
+    train_quietly(cfg, tmp_path / "run")
     meta = json.loads((tmp_path / "run" / "best_actor.json").read_text())
     assert "CrossQ's critic" in meta["provenance"]["algorithm"]
     assert meta["provenance"]["demonstrations"] == "none"

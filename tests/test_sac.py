@@ -12,7 +12,7 @@ from typing import cast
 import numpy as np
 import pytest
 import torch
-from conftest import tiny
+from conftest import tiny, train_quietly
 
 from policy.controllers.weights import LEAKY_RELU_SLOPE, ActorWeights
 from policy.rl.agent import Agent
@@ -22,7 +22,6 @@ from policy.rl.config import Algorithm, DDPGConfig
 from policy.rl.exploration import GaussianSampler
 from policy.rl.networks import GaussianActor
 from policy.rl.overrides import apply_overrides
-from policy.rl.trainer import Trainer
 
 
 def _sac(**overrides: object) -> DDPGConfig:
@@ -147,11 +146,7 @@ def test_a_sac_run_keeps_the_mean_action_in_the_shipped_format(tmp_path: Path) -
         eval_every=400,  # one checkpoint, at the end: the agent's weights now
         eval_episodes=2,
     )
-    trainer = Trainer(cfg, tmp_path / "run", log=lambda _: None)
-    try:
-        trainer.run(csv_path=tmp_path / "run" / "train.csv")
-    finally:
-        trainer.close()
+    trainer = train_quietly(cfg, tmp_path / "run")
     kept = ActorWeights.load(tmp_path / "run" / "best_actor.npz")
     obs = np.random.default_rng(1).normal(size=(4, trainer.obs_dim)).astype(np.float32)
     np.testing.assert_allclose(kept.forward(obs), trainer.agent.act(obs), atol=1e-5)
