@@ -21,6 +21,9 @@ Contenders:
   scratch+collector  the preset as it trains the shipped `ddpg`: the same with
           `collector_process`, the envs in a second process one round ahead of the
           learner (on one core this only adds the hand-over)
+  scratch+crossq  `scratch` with the `crossq` ingredient (CrossQ's batch-renormalised
+          critic without target networks, s and s' in one batch, the actor every third
+          update), the envs in this process
 """
 
 from __future__ import annotations
@@ -231,6 +234,13 @@ def main(argv: list[str] | None = None) -> int:
             args.warmup,
             args.steps,
             tmp.name + "/collector",
+            trainers,
+        ),
+        "scratch+crossq": bench_ours(
+            dataclasses.replace(scratch, crossq_critic=True, adam_beta1=0.5, policy_delay=3),
+            args.warmup,
+            args.steps,
+            tmp.name + "/crossq",
             trainers,
         ),
     }
